@@ -1,0 +1,32 @@
+"""balustrade: a modeling language for safe predictive control.
+
+State a formulation (dynamics, soft constraints, tightenings, tubes, terminal CBFs,
+decrease constraints, costs) with :class:`balustrade.dsl.OCP`, compile it to CasADi or
+cvxpy with :func:`balustrade.compile`, verify solutions with :func:`balustrade.verify`,
+and run it in closed loop with :mod:`balustrade.control`.
+"""
+
+from balustrade.errors import (
+    BalustradeError,
+    CodegenError,
+    ConvexityError,
+    EmptySetError,
+    NonFiniteError,
+    NotPSDError,
+    ShapeError,
+    SolverError,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BalustradeError",
+    "CodegenError",
+    "ConvexityError",
+    "EmptySetError",
+    "NonFiniteError",
+    "NotPSDError",
+    "ShapeError",
+    "SolverError",
+    "__version__",
+]

@@ -1,0 +1,43 @@
+"""Exceptions raised by balustrade.
+
+Every error names the block (a constraint, a set, a system, a parameter) it concerns and,
+for shape problems, the expected and the given shape, before any solver runs.
+"""
+
+from __future__ import annotations
+
+
+class BalustradeError(Exception):
+    """Base class of all balustrade errors."""
+
+
+class ShapeError(BalustradeError, ValueError):
+    """An array or expression has the wrong shape for the block it is given to."""
+
+    def __init__(self, block: str, expected: object, given: object, what: str = "shape"):
+        self.block, self.expected, self.given = block, expected, given
+        super().__init__(f"{block}: expected {what} {expected}, got {given}")
+
+
+class NonFiniteError(BalustradeError, ValueError):
+    """A numeric input contains NaN or inf."""
+
+
+class NotPSDError(BalustradeError, ValueError):
+    """A matrix that must be positive (semi)definite is not."""
+
+
+class EmptySetError(BalustradeError, ValueError):
+    """A set is empty (e.g. an infeasible polytope, or a tightening that removed everything)."""
+
+
+class ConvexityError(BalustradeError, ValueError):
+    """A block cannot be represented by a convex (cvxpy) backend."""
+
+
+class SolverError(BalustradeError, ValueError):
+    """Unknown solver name, or a solver that cannot do what was asked."""
+
+
+class CodegenError(BalustradeError, RuntimeError):
+    """C code generation, compilation or loading failed."""

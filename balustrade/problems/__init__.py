@@ -1,0 +1,1 @@
+"""balustrade.problems."""
