@@ -1,0 +1,197 @@
+"""Lowering of an :class:`~balustrade.dsl.ocp.OCP` to a parametric CasADi NLP.
+
+Compiled once (``nlpsol``), solved many times with new parameter values and primal-dual
+warm starts (DESIGN.md principle 2). Non-smooth cost terms become epigraph variables:
+
+* ``‖a‖₁``: ``−t <= a <= t``, cost ``Σ t`` (or ``Σ a`` when ``a`` are nonnegative variables);
+* ``‖a‖∞``: ``−t <= a_j <= t``, cost ``t``;
+* ``‖a‖₂``: ``aᵀa <= t²``, ``t >= 0``, cost ``t`` (smooth but degenerate at ``a = 0``);
+* ``max_j a_j``: ``a_j <= t``, cost ``t``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from balustrade.backends.solution import Solution
+from balustrade.dsl.ocp import OCP
+from balustrade.errors import SolverError
+
+DEFAULT_OPTIONS: dict[str, dict] = {
+    "ipopt": {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
+              "ipopt.tol": 1e-10, "ipopt.acceptable_tol": 1e-8, "ipopt.max_iter": 500,
+              "ipopt.bound_relax_factor": 0.0},
+    "sqpmethod": {"qpsol": "qrqp", "print_time": False, "print_header": False,
+                  "print_iteration": False, "print_status": False,
+                  "qpsol_options": {"print_iter": False, "print_header": False,
+                                    "print_info": False, "error_on_fail": False},
+                  "max_iter": 100, "tol_pr": 1e-10, "tol_du": 1e-10,
+                  "error_on_fail": False},
+}
+
+
+@dataclass
+class _Epigraph:
+    """Auxiliary epigraph variables and constraints added for non-smooth terms."""
+
+    w: list
+    lb: list
+    ub: list
+    init: list
+    g: list
+    lbg: list
+    ubg: list
+    f: ca.SX
+
+
+def _lower_cost(ocp: OCP) -> _Epigraph:
+    nonneg = {v.name: v for v in ocp.variables.values() if np.all(v.lb >= 0)}
+    nonneg_syms = set()
+    for v in nonneg.values():
+        for k in range(v.sym.numel()):
+            nonneg_syms.add(v.sym.nz[k].element_hash())
+    epi = _Epigraph([], [], [], [], [], [], [], ca.SX(0))
+    for idx, term in enumerate(ocp.cost.terms):
+        a, c = term.expr, term.coef
+        if term.kind == "smooth":
+            epi.f += c * term.expr
+        elif term.kind == "squared2":
+            epi.f += c * ca.sumsqr(a)
+        elif term.kind == "norm1" and _all_nonneg_symbols(a, nonneg_syms):
+            epi.f += c * ca.sum1(a)
+        elif term.kind in ("norm1", "norminf", "max", "norm2"):
+            size = a.numel() if term.kind == "norm1" else 1
+            t = ca.SX.sym(f"epi{idx}", size)
+            epi.w.append(t)
+            epi.init.append(np.zeros(size))
+            epi.f += c * ca.sum1(t)
+            if term.kind == "norm2":
+                epi.lb.append(np.zeros(1))
+                epi.ub.append(np.full(1, np.inf))
+                epi.g.append(ca.sumsqr(a) - t ** 2)
+                epi.lbg.append(-np.inf)
+                epi.ubg.append(0.0)
+                continue
+            epi.lb.append(np.full(size, -np.inf if term.kind == "max" else 0.0))
+            epi.ub.append(np.full(size, np.inf))
+            rows = [a - t] if term.kind == "max" else [a - t, -a - t]
+            for r in rows:
+                epi.g.append(r)
+                epi.lbg.extend([-np.inf] * int(r.numel()))
+                epi.ubg.extend([0.0] * int(r.numel()))
+        else:  # pragma: no cover - Cost only creates the kinds above
+            raise SolverError(f"{ocp.name}: unknown cost term kind {term.kind!r}")
+    return epi
+
+
+def _all_nonneg_symbols(a: ca.SX, nonneg_syms: set) -> bool:
+    return all(a.nz[k].is_symbolic() and a.nz[k].element_hash() in nonneg_syms
+               for k in range(a.numel()))
+
+
+class CasadiCompiled:
+    """A compiled CasADi problem: call :meth:`solve` with parameter values."""
+
+    backend = "casadi"
+
+    def __init__(self, ocp: OCP, solver: str = "ipopt", options: dict | None = None):
+        if not ca.has_nlpsol(solver):
+            raise SolverError(f"{ocp.name}: unknown CasADi NLP solver {solver!r} "
+                              "(try 'ipopt', 'sqpmethod' (with qrqp), 'fatrop')")
+        self.ocp, self.solver_name = ocp, solver
+        opts = {**DEFAULT_OPTIONS.get(solver, {}), **(options or {})}
+        w_user = ocp.decision_vector()
+        p = ocp.parameter_vector()
+        epi = _lower_cost(ocp)
+        self.n_user = int(w_user.numel())
+        w = ca.vertcat(w_user, *epi.w)
+        g_blocks = [b.expr for b in ocp.blocks]
+        g = ca.vertcat(*g_blocks, *epi.g)
+        lb_user, ub_user = ocp.bounds()
+        self.lbx = np.concatenate([lb_user, *epi.lb]) if epi.lb else lb_user
+        self.ubx = np.concatenate([ub_user, *epi.ub]) if epi.ub else ub_user
+        self.init_epi = np.concatenate(epi.init) if epi.init else np.zeros(0)
+        lbg, ubg = [], []
+        self.block_slices: dict[str, slice] = {}
+        k = 0
+        for b in ocp.blocks:
+            lbg.extend([0.0 if b.kind == "eq" else -np.inf] * b.rows)
+            ubg.extend([0.0] * b.rows)
+            self.block_slices[b.name] = slice(k, k + b.rows)
+            k += b.rows
+        self.lbg = np.array(lbg + list(epi.lbg), dtype=float)
+        self.ubg = np.array(ubg + list(epi.ubg), dtype=float)
+        self.n_g_user = k
+        nlp = {"x": w, "p": p, "f": epi.f, "g": g}
+        self.nlp = nlp
+        self.options = opts
+        self.solver = ca.nlpsol(ocp.name, solver, nlp, opts)
+        self._objective = ca.Function("objective", [w_user, p], [ocp.cost.expr()])
+
+    def solve(self, params: dict[str, object] | None = None,
+              warm_start: Solution | dict[str, object] | None = None) -> Solution:
+        """Solve with the given parameter values; ``warm_start`` is a previous
+        :class:`Solution` (primal and dual) or a dict of variable values."""
+        p = self.ocp.pack_parameters(params)
+        x0, lam_x0, lam_g0 = self._initial_guess(warm_start)
+        start = time.perf_counter()
+        try:
+            res = self.solver(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg,
+                              ubg=self.ubg, lam_x0=lam_x0, lam_g0=lam_g0)
+            elapsed = time.perf_counter() - start
+            stats = self.solver.stats()
+        except RuntimeError as exc:  # CasADi raises on evaluation errors (NaN, etc.)
+            elapsed = time.perf_counter() - start
+            return self._failed(p, elapsed, str(exc))
+        w_all = np.asarray(res["x"]).reshape(-1)
+        lam_g = np.asarray(res["lam_g"]).reshape(-1)
+        lam_x = np.asarray(res["lam_x"]).reshape(-1)
+        w = w_all[: self.n_user]
+        status = _status(stats)
+        dual = {name: lam_g[s] for name, s in self.block_slices.items()}
+        for name, arr in self.ocp.unpack_variables(lam_x[: self.n_user]).items():
+            dual[f"bound:{name}"] = arr
+        objective = float(self._objective(w, p)) if np.all(np.isfinite(w)) else np.nan
+        return Solution(status=status, objective=objective,
+                        primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
+                        iterations=int(stats.get("iter_count", 0)), backend="casadi",
+                        solver=self.solver_name, w=w, p=p,
+                        message=str(stats.get("return_status", "")),
+                        raw={"x": w_all, "lam_x": lam_x, "lam_g": lam_g})
+
+    def _initial_guess(self, warm: Solution | dict | None
+                       ) -> tuple[np.ndarray, np.ndarray | float, np.ndarray | float]:
+        if isinstance(warm, Solution) and warm.backend == "casadi" and "x" in warm.raw \
+                and np.all(np.isfinite(warm.raw["x"])):
+            return warm.raw["x"], warm.raw["lam_x"], warm.raw["lam_g"]
+        if isinstance(warm, Solution):
+            w_user = warm.w if np.all(np.isfinite(warm.w)) else self.ocp.pack_variables({})
+        elif isinstance(warm, dict):
+            w_user = self.ocp.pack_variables(warm)
+        else:
+            w_user = self.ocp.pack_variables({})
+        return np.concatenate([w_user, self.init_epi]), 0.0, 0.0
+
+    def _failed(self, p: np.ndarray, elapsed: float, message: str) -> Solution:
+        w = np.full(self.n_user, np.nan)
+        return Solution(status="failed", objective=np.nan,
+                        primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
+                        iterations=0, backend="casadi", solver=self.solver_name, w=w, p=p,
+                        message=message)
+
+
+def _status(stats: dict) -> str:
+    if stats.get("success", False):
+        return "optimal"
+    msg = str(stats.get("return_status", "")).lower()
+    if "infeasible" in msg:
+        return "infeasible"
+    if "maximum" in msg or "max_iter" in msg:
+        return "max_iterations"
+    if "acceptable" in msg:
+        return "optimal_inaccurate"
+    return "failed"

@@ -1,0 +1,434 @@
+"""The horizon problem builder.
+
+An :class:`OCP` is data: decision variables, parameters (values given at solve time),
+named constraint blocks (``g(w, p) == 0`` or ``g(w, p) <= 0``) and a cost made of
+:mod:`balustrade.dsl.costs` terms. The methods below add the blocks the thesis'
+formulations are made of, so that a formulation reads like its equations in SPEC.md::
+
+    ocp = OCP(pendulum, N=10, name="pcbf_slack")            # (2.24)
+    x0 = ocp.parameter("x0", 2)
+    ocp.initial_state(x0)                                   # x_{0|k} = x_k
+    ocp.dynamics()                                          # x_{i+1|k} = f(x_{i|k}, u_{i|k})
+    ocp.input_constraint(U)                                 # u_{i|k} ∈ U
+    xi = ocp.state_constraint(X, tightening=deltas, slack="variable")   # x_{i|k} ∈ X̄_i(ξ_i)
+    xi_N = ocp.terminal_cbf(h_f, slack="variable")          # h_f(x_{N|k}) <= ξ_N
+    ocp.minimize(alpha_f * xi_N + sum_norms(xi, 1))
+
+Nothing here knows about backends (DESIGN.md); :mod:`balustrade.backends` lowers blocks.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.dsl.costs import Cost
+from balustrade.dsl.sets import Set
+from balustrade.dsl.system import System
+from balustrade.errors import BalustradeError, ShapeError
+
+SlackSpec = str | ca.SX | None
+Tightening = float | Sequence[float] | np.ndarray | Callable[[int], float] | None
+
+
+@dataclass
+class Variable:
+    """A decision variable (a matrix of CasADi symbols) with simple bounds."""
+
+    name: str
+    sym: ca.SX
+    lb: np.ndarray
+    ub: np.ndarray
+    init: np.ndarray
+    role: str = "free"  # free | state | input | slack | epigraph
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.sym.shape)  # type: ignore[return-value]
+
+
+@dataclass
+class Parameter:
+    """A parameter: a symbol whose value is given at solve time (``PAR`` in SPEC.md)."""
+
+    name: str
+    sym: ca.SX
+    default: np.ndarray | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.sym.shape)  # type: ignore[return-value]
+
+
+@dataclass
+class Block:
+    """A named constraint block ``expr == 0`` (``kind='eq'``) or ``expr <= 0`` (``'le'``).
+
+    ``tag`` says what the block is (``dynamics``, ``initial``, ``state``, ``input``,
+    ``terminal``, ``terminal_cbf``, ``decrease``, ``tube``, ``generic``) so that
+    :func:`balustrade.verify` can report dynamics residuals separately.
+    """
+
+    name: str
+    kind: str
+    expr: ca.SX
+    tag: str = "generic"
+    info: dict = field(default_factory=dict)
+
+    @property
+    def rows(self) -> int:
+        return int(self.expr.numel())
+
+
+class OCP:
+    """A horizon optimal control problem over ``N`` steps of ``system`` (or none).
+
+    With a system, state and input trajectories are created at once: ``ocp.x`` is
+    ``(nx, N+1)`` and ``ocp.u`` is ``(nu, N)`` (names configurable, e.g. ``z``/``v`` for the
+    nominal trajectories of tube formulations (2.15), (5.15)).
+    """
+
+    def __init__(self, system: System | None = None, N: int = 0, name: str = "ocp",
+                 state_name: str = "x", input_name: str = "u"):
+        if system is not None and (not isinstance(N, (int, np.integer)) or N < 1):
+            raise BalustradeError(f"{name}: horizon N must be a positive integer, got {N!r}")
+        self.system, self.N, self.name = system, int(N), name
+        self.variables: dict[str, Variable] = {}
+        self.parameters: dict[str, Parameter] = {}
+        self.blocks: list[Block] = []
+        self.cost = Cost()
+        self.x: ca.SX | None = None
+        self.u: ca.SX | None = None
+        self.state_name, self.input_name = state_name, input_name
+        if system is not None:
+            self.x = self.variable(state_name, system.nx, self.N + 1, role="state")
+            self.u = self.variable(input_name, system.nu, self.N, role="input")
+
+    # -- symbols ---------------------------------------------------------------------
+    def variable(self, name: str, rows: int, cols: int = 1, lb: object = -np.inf,
+                 ub: object = np.inf, init: object = 0.0, role: str = "free") -> ca.SX:
+        """Add a decision variable of shape ``(rows, cols)`` and return its symbol."""
+        self._check_new_name(name)
+        sym = ca.SX.sym(name, rows, cols)
+        shape = (rows, cols)
+        self.variables[name] = Variable(name, sym, _broadcast(lb, shape, f"{name}: lb"),
+                                        _broadcast(ub, shape, f"{name}: ub"),
+                                        _broadcast(init, shape, f"{name}: init"), role)
+        return sym
+
+    def parameter(self, name: str, rows: int, cols: int = 1,
+                  value: object | None = None) -> ca.SX:
+        """Add a parameter of shape ``(rows, cols)``; its value is given at solve time."""
+        self._check_new_name(name)
+        sym = ca.SX.sym(name, rows, cols)
+        default = None if value is None else _broadcast(value, (rows, cols), f"{name}: value")
+        self.parameters[name] = Parameter(name, sym, default)
+        return sym
+
+    def _check_new_name(self, name: str) -> None:
+        if not name.isidentifier():
+            raise BalustradeError(f"{self.name}: symbol name {name!r} is not an identifier")
+        if name in self.variables or name in self.parameters:
+            raise BalustradeError(f"{self.name}: a variable or parameter named {name!r} "
+                                  "already exists")
+
+    # -- generic constraints ---------------------------------------------------------
+    def eq(self, lhs: object, rhs: object = 0.0, name: str = "eq", tag: str = "generic",
+           **info: object) -> Block:
+        """Add ``lhs == rhs`` (elementwise) as a named block."""
+        return self._add(name, "eq", lhs, rhs, tag, info)
+
+    def le(self, lhs: object, rhs: object = 0.0, name: str = "le", tag: str = "generic",
+           **info: object) -> Block:
+        """Add ``lhs <= rhs`` (elementwise) as a named block."""
+        return self._add(name, "le", lhs, rhs, tag, info)
+
+    def _add(self, name: str, kind: str, lhs: object, rhs: object, tag: str,
+             info: dict) -> Block:
+        lhs_sx, rhs_sx = ca.SX(lhs), ca.SX(rhs)
+        if rhs_sx.numel() not in (1, lhs_sx.numel()) and lhs_sx.numel() != 1:
+            raise ShapeError(f"{self.name}: block {name!r}", f"right side of shape {lhs_sx.shape}"
+                             " or a scalar", rhs_sx.shape)
+        expr = ca.vec(lhs_sx - rhs_sx)
+        unique = self._unique_block_name(name)
+        block = Block(unique, kind, expr, tag, dict(info))
+        self.blocks.append(block)
+        return block
+
+    def _unique_block_name(self, name: str) -> str:
+        taken = {b.name for b in self.blocks}
+        if name not in taken:
+            return name
+        k = 2
+        while f"{name}_{k}" in taken:
+            k += 1
+        return f"{name}_{k}"
+
+    def decrease(self, expr: object, bound: object, name: str = "decrease") -> Block:
+        """A decrease constraint ``expr <= bound`` on any expression of the decision
+        variables against a (parameter) bound, e.g. (6.3h) or (6.15g)."""
+        return self.le(expr, bound, name=name, tag="decrease")
+
+    # -- blocks of the thesis' formulations ---------------------------------------------
+    def _need_system(self, what: str) -> System:
+        if self.system is None or self.x is None or self.u is None:
+            raise BalustradeError(f"{self.name}: {what} needs an OCP built with a system")
+        return self.system
+
+    def initial_state(self, x0: object, name: str = "initial_state") -> Block:
+        """``x_{0|k} = x_k`` ((2.9), (2.24b))."""
+        sys = self._need_system("initial_state")
+        x0 = self._as_column(x0, sys.nx, f"{name}: x0")
+        return self.eq(self.x[:, 0], x0, name=name, tag="initial")
+
+    def initial_tube(self, x0: object, E: Set, name: str = "initial_tube") -> Block:
+        """``x_k ∈ z_{0|k} ⊕ E``, i.e. ``x_k − z_{0|k} ∈ E`` ((2.15), (5.15b))."""
+        sys = self._need_system("initial_tube")
+        x0 = self._as_column(x0, sys.nx, f"{name}: x0")
+        self._check_set_dim(E, sys.nx, name)
+        return self.le(E.c(x0 - self.x[:, 0]), 0, name=name, tag="tube", set=E.name)
+
+    def dynamics(self, w: object | None = None, theta: object | None = None,
+                 name: str = "dynamics") -> Block:
+        """``x_{i+1|k} = f(x_{i|k}, u_{i|k}, w, θ)`` for ``i ∈ I[0, N−1]`` (nominal: ``w = 0``)."""
+        sys = self._need_system("dynamics")
+        w = ca.DM.zeros(sys.nw) if w is None else self._as_column(w, sys.nw, f"{name}: w")
+        theta = (ca.DM.zeros(sys.ntheta) if theta is None
+                 else self._as_column(theta, sys.ntheta, f"{name}: theta"))
+        residual = [self.x[:, i + 1] - sys(self.x[:, i], self.u[:, i], w, theta)
+                    for i in range(self.N)]
+        return self.eq(ca.horzcat(*residual), 0, name=name, tag="dynamics")
+
+    def input_constraint(self, U: Set | Sequence[Set], steps: Sequence[int] | None = None,
+                         tightening: Tightening = None, name: str = "input") -> Block:
+        """``u_{i|k} ∈ U`` (or ``U_i`` per step, e.g. ``U ⊖ K E_i`` (2.14)) for the steps."""
+        sys = self._need_system("input_constraint")
+        steps = list(range(self.N)) if steps is None else list(steps)
+        sets = self._per_step_sets(U, steps, sys.nu, name)
+        delta = self._deltas(tightening, steps, name)
+        rows = [S.c(self.u[:, i]) + d for S, i, d in zip(sets, steps, delta)]
+        return self.le(ca.horzcat(*rows), 0, name=name, tag="input")
+
+    def state_constraint(self, X: Set | Sequence[Set], steps: Sequence[int] | None = None,
+                         tightening: Tightening = None, slack: SlackSpec = None,
+                         signed: bool = False, name: str = "state") -> ca.SX | None:
+        """``c_x(x_{i|k}) + Δ_i 1 <= ξ_{i|k}`` for ``i`` in ``steps`` (default ``I[0, N−1]``).
+
+        * ``slack=None``: hard constraint ``x_{i|k} ∈ X̄_i(0)`` (SPEC §1.4);
+        * ``slack="variable"``: one slack per constraint row and step, returned as an
+          ``(n_rows, len(steps))`` symbol, ``ξ >= 0`` unless ``signed=True`` ((2.24), (7.8));
+        * ``slack=<expression>``: slacks fixed to a parameter expression ((2.23), (5.16)).
+
+        ``X`` may be a list of sets, one per step (reachable-set tightening (2.14)), and
+        ``tightening`` a scalar, a sequence ``Δ_i`` over ``steps`` or a callable ``i ↦ Δ_i``.
+        """
+        sys = self._need_system("state_constraint")
+        steps = list(range(self.N)) if steps is None else list(steps)
+        sets = self._per_step_sets(X, steps, sys.nx, name)
+        delta = self._deltas(tightening, steps, name)
+        rows = [S.c(self.x[:, i]) + d for S, i, d in zip(sets, steps, delta)]
+        n_rows = {int(r.numel()) for r in rows}
+        if len(n_rows) != 1:
+            raise ShapeError(f"{self.name}: {name}", "sets with the same number of rows per step",
+                             sorted(n_rows), what="row counts")
+        lhs = ca.horzcat(*rows)
+        xi = self._slack(slack, lhs.shape, signed, name)
+        if xi is None:
+            self.le(lhs, 0, name=name, tag="state")
+        else:
+            self.le(lhs, xi, name=name, tag="state")
+        return xi
+
+    def terminal_constraint(self, Xf: Set, tightening: float = 0.0, slack: SlackSpec = None,
+                            signed: bool = False, name: str = "terminal") -> ca.SX | None:
+        """``c_{x,f}(x_{N|k}) + Δ <= ξ_N`` (hard when ``slack=None``) ((2.9), (2.11))."""
+        sys = self._need_system("terminal_constraint")
+        self._check_set_dim(Xf, sys.nx, name)
+        lhs = Xf.c(self.x[:, self.N]) + float(tightening)
+        xi = self._slack(slack, lhs.shape, signed, name)
+        self.le(lhs, 0 if xi is None else xi, name=name, tag="terminal")
+        return xi
+
+    def terminal_cbf(self, h_f: Callable[[ca.SX], object], slack: SlackSpec = None,
+                     signed: bool = False, name: str = "terminal_cbf") -> ca.SX | None:
+        """``h_f(x_{N|k}) <= ξ_{N|k}`` ((2.24), (5.15f)); hard ``h_f(x_N) <= 0`` if no slack."""
+        sys = self._need_system("terminal_cbf")
+        try:
+            value = ca.SX(h_f(self.x[:, self.N]))
+        except Exception as exc:  # the user's function failed on a symbol
+            raise BalustradeError(f"{self.name}: {name}: h_f(x) failed on a symbol of shape "
+                                  f"({sys.nx}, 1): {exc}") from exc
+        if value.numel() != 1:
+            raise ShapeError(f"{self.name}: {name}: h_f(x)", "a scalar", value.shape)
+        xi = self._slack(slack, (1, 1), signed, name)
+        self.le(value, 0 if xi is None else xi, name=name, tag="terminal_cbf")
+        return xi
+
+    # -- cost ----------------------------------------------------------------------
+    def minimize(self, cost: object) -> None:
+        """Set the objective (a CasADi scalar, a :class:`Cost`, or a sum of both)."""
+        self.cost = Cost.of(cost)
+
+    # -- helpers ---------------------------------------------------------------------
+    def _slack(self, slack: SlackSpec, shape: tuple[int, int], signed: bool,
+               block: str) -> ca.SX | None:
+        if slack is None:
+            return None
+        if isinstance(slack, str):
+            if slack != "variable":
+                raise BalustradeError(f"{self.name}: {block}: slack must be None, 'variable' "
+                                      f"or an expression, got {slack!r}")
+            lb = -np.inf if signed else 0.0
+            return self.variable(self._unique_symbol(f"xi_{block}"), shape[0], shape[1],
+                                 lb=lb, role="slack")
+        expr = ca.SX(slack)
+        if expr.shape != tuple(shape) and expr.numel() != 1:
+            raise ShapeError(f"{self.name}: {block}: slack", tuple(shape), expr.shape)
+        return expr
+
+    def _unique_symbol(self, base: str) -> str:
+        name, k = base, 2
+        while name in self.variables or name in self.parameters:
+            name, k = f"{base}_{k}", k + 1
+        return name
+
+    def _per_step_sets(self, S: Set | Sequence[Set], steps: list[int], dim: int,
+                       block: str) -> list[Set]:
+        sets = list(S) if isinstance(S, (list, tuple)) else [S] * len(steps)
+        if len(sets) != len(steps):
+            raise ShapeError(f"{self.name}: {block}", f"{len(steps)} sets (one per step)",
+                             f"{len(sets)} sets", what="")
+        for s in sets:
+            self._check_set_dim(s, dim, block)
+        bad = [i for i in steps if not 0 <= i <= self.N]
+        if bad:
+            raise BalustradeError(f"{self.name}: {block}: steps {bad} outside 0..{self.N}")
+        return sets
+
+    def _check_set_dim(self, S: Set, dim: int, block: str) -> None:
+        if not isinstance(S, Set):
+            raise BalustradeError(f"{self.name}: {block}: expected a balustrade Set, got "
+                                  f"{type(S).__name__}")
+        if S.dim != dim:
+            raise ShapeError(f"{self.name}: {block}: set {S.name}", f"dimension {dim}",
+                             f"dimension {S.dim}")
+
+    def _deltas(self, tightening: Tightening, steps: list[int], block: str) -> list[float]:
+        if tightening is None:
+            return [0.0] * len(steps)
+        if callable(tightening):
+            values = [float(tightening(i)) for i in steps]
+        elif np.ndim(tightening) == 0:
+            values = [float(tightening)] * len(steps)
+        else:
+            values = list(as_vector(tightening, f"{self.name}: {block}: tightening",
+                                    len(steps)))
+        return values
+
+    def _as_column(self, value: object, size: int, block: str) -> ca.SX:
+        if isinstance(value, (ca.SX, ca.DM)):
+            value = ca.SX(value)
+            if value.numel() != size:
+                raise ShapeError(f"{self.name}: {block}", (size, 1), value.shape)
+            return ca.vec(value)
+        return ca.SX(ca.DM(as_vector(value, f"{self.name}: {block}", size)))
+
+    # -- flattening (used by backends and verify) --------------------------------------
+    def decision_vector(self) -> ca.SX:
+        return ca.vertcat(*[ca.vec(v.sym) for v in self.variables.values()])
+
+    def parameter_vector(self) -> ca.SX:
+        return ca.vertcat(*[ca.vec(p.sym) for p in self.parameters.values()])
+
+    def constraint_vector(self) -> ca.SX:
+        return ca.vertcat(*[b.expr for b in self.blocks])
+
+    def pack_parameters(self, values: dict[str, object] | None) -> np.ndarray:
+        """Stack parameter values (checked for shape and finiteness) in declaration order."""
+        values = dict(values or {})
+        unknown = set(values) - set(self.parameters)
+        if unknown:
+            raise BalustradeError(f"{self.name}: unknown parameters {sorted(unknown)}; "
+                                  f"declared: {list(self.parameters)}")
+        chunks = []
+        for p in self.parameters.values():
+            if p.name in values:
+                chunks.append(_flat_value(values[p.name], p.shape, f"{self.name}: parameter "
+                                          f"{p.name!r}"))
+            elif p.default is not None:
+                chunks.append(p.default.reshape(-1, order="F"))
+            else:
+                raise BalustradeError(f"{self.name}: no value for parameter {p.name!r} "
+                                      f"(shape {p.shape})")
+        return np.concatenate(chunks) if chunks else np.zeros(0)
+
+    def unpack_variables(self, w: np.ndarray) -> dict[str, np.ndarray]:
+        """Split a stacked decision vector into named arrays of their declared shapes."""
+        out, k = {}, 0
+        for v in self.variables.values():
+            n = v.sym.numel()
+            arr = np.asarray(w[k:k + n], dtype=float).reshape(v.shape, order="F")
+            out[v.name] = arr[:, 0] if v.shape[1] == 1 else arr
+            k += n
+        return out
+
+    def pack_variables(self, values: dict[str, object]) -> np.ndarray:
+        """Stack named variable values (missing ones take their ``init``)."""
+        chunks = []
+        for v in self.variables.values():
+            if v.name in values:
+                chunks.append(_flat_value(values[v.name], v.shape, f"{self.name}: initial "
+                                          f"guess {v.name!r}"))
+            else:
+                chunks.append(v.init.reshape(-1, order="F"))
+        return np.concatenate(chunks) if chunks else np.zeros(0)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lb = np.concatenate([v.lb.reshape(-1, order="F") for v in self.variables.values()])
+        ub = np.concatenate([v.ub.reshape(-1, order="F") for v in self.variables.values()])
+        return lb, ub
+
+    def describe(self) -> str:
+        """A human-readable summary of symbols and blocks."""
+        lines = [f"OCP {self.name!r}" + (f" over N={self.N} steps of {self.system.name}"
+                                         if self.system else "")]
+        for v in self.variables.values():
+            lines.append(f"  var   {v.name:<16} {v.shape} ({v.role})")
+        for p in self.parameters.values():
+            lines.append(f"  par   {p.name:<16} {p.shape}")
+        for b in self.blocks:
+            op = "==" if b.kind == "eq" else "<="
+            lines.append(f"  block {b.name:<16} {b.rows} rows {op} 0 ({b.tag})")
+        lines.append(f"  cost  {len(self.cost.terms)} terms: "
+                     + ", ".join(t.kind for t in self.cost.terms))
+        return "\n".join(lines)
+
+
+def _broadcast(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        return np.full(shape, float(arr))
+    if arr.size == shape[0] and shape[1] > 1 and arr.ndim == 1:
+        return np.repeat(arr.reshape(-1, 1), shape[1], axis=1)
+    if arr.size == shape[0] * shape[1]:
+        return arr.reshape(shape) if arr.ndim == 2 else arr.reshape(shape, order="F")
+    raise ShapeError(block, shape, arr.shape)
+
+
+def _flat_value(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0 and shape == (1, 1):
+        arr = arr.reshape(1, 1)
+    elif arr.ndim == 1 and (arr.size == shape[0] * shape[1]) and 1 in shape:
+        arr = arr.reshape(shape)
+    if tuple(arr.shape) != tuple(shape):
+        raise ShapeError(block, shape, arr.shape)
+    if not np.all(np.isfinite(arr)):
+        from balustrade.errors import NonFiniteError
+
+        raise NonFiniteError(f"{block}: contains NaN or inf (shape {arr.shape})")
+    return arr.reshape(-1, order="F")
