@@ -10,11 +10,33 @@ can impose ``x ∈ S`` (hard), ``c(x) <= ξ`` (soft, slack ξ) or ``c(x) + Δ_i 
 * :class:`FunctionSet` ``{x : c(x) <= 0}`` for any CasADi-callable ``c``.
 
 Tightening uses support functions only (SPEC §1.5): ``{Hx <= h} ⊖ B = {Hx <= h - [h_B(H_jᵀ)]_j}``.
+
+Set operations (SPEC §1.5, §1.11), with the result type and whether it is exact:
+
+============================  =====================================================================
+``S.support(a)``               ``h_S(a) = max_{x∈S} aᵀx``; LP / closed form (``+inf`` if unbounded)
+``S.linear_map(A)``, ``A @ S``  exact: Ellipsoid (A of full row rank), Polytope/Box (A invertible,
+                               ``H A⁻¹``; other A by vertices for bounded, small-dim polytopes),
+                               FunctionSet (A invertible)
+``S.minkowski_sum(T)``         exact: Box⊕Box, Polytope⊕Polytope (bounded, by vertices).
+                               **outer**: Ellipsoid⊕Ellipsoid (min-trace ellipsoid),
+                               Polytope⊕Ellipsoid (same normals, ``h_j + h_E(H_jᵀ)``)
+``P.tighten(B)``               exact Pontryagin difference ``P ⊖ B``
+                               (alias ``pontryagin_difference``)
+``S.is_subset_of(T)``          exact: any set ⊆ Polytope (support functions), Ellipsoid ⊆ Ellipsoid
+                               (trust-region subproblem), bounded Polytope ⊆ Ellipsoid (vertices)
+``S.sample(n, rng)``           uniform: Box, Ellipsoid exact; Polytope by rejection (hit-and-run
+                               fallback); FunctionSet by rejection from user bounds
+``bounding_box``, ``chebyshev_center``, ``vertices``, ``scale``, ``translate``, ``is_bounded``
+============================  =====================================================================
+
+The base class is in :mod:`balustrade.dsl.sets_base`, :class:`FunctionSet` in
+:mod:`balustrade.dsl.sets_function`, binary operations in :mod:`balustrade.dsl.sets_ops` and
+the array-level algorithms in :mod:`balustrade.dsl.sets_geometry`; import from here.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import casadi as ca
@@ -22,38 +44,34 @@ import numpy as np
 import scipy.optimize
 
 from balustrade._checks import as_matrix, as_vector, check_psd
-from balustrade.errors import BalustradeError, EmptySetError, ShapeError
+from balustrade.dsl import sets_geometry as geo
+from balustrade.dsl.sets_base import (
+    RngLike,
+    Set,
+    Symbolic,
+    as_rng,
+    check_count,
+    check_scalar,
+    linear_map,
+    minkowski_sum,
+    pontryagin_difference,
+)
+from balustrade.dsl.sets_function import FunctionSet
+from balustrade.errors import BalustradeError, EmptySetError, NonFiniteError, ShapeError
 
-Symbolic = ca.SX | ca.MX | ca.DM
-
-
-class Set:
-    """A closed set ``{x ∈ R^dim : c(x) <= 0}``."""
-
-    dim: int
-    name: str
-
-    def c(self, x: Symbolic) -> Symbolic:
-        """Constraint function rows ``c(x)`` (a column), ``x ∈ S ⟺ c(x) <= 0``."""
-        raise NotImplementedError  # pragma: no cover - abstract
-
-    @property
-    def n_rows(self) -> int:
-        """Number of rows of ``c``."""
-        return int(self.c(ca.SX.sym("x", self.dim)).numel())
-
-    def support(self, a: np.ndarray) -> float:
-        """Support function ``h_S(a) = max_{x∈S} aᵀx``."""
-        raise NotImplementedError  # pragma: no cover - abstract
-
-    def contains(self, x: np.ndarray, tol: float = 1e-9) -> bool:
-        """Whether the point ``x`` lies in the set (up to ``tol``)."""
-        x = as_vector(x, f"{self.name}.contains(x)", self.dim)
-        return bool(np.all(np.asarray(ca.evalf(self.c(ca.DM(x)))).ravel() <= tol))
-
-    def _check_point_dim(self, x: Symbolic, block: str) -> None:
-        if x.shape != (self.dim, 1):
-            raise ShapeError(f"{block} of {self.name}", (self.dim, 1), x.shape)
+__all__ = [
+    "Box",
+    "Ellipsoid",
+    "FunctionSet",
+    "Polytope",
+    "RngLike",
+    "Set",
+    "Symbolic",
+    "as_rng",
+    "linear_map",
+    "minkowski_sum",
+    "pontryagin_difference",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,6 +102,10 @@ class Polytope(Set):
         self._check_point_dim(x, "c(x)")
         return ca.mtimes(ca.DM(self.H), x) - ca.DM(self.h)
 
+    def contains_many(self, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        X = self._points(X, "contains_many(X)")
+        return np.all(X @ self.H.T - self.h <= tol, axis=1)
+
     def is_empty(self) -> bool:
         """Whether ``{Hx <= h}`` is empty (one LP)."""
         res = scipy.optimize.linprog(np.zeros(self.dim), A_ub=self.H, b_ub=self.h,
@@ -101,31 +123,97 @@ class Polytope(Set):
         return float(-res.fun)
 
     def tighten(self, other: Set, name: str | None = None) -> Polytope:
-        """Pontryagin difference ``self ⊖ other`` by support functions (SPEC §1.5)."""
-        if other.dim != self.dim:
-            raise ShapeError(f"{self.name} ⊖ {other.name}", f"a set of dimension {self.dim}",
-                             f"dimension {other.dim}")
+        """Pontryagin difference ``self ⊖ other`` by support functions (SPEC §1.5).
+
+        Raises :class:`EmptySetError` naming both sets when the result is empty, including
+        when ``other`` is unbounded along a row normal.
+        """
+        self._check_same_dim(other, "⊖")
         s = np.array([other.support(row) for row in self.H])
-        h_new = self.h - s
         new_name = name or f"{self.name}⊖{other.name}"
+        if not np.all(np.isfinite(s)):
+            raise EmptySetError(f"tightening {self.name} by {other.name} leaves an empty set "
+                                f"({new_name}): {other.name} is unbounded along rows "
+                                f"{np.flatnonzero(~np.isfinite(s)).tolist()} of H")
+        h_new = self.h - s
         try:
             return Polytope(self.H, h_new, name=new_name)
         except EmptySetError as exc:
             raise EmptySetError(f"tightening {self.name} by {other.name} leaves an empty set "
                                 f"({new_name})") from exc
 
+    def pontryagin_difference(self, other: Set, name: str | None = None) -> Polytope:
+        """Alias of :meth:`tighten` (SPEC §1.5)."""
+        return self.tighten(other, name=name)
+
+    # -- geometry ---------------------------------------------------------------------------
+    def bounding_box(self) -> Box:
+        """Smallest enclosing box by ``2·dim`` LPs (infinite bounds where unbounded)."""
+        lb, ub = geo.bounding_box(self.H, self.h, self.name)
+        return Box(lb, ub, name=f"bbox({self.name})")
+
+    def chebyshev_center(self) -> tuple[np.ndarray, float]:
+        """Centre and radius of the largest inscribed Euclidean ball (one LP)."""
+        return geo.chebyshev_center(self.H, self.h, self.name)
+
+    def vertices(self) -> np.ndarray:
+        """Vertices (rows) of a bounded polytope of dimension <= 6 (HalfspaceIntersection
+        from the Chebyshev centre; flat polytopes are handled on their affine hull)."""
+        return geo.vertices(self.H, self.h, self.name)
+
+    def _require_bounded(self, op: str) -> None:
+        if not self.is_bounded():
+            raise BalustradeError(f"{self.name}.{op}: needs a bounded set, but this polytope "
+                                  f"(H of shape {self.H.shape}) is unbounded")
+
+    # -- operations -------------------------------------------------------------------------
+    def linear_map(self, A: np.ndarray, name: str | None = None) -> Polytope:
+        """``A·P``: ``{y : H A⁻¹ y <= h}`` for invertible square ``A``; otherwise the convex
+        hull of the mapped vertices (bounded polytopes, dimension <= 6)."""
+        A = self._map_matrix(A)
+        new_name = name or f"A·{self.name}"
+        m, n = A.shape
+        if m == n and np.linalg.matrix_rank(A) == n:
+            return Polytope(np.linalg.solve(A.T, self.H.T).T, self.h, name=new_name)
+        if not self.is_bounded():
+            raise BalustradeError(f"{self.name}.linear_map: A of shape {A.shape} is not "
+                                  f"invertible and the polytope (dimension {n}) is unbounded; "
+                                  "the image needs a bounded polytope")
+        Hm, hm = geo.hull_halfspaces(self.vertices() @ A.T, f"{self.name}.linear_map")
+        return Polytope(Hm, hm, name=new_name)
+
+    def scale(self, alpha: float, name: str | None = None) -> Polytope:
+        a = check_scalar(alpha, f"{self.name}.scale")
+        new_name = name or f"{a:g}·{self.name}"
+        if a == 0.0:
+            return Box(np.zeros(self.dim), np.zeros(self.dim), name=new_name)
+        return Polytope(np.sign(a) * self.H, abs(a) * self.h, name=new_name)
+
+    def translate(self, v: np.ndarray, name: str | None = None) -> Polytope:
+        v = as_vector(v, f"{self.name}.translate(v)", self.dim)
+        return Polytope(self.H, self.h + self.H @ v, name=name or f"{self.name}+v")
+
+    def sample(self, n: int, rng: RngLike = None, method: str = "auto") -> np.ndarray:
+        """Uniform samples of a bounded polytope: rejection from the bounding box, falling back
+        to hit-and-run when the acceptance rate is below 1e-3 (``method`` forces one)."""
+        n = check_count(n, f"{self.name}.sample")
+        return geo.sample_polytope(self.H, self.h, n, as_rng(rng), f"{self.name}.sample",
+                                   method=method)
+
 
 class Box(Polytope):
-    """Axis-aligned box ``{lb <= x <= ub}``; ``c(x) = [x - ub; lb - x]``."""
+    """Axis-aligned box ``{lb <= x <= ub}``; ``c(x) = [x - ub; lb - x]`` (rows with an infinite
+    bound are left out)."""
 
     def __init__(self, lb: np.ndarray, ub: np.ndarray, name: str = "Box"):
         lb = as_vector(lb, f"{name}: lb", finite=False)
         ub = as_vector(ub, f"{name}: ub", lb.size, finite=False)
         if np.any(np.isnan(lb)) or np.any(np.isnan(ub)):
-            raise BalustradeError(f"{name}: bounds contain NaN")
-        if np.any(lb > ub):
-            raise EmptySetError(f"{name}: lower bound exceeds upper bound at "
-                                f"indices {np.flatnonzero(lb > ub).tolist()}")
+            raise NonFiniteError(f"{name}: bounds contain NaN (lb={lb}, ub={ub})")
+        bad = (lb > ub) | (lb == np.inf) | (ub == -np.inf)
+        if np.any(bad):
+            raise EmptySetError(f"{name}: lower bound exceeds upper bound (or a bound is +inf "
+                                f"below / -inf above) at indices {np.flatnonzero(bad).tolist()}")
         keep_u = np.isfinite(ub)
         keep_l = np.isfinite(lb)
         n = lb.size
@@ -135,6 +223,9 @@ class Box(Polytope):
         object.__setattr__(self, "ub", ub)
         object.__setattr__(self, "_n", n)
         super().__init__(H.reshape(-1, n), h, name=name)
+
+    def __repr__(self) -> str:
+        return f"Box(lb={self.lb.tolist()}, ub={self.ub.tolist()}, name={self.name!r})"
 
     @classmethod
     def symmetric(cls, bound: np.ndarray | float, dim: int | None = None,
@@ -150,16 +241,85 @@ class Box(Polytope):
         return int(self._n)
 
     def support(self, a: np.ndarray) -> float:
+        """``Σ_i max(a_i ub_i, a_i lb_i)``; ``+inf`` where ``a_i`` points to an infinite bound."""
         a = as_vector(a, f"{self.name}.support(a)", self.dim)
-        vals = np.where(a > 0, a * self.ub, np.where(a < 0, a * self.lb, 0.0))
+        vals = np.zeros(self.dim)
+        pos, neg = a > 0, a < 0
+        vals[pos] = a[pos] * self.ub[pos]
+        vals[neg] = a[neg] * self.lb[neg]
         return float(np.sum(vals))
 
     def vertices(self) -> np.ndarray:
         """All ``2^dim`` vertices (rows)."""
         if not (np.all(np.isfinite(self.lb)) and np.all(np.isfinite(self.ub))):
             raise BalustradeError(f"{self.name}: unbounded box has no vertices")
-        grids = np.meshgrid(*[[lo, hi] for lo, hi in zip(self.lb, self.ub)], indexing="ij")
+        pairs = [[lo, hi] for lo, hi in zip(self.lb, self.ub, strict=True)]
+        grids = np.meshgrid(*pairs, indexing="ij")
         return np.stack([g.ravel() for g in grids], axis=1)
+
+    def bounding_box(self) -> Box:
+        return self
+
+    def is_bounded(self) -> bool:
+        return bool(np.all(np.isfinite(self.lb)) and np.all(np.isfinite(self.ub)))
+
+    def chebyshev_center(self) -> tuple[np.ndarray, float]:
+        if self.is_bounded():
+            return 0.5 * (self.lb + self.ub), float(np.min(0.5 * (self.ub - self.lb)))
+        return super().chebyshev_center()
+
+    def tighten(self, other: Set, name: str | None = None) -> Box:
+        """``Box ⊖ B`` is the box ``[lb + h_B(-e_i), ub - h_B(e_i)]`` (SPEC §1.5); same rows
+        ``H, h`` as :meth:`Polytope.tighten`."""
+        self._check_same_dim(other, "⊖")
+        new_name = name or f"{self.name}⊖{other.name}"
+        e = np.eye(self.dim)
+        ub, lb = self.ub.copy(), self.lb.copy()
+        for i in range(self.dim):
+            if np.isfinite(ub[i]):
+                ub[i] -= other.support(e[i])
+            if np.isfinite(lb[i]):
+                lb[i] += other.support(-e[i])
+        if np.any(np.isnan(ub)) or np.any(np.isnan(lb)) or np.any(ub == -np.inf) or np.any(
+                lb == np.inf):
+            raise EmptySetError(f"tightening {self.name} by {other.name} leaves an empty set "
+                                f"({new_name}): {other.name} is unbounded")
+        try:
+            return Box(lb, ub, name=new_name)
+        except EmptySetError as exc:
+            raise EmptySetError(f"tightening {self.name} by {other.name} leaves an empty set "
+                                f"({new_name})") from exc
+
+    def linear_map(self, A: np.ndarray, name: str | None = None) -> Polytope:
+        """As :meth:`Polytope.linear_map`; a nonsingular diagonal ``A`` gives a :class:`Box`."""
+        A = self._map_matrix(A)
+        d = np.diag(A) if A.shape[0] == A.shape[1] else None
+        if d is not None and np.all(A == np.diag(d)) and np.all(d != 0):
+            return self._scaled(d, name or f"A·{self.name}")
+        return super().linear_map(A, name=name)
+
+    def _scaled(self, d: np.ndarray, name: str) -> Box:
+        with np.errstate(invalid="ignore"):
+            lo, hi = d * self.lb, d * self.ub
+        lo = np.where(d == 0, 0.0, lo)
+        hi = np.where(d == 0, 0.0, hi)
+        return Box(np.minimum(lo, hi), np.maximum(lo, hi), name=name)
+
+    def scale(self, alpha: float, name: str | None = None) -> Box:
+        a = check_scalar(alpha, f"{self.name}.scale")
+        return self._scaled(np.full(self.dim, a), name or f"{a:g}·{self.name}")
+
+    def translate(self, v: np.ndarray, name: str | None = None) -> Box:
+        v = as_vector(v, f"{self.name}.translate(v)", self.dim)
+        return Box(self.lb + v, self.ub + v, name=name or f"{self.name}+v")
+
+    def sample(self, n: int, rng: RngLike = None, method: str = "auto") -> np.ndarray:
+        """Exact uniform samples (``method`` is ignored: boxes need no rejection)."""
+        n = check_count(n, f"{self.name}.sample")
+        if not self.is_bounded():
+            raise BalustradeError(f"{self.name}.sample: cannot sample an unbounded box "
+                                  f"(lb={self.lb}, ub={self.ub})")
+        return as_rng(rng).uniform(self.lb, self.ub, size=(n, self.dim))
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,53 +346,78 @@ class Ellipsoid(Set):
         """``P⁻¹`` (the ellipsoid is ``center + P^{-1/2}·unit ball``)."""
         return np.linalg.inv(self.P)
 
+    def _root(self) -> np.ndarray:
+        """``L`` with ``L Lᵀ = P⁻¹``: the ellipsoid is ``center + L·(unit ball)``."""
+        R = np.linalg.cholesky(self.P)  # P = R Rᵀ
+        return np.linalg.solve(R.T, np.eye(self.dim))
+
     def c(self, x: Symbolic) -> Symbolic:
         self._check_point_dim(x, "c(x)")
         d = x - ca.DM(self.center)
         return ca.mtimes([d.T, ca.DM(self.P), d]) - 1
+
+    def contains_many(self, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+        D = self._points(X, "contains_many(X)") - self.center
+        return np.einsum("ij,jk,ik->i", D, self.P, D) - 1.0 <= tol
 
     def support(self, a: np.ndarray) -> float:
         """``h(a) = aᵀq + sqrt(aᵀ P⁻¹ a)`` (SPEC §1.4)."""
         a = as_vector(a, f"{self.name}.support(a)", self.dim)
         return float(a @ self.center + np.sqrt(max(a @ np.linalg.solve(self.P, a), 0.0)))
 
+    def bounding_box(self) -> Box:
+        """``center ± sqrt(diag(P⁻¹))``."""
+        r = np.sqrt(np.maximum(np.diag(self.shape_matrix), 0.0))
+        return Box(self.center - r, self.center + r, name=f"bbox({self.name})")
 
-class FunctionSet(Set):
-    """``{x : c(x) <= 0}`` for a CasADi-callable ``c`` (SPEC (2.8)).
+    def is_bounded(self) -> bool:
+        return True
 
-    ``c`` takes a ``(dim, 1)`` CasADi symbol and returns a column of constraint rows. The
-    convex backend accepts it only where it detects affine or convex-quadratic rows;
-    anything else is refused there with an error naming this set.
-    """
+    def chebyshev_center(self) -> tuple[np.ndarray, float]:
+        """``(center, 1/sqrt(λ_max(P)))``."""
+        return self.center.copy(), float(1.0 / np.sqrt(np.max(np.linalg.eigvalsh(self.P))))
 
-    def __init__(self, c: Callable[[Symbolic], Symbolic], dim: int, name: str = "FunctionSet"):
-        self._fun = c
-        self.dim = int(dim)
-        self.name = name
-        try:
-            out = c(ca.SX.sym("x", self.dim))
-        except Exception as exc:  # the user's function failed on a symbol
-            raise BalustradeError(f"{name}: c(x) failed on a CasADi symbol of shape "
-                                  f"({self.dim}, 1): {exc}") from exc
-        out = ca.SX(out) if not isinstance(out, ca.SX) else out
-        if out.shape[1] != 1 and out.shape[0] != 1:
-            raise ShapeError(f"{name}: c(x)", "a column of constraint rows", out.shape)
+    def linear_map(self, A: np.ndarray, name: str | None = None) -> Ellipsoid:
+        """``A·E`` for ``A`` of full row rank: shape matrix ``A P⁻¹ Aᵀ``, centre ``A q``
+        (``P' = A⁻ᵀ P A⁻¹`` when ``A`` is square)."""
+        A = self._map_matrix(A)
+        m, n = A.shape
+        new_name = name or f"A·{self.name}"
+        if m > n or np.linalg.matrix_rank(A) < m:
+            raise BalustradeError(f"{self.name}.linear_map: A of shape {A.shape} (rank "
+                                  f"{np.linalg.matrix_rank(A)}) maps the ellipsoid of "
+                                  f"dimension {n} to a degenerate ellipsoid; A needs full "
+                                  "row rank")
+        if m == n:
+            Ainv = np.linalg.inv(A)
+            Pn = Ainv.T @ self.P @ Ainv
+        else:
+            Pn = np.linalg.inv(A @ self.shape_matrix @ A.T)
+        return Ellipsoid(0.5 * (Pn + Pn.T), A @ self.center, name=new_name)
 
-    def c(self, x: Symbolic) -> Symbolic:
-        self._check_point_dim(x, "c(x)")
-        out = self._fun(x)
-        return ca.vec(out)
+    def scale(self, alpha: float, name: str | None = None) -> Ellipsoid:
+        a = check_scalar(alpha, f"{self.name}.scale")
+        if a == 0.0:
+            raise BalustradeError(f"{self.name}.scale: 0·{self.name} is a point, not an "
+                                  "ellipsoid with P ≻ 0")
+        return Ellipsoid(self.P / a**2, a * self.center, name=name or f"{a:g}·{self.name}")
 
-    def support(self, a: np.ndarray) -> float:
-        """Support value by a local NLP (exact when ``c`` is convex)."""
-        a = as_vector(a, f"{self.name}.support(a)", self.dim)
-        x = ca.SX.sym("x", self.dim)
-        solver = ca.nlpsol("support", "ipopt", {"x": x, "f": -ca.dot(ca.DM(a), x),
-                                                "g": self.c(x)},
-                           {"ipopt.print_level": 0, "print_time": False,
-                            "ipopt.sb": "yes"})
-        res = solver(x0=np.zeros(self.dim), ubg=0)
-        if not solver.stats()["success"]:
-            raise BalustradeError(f"{self.name}.support: NLP failed "
-                                  f"({solver.stats()['return_status']})")
-        return float(-res["f"])
+    def translate(self, v: np.ndarray, name: str | None = None) -> Ellipsoid:
+        v = as_vector(v, f"{self.name}.translate(v)", self.dim)
+        return Ellipsoid(self.P, self.center + v, name=name or f"{self.name}+v")
+
+    def sample(self, n: int, rng: RngLike = None) -> np.ndarray:
+        """Exact uniform samples: uniform direction × ``U^{1/dim}`` radius, mapped by ``L``."""
+        n = check_count(n, f"{self.name}.sample")
+        g = as_rng(rng)
+        u = g.standard_normal((n, self.dim))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        r = g.uniform(size=(n, 1)) ** (1.0 / self.dim)
+        return self.center + (r * u) @ self._root().T
+
+    def max_quadratic_over(self, other: Ellipsoid) -> float:
+        """``max_{x ∈ other} (x - q)ᵀP(x - q)`` exactly (trust-region subproblem)."""
+        L = other._root()
+        d = other.center - self.center
+        G = L.T @ self.P @ L
+        return geo.max_convex_quadratic_on_ball(G, L.T @ self.P @ d, float(d @ self.P @ d))

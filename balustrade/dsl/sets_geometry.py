@@ -205,28 +205,48 @@ def max_convex_quadratic_on_ball(G: np.ndarray, g: np.ndarray, c0: float) -> flo
 
 
 def hit_and_run(H: np.ndarray, h: np.ndarray, x0: np.ndarray, n: int,
-                rng: np.random.Generator, burn_in: int, thin: int) -> np.ndarray:
+                rng: np.random.Generator, burn_in: int, thin: int, rounds: int = 3) -> np.ndarray:
     """Hit-and-run Markov chain in the full-dimensional bounded ``{Hx <= h}`` from the interior
-    point ``x0``: uniform direction, uniform step on the chord. Asymptotically uniform."""
+    point ``x0``: a random direction, then a uniform step on the chord through the current
+    point. Asymptotically uniform.
+
+    Directions are ``L g / ||L g||`` with ``g`` standard normal; ``L`` is adapted during the
+    ``rounds`` burn-in phases to the Cholesky factor of the chain's covariance (rounding of
+    thin sets). Any centrally symmetric direction law keeps the transition kernel symmetric,
+    so the uniform distribution stays stationary; ``L`` is frozen before samples are kept.
+    """
     d = x0.size
+    scale = float(np.max(np.abs(h), initial=1.0))
+
+    def run(x: np.ndarray, L: np.ndarray, steps: int) -> np.ndarray:
+        xs = np.empty((steps, d))
+        for it in range(steps):
+            u = L @ rng.standard_normal(d)
+            u /= np.linalg.norm(u)
+            Hu = H @ u
+            slack = np.maximum(h - H @ x, 0.0)
+            small = 1e-14 * (1.0 + np.linalg.norm(H, axis=1))
+            pos, neg = Hu > small, Hu < -small
+            tmax = float(np.min(slack[pos] / Hu[pos])) if np.any(pos) else np.inf
+            tmin = float(np.max(slack[neg] / Hu[neg])) if np.any(neg) else -np.inf
+            if not (np.isfinite(tmax) and np.isfinite(tmin)):
+                raise BalustradeError("hit-and-run: unbounded chord (the set is unbounded)")
+            x = x + rng.uniform(tmin, tmax) * u
+            xs[it] = x
+        return xs
+
+    L = np.eye(d)
     x = x0.copy()
-    out = np.empty((n, d))
-    k = 0
-    for it in range(burn_in + n * thin):
-        u = rng.standard_normal(d)
-        u /= np.linalg.norm(u)
-        Hu = H @ u
-        slack = np.maximum(h - H @ x, 0.0)
-        pos, neg = Hu > 1e-14, Hu < -1e-14
-        tmax = float(np.min(slack[pos] / Hu[pos])) if np.any(pos) else np.inf
-        tmin = float(np.max(slack[neg] / Hu[neg])) if np.any(neg) else -np.inf
-        if not (np.isfinite(tmax) and np.isfinite(tmin)):
-            raise BalustradeError("hit-and-run: unbounded chord (set is unbounded)")
-        x = x + rng.uniform(tmin, tmax) * u
-        if it >= burn_in and (it - burn_in) % thin == thin - 1:
-            out[k] = x
-            k += 1
-    return out
+    for _ in range(rounds):
+        xs = run(x, L, burn_in)
+        x = xs[-1]
+        C = np.atleast_2d(np.cov(xs.T))
+        ridge = 1e-12 * (float(np.trace(C)) / d + 1e-300 * scale)
+        try:
+            L = np.linalg.cholesky(C + ridge * np.eye(d))
+        except np.linalg.LinAlgError:
+            L = np.eye(d)
+    return run(x, L, n * thin)[thin - 1::thin]
 
 
 def sample_polytope(H: np.ndarray, h: np.ndarray, n: int, rng: np.random.Generator,

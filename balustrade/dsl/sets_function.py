@@ -1,0 +1,109 @@
+"""User-defined sets ``{x : c(x) <= 0}`` for a CasADi-callable ``c`` (SPEC (2.8))."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import casadi as ca
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.dsl.sets_base import RngLike, Set, Symbolic, as_rng, check_count, check_scalar
+from balustrade.errors import BalustradeError, ShapeError
+
+if TYPE_CHECKING:
+    from balustrade.dsl.sets import Box
+
+
+class FunctionSet(Set):
+    """``{x : c(x) <= 0}`` for a CasADi-callable ``c`` (SPEC (2.8)).
+
+    ``c`` takes a ``(dim, 1)`` CasADi symbol and returns a column of constraint rows. The
+    convex backend accepts it only where it detects affine or convex-quadratic rows;
+    anything else is refused there with an error naming this set.
+    """
+
+    def __init__(self, c: Callable[[Symbolic], Symbolic], dim: int, name: str = "FunctionSet"):
+        self._fun = c
+        self.dim = int(dim)
+        self.name = name
+        try:
+            out = c(ca.SX.sym("x", self.dim))
+        except Exception as exc:  # the user's function failed on a symbol
+            raise BalustradeError(f"{name}: c(x) failed on a CasADi symbol of shape "
+                                  f"({self.dim}, 1): {exc}") from exc
+        out = ca.SX(out) if not isinstance(out, ca.SX) else out
+        if out.shape[1] != 1 and out.shape[0] != 1:
+            raise ShapeError(f"{name}: c(x)", "a column of constraint rows", out.shape)
+
+    def __repr__(self) -> str:
+        return f"FunctionSet(dim={self.dim}, name={self.name!r})"
+
+    def c(self, x: Symbolic) -> Symbolic:
+        self._check_point_dim(x, "c(x)")
+        out = self._fun(x)
+        return ca.vec(out)
+
+    def support(self, a: np.ndarray) -> float:
+        """Support value by a local NLP (exact when ``c`` is convex)."""
+        a = as_vector(a, f"{self.name}.support(a)", self.dim)
+        x = ca.SX.sym("x", self.dim)
+        solver = ca.nlpsol("support", "ipopt", {"x": x, "f": -ca.dot(ca.DM(a), x),
+                                                "g": self.c(x)},
+                           {"ipopt.print_level": 0, "print_time": False,
+                            "ipopt.sb": "yes"})
+        res = solver(x0=np.zeros(self.dim), ubg=0)
+        if not solver.stats()["success"]:
+            raise BalustradeError(f"{self.name}.support: NLP failed "
+                                  f"({solver.stats()['return_status']})")
+        return float(-res["f"])
+
+    def linear_map(self, A: np.ndarray, name: str | None = None) -> FunctionSet:
+        """``A·S = {y : c(A⁻¹y) <= 0}`` for invertible square ``A``."""
+        A = self._map_matrix(A)
+        if A.shape[0] != A.shape[1] or np.linalg.matrix_rank(A) < self.dim:
+            raise BalustradeError(f"{self.name}.linear_map: a FunctionSet of dimension "
+                                  f"{self.dim} can only be mapped by an invertible square "
+                                  f"matrix, got A of shape {A.shape}")
+        Ainv = ca.DM(np.linalg.inv(A))
+        return FunctionSet(lambda y: self.c(ca.mtimes(Ainv, y)), self.dim,
+                           name=name or f"A·{self.name}")
+
+    def scale(self, alpha: float, name: str | None = None) -> FunctionSet:
+        a = check_scalar(alpha, f"{self.name}.scale")
+        if a == 0.0:
+            raise BalustradeError(f"{self.name}.scale: 0·{self.name} is a point")
+        return FunctionSet(lambda y: self.c(y / a), self.dim, name=name or f"{a:g}·{self.name}")
+
+    def translate(self, v: np.ndarray, name: str | None = None) -> FunctionSet:
+        v = ca.DM(as_vector(v, f"{self.name}.translate(v)", self.dim))
+        return FunctionSet(lambda y: self.c(y - v), self.dim, name=name or f"{self.name}+v")
+
+    def sample(self, n: int, rng: RngLike = None, bounds: Box | None = None,
+               max_draws: int = 1_000_000) -> np.ndarray:
+        """Uniform samples by rejection from the user-given bounded ``bounds`` box, which must
+        contain the set (points outside it are never drawn)."""
+        from balustrade.dsl.sets import Box
+
+        n = check_count(n, f"{self.name}.sample")
+        if not isinstance(bounds, Box):
+            raise BalustradeError(f"{self.name}.sample: a FunctionSet needs bounds=Box(lb, ub) "
+                                  "enclosing it to sample by rejection")
+        if bounds.dim != self.dim:
+            raise ShapeError(f"{self.name}.sample(bounds)", f"a Box of dimension {self.dim}",
+                             f"dimension {bounds.dim}")
+        g = as_rng(rng)
+        chunks, got, draws = [], 0, 0
+        while got < n and draws < max_draws:
+            X = bounds.sample(max(1000, 2 * (n - got)), g)
+            draws += X.shape[0]
+            ok = self.contains_many(X, tol=0.0)
+            chunks.append(X[ok])
+            got += int(ok.sum())
+        if got < n:
+            raise BalustradeError(f"{self.name}.sample: only {got} of {draws} draws from "
+                                  f"{bounds.name} fell in the set; give tighter bounds")
+        return np.concatenate(chunks)[:n] if chunks else np.empty((0, self.dim))
+
+
