@@ -29,8 +29,10 @@ DEFAULT_OPTIONS: dict[str, dict] = {
                   "print_iteration": False, "print_status": False,
                   "qpsol_options": {"print_iter": False, "print_header": False,
                                     "print_info": False, "error_on_fail": False},
-                  "max_iter": 100, "tol_pr": 1e-10, "tol_du": 1e-10,
-                  "error_on_fail": False},
+                  "max_iter": 100, "tol_pr": 1e-9, "tol_du": 1e-6,
+                  # qrqp needs a positive definite Hessian: regularize the Lagrangian's
+                  # (singular for LP-like slack problems and input-only filter costs).
+                  "convexify_strategy": "regularize", "error_on_fail": False},
 }
 
 

@@ -1,1 +1,6 @@
-"""balustrade.control."""
+"""Closed-loop algorithms: one interface (``step(x, u_p) -> u, info``) and ``simulate``."""
+
+from balustrade.control.base import Controller, StepInfo, Trace, simulate
+from balustrade.control.pcbf import PCBFSafetyFilter, project
+
+__all__ = ["Controller", "PCBFSafetyFilter", "StepInfo", "Trace", "project", "simulate"]

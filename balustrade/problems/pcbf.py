@@ -18,7 +18,7 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
-from balustrade.dsl import OCP, Set, System, max_of, squared_norm, sum_norms
+from balustrade.dsl import OCP, Set, System, squared_norm, sum_norms
 
 
 def pcbf_slack_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
@@ -60,16 +60,18 @@ def pcbf_filter_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
 
 def extended_pcbf_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
                           deltas: np.ndarray, name: str = "pcbf_extended") -> OCP:
-    """(7.8) in epigraph form: ``min t`` s.t. ``c_x(x_i) + Δ_i 1 <= t 1``,
-    ``h_f(x_N) <= t`` and (2.24b–d). The slacks are free in sign. Parameter: ``x0``."""
+    """(7.8) in epigraph form (SPEC §2.29): ``min t`` s.t. ``c_x(x_i) + Δ_i 1 <= t 1``,
+    ``h_f(x_N) <= t`` and (2.24b–d). The signed slacks of (7.8) are all equal to the
+    epigraph variable ``t``; a per-row signed slack (``state_constraint(signed=True)``)
+    gives the same value but a degenerate problem. Parameter: ``x0``; variable ``t``."""
     ocp = OCP(system, N, name=name)
     ocp.initial_state(ocp.parameter("x0", system.nx))
     ocp.dynamics()
     ocp.input_constraint(U)
-    xi = ocp.state_constraint(X, tightening=deltas, slack=_named(ocp, "xi", X.n_rows, N,
-                                                                  signed=True))
-    xi_N = ocp.terminal_cbf(h_f, slack=_named(ocp, "xi_N", 1, 1, signed=True))
-    ocp.minimize(max_of(ca.vertcat(ca.vec(xi), xi_N), label="largest_slack"))
+    t = ocp.variable("t", 1, role="slack")
+    ocp.state_constraint(X, tightening=deltas, slack=t)
+    ocp.terminal_cbf(h_f, slack=t)
+    ocp.minimize(t)
     return ocp
 
 

@@ -1,0 +1,127 @@
+"""One controller interface and the closed-loop runner.
+
+A controller maps a measured state and a proposed input to the applied input:
+``step(x, u_p) -> (u, StepInfo)``. It must never raise for a failed solve: it applies the
+fallback its algorithm prescribes and records it in :class:`StepInfo` (DESIGN.md
+principle 4). :func:`simulate` records states, inputs, proposals, value functions,
+statuses, fallbacks and solve times.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.dsl.system import System
+from balustrade.errors import BalustradeError
+
+
+@dataclass
+class StepInfo:
+    """What a controller did at one step."""
+
+    status: str = "ok"
+    fallback: str | None = None
+    values: dict[str, float] = field(default_factory=dict)
+    solve_time: float = 0.0
+    solutions: dict = field(default_factory=dict, repr=False)
+
+
+class Controller(Protocol):
+    """The closed-loop interface every algorithm of :mod:`balustrade.control` implements."""
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]: ...
+
+    def reset(self) -> None: ...
+
+
+@dataclass
+class Trace:
+    """A recorded closed-loop run."""
+
+    states: np.ndarray
+    inputs: np.ndarray
+    proposed: np.ndarray
+    disturbances: np.ndarray
+    values: dict[str, np.ndarray]
+    statuses: list[str]
+    fallbacks: list[str | None]
+    solve_times: np.ndarray
+    step_times: np.ndarray
+    infos: list[StepInfo] = field(repr=False, default_factory=list)
+    stopped: str | None = None
+
+    @property
+    def n_fallbacks(self) -> int:
+        return sum(f is not None for f in self.fallbacks)
+
+
+Proposal = np.ndarray | float | Callable[[int, np.ndarray], np.ndarray]
+Disturbance = np.ndarray | Callable[[int, np.ndarray], np.ndarray] | None
+
+
+def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
+             proposal: Proposal = 0.0, disturbance: Disturbance = None,
+             keep_infos: bool = False) -> Trace:
+    """Run ``steps`` closed-loop steps ``x_{k+1} = f(x_k, u_k, w_k)`` from ``x0``.
+
+    ``proposal`` is a constant ``u_p`` or ``u_p(k, x)``; ``disturbance`` is an array
+    ``(steps, nw)`` or ``w(k, x)``. If the state stops being finite (divergence), the run
+    stops and ``Trace.stopped`` says why; it never raises for solver failures.
+    """
+    x = as_vector(x0, "simulate: x0", plant.nx)
+    if not isinstance(steps, (int, np.integer)) or steps < 0:
+        raise BalustradeError(f"simulate: steps must be a nonnegative integer, got {steps!r}")
+    states, inputs, proposed, dists = [x], [], [], []
+    values: dict[str, list[float]] = {}
+    statuses, fallbacks, solve_times, step_times, infos = [], [], [], [], []
+    stopped = None
+    for k in range(steps):
+        u_p = _proposal(proposal, k, x, plant.nu)
+        start = time.perf_counter()
+        u, info = controller.step(x, u_p)
+        step_times.append(time.perf_counter() - start)
+        u = as_vector(u, "simulate: controller output u", plant.nu, finite=False)
+        w = _disturbance(disturbance, k, x, plant.nw)
+        inputs.append(u)
+        proposed.append(u_p)
+        dists.append(w)
+        statuses.append(info.status)
+        fallbacks.append(info.fallback)
+        solve_times.append(info.solve_time)
+        for key in set(values) | set(info.values):
+            values.setdefault(key, [np.nan] * k).append(info.values.get(key, np.nan))
+        if keep_infos:
+            infos.append(info)
+        if not np.all(np.isfinite(u)):
+            stopped = f"non-finite input at step {k}"
+            break
+        x = plant.step(x, u, w if plant.nw else None)
+        if not np.all(np.isfinite(x)) or np.max(np.abs(x)) > 1e12:
+            stopped = f"state diverged at step {k + 1}"
+            states.append(x)
+            break
+        states.append(x)
+    return Trace(np.array(states), np.array(inputs).reshape(-1, plant.nu),
+                 np.array(proposed).reshape(-1, plant.nu),
+                 np.array(dists).reshape(len(dists), plant.nw),
+                 {k: np.array(v) for k, v in values.items()}, statuses, fallbacks,
+                 np.array(solve_times), np.array(step_times), infos, stopped)
+
+
+def _proposal(proposal: Proposal, k: int, x: np.ndarray, nu: int) -> np.ndarray:
+    value = proposal(k, x) if callable(proposal) else proposal
+    return as_vector(np.broadcast_to(np.asarray(value, dtype=float), (nu,))
+                     if np.ndim(value) == 0 else value, "simulate: proposed input u_p", nu)
+
+
+def _disturbance(disturbance: Disturbance, k: int, x: np.ndarray, nw: int) -> np.ndarray:
+    if disturbance is None or nw == 0:
+        return np.zeros(nw)
+    value = disturbance(k, x) if callable(disturbance) else np.asarray(disturbance)[k]
+    return as_vector(value, f"simulate: disturbance at step {k}", nw)

@@ -1,0 +1,112 @@
+"""The PCBF safety filter algorithm (thesis Section 2.4, [41]): at each step solve the
+slack problem (2.24) for ``h_PB(x_k)`` and ``ξ*``, then the filter (2.23) with the slacks
+fixed to ``ξ*``, and apply ``u*_{0|k}``.
+
+Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
+
+1. (2.23) fails but (2.24) succeeded → apply ``u_{0|k}`` of the (2.24) optimizer, which
+   is feasible for (2.23) by construction (SPEC §2.7): ``"slack_solution"``.
+2. (2.24) fails → apply the next input of the last successful plan (shifted solution,
+   as in the recursive-feasibility candidate), ``"shifted_plan"``;
+3. no plan left → the proposed input projected onto ``U``: ``"projected_proposal"``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.backends import Compiled, Solution, compile
+from balustrade.control.base import StepInfo
+from balustrade.dsl.sets import Box, Set
+from balustrade.dsl.system import System
+from balustrade.errors import NonFiniteError
+from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
+
+
+class PCBFSafetyFilter:
+    """Closed-loop PCBF filter over two compiled problems (any backend)."""
+
+    def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6):
+        self.slack, self.filter, self.U, self.eps = slack, filter, U, eps
+        self.nu = U.dim
+        self.reset()
+
+    @classmethod
+    def build(cls, system: System, X: Set, U: Set, h_f: Callable, N: int,
+              deltas: np.ndarray, alpha_f: float = 1e6, slack_norm: int | float = 1,
+              backend: str = "casadi", solver: str | None = "sqpmethod",
+              eps: float = 1e-6) -> PCBFSafetyFilter:
+        """Build and compile both problems ((2.24) and (2.23)) for ``backend``."""
+        solver = solver if backend == "casadi" else None
+        slack = compile(pcbf_slack_problem(system, X, U, h_f, N, deltas, alpha_f, slack_norm),
+                        backend, solver)
+        filt = compile(pcbf_filter_problem(system, X, U, h_f, N, deltas, eps), backend, solver)
+        return cls(slack, filt, U, eps)
+
+    def reset(self) -> None:
+        self._last_slack: Solution | None = None
+        self._last_filter: Solution | None = None
+        self._plan: np.ndarray | None = None  # inputs of the last successful plan
+        self._plan_age = 0
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        u_p = as_vector(u_p, "PCBFSafetyFilter.step: u_p", self.nu)
+        try:
+            x = as_vector(x, "PCBFSafetyFilter.step: x")
+        except NonFiniteError:
+            return self._fallback(u_p, StepInfo(status="non_finite_state"), "projected_proposal")
+        s1 = self.slack.solve({"x0": x}, warm_start=self._last_slack)
+        info = StepInfo(solve_time=s1.solve_time, solutions={"slack": s1})
+        if not s1.success:
+            info.status = f"slack_{s1.status}"
+            return self._fallback(u_p, info, "shifted_plan")
+        self._last_slack = s1
+        h_pb = max(float(s1.objective), 0.0)
+        info.values["h_PB"] = h_pb
+        xi = np.maximum(np.asarray(s1["xi"]), 0.0)
+        xi_N = max(float(np.asarray(s1["xi_N"]).reshape(-1)[0]), 0.0)
+        warm = self._last_filter if self._last_filter is not None else {
+            "x": s1["x"], "u": s1["u"]}
+        s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
+        info.solve_time += s2.solve_time
+        info.solutions["filter"] = s2
+        if s2.success:
+            self._last_filter = s2
+            plan = np.asarray(s2["u"]).reshape(self.nu, -1)
+            info.status = "ok"
+        else:
+            info.status = f"filter_{s2.status}"
+            info.fallback = "slack_solution"
+            plan = np.asarray(s1["u"]).reshape(self.nu, -1)
+        self._plan, self._plan_age = plan, 0
+        return plan[:, 0].copy(), info
+
+    def _fallback(self, u_p: np.ndarray, info: StepInfo, kind: str
+                  ) -> tuple[np.ndarray, StepInfo]:
+        if kind == "shifted_plan" and self._plan is not None \
+                and self._plan_age + 1 < self._plan.shape[1]:
+            self._plan_age += 1
+            info.fallback = "shifted_plan"
+            return self._plan[:, self._plan_age].copy(), info
+        info.fallback = "projected_proposal"
+        return project(u_p, self.U), info
+
+
+def project(u: np.ndarray, U: Set) -> np.ndarray:
+    """Euclidean projection onto ``U`` (clipping for boxes, a small QP otherwise)."""
+    u = np.asarray(u, dtype=float).reshape(-1)
+    if isinstance(U, Box):
+        return np.clip(u, U.lb, U.ub)
+    if U.contains(u):
+        return u
+    import cvxpy as cp
+
+    v = cp.Variable(U.dim)
+    H, h = getattr(U, "H", None), getattr(U, "h", None)
+    if H is None:
+        return u
+    cp.Problem(cp.Minimize(cp.sum_squares(v - u)), [H @ v <= h]).solve(solver="CLARABEL")
+    return np.asarray(v.value, dtype=float)
