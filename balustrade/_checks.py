@@ -26,7 +26,8 @@ def as_matrix(value: object, block: str, shape: tuple[int | None, int | None] | 
     return arr
 
 
-def as_vector(value: object, block: str, size: int | None = None, finite: bool = True) -> np.ndarray:
+def as_vector(value: object, block: str, size: int | None = None,
+              finite: bool = True) -> np.ndarray:
     """Return ``value`` as a 1-D float array of length ``size`` (a column or row is flattened)."""
     arr = np.asarray(value, dtype=float)
     if arr.ndim == 2 and 1 in arr.shape:

@@ -124,9 +124,7 @@ class CvxpyCompiled:
                 raise ConvexityError(f"cost term {label!r} ({term.kind}): its argument must be "
                                      "affine in the decision variables for the cvxpy backend")
             arg = self._affine_expr(aff)
-            atom = {"squared2": lambda: cp.sum_squares(arg), "norm1": lambda: cp.norm1(arg),
-                    "norm2": lambda: cp.norm2(arg), "norminf": lambda: cp.norm_inf(arg),
-                    "max": lambda: cp.max(arg)}[term.kind]()
+            atom = _ATOMS[term.kind](arg)
             if term.kind == "norm2":
                 self.conic = True
             total = total + term.coef * atom
@@ -197,6 +195,10 @@ class CvxpyCompiled:
                     values[rows] = np.asarray(con.dual_value, dtype=float).reshape(-1)
             out[block.name] = values
         return out
+
+
+_ATOMS = {"squared2": cp.sum_squares, "norm1": cp.norm1, "norm2": cp.norm2,
+          "norminf": cp.norm_inf, "max": cp.max}
 
 
 def _status(status: str) -> str:
