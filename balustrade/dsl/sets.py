@@ -225,7 +225,10 @@ class Box(Polytope):
         super().__init__(H.reshape(-1, n), h, name=name)
 
     def __repr__(self) -> str:
-        return f"Box(lb={self.lb.tolist()}, ub={self.ub.tolist()}, name={self.name!r})"
+        lb, ub = getattr(self, "lb", None), getattr(self, "ub", None)
+        if lb is None or ub is None:  # during construction
+            return f"Box(<incomplete>, name={getattr(self, 'name', None)!r})"
+        return f"Box(lb={lb.tolist()}, ub={ub.tolist()}, name={self.name!r})"
 
     @classmethod
     def symmetric(cls, bound: np.ndarray | float, dim: int | None = None,
