@@ -39,6 +39,7 @@ class CvxpyCompiled:
         self.W = cp.Variable(int(w_sym.numel()), name="w")
         self.P = cp.Parameter(int(p_sym.numel()), name="p") if p_sym.numel() else None
         self.conic = False  # becomes True when a second-order cone is needed
+        self.derived: list[tuple] = []  # (CasADi function of p, cvxpy parameter)
         self.block_constraints: dict[str, list[tuple[np.ndarray, cp.Constraint]]] = {}
         constraints: list[cp.Constraint] = []
         for block in ocp.blocks:
@@ -54,7 +55,7 @@ class CvxpyCompiled:
             self.bound_constraints.append(self.W[finite_ub] <= ub[finite_ub])
         objective = self._lower_cost(w_sym, p_sym)
         self.problem = cp.Problem(cp.Minimize(objective), constraints + self.bound_constraints)
-        if self.P is not None and not self.problem.is_dpp():
+        if (self.P is not None or self.derived) and not self.problem.is_dpp():
             raise ConvexityError(f"{ocp.name}: parameters enter the problem in a way that is not "
                                  "DPP (disciplined parametrized); check parameter products")
         self.solver_name = self._choose_solver(solver)
@@ -70,15 +71,18 @@ class CvxpyCompiled:
             expr = expr + aff.B @ self.P
         return expr
 
-    def _quadratic_expr(self, q: structure.QuadraticRow) -> cp.Expression:
-        arg = q.Lw @ self.W[q.w_index] if q.w_index.size else 0.0
-        if q.p_index.size and self.P is not None:
-            arg = arg + q.Lp @ self.P[q.p_index]
+    def _quadratic_expr(self, q: structure.Quadratic) -> cp.Expression:
         value = q.a @ self.W + q.c
-        if self.P is not None and q.b.nnz:
+        if q.L.size:
+            value = value + 0.5 * cp.sum_squares(q.L @ self.W[q.index])
+        if self.P is not None and q.M.nnz:
+            value = value + (q.M @ self.P) @ self.W
+        if q.b is not None and q.b.nnz and self.P is not None:
             value = value + q.b @ self.P
-        if q.Lw.size or q.Lp.size:
-            value = value + 0.5 * cp.sum_squares(arg)
+        if q.phi is not None:
+            derived = cp.Parameter(name=f"phi{len(self.derived)}")
+            self.derived.append((q.phi, derived))
+            value = value + derived
         return cp.reshape(value, (), order="F") if value.size == 1 else value
 
     def _lower_block(self, block, w_sym, p_sym) -> list[tuple[np.ndarray, cp.Constraint]]:
@@ -99,7 +103,7 @@ class CvxpyCompiled:
                 affine_rows.append(r)
                 affine_parts.append(row_aff)
                 continue
-            q = structure.quadratic_row(row_expr, w_sym, p_sym, block.name, r)
+            q = structure.quadratic(row_expr, w_sym, p_sym, f"block {block.name!r}, row {r}")
             self.conic = True
             parts.append((np.array([r]), self._quadratic_expr(q) <= 0))
         if affine_rows:
@@ -131,17 +135,12 @@ class CvxpyCompiled:
         return total
 
     def _smooth_cost(self, expr, w_sym, p_sym, label: str) -> cp.Expression:
-        """A quadratic cost: jointly convex in (w, p) if possible (DPP sum of squares),
-        otherwise convex in w with a parameter-affine linear coefficient."""
-        from balustrade.errors import ConvexityError as _CE
-
-        try:
-            return self._quadratic_expr(structure.quadratic_row(expr, w_sym, p_sym, label))
-        except _CE:
-            q = structure.quadratic_cost(expr, w_sym, p_sym, label)
-        L = structure.psd_factor(q.H)
-        value = 0.5 * cp.sum_squares(L @ self.W[q.index]) if L.size else 0.0
-        value = value + q.a @ self.W
+        """A quadratic cost term; its parameter-only part is dropped (the reported objective
+        is re-evaluated from the declared cost)."""
+        q = structure.quadratic(expr, w_sym, p_sym, f"cost term {label!r}")
+        value = q.a @ self.W
+        if q.L.size:
+            value = value + 0.5 * cp.sum_squares(q.L @ self.W[q.index])
         if self.P is not None and q.M.nnz:
             value = value + (q.M @ self.P) @ self.W
         return value
@@ -164,6 +163,8 @@ class CvxpyCompiled:
         p = self.ocp.pack_parameters(params)
         if self.P is not None:
             self.P.value = p
+        for phi, param in self.derived:
+            param.value = float(phi(p))
         start = time.perf_counter()
         message = ""
         try:

@@ -29,30 +29,21 @@ class Affine:
 
 
 @dataclass
-class QuadraticRow:
-    """``½ ‖Lw w_I + Lp p_J‖² + aᵀw + bᵀp + c``: a convex quadratic in ``(w, p)`` jointly.
-
-    Written with a square-root factor so that the cvxpy atom ``sum_squares`` of a
-    parameter-affine argument is DPP (e.g. ``h(Ax + Bu)`` with the state ``x`` a parameter).
+class Quadratic:
+    """``½ ‖L w_I‖² + (a + M p)ᵀ w + φ(p)``: convex quadratic in ``w`` (``LᵀL = H ⪰ 0`` on
+    the indices ``I``), with a parameter-affine linear coefficient (DPP: ``(M p)ᵀ w``) and
+    a parameter-only part ``φ(p) = expr(0, p)``. ``φ`` is affine (``b p + c``) or, when it
+    is not, a CasADi function evaluated before each solve and fed to cvxpy as a derived
+    parameter (e.g. ``−h(x)`` in the CBF decrease (2.20) with the state ``x`` a parameter).
     """
 
-    w_index: np.ndarray
-    p_index: np.ndarray
-    Lw: np.ndarray
-    Lp: np.ndarray
-    a: sp.csr_matrix
-    b: sp.csr_matrix
-    c: float
-
-
-@dataclass
-class QuadraticCost:
-    """``½ (w_I)ᵀ H (w_I) + (a + M p)ᵀ w + (terms in p only)``."""
-
     index: np.ndarray
-    H: np.ndarray
+    L: np.ndarray
     a: np.ndarray
     M: sp.csr_matrix
+    b: sp.csr_matrix | None
+    c: float
+    phi: ca.Function | None
 
 
 def _dm_to_sparse(m: ca.DM) -> sp.csr_matrix:
@@ -83,46 +74,29 @@ def affine(expr: ca.SX, w: ca.SX, p: ca.SX, block: str) -> Affine | None:
     return Affine(_dm_to_sparse(_evaluate(Jw, w, p)), _dm_to_sparse(_evaluate(Jp, w, p)), c)
 
 
-def quadratic_row(expr: ca.SX, w: ca.SX, p: ca.SX, block: str, row: int | None = None
-                  ) -> QuadraticRow:
-    """Decompose a scalar that is a convex quadratic of ``(w, p)`` jointly."""
-    where = f"block {block!r}" + (f", row {row}" if row is not None else "")
-    y = ca.vertcat(w, p)
-    grad = ca.gradient(expr, y)
-    H_sym = ca.jacobian(grad, y)
-    if not _constant(H_sym, w, p):
-        raise ConvexityError(
-            f"{where}: the expression is neither affine nor a convex quadratic of the decision "
-            "variables and parameters; the cvxpy backend cannot hold it (use backend='casadi')")
-    H = np.asarray(ca.densify(_evaluate(H_sym, w, p)), dtype=float)
-    index = np.flatnonzero(np.any(H != 0, axis=0))
-    Hs = H[np.ix_(index, index)]
-    _require_psd(Hs, where)
-    L = psd_factor(Hs)
-    nw = int(w.numel())
-    in_w = index < nw
-    g0 = np.asarray(_evaluate(grad, w, p), dtype=float).reshape(-1)
-    return QuadraticRow(index[in_w], index[~in_w] - nw, L[:, in_w], L[:, ~in_w],
-                        sp.csr_matrix(g0[:nw].reshape(1, -1)),
-                        sp.csr_matrix(g0[nw:].reshape(1, -1)),
-                        float(_evaluate(expr, w, p)))
-
-
-def quadratic_cost(expr: ca.SX, w: ca.SX, p: ca.SX, label: str) -> QuadraticCost:
-    """Decompose a smooth scalar cost term that is convex quadratic in ``w``."""
+def quadratic(expr: ca.SX, w: ca.SX, p: ca.SX, where: str) -> Quadratic:
+    """Decompose a scalar that is a convex quadratic of the decision variables ``w`` whose
+    gradient is affine in the parameters ``p``; refuse anything else naming ``where``."""
     grad_w = ca.gradient(expr, w)
     Hw = ca.jacobian(grad_w, w)
     M = ca.jacobian(grad_w, p) if p.numel() else ca.SX(w.numel(), 0)
     if not (_constant(Hw, w, p) and _constant(M, w, p)):
-        raise ConvexityError(f"cost term {label!r}: not a quadratic function of the decision "
-                             "variables (with a parameter-affine linear part); the cvxpy "
-                             "backend cannot hold it (use backend='casadi')")
+        raise ConvexityError(
+            f"{where}: the expression is neither affine nor a convex quadratic of the decision "
+            "variables (with parameters entering the linear part affinely); the cvxpy "
+            "backend cannot hold it (use backend='casadi')")
     H = np.asarray(ca.densify(_evaluate(Hw, w, p)), dtype=float)
     index = np.flatnonzero(np.any(H != 0, axis=0))
     Hs = H[np.ix_(index, index)]
-    _require_psd(Hs, f"cost term {label!r}")
+    _require_psd(Hs, where)
     a = np.asarray(_evaluate(grad_w, w, p), dtype=float).reshape(-1)
-    return QuadraticCost(index, Hs, a, _dm_to_sparse(_evaluate(M, w, p)))
+    phi_expr = ca.substitute(expr, w, ca.DM.zeros(w.numel()))
+    phi_aff = affine(phi_expr, w, p, where)
+    if phi_aff is not None:
+        b, c, phi = phi_aff.B, float(phi_aff.c[0]), None
+    else:
+        b, c, phi = None, 0.0, ca.Function("phi", [p], [phi_expr])
+    return Quadratic(index, psd_factor(Hs), a, _dm_to_sparse(_evaluate(M, w, p)), b, c, phi)
 
 
 def _require_psd(H: np.ndarray, where: str) -> None:
