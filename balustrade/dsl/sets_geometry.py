@@ -86,6 +86,8 @@ def affine_reduction(H: np.ndarray, h: np.ndarray, block: str, tol: float = 1e-9
     if not eq:  # numerically flat but no implicit equality found: treat as full-dimensional
         return np.zeros(n), np.eye(n), H, h
     N = scipy.linalg.null_space(H[eq], rcond=1e-10)
+    if N.shape[1] == 0:  # a single point
+        return x0, N, np.zeros((0, 0)), np.zeros(0)
     keep = [j for j in range(H.shape[0]) if j not in eq]
     Hz = H[keep] @ N
     hz = h[keep] - H[keep] @ x0
