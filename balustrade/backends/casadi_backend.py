@@ -132,20 +132,63 @@ class CasadiCompiled:
         self.nlp = nlp
         self.options = opts
         self.solver = ca.nlpsol(ocp.name, solver, nlp, opts)
+        self._retry: list[ca.Function] | None = None
+        self._g_function: ca.Function | None = None
         self._objective = ca.Function("objective", [w_user, p], [ocp.cost.expr()])
 
     def solve(self, params: dict[str, object] | None = None,
               warm_start: Solution | dict[str, object] | None = None) -> Solution:
         """Solve with the given parameter values; ``warm_start`` is a previous
-        :class:`Solution` (primal and dual) or a dict of variable values."""
+        :class:`Solution` (primal and dual) or a dict of variable values.
+
+        A failed solve is retried from a cold start (see :meth:`_retry_solvers`);
+        ``Solution.message`` and ``Solution.solver`` say when a retry was used.
+        """
         p = self.ocp.pack_parameters(params)
-        x0, lam_x0, lam_g0 = self._initial_guess(warm_start)
+        sol = self._solve_with(self.solver, p, self._initial_guess(warm_start))
+        attempts = [sol]
+        for solver in self._retry_solvers():
+            if attempts[-1].success:
+                break
+            attempts.append(self._solve_with(solver, p, self._initial_guess(None)))
+        final = attempts[-1] if attempts[-1].success else attempts[0]
+        if len(attempts) > 1:
+            final.solve_time = sum(a.solve_time for a in attempts)
+            final.iterations = sum(a.iterations for a in attempts)
+            final.message += " (after retries: " + ", ".join(
+                f"{a.solver}: {a.message}" for a in attempts[:-1]) + ")"
+        return final
+
+    def _retry_solvers(self) -> list[ca.Function]:
+        """Solvers tried, in order, after a failed solve (built on first use):
+
+        * ``sqpmethod``: the other Hessian convexification (qrqp needs a regularized
+          Hessian on some problems and stalls at degenerate points with it on others),
+          then IPOPT from a cold start;
+        * ``ipopt`` and others: the same solver from a cold start.
+        """
+        if self._retry is None:
+            self._retry = []
+            if self.solver_name == "sqpmethod":
+                opts = dict(self.options)
+                regularized = opts.get("convexify_strategy", "none") != "none"
+                opts["convexify_strategy"] = "none" if regularized else "regularize"
+                self._retry.append(ca.nlpsol(f"{self.ocp.name}_retry", "sqpmethod",
+                                             self.nlp, opts))
+                self._retry.append(ca.nlpsol(f"{self.ocp.name}_ipopt", "ipopt", self.nlp,
+                                             DEFAULT_OPTIONS["ipopt"]))
+            else:
+                self._retry.append(self.solver)
+        return self._retry
+
+    def _solve_with(self, solver: ca.Function, p: np.ndarray, guess: tuple) -> Solution:
+        x0, lam_x0, lam_g0 = guess
         start = time.perf_counter()
         try:
-            res = self.solver(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg,
-                              ubg=self.ubg, lam_x0=lam_x0, lam_g0=lam_g0)
+            res = solver(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg,
+                         ubg=self.ubg, lam_x0=lam_x0, lam_g0=lam_g0)
             elapsed = time.perf_counter() - start
-            stats = self.solver.stats()
+            stats = solver.stats()
         except RuntimeError as exc:  # CasADi raises on evaluation errors (NaN, etc.)
             elapsed = time.perf_counter() - start
             return self._failed(p, elapsed, str(exc))
@@ -154,6 +197,12 @@ class CasadiCompiled:
         lam_x = np.asarray(res["lam_x"]).reshape(-1)
         w = w_all[: self.n_user]
         status = _status(stats)
+        stalled = stats.get("return_status") == "Search_Direction_Becomes_Too_Small"
+        if status == "failed" and stalled and self._primal_feasible(w_all, p):
+            # The SQP step vanished at a primal-feasible point: the convex QP model has its
+            # KKT point at d = 0, i.e. the NLP is stationary; the dual-infeasibility test only
+            # failed on its absolute tolerance (multipliers of order alpha_f = 1e6).
+            status = "optimal_inaccurate"
         dual = {name: lam_g[s] for name, s in self.block_slices.items()}
         for name, arr in self.ocp.unpack_variables(lam_x[: self.n_user]).items():
             dual[f"bound:{name}"] = arr
@@ -161,9 +210,19 @@ class CasadiCompiled:
         return Solution(status=status, objective=objective,
                         primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
                         iterations=int(stats.get("iter_count", 0)), backend="casadi",
-                        solver=self.solver_name, w=w, p=p,
+                        solver=_SOLVER_NAMES.get(solver.class_name(), solver.class_name()),
+                        w=w, p=p,
                         message=str(stats.get("return_status", "")),
                         raw={"x": w_all, "lam_x": lam_x, "lam_g": lam_g})
+
+    def _primal_feasible(self, w_all: np.ndarray, p: np.ndarray, tol: float = 1e-8) -> bool:
+        if self._g_function is None:
+            self._g_function = ca.Function("g", [self.nlp["x"], self.nlp["p"]],
+                                           [self.nlp["g"]])
+        g = np.asarray(self._g_function(w_all, p)).reshape(-1)
+        scale = 1.0 + np.abs(g)
+        return bool(np.all(g - self.ubg <= tol * scale) and np.all(self.lbg - g <= tol * scale)
+                    and np.all(w_all - self.ubx <= tol) and np.all(self.lbx - w_all <= tol))
 
     def _initial_guess(self, warm: Solution | dict | None
                        ) -> tuple[np.ndarray, np.ndarray | float, np.ndarray | float]:
@@ -184,6 +243,9 @@ class CasadiCompiled:
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
                         iterations=0, backend="casadi", solver=self.solver_name, w=w, p=p,
                         message=message)
+
+
+_SOLVER_NAMES = {"Sqpmethod": "sqpmethod", "IpoptInterface": "ipopt"}
 
 
 def _status(stats: dict) -> str:

@@ -1,0 +1,56 @@
+"""Shared fixtures: the pendulum example of Section 7.5 compiled once per session."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from balustrade.backends import compile
+from balustrade.models.pendulum import pendulum, pendulum_setup
+from balustrade.problems.pcbf import (
+    extended_pcbf_problem,
+    pcbf_filter_problem,
+    pcbf_slack_problem,
+)
+from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
+
+warnings.filterwarnings("ignore", message="Solution may be inaccurate")
+
+
+class Pendulum:
+    """The pendulum model, sets, terminal CBF and the PCBF problems on both backends."""
+
+    def __init__(self) -> None:
+        self.system = pendulum()
+        self.setup = pendulum_setup()
+        s = self.setup
+        self.X, self.U, self.N, self.deltas, self.alpha_f = s.X, s.U, s.N, s.deltas, s.alpha_f
+        self.h_f = synthesize_terminal_cbf(self.system.A, self.system.B, s.X, s.U,
+                                           delta_N=s.deltas[-1])
+        args = (self.system, s.X, s.U, self.h_f, s.N, s.deltas)
+        self.slack = pcbf_slack_problem(*args, alpha_f=s.alpha_f, slack_norm=1)
+        self.filter = pcbf_filter_problem(*args)
+        self.extended = extended_pcbf_problem(*args)
+        self.compiled = {
+            (name, backend): compile(ocp, backend, "sqpmethod" if backend == "casadi" else None)
+            for name, ocp in (("slack", self.slack), ("filter", self.filter),
+                              ("extended", self.extended))
+            for backend in ("casadi", "cvxpy")
+        }
+
+    def h_pb(self, x: np.ndarray, backend: str = "casadi") -> float:
+        sol = self.compiled["slack", backend].solve({"x0": x})
+        assert sol.success, sol.summary()
+        return sol.objective
+
+    def h_bar(self, x: np.ndarray, backend: str = "casadi") -> float:
+        sol = self.compiled["extended", backend].solve({"x0": x})
+        assert sol.success, sol.summary()
+        return sol.objective
+
+
+@pytest.fixture(scope="session")
+def pend() -> Pendulum:
+    return Pendulum()
