@@ -148,6 +148,9 @@ def test_operation_errors_name_the_set_and_shapes() -> None:
         P.sample(2, "seed")  # type: ignore[arg-type]
     with pytest.raises(BalustradeError, match="Pset.sample.*method"):
         P.sample(2, 0, method="gibbs")
+    with pytest.raises(BalustradeError, match=r"Big.*\(1, 7\).*dimension <= 6"):
+        Polytope(np.vstack([np.eye(7), -np.eye(7)]), np.ones(14), name="Big").linear_map(
+            np.ones((1, 7)))
     big = Box.symmetric(1.0, 7, name="Big")
     with pytest.raises(BalustradeError, match="dimension <= 6"):
         Polytope(big.H, big.h, name="Big7").vertices()

@@ -175,6 +175,10 @@ class Polytope(Set):
         m, n = A.shape
         if m == n and np.linalg.matrix_rank(A) == n:
             return Polytope(np.linalg.solve(A.T, self.H.T).T, self.h, name=new_name)
+        if max(m, n) > geo.MAX_VERTEX_DIM:
+            raise BalustradeError(f"{self.name}.linear_map: A of shape {A.shape} is not "
+                                  "invertible, and images by vertices are limited to "
+                                  f"dimension <= {geo.MAX_VERTEX_DIM}")
         if not self.is_bounded():
             raise BalustradeError(f"{self.name}.linear_map: A of shape {A.shape} is not "
                                   f"invertible and the polytope (dimension {n}) is unbounded; "

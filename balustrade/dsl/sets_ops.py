@@ -77,7 +77,7 @@ def is_subset(s: Set, t: Set, tol: float) -> bool:
         if isinstance(s, Polytope):
             if not s.is_bounded():
                 return False
-            return bool(np.all(~t.contains_many(s.vertices(), tol=tol) == 0))
+            return bool(np.all(t.contains_many(s.vertices(), tol=tol)))
     raise BalustradeError(f"{s.name} ⊆ {t.name}: containment of a {type(s).__name__} in a "
                           f"{type(t).__name__} is not decidable here")
 
