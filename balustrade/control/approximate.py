@@ -1,0 +1,192 @@
+"""Horizon-free safety filters with an explicit approximate PCBF ``ĥ``.
+
+* :class:`ApproximatePCBFFilter` — Algorithm 7.5: certify ``u_p`` by one evaluation
+  (``u_p ∈ U`` and ``ĥ(f(x, u_p)) <= 0`` → apply ``u_p``); otherwise solve the maximal
+  decrease (7.6) and the filter (7.5) and apply its minimizer.
+* :class:`GridPCBFFilter` — Algorithm 8.7: evaluate ``ĥ(f(x, u_i))`` on a grid of inputs
+  around ``u_{k−1}`` (rate limits ``|u_i − u_{k−1}| <= ū``), keep those meeting the
+  multiplicative decrease ``ĥ(f(x, u_i)) <= ρ ĥ(x)`` and apply the one closest to ``u_p``
+  (input-range-scaled norm), else the grid minimizer of ``ĥ(f(x, ·))``.
+
+Neither raises in the loop (DESIGN.md principle 4). Fallbacks of Algorithm 7.5, recorded in
+``StepInfo.fallback``: (7.5) fails → the (7.6) minimizer, feasible by Proposition 7.3
+(``"max_decrease_solution"``); every local (7.6) solve fails → the best screened candidate
+of the multi-start grid (``"grid_minimizer"``); a non-finite state → ``u_p`` projected on
+``U`` (``"projected_proposal"``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import casadi as ca
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.backends import Compiled, Solution, compile
+from balustrade.control.base import StepInfo
+from balustrade.control.pcbf import project
+from balustrade.dsl.sets import Box, Set
+from balustrade.dsl.system import System
+from balustrade.errors import BalustradeError, NonFiniteError
+from balustrade.problems.approximate import (
+    HHat,
+    MaximalDecrease,
+    approximate_filter_problem,
+    as_h_function,
+    in_set,
+    solver_options,
+)
+
+
+class ApproximatePCBFFilter:
+    """Algorithm 7.5 with ``ρ ∈ (0, 1]`` (``ρ = 1``: maximal decrease of ``ĥ`` each step).
+
+    ``certify=False`` disables the shortcut of line 4 (every step solves (7.6) and (7.5)).
+    Counters: ``n_steps``, ``n_certified`` (shortcut fired), ``n_solved``, ``n_fallbacks``.
+    """
+
+    def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
+                 solver: str = "ipopt", options: dict | None = None, certify: bool = True,
+                 grid_points: int = 5, n_local: int = 2, eps: float = 1e-6):
+        if not 0.0 < float(rho) <= 1.0:
+            raise BalustradeError(f"ApproximatePCBFFilter: rho must lie in (0, 1], got {rho!r}")
+        self.system, self.U, self.rho, self.certify = system, U, float(rho), bool(certify)
+        self.nu = system.nu
+        self.h = as_h_function(h_hat, system.nx)
+        self.decrease = MaximalDecrease(system, U, self.h, solver, options, grid_points, n_local)
+        self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps),
+                                        "casadi", solver, solver_options(solver, options))
+        self._h_next = self.decrease._h_next
+        self.reset()
+
+    def reset(self) -> None:
+        self.n_steps = self.n_certified = self.n_solved = self.n_fallbacks = 0
+
+    def certifies(self, x: np.ndarray, u_p: np.ndarray) -> bool:
+        """Line 4 of Algorithm 7.5: ``u_p ∈ U`` and ``ĥ(f(x, u_p)) <= 0``."""
+        return bool(in_set(u_p, self.U) and float(self._h_next(x, u_p)) <= 0.0)
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        self.n_steps += 1
+        try:
+            u_p = as_vector(u_p, "ApproximatePCBFFilter.step: u_p", self.nu)
+            x = as_vector(x, "ApproximatePCBFFilter.step: x", self.system.nx)
+        except (NonFiniteError, BalustradeError) as exc:
+            self.n_fallbacks += 1
+            u_safe = np.nan_to_num(np.asarray(u_p, float).reshape(-1)[: self.nu])
+            return project(u_safe, self.U), StepInfo(status=f"bad_input: {exc}",
+                                                     fallback="projected_proposal")
+        start = time.perf_counter()
+        if self.certify and self.certifies(x, u_p):
+            self.n_certified += 1
+            info = StepInfo(status="certified", solve_time=time.perf_counter() - start)
+            info.values.update(certified=1.0)
+            return u_p.copy(), info
+        try:
+            return self._solve(x, u_p)
+        except Exception as exc:  # noqa: BLE001 - never raise in the loop (principle 4)
+            self.n_fallbacks += 1
+            return project(u_p, self.U), StepInfo(status=f"error: {exc}",
+                                                  fallback="projected_proposal")
+
+    def _solve(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        self.n_solved += 1
+        dec = self.decrease.solve(x, u_p)
+        info = StepInfo(solve_time=dec.solve_time, solutions={"max_decrease": dec.solutions})
+        info.values.update(certified=0.0, h_hat=dec.h_x, dh=dec.dh)
+        if not dec.success:
+            info.status, info.fallback = "max_decrease_failed", "grid_minimizer"
+            self.n_fallbacks += 1
+            return dec.u.copy(), info
+        sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},
+                                warm_start={"u": dec.u})
+        info.solve_time += sol.solve_time
+        info.solutions["filter"] = sol
+        u = np.asarray(sol["u"], float).reshape(self.nu) if sol.success else None
+        if u is not None and in_set(u, self.U, 1e-7):
+            info.status = "ok"
+            return u, info
+        info.status, info.fallback = f"filter_{sol.status}", "max_decrease_solution"
+        self.n_fallbacks += 1
+        return dec.u.copy(), info
+
+
+class GridPCBFFilter:
+    """Algorithm 8.7 (SPEC §2.34): the input-grid approximate PCBF filter with rate limits.
+
+    ``half_width`` ``ū`` and ``spacing`` ``Δu`` (per input) define the offsets
+    ``j·Δu``, ``|j·Δu| <= ū``, around the last applied input ``u_{k−1}``; candidates are
+    clipped to ``U`` (a box) or dropped if outside ``U``. ``ĥ(f(x, u_i))`` is evaluated for
+    all candidates in one batched CasADi call. ``ρ`` multiplies ``ĥ`` (default 0.9).
+    """
+
+    def __init__(self, system: System, U: Set, h_hat: HHat, half_width: object,
+                 spacing: object, rho: float = 0.9, u_init: np.ndarray | None = None):
+        self.system, self.U, self.rho = system, U, float(rho)
+        self.nu = system.nu
+        self.half_width = as_vector(half_width, "GridPCBFFilter: half_width", self.nu)
+        self.spacing = as_vector(spacing, "GridPCBFFilter: spacing", self.nu)
+        if np.any(self.spacing <= 0) or np.any(self.half_width < 0):
+            raise BalustradeError("GridPCBFFilter: spacing must be positive and half_width "
+                                  "nonnegative")
+        axes = [np.arange(-np.floor(w / s + 1e-9), np.floor(w / s + 1e-9) + 1) * s
+                for w, s in zip(self.half_width, self.spacing)]
+        self.offsets = np.array(list(itertools.product(*axes)), dtype=float)
+        box = U if isinstance(U, Box) else U.bounding_box()
+        span = np.asarray(box.ub, float) - np.asarray(box.lb, float)
+        self.scale = np.where(np.isfinite(span) & (span > 0), span, 1.0)
+        self.h = as_h_function(h_hat, system.nx)
+        x, u = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu)
+        self._h_next = ca.Function("h_next", [x, u], [self.h(system(x, u))])
+        self._many = self._h_next.map(len(self.offsets))
+        self.u_init = np.zeros(self.nu) if u_init is None else np.asarray(u_init, float)
+        self.reset()
+
+    def reset(self) -> None:
+        self.u_prev = project(self.u_init, self.U)
+        self.n_steps = self.n_decrease_infeasible = 0
+
+    def candidates(self) -> np.ndarray:
+        """The candidate set ``C`` of Algorithm 8.7 (rows), around ``u_{k−1}``."""
+        cand = self.u_prev.reshape(1, -1) + self.offsets
+        if isinstance(self.U, Box):
+            cand = np.clip(cand, self.U.lb, self.U.ub)
+        else:
+            cand = cand[self.U.contains_many(cand)]
+            if len(cand) == 0:
+                cand = project(self.u_prev, self.U).reshape(1, -1)
+        return np.unique(np.round(cand, 12), axis=0)
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        self.n_steps += 1
+        start = time.perf_counter()
+        try:
+            x = as_vector(x, "GridPCBFFilter.step: x", self.system.nx)
+            u_p = as_vector(u_p, "GridPCBFFilter.step: u_p", self.nu)
+        except BalustradeError as exc:
+            return self.u_prev.copy(), StepInfo(status=f"bad_input: {exc}",
+                                                fallback="previous_input")
+        cand = self.candidates()
+        padded = np.vstack([cand, np.repeat(cand[-1:], len(self.offsets) - len(cand), 0)])
+        values = np.asarray(self._many(np.tile(x.reshape(-1, 1), len(self.offsets)),
+                                       padded.T)).reshape(-1)[: len(cand)]
+        values = np.where(np.isfinite(values), values, np.inf)
+        h_x = float(self.h(x))
+        ok = values <= self.rho * h_x
+        info = StepInfo(values={"h_hat": h_x, "n_candidates": float(len(cand))})
+        if not np.any(ok):
+            self.n_decrease_infeasible += 1
+            u = cand[int(np.argmin(values))]
+            info.status, info.fallback = "no_decreasing_candidate", "grid_minimizer"
+        else:
+            dist = np.sum(((cand[ok] - u_p) / self.scale) ** 2, axis=1)
+            u = cand[ok][int(np.argmin(dist))]
+            info.status = "ok"
+        info.solve_time = time.perf_counter() - start
+        self.u_prev = u.copy()
+        return u.copy(), info
+
+
+__all__ = ["ApproximatePCBFFilter", "GridPCBFFilter", "Solution"]

@@ -1,0 +1,231 @@
+"""The horizon-free approximate PCBF problems (thesis Section 7.2, SPEC §2.28).
+
+Given an explicit approximation ``ĥ`` of the PCBF ``h_PB`` (2.24) or of the extended
+``h`` (7.7) — a trained network exported to CasADi, or any hand-written function:
+
+* :func:`max_decrease_problem` — (7.6): ``Δĥ(x) = ĥ(x) − min_{u ∈ U} ĥ(f(x, u))``; the OCP
+  minimizes ``ĥ(f(x, u))`` over ``u ∈ U`` (a nonconvex NLP in ``u`` only);
+* :func:`approximate_filter_problem` — (7.5): ``min ‖u − u_p‖²`` s.t.
+  ``ĥ(f(x, u)) − ĥ(x) <= −ρ Δĥ(x)`` and ``u ∈ U``, ``ρ ∈ (0, 1]``;
+* :class:`MaximalDecrease` — (7.6) solved by multi-start (SPEC §2.28 default: starts at
+  ``u = 0``, ``u_p`` and a coarse grid over ``U``): all candidates are screened by one
+  batched evaluation of ``ĥ(f(x, ·))`` and the local solver is run from the best ones.
+
+Neither problem depends on the prediction horizon ``N`` of (2.24): ``ĥ`` carries it.
+By Proposition 7.3 the minimizer of (7.6) is feasible in (7.5) for every ``x`` and every
+``ρ ∈ (0, 1]``; the filter is warm-started with it.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from balustrade.backends import Compiled, Solution, compile
+from balustrade.dsl import OCP, Set, System, squared_norm
+from balustrade.dsl.sets import Box
+from balustrade.errors import BalustradeError, ShapeError
+
+HHat = ca.Function | Callable[[ca.SX], object]
+
+
+def as_h_function(h_hat: HHat, nx: int, name: str = "h_hat") -> ca.Function:
+    """Normalize ``ĥ`` (a CasADi Function ``x ↦ ĥ(x)`` or a callable on an ``(nx, 1)`` SX
+    symbol) to a CasADi Function with one input of shape ``(nx, 1)`` and a scalar output."""
+    if isinstance(h_hat, ca.Function):
+        if h_hat.n_in() != 1 or h_hat.size1_in(0) * h_hat.size2_in(0) != nx:
+            raise ShapeError(f"{name}: input of the CasADi Function", (nx, 1),
+                             (h_hat.size1_in(0), h_hat.size2_in(0)))
+        if h_hat.numel_out(0) != 1:
+            raise ShapeError(f"{name}: output of the CasADi Function", "a scalar",
+                             (h_hat.size1_out(0), h_hat.size2_out(0)))
+        return h_hat
+    x = ca.SX.sym("x", nx)
+    try:
+        value = ca.SX(h_hat(x))
+    except Exception as exc:  # the user's function failed on a symbol
+        raise BalustradeError(f"{name}: ĥ(x) failed on a symbol of shape ({nx}, 1): {exc}"
+                              ) from exc
+    if value.numel() != 1:
+        raise ShapeError(f"{name}: ĥ(x)", "a scalar", value.shape)
+    return ca.Function(name, [x], [value], ["x"], ["h"])
+
+
+def _input_variable(ocp: OCP, U: Set, nu: int) -> ca.SX:
+    """``u ∈ U``: simple bounds for a box (cheapest for IPOPT), rows ``c_U(u) <= 0`` else."""
+    if U.dim != nu:
+        raise ShapeError(f"{ocp.name}: input set {U.name}", f"dimension {nu}",
+                         f"dimension {U.dim}")
+    if isinstance(U, Box):
+        return ocp.variable("u", nu, lb=U.lb, ub=U.ub, role="input")
+    u = ocp.variable("u", nu, role="input")
+    ocp.le(U.c(u), 0, name="input", tag="input")
+    return u
+
+
+def max_decrease_problem(system: System, U: Set, h_hat: HHat,
+                         name: str = "approx_max_decrease") -> OCP:
+    """(7.6) as ``min_{u ∈ U} ĥ(f(x0, u))``; ``Δĥ(x0) = ĥ(x0) − optimum``.
+
+    Parameters: ``x0``. Variable: ``u``.
+    """
+    h = as_h_function(h_hat, system.nx)
+    ocp = OCP(None, name=name)
+    u = _input_variable(ocp, U, system.nu)
+    x0 = ocp.parameter("x0", system.nx)
+    ocp.minimize(h(system(x0, u)))
+    return ocp
+
+
+def approximate_filter_problem(system: System, U: Set, h_hat: HHat, eps: float = 1e-6,
+                               name: str = "approx_filter") -> OCP:
+    """(7.5): ``min ‖u − u_p‖²`` s.t. ``ĥ(f(x0, u)) − ĥ(x0) <= −ρ Δĥ + eps`` and ``u ∈ U``
+    (for ``Δĥ < 0`` the bound is extended as in :func:`decrease_bound`).
+
+    Parameters: ``x0``, ``u_p``, ``dh`` (``Δĥ(x0)`` from (7.6)) and ``rho`` (``ρ ∈ (0, 1]``,
+    default 1), so one compiled problem serves every ``ρ``. ``eps`` is the numerical margin
+    that keeps the (7.6) minimizer strictly feasible at ``ρ = 1`` (Proposition 7.3).
+    """
+    h = as_h_function(h_hat, system.nx)
+    ocp = OCP(None, name=name)
+    u = _input_variable(ocp, U, system.nu)
+    x0 = ocp.parameter("x0", system.nx)
+    u_p = ocp.parameter("u_p", system.nu)
+    dh = ocp.parameter("dh", 1)
+    rho = ocp.parameter("rho", 1, value=1.0)
+    ocp.decrease(h(system(x0, u)) - h(x0), decrease_bound(dh, rho) + eps,
+                 name="approx_decrease")
+    ocp.minimize(squared_norm(u - u_p, label="filter"))
+    return ocp
+
+
+def solver_options(solver: str, options: dict | None = None) -> dict | None:
+    """Options for the small (7.5)/(7.6) NLPs: with ``sqpmethod``, Hessian convexification
+    by eigenvalue clipping (CasADi 3.8's ``regularize`` corrupts the heap on these
+    one-input problems when started at a bound of ``U``)."""
+    if solver == "sqpmethod":
+        return {"convexify_strategy": "eigen-clip", **(options or {})}
+    return options
+
+
+def decrease_bound(dh: object, rho: object) -> object:
+    """Right side of (7.5): ``−ρ Δĥ`` when ``Δĥ >= 0``, extended to ``−(2 − ρ) Δĥ`` when
+    ``Δĥ < 0`` (works on numbers and CasADi symbols).
+
+    [Gap] Proposition 7.3 uses ``−Δĥ <= −ρ Δĥ``, true only for ``Δĥ >= 0`` (a CBF outside
+    ``S_PB``). A learned ``ĥ``, or the extended ``h`` inside ``S_PB``, can have ``Δĥ < 0``
+    (no input decreases it); then ``−ρ Δĥ < −Δĥ`` and (7.5) would be infeasible for
+    ``ρ < 1``. Written as ``ĥ(f(x, u)) <= min_v ĥ(f(x, v)) + (1 − ρ) |Δĥ|``, the bound
+    above is the continuous extension that keeps the (7.6) minimizer feasible for every
+    ``x`` and ``ρ ∈ (0, 1]`` and equals the thesis' bound whenever ``Δĥ >= 0``.
+    """
+    fmax = ca.fmax if isinstance(dh, (ca.SX, ca.MX, ca.DM)) else np.maximum
+    return -rho * dh + 2.0 * (1.0 - rho) * fmax(0.0, -dh)
+
+
+def coarse_grid(U: Set, points_per_dim: int = 5, max_points: int = 125) -> np.ndarray:
+    """A coarse grid over the bounding box of ``U`` (rows are inputs), kept to points of
+    ``U``; with too many dimensions, the box vertices and centre instead."""
+    box = U if isinstance(U, Box) else U.bounding_box()
+    lb, ub = np.asarray(box.lb, float), np.asarray(box.ub, float)
+    if not (np.all(np.isfinite(lb)) and np.all(np.isfinite(ub))):
+        return np.zeros((1, U.dim))
+    if points_per_dim ** U.dim <= max_points:
+        axes = [np.linspace(lo, hi, points_per_dim) for lo, hi in zip(lb, ub)]
+        grid = np.array(list(itertools.product(*axes)), dtype=float)
+    else:
+        corners = np.array(list(itertools.product(*zip(lb, ub))), dtype=float)[:max_points - 1]
+        grid = np.vstack([corners, 0.5 * (lb + ub)])
+    return grid[U.contains_many(grid)] if not isinstance(U, Box) else grid
+
+
+@dataclass
+class DecreaseResult:
+    """Result of (7.6) at one state: the minimizer ``u``, ``ĥ(x)``, ``min ĥ(f(x, u))``,
+    ``Δĥ(x)`` and the local solutions tried."""
+
+    u: np.ndarray
+    h_x: float
+    h_next: float
+    dh: float
+    solutions: list[Solution]
+    success: bool
+
+    @property
+    def solve_time(self) -> float:
+        return float(sum(s.solve_time for s in self.solutions))
+
+
+class MaximalDecrease:
+    """(7.6) by multi-start: screen ``{0, u_p} ∪ grid`` with one batched evaluation of
+    ``ĥ(f(x, ·))``, run the compiled local solver from the ``n_local`` best candidates,
+    keep the best local optimum (never worse than the best screened candidate)."""
+
+    def __init__(self, system: System, U: Set, h_hat: HHat, solver: str = "ipopt",
+                 options: dict | None = None, grid_points: int = 5, n_local: int = 2):
+        self.system, self.U = system, U
+        self.h = as_h_function(h_hat, system.nx)
+        self.ocp = max_decrease_problem(system, U, self.h)
+        self.compiled: Compiled = compile(self.ocp, "casadi", solver,
+                                          solver_options(solver, options))
+        self.grid = coarse_grid(U, grid_points)
+        self.n_local = int(n_local)
+        x, u = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu)
+        self._h_next = ca.Function("h_next", [x, u], [self.h(system(x, u))])
+        self._n_cand = len(self.grid) + 2
+        self._h_next_many = self._h_next.map(self._n_cand)
+
+    def h_value(self, x: np.ndarray) -> float:
+        return float(self.h(x))
+
+    def h_next(self, x: np.ndarray, u: np.ndarray) -> float:
+        """``ĥ(f(x, u))`` (one evaluation: the certification test of Algorithm 7.5)."""
+        return float(self._h_next(x, u))
+
+    def solve(self, x: np.ndarray, u_p: np.ndarray | None = None) -> DecreaseResult:
+        nu = self.system.nu
+        u_p = np.zeros(nu) if u_p is None else np.asarray(u_p, float).reshape(nu)
+        u_p_in = _project_box(u_p, self.U)
+        cand = np.vstack([np.zeros((1, nu)), u_p_in.reshape(1, nu), self.grid])
+        cand[0] = _project_box(cand[0], self.U)
+        values = np.asarray(self._h_next_many(np.tile(np.reshape(x, (-1, 1)), self._n_cand),
+                                              cand.T)).reshape(-1)
+        values = np.where(np.isfinite(values), values, np.inf)
+        order = np.argsort(values, kind="stable")
+        best_u, best_v = cand[order[0]].copy(), float(values[order[0]])
+        sols, success, tried = [], False, []
+        for idx in order:
+            if len(tried) >= self.n_local:
+                break
+            if any(np.allclose(cand[idx], t) for t in tried):
+                continue
+            tried.append(cand[idx])
+            sol = self.compiled.solve({"x0": x}, warm_start={"u": cand[idx]})
+            sols.append(sol)
+            if sol.success or sol.status == "max_iterations":
+                u_loc = np.asarray(sol["u"], float).reshape(nu)
+                if np.all(np.isfinite(u_loc)) and in_set(u_loc, self.U, 1e-7):
+                    v = self.h_next(x, u_loc)
+                    success = success or sol.success
+                    if v < best_v:
+                        best_u, best_v = u_loc, v
+        h_x = self.h_value(x)
+        return DecreaseResult(best_u, h_x, best_v, h_x - best_v, sols,
+                              success or np.isfinite(best_v))
+
+
+def in_set(u: np.ndarray, U: Set, tol: float = 1e-9) -> bool:
+    """``u ∈ U`` up to ``tol`` (a vectorized check for boxes, ``U.contains`` otherwise)."""
+    u = np.asarray(u, float).reshape(-1)
+    if isinstance(U, Box):
+        return bool(np.all(u >= U.lb - tol) and np.all(u <= U.ub + tol))
+    return bool(U.contains(u, tol=tol))
+
+
+def _project_box(u: np.ndarray, U: Set) -> np.ndarray:
+    box = U if isinstance(U, Box) else U.bounding_box()
+    return np.clip(np.asarray(u, float).reshape(-1), box.lb, box.ub)
