@@ -20,7 +20,7 @@ def as_matrix(value: object, block: str, shape: tuple[int | None, int | None] | 
     if shape is not None:
         for want, got in zip(shape, arr.shape):
             if want is not None and want != got:
-                raise ShapeError(block, _fmt(shape), arr.shape)
+                raise ShapeError(block, _fmt(shape), arr.shape, what="shape")
     if finite and not np.all(np.isfinite(arr)):
         raise NonFiniteError(f"{block}: contains NaN or inf (shape {arr.shape})")
     return arr

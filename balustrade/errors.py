@@ -14,9 +14,15 @@ class BalustradeError(Exception):
 class ShapeError(BalustradeError, ValueError):
     """An array or expression has the wrong shape for the block it is given to."""
 
-    def __init__(self, block: str, expected: object, given: object, what: str = "shape"):
+    def __init__(self, block: str, expected: object, given: object,
+                 what: str | None = None):
         self.block, self.expected, self.given = block, expected, given
-        super().__init__(f"{block}: expected {what} {expected}, got {given}")
+        got = f"shape {given}" if isinstance(given, tuple) else str(given)
+        if what is not None:  # the caller words it: "expected <what> <expected>"
+            exp = f"{what} {expected}".strip()
+        else:
+            exp = f"shape {expected}" if isinstance(expected, tuple) else str(expected)
+        super().__init__(f"{block}: expected {exp}, got {got}")
 
 
 class NonFiniteError(BalustradeError, ValueError):

@@ -82,8 +82,9 @@ def verify(problem: OCP, solution: Solution, tol: float = 1e-6) -> VerificationR
         if block.tag == "dynamics":
             dynamics = max(dynamics, viol)
     bound_violation = {}
+    primal = problem.unpack_variables(solution.w)
     for name, v in problem.variables.items():
-        val = np.asarray(solution.primal[name], dtype=float).reshape(v.shape)
+        val = np.asarray(primal[name], dtype=float).reshape(v.shape)
         below = np.max(v.lb - val, initial=0.0)
         above = np.max(val - v.ub, initial=0.0)
         bound_violation[name] = float(max(below, above, 0.0))

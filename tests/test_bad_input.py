@@ -1,0 +1,130 @@
+"""Bad input gets a balustrade exception that names the block and the shapes."""
+
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from balustrade.backends import compile
+from balustrade.dsl import OCP, Box, Ellipsoid, FunctionSet, LinearSystem, Polytope, quad
+from balustrade.errors import (
+    BalustradeError,
+    ConvexityError,
+    EmptySetError,
+    NonFiniteError,
+    NotPSDError,
+    ShapeError,
+    SolverError,
+)
+from balustrade.problems.mpc import mpc_problem
+
+
+def test_wrong_system_shapes():
+    square = r"A: expected a square matrix \(nx, nx\), got shape \(2, 3\)"
+    with pytest.raises(ShapeError, match=square):
+        LinearSystem(np.ones((2, 3)), np.ones((2, 1)))
+    with pytest.raises(ShapeError, match=r"B: expected shape \(3, n\), got shape \(2, 1\)"):
+        LinearSystem(np.eye(3), np.ones((2, 1)))
+    with pytest.raises(ShapeError, match=r"f\(x, u, w, theta\)"):
+        from balustrade.dsl import System
+
+        System(lambda x, u: x[0] + u, nx=2, nu=1, name="pendulum")
+
+
+def test_wrong_set_shapes_and_empty_sets():
+    with pytest.raises(ShapeError, match="h must have one entry per row of H"):
+        Polytope(np.eye(2), np.ones(3), name="X")
+    with pytest.raises(ShapeError, match=r"U: ub: expected shape \(2,\), got shape \(3,\)"):
+        Box(np.zeros(2), np.ones(3), name="U")
+    with pytest.raises(EmptySetError, match="X"):
+        Polytope(np.array([[1.0], [-1.0]]), np.array([-1.0, 0.0]), name="X")
+    with pytest.raises(EmptySetError, match="lower bound exceeds upper bound"):
+        Box([1.0], [0.0])
+    with pytest.raises(EmptySetError, match="tightening X by E leaves an empty set"):
+        Box.symmetric([0.1, 0.1], name="X").tighten(Ellipsoid(np.eye(2), name="E"))
+
+
+def test_set_of_wrong_dimension_in_ocp(pend):
+    ocp = OCP(pend.system, 3)
+    with pytest.raises(ShapeError, match=r"state: set U: expected dimension 2, got dimension 1"):
+        ocp.state_constraint(pend.U)
+
+
+def test_nan_and_wrong_shape_parameters(pend):
+    c = pend.compiled["slack", "casadi"]
+    with pytest.raises(NonFiniteError, match="parameter 'x0'"):
+        c.solve({"x0": [np.nan, 0.0]})
+    wrong = r"parameter .x0.: expected shape \(2, 1\), got shape \(3,\)"
+    with pytest.raises(ShapeError, match=wrong):
+        c.solve({"x0": [0.0, 0.0, 0.0]})
+    with pytest.raises(BalustradeError, match="no value for parameter 'x0'"):
+        c.solve({})
+    with pytest.raises(NonFiniteError, match=r"pendulum.step: x"):
+        pend.system.step([np.inf, 0.0], [0.0])
+
+
+def test_non_psd_weights(pend):
+    with pytest.raises(NotPSDError, match="Q"):
+        quad(ca.SX.sym("x", 2), -np.eye(2), label="stage")
+    with pytest.raises(NotPSDError, match="Q"):
+        mpc_problem(pend.system, pend.X, pend.U, None, 3, np.diag([1.0, -1.0]), np.eye(1),
+                    np.eye(2))
+    with pytest.raises(NotPSDError, match=r"E: P: matrix of shape \(2, 2\)"):
+        Ellipsoid(np.array([[1.0, 2.0], [2.0, 1.0]]), name="E")
+
+
+def test_nonconvex_function_set_refused_by_cvxpy(pend):
+    ring = FunctionSet(lambda x: 0.25 - ca.sumsqr(x), dim=2, name="outside_disc")
+    ocp = OCP(pend.system, 3, name="avoid")
+    ocp.initial_state(ocp.parameter("x0", 2))
+    ocp.dynamics()
+    ocp.state_constraint(ring, name="avoid_disc")
+    ocp.minimize(quad(ocp.u))
+    with pytest.raises(ConvexityError, match=r"block 'avoid_disc', row \d+: .*negative eigen"):
+        compile(ocp, "cvxpy")
+    sol = compile(ocp, "casadi").solve({"x0": [1.0, 0.0]})  # CasADi holds it
+    assert sol.success
+
+
+def test_unknown_solver_names(pend):
+    with pytest.raises(SolverError, match="unknown CasADi NLP solver 'snopt7'"):
+        compile(pend.slack, "casadi", "snopt7")
+    with pytest.raises(SolverError, match="unknown or uninstalled cvxpy solver 'GUROBI9'"):
+        compile(pend.slack, "cvxpy", "GUROBI9")
+    with pytest.raises(SolverError, match="unknown backend 'julia'"):
+        compile(pend.slack, "julia")
+
+
+@settings(max_examples=40, deadline=None)
+@given(rows=st.integers(1, 4), cols=st.integers(1, 4), m=st.integers(1, 3),
+       b_rows=st.integers(1, 4))
+def test_linear_system_shapes_property(rows, cols, m, b_rows):
+    """Any shape combination either builds a consistent system or raises ShapeError."""
+    A, B = np.ones((rows, cols)), np.ones((b_rows, m))
+    if rows == cols and b_rows == rows:
+        sys_ = LinearSystem(A, B)
+        assert sys_.nx == rows and sys_.nu == m
+        assert sys_.step(np.zeros(rows), np.zeros(m)).shape == (rows,)
+    else:
+        with pytest.raises(ShapeError):
+            LinearSystem(A, B)
+
+
+@settings(max_examples=30, deadline=None)
+@given(value=st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=0,
+                      max_size=4))
+def test_parameter_values_property(pend, value):
+    """A parameter value is accepted iff it has 2 finite entries; otherwise a clear error."""
+    arr = np.array(value, dtype=float)
+    c = pend.compiled["slack", "cvxpy"]
+    if arr.size == 2 and np.all(np.isfinite(arr)) and np.max(np.abs(arr)) < 1e3:
+        assert c.solve({"x0": arr}).status in ("optimal", "optimal_inaccurate")
+    elif arr.size != 2:
+        with pytest.raises(ShapeError, match="parameter 'x0'"):
+            c.solve({"x0": arr})
+    elif not np.all(np.isfinite(arr)):
+        with pytest.raises(NonFiniteError, match="parameter 'x0'"):
+            c.solve({"x0": arr})

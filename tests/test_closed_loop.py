@@ -1,0 +1,83 @@
+"""The PCBF safety filter in closed loop on the pendulum (Figure 7.1 PCBF curves) and its
+fallbacks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from balustrade.backends import Solution
+from balustrade.control import PCBFSafetyFilter, simulate
+from balustrade.testing import verify
+
+INITIAL_RATES = (-1.5, -0.75, 0.0, 0.75, 1.5)
+
+
+@pytest.fixture(scope="module")
+def controller(pend) -> PCBFSafetyFilter:
+    return PCBFSafetyFilter(pend.compiled["slack", "casadi"], pend.compiled["filter", "casadi"],
+                            pend.U)
+
+
+@pytest.mark.parametrize("omega0", INITIAL_RATES)
+def test_pendulum_runs_are_safe_and_verified(pend, controller, omega0):
+    controller.reset()
+    trace = simulate(pend.system, controller, [0.0, omega0], 150, proposal=2.0,
+                     keep_infos=True)
+    assert trace.stopped is None and len(trace.states) == 151
+    h = trace.values["h_PB"]
+    inside = np.flatnonzero(h <= 1e-6)
+    assert inside.size, "the run must reach S_PB"
+    after = trace.states[inside[0]:]
+    assert np.max(after[:, 0]) <= 0.5 + 1e-6  # ψ <= 0.5 once inside S_PB
+    assert np.max(np.abs(after[:, 1])) <= 1.5 + 1e-6
+    assert np.all(np.abs(trace.inputs) <= 3.0 + 1e-9)
+    assert trace.states[-1, 0] == pytest.approx(0.5 - pend.deltas[1], abs=5e-3)
+    for info in trace.infos:
+        for name, sol in info.solutions.items():
+            ocp = pend.slack if name == "slack" else pend.filter
+            report = verify(ocp, sol, tol=1e-6)
+            assert report.ok, str(report)
+
+
+def test_filter_passes_safe_proposals_unchanged(pend, controller):
+    controller.reset()
+    u, info = controller.step(np.array([0.0, 0.0]), np.array([0.3]))
+    assert info.fallback is None and u[0] == pytest.approx(0.3, abs=1e-7)
+
+
+class _Failing:
+    """A compiled problem whose solver always fails (to exercise the fallbacks)."""
+
+    def __init__(self, ocp):
+        self.ocp = ocp
+
+    def solve(self, params=None, warm_start=None) -> Solution:
+        n = self.ocp.decision_vector().numel()
+        w = np.full(n, np.nan)
+        return Solution("failed", np.nan, self.ocp.unpack_variables(w), {}, 0.0, 0, "test",
+                        "failing", w, self.ocp.pack_parameters(params))
+
+
+def test_failed_solves_fall_back_without_raising(pend):
+    ctl = PCBFSafetyFilter(pend.compiled["slack", "casadi"], _Failing(pend.filter), pend.U)
+    trace = simulate(pend.system, ctl, [0.0, 1.0], 5, proposal=2.0)
+    assert trace.fallbacks == ["slack_solution"] * 5
+    assert all(s.startswith("filter_failed") for s in trace.statuses)
+
+    good = PCBFSafetyFilter(pend.compiled["slack", "casadi"], pend.compiled["filter", "casadi"],
+                            pend.U)
+    good.step(np.array([0.0, 1.0]), np.array([2.0]))  # one successful plan
+    good.slack = _Failing(pend.slack)
+    u, info = good.step(np.array([0.05, 1.0]), np.array([2.0]))
+    assert info.fallback == "shifted_plan" and np.all(np.isfinite(u))
+    ctl = PCBFSafetyFilter(_Failing(pend.slack), pend.compiled["filter", "casadi"], pend.U)
+    trace = simulate(pend.system, ctl, [0.0, 0.0], 3, proposal=5.0)
+    assert trace.fallbacks == ["projected_proposal"] * 3
+    assert np.all(trace.inputs == 3.0)  # u_p = 5 projected onto |u| <= 3
+
+
+def test_non_finite_state_is_a_recorded_fallback(pend, controller):
+    u, info = controller.step(np.array([np.nan, 0.0]), np.array([1.0]))
+    assert info.fallback == "projected_proposal" and info.status == "non_finite_state"
+    assert u[0] == 1.0
