@@ -350,6 +350,14 @@ def test_polytope_samples_are_uniform(method: str) -> None:
     assert np.allclose(X.mean(axis=0), 1 / 3, atol=0.03)
 
 
+def test_hit_and_run_matches_the_uniform_moments_of_a_box() -> None:
+    B = Box([-1.0, -2.0], [1.0, 2.0])
+    X = Polytope(B.H, B.h).sample(4000, 5, method="hit_and_run")
+    assert np.allclose(X.var(axis=0) / [1 / 3, 4 / 3], 1.0, atol=0.06)
+    inner = np.mean(np.max(np.abs(X) / [1.0, 2.0], axis=1) <= 0.5)  # area fraction 1/4
+    assert abs(inner - 0.25) < 0.03
+
+
 def test_thin_polytope_falls_back_to_hit_and_run() -> None:
     H = np.array([[1.0, -1.0], [-1.0, 1.0], [1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
     needle = Polytope(H, np.array([1e-5, 1e-5, 1.0, 1.0, 1.0, 1.0]), name="Needle")
@@ -359,3 +367,38 @@ def test_thin_polytope_falls_back_to_hit_and_run() -> None:
     assert np.all(needle.contains_many(X, tol=1e-12))
     assert np.allclose(X.mean(axis=0), 0.0, atol=0.1)
     assert np.allclose(X.std(axis=0), 1 / np.sqrt(3), rtol=0.1)
+
+
+# -- SPEC §1.5 / §1.11 in use ------------------------------------------------------------------
+
+def test_input_tightening_by_feedback_image_of_ellipsoid() -> None:
+    """``U ⊖ K E = {A_u v <= b_u - [h_E(Kᵀ A_u,jᵀ)]_j}`` (SPEC §1.5) via ``K @ E``."""
+    U = Box([-2.0], [3.0], name="U")
+    P_E = np.array([[4.0, 1.0], [1.0, 2.0]])
+    E = Ellipsoid(P_E, name="E")
+    K = np.array([[-0.5, 0.8]])
+    KE = K @ E
+    T = U.tighten(KE)
+    want = U.h - np.array([np.sqrt(a @ K @ np.linalg.solve(P_E, K.T @ a)) for a in U.H])
+    assert np.allclose(T.h, want)
+    assert T.name == "U⊖A·E"
+
+
+def test_reachable_sets_of_the_linear_error_dynamics() -> None:
+    """``E_i = ⊕_{j<i} (A+BK)^j W`` (SPEC §1.11) contains simulated errors and grows."""
+    Acl = np.array([[0.9, 0.2], [-0.1, 0.7]])
+    W = Box.symmetric(0.1, 2, name="W")
+    E = [W]
+    for _ in range(3):
+        E.append(W.minkowski_sum(Acl @ E[-1]))  # E_{i+1} = W ⊕ Acl E_i
+    rng = np.random.default_rng(0)
+    e = np.zeros((500, 2))
+    for Ei in E:
+        e = e @ Acl.T + W.sample(500, rng)
+        assert np.all(Ei.contains_many(e, tol=1e-9))
+    for smaller, larger in zip(E[:-1], E[1:], strict=True):
+        assert smaller.is_subset_of(larger) and not larger.is_subset_of(smaller)
+    X = Box.symmetric(1.0, 2, name="X")
+    tightened = [X.tighten(Ei) for Ei in E]
+    assert all(isinstance(t, Box) for t in tightened)
+    assert np.all(np.diff([t.ub[0] for t in tightened]) < 0)
