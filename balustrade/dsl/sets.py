@@ -13,22 +13,21 @@ Tightening uses support functions only (SPEC §1.5): ``{Hx <= h} ⊖ B = {Hx <= 
 
 Set operations (SPEC §1.5, §1.11), with the result type and whether it is exact:
 
-============================  =====================================================================
-``S.support(a)``               ``h_S(a) = max_{x∈S} aᵀx``; LP / closed form (``+inf`` if unbounded)
-``S.linear_map(A)``, ``A @ S``  exact: Ellipsoid (A of full row rank), Polytope/Box (A invertible,
-                               ``H A⁻¹``; other A by vertices for bounded, small-dim polytopes),
-                               FunctionSet (A invertible)
-``S.minkowski_sum(T)``         exact: Box⊕Box, Polytope⊕Polytope (bounded, by vertices).
-                               **outer**: Ellipsoid⊕Ellipsoid (min-trace ellipsoid),
-                               Polytope⊕Ellipsoid (same normals, ``h_j + h_E(H_jᵀ)``)
-``P.tighten(B)``               exact Pontryagin difference ``P ⊖ B``
-                               (alias ``pontryagin_difference``)
-``S.is_subset_of(T)``          exact: any set ⊆ Polytope (support functions), Ellipsoid ⊆ Ellipsoid
-                               (trust-region subproblem), bounded Polytope ⊆ Ellipsoid (vertices)
-``S.sample(n, rng)``           uniform: Box, Ellipsoid exact; Polytope by rejection (hit-and-run
-                               fallback); FunctionSet by rejection from user bounds
-``bounding_box``, ``chebyshev_center``, ``vertices``, ``scale``, ``translate``, ``is_bounded``
-============================  =====================================================================
+* ``S.support(a)``: ``h_S(a) = max_{x∈S} aᵀx`` by LP or closed form (``+inf`` if unbounded).
+* ``S.linear_map(A)``, ``A @ S``, ``linear_map(A, S)``: exact. Ellipsoid for ``A`` of full row
+  rank; Polytope/Box ``{H A⁻¹ y <= h}`` for invertible ``A``, otherwise the hull of the
+  mapped vertices (bounded polytopes, dimension <= 6); FunctionSet for invertible ``A``.
+* ``S.minkowski_sum(T)``: exact for Box ⊕ Box and Polytope ⊕ Polytope (bounded, by
+  vertices); an **outer approximation** for Ellipsoid ⊕ Ellipsoid (minimum-trace ellipsoid)
+  and Polytope ⊕ Ellipsoid (same normals, ``h_j + h_E(H_jᵀ)``).
+* ``P.tighten(B)`` = ``P.pontryagin_difference(B)``: exact ``P ⊖ B`` for any ``B``.
+* ``S.is_subset_of(T)``: exact for any set ⊆ Polytope (support functions), Ellipsoid ⊆
+  Ellipsoid (trust-region subproblem), bounded Polytope ⊆ Ellipsoid (vertices).
+* ``S.sample(n, rng)``: uniform; exact for Box and Ellipsoid, rejection from the bounding
+  box for polytopes (hit-and-run when the acceptance rate is tiny), rejection from
+  user-given bounds for a FunctionSet.
+* ``bounding_box``, ``chebyshev_center``, ``vertices``, ``is_bounded``, ``scale``,
+  ``translate``, ``contains_many``.
 
 The base class is in :mod:`balustrade.dsl.sets_base`, :class:`FunctionSet` in
 :mod:`balustrade.dsl.sets_function`, binary operations in :mod:`balustrade.dsl.sets_ops` and
