@@ -133,6 +133,7 @@ class CasadiCompiled:
         self.options = opts
         self.solver = ca.nlpsol(ocp.name, solver, nlp, opts)
         self._retry: list[ca.Function] | None = None
+        self._dm = {k: ca.DM(getattr(self, k)) for k in ("lbx", "ubx", "lbg", "ubg")}
         self._g_function: ca.Function | None = None
         self._objective = ca.Function("objective", [w_user, p], [ocp.cost.expr()])
 
@@ -185,8 +186,9 @@ class CasadiCompiled:
         x0, lam_x0, lam_g0 = guess
         start = time.perf_counter()
         try:
-            res = solver(x0=x0, p=p, lbx=self.lbx, ubx=self.ubx, lbg=self.lbg,
-                         ubg=self.ubg, lam_x0=lam_x0, lam_g0=lam_g0)
+            res = solver(x0=x0, p=p, lbx=self._dm["lbx"], ubx=self._dm["ubx"],
+                         lbg=self._dm["lbg"], ubg=self._dm["ubg"], lam_x0=lam_x0,
+                         lam_g0=lam_g0)
             elapsed = time.perf_counter() - start
             stats = solver.stats()
         except RuntimeError as exc:  # CasADi raises on evaluation errors (NaN, etc.)
@@ -206,7 +208,10 @@ class CasadiCompiled:
         dual = {name: lam_g[s] for name, s in self.block_slices.items()}
         for name, arr in self.ocp.unpack_variables(lam_x[: self.n_user]).items():
             dual[f"bound:{name}"] = arr
-        objective = float(self._objective(w, p)) if np.all(np.isfinite(w)) else np.nan
+        # at a KKT point the epigraph objective equals the declared cost; elsewhere
+        # re-evaluate the declared cost (verify() always recomputes it independently)
+        objective = float(res["f"]) if status == "optimal" else (
+            float(self._objective(w, p)) if np.all(np.isfinite(w)) else np.nan)
         return Solution(status=status, objective=objective,
                         primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
                         iterations=int(stats.get("iter_count", 0)), backend="casadi",

@@ -45,10 +45,10 @@ class Variable:
     ub: np.ndarray
     init: np.ndarray
     role: str = "free"  # free | state | input | slack | epigraph
+    shape: tuple[int, int] = (0, 0)  # plain ints, read on every solve
 
-    @property
-    def shape(self) -> tuple[int, int]:
-        return tuple(self.sym.shape)  # type: ignore[return-value]
+    def __post_init__(self) -> None:
+        self.shape = (int(self.sym.shape[0]), int(self.sym.shape[1]))
 
 
 @dataclass
@@ -58,10 +58,10 @@ class Parameter:
     name: str
     sym: ca.SX
     default: np.ndarray | None = None
+    shape: tuple[int, int] = (0, 0)  # plain ints, read on every solve
 
-    @property
-    def shape(self) -> tuple[int, int]:
-        return tuple(self.sym.shape)  # type: ignore[return-value]
+    def __post_init__(self) -> None:
+        self.shape = (int(self.sym.shape[0]), int(self.sym.shape[1]))
 
 
 @dataclass
@@ -369,9 +369,10 @@ class OCP:
     def unpack_variables(self, w: np.ndarray) -> dict[str, np.ndarray]:
         """Split a stacked decision vector into named arrays of their declared shapes."""
         out, k = {}, 0
+        w = np.asarray(w, dtype=float)
         for v in self.variables.values():
-            n = v.sym.numel()
-            arr = np.asarray(w[k:k + n], dtype=float).reshape(v.shape, order="F")
+            n = v.shape[0] * v.shape[1]
+            arr = w[k:k + n].reshape(v.shape, order="F")
             out[v.name] = arr[:, 0] if v.shape[1] == 1 else arr
             k += n
         return out
