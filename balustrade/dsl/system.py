@@ -85,7 +85,7 @@ class System:
         """``(∂f/∂x, ∂f/∂u)`` at ``(x, u, w=0)``: the linearization."""
         xs, us = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu)
         fx = self(xs, us)
-        jac = ca.Function("jac", [xs, us], [ca.jacobian(fx, xs), ca.jacobian(fx, us)])
+        jac = ca.Function("linearization", [xs, us], [ca.jacobian(fx, xs), ca.jacobian(fx, us)])
         A, B = jac(as_vector(x, "x", self.nx), as_vector(u, "u", self.nu))
         return np.asarray(A), np.asarray(B)
 
