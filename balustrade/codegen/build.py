@@ -1,0 +1,81 @@
+"""Compile emitted C with the system C compiler (``$CC``, else ``cc`` on ``PATH``)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+from balustrade.errors import CodegenError
+
+#: Flags of every build: optimized, position independent, all warnings.
+BASE_FLAGS = ("-O3", "-fPIC", "-Wall", "-Wextra")
+#: CasADi's generated memory pools hold one user per function unless told otherwise; the
+#: Python runtime may hold several work structs of the same library at once.
+THREAD_FLAGS = ("-DCASADI_MAX_NUM_THREADS=8",)
+
+
+def find_compiler() -> str:
+    """The C compiler: ``$CC`` if set (must exist), else ``cc`` on ``PATH``."""
+    env = os.environ.get("CC")
+    if env:
+        exe = env.split()[0]
+        found = shutil.which(exe)
+        if found is None:
+            raise CodegenError(f"C compiler $CC={env!r} not found; set CC to a C compiler "
+                               "(e.g. cc, gcc, clang) or unset it to use cc from PATH")
+        return found
+    found = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    if found is None:
+        raise CodegenError("no C compiler found (looked for $CC, cc, gcc, clang on PATH); "
+                           "install one, e.g. `apt-get install gcc`, or set CC")
+    return found
+
+
+def _sources(src_dir: Path) -> list[Path]:
+    return sorted(p for p in src_dir.glob("*.c") if p.name != "main.c")
+
+
+def _run(cmd: list[str], what: str) -> None:
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    except OSError as exc:
+        raise CodegenError(f"{what}: could not run {cmd[0]!r}: {exc}") from exc
+    if proc.returncode != 0:
+        raise CodegenError(f"{what} failed (exit {proc.returncode}):\n  {' '.join(cmd)}\n"
+                           f"{proc.stderr.strip()[-4000:]}")
+
+
+def build(src_dir: str | Path, name: str | None = None, werror: bool = False,
+          extra_flags: tuple[str, ...] | list[str] = (), out: str | Path | None = None) -> Path:
+    """Compile every ``*.c`` in ``src_dir`` except ``main.c`` into a shared library
+    (``cc -O3 -fPIC -shared -Wall -Wextra [-Werror] ... -lm``) and return its path
+    (default ``src_dir/lib<name>.so``; ``name`` defaults to the folder's manifest)."""
+    src_dir = Path(src_dir)
+    sources = _sources(src_dir)
+    if not sources:
+        raise CodegenError(f"no C sources in {src_dir}")
+    if name is None:
+        manifests = sorted(src_dir.glob("*.json"))
+        name = manifests[0].stem if manifests else src_dir.name
+    cc = find_compiler()
+    target = Path(out) if out is not None else src_dir / f"lib{name}.so"
+    cmd = [cc, *BASE_FLAGS, *THREAD_FLAGS, *(["-Werror"] if werror else []), "-shared",
+           *extra_flags, "-o", str(target), *map(str, sources), "-lm"]
+    _run(cmd, f"building {target.name}")
+    return target
+
+
+def build_executable(src_dir: str | Path, main: str = "main.c", werror: bool = True,
+                     extra_flags: tuple[str, ...] | list[str] = (),
+                     out: str | Path | None = None) -> Path:
+    """Compile ``main.c`` with the other sources of ``src_dir`` into an executable
+    (``-Wall -Wextra -Werror`` by default, as the generated Makefile does)."""
+    src_dir = Path(src_dir)
+    cc = find_compiler()
+    target = Path(out) if out is not None else src_dir / Path(main).stem
+    cmd = [cc, "-O3", "-Wall", "-Wextra", *(["-Werror"] if werror else []), *extra_flags,
+           "-o", str(target), str(src_dir / main), *map(str, _sources(src_dir)), "-lm"]
+    _run(cmd, f"building {target.name}")
+    return target

@@ -1,0 +1,379 @@
+"""Emit C sources from compiled CasADi problems, safety filters and plain functions.
+
+Three entry points, each writing ``<name>_casadi.c/.h`` (CasADi's code generation,
+``casadi.CodeGenerator`` with ``with_header``), balustrade's own ``<name>.c/.h`` (documented
+entry points, see :mod:`balustrade.codegen.templates`) and ``<name>.json`` (a manifest the
+Python runtime reads: sizes, offsets, status codes):
+
+* :func:`emit_functions` / :func:`emit_function` — any plain function of the language
+  (dynamics ``System.function``, ``h_f``, a value-function surrogate, their gradients):
+  the C entry point is CasADi's ``<fn>(arg, res, iw, w, mem)`` with ``<fn>_work``,
+  ``<fn>_incref``/``_checkout``/``_release``/``_decref``;
+* :func:`emit_problem` — one compiled problem (e.g. (2.24)): ``<name>_solve(work, p)``;
+* :func:`emit_pcbf` — the PCBF pair (2.24)+(2.23) as one call per control step,
+  ``<name>_step(x, u_p, u_out, h_out, status, work)``, with the fallbacks of
+  :mod:`balustrade.control.pcbf`.
+
+Every solver is checked first (:func:`~balustrade.codegen.support.solver_libraries`) and
+every function graph is searched for Python callbacks
+(:func:`~balustrade.codegen.support.check_no_callbacks`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from balustrade.backends.casadi_backend import CasadiCompiled
+from balustrade.codegen import templates as T
+from balustrade.codegen.support import check_no_callbacks, solver_libraries
+from balustrade.dsl.sets import Box
+from balustrade.errors import CodegenError
+
+MANIFEST_VERSION = 1
+
+
+@dataclass
+class Emitted:
+    """What an ``emit_*`` call wrote: the folder, the sources, and the manifest."""
+
+    name: str
+    out_dir: Path
+    sources: list[Path]
+    headers: list[Path]
+    manifest: dict = field(repr=False)
+    libraries: tuple[str, ...] = ()
+
+    @property
+    def kind(self) -> str:
+        return str(self.manifest["kind"])
+
+
+# -- helpers ---------------------------------------------------------------------------
+def _check_identifier(name: str, what: str = "name") -> str:
+    if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
+        raise CodegenError(f"{what} {name!r} must be an ASCII C identifier")
+    return name
+
+
+def _c_array(values: np.ndarray | list[float], min_len: int = 1) -> str:
+    vals = [float(v) for v in np.asarray(values, dtype=float).reshape(-1)]
+    if len(vals) < min_len:
+        vals += [0.0] * (min_len - len(vals))
+    return "{" + ", ".join(_c_double(v) for v in vals) + "}"
+
+
+def _c_double(v: float) -> str:
+    if np.isnan(v):
+        return "NAN"
+    if np.isinf(v):
+        return "INFINITY" if v > 0 else "-INFINITY"
+    return repr(float(v))
+
+
+def _renamed(fn: ca.Function, name: str) -> ca.Function:
+    """``fn`` under the C symbol ``name`` (the same expression graph)."""
+    if fn.name() == name:
+        return fn
+    if fn.is_a("SXFunction"):
+        args = fn.sx_in()
+    else:
+        args = fn.mx_in()
+    return ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
+
+
+def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> list[Path]:
+    """Run CasADi's code generator on ``functions`` (C symbol -> Function) into
+    ``out_dir/<name>_casadi.c/.h`` and make the C warning-clean."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cg_name = f"{name}_casadi"
+    cg = ca.CodeGenerator(cg_name, {"with_header": True})
+    for sym, fn in functions.items():
+        check_no_callbacks(fn, f"{name}: function {sym!r}")
+        cg.add(_renamed(fn, sym))
+    try:
+        cg.generate(str(out_dir) + "/")
+    except RuntimeError as exc:  # pragma: no cover - CasADi-internal failures
+        raise CodegenError(f"{name}: CasADi code generation failed: {exc}") from exc
+    c_path, h_path = out_dir / f"{cg_name}.c", out_dir / f"{cg_name}.h"
+    c_path.write_text(T.PRAGMA + c_path.read_text())
+    return [c_path, h_path]
+
+
+def _kkt_function(c: CasadiCompiled, sym: str) -> ca.Function:
+    """The solver's own convergence measures at a point, as a C-emittable function:
+    ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``."""
+    w, p, f, g = c.nlp["x"], c.nlp["p"], c.nlp["f"], c.nlp["g"]
+    cls = type(w)
+    lam_x = cls.sym("lam_x", w.numel())
+    lam_g = cls.sym("lam_g", g.numel())
+    lag = f + ca.dot(lam_g, g) if g.numel() else f
+    du = ca.norm_inf(ca.gradient(lag, w) + lam_x)
+    viol = [ca.fmax(w - ca.DM(c.ubx), 0), ca.fmax(ca.DM(c.lbx) - w, 0)]
+    if g.numel():
+        viol += [ca.fmax(g - ca.DM(c.ubg), 0), ca.fmax(ca.DM(c.lbg) - g, 0)]
+    pr = ca.mmax(ca.vertcat(*viol, 0))
+    return ca.Function(sym, [w, p, lam_x, lam_g], [pr, du],
+                       ["x", "p", "lam_x", "lam_g"], ["pr_inf", "du_inf"])
+
+
+def _layout(items: dict, start: int = 0) -> dict[str, dict]:
+    """Offsets of named symbols (variables or parameters) in their stacked vector."""
+    out, k = {}, start
+    for nm, item in items.items():
+        n = int(item.sym.numel())
+        out[nm] = {"offset": k, "shape": [int(s) for s in item.shape]}
+        k += n
+    return out
+
+
+def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ...]:
+    if not isinstance(c, CasadiCompiled):
+        raise CodegenError(f"{what}: C code generation needs a problem compiled on the "
+                           f"CasADi backend, got {type(c).__name__} (use "
+                           "balustrade.backends.compile(ocp, 'casadi', 'sqpmethod'))")
+    libs = solver_libraries(c.solver_name, c.options, what, allow_external)
+    check_no_callbacks(c.solver, what)
+    return libs
+
+
+class _Problem:
+    """The C pieces of one compiled problem under the C prefix ``P``."""
+
+    def __init__(self, c: CasadiCompiled, P: str, title: str, module: str,
+                 accept_tol: float | None = None):
+        self.c, self.P, self.title, self.module = c, P, title, module
+        self.nw = int(c.nlp["x"].numel())
+        self.np = int(c.nlp["p"].numel())
+        self.ng = int(c.nlp["g"].numel())
+        self.tol_pr = float(c.options.get("tol_pr", 1e-6))
+        self.tol_du = float(c.options.get("tol_du", 1e-6))
+        self.accept_tol = max(self.tol_pr, float(accept_tol or 0.0))
+        self.vars = _layout(c.ocp.variables)
+        self.params = _layout(c.ocp.parameters)
+        init = np.concatenate([c.ocp.pack_variables({}), c.init_epi])
+        init = np.where(np.isfinite(init), init, 0.0)
+        self.init = init
+
+    def functions(self) -> dict[str, ca.Function]:
+        nlp = ca.nlpsol(f"{self.P}_nlp", self.c.solver_name, self.c.nlp, self.c.options)
+        return {f"{self.P}_nlp": nlp, f"{self.P}_kkt": _kkt_function(self.c, f"{self.P}_kkt")}
+
+    def header(self) -> str:
+        pdoc = "".join(f"\n *   {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
+                       for n, v in self.params.items()) or " none"
+        vdoc = "".join(f"\n *   {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
+                       for n, v in self.vars.items())
+        if self.nw > self.c.n_user:
+            vdoc += (f"\n *   (epigraph variables of non-smooth costs: offset {self.c.n_user}"
+                     f", {self.nw - self.c.n_user} values)")
+        offsets = "".join(f"#define {self.P}_P_{n} {v['offset']}\n" for n, v in self.params.items())
+        offsets += "".join(f"#define {self.P}_W_{n} {v['offset']}\n" for n, v in self.vars.items())
+        return T.PROBLEM_H.substitute(P=self.P, title=self.title, np=self.np, nw=self.nw,
+                                      ng=self.ng, param_doc=pdoc, var_doc=vdoc,
+                                      tol_pr=f"{self.tol_pr:g}", tol_du=f"{self.tol_du:g}",
+                                      accept_tol=f"{self.accept_tol:g}", offsets=offsets,
+                                      name=self.module)
+
+    def source(self) -> str:
+        return T.PROBLEM_C.substitute(
+            P=self.P, nw=self.nw, ng1=max(self.ng, 1), lbx=_c_array(self.c.lbx),
+            ubx=_c_array(self.c.ubx), lbg=_c_array(self.c.lbg), ubg=_c_array(self.c.ubg),
+            init=_c_array(self.init), tol_pr=_c_double(self.tol_pr),
+            tol_du=_c_double(self.tol_du), accept_tol=_c_double(self.accept_tol))
+
+    def manifest(self) -> dict:
+        return {"prefix": self.P, "title": self.title, "np": self.np, "nw": self.nw,
+                "ng": self.ng, "n_user": int(self.c.n_user), "variables": self.vars,
+                "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
+                "accept_tol": self.accept_tol,
+                "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol")}
+
+
+def _write_module(name: str, out_dir: Path, what: str, header_body: str, source_body: str,
+                  casadi_files: list[Path], manifest: dict, libs: tuple[str, ...]) -> Emitted:
+    NAME = name.upper()
+    h = out_dir / f"{name}.h"
+    c = out_dir / f"{name}.c"
+    h.write_text(T.HEADER_TOP.substitute(name=name, NAME=NAME, what=what) + header_body
+                 + T.HEADER_BOTTOM.substitute(NAME=NAME))
+    c.write_text(T.SOURCE_TOP.substitute(name=name) + source_body)
+    manifest = {"version": MANIFEST_VERSION, "name": name, "casadi": ca.__version__,
+                "libraries": list(libs), **manifest,
+                "status_codes": {"ok": 0, "not_converged": 1, "eval_error": 2, "nonfinite": 3,
+                                 "feasible": 4, "not_run": -1}}
+    (out_dir / f"{name}.json").write_text(json.dumps(manifest, indent=1))
+    return Emitted(name, out_dir, [c, casadi_files[0]], [h, casadi_files[1]], manifest, libs)
+
+
+# -- public API ------------------------------------------------------------------------
+def emit_functions(functions: dict[str, ca.Function] | ca.Function, name: str,
+                   out_dir: str | Path) -> Emitted:
+    """Emit plain CasADi functions (dynamics, ``h_f``, a value-function surrogate, their
+    gradients, ...) as C. ``functions`` maps the C symbol of each function to it (a single
+    Function is emitted under its own name). Entry points are CasADi's: for each symbol
+    ``fn``: ``int fn(const casadi_real** arg, casadi_real** res, casadi_int* iw,
+    casadi_real* w, int mem)`` with ``fn_work``, ``fn_incref``, ``fn_checkout``,
+    ``fn_release``, ``fn_decref`` and the ``fn_SZ_ARG/RES/IW/W`` macros."""
+    _check_identifier(name)
+    if isinstance(functions, ca.Function):
+        functions = {functions.name(): functions}
+    if not functions:
+        raise CodegenError(f"{name}: no functions to emit")
+    for sym, fn in functions.items():
+        _check_identifier(sym, f"{name}: function symbol")
+        if not isinstance(fn, ca.Function):
+            raise CodegenError(f"{name}: {sym!r} is a {type(fn).__name__}, expected a "
+                               "casadi.Function")
+        if fn.has_free():
+            raise CodegenError(f"{name}: function {sym!r} has free symbols "
+                               f"{fn.get_free()}; make them inputs")
+    out_dir = Path(out_dir)
+    files = _generate(dict(functions), name, out_dir)
+    info = {sym: {"n_in": fn.n_in(), "n_out": fn.n_out(),
+                  "in": [[fn.size1_in(i), fn.size2_in(i)] for i in range(fn.n_in())],
+                  "out": [[fn.size1_out(i), fn.size2_out(i)] for i in range(fn.n_out())],
+                  "name_in": fn.name_in(), "name_out": fn.name_out()}
+            for sym, fn in functions.items()}
+    body = "/* Plain functions: see the CasADi entry points declared in " \
+           f"{name}_casadi.h: {', '.join(functions)} */\n\n"
+    return _write_module(name, out_dir, "plain CasADi functions", body,
+                         "/* nothing beyond the CasADi-generated functions */\n",
+                         files, {"kind": "functions", "functions": info}, ())
+
+
+def emit_function(fn: ca.Function, name: str, out_dir: str | Path) -> Emitted:
+    """:func:`emit_functions` for one function, emitted under the C symbol ``name``."""
+    return emit_functions({name: fn}, name, out_dir)
+
+
+def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
+                 allow_external: bool = False, accept_tol: float | None = None) -> Emitted:
+    """Emit one compiled problem (e.g. the slack problem (2.24)) with the entry point
+    ``int <name>_solve(<name>_work* wk, const casadi_real* p)``: parameters ``p`` stacked
+    in declaration order, warm start in ``wk->x0/lam_x0/lam_g0``, outputs ``wk->x``
+    (full primal solution; ``<name>_W_u`` is the offset of ``u``, so ``u_{0|k}`` is
+    ``wk->x[<name>_W_u]``), ``wk->f`` (value), return value = status (``BAL_*``).
+
+    ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``; a solve that stops
+    without dual convergence but with a constraint violation below ``accept_tol`` (default
+    ``tol_pr``) returns ``BAL_FEASIBLE``."""
+    _check_identifier(name)
+    libs = _check_compiled(compiled, name, allow_external)
+    out_dir = Path(out_dir)
+    prob = _Problem(compiled, name + "_p", compiled.ocp.name, name, accept_tol)
+    files = _generate(prob.functions(), name, out_dir)
+    return _write_module(name, out_dir, f"the problem {compiled.ocp.name!r}", prob.header(),
+                         prob.source(), files,
+                         {"kind": "problem", "problems": {"problem": prob.manifest()}}, libs)
+
+
+def emit_pcbf(controller: object, name: str, out_dir: str | Path,
+              dynamics: ca.Function | None = None, allow_external: bool = False,
+              accept_tol: float | None = None) -> Emitted:
+    """Emit the PCBF safety filter (2.24)+(2.23) of a
+    :class:`~balustrade.control.pcbf.PCBFSafetyFilter` built on the CasADi backend as one
+    C call per control step: ``<name>_step(x, u_p, u_out, h_out, status, work)``.
+
+    ``dynamics`` (e.g. ``system.function``) is emitted too, as ``<name>_dynamics``, for
+    the closed-loop example ``main.c`` (:func:`write_example`). The fallback "projected
+    proposal" clips to ``U``, which must be a :class:`~balustrade.dsl.sets.Box`.
+
+    A solve is accepted when it converged (the solver's ``tol_pr``/``tol_du``) or when its
+    constraint violation is below ``accept_tol``, default the filter's margin ``ε`` (SPEC
+    §2.7: (2.23) is solved with the slacks ``ξ* + ε``, so a violation below ``ε`` still
+    satisfies the constraints with ``ξ*``). This stands in for CasADi's
+    "Search_Direction_Becomes_Too_Small" success, which the generated C does not report.
+    """
+    _check_identifier(name)
+    slack, filt, U = (getattr(controller, k, None) for k in ("slack", "filter", "U"))
+    if slack is None or filt is None or U is None:
+        raise CodegenError(f"{name}: expected a PCBFSafetyFilter (attributes slack, filter, "
+                           f"U), got {type(controller).__name__}")
+    libs = _check_compiled(slack, f"{name}: slack problem (2.24)", allow_external)
+    libs += _check_compiled(filt, f"{name}: filter problem (2.23)", allow_external)
+    if not isinstance(U, Box):
+        raise CodegenError(f"{name}: the C fallback projects onto U by clipping, so U must "
+                           f"be a Box, got {type(U).__name__}")
+    if accept_tol is None:
+        accept_tol = float(getattr(controller, "eps", 0.0))
+    s = _Problem(slack, f"{name}_slack", f"slack problem (2.24) {slack.ocp.name!r}", name,
+                 accept_tol)
+    f = _Problem(filt, f"{name}_filter", f"filter problem (2.23) {filt.ocp.name!r}", name,
+                 accept_tol)
+    need = {"slack parameter": (s.params, ["x0"]), "slack variable": (s.vars, ["u", "xi", "xi_N"]),
+            "filter parameter": (f.params, ["x0", "u_p", "xi", "xi_N"]),
+            "filter variable": (f.vars, ["u"])}
+    for what, (have, names) in need.items():
+        missing = [n for n in names if n not in have]
+        if missing:
+            raise CodegenError(f"{name}: the {what}s {missing} of the PCBF pair are missing "
+                               "(build the problems with balustrade.problems.pcbf)")
+    if np.prod(s.vars["xi"]["shape"]) != np.prod(f.params["xi"]["shape"]):
+        raise CodegenError(f"{name}: slack xi {s.vars['xi']['shape']} and filter parameter xi "
+                           f"{f.params['xi']['shape']} differ")
+    system = slack.ocp.system
+    nx, nu, N = system.nx, system.nu, slack.ocp.N
+    if filt.ocp.N != N or s.vars["u"]["shape"] != [nu, N]:
+        raise CodegenError(f"{name}: horizons of (2.24) ({N}) and (2.23) ({filt.ocp.N}) differ")
+    # warm start of (2.23) before its first success: variables shared by name with (2.24)
+    copies = []
+    for vn, lay in f.vars.items():
+        if vn in s.vars and s.vars[vn]["shape"] == lay["shape"]:
+            copies.append((s.vars[vn]["offset"], lay["offset"], int(np.prod(lay["shape"]))))
+    copy_shared = "".join(
+        f"    memcpy(wk->filter.x0 + {d}, wk->slack.x + {src}, {n} * sizeof(casadi_real));\n"
+        for src, d, n in copies)
+    Q = name
+    functions = {**s.functions(), **f.functions()}
+    if dynamics is not None:
+        functions[f"{Q}_dynamics"] = dynamics
+    out_dir = Path(out_dir)
+    files = _generate(functions, name, out_dir)
+    header = s.header() + f.header() + T.PCBF_H.substitute(Q=Q, nx=nx, nu=nu, N=N)
+    source = s.source() + f.source() + T.PCBF_C.substitute(
+        Q=Q, u_lb=_c_array(U.lb), u_ub=_c_array(U.ub), s_p_x0=s.params["x0"]["offset"],
+        f_p_x0=f.params["x0"]["offset"], f_p_u_p=f.params["u_p"]["offset"],
+        f_p_xi=f.params["xi"]["offset"], f_p_xi_N=f.params["xi_N"]["offset"],
+        n_xi=int(np.prod(s.vars["xi"]["shape"])), s_w_xi=s.vars["xi"]["offset"],
+        s_w_xi_N=s.vars["xi_N"]["offset"], s_w_u=s.vars["u"]["offset"],
+        f_w_u=f.vars["u"]["offset"], copy_shared=copy_shared)
+    manifest = {"kind": "pcbf", "nx": nx, "nu": nu, "N": N,
+                "eps": float(getattr(controller, "eps", 0.0)),
+                "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
+                "problems": {"slack": s.manifest(), "filter": f.manifest()},
+                "dynamics": dynamics is not None,
+                "pcbf_status": {"0": "ok", "1": "slack_solution", "2": "shifted_plan",
+                                "3": "projected_proposal"}}
+    return _write_module(name, out_dir, "the PCBF safety filter (2.24)+(2.23)", header,
+                         source, files, manifest, tuple(sorted(set(libs))))
+
+
+def write_example(emitted: Emitted, x_init: np.ndarray, u_p: np.ndarray | float,
+                  steps: int = 30) -> list[Path]:
+    """Write ``main.c`` (a closed loop of the emitted PCBF step on the emitted dynamics
+    from each row of ``x_init`` with a constant proposal ``u_p``, printing the trajectory
+    and timing the step and the dynamics) and a ``Makefile`` next to the sources."""
+    m = emitted.manifest
+    if m.get("kind") != "pcbf" or not m.get("dynamics"):
+        raise CodegenError(f"{emitted.name}: the example needs a PCBF filter emitted with "
+                           "its dynamics (emit_pcbf(..., dynamics=system.function))")
+    nx, nu = m["nx"], m["nu"]
+    x_init = np.atleast_2d(np.asarray(x_init, dtype=float))
+    if x_init.shape[1] != nx:
+        raise CodegenError(f"{emitted.name}: initial states must have {nx} columns, got "
+                           f"{x_init.shape}")
+    u_p = np.broadcast_to(np.asarray(u_p, dtype=float).reshape(-1), (nu,))
+    rows = ",\n  ".join(_c_array(r) for r in x_init)
+    main = T.MAIN_C.substitute(Q=emitted.name, name=emitted.name, n_init=len(x_init),
+                               steps=int(steps), x_init="{\n  " + rows + "\n}",
+                               u_p=_c_array(u_p))
+    main_path = emitted.out_dir / "main.c"
+    main_path.write_text(main)
+    mk = emitted.out_dir / "Makefile"
+    mk.write_text(T.MAKEFILE.substitute(name=emitted.name))
+    return [main_path, mk]

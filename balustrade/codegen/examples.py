@@ -1,0 +1,88 @@
+"""Ready-made emittable targets (used by ``balustrade codegen NAME``, tests and benchmarks).
+
+* ``pendulum_pcbf`` — the PCBF pair (2.24)+(2.23) of the pendulum (7.10) with the terminal
+  CBF of (7.11), its dynamics, a ``main.c`` closed loop (``u_p = 2``) and a ``Makefile``;
+* ``pendulum_functions`` — plain functions: dynamics, its Jacobians, ``h_f`` and its
+  gradient.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from balustrade.codegen.emit import Emitted, emit_functions, emit_pcbf, write_example
+
+#: initial states of the closed-loop example (inside and near the boundary of X)
+PENDULUM_X0 = np.array([[0.3, 0.5], [-0.4, 1.0], [0.45, -1.2], [0.0, 0.0]])
+PENDULUM_U_P = 2.0
+
+
+def pendulum_pcbf_filter() -> object:
+    """The pendulum PCBF safety filter of Section 7.5 on CasADi ``sqpmethod`` + ``qrqp``."""
+    from balustrade.control.pcbf import PCBFSafetyFilter
+    from balustrade.models.pendulum import pendulum, pendulum_setup
+    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
+
+    system, s = pendulum(), pendulum_setup()
+    h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
+    return PCBFSafetyFilter.build(system, s.X, s.U, h_f, s.N, s.deltas, s.alpha_f,
+                                  slack_norm=1, backend="casadi", solver="sqpmethod")
+
+
+def pendulum_functions() -> dict[str, ca.Function]:
+    """Plain functions of the pendulum example: ``f``, ``∂f/∂x``, ``∂f/∂u``, ``h_f``, ``∇h_f``."""
+    from balustrade.models.pendulum import pendulum, pendulum_setup
+    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
+
+    system, s = pendulum(), pendulum_setup()
+    h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
+    return language_functions(system, h_f)
+
+
+def language_functions(system: object, h_f: Callable | None = None,
+                       value: Callable | None = None) -> dict[str, ca.Function]:
+    """The plain functions of a formulation worth emitting: the dynamics ``f(x, u)`` and
+    its Jacobians, and for each of ``h_f`` (terminal CBF) and ``value`` (a value-function
+    surrogate such as ``ĥ_PB`` of (7.5)) the function and its gradient."""
+    x, u = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu)
+    zeros_w, zeros_t = ca.DM.zeros(system.nw), ca.DM.zeros(system.ntheta)
+    xn = system.function(x, u, zeros_w, zeros_t)
+    out = {"dynamics": ca.Function("dynamics", [x, u], [xn], ["x", "u"], ["x_next"]),
+           "dynamics_jac": ca.Function("dynamics_jac", [x, u],
+                                       [ca.jacobian(xn, x), ca.jacobian(xn, u)],
+                                       ["x", "u"], ["A", "B"])}
+    for key, fn in (("h_f", h_f), ("value", value)):
+        if fn is None:
+            continue
+        v = fn(x) if not isinstance(fn, ca.Function) else fn(x)
+        v = ca.SX(v)
+        out[key] = ca.Function(key, [x], [v], ["x"], ["h"])
+        out[f"{key}_grad"] = ca.Function(f"{key}_grad", [x], [ca.gradient(v, x)], ["x"],
+                                         ["grad"])
+    return out
+
+
+def emit_pendulum_pcbf(out_dir: str | Path, name: str = "pendulum_pcbf",
+                       steps: int = 30) -> Emitted:
+    """Emit the pendulum PCBF step, its dynamics, ``main.c`` and the ``Makefile``."""
+    from balustrade.models.pendulum import pendulum
+
+    ctrl = pendulum_pcbf_filter()
+    emitted = emit_pcbf(ctrl, name, out_dir, dynamics=pendulum().function)
+    write_example(emitted, PENDULUM_X0, PENDULUM_U_P, steps)
+    return emitted
+
+
+def emit_pendulum_functions(out_dir: str | Path, name: str = "pendulum_functions") -> Emitted:
+    """Emit the plain functions of the pendulum example."""
+    return emit_functions(pendulum_functions(), name, out_dir)
+
+
+TARGETS: dict[str, Callable[..., Emitted]] = {
+    "pendulum_pcbf": emit_pendulum_pcbf,
+    "pendulum_functions": emit_pendulum_functions,
+}

@@ -1,0 +1,306 @@
+"""Load emitted C with ctypes and call it from Python with preallocated buffers.
+
+* :class:`CFunction` — a plain emitted function (``fn(arg, res, iw, w, mem)``);
+* :class:`CProblem` — one emitted problem (``<name>_solve``), ``solve(params)``;
+* :class:`CPCBFSafetyFilter` — the emitted PCBF step (2.24)+(2.23) as a
+  :class:`~balustrade.control.base.Controller`, so :func:`~balustrade.control.simulate`
+  runs the exact code that is deployed.
+
+Each object holds its work struct (allocated by the library, freed on ``close()`` or
+garbage collection) and numpy buffers whose addresses are passed once; a call copies
+inputs in, makes one foreign call and reads outputs from the same buffers.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from balustrade.control.base import StepInfo
+from balustrade.errors import CodegenError
+
+_dbl_p = ctypes.POINTER(ctypes.c_double)
+_STATUS = {0: "ok", 1: "not_converged", 2: "eval_error", 3: "nonfinite", 4: "feasible",
+           -1: "not_run"}
+_FALLBACK = {0: None, 1: "slack_solution", 2: "shifted_plan", 3: "projected_proposal"}
+
+
+def _ptr(a: np.ndarray) -> ctypes._Pointer:
+    return a.ctypes.data_as(_dbl_p)
+
+
+def load_manifest(src_dir: str | Path, name: str | None = None) -> dict:
+    """Read ``<name>.json`` written by the ``emit_*`` functions."""
+    src_dir = Path(src_dir)
+    path = src_dir / f"{name}.json" if name else next(iter(sorted(src_dir.glob("*.json"))),
+                                                       None)
+    if path is None or not path.exists():
+        raise CodegenError(f"no balustrade manifest (<name>.json) in {src_dir}")
+    return json.loads(path.read_text())
+
+
+class _Library:
+    """A loaded shared library and its manifest."""
+
+    def __init__(self, lib_path: str | Path, manifest: dict | None = None):
+        self.path = Path(lib_path)
+        if not self.path.exists():
+            raise CodegenError(f"shared library {self.path} not found (run build() first)")
+        try:
+            self.lib = ctypes.CDLL(str(self.path.resolve()))
+        except OSError as exc:
+            raise CodegenError(f"could not load {self.path}: {exc}") from exc
+        self.manifest = manifest if manifest is not None else load_manifest(self.path.parent)
+
+    def fn(self, sym: str, restype: object, argtypes: list) -> ctypes._CFuncPtr:
+        try:
+            f = getattr(self.lib, sym)
+        except AttributeError as exc:
+            raise CodegenError(f"{self.path.name}: symbol {sym!r} not found; was it emitted "
+                               "with this name?") from exc
+        f.restype, f.argtypes = restype, argtypes
+        return f
+
+
+class CFunction:
+    """A plain emitted function called through ctypes: ``outs = f(*inputs)`` (dense
+    column-major inputs; outputs are new arrays of the declared shapes, or views of the
+    preallocated output buffers with ``copy=False``)."""
+
+    def __init__(self, lib_path: str | Path, sym: str, manifest: dict | None = None):
+        self._lib = _Library(lib_path, manifest)
+        info = self._lib.manifest.get("functions", {}).get(sym)
+        if info is None:
+            raise CodegenError(f"{self._lib.path.name}: no emitted function {sym!r} (have "
+                               f"{sorted(self._lib.manifest.get('functions', {}))})")
+        self.sym = sym
+        ll = ctypes.c_longlong
+        work = self._lib.fn(f"{sym}_work", ctypes.c_int, [ctypes.POINTER(ll)] * 4)
+        sizes = [ll(0) for _ in range(4)]
+        work(*[ctypes.byref(s) for s in sizes])
+        n_arg, n_res, n_iw, n_w = (max(int(s.value), 1) for s in sizes)
+        self._in_shapes = [tuple(s) for s in info["in"]]
+        self._out_shapes = [tuple(s) for s in info["out"]]
+        self._inputs = [np.zeros(int(np.prod(s)) or 1) for s in self._in_shapes]
+        self._outputs = [np.zeros(int(np.prod(s)) or 1) for s in self._out_shapes]
+        self._arg = (_dbl_p * n_arg)(*[_ptr(a) for a in self._inputs])
+        self._res = (_dbl_p * n_res)(*[_ptr(a) for a in self._outputs])
+        self._iw = (ll * n_iw)()
+        self._w = (ctypes.c_double * n_w)()
+        self._f = self._lib.fn(sym, ctypes.c_int, [ctypes.c_void_p] * 4 + [ctypes.c_int])
+        self._lib.fn(f"{sym}_incref", None, [])()
+        self._release = self._lib.fn(f"{sym}_release", None, [ctypes.c_int])
+        self._decref = self._lib.fn(f"{sym}_decref", None, [])
+        self._mem = self._lib.fn(f"{sym}_checkout", ctypes.c_int, [])()
+        if self._mem < 0:
+            raise CodegenError(f"{sym}: no CasADi memory left (rebuild with a larger "
+                               "-DCASADI_MAX_NUM_THREADS)")
+        self._args = (ctypes.cast(self._arg, ctypes.c_void_p), ctypes.cast(self._res,
+                      ctypes.c_void_p), ctypes.cast(self._iw, ctypes.c_void_p),
+                      ctypes.cast(self._w, ctypes.c_void_p), self._mem)
+
+    def __call__(self, *inputs: object, copy: bool = True) -> list[np.ndarray]:
+        if len(inputs) != len(self._inputs):
+            raise CodegenError(f"{self.sym}: expected {len(self._inputs)} inputs, got "
+                               f"{len(inputs)}")
+        for buf, val, shape in zip(self._inputs, inputs, self._in_shapes):
+            arr = np.asarray(val, dtype=float)
+            if arr.size != int(np.prod(shape)):
+                raise CodegenError(f"{self.sym}: input of shape {shape} expected, got "
+                                   f"{arr.shape}")
+            if arr.size:
+                buf[:] = arr.reshape(-1, order="F")
+        if self._f(*self._args):
+            raise CodegenError(f"{self.sym}: evaluation failed")
+        outs = [b[: int(np.prod(s))].reshape(s, order="F") for b, s in
+                zip(self._outputs, self._out_shapes)]
+        return [o.copy() for o in outs] if copy else outs
+
+    def close(self) -> None:
+        if getattr(self, "_mem", -1) >= 0:
+            self._release(self._mem)
+            self._decref()
+            self._mem = -1
+
+    def __del__(self) -> None:  # pragma: no cover - interpreter shutdown order
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+class _CProblemView:
+    """Numpy views of one problem's work struct inside the library (x, f, ...)."""
+
+    def __init__(self, lib: _Library, prefix: str, info: dict, work_ptr: int):
+        self.info = info
+        primal = lib.fn(f"{prefix}_primal", _dbl_p, [ctypes.c_void_p])
+        self.value_fn = lib.fn(f"{prefix}_value", ctypes.c_double, [ctypes.c_void_p])
+        self.work = work_ptr
+        self.x = np.ctypeslib.as_array(primal(work_ptr), shape=(info["nw"],))
+        self._res_fn = lib.fn(f"{prefix}_residuals", None, [ctypes.c_void_p, _dbl_p])
+        self._res = np.zeros(2)
+
+    def residuals(self) -> tuple[float, float]:
+        """Primal violation and dual residual of the last solve."""
+        self._res_fn(self.work, _ptr(self._res))
+        return float(self._res[0]), float(self._res[1])
+
+    def unpack(self, w: np.ndarray) -> dict[str, np.ndarray]:
+        out = {}
+        for name, lay in self.info["variables"].items():
+            n = int(np.prod(lay["shape"]))
+            arr = np.array(w[lay["offset"]: lay["offset"] + n]).reshape(lay["shape"], order="F")
+            out[name] = arr[:, 0] if lay["shape"][1] == 1 else arr
+        return out
+
+
+class CProblem:
+    """An emitted problem (:func:`~balustrade.codegen.emit.emit_problem`): ``solve(params)``
+    returns ``(status, value, primal dict, w)`` from the C solver, warm-started from the
+    previous converged solution unless ``warm=False``."""
+
+    def __init__(self, lib_path: str | Path, manifest: dict | None = None):
+        self._lib = _Library(lib_path, manifest)
+        m = self._lib.manifest
+        if m.get("kind") != "problem":
+            raise CodegenError(f"{self._lib.path.name}: not an emitted problem "
+                               f"(kind {m.get('kind')!r})")
+        self.info = m["problems"]["problem"]
+        P = self.info["prefix"]
+        self._alloc = self._lib.fn(f"{P}_alloc", ctypes.c_void_p, [])
+        self._free = self._lib.fn(f"{P}_free", None, [ctypes.c_void_p])
+        self._solve = self._lib.fn(f"{P}_solve", ctypes.c_int, [ctypes.c_void_p, _dbl_p])
+        self._cold = self._lib.fn(f"{P}_cold_start", None, [ctypes.c_void_p])
+        self._warm = self._lib.fn(f"{P}_warm_start", None, [ctypes.c_void_p])
+        self._work = self._alloc()
+        if not self._work:
+            raise CodegenError(f"{P}_alloc failed (no CasADi memory left)")
+        self.view = _CProblemView(self._lib, P, self.info, self._work)
+        self._p = np.zeros(max(self.info["np"], 1))
+        self._p_ptr = _ptr(self._p)
+
+    def pack(self, params: dict[str, object]) -> np.ndarray:
+        p = np.zeros(self.info["np"])
+        for name, lay in self.info["parameters"].items():
+            if name not in params:
+                raise CodegenError(f"{self.info['prefix']}: no value for parameter {name!r}")
+            n = int(np.prod(lay["shape"]))
+            p[lay["offset"]: lay["offset"] + n] = np.asarray(params[name], float).reshape(
+                -1, order="F")
+        return p
+
+    def solve(self, params: dict[str, object], warm: bool = True
+              ) -> tuple[str, float, dict[str, np.ndarray], np.ndarray]:
+        self._p[: self.info["np"]] = self.pack(params)
+        if not warm:
+            self._cold(self._work)
+        code = self._solve(self._work, self._p_ptr)
+        if code in (0, 4):
+            self._warm(self._work)
+        w = self.view.x.copy()
+        return _STATUS.get(code, str(code)), float(self.view.value_fn(self._work)), \
+            self.view.unpack(w), w
+
+    def close(self) -> None:
+        if getattr(self, "_work", None):
+            self._free(self._work)
+            self._work = None
+
+    def __del__(self) -> None:  # pragma: no cover
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+class CPCBFSafetyFilter:
+    """The emitted PCBF step (2.24)+(2.23) as a closed-loop controller: the same
+    ``step(x, u_p) -> (u, StepInfo)`` and ``reset()`` as
+    :class:`~balustrade.control.pcbf.PCBFSafetyFilter`, the same fallbacks (computed in C),
+    one foreign call per step."""
+
+    def __init__(self, lib_path: str | Path, manifest: dict | None = None,
+                 keep_solutions: bool = False):
+        self._lib = _Library(lib_path, manifest)
+        m = self._lib.manifest
+        if m.get("kind") != "pcbf":
+            raise CodegenError(f"{self._lib.path.name}: not an emitted PCBF filter "
+                               f"(kind {m.get('kind')!r})")
+        Q = m["name"]
+        self.nx, self.nu, self.N = m["nx"], m["nu"], m["N"]
+        self.keep_solutions = keep_solutions
+        vp = ctypes.c_void_p
+        self._alloc = self._lib.fn(f"{Q}_alloc", vp, [])
+        self._free = self._lib.fn(f"{Q}_free", None, [vp])
+        self._reset = self._lib.fn(f"{Q}_reset", None, [vp])
+        self._step = self._lib.fn(f"{Q}_step", ctypes.c_int,
+                                  [_dbl_p, _dbl_p, _dbl_p, _dbl_p,
+                                   ctypes.POINTER(ctypes.c_int), vp])
+        self._status_fn = self._lib.fn(f"{Q}_solve_status", ctypes.c_int, [vp, ctypes.c_int])
+        self._work = self._alloc()
+        if not self._work:
+            raise CodegenError(f"{Q}_alloc failed (no CasADi memory left)")
+        slack_ptr = self._lib.fn(f"{Q}_slack_problem", vp, [vp])(self._work)
+        filt_ptr = self._lib.fn(f"{Q}_filter_problem", vp, [vp])(self._work)
+        self.slack = _CProblemView(self._lib, f"{Q}_slack", m["problems"]["slack"], slack_ptr)
+        self.filter = _CProblemView(self._lib, f"{Q}_filter", m["problems"]["filter"],
+                                    filt_ptr)
+        self._x, self._u_p = np.zeros(self.nx), np.zeros(self.nu)
+        self._u, self._h = np.zeros(self.nu), np.zeros(1)
+        self._status = ctypes.c_int(0)
+        self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u), _ptr(self._h),
+                      ctypes.byref(self._status), self._work)
+
+    def reset(self) -> None:
+        self._reset(self._work)
+
+    def step_raw(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, float, int]:
+        """One C step without building a StepInfo: ``(u, h_PB, status code)``; the
+        returned ``u`` is a view of the output buffer (copy it to keep it)."""
+        self._x[:] = x
+        self._u_p[:] = u_p
+        code = self._step(*self._args)
+        return self._u, float(self._h[0]), code
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        u_p = np.broadcast_to(np.asarray(u_p, dtype=float).reshape(-1), (self.nu,))
+        x = np.asarray(x, dtype=float).reshape(-1)
+        if x.size != self.nx:
+            raise CodegenError(f"CPCBFSafetyFilter.step: x must have {self.nx} entries, got "
+                               f"{x.size}")
+        start = time.perf_counter()
+        u, h, code = self.step_raw(x, u_p)
+        elapsed = time.perf_counter() - start
+        s_code = self._status_fn(self._work, 0)
+        f_code = self._status_fn(self._work, 1)
+        info = StepInfo(solve_time=elapsed, fallback=_FALLBACK.get(code, "unknown"))
+        if code == 0:
+            info.status = "ok"
+        elif code == 1:
+            info.status = f"filter_{_STATUS.get(f_code, f_code)}"
+        elif s_code == -1:
+            info.status = "non_finite_state"
+        else:
+            info.status = f"slack_{_STATUS.get(s_code, s_code)}"
+        if np.isfinite(h):
+            info.values["h_PB"] = h
+        if self.keep_solutions:
+            info.solutions = {"slack": self.slack.unpack(self.slack.x.copy()),
+                              "filter": self.filter.unpack(self.filter.x.copy())}
+        return u.copy(), info
+
+    def close(self) -> None:
+        if getattr(self, "_work", None):
+            self._free(self._work)
+            self._work = None
+
+    def __del__(self) -> None:  # pragma: no cover
+        try:
+            self.close()
+        except Exception:
+            pass
