@@ -1,0 +1,147 @@
+"""``balustrade sample`` and ``balustrade train`` (registered by :mod:`balustrade.cli`).
+
+Both take flags or ``--config FILE`` (JSON whose keys are the long flag names with ``_``,
+e.g. ``{"grid_step": [0.01, 0.04], "workers": 8}``; flags given on the command line win).
+
+Examples::
+
+    balustrade sample --out out/pendulum-D --grid-step 0.01 0.04 --workers 8
+    balustrade sample --out out/pendulum-D --scheduler tcp://head:8786   # same, on Dask
+    balustrade sample --out out/geo --mode geometric --goals 4096 --line-step 0.01
+    balustrade train --data out/pendulum-D --target h --widths 16 16 16 --out out/h.npz
+
+An interrupted ``sample`` is resumed by running the same command again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+SAMPLE_DEFAULTS: dict[str, Any] = {
+    "problem": "pendulum", "solver": "ipopt", "mode": "grid", "lower": [-2.0, -8.0],
+    "upper": [2.0, 8.0], "grid_step": [0.01, 0.04], "band": True, "cap": 10.0,
+    "chunk_size": 500, "goals": 1024, "goals_per_chunk": 16, "line_step": 0.01, "seed": 0,
+    "workers": None, "scheduler": None, "quiet": False, "cold": False,
+}
+TRAIN_DEFAULTS: dict[str, Any] = {
+    "target": "h", "widths": [16, 16, 16], "epochs": 30, "lr": 5e-3, "batch_size": 8,
+    "loss": "mse", "transform": None, "val_fraction": 0.1, "seed": 0, "verbose": True,
+}
+
+
+def _merge(args: argparse.Namespace, defaults: dict[str, Any]) -> dict[str, Any]:
+    cfg = dict(defaults)
+    if getattr(args, "config", None):
+        from_file = json.loads(Path(args.config).read_text())
+        unknown = set(from_file) - set(defaults) - {"out", "data"}
+        if unknown:
+            from balustrade.errors import BalustradeError
+
+            raise BalustradeError(f"{args.config}: unknown keys {sorted(unknown)}")
+        cfg.update(from_file)
+    for key, value in vars(args).items():
+        if value is not None and key not in ("func", "config", "command"):
+            cfg[key] = value
+    return cfg
+
+
+def _cmd_sample(args: argparse.Namespace) -> int:
+    from balustrade.errors import BalustradeError
+    from balustrade.learn.dataset import geometric_plan, grid_plan, run_sampling
+    from balustrade.learn.executors import make_executor
+    from balustrade.learn.sampler import ProblemSpec
+
+    cfg = _merge(args, SAMPLE_DEFAULTS)
+    if not cfg.get("out"):
+        raise BalustradeError("sample: --out (or 'out' in the config file) is required")
+    spec = ProblemSpec.of(cfg["problem"], solver=cfg["solver"])
+    X = spec.build().X
+    if cfg["mode"] == "grid":
+        chunks, plan = grid_plan(X, cfg["lower"], cfg["upper"], cfg["grid_step"],
+                                 int(cfg["chunk_size"]), cfg["cap"], bool(cfg["band"]),
+                                 warm=not cfg["cold"])
+    elif cfg["mode"] == "geometric":
+        chunks, plan = geometric_plan(X, int(cfg["goals"]), int(cfg["goals_per_chunk"]),
+                                      float(cfg["line_step"]), int(cfg["seed"]), cfg["cap"])
+    else:
+        raise BalustradeError(f"sample: unknown mode {cfg['mode']!r} (grid | geometric)")
+    with make_executor(cfg["workers"], cfg["scheduler"]) as ex:
+        ds = run_sampling(cfg["out"], spec, chunks, ex, plan, progress=not cfg["quiet"])
+    rows = sum(ds.completed().values())
+    if not cfg["quiet"]:
+        print(f"{rows} samples in {len(chunks)} shards at {Path(cfg['out']).resolve()}")
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from balustrade.errors import BalustradeError
+    from balustrade.learn.dataset import ShardedDataset
+    from balustrade.learn.train import TrainConfig, train
+
+    cfg = _merge(args, TRAIN_DEFAULTS)
+    if not cfg.get("data") or not cfg.get("out"):
+        raise BalustradeError("train: --data and --out are required")
+    X, y = ShardedDataset(cfg["data"]).arrays(cfg["target"])
+    tc = TrainConfig(widths=tuple(cfg["widths"]), epochs=int(cfg["epochs"]), lr=float(cfg["lr"]),
+                     batch_size=int(cfg["batch_size"]), loss=cfg["loss"],
+                     output_transform=cfg["transform"], val_fraction=float(cfg["val_fraction"]),
+                     seed=int(cfg["seed"]))
+    model = train(X, y, tc, verbose=bool(cfg["verbose"]))
+    model.save(cfg["out"])
+    val = model.history.get("val_mse_h", [])
+    print(f"trained on {len(y)} samples; validation MSE of ĥ "
+          f"{val[-1] if val else float('nan'):.4g}; model written to {cfg['out']}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add the ``sample`` and ``train`` subcommands."""
+    s = sub.add_parser("sample", help="sample (extended) PCBF values into a dataset "
+                       "(Algorithm 7.6 or a grid), resumable, local or on Dask")
+    s.add_argument("--config", help="JSON file with any of the options below")
+    s.add_argument("--out", help="dataset directory (Parquet shards + manifest.json)")
+    s.add_argument("--problem", help="'pendulum' or 'package.module:function'")
+    s.add_argument("--solver", help="CasADi NLP solver (default ipopt)")
+    s.add_argument("--mode", choices=["grid", "geometric"])
+    s.add_argument("--lower", type=float, nargs="+", help="grid box lower corner")
+    s.add_argument("--upper", type=float, nargs="+", help="grid box upper corner")
+    s.add_argument("--grid-step", dest="grid_step", type=float, nargs="+")
+    s.add_argument("--no-band", dest="band", action="store_const", const=False,
+                   help="no extra points near the constraints")
+    s.add_argument("--cap", type=float, help="reject samples with h_PB above this")
+    s.add_argument("--chunk-size", dest="chunk_size", type=int)
+    s.add_argument("--goals", type=int, help="geometric mode: number of goal points")
+    s.add_argument("--goals-per-chunk", dest="goals_per_chunk", type=int)
+    s.add_argument("--line-step", dest="line_step", type=float, help="geometric mode: d")
+    s.add_argument("--seed", type=int)
+    s.add_argument("--workers", type=int, help="local processes (default: all cores)")
+    s.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786)")
+    s.add_argument("--cold", action="store_const", const=True, help="no warm starts")
+    s.add_argument("--quiet", action="store_const", const=True)
+    s.set_defaults(func=_cmd_sample)
+
+    t = sub.add_parser("train", help="fit a softplus MLP ĥ to a sampled dataset (PyTorch)")
+    t.add_argument("--config", help="JSON file with any of the options below")
+    t.add_argument("--data", help="dataset directory written by 'balustrade sample'")
+    t.add_argument("--out", help="model file (.npz)")
+    t.add_argument("--target", choices=["h", "h_pb"])
+    t.add_argument("--widths", type=int, nargs="+")
+    t.add_argument("--epochs", type=int)
+    t.add_argument("--lr", type=float)
+    t.add_argument("--batch-size", dest="batch_size", type=int)
+    t.add_argument("--loss", choices=["mse", "huber"])
+    t.add_argument("--transform", choices=["cbrt"])
+    t.add_argument("--val-fraction", dest="val_fraction", type=float)
+    t.add_argument("--seed", type=int)
+    t.add_argument("--quiet", dest="verbose", action="store_const", const=False)
+    t.set_defaults(func=_cmd_train)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from balustrade.cli import main
+
+    sys.exit(main())
