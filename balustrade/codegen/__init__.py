@@ -1,1 +1,32 @@
-"""balustrade.codegen."""
+"""Emit C from compiled CasADi problems and functions; build it; call it from Python.
+
+Deploy path (see ``docs/deploy_c.md``)::
+
+    from balustrade.codegen import emit_pcbf, build, CPCBFSafetyFilter
+    emitted = emit_pcbf(controller, "pend", "out/pend", dynamics=system.function)
+    lib = build(emitted.out_dir)                 # cc -O3 -fPIC -shared ... -lm
+    c_filter = CPCBFSafetyFilter(lib)            # same Controller protocol, C inside
+    trace = simulate(system, c_filter, x0, 100, proposal=2.0)
+
+Modules: :mod:`~balustrade.codegen.support` (which solvers generate C, callback check),
+:mod:`~balustrade.codegen.emit` (the emitters), :mod:`~balustrade.codegen.build`
+(compiler), :mod:`~balustrade.codegen.runtime` (ctypes), :mod:`~balustrade.codegen.cli`.
+"""
+
+from balustrade.codegen.build import build, build_executable, find_compiler
+from balustrade.codegen.emit import (
+    Emitted,
+    emit_function,
+    emit_functions,
+    emit_pcbf,
+    emit_problem,
+    write_example,
+)
+from balustrade.codegen.runtime import CFunction, CPCBFSafetyFilter, CProblem, load_manifest
+from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_libraries
+
+__all__ = [
+    "SUPPORTED", "CFunction", "CPCBFSafetyFilter", "CProblem", "Emitted", "build",
+    "build_executable", "check_no_callbacks", "emit_function", "emit_functions", "emit_pcbf",
+    "emit_problem", "find_compiler", "load_manifest", "solver_libraries", "write_example",
+]

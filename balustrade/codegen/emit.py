@@ -35,6 +35,8 @@ from balustrade.dsl.sets import Box
 from balustrade.errors import CodegenError
 
 MANIFEST_VERSION = 1
+#: scaled primal violation under which a stalled solve is accepted (as the CasADi backend)
+STALL_TOL = 1e-8
 
 
 @dataclass
@@ -76,13 +78,17 @@ def _c_double(v: float) -> str:
 
 
 def _renamed(fn: ca.Function, name: str) -> ca.Function:
-    """``fn`` under the C symbol ``name`` (the same expression graph)."""
+    """``fn`` under the C symbol ``name``, with dense inputs and outputs (the C entry point
+    then reads and writes plain column-major arrays; structural zeros are written as 0).
+    Solvers and other non-expression functions are only renamed when needed."""
+    if fn.is_a("SXFunction") or fn.is_a("MXFunction"):
+        sym = ca.SX.sym if fn.is_a("SXFunction") else ca.MX.sym
+        args = [sym(fn.name_in(i), fn.size1_in(i), fn.size2_in(i)) for i in range(fn.n_in())]
+        outs = [ca.densify(o) for o in fn.call(args)]
+        return ca.Function(name, args, outs, fn.name_in(), fn.name_out())
     if fn.name() == name:
         return fn
-    if fn.is_a("SXFunction"):
-        args = fn.sx_in()
-    else:
-        args = fn.mx_in()
+    args = fn.mx_in()
     return ca.Function(name, args, fn.call(args), fn.name_in(), fn.name_out())
 
 
@@ -106,7 +112,9 @@ def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> li
 
 def _kkt_function(c: CasadiCompiled, sym: str) -> ca.Function:
     """The solver's own convergence measures at a point, as a C-emittable function:
-    ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``."""
+    ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``,
+    ``feas`` = largest violation with constraint rows scaled by ``1 + |g|`` (the test
+    :mod:`balustrade.backends.casadi_backend` applies to stalled SQP solves)."""
     w, p, f, g = c.nlp["x"], c.nlp["p"], c.nlp["f"], c.nlp["g"]
     cls = type(w)
     lam_x = cls.sym("lam_x", w.numel())
@@ -117,8 +125,12 @@ def _kkt_function(c: CasadiCompiled, sym: str) -> ca.Function:
     if g.numel():
         viol += [ca.fmax(g - ca.DM(c.ubg), 0), ca.fmax(ca.DM(c.lbg) - g, 0)]
     pr = ca.mmax(ca.vertcat(*viol, 0))
-    return ca.Function(sym, [w, p, lam_x, lam_g], [pr, du],
-                       ["x", "p", "lam_x", "lam_g"], ["pr_inf", "du_inf"])
+    scaled = viol[:2]
+    if g.numel():
+        scaled += [ca.fmax(g - ca.DM(c.ubg), ca.DM(c.lbg) - g) / (1 + ca.fabs(g))]
+    feas = ca.mmax(ca.vertcat(*scaled, 0))
+    return ca.Function(sym, [w, p, lam_x, lam_g], [pr, du, feas],
+                       ["x", "p", "lam_x", "lam_g"], ["pr_inf", "du_inf", "feas"])
 
 
 def _layout(items: dict, start: int = 0) -> dict[str, dict]:
@@ -152,16 +164,42 @@ class _Problem:
         self.ng = int(c.nlp["g"].numel())
         self.tol_pr = float(c.options.get("tol_pr", 1e-6))
         self.tol_du = float(c.options.get("tol_du", 1e-6))
-        self.accept_tol = max(self.tol_pr, float(accept_tol or 0.0))
+        self.accept_tol = STALL_TOL if accept_tol is None else float(accept_tol)
+        self.retry_opts: dict | None = None
+        if c.solver_name == "sqpmethod":  # as CasadiCompiled._retry_solvers
+            opts = dict(c.options)
+            regularized = opts.get("convexify_strategy", "none") != "none"
+            opts["convexify_strategy"] = "none" if regularized else "regularize"
+            self.retry_opts = opts
         self.vars = _layout(c.ocp.variables)
         self.params = _layout(c.ocp.parameters)
         init = np.concatenate([c.ocp.pack_variables({}), c.init_epi])
         init = np.where(np.isfinite(init), init, 0.0)
         self.init = init
 
+    @property
+    def retry(self) -> str:
+        return f"{self.P}_nlp_retry" if self.retry_opts is not None else f"{self.P}_nlp"
+
     def functions(self) -> dict[str, ca.Function]:
-        nlp = ca.nlpsol(f"{self.P}_nlp", self.c.solver_name, self.c.nlp, self.c.options)
-        return {f"{self.P}_nlp": nlp, f"{self.P}_kkt": _kkt_function(self.c, f"{self.P}_kkt")}
+        out = {f"{self.P}_nlp": ca.nlpsol(f"{self.P}_nlp", self.c.solver_name, self.c.nlp,
+                                          self.c.options)}
+        if self.retry_opts is not None:
+            out[self.retry] = ca.nlpsol(self.retry, "sqpmethod", self.c.nlp, self.retry_opts)
+        out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt")
+        return out
+
+    def _retry_code(self) -> tuple[str, str, str]:
+        P, R = self.P, self.retry
+        if self.retry_opts is None:
+            return (f"  wk->rmem = wk->mem;  /* the retry reuses {P}_nlp */\n", "",
+                    f"the same solver ({self.c.solver_name})")
+        init = (f"  {R}_incref();\n  wk->rmem = {R}_checkout();\n  if (wk->rmem < 0) {{\n"
+                f"    {R}_decref();\n    {P}_nlp_release(wk->mem);\n    {P}_nlp_decref();\n"
+                f"    return -1;\n  }}\n")
+        fini = f"  {R}_release(wk->rmem);\n  {R}_decref();\n"
+        doc = f"sqpmethod, convexify_strategy {self.retry_opts['convexify_strategy']!r}"
+        return init, fini, doc
 
     def header(self) -> str:
         pdoc = "".join(f"\n *   {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
@@ -174,14 +212,17 @@ class _Problem:
         offsets = "".join(f"#define {self.P}_P_{n} {v['offset']}\n" for n, v in self.params.items())
         offsets += "".join(f"#define {self.P}_W_{n} {v['offset']}\n" for n, v in self.vars.items())
         return T.PROBLEM_H.substitute(P=self.P, title=self.title, np=self.np, nw=self.nw,
+                                      retry=self.retry, retry_doc=self._retry_code()[2],
                                       ng=self.ng, param_doc=pdoc, var_doc=vdoc,
                                       tol_pr=f"{self.tol_pr:g}", tol_du=f"{self.tol_du:g}",
                                       accept_tol=f"{self.accept_tol:g}", offsets=offsets,
                                       name=self.module)
 
     def source(self) -> str:
+        init, fini, _ = self._retry_code()
         return T.PROBLEM_C.substitute(
-            P=self.P, nw=self.nw, ng1=max(self.ng, 1), lbx=_c_array(self.c.lbx),
+            P=self.P, retry=self.retry, retry_init=init, retry_fini=fini, nw=self.nw,
+            ng1=max(self.ng, 1), lbx=_c_array(self.c.lbx),
             ubx=_c_array(self.c.ubx), lbg=_c_array(self.c.lbg), ubg=_c_array(self.c.ubg),
             init=_c_array(self.init), tol_pr=_c_double(self.tol_pr),
             tol_du=_c_double(self.tol_du), accept_tol=_c_double(self.accept_tol))
@@ -190,7 +231,7 @@ class _Problem:
         return {"prefix": self.P, "title": self.title, "np": self.np, "nw": self.nw,
                 "ng": self.ng, "n_user": int(self.c.n_user), "variables": self.vars,
                 "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
-                "accept_tol": self.accept_tol,
+                "accept_tol": self.accept_tol, "retry": self.retry_opts is not None,
                 "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol")}
 
 
@@ -260,8 +301,10 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
     ``wk->x[<name>_W_u]``), ``wk->f`` (value), return value = status (``BAL_*``).
 
     ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``; a solve that stops
-    without dual convergence but with a constraint violation below ``accept_tol`` (default
-    ``tol_pr``) returns ``BAL_FEASIBLE``."""
+    without dual convergence but with a scaled constraint violation ``<= accept_tol``
+    (default ``1e-8``, the backend's test for stalled SQP solves) returns ``BAL_FEASIBLE``.
+    Unsolved attempts are retried once from a cold start with the other Hessian
+    convexification, as the backend does (its last resort, IPOPT, cannot be emitted)."""
     _check_identifier(name)
     libs = _check_compiled(compiled, name, allow_external)
     out_dir = Path(out_dir)
@@ -283,11 +326,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     the closed-loop example ``main.c`` (:func:`write_example`). The fallback "projected
     proposal" clips to ``U``, which must be a :class:`~balustrade.dsl.sets.Box`.
 
-    A solve is accepted when it converged (the solver's ``tol_pr``/``tol_du``) or when its
-    constraint violation is below ``accept_tol``, default the filter's margin ``ε`` (SPEC
-    §2.7: (2.23) is solved with the slacks ``ξ* + ε``, so a violation below ``ε`` still
-    satisfies the constraints with ``ξ*``). This stands in for CasADi's
-    "Search_Direction_Becomes_Too_Small" success, which the generated C does not report.
+    Solves are accepted and retried as in :func:`emit_problem` (``accept_tol``), which
+    mirrors :class:`~balustrade.backends.casadi_backend.CasadiCompiled` except for its final
+    IPOPT retry: where the backend needs IPOPT, the C step takes the PCBF fallback.
     """
     _check_identifier(name)
     slack, filt, U = (getattr(controller, k, None) for k in ("slack", "filter", "U"))
@@ -299,8 +340,6 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     if not isinstance(U, Box):
         raise CodegenError(f"{name}: the C fallback projects onto U by clipping, so U must "
                            f"be a Box, got {type(U).__name__}")
-    if accept_tol is None:
-        accept_tol = float(getattr(controller, "eps", 0.0))
     s = _Problem(slack, f"{name}_slack", f"slack problem (2.24) {slack.ocp.name!r}", name,
                  accept_tol)
     f = _Problem(filt, f"{name}_filter", f"filter problem (2.23) {filt.ocp.name!r}", name,

@@ -304,3 +304,13 @@ class CPCBFSafetyFilter:
             self.close()
         except Exception:
             pass
+
+
+def without_ipopt_retry(compiled: object) -> object:
+    """Make a compiled CasADi problem retry failed solves exactly as its emitted C does:
+    the other Hessian convexification only, without the backend's last resort (IPOPT,
+    which has no C). Used to compare the deployed C with Python step by step; returns
+    ``compiled`` (modified in place)."""
+    retry = compiled._retry_solvers()  # builds the backend's retry chain
+    compiled._retry = [s for s in retry if s.class_name() != "IpoptInterface"]
+    return compiled

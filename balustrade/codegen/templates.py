@@ -74,12 +74,20 @@ PROBLEM_H = Template("""\
  * Parameters p (stacked, $np values):$param_doc
  * Decision vector x ($nw values):$var_doc
  * Constraint rows: $ng. BAL_OK when max violation < $tol_pr and inf-norm of the
- * Lagrangian gradient < $tol_du (the solver's own tests); else BAL_FEASIBLE when the max
- * violation < $accept_tol (acceptance tolerance). The PCBF step accepts both (BAL_SOLVED).
+ * Lagrangian gradient < $tol_du (the solver's own tests); else BAL_FEASIBLE when the
+ * violation scaled by 1 + |g| is <= $accept_tol (a stalled SQP at a primal-feasible point,
+ * as balustrade.backends accepts it). An unsolved attempt is retried once from a cold
+ * start with $retry_doc, as balustrade.backends does (its last resort, IPOPT, has no C).
+ * The PCBF step accepts BAL_OK and BAL_FEASIBLE (BAL_SOLVED).
  */
 #define ${P}_NP $np
 #define ${P}_NW $nw
 #define ${P}_NG $ng
+#define ${P}_MAX2(a, b) ((a) > (b) ? (a) : (b))
+#define ${P}_SZ_ARG ${P}_MAX2(${P}_nlp_SZ_ARG, ${retry}_SZ_ARG)
+#define ${P}_SZ_RES ${P}_MAX2(${P}_nlp_SZ_RES, ${retry}_SZ_RES)
+#define ${P}_SZ_IW ${P}_MAX2(${P}_nlp_SZ_IW, ${retry}_SZ_IW)
+#define ${P}_SZ_W ${P}_MAX2(${P}_nlp_SZ_W, ${retry}_SZ_W)
 $offsets
 typedef struct ${P}_work {
   /* warm start, read by ${P}_solve: set it with ${P}_cold_start / ${P}_warm_start or by hand */
@@ -87,17 +95,18 @@ typedef struct ${P}_work {
   /* solution, written by ${P}_solve */
   casadi_real x[${P}_NW], lam_x[${P}_NW], lam_g[${P}_NG + 1], g[${P}_NG + 1];
   casadi_real lam_p[${P}_NP + 1];
-  casadi_real f, pr_inf, du_inf;
-  /* CasADi work vectors (sizes from ${name}_casadi.h) */
-  const casadi_real* arg[${P}_nlp_SZ_ARG];
-  casadi_real* res[${P}_nlp_SZ_RES];
-  casadi_int iw[${P}_nlp_SZ_IW + 1];
-  casadi_real w[${P}_nlp_SZ_W + 1];
+  casadi_real f, pr_inf, du_inf, feas;
+  int attempts;  /* solver runs in the last ${P}_solve (2 = retried) */
+  /* CasADi work vectors (sizes from ${name}_casadi.h), shared by the solver and its retry */
+  const casadi_real* arg[${P}_SZ_ARG];
+  casadi_real* res[${P}_SZ_RES];
+  casadi_int iw[${P}_SZ_IW + 1];
+  casadi_real w[${P}_SZ_W + 1];
   const casadi_real* karg[${P}_kkt_SZ_ARG];
   casadi_real* kres[${P}_kkt_SZ_RES];
   casadi_int kiw[${P}_kkt_SZ_IW + 1];
   casadi_real kw[${P}_kkt_SZ_W + 1];
-  int mem, kmem, ready;
+  int mem, rmem, kmem, ready;
 } ${P}_work;
 
 /* Take the CasADi memory (incref + checkout) and cold-start; 0 on success, -1 if no
@@ -118,7 +127,7 @@ int ${P}_solve(${P}_work* wk, const casadi_real* p);
 /* Pointers into wk, for foreign-function callers. */
 const casadi_real* ${P}_primal(const ${P}_work* wk);
 casadi_real ${P}_value(const ${P}_work* wk);
-/* out[0] = primal violation, out[1] = dual residual of the last solve */
+/* out[0] = primal violation, out[1] = dual residual, out[2] = scaled violation */
 void ${P}_residuals(const ${P}_work* wk, casadi_real* out);
 
 """)
@@ -139,11 +148,11 @@ int ${P}_init(${P}_work* wk) {
     ${P}_nlp_decref();
     return -1;
   }
-  ${P}_kkt_incref();
+$retry_init  ${P}_kkt_incref();
   wk->kmem = ${P}_kkt_checkout();
   if (wk->kmem < 0) {
     ${P}_kkt_decref();
-    ${P}_nlp_release(wk->mem);
+$retry_fini    ${P}_nlp_release(wk->mem);
     ${P}_nlp_decref();
     return -1;
   }
@@ -156,7 +165,7 @@ void ${P}_finalize(${P}_work* wk) {
   if (!wk->ready) return;
   ${P}_kkt_release(wk->kmem);
   ${P}_kkt_decref();
-  ${P}_nlp_release(wk->mem);
+$retry_fini  ${P}_nlp_release(wk->mem);
   ${P}_nlp_decref();
   wk->ready = 0;
 }
@@ -188,37 +197,55 @@ void ${P}_warm_start(${P}_work* wk) {
   memcpy(wk->lam_g0, wk->lam_g, sizeof(wk->lam_g0));
 }
 
-int ${P}_solve(${P}_work* wk, const casadi_real* p) {
+/* One solver run: from the warm start in wk, or (retry) cold with the retry solver. */
+static int ${P}_attempt(${P}_work* wk, const casadi_real* p, int retry) {
   casadi_int i;
-  if (!wk->ready) return BAL_EVAL_ERROR;
-  wk->arg[0] = wk->x0;
+  int flag;
+  wk->arg[0] = retry ? ${P}_init_x : wk->x0;
   wk->arg[1] = p;
   wk->arg[2] = ${P}_lbx;
   wk->arg[3] = ${P}_ubx;
   wk->arg[4] = ${P}_lbg;
   wk->arg[5] = ${P}_ubg;
-  wk->arg[6] = wk->lam_x0;
-  wk->arg[7] = wk->lam_g0;
+  wk->arg[6] = retry ? 0 : wk->lam_x0;  /* 0: zero multipliers */
+  wk->arg[7] = retry ? 0 : wk->lam_g0;
   wk->res[0] = wk->x;
   wk->res[1] = &wk->f;
   wk->res[2] = wk->g;
   wk->res[3] = wk->lam_x;
   wk->res[4] = wk->lam_g;
   wk->res[5] = wk->lam_p;
-  if (${P}_nlp(wk->arg, wk->res, wk->iw, wk->w, wk->mem)) return BAL_EVAL_ERROR;
+  wk->attempts++;
+  if (retry) {
+    flag = ${retry}(wk->arg, wk->res, wk->iw, wk->w, wk->rmem);
+  } else {
+    flag = ${P}_nlp(wk->arg, wk->res, wk->iw, wk->w, wk->mem);
+  }
+  if (flag) return BAL_EVAL_ERROR;
   wk->karg[0] = wk->x;
   wk->karg[1] = p;
   wk->karg[2] = wk->lam_x;
   wk->karg[3] = wk->lam_g;
   wk->kres[0] = &wk->pr_inf;
   wk->kres[1] = &wk->du_inf;
+  wk->kres[2] = &wk->feas;
   if (${P}_kkt(wk->karg, wk->kres, wk->kiw, wk->kw, wk->kmem)) return BAL_EVAL_ERROR;
   if (!isfinite(wk->f) || !isfinite(wk->pr_inf) || !isfinite(wk->du_inf)) return BAL_NONFINITE;
   for (i = 0; i < ${P}_NW; ++i) {
     if (!isfinite(wk->x[i])) return BAL_NONFINITE;
   }
   if (wk->pr_inf < $tol_pr && wk->du_inf < $tol_du) return BAL_OK;
-  return wk->pr_inf < $accept_tol ? BAL_FEASIBLE : BAL_NOT_CONVERGED;
+  return wk->feas <= $accept_tol ? BAL_FEASIBLE : BAL_NOT_CONVERGED;
+}
+
+int ${P}_solve(${P}_work* wk, const casadi_real* p) {
+  int first, second;
+  if (!wk->ready) return BAL_EVAL_ERROR;
+  wk->attempts = 0;
+  first = ${P}_attempt(wk, p, 0);
+  if (BAL_SOLVED(first)) return first;
+  second = ${P}_attempt(wk, p, 1);
+  return BAL_SOLVED(second) ? second : first;
 }
 
 const casadi_real* ${P}_primal(const ${P}_work* wk) { return wk->x; }
@@ -226,6 +253,7 @@ casadi_real ${P}_value(const ${P}_work* wk) { return wk->f; }
 void ${P}_residuals(const ${P}_work* wk, casadi_real* out) {
   out[0] = wk->pr_inf;
   out[1] = wk->du_inf;
+  out[2] = wk->feas;
 }
 
 """)
