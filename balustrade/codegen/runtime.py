@@ -87,6 +87,9 @@ class CFunction:
         self._out_shapes = [tuple(s) for s in info["out"]]
         self._inputs = [np.zeros(int(np.prod(s)) or 1) for s in self._in_shapes]
         self._outputs = [np.zeros(int(np.prod(s)) or 1) for s in self._out_shapes]
+        self._in_sizes = [int(np.prod(s)) for s in self._in_shapes]
+        self._out_views = [b[: int(np.prod(s))].reshape(s, order="F") for b, s in
+                           zip(self._outputs, self._out_shapes)]
         self._arg = (_dbl_p * n_arg)(*[_ptr(a) for a in self._inputs])
         self._res = (_dbl_p * n_res)(*[_ptr(a) for a in self._outputs])
         self._iw = (ll * n_iw)()
@@ -107,18 +110,16 @@ class CFunction:
         if len(inputs) != len(self._inputs):
             raise CodegenError(f"{self.sym}: expected {len(self._inputs)} inputs, got "
                                f"{len(inputs)}")
-        for buf, val, shape in zip(self._inputs, inputs, self._in_shapes):
-            arr = np.asarray(val, dtype=float)
-            if arr.size != int(np.prod(shape)):
-                raise CodegenError(f"{self.sym}: input of shape {shape} expected, got "
-                                   f"{arr.shape}")
-            if arr.size:
-                buf[:] = arr.reshape(-1, order="F")
+        for buf, n, val, shape in zip(self._inputs, self._in_sizes, inputs, self._in_shapes):
+            if n:
+                flat = np.ravel(val, order="F")
+                if flat.size != n:
+                    raise CodegenError(f"{self.sym}: input of shape {shape} expected, got "
+                                       f"{np.shape(val)}")
+                buf[:n] = flat
         if self._f(*self._args):
             raise CodegenError(f"{self.sym}: evaluation failed")
-        outs = [b[: int(np.prod(s))].reshape(s, order="F") for b, s in
-                zip(self._outputs, self._out_shapes)]
-        return [o.copy() for o in outs] if copy else outs
+        return [o.copy() for o in self._out_views] if copy else self._out_views
 
     def close(self) -> None:
         if getattr(self, "_mem", -1) >= 0:
