@@ -9,24 +9,34 @@ Deploy path (see ``docs/deploy_c.md``)::
     trace = simulate(system, c_filter, x0, 100, proposal=2.0)
 
 Modules: :mod:`~balustrade.codegen.support` (which solvers generate C, callback check),
-:mod:`~balustrade.codegen.emit` (the emitters), :mod:`~balustrade.codegen.build`
+:mod:`~balustrade.codegen.emit` (the emitters: plain functions, one problem, the PCBF
+pair (2.24)+(2.23), Algorithm 7.5 with (7.5)+(7.6)), :mod:`~balustrade.codegen.build`
 (compiler), :mod:`~balustrade.codegen.runtime` (ctypes), :mod:`~balustrade.codegen.cli`.
 """
 
 from balustrade.codegen.build import build, build_executable, find_compiler
 from balustrade.codegen.emit import (
     Emitted,
+    emit_approximate,
     emit_function,
     emit_functions,
     emit_pcbf,
     emit_problem,
     write_example,
 )
-from balustrade.codegen.runtime import CFunction, CPCBFSafetyFilter, CProblem, load_manifest
+from balustrade.codegen.runtime import (
+    CApproximatePCBFFilter,
+    CFunction,
+    CPCBFSafetyFilter,
+    CProblem,
+    load_manifest,
+    without_ipopt_retry,
+)
 from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_libraries
 
 __all__ = [
-    "SUPPORTED", "CFunction", "CPCBFSafetyFilter", "CProblem", "Emitted", "build",
-    "build_executable", "check_no_callbacks", "emit_function", "emit_functions", "emit_pcbf",
-    "emit_problem", "find_compiler", "load_manifest", "solver_libraries", "write_example",
+    "SUPPORTED", "CApproximatePCBFFilter", "CFunction", "CPCBFSafetyFilter", "CProblem",
+    "Emitted", "build", "build_executable", "check_no_callbacks", "emit_approximate",
+    "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "find_compiler",
+    "load_manifest", "solver_libraries", "without_ipopt_retry", "write_example",
 ]

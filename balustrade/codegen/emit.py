@@ -416,3 +416,75 @@ def write_example(emitted: Emitted, x_init: np.ndarray, u_p: np.ndarray | float,
     mk = emitted.out_dir / "Makefile"
     mk.write_text(T.MAKEFILE.substitute(name=emitted.name))
     return [main_path, mk]
+
+
+def emit_approximate(controller: object, name: str, out_dir: str | Path,
+                     dynamics: ca.Function | None = None, allow_external: bool = False,
+                     accept_tol: float | None = None) -> Emitted:
+    """Emit Algorithm 7.5 of an
+    :class:`~balustrade.control.approximate.ApproximatePCBFFilter` (built with
+    ``solver="sqpmethod"``) as one C call per control step:
+    ``<name>_step(x, u_p, u_out, h_out, status, work)`` — the certification shortcut
+    ``u_p ∈ U ∧ ĥ(f(x, u_p)) <= 0``, else the maximal decrease (7.6) by the same screened
+    multi-start (candidates ``clip(0)``, ``clip(u_p)`` and the controller's grid; local
+    solves from the ``n_local`` best distinct ones), then the filter (7.5) warm-started
+    at the (7.6) minimizer, with the controller's fallbacks. ``ĥ`` and ``ĥ(f(x, u))`` are
+    emitted as ``<name>_h`` and ``<name>_h_next``; ``U`` must be a Box."""
+    _check_identifier(name)
+    dec = getattr(getattr(controller, "decrease", None), "compiled", None)
+    filt = getattr(controller, "filter", None)
+    U = getattr(controller, "U", None)
+    if dec is None or filt is None or U is None:
+        raise CodegenError(f"{name}: expected an ApproximatePCBFFilter (attributes decrease, "
+                           f"filter, U), got {type(controller).__name__}")
+    libs = _check_compiled(dec, f"{name}: maximal decrease problem (7.6)", allow_external)
+    libs += _check_compiled(filt, f"{name}: filter problem (7.5)", allow_external)
+    if not isinstance(U, Box):
+        raise CodegenError(f"{name}: the C step clips to U, so U must be a Box, got "
+                           f"{type(U).__name__}")
+    system = controller.system
+    d = _Problem(dec, f"{name}_dec", f"maximal decrease (7.6) {dec.ocp.name!r}", name,
+                 accept_tol)
+    f = _Problem(filt, f"{name}_filter", f"filter (7.5) {filt.ocp.name!r}", name, accept_tol)
+    for what, have, names in (("(7.6) parameter", d.params, ["x0"]),
+                              ("(7.6) variable", d.vars, ["u"]),
+                              ("(7.5) parameter", f.params, ["x0", "u_p", "dh", "rho"]),
+                              ("(7.5) variable", f.vars, ["u"])):
+        missing = [n for n in names if n not in have]
+        if missing:
+            raise CodegenError(f"{name}: the {what}s {missing} are missing (build the "
+                               "problems with balustrade.problems.approximate)")
+    grid = np.atleast_2d(np.asarray(controller.decrease.grid, dtype=float))
+    x, u = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu)
+    h = controller.h
+    functions = {**d.functions(), **f.functions(),
+                 f"{name}_h": ca.Function(f"{name}_h", [x], [h(x)], ["x"], ["h"]),
+                 f"{name}_h_next": ca.Function(f"{name}_h_next", [x, u], [h(system(x, u))],
+                                               ["x", "u"], ["h_next"])}
+    if dynamics is not None:
+        functions[f"{name}_dynamics"] = dynamics
+    out_dir = Path(out_dir)
+    files = _generate(functions, name, out_dir)
+    A = name
+    nc = len(grid) + 2
+    header = d.header() + f.header() + T.APPROX_H.substitute(
+        A=A, nx=system.nx, nu=system.nu, nc=nc, n_local=int(controller.decrease.n_local),
+        rho=_c_double(controller.rho))
+    rows = ",\n  ".join(_c_array(r) for r in grid)
+    source = d.source() + f.source() + T.APPROX_C.substitute(
+        A=A, u_lb=_c_array(U.lb), u_ub=_c_array(U.ub), grid="{\n  " + rows + "\n}",
+        certify=int(bool(controller.certify)), d_w_u=d.vars["u"]["offset"],
+        d_p_x0=d.params["x0"]["offset"], f_p_x0=f.params["x0"]["offset"],
+        f_p_u_p=f.params["u_p"]["offset"], f_p_dh=f.params["dh"]["offset"],
+        f_p_rho=f.params["rho"]["offset"], f_w_u=f.vars["u"]["offset"])
+    manifest = {"kind": "approximate", "nx": system.nx, "nu": system.nu, "n_candidates": nc,
+                "n_local": int(controller.decrease.n_local), "rho": float(controller.rho),
+                "certify": bool(controller.certify),
+                "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
+                "problems": {"dec": d.manifest(), "filter": f.manifest()},
+                "dynamics": dynamics is not None,
+                "approx_status": {"0": "ok", "1": "certified", "2": "max_decrease_solution",
+                                  "3": "projected_proposal", "4": "grid_minimizer"}}
+    return _write_module(name, out_dir, "Algorithm 7.5, the approximate PCBF filter "
+                         "(7.5)+(7.6)", header, source, files, manifest,
+                         tuple(sorted(set(libs))))

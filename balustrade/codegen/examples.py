@@ -2,6 +2,9 @@
 
 * ``pendulum_pcbf`` — the PCBF pair (2.24)+(2.23) of the pendulum (7.10) with the terminal
   CBF of (7.11), its dynamics, a ``main.c`` closed loop (``u_p = 2``) and a ``Makefile``;
+* ``pendulum_approximate`` — Algorithm 7.5 ((7.6) then (7.5), certification shortcut) with
+  ``ĥ = h_f`` of (7.11) standing in for a learned surrogate (a network exported to CasADi
+  by :mod:`balustrade.learn` is emitted the same way);
 * ``pendulum_functions`` — plain functions: dynamics, its Jacobians, ``h_f`` and its
   gradient.
 """
@@ -77,6 +80,29 @@ def emit_pendulum_pcbf(out_dir: str | Path, name: str = "pendulum_pcbf",
     return emitted
 
 
+def pendulum_approximate_filter(h_hat: Callable | None = None) -> object:
+    """Algorithm 7.5 for the pendulum on ``sqpmethod``; ``ĥ`` defaults to the terminal CBF
+    ``h_f`` of (7.11) (replace it by a trained surrogate)."""
+    from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.models.pendulum import pendulum, pendulum_setup
+    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
+
+    system, s = pendulum(), pendulum_setup()
+    if h_hat is None:
+        h_hat = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
+    return ApproximatePCBFFilter(system, s.U, h_hat, solver="sqpmethod")
+
+
+def emit_pendulum_approximate(out_dir: str | Path,
+                              name: str = "pendulum_approximate") -> Emitted:
+    """Emit Algorithm 7.5 for the pendulum (with its dynamics)."""
+    from balustrade.codegen.emit import emit_approximate
+    from balustrade.models.pendulum import pendulum
+
+    return emit_approximate(pendulum_approximate_filter(), name, out_dir,
+                            dynamics=pendulum().function)
+
+
 def emit_pendulum_functions(out_dir: str | Path, name: str = "pendulum_functions") -> Emitted:
     """Emit the plain functions of the pendulum example."""
     return emit_functions(pendulum_functions(), name, out_dir)
@@ -85,4 +111,5 @@ def emit_pendulum_functions(out_dir: str | Path, name: str = "pendulum_functions
 TARGETS: dict[str, Callable[..., Emitted]] = {
     "pendulum_pcbf": emit_pendulum_pcbf,
     "pendulum_functions": emit_pendulum_functions,
+    "pendulum_approximate": emit_pendulum_approximate,
 }

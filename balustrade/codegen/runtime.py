@@ -315,3 +315,79 @@ def without_ipopt_retry(compiled: object) -> object:
     retry = compiled._retry_solvers()  # builds the backend's retry chain
     compiled._retry = [s for s in retry if s.class_name() != "IpoptInterface"]
     return compiled
+
+
+class CApproximatePCBFFilter:
+    """The emitted Algorithm 7.5 (:func:`~balustrade.codegen.emit.emit_approximate`) as a
+    closed-loop controller with the interface and counters of
+    :class:`~balustrade.control.approximate.ApproximatePCBFFilter`."""
+
+    _FALLBACKS = {0: None, 1: None, 2: "max_decrease_solution", 3: "projected_proposal",
+                  4: "grid_minimizer"}
+
+    def __init__(self, lib_path: str | Path, manifest: dict | None = None):
+        self._lib = _Library(lib_path, manifest)
+        m = self._lib.manifest
+        if m.get("kind") != "approximate":
+            raise CodegenError(f"{self._lib.path.name}: not an emitted Algorithm 7.5 filter "
+                               f"(kind {m.get('kind')!r})")
+        A, vp = m["name"], ctypes.c_void_p
+        self.nx, self.nu = m["nx"], m["nu"]
+        self._free = self._lib.fn(f"{A}_free", None, [vp])
+        self._reset = self._lib.fn(f"{A}_reset", None, [vp])
+        self._step = self._lib.fn(f"{A}_step", ctypes.c_int,
+                                  [_dbl_p, _dbl_p, _dbl_p, _dbl_p,
+                                   ctypes.POINTER(ctypes.c_int), vp])
+        self._dh = self._lib.fn(f"{A}_dh", ctypes.c_double, [vp])
+        self._counter = self._lib.fn(f"{A}_counter", ctypes.c_long, [vp, ctypes.c_int])
+        self._set_certify = self._lib.fn(f"{A}_set_certify", None, [vp, ctypes.c_int])
+        self._work = self._lib.fn(f"{A}_alloc", vp, [])()
+        if not self._work:
+            raise CodegenError(f"{A}_alloc failed (no CasADi memory left)")
+        self._x, self._u_p = np.zeros(self.nx), np.zeros(self.nu)
+        self._u, self._h = np.zeros(self.nu), np.zeros(1)
+        self._status = ctypes.c_int(0)
+        self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u), _ptr(self._h),
+                      ctypes.byref(self._status), self._work)
+
+    @property
+    def certify(self) -> bool:
+        return bool(self._lib.manifest["certify"])
+
+    def set_certify(self, certify: bool) -> None:
+        self._set_certify(self._work, int(bool(certify)))
+        self._lib.manifest["certify"] = bool(certify)
+
+    def reset(self) -> None:
+        self._reset(self._work)
+
+    def __getattr__(self, name: str) -> int:
+        keys = ("n_steps", "n_certified", "n_solved", "n_fallbacks")
+        if name in keys and "_work" in self.__dict__:
+            return int(self._counter(self._work, keys.index(name)))
+        raise AttributeError(name)
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        self._x[:] = np.asarray(x, dtype=float).reshape(-1)
+        self._u_p[:] = np.broadcast_to(np.asarray(u_p, dtype=float).reshape(-1), (self.nu,))
+        start = time.perf_counter()
+        code = self._step(*self._args)
+        info = StepInfo(solve_time=time.perf_counter() - start,
+                        fallback=self._FALLBACKS.get(code, "unknown"))
+        info.status = {0: "ok", 1: "certified", 2: "filter_failed", 3: "bad_input",
+                       4: "max_decrease_failed"}.get(code, str(code))
+        info.values["certified"] = 1.0 if code == 1 else 0.0
+        if code not in (1, 3):
+            info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))
+        return self._u.copy(), info
+
+    def close(self) -> None:
+        if getattr(self, "_work", None):
+            self._free(self._work)
+            self._work = None
+
+    def __del__(self) -> None:  # pragma: no cover
+        try:
+            self.close()
+        except Exception:
+            pass

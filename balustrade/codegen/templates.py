@@ -563,3 +563,270 @@ clean:
 
 .PHONY: all run valgrind clean
 """)
+
+APPROX_H = Template("""\
+/* ---- Algorithm 7.5, the approximate PCBF filter $A: one call per control step ----
+ * ${A}_step(x, u_p, u_out, h_out, status, work):
+ *   1. certification (line 4): if u_p in U and h^(f(x, u_p)) <= 0, apply u_p;
+ *   2. else the maximal decrease (7.6) by screened multi-start: evaluate h^(f(x, c)) on the
+ *      ${A}_NC candidates {clip(0), clip(u_p), grid over U}, run the local solver of (7.6)
+ *      from the ${A}_N_LOCAL best distinct ones, keep the best; dh = h^(x) - min;
+ *   3. the filter (7.5) with (x, u_p, dh, rho), warm-started at the (7.6) minimizer.
+ *   h_out = h^(x_k). Fallbacks, as balustrade.control.approximate:
+ *   (7.5) fails or leaves U      -> the (7.6) minimizer       BAL_APPROX_MAX_DECREASE
+ *   (7.6) finds nothing finite   -> best screened candidate   BAL_APPROX_GRID_MINIMIZER
+ *   x not finite                 -> u_p clipped to U          BAL_APPROX_PROJECTED */
+#define ${A}_NX $nx
+#define ${A}_NU $nu
+#define ${A}_NC $nc
+#define ${A}_N_LOCAL $n_local
+#define ${A}_RHO $rho
+#define BAL_APPROX_OK 0
+#define BAL_APPROX_CERTIFIED 1
+#define BAL_APPROX_MAX_DECREASE 2
+#define BAL_APPROX_PROJECTED 3
+#define BAL_APPROX_GRID_MINIMIZER 4
+#define ${A}_MAX2(a, b) ((a) > (b) ? (a) : (b))
+#define ${A}_HSZ_ARG ${A}_MAX2(${A}_h_SZ_ARG, ${A}_h_next_SZ_ARG)
+#define ${A}_HSZ_RES ${A}_MAX2(${A}_h_SZ_RES, ${A}_h_next_SZ_RES)
+#define ${A}_HSZ_IW ${A}_MAX2(${A}_h_SZ_IW, ${A}_h_next_SZ_IW)
+#define ${A}_HSZ_W ${A}_MAX2(${A}_h_SZ_W, ${A}_h_next_SZ_W)
+
+typedef struct ${A}_work {
+  ${A}_dec_work dec;
+  ${A}_filter_work filter;
+  casadi_real p_dec[${A}_dec_NP + 1], p_filter[${A}_filter_NP + 1];
+  casadi_real cand[${A}_NC * ${A}_NU], values[${A}_NC], best_u[${A}_NU];
+  int order[${A}_NC], tried[${A}_NC];
+  casadi_real h_x, dh, best_v;
+  const casadi_real* harg[${A}_HSZ_ARG];
+  casadi_real* hres[${A}_HSZ_RES];
+  casadi_int hiw[${A}_HSZ_IW + 1];
+  casadi_real hw[${A}_HSZ_W + 1];
+  int hmem, nmem;
+  int dec_status, filter_status, certify, ready;
+  long n_steps, n_certified, n_solved, n_fallbacks;
+} ${A}_work;
+
+int ${A}_init(${A}_work* wk);
+void ${A}_finalize(${A}_work* wk);
+${A}_work* ${A}_alloc(void);
+void ${A}_free(${A}_work* wk);
+void ${A}_reset(${A}_work* wk);  /* zero the counters */
+int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
+              casadi_real* h_out, int* status, ${A}_work* wk);
+void ${A}_set_certify(${A}_work* wk, int certify);  /* 0: always solve (7.6), (7.5) */
+casadi_real ${A}_dh(const ${A}_work* wk);  /* dh of the last solved step (NAN if none) */
+long ${A}_counter(const ${A}_work* wk, int which);  /* steps, certified, solved, fallbacks */
+
+""")
+
+APPROX_C = Template("""\
+/* ---- Algorithm 7.5 $A ---- */
+static const casadi_real ${A}_u_lb[${A}_NU] = $u_lb;
+static const casadi_real ${A}_u_ub[${A}_NU] = $u_ub;
+static const casadi_real ${A}_grid[${A}_NC - 2][${A}_NU] = $grid;
+
+static void ${A}_clip(const casadi_real* u, casadi_real* out) {
+  casadi_int i;
+  for (i = 0; i < ${A}_NU; ++i) out[i] = fmin(fmax(u[i], ${A}_u_lb[i]), ${A}_u_ub[i]);
+}
+
+static int ${A}_in_box(const casadi_real* u, casadi_real tol) {
+  casadi_int i;
+  for (i = 0; i < ${A}_NU; ++i) {
+    if (!(u[i] >= ${A}_u_lb[i] - tol && u[i] <= ${A}_u_ub[i] + tol)) return 0;
+  }
+  return 1;
+}
+
+static casadi_real ${A}_eval_h(${A}_work* wk, const casadi_real* x) {
+  casadi_real v = NAN;
+  wk->harg[0] = x;
+  wk->hres[0] = &v;
+  if (${A}_h(wk->harg, wk->hres, wk->hiw, wk->hw, wk->hmem)) return NAN;
+  return v;
+}
+
+static casadi_real ${A}_eval_h_next(${A}_work* wk, const casadi_real* x, const casadi_real* u) {
+  casadi_real v = NAN;
+  wk->harg[0] = x;
+  wk->harg[1] = u;
+  wk->hres[0] = &v;
+  if (${A}_h_next(wk->harg, wk->hres, wk->hiw, wk->hw, wk->nmem)) return NAN;
+  return v;
+}
+
+int ${A}_init(${A}_work* wk) {
+  wk->ready = 0;
+  if (${A}_dec_init(&wk->dec)) return -1;
+  if (${A}_filter_init(&wk->filter)) {
+    ${A}_dec_finalize(&wk->dec);
+    return -1;
+  }
+  ${A}_h_incref();
+  wk->hmem = ${A}_h_checkout();
+  ${A}_h_next_incref();
+  wk->nmem = ${A}_h_next_checkout();
+  if (wk->hmem < 0 || wk->nmem < 0) {
+    if (wk->hmem >= 0) ${A}_h_release(wk->hmem);
+    if (wk->nmem >= 0) ${A}_h_next_release(wk->nmem);
+    ${A}_h_decref();
+    ${A}_h_next_decref();
+    ${A}_filter_finalize(&wk->filter);
+    ${A}_dec_finalize(&wk->dec);
+    return -1;
+  }
+  wk->certify = $certify;
+  ${A}_reset(wk);
+  wk->ready = 1;
+  return 0;
+}
+
+void ${A}_finalize(${A}_work* wk) {
+  if (!wk->ready) return;
+  ${A}_h_next_release(wk->nmem);
+  ${A}_h_next_decref();
+  ${A}_h_release(wk->hmem);
+  ${A}_h_decref();
+  ${A}_filter_finalize(&wk->filter);
+  ${A}_dec_finalize(&wk->dec);
+  wk->ready = 0;
+}
+
+${A}_work* ${A}_alloc(void) {
+  ${A}_work* wk = (${A}_work*) calloc(1, sizeof(${A}_work));
+  if (wk && ${A}_init(wk)) {
+    free(wk);
+    return 0;
+  }
+  return wk;
+}
+
+void ${A}_free(${A}_work* wk) {
+  if (!wk) return;
+  ${A}_finalize(wk);
+  free(wk);
+}
+
+void ${A}_reset(${A}_work* wk) {
+  wk->n_steps = wk->n_certified = wk->n_solved = wk->n_fallbacks = 0;
+  wk->dec_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_x = wk->dh = wk->best_v = NAN;
+}
+
+void ${A}_set_certify(${A}_work* wk, int certify) { wk->certify = certify; }
+casadi_real ${A}_dh(const ${A}_work* wk) { return wk->dh; }
+long ${A}_counter(const ${A}_work* wk, int which) {
+  return which == 0 ? wk->n_steps : which == 1 ? wk->n_certified
+         : which == 2 ? wk->n_solved : wk->n_fallbacks;
+}
+
+/* (7.6) by screened multi-start; returns 1 if a finite minimizer was found. */
+static int ${A}_max_decrease(${A}_work* wk, const casadi_real* x, const casadi_real* u_p) {
+  casadi_int i, j, k, n_tried = 0;
+  int found = 0, same, key;
+  casadi_real zero[${A}_NU], v;
+  const casadi_real *c, *t, *u_loc;
+  for (i = 0; i < ${A}_NU; ++i) zero[i] = 0.0;
+  ${A}_clip(zero, wk->cand);
+  ${A}_clip(u_p, wk->cand + ${A}_NU);
+  for (k = 2; k < ${A}_NC; ++k) {
+    for (i = 0; i < ${A}_NU; ++i) wk->cand[k * ${A}_NU + i] = ${A}_grid[k - 2][i];
+  }
+  for (k = 0; k < ${A}_NC; ++k) {
+    v = ${A}_eval_h_next(wk, x, wk->cand + k * ${A}_NU);
+    wk->values[k] = isfinite(v) ? v : INFINITY;
+  }
+  /* stable insertion sort of the candidate indices by value */
+  for (k = 0; k < ${A}_NC; ++k) {
+    key = (int) k;
+    for (j = k - 1; j >= 0 && wk->values[wk->order[j]] > wk->values[key]; --j) {
+      wk->order[j + 1] = wk->order[j];
+    }
+    wk->order[j + 1] = key;
+  }
+  for (i = 0; i < ${A}_NU; ++i) wk->best_u[i] = wk->cand[wk->order[0] * ${A}_NU + i];
+  wk->best_v = wk->values[wk->order[0]];
+  wk->dec_status = BAL_NOT_RUN;
+  for (k = 0; k < ${A}_NC && n_tried < ${A}_N_LOCAL; ++k) {
+    c = wk->cand + wk->order[k] * ${A}_NU;
+    same = 0;
+    for (j = 0; j < n_tried && !same; ++j) {  /* numpy.allclose(c, t) */
+      t = wk->cand + wk->tried[j] * ${A}_NU;
+      same = 1;
+      for (i = 0; i < ${A}_NU; ++i) {
+        if (!(fabs(c[i] - t[i]) <= 1e-8 + 1e-5 * fabs(t[i]))) same = 0;
+      }
+    }
+    if (same) continue;
+    wk->tried[n_tried++] = wk->order[k];
+    ${A}_dec_cold_start(&wk->dec);
+    for (i = 0; i < ${A}_NU; ++i) wk->dec.x0[$d_w_u + i] = c[i];
+    for (i = 0; i < ${A}_NX; ++i) wk->p_dec[$d_p_x0 + i] = x[i];
+    wk->dec_status = ${A}_dec_solve(&wk->dec, wk->p_dec);
+    if (!BAL_SOLVED(wk->dec_status)) continue;
+    u_loc = wk->dec.x + $d_w_u;
+    if (!${A}_in_box(u_loc, 1e-7)) continue;
+    found = 1;
+    v = ${A}_eval_h_next(wk, x, u_loc);
+    if (v < wk->best_v) {
+      wk->best_v = v;
+      for (i = 0; i < ${A}_NU; ++i) wk->best_u[i] = u_loc[i];
+    }
+  }
+  return found || isfinite(wk->best_v);
+}
+
+int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
+              casadi_real* h_out, int* status, ${A}_work* wk) {
+  casadi_int i;
+  wk->n_steps++;
+  wk->dec_status = wk->filter_status = BAL_NOT_RUN;
+  wk->dh = NAN;
+  *h_out = NAN;
+  for (i = 0; i < ${A}_NX; ++i) {
+    if (!isfinite(x[i])) {
+      wk->n_fallbacks++;
+      ${A}_clip(u_p, u_out);
+      *status = BAL_APPROX_PROJECTED;
+      return *status;
+    }
+  }
+  /* line 4: certification by one evaluation */
+  if (wk->certify && ${A}_in_box(u_p, 1e-9) && ${A}_eval_h_next(wk, x, u_p) <= 0.0) {
+    wk->n_certified++;
+    for (i = 0; i < ${A}_NU; ++i) u_out[i] = u_p[i];
+    *status = BAL_APPROX_CERTIFIED;
+    return *status;
+  }
+  wk->n_solved++;
+  wk->h_x = ${A}_eval_h(wk, x);
+  *h_out = wk->h_x;
+  if (!${A}_max_decrease(wk, x, u_p)) {
+    wk->n_fallbacks++;
+    for (i = 0; i < ${A}_NU; ++i) u_out[i] = wk->best_u[i];
+    *status = BAL_APPROX_GRID_MINIMIZER;
+    return *status;
+  }
+  wk->dh = wk->h_x - wk->best_v;
+  /* (7.5) warm-started at the (7.6) minimizer */
+  for (i = 0; i < ${A}_NX; ++i) wk->p_filter[$f_p_x0 + i] = x[i];
+  for (i = 0; i < ${A}_NU; ++i) wk->p_filter[$f_p_u_p + i] = u_p[i];
+  wk->p_filter[$f_p_dh] = wk->dh;
+  wk->p_filter[$f_p_rho] = ${A}_RHO;
+  ${A}_filter_cold_start(&wk->filter);
+  for (i = 0; i < ${A}_NU; ++i) wk->filter.x0[$f_w_u + i] = wk->best_u[i];
+  wk->filter_status = ${A}_filter_solve(&wk->filter, wk->p_filter);
+  if (BAL_SOLVED(wk->filter_status) && ${A}_in_box(wk->filter.x + $f_w_u, 1e-7)) {
+    for (i = 0; i < ${A}_NU; ++i) u_out[i] = wk->filter.x[$f_w_u + i];
+    *status = BAL_APPROX_OK;
+  } else {
+    wk->n_fallbacks++;
+    for (i = 0; i < ${A}_NU; ++i) u_out[i] = wk->best_u[i];
+    *status = BAL_APPROX_MAX_DECREASE;
+  }
+  return *status;
+}
+
+""")

@@ -1,0 +1,65 @@
+"""Algorithm 7.5 ((7.6) then (7.5), certification shortcut) emitted as one C step equals
+the Python controller on 1000 random states and in closed loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from balustrade.codegen import CApproximatePCBFFilter, build, emit_approximate
+from balustrade.codegen.examples import pendulum_approximate_filter
+from balustrade.codegen.runtime import without_ipopt_retry
+from balustrade.control.base import simulate
+from balustrade.errors import CodegenError
+from balustrade.models.pendulum import pendulum
+
+
+@pytest.fixture(scope="module")
+def approx(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    py = pendulum_approximate_filter()
+    # the reference: the Python backend with the retries the C has (no IPOPT last resort)
+    without_ipopt_retry(py.decrease.compiled)
+    without_ipopt_retry(py.filter)
+    out = tmp_path_factory.mktemp("approx")
+    emitted = emit_approximate(py, "apx", out, dynamics=pendulum().function)
+    return {"py": py, "lib": build(out, emitted.name, werror=True)}
+
+
+def test_approximate_step_equals_python_on_1000_states(approx: dict) -> None:
+    py, c = approx["py"], CApproximatePCBFFilter(approx["lib"])
+    py.reset()
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-0.7, -2.0], [0.7, 2.0], size=(1000, 2))
+    UP = rng.uniform(-4, 4, size=(1000, 1))
+    for x, u_p in zip(X, UP):
+        u1, i1 = py.step(x, u_p)
+        u2, i2 = c.step(x, u_p)
+        assert (i1.status, i1.fallback) == (i2.status, i2.fallback), (x, u_p)
+        assert np.abs(u1 - u2).max() <= 1e-6, (x, u_p, u1, u2)
+        if "dh" in i1.values:
+            assert abs(i1.values["dh"] - i2.values["dh"]) <= 1e-6
+            assert abs(i1.values["h_hat"] - i2.values["h_hat"]) <= 1e-6
+    assert (py.n_certified, py.n_solved, py.n_fallbacks) == \
+        (c.n_certified, c.n_solved, c.n_fallbacks)
+    assert 0 < c.n_certified < 1000
+
+
+def test_approximate_closed_loop_matches_python(approx: dict) -> None:
+    py, c = approx["py"], CApproximatePCBFFilter(approx["lib"])
+    system = pendulum()
+    for x0 in ([0.3, 0.5], [-0.4, 1.0], [0.45, -1.2]):
+        for proposal in (2.0, lambda k, x: 3.5 * np.sin(0.4 * k)):
+            t1 = simulate(system, py, x0, 40, proposal=proposal)
+            t2 = simulate(system, c, x0, 40, proposal=proposal)
+            assert np.abs(t1.states - t2.states).max() <= 1e-6
+            assert t1.fallbacks == t2.fallbacks and t1.statuses == t2.statuses
+
+
+def test_approximate_refuses_ipopt(tmp_path) -> None:
+    from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.models.pendulum import pendulum_setup
+
+    s = pendulum_setup()
+    ctl = ApproximatePCBFFilter(pendulum(), s.U, lambda x: x[0] ** 2 - 1)  # IPOPT default
+    with pytest.raises(CodegenError, match="ipopt"):
+        emit_approximate(ctl, "a", tmp_path)
