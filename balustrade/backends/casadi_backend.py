@@ -218,7 +218,9 @@ class CasadiCompiled:
                         solver=_SOLVER_NAMES.get(solver.class_name(), solver.class_name()),
                         w=w, p=p,
                         message=str(stats.get("return_status", "")),
-                        raw={"x": w_all, "lam_x": lam_x, "lam_g": lam_g})
+                        raw={"x": w_all, "lam_x": lam_x, "lam_g": lam_g,
+                             # the solver's own outputs, passed back as a warm start as-is
+                             "dm": (res["x"], res["lam_x"], res["lam_g"])})
 
     def _primal_feasible(self, w_all: np.ndarray, p: np.ndarray, tol: float = 1e-8) -> bool:
         if self._g_function is None:
@@ -231,9 +233,9 @@ class CasadiCompiled:
 
     def _initial_guess(self, warm: Solution | dict | None
                        ) -> tuple[np.ndarray, np.ndarray | float, np.ndarray | float]:
-        if isinstance(warm, Solution) and warm.backend == "casadi" and "x" in warm.raw \
-                and np.all(np.isfinite(warm.raw["x"])):
-            return warm.raw["x"], warm.raw["lam_x"], warm.raw["lam_g"]
+        if isinstance(warm, Solution) and warm.backend == "casadi" and "dm" in warm.raw \
+                and warm.success and warm.raw["x"].size == self.lbx.size:
+            return warm.raw["dm"]
         if isinstance(warm, Solution):
             w_user = warm.w if np.all(np.isfinite(warm.w)) else self.ocp.pack_variables({})
         elif isinstance(warm, dict):
