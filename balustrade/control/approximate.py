@@ -35,6 +35,7 @@ from balustrade.problems.approximate import (
     MaximalDecrease,
     approximate_filter_problem,
     as_h_function,
+    decrease_bound,
     in_set,
     solver_options,
 )
@@ -44,12 +45,14 @@ class ApproximatePCBFFilter:
     """Algorithm 7.5 with ``ρ ∈ (0, 1]`` (``ρ = 1``: maximal decrease of ``ĥ`` each step).
 
     ``certify=False`` disables the shortcut of line 4 (every step solves (7.6) and (7.5)).
-    Counters: ``n_steps``, ``n_certified`` (shortcut fired), ``n_solved``, ``n_fallbacks``.
+    Counters: ``n_steps``, ``n_certified`` (shortcut fired), ``n_solved`` ((7.6) solved),
+    ``n_proposal_feasible`` (after (7.6), ``u_p`` itself met the decrease of (7.5), so it
+    is the minimizer and (7.5) is not solved), ``n_fallbacks``.
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
                  solver: str = "ipopt", options: dict | None = None, certify: bool = True,
-                 grid_points: int = 5, n_local: int = 2, eps: float = 1e-6):
+                 grid_points: int = 5, n_local: int = 1, eps: float = 1e-6):
         if not 0.0 < float(rho) <= 1.0:
             raise BalustradeError(f"ApproximatePCBFFilter: rho must lie in (0, 1], got {rho!r}")
         self.system, self.U, self.rho, self.certify = system, U, float(rho), bool(certify)
@@ -63,6 +66,7 @@ class ApproximatePCBFFilter:
 
     def reset(self) -> None:
         self.n_steps = self.n_certified = self.n_solved = self.n_fallbacks = 0
+        self.n_proposal_feasible = 0
 
     def certifies(self, x: np.ndarray, u_p: np.ndarray) -> bool:
         """Line 4 of Algorithm 7.5: ``u_p ∈ U`` and ``ĥ(f(x, u_p)) <= 0``."""
@@ -100,6 +104,12 @@ class ApproximatePCBFFilter:
             info.status, info.fallback = "max_decrease_failed", "grid_minimizer"
             self.n_fallbacks += 1
             return dec.u.copy(), info
+        if in_set(u_p, self.U) and \
+                self.decrease.h_next(x, u_p) - dec.h_x <= decrease_bound(dec.dh, self.rho):
+            # u_p is feasible in (7.5), where the cost is 0: it is the minimizer (exact)
+            self.n_proposal_feasible += 1
+            info.status = "proposal_feasible"
+            return u_p.copy(), info
         sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},
                                 warm_start={"u": dec.u})
         info.solve_time += sol.solve_time

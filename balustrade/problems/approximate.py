@@ -166,7 +166,7 @@ class MaximalDecrease:
     keep the best local optimum (never worse than the best screened candidate)."""
 
     def __init__(self, system: System, U: Set, h_hat: HHat, solver: str = "ipopt",
-                 options: dict | None = None, grid_points: int = 5, n_local: int = 2):
+                 options: dict | None = None, grid_points: int = 5, n_local: int = 1):
         self.system, self.U = system, U
         self.h = as_h_function(h_hat, system.nx)
         self.ocp = max_decrease_problem(system, U, self.h)
