@@ -8,7 +8,7 @@ import pytest
 
 from balustrade.codegen import CApproximatePCBFFilter, build, emit_approximate
 from balustrade.codegen.examples import pendulum_approximate_filter
-from balustrade.codegen.runtime import without_ipopt_retry
+from balustrade.codegen.runtime import mirror_c_retries
 from balustrade.control.base import simulate
 from balustrade.errors import CodegenError
 from balustrade.models.pendulum import pendulum
@@ -17,9 +17,9 @@ from balustrade.models.pendulum import pendulum
 @pytest.fixture(scope="module")
 def approx(tmp_path_factory: pytest.TempPathFactory) -> dict:
     py = pendulum_approximate_filter()
-    # the reference: the Python backend with the retries the C has (no IPOPT last resort)
-    without_ipopt_retry(py.decrease.compiled)
-    without_ipopt_retry(py.filter)
+    # the reference: the Python backend with the retries of the C (eigen-clip, not IPOPT)
+    mirror_c_retries(py.decrease.compiled)
+    mirror_c_retries(py.filter)
     out = tmp_path_factory.mktemp("approx")
     emitted = emit_approximate(py, "apx", out, dynamics=pendulum().function)
     return {"py": py, "lib": build(out, emitted.name, werror=True)}

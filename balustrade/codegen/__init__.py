@@ -30,7 +30,7 @@ from balustrade.codegen.runtime import (
     CPCBFSafetyFilter,
     CProblem,
     load_manifest,
-    without_ipopt_retry,
+    mirror_c_retries,
 )
 from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_libraries
 
@@ -38,5 +38,5 @@ __all__ = [
     "SUPPORTED", "CApproximatePCBFFilter", "CFunction", "CPCBFSafetyFilter", "CProblem",
     "Emitted", "build", "build_executable", "check_no_callbacks", "emit_approximate",
     "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "find_compiler",
-    "load_manifest", "solver_libraries", "without_ipopt_retry", "write_example",
+    "load_manifest", "solver_libraries", "mirror_c_retries", "write_example",
 ]

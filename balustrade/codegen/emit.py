@@ -153,6 +153,19 @@ def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ..
     return libs
 
 
+def _retry_strategies(options: dict) -> list[str]:
+    """Hessian convexifications of the cold-start retries of an ``sqpmethod`` problem:
+    first the other one of regularized/none (the retry of
+    :class:`~balustrade.backends.casadi_backend.CasadiCompiled`), then eigenvalue clipping
+    — emittable, where the backend's last resort is IPOPT (not emittable). Eigen-clip
+    converges on the degenerate filter QPs (2.23) at the state-constraint boundary where
+    qrqp stalls warm-started with ``regularize`` and cold with ``none``."""
+    strategy = options.get("convexify_strategy", "none")
+    first = "none" if strategy != "none" else "regularize"
+    second = "eigen-clip" if strategy != "eigen-clip" else "eigen-reflect"
+    return [first, second]
+
+
 class _Problem:
     """The C pieces of one compiled problem under the C prefix ``P``."""
 
@@ -165,41 +178,58 @@ class _Problem:
         self.tol_pr = float(c.options.get("tol_pr", 1e-6))
         self.tol_du = float(c.options.get("tol_du", 1e-6))
         self.accept_tol = STALL_TOL if accept_tol is None else float(accept_tol)
-        self.retry_opts: dict | None = None
-        if c.solver_name == "sqpmethod":  # as CasadiCompiled._retry_solvers
-            opts = dict(c.options)
-            regularized = opts.get("convexify_strategy", "none") != "none"
-            opts["convexify_strategy"] = "none" if regularized else "regularize"
-            self.retry_opts = opts
+        self.solvers = [(f"{P}_nlp", c.solver_name, dict(c.options))]
+        if c.solver_name == "sqpmethod":
+            self.solvers += [(f"{P}_nlp_retry{k + 1}", "sqpmethod",
+                              {**c.options, "convexify_strategy": strategy})
+                             for k, strategy in enumerate(_retry_strategies(c.options))]
+        else:  # the backend retries other solvers from a cold start
+            self.solvers.append((f"{P}_nlp", c.solver_name, dict(c.options)))
         self.vars = _layout(c.ocp.variables)
         self.params = _layout(c.ocp.parameters)
         init = np.concatenate([c.ocp.pack_variables({}), c.init_epi])
-        init = np.where(np.isfinite(init), init, 0.0)
-        self.init = init
-
-    @property
-    def retry(self) -> str:
-        return f"{self.P}_nlp_retry" if self.retry_opts is not None else f"{self.P}_nlp"
+        self.init = np.where(np.isfinite(init), init, 0.0)
 
     def functions(self) -> dict[str, ca.Function]:
-        out = {f"{self.P}_nlp": ca.nlpsol(f"{self.P}_nlp", self.c.solver_name, self.c.nlp,
-                                          self.c.options)}
-        if self.retry_opts is not None:
-            out[self.retry] = ca.nlpsol(self.retry, "sqpmethod", self.c.nlp, self.retry_opts)
+        out = {sym: ca.nlpsol(sym, plugin, self.c.nlp, opts)
+               for sym, plugin, opts in self.solvers}
         out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt")
         return out
 
-    def _retry_code(self) -> tuple[str, str, str]:
-        P, R = self.P, self.retry
-        if self.retry_opts is None:
-            return (f"  wk->rmem = wk->mem;  /* the retry reuses {P}_nlp */\n", "",
-                    f"the same solver ({self.c.solver_name})")
-        init = (f"  {R}_incref();\n  wk->rmem = {R}_checkout();\n  if (wk->rmem < 0) {{\n"
-                f"    {R}_decref();\n    {P}_nlp_release(wk->mem);\n    {P}_nlp_decref();\n"
-                f"    return -1;\n  }}\n")
-        fini = f"  {R}_release(wk->rmem);\n  {R}_decref();\n"
-        doc = f"sqpmethod, convexify_strategy {self.retry_opts['convexify_strategy']!r}"
-        return init, fini, doc
+    def _solver_code(self) -> dict[str, str]:
+        """C snippets: size macros, memory checkout/release, dispatch of attempts."""
+        P, syms = self.P, [sym for sym, _, _ in self.solvers]
+        uniq = list(dict.fromkeys(syms))
+        sz = ""
+        for key in ("ARG", "RES", "IW", "W"):
+            expr = f"{uniq[0]}_SZ_{key}"
+            for sym in uniq[1:]:
+                expr = f"{P}_MAX2({expr}, {sym}_SZ_{key})"
+            sz += f"#define {P}_SZ_{key} {expr}\n"
+        init, fini, dispatch = "", "", ""
+        for k, sym in enumerate(syms):
+            first = syms.index(sym)
+            if first < k:  # the same function again: reuse its memory
+                init += f"  wk->mem[{k}] = wk->mem[{first}];\n"
+            else:
+                init += (f"  {sym}_incref();\n  wk->mem[{k}] = {sym}_checkout();\n"
+                         f"  if (wk->mem[{k}] < 0) {{\n    {sym}_decref();\n")
+                for j in range(k - 1, -1, -1):
+                    if syms.index(syms[j]) == j:
+                        init += f"    {syms[j]}_release(wk->mem[{j}]);\n    {syms[j]}_decref();\n"
+                init += "    return -1;\n  }\n"
+        for k in range(len(syms) - 1, -1, -1):
+            if syms.index(syms[k]) == k:
+                fini += f"  {syms[k]}_release(wk->mem[{k}]);\n  {syms[k]}_decref();\n"
+        for k, sym in enumerate(syms):
+            dispatch += (f"    case {k}:\n      flag = {sym}(wk->arg, wk->res, wk->iw, wk->w, "
+                         f"wk->mem[{k}]);\n      break;\n")
+        dispatch += "    default:\n      return BAL_EVAL_ERROR;\n"
+        doc = "; ".join(f"{plugin} convexify_strategy {opts.get('convexify_strategy')!r}"
+                        if plugin == "sqpmethod" else f"{plugin} again"
+                        for _, plugin, opts in self.solvers[1:])
+        return {"sz_defs": sz, "solver_init": init, "solver_fini": fini,
+                "dispatch": dispatch, "retry_doc": doc, "n_solvers": str(len(syms))}
 
     def header(self) -> str:
         pdoc = "".join(f"\n *   {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
@@ -209,19 +239,24 @@ class _Problem:
         if self.nw > self.c.n_user:
             vdoc += (f"\n *   (epigraph variables of non-smooth costs: offset {self.c.n_user}"
                      f", {self.nw - self.c.n_user} values)")
-        offsets = "".join(f"#define {self.P}_P_{n} {v['offset']}\n" for n, v in self.params.items())
-        offsets += "".join(f"#define {self.P}_W_{n} {v['offset']}\n" for n, v in self.vars.items())
+        offsets = "".join(f"#define {self.P}_P_{n} {v['offset']}\n"
+                          for n, v in self.params.items())
+        offsets += "".join(f"#define {self.P}_W_{n} {v['offset']}\n"
+                           for n, v in self.vars.items())
+        code = self._solver_code()
         return T.PROBLEM_H.substitute(P=self.P, title=self.title, np=self.np, nw=self.nw,
-                                      retry=self.retry, retry_doc=self._retry_code()[2],
+                                      retry_doc=code["retry_doc"], sz_defs=code["sz_defs"],
+                                      n_solvers=code["n_solvers"],
                                       ng=self.ng, param_doc=pdoc, var_doc=vdoc,
                                       tol_pr=f"{self.tol_pr:g}", tol_du=f"{self.tol_du:g}",
                                       accept_tol=f"{self.accept_tol:g}", offsets=offsets,
                                       name=self.module)
 
     def source(self) -> str:
-        init, fini, _ = self._retry_code()
+        code = self._solver_code()
         return T.PROBLEM_C.substitute(
-            P=self.P, retry=self.retry, retry_init=init, retry_fini=fini, nw=self.nw,
+            P=self.P, solver_init=code["solver_init"], solver_fini=code["solver_fini"],
+            dispatch=code["dispatch"], n_solvers=code["n_solvers"], nw=self.nw,
             ng1=max(self.ng, 1), lbx=_c_array(self.c.lbx),
             ubx=_c_array(self.c.ubx), lbg=_c_array(self.c.lbg), ubg=_c_array(self.c.ubg),
             init=_c_array(self.init), tol_pr=_c_double(self.tol_pr),
@@ -231,7 +266,9 @@ class _Problem:
         return {"prefix": self.P, "title": self.title, "np": self.np, "nw": self.nw,
                 "ng": self.ng, "n_user": int(self.c.n_user), "variables": self.vars,
                 "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
-                "accept_tol": self.accept_tol, "retry": self.retry_opts is not None,
+                "accept_tol": self.accept_tol,
+                "retries": [opts.get("convexify_strategy", plugin)
+                            for _, plugin, opts in self.solvers[1:]],
                 "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol")}
 
 
@@ -303,8 +340,9 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
     ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``; a solve that stops
     without dual convergence but with a scaled constraint violation ``<= accept_tol``
     (default ``1e-8``, the backend's test for stalled SQP solves) returns ``BAL_FEASIBLE``.
-    Unsolved attempts are retried once from a cold start with the other Hessian
-    convexification, as the backend does (its last resort, IPOPT, cannot be emitted)."""
+    Unsolved attempts are retried from a cold start with the other Hessian convexification,
+    as the backend does, then with eigenvalue clipping instead of the backend's last resort
+    IPOPT (which cannot be emitted); see :func:`_retry_strategies`."""
     _check_identifier(name)
     libs = _check_compiled(compiled, name, allow_external)
     out_dir = Path(out_dir)
@@ -328,7 +366,7 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
 
     Solves are accepted and retried as in :func:`emit_problem` (``accept_tol``), which
     mirrors :class:`~balustrade.backends.casadi_backend.CasadiCompiled` except for its final
-    IPOPT retry: where the backend needs IPOPT, the C step takes the PCBF fallback.
+    IPOPT retry, replaced by an emittable ``sqpmethod`` with eigenvalue clipping.
     """
     _check_identifier(name)
     slack, filt, U = (getattr(controller, k, None) for k in ("slack", "filter", "U"))

@@ -307,13 +307,21 @@ class CPCBFSafetyFilter:
             pass
 
 
-def without_ipopt_retry(compiled: object) -> object:
-    """Make a compiled CasADi problem retry failed solves exactly as its emitted C does:
-    the other Hessian convexification only, without the backend's last resort (IPOPT,
-    which has no C). Used to compare the deployed C with Python step by step; returns
-    ``compiled`` (modified in place)."""
-    retry = compiled._retry_solvers()  # builds the backend's retry chain
-    compiled._retry = [s for s in retry if s.class_name() != "IpoptInterface"]
+def mirror_c_retries(compiled: object) -> object:
+    """Make a compiled CasADi problem retry failed solves exactly as its emitted C does
+    (cold-start ``sqpmethod`` with the Hessian convexifications of
+    :func:`balustrade.codegen.emit._retry_strategies`, instead of the backend's other
+    convexification then IPOPT), so Python and the deployed C can be compared step by step.
+    Returns ``compiled``, modified in place."""
+    import casadi as ca
+
+    from balustrade.codegen.emit import _retry_strategies
+
+    if compiled.solver_name != "sqpmethod":
+        return compiled
+    compiled._retry = [ca.nlpsol(f"{compiled.ocp.name}_retry{k + 1}", "sqpmethod",
+                                 compiled.nlp, {**compiled.options, "convexify_strategy": s})
+                       for k, s in enumerate(_retry_strategies(compiled.options))]
     return compiled
 
 

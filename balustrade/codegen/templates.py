@@ -76,19 +76,15 @@ PROBLEM_H = Template("""\
  * Constraint rows: $ng. BAL_OK when max violation < $tol_pr and inf-norm of the
  * Lagrangian gradient < $tol_du (the solver's own tests); else BAL_FEASIBLE when the
  * violation scaled by 1 + |g| is <= $accept_tol (a stalled SQP at a primal-feasible point,
- * as balustrade.backends accepts it). An unsolved attempt is retried once from a cold
- * start with $retry_doc, as balustrade.backends does (its last resort, IPOPT, has no C).
+ * as balustrade.backends accepts it). An unsolved attempt is retried from a cold start
+ * with, in order: $retry_doc.
  * The PCBF step accepts BAL_OK and BAL_FEASIBLE (BAL_SOLVED).
  */
 #define ${P}_NP $np
 #define ${P}_NW $nw
 #define ${P}_NG $ng
 #define ${P}_MAX2(a, b) ((a) > (b) ? (a) : (b))
-#define ${P}_SZ_ARG ${P}_MAX2(${P}_nlp_SZ_ARG, ${retry}_SZ_ARG)
-#define ${P}_SZ_RES ${P}_MAX2(${P}_nlp_SZ_RES, ${retry}_SZ_RES)
-#define ${P}_SZ_IW ${P}_MAX2(${P}_nlp_SZ_IW, ${retry}_SZ_IW)
-#define ${P}_SZ_W ${P}_MAX2(${P}_nlp_SZ_W, ${retry}_SZ_W)
-$offsets
+$sz_defs$offsets
 typedef struct ${P}_work {
   /* warm start, read by ${P}_solve: set it with ${P}_cold_start / ${P}_warm_start or by hand */
   casadi_real x0[${P}_NW], lam_x0[${P}_NW], lam_g0[${P}_NG + 1];
@@ -96,8 +92,8 @@ typedef struct ${P}_work {
   casadi_real x[${P}_NW], lam_x[${P}_NW], lam_g[${P}_NG + 1], g[${P}_NG + 1];
   casadi_real lam_p[${P}_NP + 1];
   casadi_real f, pr_inf, du_inf, feas;
-  int attempts;  /* solver runs in the last ${P}_solve (2 = retried) */
-  /* CasADi work vectors (sizes from ${name}_casadi.h), shared by the solver and its retry */
+  int attempts;  /* solver runs in the last ${P}_solve (> 1: retried) */
+  /* CasADi work vectors (sizes from ${name}_casadi.h), shared by the solver and retries */
   const casadi_real* arg[${P}_SZ_ARG];
   casadi_real* res[${P}_SZ_RES];
   casadi_int iw[${P}_SZ_IW + 1];
@@ -106,7 +102,7 @@ typedef struct ${P}_work {
   casadi_real* kres[${P}_kkt_SZ_RES];
   casadi_int kiw[${P}_kkt_SZ_IW + 1];
   casadi_real kw[${P}_kkt_SZ_W + 1];
-  int mem, rmem, kmem, ready;
+  int mem[$n_solvers], kmem, ready;
 } ${P}_work;
 
 /* Take the CasADi memory (incref + checkout) and cold-start; 0 on success, -1 if no
@@ -142,19 +138,11 @@ static const casadi_real ${P}_init_x[$nw] = $init;
 
 int ${P}_init(${P}_work* wk) {
   wk->ready = 0;
-  ${P}_nlp_incref();
-  wk->mem = ${P}_nlp_checkout();
-  if (wk->mem < 0) {
-    ${P}_nlp_decref();
-    return -1;
-  }
-$retry_init  ${P}_kkt_incref();
+$solver_init  ${P}_kkt_incref();
   wk->kmem = ${P}_kkt_checkout();
   if (wk->kmem < 0) {
     ${P}_kkt_decref();
-$retry_fini    ${P}_nlp_release(wk->mem);
-    ${P}_nlp_decref();
-    return -1;
+$solver_fini    return -1;
   }
   ${P}_cold_start(wk);
   wk->ready = 1;
@@ -165,9 +153,7 @@ void ${P}_finalize(${P}_work* wk) {
   if (!wk->ready) return;
   ${P}_kkt_release(wk->kmem);
   ${P}_kkt_decref();
-$retry_fini  ${P}_nlp_release(wk->mem);
-  ${P}_nlp_decref();
-  wk->ready = 0;
+$solver_fini  wk->ready = 0;
 }
 
 ${P}_work* ${P}_alloc(void) {
@@ -197,18 +183,18 @@ void ${P}_warm_start(${P}_work* wk) {
   memcpy(wk->lam_g0, wk->lam_g, sizeof(wk->lam_g0));
 }
 
-/* One solver run: from the warm start in wk, or (retry) cold with the retry solver. */
-static int ${P}_attempt(${P}_work* wk, const casadi_real* p, int retry) {
+/* One solver run: which = 0 from the warm start in wk, else retry `which` from a cold start. */
+static int ${P}_attempt(${P}_work* wk, const casadi_real* p, int which) {
   casadi_int i;
   int flag;
-  wk->arg[0] = retry ? ${P}_init_x : wk->x0;
+  wk->arg[0] = which ? ${P}_init_x : wk->x0;
   wk->arg[1] = p;
   wk->arg[2] = ${P}_lbx;
   wk->arg[3] = ${P}_ubx;
   wk->arg[4] = ${P}_lbg;
   wk->arg[5] = ${P}_ubg;
-  wk->arg[6] = retry ? 0 : wk->lam_x0;  /* 0: zero multipliers */
-  wk->arg[7] = retry ? 0 : wk->lam_g0;
+  wk->arg[6] = which ? 0 : wk->lam_x0;  /* 0: zero multipliers */
+  wk->arg[7] = which ? 0 : wk->lam_g0;
   wk->res[0] = wk->x;
   wk->res[1] = &wk->f;
   wk->res[2] = wk->g;
@@ -216,11 +202,8 @@ static int ${P}_attempt(${P}_work* wk, const casadi_real* p, int retry) {
   wk->res[4] = wk->lam_g;
   wk->res[5] = wk->lam_p;
   wk->attempts++;
-  if (retry) {
-    flag = ${retry}(wk->arg, wk->res, wk->iw, wk->w, wk->rmem);
-  } else {
-    flag = ${P}_nlp(wk->arg, wk->res, wk->iw, wk->w, wk->mem);
-  }
+  switch (which) {
+$dispatch  }
   if (flag) return BAL_EVAL_ERROR;
   wk->karg[0] = wk->x;
   wk->karg[1] = p;
@@ -239,13 +222,16 @@ static int ${P}_attempt(${P}_work* wk, const casadi_real* p, int retry) {
 }
 
 int ${P}_solve(${P}_work* wk, const casadi_real* p) {
-  int first, second;
+  int first, status, which;
   if (!wk->ready) return BAL_EVAL_ERROR;
   wk->attempts = 0;
   first = ${P}_attempt(wk, p, 0);
   if (BAL_SOLVED(first)) return first;
-  second = ${P}_attempt(wk, p, 1);
-  return BAL_SOLVED(second) ? second : first;
+  for (which = 1; which < $n_solvers; ++which) {
+    status = ${P}_attempt(wk, p, which);
+    if (BAL_SOLVED(status)) return status;
+  }
+  return first;  /* wk->x holds the last attempt */
 }
 
 const casadi_real* ${P}_primal(const ${P}_work* wk) { return wk->x; }
