@@ -47,15 +47,18 @@ class ApproximatePCBFFilter:
     ``certify=False`` disables the shortcut of line 4 (every step solves (7.6) and (7.5)).
     Counters: ``n_steps``, ``n_certified`` (shortcut fired), ``n_solved`` ((7.6) solved),
     ``n_proposal_feasible`` (after (7.6), ``u_p`` itself met the decrease of (7.5), so it
-    is the minimizer and (7.5) is not solved), ``n_fallbacks``.
+    is the minimizer and (7.5) is not solved; ``exact_shortcut=False`` always solves
+    (7.5)), ``n_fallbacks``.
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
                  solver: str = "ipopt", options: dict | None = None, certify: bool = True,
-                 grid_points: int = 5, n_local: int = 1, eps: float = 1e-6):
+                 grid_points: int = 5, n_local: int = 1, eps: float = 1e-6,
+                 exact_shortcut: bool = True):
         if not 0.0 < float(rho) <= 1.0:
             raise BalustradeError(f"ApproximatePCBFFilter: rho must lie in (0, 1], got {rho!r}")
         self.system, self.U, self.rho, self.certify = system, U, float(rho), bool(certify)
+        self.exact_shortcut = bool(exact_shortcut)
         self.nu = system.nu
         self.h = as_h_function(h_hat, system.nx)
         self.decrease = MaximalDecrease(system, U, self.h, solver, options, grid_points, n_local)
@@ -104,7 +107,7 @@ class ApproximatePCBFFilter:
             info.status, info.fallback = "max_decrease_failed", "grid_minimizer"
             self.n_fallbacks += 1
             return dec.u.copy(), info
-        if in_set(u_p, self.U) and \
+        if self.exact_shortcut and in_set(u_p, self.U) and \
                 self.decrease.h_next(x, u_p) - dec.h_x <= decrease_bound(dec.dh, self.rho):
             # u_p is feasible in (7.5), where the cost is 0: it is the minimizer (exact)
             self.n_proposal_feasible += 1
