@@ -221,9 +221,11 @@ def test_docs_c_snippet_builds_and_runs(pcbf_c: dict) -> None:
     assert proc.stdout.startswith("apply u = ")
 
 
-def test_docs_python_snippet_runs(pcbf_c: dict) -> None:
+def test_docs_python_snippet_runs(pcbf_c: dict, tmp_path) -> None:
+    src = tmp_path / "pendulum_pcbf"  # a copy: the snippet rebuilds the library in place
+    shutil.copytree(pcbf_c["out"], src, ignore=shutil.ignore_patterns("*.so", "main"))
     code = _doc_block("python", "## 3. Simulate in Python")
-    code = code.replace('build("out/pendulum_pcbf")', f'build("{pcbf_c["out"]}")')
+    code = code.replace('build("out/pendulum_pcbf")', f'build("{src}")')
     exec(code, {})  # noqa: S102 - the documented snippet, as a user runs it
 
 
@@ -243,6 +245,8 @@ def test_refuses_qpoases_and_external_libraries(pcbf_c: dict, tmp_path) -> None:
                                                 "qpsol_options": {"osqp": {"verbose": False}}})
     with pytest.raises(CodegenError, match="libosqp"):
         emit_problem(osqp, "s", tmp_path)
+    emitted = emit_problem(osqp, "s", tmp_path, allow_external=True)  # emitted, not built
+    assert emitted.libraries == ("osqp",) and emitted.manifest["libraries"] == ["osqp"]
 
 
 def test_refuses_cvxpy_backend(pcbf_c: dict, tmp_path) -> None:
