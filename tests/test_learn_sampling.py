@@ -143,7 +143,7 @@ def test_local_processes_and_dask_equal_serial(plan, reference, tmp_path):
 def test_killed_subprocess_resumes_to_the_same_dataset(tmp_path):
     out = tmp_path / "killed"
     args = [sys.executable, "-m", "balustrade.cli", "sample", "--out", str(out),
-            "--lower", "-1", "-3", "--upper", "1", "3", "--grid-step", "0.04", "0.2",
+            "--lower", "-1", "-3", "--upper", "1", "3", "--grid-step", "0.08", "0.25",
             "--chunk-size", "25", "--workers", "1", "--cap", "10", "--no-band", "--quiet"]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     ds = ShardedDataset(out)
