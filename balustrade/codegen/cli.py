@@ -30,6 +30,9 @@ def _cmd_codegen(args: argparse.Namespace) -> int:
     print(f"wrote {len(files)} files to {out.resolve()}: {', '.join(files)}")
     if (out / "Makefile").exists():
         print(f"build and run in C:  make -C {out} run    (valgrind: make -C {out} valgrind)")
+    else:
+        print(f"build:  cd {out} && cc -O3 -Wall -Wextra -fPIC -shared -o lib{emitted.name}.so "
+              f"{emitted.name}.c {emitted.name}_casadi.c -lm")
     if args.build or args.run:
         lib = build(out, emitted.name, werror=True)
         print(f"built {lib}")
