@@ -134,10 +134,14 @@ def test_local_processes_and_dask_equal_serial(plan, reference, tmp_path):
         local = run_sampling(tmp_path / "local", SPEC, plan, ex, progress=False).read()
     assert same(local, reference)
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
-        dask = run_sampling(tmp_path / "dask", SPEC, plan, DaskExecutor(client=client),
-                            progress=False).read()
+                      dashboard_address=None) as cluster:
+        with DaskExecutor(cluster.scheduler_address) as ex:   # as a user passes an address
+            dask = run_sampling(tmp_path / "dask", SPEC, plan, ex, progress=False).read()
+        with Client(cluster) as client:                       # or an existing client
+            half = run_sampling(tmp_path / "dask2", SPEC, plan[:3],
+                                DaskExecutor(client=client), progress=False).read()
     assert same(dask, reference)
+    assert np.array_equal(half["h"], reference["h"][: len(half["h"])], equal_nan=True)
 
 
 def test_killed_subprocess_resumes_to_the_same_dataset(tmp_path):
@@ -176,3 +180,20 @@ def test_progress_bar_reports_rate_and_eta():
     assert lines[-1].startswith("demo: 25/100 pts [ 25.0%]")
     assert "pts/s" in lines[-1] and "ETA" in lines[-1]
     assert json.loads(json.dumps(bar.rate)) > 0
+
+
+def test_cli_geometric_mode_from_a_config_file(tmp_path):
+    from balustrade.cli import main
+
+    cfg = tmp_path / "sample.json"
+    cfg.write_text(json.dumps({"mode": "geometric", "goals": 4, "goals_per_chunk": 2,
+                               "line_step": 0.1, "seed": 5, "workers": 1, "quiet": True}))
+    out = tmp_path / "geo"
+    assert main(["sample", "--config", str(cfg), "--out", str(out)]) == 0
+    ds = ShardedDataset(out)
+    assert ds.done and ds.manifest()["config"]["mode"] == "geometric"
+    cols = ds.read()
+    assert sorted(set(cols["chunk"].tolist())) == [0, 1] and np.all(cols["ok"])
+    assert np.array_equal(cols["in_s"], cols["h"] <= 0)
+    cfg.write_text(json.dumps({"no_such_option": 1}))
+    assert main(["sample", "--config", str(cfg), "--out", str(out)]) == 2
