@@ -69,8 +69,10 @@ def test_decrease_bound_is_the_thesis_bound_for_nonnegative_decrease():
     for rho in (1.0, 0.3):
         assert decrease_bound(0.7, rho) == pytest.approx(-rho * 0.7)
         # Δĥ < 0: the (7.6) minimizer (change −Δĥ) stays feasible for every ρ
-        assert decrease_bound(-0.2, rho) >= 0.2 - 1e-15
-    assert decrease_bound(-0.2, 1.0) == pytest.approx(0.2)
+        assert decrease_bound(-0.2, rho) == pytest.approx(0.2)
+    x = ca.SX.sym("d")
+    f = ca.Function("b", [x], [decrease_bound(x, 0.3)])
+    assert float(f(0.5)) == pytest.approx(-0.15) and float(f(-0.5)) == pytest.approx(0.5)
 
 
 def test_multistart_finds_global_minimum(states):

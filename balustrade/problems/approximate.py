@@ -113,18 +113,19 @@ def solver_options(solver: str, options: dict | None = None) -> dict | None:
 
 
 def decrease_bound(dh: object, rho: object) -> object:
-    """Right side of (7.5): ``−ρ Δĥ`` when ``Δĥ >= 0``, extended to ``−(2 − ρ) Δĥ`` when
-    ``Δĥ < 0`` (works on numbers and CasADi symbols).
+    """Right side of (7.5): ``max(−ρ Δĥ, −Δĥ)``, i.e. ``−ρ Δĥ`` when ``Δĥ >= 0`` (the
+    thesis' bound) and ``−Δĥ`` when ``Δĥ < 0`` (works on numbers and CasADi symbols).
 
     [Gap] Proposition 7.3 uses ``−Δĥ <= −ρ Δĥ``, true only for ``Δĥ >= 0`` (a CBF outside
     ``S_PB``). A learned ``ĥ``, or the extended ``h`` inside ``S_PB``, can have ``Δĥ < 0``
     (no input decreases it); then ``−ρ Δĥ < −Δĥ`` and (7.5) would be infeasible for
-    ``ρ < 1``. Written as ``ĥ(f(x, u)) <= min_v ĥ(f(x, v)) + (1 − ρ) |Δĥ|``, the bound
-    above is the continuous extension that keeps the (7.6) minimizer feasible for every
-    ``x`` and ``ρ ∈ (0, 1]`` and equals the thesis' bound whenever ``Δĥ >= 0``.
+    ``ρ < 1``. With the bound above the (7.6) minimizer is feasible for every ``x`` and
+    ``ρ ∈ (0, 1]``, the bound is continuous in ``Δĥ``, and where ``ĥ`` cannot decrease the
+    filter asks for the least increase (``ĥ(f(x, u)) <= min_v ĥ(f(x, v))``), which keeps
+    the next state in ``{ĥ <= 0}`` whenever some input can.
     """
     fmax = ca.fmax if isinstance(dh, (ca.SX, ca.MX, ca.DM)) else np.maximum
-    return -rho * dh + 2.0 * (1.0 - rho) * fmax(0.0, -dh)
+    return fmax(-rho * dh, -dh)
 
 
 def coarse_grid(U: Set, points_per_dim: int = 5, max_points: int = 125) -> np.ndarray:
