@@ -31,6 +31,7 @@ def test_approximate_step_equals_python_on_1000_states(approx: dict) -> None:
     rng = np.random.default_rng(0)
     X = rng.uniform([-0.7, -2.0], [0.7, 2.0], size=(1000, 2))
     UP = rng.uniform(-4, 4, size=(1000, 1))
+    UP[::10] = 0.0  # proposals that often meet the decrease (the exact shortcut)
     for x, u_p in zip(X, UP):
         u1, i1 = py.step(x, u_p)
         u2, i2 = c.step(x, u_p)
@@ -39,8 +40,8 @@ def test_approximate_step_equals_python_on_1000_states(approx: dict) -> None:
         if "dh" in i1.values:
             assert abs(i1.values["dh"] - i2.values["dh"]) <= 1e-6
             assert abs(i1.values["h_hat"] - i2.values["h_hat"]) <= 1e-6
-    assert (py.n_certified, py.n_solved, py.n_fallbacks) == \
-        (c.n_certified, c.n_solved, c.n_fallbacks)
+    assert (py.n_certified, py.n_solved, py.n_fallbacks, py.n_proposal_feasible) == \
+        (c.n_certified, c.n_solved, c.n_fallbacks, c.n_proposal_feasible)
     assert 0 < c.n_certified < 1000
 
 
@@ -63,3 +64,25 @@ def test_approximate_refuses_ipopt(tmp_path) -> None:
     ctl = ApproximatePCBFFilter(pendulum(), s.U, lambda x: x[0] ** 2 - 1)  # IPOPT default
     with pytest.raises(CodegenError, match="ipopt"):
         emit_approximate(ctl, "a", tmp_path)
+
+
+def test_approximate_exact_shortcut_rho_half(tmp_path) -> None:
+    """With ρ = 1/2 the proposal often meets the decrease of (7.5) after (7.6): the exact
+    shortcut applies it in C as in Python."""
+    from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.models.pendulum import pendulum_setup
+    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
+
+    system, s = pendulum(), pendulum_setup()
+    h = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
+    py = ApproximatePCBFFilter(system, s.U, h, rho=0.5, solver="sqpmethod")
+    mirror_c_retries(py.decrease.compiled)
+    mirror_c_retries(py.filter)
+    c = CApproximatePCBFFilter(build(emit_approximate(py, "apx_half", tmp_path).out_dir))
+    rng = np.random.default_rng(1)
+    for x, u_p in zip(rng.uniform([-0.7, -2.0], [0.7, 2.0], size=(300, 2)),
+                      rng.uniform(-4, 4, size=(300, 1))):
+        u1, i1 = py.step(x, u_p)
+        u2, i2 = c.step(x, u_p)
+        assert i1.status == i2.status and np.abs(u1 - u2).max() <= 1e-6
+    assert py.n_proposal_feasible == c.n_proposal_feasible > 0

@@ -507,7 +507,8 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     nc = len(grid) + 2
     header = d.header() + f.header() + T.APPROX_H.substitute(
         A=A, nx=system.nx, nu=system.nu, nc=nc, n_local=int(controller.decrease.n_local),
-        rho=_c_double(controller.rho))
+        rho=_c_double(controller.rho),
+        exact_shortcut=int(bool(getattr(controller, "exact_shortcut", False))))
     rows = ",\n  ".join(_c_array(r) for r in grid)
     source = d.source() + f.source() + T.APPROX_C.substitute(
         A=A, u_lb=_c_array(U.lb), u_ub=_c_array(U.ub), grid="{\n  " + rows + "\n}",
@@ -521,8 +522,10 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
                 "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
                 "problems": {"dec": d.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
+                "exact_shortcut": bool(getattr(controller, "exact_shortcut", False)),
                 "approx_status": {"0": "ok", "1": "certified", "2": "max_decrease_solution",
-                                  "3": "projected_proposal", "4": "grid_minimizer"}}
+                                  "3": "projected_proposal", "4": "grid_minimizer",
+                                  "5": "proposal_feasible"}}
     return _write_module(name, out_dir, "Algorithm 7.5, the approximate PCBF filter "
                          "(7.5)+(7.6)", header, source, files, manifest,
                          tuple(sorted(set(libs))))

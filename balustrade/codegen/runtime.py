@@ -331,7 +331,7 @@ class CApproximatePCBFFilter:
     :class:`~balustrade.control.approximate.ApproximatePCBFFilter`."""
 
     _FALLBACKS = {0: None, 1: None, 2: "max_decrease_solution", 3: "projected_proposal",
-                  4: "grid_minimizer"}
+                  4: "grid_minimizer", 5: None}
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
         self._lib = _Library(lib_path, manifest)
@@ -370,7 +370,7 @@ class CApproximatePCBFFilter:
         self._reset(self._work)
 
     def __getattr__(self, name: str) -> int:
-        keys = ("n_steps", "n_certified", "n_solved", "n_fallbacks")
+        keys = ("n_steps", "n_certified", "n_solved", "n_fallbacks", "n_proposal_feasible")
         if name in keys and "_work" in self.__dict__:
             return int(self._counter(self._work, keys.index(name)))
         raise AttributeError(name)
@@ -383,7 +383,7 @@ class CApproximatePCBFFilter:
         info = StepInfo(solve_time=time.perf_counter() - start,
                         fallback=self._FALLBACKS.get(code, "unknown"))
         info.status = {0: "ok", 1: "certified", 2: "filter_failed", 3: "bad_input",
-                       4: "max_decrease_failed"}.get(code, str(code))
+                       4: "max_decrease_failed", 5: "proposal_feasible"}.get(code, str(code))
         info.values["certified"] = 1.0 if code == 1 else 0.0
         if code not in (1, 3):
             info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))

@@ -557,7 +557,9 @@ APPROX_H = Template("""\
  *   2. else the maximal decrease (7.6) by screened multi-start: evaluate h^(f(x, c)) on the
  *      ${A}_NC candidates {clip(0), clip(u_p), grid over U}, run the local solver of (7.6)
  *      from the ${A}_N_LOCAL best distinct ones, keep the best; dh = h^(x) - min;
- *   3. the filter (7.5) with (x, u_p, dh, rho), warm-started at the (7.6) minimizer.
+ *   3. if u_p in U meets the decrease of (7.5) it is its minimizer (cost 0): apply it
+ *      (exact shortcut, BAL_APPROX_PROPOSAL_FEASIBLE; ${A}_EXACT_SHORTCUT = 0 disables it);
+ *      else the filter (7.5) with (x, u_p, dh, rho), warm-started at the (7.6) minimizer.
  *   h_out = h^(x_k). Fallbacks, as balustrade.control.approximate:
  *   (7.5) fails or leaves U      -> the (7.6) minimizer       BAL_APPROX_MAX_DECREASE
  *   (7.6) finds nothing finite   -> best screened candidate   BAL_APPROX_GRID_MINIMIZER
@@ -572,6 +574,8 @@ APPROX_H = Template("""\
 #define BAL_APPROX_MAX_DECREASE 2
 #define BAL_APPROX_PROJECTED 3
 #define BAL_APPROX_GRID_MINIMIZER 4
+#define BAL_APPROX_PROPOSAL_FEASIBLE 5
+#define ${A}_EXACT_SHORTCUT $exact_shortcut
 #define ${A}_MAX2(a, b) ((a) > (b) ? (a) : (b))
 #define ${A}_HSZ_ARG ${A}_MAX2(${A}_h_SZ_ARG, ${A}_h_next_SZ_ARG)
 #define ${A}_HSZ_RES ${A}_MAX2(${A}_h_SZ_RES, ${A}_h_next_SZ_RES)
@@ -591,7 +595,7 @@ typedef struct ${A}_work {
   casadi_real hw[${A}_HSZ_W + 1];
   int hmem, nmem;
   int dec_status, filter_status, certify, ready;
-  long n_steps, n_certified, n_solved, n_fallbacks;
+  long n_steps, n_certified, n_solved, n_fallbacks, n_proposal_feasible;
 } ${A}_work;
 
 int ${A}_init(${A}_work* wk);
@@ -603,7 +607,8 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
               casadi_real* h_out, int* status, ${A}_work* wk);
 void ${A}_set_certify(${A}_work* wk, int certify);  /* 0: always solve (7.6), (7.5) */
 casadi_real ${A}_dh(const ${A}_work* wk);  /* dh of the last solved step (NAN if none) */
-long ${A}_counter(const ${A}_work* wk, int which);  /* steps, certified, solved, fallbacks */
+/* which: 0 steps, 1 certified, 2 solved, 3 fallbacks, 4 proposal feasible */
+long ${A}_counter(const ${A}_work* wk, int which);
 
 """)
 
@@ -697,6 +702,7 @@ void ${A}_free(${A}_work* wk) {
 
 void ${A}_reset(${A}_work* wk) {
   wk->n_steps = wk->n_certified = wk->n_solved = wk->n_fallbacks = 0;
+  wk->n_proposal_feasible = 0;
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_x = wk->dh = wk->best_v = NAN;
 }
@@ -705,7 +711,7 @@ void ${A}_set_certify(${A}_work* wk, int certify) { wk->certify = certify; }
 casadi_real ${A}_dh(const ${A}_work* wk) { return wk->dh; }
 long ${A}_counter(const ${A}_work* wk, int which) {
   return which == 0 ? wk->n_steps : which == 1 ? wk->n_certified
-         : which == 2 ? wk->n_solved : wk->n_fallbacks;
+         : which == 2 ? wk->n_solved : which == 3 ? wk->n_fallbacks : wk->n_proposal_feasible;
 }
 
 /* (7.6) by screened multi-start; returns 1 if a finite minimizer was found. */
@@ -796,6 +802,14 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
     return *status;
   }
   wk->dh = wk->h_x - wk->best_v;
+  /* exact shortcut: u_p feasible in (7.5), bound max(-rho dh, -dh), is its minimizer */
+  if (${A}_EXACT_SHORTCUT && ${A}_in_box(u_p, 1e-9)
+      && ${A}_eval_h_next(wk, x, u_p) - wk->h_x <= fmax(-${A}_RHO * wk->dh, -wk->dh)) {
+    wk->n_proposal_feasible++;
+    for (i = 0; i < ${A}_NU; ++i) u_out[i] = u_p[i];
+    *status = BAL_APPROX_PROPOSAL_FEASIBLE;
+    return *status;
+  }
   /* (7.5) warm-started at the (7.6) minimizer */
   for (i = 0; i < ${A}_NX; ++i) wk->p_filter[$f_p_x0 + i] = x[i];
   for (i = 0; i < ${A}_NU; ++i) wk->p_filter[$f_p_u_p + i] = u_p[i];
