@@ -1,0 +1,154 @@
+"""Algorithm 5.2: the robust PCBF safety filter (thesis Section 5.5).
+
+At each step solve (5.15) for ``h_r(x_k)`` and ``ξ*_k``, then (5.16) with the slacks fixed to
+``ξ*_k``, and apply ``u_k = v*_0 + κ(x_k − z*_0)``.
+
+Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
+
+1. (5.16) fails but (5.15) succeeded → apply the (5.15) optimizer's ``v_0 + κ(x_k − z_0)``,
+   feasible for (5.16) by construction: ``"slack_solution"``;
+2. (5.15) fails → apply the shifted candidate (5.17) of the last step,
+   ``ṽ_0 + κ(x_k − z̃_0)``, which is feasible for (5.15) when ``E`` is RPI (Theorem 5.15):
+   ``"candidate"``; the next candidate is built from it;
+3. no candidate → the proposed input projected onto ``U``: ``"projected_proposal"``.
+
+Recorded values: ``h_r`` (the optimal value of (5.15)) and ``h_cand`` (``h̃`` of the candidate
+(5.17) built at the previous step, an upper bound on ``h_r`` by Theorem 5.15).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.backends import Compiled, Solution, compile
+from balustrade.control.base import StepInfo
+from balustrade.control.pcbf import project
+from balustrade.dsl.error_sets import ErrorSet
+from balustrade.dsl.sets import Polytope
+from balustrade.dsl.system import System
+from balustrade.errors import NonFiniteError
+from balustrade.problems.robust import (
+    Candidate,
+    Objective,
+    robust_candidate,
+    robust_pcbf_filter_problem,
+    robust_pcbf_slack_problem,
+    robust_sets,
+    slack_cost,
+)
+
+
+class RobustPCBFSafetyFilter:
+    """Algorithm 5.2 over the compiled problems (5.15) and (5.16) (any backend)."""
+
+    def __init__(self, slack: Compiled, filter: Compiled, system: System, X_E: Polytope,
+                 U: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
+                 deltas: np.ndarray, alpha_f: float, slack_norm: int | float = 1,
+                 U_E: Polytope | None = None):
+        self.slack, self.filter, self.system = slack, filter, system
+        self.X_E, self.U, self.error = X_E, U, error
+        self.U_E = U_E if U_E is not None else error.tighten_input(U)
+        self.h_f, self.pi_f = h_f, pi_f
+        self.deltas = np.asarray(deltas, dtype=float).reshape(-1)
+        self.alpha_f, self.slack_norm = alpha_f, slack_norm
+        self.reset()
+
+    @classmethod
+    def build(cls, system: System, X: Polytope, U: Polytope, h_f: Callable, pi_f: Callable,
+              N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
+              slack_norm: int | float = 1, objective: Objective | None = None,
+              backend: str = "casadi", solver: str | None = "sqpmethod",
+              slack_solver: str | None = "ipopt", eps: float = 1e-6,
+              U_tight: Polytope | None = None, options: dict | None = None
+              ) -> RobustPCBFSafetyFilter:
+        """Build and compile (5.15) and (5.16) for ``backend``.
+
+        CasADi defaults: IPOPT for (5.15) (sqpmethod/qrqp needs hundreds of iterations when
+        ``h_r > 0``: the LP-like slack problem with quadratic tube/terminal rows is degenerate
+        for it) and sqpmethod for the QP-like filter (5.16); ``options`` go to sqpmethod.
+        """
+        solver = solver if backend == "casadi" else None
+        slack_solver = slack_solver if backend == "casadi" else None
+        slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
+                                                  slack_norm, U_tight), backend, slack_solver,
+                        _opts(slack_solver, options))
+        filt = compile(robust_pcbf_filter_problem(system, X, U, h_f, N, deltas, error, eps,
+                                                  objective, U_tight), backend, solver,
+                       _opts(solver, options))
+        sets = robust_sets(X, U, error, U_tight)
+        return cls(slack, filt, system, sets.X_E, U, error, h_f, pi_f, deltas, alpha_f,
+                   slack_norm, sets.U_E)
+
+    def reset(self) -> None:
+        self._last_slack: Solution | None = None
+        self._last_filter: Solution | None = None
+        self.candidate: Candidate | None = None
+
+    def h_r(self, x: np.ndarray) -> tuple[float, Solution]:
+        """Solve (5.15) at ``x``: ``(h_r(x), solution)`` (``nan`` if the solve failed)."""
+        s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=self._last_slack)
+        return (max(float(s.objective), 0.0) if s.success else float("nan")), s
+
+    def _applied(self, x: np.ndarray, z0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+        return np.asarray(v0, dtype=float).reshape(-1) + self.error.kappa(x - z0)
+
+    def _make_candidate(self, z: np.ndarray, v: np.ndarray, xi: np.ndarray) -> Candidate:
+        return robust_candidate(self.system, self.X_E, self.h_f, self.pi_f, self.deltas, z, v, xi,
+                                self.U_E)
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        u_p = as_vector(u_p, "RobustPCBFSafetyFilter.step: u_p", self.system.nu)
+        try:
+            x = as_vector(x, "RobustPCBFSafetyFilter.step: x", self.system.nx)
+        except NonFiniteError:
+            return project(u_p, self.U), StepInfo(status="non_finite_state",
+                                                  fallback="projected_proposal")
+        info = StepInfo()
+        if self.candidate is not None:
+            c = self.candidate
+            info.values["h_cand"] = slack_cost(c.xi, c.xi_N, self.alpha_f, self.slack_norm)
+        h_r, s1 = self.h_r(x)
+        info.solve_time, info.solutions["slack"] = s1.solve_time, s1
+        if not s1.success:
+            info.status = f"slack_{s1.status}"
+            return self._fallback(x, u_p, info)
+        self._last_slack = s1
+        info.values["h_r"] = h_r
+        xi = np.maximum(np.asarray(s1["xi"], dtype=float).reshape(self.X_E.n_rows, -1), 0.0)
+        xi_N = max(float(np.asarray(s1["xi_N"]).reshape(-1)[0]), 0.0)
+        warm = self._last_filter if self._last_filter is not None else {"z": s1["z"],
+                                                                         "v": s1["v"]}
+        s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
+        info.solve_time += s2.solve_time
+        info.solutions["filter"] = s2
+        if s2.success:
+            self._last_filter = s2
+            chosen, info.status = s2, "ok"
+        else:
+            chosen, info.status, info.fallback = s1, f"filter_{s2.status}", "slack_solution"
+        z = np.asarray(chosen["z"], dtype=float)
+        v = np.asarray(chosen["v"], dtype=float).reshape(self.system.nu, -1)
+        self.candidate = self._make_candidate(z, v, xi)
+        return self._applied(x, z[:, 0], v[:, 0]), info
+
+    def _fallback(self, x: np.ndarray, u_p: np.ndarray, info: StepInfo
+                  ) -> tuple[np.ndarray, StepInfo]:
+        c = self.candidate
+        if c is not None:
+            info.fallback = "candidate"
+            u = self._applied(x, c.z[:, 0], c.v[:, 0])
+            self.candidate = self._make_candidate(c.z, c.v, c.xi)
+            return u, info
+        info.fallback = "projected_proposal"
+        return project(u_p, self.U), info
+
+
+def _opts(solver: str | None, options: dict | None) -> dict | None:
+    """sqpmethod gets ``max_iter = 500`` (the default 100 stops early on tube problems) and
+    the user's options; other solvers their defaults."""
+    if solver == "sqpmethod":
+        return {"max_iter": 500, **(options or {})}
+    return None

@@ -1,0 +1,399 @@
+"""Error sets of robust tubes and the constraint tightenings they induce (SPEC §1.4, §1.5, §1.11).
+
+For ``x⁺ = Ax + Bu + Gw`` with ``w ∈ W`` (a bounded polytope or box) and the error feedback
+``κ(e) = K e`` the error ``e = x − z`` between the true and the nominal state evolves as
+``e⁺ = (A + BK) e + G w``. This module provides
+
+* :func:`ellipsoidal_rpi` — an ellipsoidal RPI set ``E = {eᵀ E_P⁻¹ e <= 1}`` together with ``K``
+  by an SDP (SPEC §1.11 [Default]): for fixed ``λ ∈ (0, 1)`` the S-procedure LMI
+  ``[[λE_P, 0, (AE_P+BY)ᵀ], [0, 1−λ, (Gw^v)ᵀ], [AE_P+BY, Gw^v, E_P]] ⪰ 0`` at every vertex
+  ``w^v`` of ``W`` (``Y = K E_P``), a line search over ``λ``, and the objective
+  ``Σ_j h_E([A_x]_j)²/[b_x]_j² + Σ_j h_{KE}([A_u]_j)²/[b_u]_j²``, i.e. the sum of the squared
+  *relative* tightenings of the state and input constraint rows (``h_E(a)² = aᵀE_P a`` and
+  ``h_{KE}(a)² = aᵀ Y E_P⁻¹ Yᵀ a``, both through epigraph variables and Schur complements);
+* :func:`minimal_rpi_outer` — the polytopic outer approximation ``F(α, s) = (1−α)⁻¹ ⊕_{i<s}
+  A_K^i W`` of the minimal RPI set (Raković et al., 2005) with the ε guarantee
+  ``F(α, s) ⊆ F_∞ ⊕ B_∞(ε)``, computed with support functions only;
+* :func:`reachable_support` / :func:`reachable_tightened_sets` — the disturbance reachable sets
+  ``E_i = ⊕_{j<i} (A+BK)^j W`` of (2.14)/(6.10) as row tightenings
+  ``Σ_{j<i} h_W(((A+BK)^j)ᵀ a)`` (no vertices needed);
+* :func:`tighten`, :func:`tighten_by_feedback` — ``X ⊖ E`` and ``U ⊖ K E`` for polytopes by
+  support functions, raising :class:`~balustrade.errors.EmptySetError` naming the set;
+* :func:`is_rpi` — a numerical check (support functions, exact trust-region maxima for
+  ellipsoids, and sampling) that ``A_K E ⊕ G W ⊆ E``;
+* :class:`ErrorSet` — an error set with its feedback; for nonlinear systems a user-given ``E``
+  and ``κ`` (designing incremental Lyapunov functions is out of scope).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cvxpy as cp
+import numpy as np
+
+from balustrade._checks import as_matrix
+from balustrade.dsl.sets import Box, Ellipsoid, Polytope, Set
+from balustrade.errors import BalustradeError, EmptySetError, ShapeError
+
+
+# -- error sets with their feedback ------------------------------------------------------------
+@dataclass(frozen=True)
+class ErrorSet:
+    """An RPI error set ``E`` with its error feedback ``κ(e) = K e`` (Assumption 5.13).
+
+    ``kappa`` may be a user-given (nonlinear) callable for nonlinear systems; the input
+    tightening ``U ⊖ κ(E)`` then needs ``K`` (linear κ) or a user-tightened input set.
+    """
+
+    E: Set
+    K: np.ndarray | None
+    kappa_fn: Callable[[np.ndarray], np.ndarray] | None = None
+    info: dict = field(default_factory=dict)
+
+    def kappa(self, e: np.ndarray) -> np.ndarray:
+        """``κ(e)``: ``K e`` or the user's feedback."""
+        e = np.asarray(e, dtype=float).reshape(-1)
+        if self.kappa_fn is not None:
+            return np.asarray(self.kappa_fn(e), dtype=float).reshape(-1)
+        if self.K is None:
+            raise BalustradeError(f"ErrorSet({self.E.name}): no feedback K or κ given")
+        return self.K @ e
+
+    def tighten_state(self, X: Polytope, name: str | None = None) -> Polytope:
+        """``X ⊖ E``."""
+        return tighten(X, self.E, name=name)
+
+    def tighten_input(self, U: Polytope, name: str | None = None) -> Polytope:
+        """``U ⊖ K E`` (linear κ only)."""
+        if self.K is None:
+            raise BalustradeError(f"ErrorSet({self.E.name}): U ⊖ κ(E) needs a linear "
+                                  "feedback K; give a tightened input set for a nonlinear κ")
+        return tighten_by_feedback(U, self.K, self.E, name=name)
+
+
+# -- tightening by support functions --------------------------------------------------------
+def _row_support(E: Set, a: np.ndarray) -> float:
+    return float(E.support(a))
+
+
+def tighten(S: Polytope, E: Set, name: str | None = None) -> Polytope:
+    """``S ⊖ E = {x : H x <= h − [h_E(H_jᵀ)]_j}`` (SPEC §1.5) as a :class:`Polytope`.
+
+    Raises :class:`EmptySetError` naming ``S`` and ``E`` when the result is empty.
+    """
+    if not isinstance(S, Polytope):
+        raise BalustradeError(f"tighten: the minuend must be a Polytope or Box, got "
+                              f"{type(S).__name__} {getattr(S, 'name', '')!r}")
+    if E.dim != S.dim:
+        raise ShapeError(f"tighten {S.name} ⊖ {E.name}", f"a set of dimension {S.dim}",
+                         f"dimension {E.dim}")
+    s = np.array([_row_support(E, row) for row in S.H])
+    return _shifted(S, s, name or f"{S.name}⊖{E.name}", f"{S.name} by {E.name}")
+
+
+def tighten_by_feedback(U: Polytope, K: np.ndarray, E: Set, name: str | None = None
+                        ) -> Polytope:
+    """``U ⊖ K E = {v : A_u v <= b_u − [h_E(Kᵀ [A_u]_jᵀ)]_j}`` (SPEC §1.5)."""
+    K = as_matrix(K, "tighten_by_feedback: K", (U.dim, E.dim))
+    s = np.array([_row_support(E, K.T @ row) for row in U.H])
+    return _shifted(U, s, name or f"{U.name}⊖K{E.name}", f"{U.name} by K·{E.name}")
+
+
+def tighten_rows(S: Polytope, s: np.ndarray, name: str) -> Polytope:
+    """``{x : H x <= h − s}`` for given row tightenings ``s`` (e.g. reachable-set supports)."""
+    s = np.asarray(s, dtype=float).reshape(-1)
+    if s.size != S.H.shape[0]:
+        raise ShapeError(f"tighten_rows({S.name})", (S.H.shape[0],), s.shape)
+    return _shifted(S, s, name, f"{S.name} by row tightenings")
+
+
+def _shifted(S: Polytope, s: np.ndarray, name: str, what: str) -> Polytope:
+    if not np.all(np.isfinite(s)):
+        raise EmptySetError(f"tightening {what} leaves an empty set ({name}): the error set "
+                            f"is unbounded along rows {np.flatnonzero(~np.isfinite(s)).tolist()}")
+    try:
+        return Polytope(S.H, S.h - s, name=name)
+    except EmptySetError as exc:
+        raise EmptySetError(f"tightening {what} leaves an empty set ({name}); the error set "
+                            f"is too large for {S.name}") from exc
+
+
+# -- disturbance reachable sets E_i = ⊕_{j<i} A_K^j G W -----------------------------------------
+def _disturbance(W: Set, G: np.ndarray | None, n: int) -> tuple[np.ndarray, Callable]:
+    G = np.eye(n) if G is None else as_matrix(G, "disturbance matrix G", (n, W.dim))
+    return G, (lambda a: W.support(G.T @ a))
+
+
+def reachable_support(A_K: np.ndarray, W: Set, H: np.ndarray, N: int,
+                      G: np.ndarray | None = None) -> np.ndarray:
+    """``s[i, j] = h_{E_i}(H_jᵀ) = Σ_{l<i} h_W(Gᵀ (A_K^l)ᵀ H_jᵀ)`` for ``i ∈ I[0, N]``
+    ((2.13), §6.3.2); ``s[0] = 0`` because ``E_0 = {0}``."""
+    A_K = as_matrix(A_K, "reachable_support: A_K")
+    n = A_K.shape[0]
+    H = as_matrix(H, "reachable_support: H", (None, n))
+    _, hW = _disturbance(W, G, n)
+    s = np.zeros((N + 1, H.shape[0]))
+    M = np.eye(n)  # A_K^l
+    for i in range(1, N + 1):
+        s[i] = s[i - 1] + np.array([hW(M.T @ a) for a in H])
+        M = A_K @ M
+    return s
+
+
+def reachable_tightened_sets(S: Polytope, A_K: np.ndarray, W: Set, N: int,
+                             G: np.ndarray | None = None, K: np.ndarray | None = None,
+                             name: str | None = None) -> list[Polytope]:
+    """``[S ⊖ E_0, …, S ⊖ E_N]`` (``S ⊖ K E_i`` when ``K`` is given: input sets of (2.14)/(6.10)).
+
+    Raises :class:`EmptySetError` naming the step whose tightening empties ``S``.
+    """
+    H = S.H if K is None else S.H @ as_matrix(K, "reachable_tightened_sets: K",
+                                                  (S.dim, None))
+    s = reachable_support(A_K, W, H, N, G)
+    base = name or S.name
+    return [tighten_rows(S, s[i], f"{base}⊖{'K' if K is not None else ''}E_{i}")
+            for i in range(N + 1)]
+
+
+# -- ellipsoidal RPI set by SDP -----------------------------------------------------------------
+def _vertices(W: Set) -> np.ndarray:
+    if isinstance(W, Box):
+        return W.vertices()
+    if isinstance(W, Polytope):
+        return W.vertices()
+    raise BalustradeError(f"RPI design: W must be a bounded Box or Polytope, got "
+                          f"{type(W).__name__} {W.name!r}")
+
+
+def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polytope,
+                    G: np.ndarray | None = None, lambdas: Sequence[float] | None = None,
+                    solver: str = "CLARABEL", name: str = "E") -> ErrorSet:
+    """Ellipsoidal RPI set and error feedback by the SDP of SPEC §1.11 [Default].
+
+    For each ``λ`` of the line search (default 19 values in ``(0, 1)``) solve
+    ``min Σ_j t_x,j / b_x,j² + Σ_j t_u,j / b_u,j²`` over ``E_P ≻ 0``, ``Y`` s.t. the vertex
+    LMIs ``[[λE_P, 0, (AE_P+BY)ᵀ], [0, 1−λ, (Gw^v)ᵀ], [AE_P+BY, Gw^v, E_P]] ⪰ 0``,
+    ``[A_x]_j E_P [A_x]_jᵀ <= t_x,j`` and ``[[t_u,j, [A_u]_j Y], [Yᵀ[A_u]_jᵀ, E_P]] ⪰ 0``;
+    keep the best. Returns ``ErrorSet(Ellipsoid(E_P⁻¹), K = Y E_P⁻¹)`` with the objective, the
+    chosen ``λ`` and the solve time in ``info``. The objective is the sum of the squared relative
+    tightenings ``(h_E(a_j)/b_j)²`` of all constraint rows.
+    """
+    A = as_matrix(A, "RPI SDP: A")
+    n = A.shape[0]
+    B = as_matrix(B, "RPI SDP: B", (n, None))
+    m = B.shape[1]
+    G = np.eye(n) if G is None else as_matrix(G, "RPI SDP: G", (n, W.dim))
+    if X.dim != n or U.dim != m:
+        raise ShapeError("RPI SDP: sets", f"X of dim {n}, U of dim {m}",
+                         f"X of dim {X.dim}, U of dim {U.dim}", what="")
+    Wv = _vertices(W) @ G.T
+    lambdas = list(lambdas) if lambdas is not None else list(np.linspace(0.05, 0.95, 19))
+    E = cp.Variable((n, n), symmetric=True)
+    Y = cp.Variable((m, n))
+    lam = cp.Parameter(nonneg=True)
+    AEBY = A @ E + B @ Y
+    cons = [E >> 1e-9 * np.eye(n)]
+    for w in Wv:
+        wc = w.reshape(n, 1)
+        cons.append(cp.bmat([[lam * E, np.zeros((n, 1)), AEBY.T],
+                             [np.zeros((1, n)), cp.reshape(1 - lam, (1, 1), order="F"), wc.T],
+                             [AEBY, wc, E]]) >> 0)
+    obj = 0
+    for a, b in zip(X.H, X.h):
+        if b <= 0:
+            raise BalustradeError(f"RPI SDP: the origin must be inside {X.name} (row bound {b})")
+        obj = obj + (a @ E @ a) / b ** 2
+    t_u = cp.Variable(U.H.shape[0])
+    for j, (a, b) in enumerate(zip(U.H, U.h)):
+        if b <= 0:
+            raise BalustradeError(f"RPI SDP: the origin must be inside {U.name} (row bound {b})")
+        row = cp.reshape(a @ Y, (1, n), order="F")
+        cons.append(cp.bmat([[cp.reshape(t_u[j], (1, 1), order="F"), row], [row.T, E]]) >> 0)
+        obj = obj + t_u[j] / b ** 2
+    prob = cp.Problem(cp.Minimize(obj), cons)
+    best: tuple[float, float, np.ndarray, np.ndarray] | None = None
+    start = time.perf_counter()
+    for lv in lambdas:
+        if not 0 < lv < 1:
+            raise BalustradeError(f"RPI SDP: λ must lie in (0, 1), got {lv}")
+        lam.value = lv
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                prob.solve(solver=solver)
+        except cp.error.SolverError:
+            continue
+        if prob.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) and E.value is not None:
+            if best is None or prob.value < best[0]:
+                best = (float(prob.value), lv, E.value.copy(), Y.value.copy())
+    elapsed = time.perf_counter() - start
+    if best is None:
+        raise BalustradeError("RPI SDP: no λ in the line search admits an ellipsoidal RPI set "
+                              f"(tried {len(lambdas)} values); the system may not be "
+                              "stabilizable against W")
+    value, lv, Ev, Yv = best
+    Ev = 0.5 * (Ev + Ev.T)
+    P = np.linalg.inv(Ev)
+    P = 0.5 * (P + P.T)
+    K = Yv @ P
+    return ErrorSet(Ellipsoid(P, name=name), K,
+                    info={"objective": value, "lambda": lv, "solve_time": elapsed,
+                          "method": "ellipsoidal SDP (SPEC §1.11)"})
+
+
+# -- minimal RPI outer approximation -------------------------------------------------------------
+@dataclass(frozen=True)
+class MinimalRPI:
+    """``F(α, s) = (1−α)⁻¹ ⊕_{i<s} A_K^i G W`` (Raković et al. 2005), RPI for ``A_K`` and
+    ``ε``-close to the minimal RPI set: ``F(α, s) ⊆ F_∞ ⊕ B_∞(ε)``."""
+
+    A_K: np.ndarray
+    W: Set
+    G: np.ndarray
+    s: int
+    alpha: float
+    eps: float
+
+    def support(self, a: np.ndarray) -> float:
+        """``h_F(a) = (1−α)⁻¹ Σ_{i<s} h_W(Gᵀ (A_K^i)ᵀ a)``."""
+        a = np.asarray(a, dtype=float).reshape(-1)
+        total, M = 0.0, np.eye(self.A_K.shape[0])
+        for _ in range(self.s):
+            total += self.W.support(self.G.T @ M.T @ a)
+            M = self.A_K @ M
+        return total / (1.0 - self.alpha)
+
+    def polytope(self, name: str = "F_mRPI") -> Polytope:
+        """An H-representation of ``F(α, s)``: the hull of the vertex sums, pruned to the hull
+        after every term (bounded ``W``, small dimensions)."""
+        from scipy.spatial import ConvexHull
+
+        from balustrade.dsl import sets_geometry as geo
+
+        n = self.A_K.shape[0]
+        Wv = _vertices(self.W) @ self.G.T
+        V, M = np.zeros((1, n)), np.eye(n)
+        for _ in range(self.s):
+            term = Wv @ M.T
+            if np.max(np.abs(term)) > 1e-12 * max(1.0, float(np.max(np.abs(V)))):
+                V = (V[:, None, :] + term[None, :, :]).reshape(-1, n)
+                if V.shape[0] > n + 1:
+                    V = V[ConvexHull(V).vertices]
+            M = self.A_K @ M
+        H, h = geo.hull_halfspaces(V / (1.0 - self.alpha), name)
+        return Polytope(H, h, name=name)
+
+
+def minimal_rpi_outer(A_K: np.ndarray, W: Polytope, eps: float = 1e-3,
+                      G: np.ndarray | None = None, s_max: int = 500) -> MinimalRPI:
+    """The ε-outer approximation of the minimal RPI set of ``e⁺ = A_K e + G w``, ``w ∈ W``.
+
+    With ``α(s) = max_j h_W(Gᵀ(A_K^s)ᵀ ... )`` computed as the smallest ``α`` with
+    ``A_K^s G W ⊆ α G W`` (support functions over the rows of ``W`` when ``G = I``; over a
+    box enclosing ``GW`` otherwise), increase ``s`` until ``α/(1−α) · M_s <= ε`` where
+    ``M_s = max_j Σ_{i<s} max(h_W(±Gᵀ(A_K^i)ᵀ e_j))`` (Raković et al. 2005, Thm. 3).
+    ``W`` must contain the origin in its interior.
+    """
+    A_K = as_matrix(A_K, "minimal_rpi_outer: A_K")
+    n = A_K.shape[0]
+    if np.max(np.abs(np.linalg.eigvals(A_K))) >= 1:
+        raise BalustradeError("minimal_rpi_outer: A_K is not Schur stable "
+                              f"(spectral radius {np.max(np.abs(np.linalg.eigvals(A_K))):.4g})")
+    G = np.eye(n) if G is None else as_matrix(G, "minimal_rpi_outer: G", (n, W.dim))
+    # Containment A_K^s (GW) ⊆ α (GW): in the W coordinates when G = I; otherwise test against
+    # the polytope GW represented by the rows of its bounding box (still an outer, RPI-valid α).
+    if np.allclose(G, np.eye(n)) and isinstance(W, Polytope):
+        Hc, hc = W.H, W.h
+    else:
+        bb = W.linear_map(G) if G.shape[0] == G.shape[1] and np.linalg.matrix_rank(G) == n \
+            else None
+        if bb is None:
+            raise BalustradeError("minimal_rpi_outer: G must be invertible (square, full rank) "
+                                  "for the α test; use the ellipsoidal RPI design instead")
+        Hc, hc = bb.H, bb.h
+    if np.any(hc <= 0):
+        raise BalustradeError("minimal_rpi_outer: W must contain the origin in its interior")
+    e = np.eye(n)
+    Ms_pos, Ms_neg = np.zeros(n), np.zeros(n)
+    M = np.eye(n)
+    for s in range(1, s_max + 1):
+        Ms_pos += np.array([W.support(G.T @ M.T @ e[j]) for j in range(n)])
+        Ms_neg += np.array([W.support(-G.T @ M.T @ e[j]) for j in range(n)])
+        M = A_K @ M  # A_K^s
+        alpha = max(W.support(G.T @ M.T @ a) / b for a, b in zip(Hc, hc))
+        if alpha < 1:
+            Ms = float(max(np.max(Ms_pos), np.max(Ms_neg)))
+            if alpha / (1 - alpha) * Ms <= eps:
+                return MinimalRPI(A_K, W, G, s, float(alpha), float(eps))
+    raise BalustradeError(f"minimal_rpi_outer: no s <= {s_max} reaches ε = {eps}")
+
+
+# -- RPI check -----------------------------------------------------------------------------------
+@dataclass
+class RPICheck:
+    """Result of :func:`is_rpi`: ``margin`` is ``max c_E(A_K e + G w)`` found (``<= tol`` ⇒ ok)."""
+
+    ok: bool
+    margin: float
+    method: str
+    worst: dict = field(default_factory=dict)
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+
+def is_rpi(E: Set, A_cl: np.ndarray, W: Set, G: np.ndarray | None = None, tol: float = 1e-7,
+           samples: int = 2000, rng: int | np.random.Generator | None = 0) -> RPICheck:
+    """Check ``A_cl E ⊕ G W ⊆ E`` (Assumption 5.13 for ``κ(e) = Ke``, ``A_cl = A + BK``).
+
+    * Polytope ``E``: exact, ``h_E(A_clᵀ H_j) + h_W(Gᵀ H_j) <= h_j`` for every row.
+    * Ellipsoid ``E``: exact per vertex of ``W`` (trust-region maximum of ``c_E`` over the
+      ellipsoid ``A_cl E + G w^v``; ``c_E`` is convex so vertices suffice) when ``A_cl`` is
+      invertible, plus support functions along sampled directions and sampled points
+      ``e ∈ ∂E``, ``w ∈ W`` (a necessary-condition search that finds counterexamples).
+    Returns an :class:`RPICheck` whose ``margin`` is in units of ``c_E``.
+    """
+    A_cl = as_matrix(A_cl, "is_rpi: A_cl", (E.dim, E.dim))
+    n = E.dim
+    G = np.eye(n) if G is None else as_matrix(G, "is_rpi: G", (n, W.dim))
+    g = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    if isinstance(E, Polytope):
+        margins = [E.support(A_cl.T @ a) + W.support(G.T @ a) - b for a, b in zip(E.H, E.h)]
+        j = int(np.argmax(margins))
+        return RPICheck(bool(margins[j] <= tol), float(margins[j]), "support functions (exact)",
+                        {"row": j})
+    if not isinstance(E, Ellipsoid):
+        raise BalustradeError(f"is_rpi: E must be a Polytope or an Ellipsoid, got "
+                              f"{type(E).__name__} {E.name!r}")
+    worst: dict = {}
+    margin, methods = -np.inf, []
+    if isinstance(W, Polytope) and np.linalg.matrix_rank(A_cl) == n:
+        image = E.linear_map(A_cl)
+        for w in W.vertices():
+            val = E.max_quadratic_over(image.translate(G @ w)) - 1.0
+            if val > margin:
+                margin, worst = val, {"w": G @ w, "method": "vertex trust region"}
+        methods.append("vertex trust-region (exact)")
+    # support functions along random directions: h_E(A_clᵀa) + h_W(Gᵀa) <= h_E(a)
+    dirs = g.standard_normal((samples, n))
+    for a in dirs:
+        gap = E.support(A_cl.T @ a) + W.support(G.T @ a) - E.support(a)
+        # convert a support gap into c_E units (≈ 2·gap/h_E(a) for small gaps)
+        val = 2.0 * gap / max(E.support(a), 1e-300)
+        if val > margin:
+            margin, worst = val, {"direction": a, "method": "support"}
+    # sampled points on the boundary of E and in W
+    pts = E.sample(samples, g)
+    pts = pts / np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", pts, E.P, pts), 1e-300))[:, None]
+    Ws = W.sample(samples, g) if hasattr(W, "sample") else np.zeros((samples, W.dim))
+    nxt = pts @ A_cl.T + Ws @ G.T
+    vals = np.einsum("ij,jk,ik->i", nxt, E.P, nxt) - 1.0
+    k = int(np.argmax(vals))
+    if vals[k] > margin:
+        margin, worst = float(vals[k]), {"e": pts[k], "w": Ws[k], "method": "sampling"}
+    methods += ["support directions", "sampling"]
+    return RPICheck(bool(margin <= tol), float(margin), ", ".join(methods), worst)

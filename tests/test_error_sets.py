@@ -1,0 +1,141 @@
+"""Error sets (SPEC §1.11): RPI by SDP and mRPI outer approximation, reachable-set tightenings,
+tightening errors and the RPI check on bad input."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from balustrade.dsl.error_sets import (
+    ErrorSet,
+    ellipsoidal_rpi,
+    is_rpi,
+    minimal_rpi_outer,
+    reachable_support,
+    reachable_tightened_sets,
+    tighten,
+    tighten_by_feedback,
+)
+from balustrade.dsl.sets import Box, Ellipsoid
+from balustrade.errors import EmptySetError
+from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+
+
+@pytest.fixture(scope="module")
+def design():
+    system, s = unstable2d(), unstable2d_setup(10)
+    return system, s, ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U)
+
+
+def test_ellipsoidal_rpi_is_rpi_by_support_functions_and_sampling(design):
+    system, s, es = design
+    A_K = system.A + system.B @ es.K
+    assert np.max(np.abs(np.linalg.eigvals(A_K))) < 1
+    check = is_rpi(es.E, A_K, s.W)
+    assert check.ok, check
+    # independent sampling: boundary points of E and vertices/samples of W stay in E
+    rng = np.random.default_rng(1)
+    e = es.E.sample(3000, rng)
+    e /= np.sqrt(np.einsum("ij,jk,ik->i", e, es.E.P, e))[:, None]
+    w = np.vstack([s.W.vertices()[rng.integers(0, 4, 1500)], s.W.sample(1500, rng)])
+    nxt = e @ A_K.T + w
+    assert np.all(np.einsum("ij,jk,ik->i", nxt, es.E.P, nxt) <= 1 + 1e-7)
+    # support functions along many directions: h_E(A_Kᵀa) + h_W(a) <= h_E(a)
+    for a in rng.standard_normal((300, 2)):
+        assert es.E.support(A_K.T @ a) + s.W.support(a) <= es.E.support(a) + 1e-9
+
+
+def test_rpi_objective_is_the_documented_relative_tightening(design):
+    system, s, es = design
+    Pinv = np.linalg.inv(es.E.P)
+    ox = sum((a @ Pinv @ a) / b ** 2 for a, b in zip(s.X.H, s.X.h))
+    ou = sum((a @ es.K @ Pinv @ es.K.T @ a) / b ** 2 for a, b in zip(s.U.H, s.U.h))
+    assert ox + ou == pytest.approx(es.info["objective"], rel=1e-4)
+
+
+def test_non_rpi_set_is_detected_on_request(design):
+    system, s, es = design
+    A_K = system.A + system.B @ es.K
+    small = es.E.scale(0.6, name="E_small")
+    check = is_rpi(small, A_K, s.W)
+    assert not check.ok and check.margin > 0
+    # right set, wrong feedback
+    assert not is_rpi(es.E, system.A, s.W).ok
+    # polytopes: exact test
+    assert not is_rpi(Box.symmetric([0.01, 0.01]), A_K, s.W).ok
+
+
+def test_minimal_rpi_outer_approximation(design):
+    system, s, es = design
+    A_K = system.A + system.B @ es.K
+    eps = 1e-3
+    m = minimal_rpi_outer(A_K, s.W, eps=eps)
+    F = m.polytope()
+    assert is_rpi(F, A_K, s.W, tol=1e-9).ok
+    # ε guarantee against the truncated sum F_s ⊆ F_∞: h_F(±e_j) − h_{F_s}(±e_j) <= ε
+    for a in np.vstack([np.eye(2), -np.eye(2)]):
+        h_Fs = m.support(a) * (1 - m.alpha)
+        assert m.support(a) - h_Fs <= eps + 1e-12
+        assert F.support(a) == pytest.approx(m.support(a), rel=1e-6)
+    # trajectories of the error system from 0 stay in F
+    rng = np.random.default_rng(0)
+    e = np.zeros((200, 2))
+    for _ in range(60):
+        e = e @ A_K.T + s.W.sample(200, rng)
+        assert np.all(F.contains_many(e, tol=1e-9))
+    # the mRPI approximation is smaller than the ellipsoidal RPI set along the axes
+    for a in np.eye(2):
+        assert F.support(a) <= es.E.support(a) + 1e-9
+
+
+def test_reachable_support_matches_vertex_enumeration(design):
+    system, s, es = design
+    A_K = system.A + system.B @ es.K
+    H = np.vstack([s.X.H, np.array([[1.0, -2.0]])])
+    sup = reachable_support(A_K, s.W, H, 4)
+    Wv = s.W.vertices()
+    for i in range(5):
+        best = np.full(H.shape[0], -np.inf) if i else np.zeros(H.shape[0])
+        for seq in itertools.product(range(len(Wv)), repeat=i):
+            e = sum((np.linalg.matrix_power(A_K, j) @ Wv[k] for j, k in enumerate(seq)),
+                    np.zeros(2))
+            best = np.maximum(best, H @ e)
+        np.testing.assert_allclose(sup[i], best, atol=1e-12)
+    Us = reachable_tightened_sets(s.U, A_K, s.W, 4, K=es.K)
+    assert Us[0].h == pytest.approx(s.U.h)
+    assert np.all(np.diff([U.h[0] for U in Us]) < 0)
+
+
+def test_tightenings_by_support_functions(design):
+    system, s, es = design
+    XE = tighten(s.X, es.E)
+    Pinv = np.linalg.inv(es.E.P)
+    np.testing.assert_allclose(XE.h, s.X.h - np.sqrt(np.einsum("ij,jk,ik->i", s.X.H, Pinv,
+                                                                s.X.H)))
+    UE = tighten_by_feedback(s.U, es.K, es.E)
+    rng = np.random.default_rng(3)
+    e = es.E.sample(2000, rng)
+    assert np.max(np.abs(e @ es.K.T)) <= s.U.h[0] - UE.h[0] + 1e-12
+
+
+def test_tightening_to_empty_names_the_set():
+    X = Box.symmetric([0.1, 0.1], name="LaneX")
+    big = Ellipsoid(np.eye(2) * 4.0, name="BigE")  # radius 0.5
+    with pytest.raises(EmptySetError, match="LaneX"):
+        tighten(X, big)
+    U = Box.symmetric([0.1], name="SteerU")
+    with pytest.raises(EmptySetError, match="SteerU"):
+        tighten_by_feedback(U, np.array([[10.0, 0.0]]), big)
+    with pytest.raises(EmptySetError, match="LaneX"):
+        reachable_tightened_sets(X, 0.5 * np.eye(2), Box.symmetric([0.06, 0.06]), 5)
+
+
+def test_user_given_error_set_for_nonlinear_systems():
+    E = Ellipsoid(np.eye(2) * 100.0, name="E_user")
+    es = ErrorSet(E, None, kappa_fn=lambda e: np.array([-np.tanh(e[0])]))
+    assert es.kappa(np.array([0.1, 0.0]))[0] == pytest.approx(-np.tanh(0.1))
+    assert es.tighten_state(Box.symmetric([1.0, 1.0])).h == pytest.approx(0.9 * np.ones(4))
+    with pytest.raises(Exception, match="linear"):
+        es.tighten_input(Box.symmetric([1.0]))
