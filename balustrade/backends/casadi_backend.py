@@ -100,7 +100,8 @@ class CasadiCompiled:
 
     backend = "casadi"
 
-    def __init__(self, ocp: OCP, solver: str = "ipopt", options: dict | None = None):
+    def __init__(self, ocp: OCP, solver: str = "ipopt", options: dict | None = None,
+                 retries: list[tuple[str, dict]] | None = None):
         if not ca.has_nlpsol(solver):
             raise SolverError(f"{ocp.name}: unknown CasADi NLP solver {solver!r} "
                               "(try 'ipopt', 'sqpmethod' (with qrqp), 'fatrop')")
@@ -132,6 +133,8 @@ class CasadiCompiled:
         self.nlp = nlp
         self.options = opts
         self.solver = ca.nlpsol(ocp.name, solver, nlp, opts)
+        #: cold-start attempts after a failed solve: (solver plugin, option overrides)
+        self.retries = default_retries(solver, opts) if retries is None else list(retries)
         self._retry: list[ca.Function] | None = None
         self._dm = {k: ca.DM(getattr(self, k)) for k in ("lbx", "ubx", "lbg", "ubg")}
         self._g_function: ca.Function | None = None
@@ -142,8 +145,9 @@ class CasadiCompiled:
         """Solve with the given parameter values; ``warm_start`` is a previous
         :class:`Solution` (primal and dual) or a dict of variable values.
 
-        A failed solve is retried from a cold start (see :meth:`_retry_solvers`);
-        ``Solution.message`` and ``Solution.solver`` say when a retry was used.
+        A failed solve is retried from a cold start with each entry of :attr:`retries`
+        in turn (see :func:`default_retries`); ``Solution.message`` and
+        ``Solution.solver`` say when a retry was used.
         """
         p = self.ocp.pack_parameters(params)
         sol = self._solve_with(self.solver, p, self._initial_guess(warm_start))
@@ -161,25 +165,14 @@ class CasadiCompiled:
         return final
 
     def _retry_solvers(self) -> list[ca.Function]:
-        """Solvers tried, in order, after a failed solve (built on first use):
-
-        * ``sqpmethod``: the other Hessian convexification (qrqp needs a regularized
-          Hessian on some problems and stalls at degenerate points with it on others),
-          then IPOPT from a cold start;
-        * ``ipopt`` and others: the same solver from a cold start.
-        """
+        """The solvers of :attr:`retries`, built on first use."""
         if self._retry is None:
-            self._retry = []
-            if self.solver_name == "sqpmethod":
-                opts = dict(self.options)
-                regularized = opts.get("convexify_strategy", "none") != "none"
-                opts["convexify_strategy"] = "none" if regularized else "regularize"
-                self._retry.append(ca.nlpsol(f"{self.ocp.name}_retry", "sqpmethod",
-                                             self.nlp, opts))
-                self._retry.append(ca.nlpsol(f"{self.ocp.name}_ipopt", "ipopt", self.nlp,
-                                             DEFAULT_OPTIONS["ipopt"]))
-            else:
-                self._retry.append(self.solver)
+            self._retry = [
+                self.solver if (name == self.solver_name and not overrides) else
+                ca.nlpsol(f"{self.ocp.name}_retry{k + 1}", name, self.nlp,
+                          {**(self.options if name == self.solver_name
+                              else DEFAULT_OPTIONS.get(name, {})), **overrides})
+                for k, (name, overrides) in enumerate(self.retries)]
         return self._retry
 
     def _solve_with(self, solver: ca.Function, p: np.ndarray, guess: tuple) -> Solution:
@@ -250,6 +243,27 @@ class CasadiCompiled:
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
                         iterations=0, backend="casadi", solver=self.solver_name, w=w, p=p,
                         message=message)
+
+
+def sqp_retry_strategies(options: dict) -> list[str]:
+    """Hessian convexifications for cold-start ``sqpmethod`` retries: the other one of
+    ``regularize``/``none`` (qrqp needs a regularized Hessian on LP-like problems and stalls
+    with it at some degenerate points), then eigenvalue clipping, which converges on the
+    degenerate filter QPs (2.23) at the state-constraint boundary where both stall."""
+    strategy = options.get("convexify_strategy", "none")
+    first = "none" if strategy != "none" else "regularize"
+    second = "eigen-clip" if strategy != "eigen-clip" else "eigen-reflect"
+    return [first, second]
+
+
+def default_retries(solver: str, options: dict) -> list[tuple[str, dict]]:
+    """The default retry chain: for ``sqpmethod`` the strategies of
+    :func:`sqp_retry_strategies` (all code-generatable), then IPOPT as a last resort; for
+    any other solver one cold-start retry of the same solver."""
+    if solver == "sqpmethod":
+        return [("sqpmethod", {"convexify_strategy": s}) for s in sqp_retry_strategies(options)] \
+            + [("ipopt", {})]
+    return [(solver, {})]
 
 
 _SOLVER_NAMES = {"Sqpmethod": "sqpmethod", "IpoptInterface": "ipopt"}

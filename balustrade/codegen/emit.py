@@ -28,7 +28,7 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from balustrade.backends.casadi_backend import CasadiCompiled
+from balustrade.backends.casadi_backend import CasadiCompiled, sqp_retry_strategies
 from balustrade.codegen import templates as T
 from balustrade.codegen.support import check_no_callbacks, solver_libraries
 from balustrade.dsl.sets import Box
@@ -154,16 +154,10 @@ def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ..
 
 
 def _retry_strategies(options: dict) -> list[str]:
-    """Hessian convexifications of the cold-start retries of an ``sqpmethod`` problem:
-    first the other one of regularized/none (the retry of
-    :class:`~balustrade.backends.casadi_backend.CasadiCompiled`), then eigenvalue clipping
-    — emittable, where the backend's last resort is IPOPT (not emittable). Eigen-clip
-    converges on the degenerate filter QPs (2.23) at the state-constraint boundary where
-    qrqp stalls warm-started with ``regularize`` and cold with ``none``."""
-    strategy = options.get("convexify_strategy", "none")
-    first = "none" if strategy != "none" else "regularize"
-    second = "eigen-clip" if strategy != "eigen-clip" else "eigen-reflect"
-    return [first, second]
+    """The emittable part of the backend's retry chain: its ``sqpmethod`` convexifications
+    (:func:`~balustrade.backends.casadi_backend.sqp_retry_strategies`); the backend's last
+    resort, IPOPT, cannot be emitted."""
+    return sqp_retry_strategies(options)
 
 
 class _Problem:

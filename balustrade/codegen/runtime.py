@@ -308,20 +308,14 @@ class CPCBFSafetyFilter:
 
 
 def mirror_c_retries(compiled: object) -> object:
-    """Make a compiled CasADi problem retry failed solves exactly as its emitted C does
-    (cold-start ``sqpmethod`` with the Hessian convexifications of
-    :func:`balustrade.codegen.emit._retry_strategies`, instead of the backend's other
-    convexification then IPOPT), so Python and the deployed C can be compared step by step.
+    """Make a compiled CasADi problem retry failed solves exactly as its emitted C does:
+    the backend's cold-start ``sqpmethod`` retries without its last resort, IPOPT (which
+    cannot be emitted), so Python and the deployed C can be compared step by step.
     Returns ``compiled``, modified in place."""
-    import casadi as ca
-
-    from balustrade.codegen.emit import _retry_strategies
-
     if compiled.solver_name != "sqpmethod":
         return compiled
-    compiled._retry = [ca.nlpsol(f"{compiled.ocp.name}_retry{k + 1}", "sqpmethod",
-                                 compiled.nlp, {**compiled.options, "convexify_strategy": s})
-                       for k, s in enumerate(_retry_strategies(compiled.options))]
+    compiled.retries = [(name, opts) for name, opts in compiled.retries if name == "sqpmethod"]
+    compiled._retry = None
     return compiled
 
 
