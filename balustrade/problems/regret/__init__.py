@@ -6,6 +6,7 @@ parametrization; the functions of :mod:`.synthesis` solve (3.19), (3.24), (3.28)
 loop; :mod:`.verify` certifies worst-case regret independently of the SDP solver.
 """
 
+from balustrade.problems.regret.controller import RegretController, Rollout
 from balustrade.problems.regret.operators import (
     LTVSystem,
     Operators,
@@ -27,7 +28,8 @@ from balustrade.problems.regret.synthesis import (
 )
 
 __all__ = [
-    "LTVSystem", "Operators", "build_operators", "controller_from_responses",
+    "LTVSystem", "Operators", "RegretController", "Rollout", "build_operators",
+    "controller_from_responses",
     "responses_from_controller", "StateInputConstraints", "SynthesisResult",
     "adversarial_regret", "dynamic_regret", "generalized_regret", "h2", "hinf",
     "pointwise_dynamic_regret", "pointwise_regret", "zero_x0_regret",

@@ -1,0 +1,85 @@
+"""Bad input raises balustrade errors naming the argument; infeasible synthesis returns a status."""
+
+import numpy as np
+import pytest
+
+from balustrade.errors import BalustradeError, NotPSDError, ShapeError
+from balustrade.problems.regret import (
+    LTVSystem,
+    StateInputConstraints,
+    build_operators,
+    dynamic_regret,
+    generalized_regret,
+    pointwise_regret,
+)
+from balustrade.problems.regret.verify import maximize_quadratic_on_ball
+
+A = np.array([[1.0, 0.1], [0.0, 1.0]])
+B = np.array([[0.0], [0.1]])
+
+
+def test_non_psd_weights_are_named():
+    with pytest.raises(NotPSDError, match=r"Q\[0\]"):
+        LTVSystem.create(A, B, 3, Q=np.diag([1.0, -1.0]))
+    with pytest.raises(NotPSDError, match=r"R\[2\]"):
+        LTVSystem.create(A, B, 3, R=[np.eye(1), np.eye(1), np.zeros((1, 1)), np.eye(1)])
+    ops = build_operators(LTVSystem.create(A, B, 3))
+    with pytest.raises(NotPSDError, match="P"):
+        pointwise_regret(ops, [1.0, 0.0], -np.eye(2))
+    with pytest.raises(NotPSDError, match="W"):
+        generalized_regret(ops, [1.0, 0.0], 1.0, W=-np.eye(ops.nd))
+
+
+def test_disturbance_matrix_without_full_row_rank():
+    with pytest.raises(BalustradeError, match=r"E\[1\].*full row rank"):
+        LTVSystem.create(A, B, 3, E=[np.eye(2), np.array([[1.0, 1.0], [1.0, 1.0]]), np.eye(2)])
+    with pytest.raises(BalustradeError, match=r"E\[0\]"):
+        LTVSystem.create(A, B, 3, E=np.array([[1.0], [0.0]]))
+
+
+def test_wrong_horizon_lengths_and_shapes():
+    with pytest.raises(ShapeError, match="A.*T=4.*3 matrices"):
+        LTVSystem.create([A, A, A], B, 4)
+    with pytest.raises(ShapeError, match="Q"):
+        LTVSystem.create(A, B, 3, Q=[np.eye(2)] * 3)          # needs T + 1 = 4
+    with pytest.raises(ShapeError, match="B"):
+        LTVSystem.create(A, np.ones((3, 1)), 3)
+    ops = build_operators(LTVSystem.create(A, B, 3))
+    with pytest.raises(ShapeError, match="x0"):
+        dynamic_regret(ops, [1.0, 0.0, 0.0], 1.0)
+    with pytest.raises(BalustradeError, match="omega"):
+        dynamic_regret(ops, [1.0, 0.0], -1.0)
+    with pytest.raises(BalustradeError, match="T"):
+        LTVSystem.create(A, B, 0)
+    with pytest.raises(BalustradeError, match="b_i > 0"):
+        StateInputConstraints.from_halfspaces(np.eye(2), [1.0, 0.0], np.eye(1), [1.0])
+
+
+def test_infeasible_synthesis_returns_a_status():
+    ops = build_operators(LTVSystem.create(A, B, 4))
+    # |x_i| ≤ 0.01 cannot be kept robustly against ‖w_k‖ ≤ 1: the first step already fails
+    tight = StateInputConstraints.from_halfspaces(np.vstack([np.eye(2), -np.eye(2)]),
+                                                  np.full(4, 0.01), np.array([[1.0], [-1.0]]),
+                                                  np.full(2, 1.0))
+    res = pointwise_regret(ops, [0.0, 0.0], np.eye(2), constraints=tight)
+    assert not res.ok and "infeasible" in res.status
+    assert res.K is None and res.level is None
+    with pytest.raises(BalustradeError, match="no controller"):
+        res.controller()
+
+
+def test_trust_region_hard_and_easy_cases():
+    rng = np.random.default_rng(0)
+    Amat = np.diag([3.0, 1.0, 0.5])
+    # hard case: b orthogonal to the top eigenvector and small
+    hard = maximize_quadratic_on_ball(Amat, np.array([0.0, 0.1, 0.0]), 0.0, 4.0)
+    assert hard.hard_case and hard.value == pytest.approx(hard.upper, rel=1e-12)
+    easy = maximize_quadratic_on_ball(Amat, np.array([1.0, 0.2, 0.0]), 1.0, 4.0)
+    assert not easy.hard_case and easy.value == pytest.approx(easy.upper, rel=1e-10)
+    for res, b in ((hard, [0.0, 0.1, 0.0]), (easy, [1.0, 0.2, 0.0])):
+        assert res.w @ res.w == pytest.approx(4.0, rel=1e-9)
+        c = 1.0 if res is easy else 0.0
+        for _ in range(200):                   # no sampled point beats the certificate
+            v = rng.standard_normal(3)
+            v *= 2.0 / np.linalg.norm(v) * rng.uniform(0, 1) ** (1 / 3)
+            assert v @ Amat @ v + 2 * np.dot(b, v) + c <= res.value + 1e-12
