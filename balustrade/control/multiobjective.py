@@ -1,0 +1,229 @@
+"""Algorithms 6.3 (multiobjective Lyapunov) and 6.4 (multiobjective robust PCBF).
+
+**Algorithm 6.3** (:class:`MultiobjectiveLyapunovController`, linear design (6.10)): at ``k = 0``
+solve (6.3) without (6.3h) for a feasible ``ũ_0`` (SPEC [Default]); then at every step solve
+(6.10) with ``bound = V((x_k, ũ_k)) − (1 − ρ) l(x_k, ũ_{0|k})``, apply ``ṽ_{0|k}``, measure
+``w_k = x_{k+1} − A x_k − B u_k`` and set ``ũ_{k+1} = ξ(x_{k+1}, ṽ_k, w_k)`` by the switching rule
+(6.6)/(6.7). Fallback when (6.10) fails: apply the warm start ``ũ_k`` itself, which satisfies
+(6.3b–h) (Assumption 6.7.2–3): ``"warm_start"``.
+
+**Algorithm 6.4** (:class:`MultiobjectivePCBFController`): at ``k = 0`` solve (5.15) and set
+``ξ̃_0 = ξ*``, ``ξ*_{−1} = ξ̃_0``; at every step solve (6.15) with
+``bound = (1−ρ) h̃(ξ̃_k) + ρ h̃(ξ*_{k−1})``, apply ``v_0 + κ(x_k − z_0)``, build ``ξ̃_{k+1}`` by
+(6.14) and store ``ξ*_k``. Fallback when (6.15) fails: apply the warm-start candidate (6.14)
+``(z̃, ṽ, ξ̃)``, feasible for (6.15) when ``E`` is RPI (Theorem 6.15): ``"warm_start"``.
+
+The decrease bounds get a margin ``bound_tol · max(1, bound)`` (default ``1e-9``) so that a
+candidate that meets them with equality is not declared infeasible by solver round-off.
+Recorded values: 6.3 — ``V`` (``V((x_k, ṽ_k))``), ``V_bound``; 6.4 — ``h_tilde``
+(``h̃(ξ*_k)``), ``bound``, ``h_cand`` (``h̃(ξ̃_k)``) and, with ``record_h_r=True``, ``h_r``
+(an extra (5.15) solve, not counted in ``solve_time``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.backends import Compiled, Solution, compile
+from balustrade.control.base import StepInfo
+from balustrade.control.pcbf import project
+from balustrade.control.robust import _opts
+from balustrade.dsl.error_sets import ErrorSet
+from balustrade.dsl.sets import Polytope
+from balustrade.dsl.system import System
+from balustrade.errors import NonFiniteError
+from balustrade.problems.multiobjective import (
+    LinearLyapunovDesign,
+    decrease_bound,
+    multiobjective_lyapunov_problem,
+    multiobjective_pcbf_problem,
+)
+from balustrade.problems.robust import (
+    Candidate,
+    Objective,
+    robust_candidate,
+    robust_pcbf_slack_problem,
+    robust_sets,
+    slack_cost,
+)
+
+
+class MultiobjectiveLyapunovController:
+    """Algorithm 6.3 for the linear design (6.10)."""
+
+    def __init__(self, design: LinearLyapunovDesign, problem: Compiled, init: Compiled,
+                 rho: float = 0.5, bound_tol: float = 1e-9):
+        if not 0.0 <= rho < 1.0:
+            raise ValueError(f"Algorithm 6.3: ρ must lie in [0, 1), got {rho}")
+        self.design, self.problem, self.init = design, problem, init
+        self.rho, self.bound_tol = rho, bound_tol
+        self.reset()
+
+    @classmethod
+    def build(cls, design: LinearLyapunovDesign, rho: float = 0.5,
+              objective: Objective | None = None, backend: str = "casadi",
+              solver: str | None = "ipopt") -> MultiobjectiveLyapunovController:
+        solver = solver if backend == "casadi" else None
+        prob = compile(multiobjective_lyapunov_problem(design, True, objective), backend, solver,
+                       _opts(solver, None))
+        init = compile(multiobjective_lyapunov_problem(design, False, name="mo_lyap_init"),
+                       backend, solver, _opts(solver, None))
+        return cls(design, prob, init, rho)
+
+    def reset(self) -> None:
+        self.u_tilde: np.ndarray | None = None
+        self._prev: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # x, u, ṽ
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        d = self.design
+        nu = d.system.nu
+        u_p = as_vector(u_p, "Algorithm 6.3: u_p", nu)
+        try:
+            x = as_vector(x, "Algorithm 6.3: x", d.system.nx)
+        except NonFiniteError:
+            return project(u_p, d.U), StepInfo(status="non_finite_state",
+                                               fallback="projected_proposal")
+        info = StepInfo()
+        if self._prev is None:
+            s0 = self.init.solve({"x0": x, "u_p": u_p})
+            info.solve_time += s0.solve_time
+            if not s0.success:
+                info.status = f"init_{s0.status}"
+                info.fallback = "projected_proposal"
+                return project(u_p, d.U), info
+            self.u_tilde = np.asarray(s0["v"], dtype=float).reshape(nu, -1)
+            info.values["switch"] = 0.0
+        else:
+            x_prev, u_prev, v_prev = self._prev
+            w = x - d.system.A @ x_prev - d.system.B @ u_prev
+            self.u_tilde, rule = d.switch(x, v_prev, w)
+            info.values["switch"] = 1.0 if rule == "xi_f" else 0.0
+        bound = d.bound(x, self.u_tilde, self.rho)
+        bound += self.bound_tol * max(1.0, abs(bound))
+        info.values["V_bound"] = bound
+        sol = self.problem.solve({"x0": x, "u_p": u_p, "bound": bound},
+                                 warm_start={"v": self.u_tilde,
+                                             "z": d.rollout(x, self.u_tilde)})
+        info.solve_time += sol.solve_time
+        info.solutions["problem"] = sol
+        if sol.success:
+            v = np.asarray(sol["v"], dtype=float).reshape(nu, -1)
+            info.status = "ok"
+        else:
+            v = self.u_tilde
+            info.status, info.fallback = f"problem_{sol.status}", "warm_start"
+        info.values["V"] = d.V(x, v)
+        u = v[:, 0].copy()
+        self._prev = (x, u, v)
+        return u, info
+
+
+class MultiobjectivePCBFController:
+    """Algorithm 6.4 over the compiled (5.15) (initialization) and (6.15)."""
+
+    def __init__(self, slack: Compiled, problem: Compiled, system: System, X_E: Polytope,
+                 U: Polytope, U_E: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
+                 deltas: np.ndarray, alpha_f: float, rho: float = 0.9,
+                 bound_tol: float = 1e-9, record_h_r: bool = False):
+        if not 0.0 <= rho < 1.0:
+            raise ValueError(f"Algorithm 6.4: ρ must lie in [0, 1), got {rho}")
+        self.slack, self.problem, self.system = slack, problem, system
+        self.X_E, self.U, self.U_E, self.error = X_E, U, U_E, error
+        self.h_f, self.pi_f = h_f, pi_f
+        self.deltas = np.asarray(deltas, dtype=float).reshape(-1)
+        self.alpha_f, self.rho, self.bound_tol = alpha_f, rho, bound_tol
+        self.record_h_r = record_h_r
+        self.reset()
+
+    @classmethod
+    def build(cls, system: System, X: Polytope, U: Polytope, h_f: Callable, pi_f: Callable,
+              N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
+              rho: float = 0.9, objective: Objective | None = None, backend: str = "casadi",
+              solver: str | None = "ipopt", slack_solver: str | None = "ipopt",
+              U_tight: Polytope | None = None, record_h_r: bool = False,
+              options: dict | None = None) -> MultiobjectivePCBFController:
+        """Build and compile (5.15) (ℓ1 slack norm) and (6.15) for ``backend``."""
+        solver = solver if backend == "casadi" else None
+        slack_solver = slack_solver if backend == "casadi" else None
+        slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
+                                                  1, U_tight), backend, slack_solver,
+                        _opts(slack_solver, options))
+        prob = compile(multiobjective_pcbf_problem(system, X, U, h_f, N, deltas, error, alpha_f,
+                                                   objective, U_tight), backend, solver,
+                       _opts(solver, options))
+        sets = robust_sets(X, U, error, U_tight)
+        return cls(slack, prob, system, sets.X_E, U, sets.U_E, error, h_f, pi_f, deltas,
+                   alpha_f, rho, record_h_r=record_h_r)
+
+    def reset(self) -> None:
+        self.candidate: Candidate | None = None
+        self.h_prev: float | None = None   # h̃(ξ*_{k−1})
+        self._last: Solution | None = None
+        self._last_slack: Solution | None = None
+
+    def h_tilde(self, xi: np.ndarray, xi_N: float) -> float:
+        return slack_cost(xi, xi_N, self.alpha_f, 1)
+
+    def _h_r(self, x: np.ndarray) -> Solution:
+        s = self.slack.solve({"x0": x}, warm_start=self._last_slack)
+        if s.success:
+            self._last_slack = s
+        return s
+
+    def _make_candidate(self, z: np.ndarray, v: np.ndarray, xi: np.ndarray) -> Candidate:
+        return robust_candidate(self.system, self.X_E, self.h_f, self.pi_f, self.deltas, z, v,
+                                xi, self.U_E)
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        nu, nx = self.system.nu, self.system.nx
+        u_p = as_vector(u_p, "Algorithm 6.4: u_p", nu)
+        try:
+            x = as_vector(x, "Algorithm 6.4: x", nx)
+        except NonFiniteError:
+            return project(u_p, self.U), StepInfo(status="non_finite_state",
+                                                  fallback="projected_proposal")
+        info = StepInfo()
+        if self.candidate is None:                      # initialization from (5.15)
+            s0 = self._h_r(x)
+            info.solve_time += s0.solve_time
+            if not s0.success:
+                info.status, info.fallback = f"init_{s0.status}", "projected_proposal"
+                return project(u_p, self.U), info
+            xi0 = np.maximum(np.asarray(s0["xi"], dtype=float).reshape(self.X_E.n_rows, -1), 0)
+            xi0_N = max(float(np.asarray(s0["xi_N"]).reshape(-1)[0]), 0.0)
+            self.candidate = Candidate(np.asarray(s0["z"], dtype=float),
+                                       np.asarray(s0["v"], dtype=float).reshape(nu, -1),
+                                       xi0, xi0_N)
+            self.h_prev = self.h_tilde(xi0, xi0_N)
+            if self.record_h_r:
+                info.values["h_r"] = max(float(s0.objective), 0.0)
+        elif self.record_h_r:
+            s_r = self._h_r(x)
+            info.values["h_r"] = max(float(s_r.objective), 0.0) if s_r.success else np.nan
+        c = self.candidate
+        h_cand = self.h_tilde(c.xi, c.xi_N)
+        bound = decrease_bound(h_cand, float(self.h_prev), self.rho)
+        bound += self.bound_tol * max(1.0, abs(bound))
+        info.values.update({"h_cand": h_cand, "bound": bound})
+        warm = self._last if self._last is not None else c.as_dict()
+        sol = self.problem.solve({"x0": x, "u_p": u_p, "bound": bound}, warm_start=warm)
+        info.solve_time += sol.solve_time
+        info.solutions["problem"] = sol
+        if sol.success:
+            self._last = sol
+            z = np.asarray(sol["z"], dtype=float)
+            v = np.asarray(sol["v"], dtype=float).reshape(nu, -1)
+            xi = np.maximum(np.asarray(sol["xi"], dtype=float).reshape(self.X_E.n_rows, -1), 0)
+            xi_N = max(float(np.asarray(sol["xi_N"]).reshape(-1)[0]), 0.0)
+            info.status = "ok"
+        else:
+            z, v, xi, xi_N = c.z, c.v, c.xi, c.xi_N
+            info.status, info.fallback = f"problem_{sol.status}", "warm_start"
+        self.h_prev = self.h_tilde(xi, xi_N)
+        info.values["h_tilde"] = self.h_prev
+        self.candidate = self._make_candidate(z, v, xi)
+        u = v[:, 0] + self.error.kappa(x - z[:, 0])
+        return u, info

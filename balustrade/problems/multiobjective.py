@@ -1,0 +1,219 @@
+"""Multiobjective formulations of thesis Chapter 6.
+
+* :class:`LinearLyapunovDesign` — the linear design of Section 6.3.2: ``l = ½xᵀQx + ½uᵀRu``,
+  ``m = ½xᵀPx`` with ``P`` from (6.13) (SPEC [Default]: ``A_Kᵀ P A_K − P = −(Q + KᵀRK)``), the
+  implicit Lyapunov function ``V((x, u))`` (6.2), the warm-start generators ``ξ_c`` (6.11) and
+  ``ξ_f`` (6.12) and the switching rule (6.6)/(6.7);
+* :func:`multiobjective_lyapunov_problem` — (6.3) in the linear form (6.10): reachable-set
+  tightenings and the Lyapunov decrease (6.3h) against the parameter ``bound``
+  ``= V((x_k, ũ_k)) − (1 − ρ) l(x_k, ũ_0)`` (computed by the algorithm, keeping the parameter
+  affine);
+* :func:`multiobjective_pcbf_problem` — (6.15): the robust PCBF constraints (5.15b–f) with the
+  slack decrease (6.15g) ``α_f ξ_N + Σ_i ‖ξ_i‖ <= bound``, ``bound = (1−ρ) h̃(ξ̃_k) + ρ h̃(ξ*_{k−1})``.
+  The slack norm is ``ℓ1``: with ``ξ_i >= 0`` it is ``1ᵀξ_i``, a linear constraint on both
+  backends (an ``ℓ2`` norm inside a constraint would need epigraph cones; SPEC §3.4's default for
+  the rendezvous is ``ℓ1``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+import scipy.linalg
+
+from balustrade._checks import as_matrix
+from balustrade.dsl import OCP, LinearSystem, Polytope, System, squared_norm
+from balustrade.dsl.error_sets import ErrorSet, reachable_tightened_sets
+from balustrade.errors import BalustradeError
+from balustrade.problems.robust import Objective, _syms, _tube_blocks, robust_sets
+
+
+# -- linear design (6.9)–(6.13) ---------------------------------------------------------------------
+def terminal_weight(A: np.ndarray, B: np.ndarray, K: np.ndarray, Q: np.ndarray, R: np.ndarray,
+                    printed: bool = False) -> np.ndarray:
+    """``P`` of (6.13): ``A_Kᵀ P A_K − P = −(Q + KᵀRK)`` (SPEC [Default]); ``printed=True``
+    solves the thesis' printed ``A_Kᵀ P A_K − P = −Q`` (violates Assumption 6.7.5 if ``K ≠ 0``)."""
+    A_K = A + B @ K
+    rhs = Q if printed else Q + K.T @ R @ K
+    P = scipy.linalg.solve_discrete_lyapunov(A_K.T, rhs)
+    return 0.5 * (P + P.T)
+
+
+@dataclass
+class LinearLyapunovDesign:
+    """Data of (6.10): ``x⁺ = Ax + Bu + w``, ``w ∈ W``, feedback ``K``, weights ``Q, R, P``, the
+    tightened sets ``X ⊖ E_i``, ``U ⊖ K E_i`` (``i ∈ I[0, N]``) and ``X_f ⊖ E_N``."""
+
+    system: LinearSystem
+    X: Polytope
+    U: Polytope
+    Xf: Polytope
+    W: Polytope
+    K: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    N: int
+    P: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        A, B = self.system.A, self.system.B
+        self.K = as_matrix(self.K, "LinearLyapunovDesign: K", (B.shape[1], A.shape[0]))
+        self.A_K = A + B @ self.K
+        if np.max(np.abs(np.linalg.eigvals(self.A_K))) >= 1:
+            raise BalustradeError("LinearLyapunovDesign: A + BK is not Schur stable")
+        if self.P is None:
+            self.P = terminal_weight(A, B, self.K, self.Q, self.R)
+        G = self.system.E if self.system.nw else None
+        self.G = np.eye(A.shape[0]) if G is None else G
+        self.Xs = reachable_tightened_sets(self.X, self.A_K, self.W, self.N, self.G, name="X")
+        self.Us = reachable_tightened_sets(self.U, self.A_K, self.W, self.N, self.G, K=self.K,
+                                           name="U")
+        self.Xf_N = reachable_tightened_sets(self.Xf, self.A_K, self.W, self.N, self.G,
+                                             name="Xf")[self.N]
+
+    # costs and V (6.2)
+    def l(self, x: np.ndarray, u: np.ndarray) -> float:
+        return float(0.5 * x @ self.Q @ x + 0.5 * u @ self.R @ u)
+
+    def m(self, x: np.ndarray) -> float:
+        return float(0.5 * x @ self.P @ x)
+
+    def rollout(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``φ(x, u; i)`` for ``i ∈ I[0, len(u)]`` as columns (nominal model)."""
+        A, B = self.system.A, self.system.B
+        u = np.asarray(u, dtype=float).reshape(B.shape[1], -1)
+        z = [np.asarray(x, dtype=float).reshape(-1)]
+        for i in range(u.shape[1]):
+            z.append(A @ z[-1] + B @ u[:, i])
+        return np.column_stack(z)
+
+    def V(self, x: np.ndarray, u: np.ndarray) -> float:
+        """(6.2): ``Σ_i l(φ_i, u_i) + m(φ_N)``."""
+        u = np.asarray(u, dtype=float).reshape(self.system.nu, -1)
+        z = self.rollout(x, u)
+        return sum(self.l(z[:, i], u[:, i]) for i in range(u.shape[1])) + self.m(z[:, -1])
+
+    # warm-start generators
+    def xi_c(self, x_next: np.ndarray, v: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """(6.11) with the SPEC corrections: ``(v_1 + Kw, …, v_{N−1} + K A_K^{N−2} w, last)``,
+        ``last = K φ(x_next, (ũ_0, …, ũ_{N−2}); N−1)`` (equal to ``K z_N + K A_K^{N−1} w``).
+        ``w`` is the disturbance in state coordinates, ``x_{k+1} − A x_k − B u_k``."""
+        v = np.asarray(v, dtype=float).reshape(self.system.nu, -1)
+        w = np.asarray(w, dtype=float).reshape(-1)
+        N = v.shape[1]
+        out = np.zeros_like(v)
+        e = w
+        for i in range(N - 1):
+            out[:, i] = v[:, i + 1] + self.K @ e
+            e = self.A_K @ e
+        z = self.rollout(x_next, out[:, : N - 1])
+        out[:, N - 1] = self.K @ z[:, -1]
+        return out
+
+    def xi_f(self, x: np.ndarray) -> np.ndarray:
+        """(6.12): ``(Kx, K A_K x, …, K A_K^{N−1} x)``."""
+        cols, z = [], np.asarray(x, dtype=float).reshape(-1)
+        for _ in range(self.N):
+            cols.append(self.K @ z)
+            z = self.A_K @ z
+        return np.column_stack(cols)
+
+    def admissible(self, x: np.ndarray, u: np.ndarray, tol: float = 1e-9) -> bool:
+        """Whether ``u`` and its rollout from ``x`` satisfy (6.3b–g)."""
+        u = np.asarray(u, dtype=float).reshape(self.system.nu, -1)
+        z = self.rollout(x, u)
+        return (all(self.Xs[i].contains(z[:, i], tol) for i in range(self.N))
+                and all(self.Us[i].contains(u[:, i], tol) for i in range(self.N))
+                and self.Xf_N.contains(z[:, -1], tol))
+
+    def switch(self, x: np.ndarray, v: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, str]:
+        """Switching rule (6.6)/(6.7): ``ξ_f`` if ``x ∈ X_f``, it does not increase ``V`` over
+        ``ξ_c`` and (SPEC [Default]) its rollout satisfies (6.3b–g); else ``ξ_c``."""
+        cand_c = self.xi_c(x, v, w)
+        if self.Xf.contains(x, 1e-12):
+            cand_f = self.xi_f(x)
+            if self.V(x, cand_f) <= self.V(x, cand_c) and self.admissible(x, cand_f):
+                return cand_f, "xi_f"
+        return cand_c, "xi_c"
+
+    def bound(self, x: np.ndarray, u_tilde: np.ndarray, rho: float) -> float:
+        """Right side of (6.3h): ``V((x, ũ)) − (1 − ρ) l(x, ũ_0)``."""
+        u_tilde = np.asarray(u_tilde, dtype=float).reshape(self.system.nu, -1)
+        return self.V(x, u_tilde) - (1.0 - rho) * self.l(x, u_tilde[:, 0])
+
+
+def multiobjective_lyapunov_problem(design: LinearLyapunovDesign, decrease: bool = True,
+                                    objective: Objective | None = None,
+                                    name: str = "multiobjective_lyapunov") -> OCP:
+    """(6.10): ``min J`` s.t. ``z_0 = x_k``, ``z_{i+1} = Az_i + Bv_i``, ``z_i ∈ X ⊖ E_i``,
+    ``v_i ∈ U ⊖ K E_i``, ``z_N ∈ X_f ⊖ E_N`` and (6.3h) at ``z_1 = Ax_k + Bv_0``:
+    ``Σ_{i=1}^{N−1} l(z_i, v_i) + l(z_N, Kz_N) + m(A_K z_N) <= bound``
+    (``V((z_1, ξ_c(z_1, v, 0)))``, a convex quadratic). Parameters ``x0``, ``u_p``, ``bound``.
+    ``decrease=False`` drops (6.3h): the feasibility problem of Algorithm 6.3 step 2 (cost
+    ``‖v‖²``). Default ``J = ‖v_0 − u_p‖²``."""
+    d, N = design, design.N
+    ocp = OCP(d.system, N, name=name, state_name="z", input_name="v")
+    x0 = ocp.parameter("x0", d.system.nx)
+    u_p = ocp.parameter("u_p", d.system.nu)
+    ocp.initial_state(x0)
+    ocp.dynamics()
+    ocp.state_constraint(d.Xs[:N])
+    ocp.input_constraint(d.Us[:N])
+    ocp.terminal_constraint(d.Xf_N)
+    z, v = ocp.x, ocp.u
+    if decrease:
+        bound = ocp.parameter("bound", 1)
+        Q, R, P, K = (ca.DM(M) for M in (d.Q, d.R, d.P, d.K))
+        zN = z[:, N]
+        uN = ca.mtimes(K, zN)
+        lhs = sum(0.5 * ca.mtimes([z[:, i].T, Q, z[:, i]]) + 0.5 * ca.mtimes([v[:, i].T, R,
+                                                                              v[:, i]])
+                  for i in range(1, N))
+        lhs = lhs + 0.5 * ca.mtimes([zN.T, Q, zN]) + 0.5 * ca.mtimes([uN.T, R, uN])
+        zN1 = ca.mtimes(ca.DM(d.A_K), zN)
+        lhs = lhs + 0.5 * ca.mtimes([zN1.T, P, zN1])
+        ocp.decrease(lhs, bound, name="lyapunov_decrease")                    # (6.3h)
+        syms = {"x0": x0, "u_p": u_p, "z": z, "v": v, "u0": v[:, 0]}
+        ocp.minimize(objective(ocp, syms) if objective is not None
+                     else squared_norm(v[:, 0] - u_p, label="filter"))
+    else:
+        ocp.minimize(squared_norm(ca.vec(v), label="feasibility"))
+    return ocp
+
+
+# -- multiobjective robust PCBF (6.15) ---------------------------------------------------------------
+def multiobjective_pcbf_problem(system: System, X: Polytope, U: Polytope, h_f: Callable,
+                                N: int, deltas: np.ndarray, error: ErrorSet,
+                                alpha_f: float = 1e6, objective: Objective | None = None,
+                                U_tight: Polytope | None = None,
+                                name: str = "multiobjective_pcbf") -> OCP:
+    """(6.15): ``min J`` over ``z`` (with ``z_0``), ``v``, ``ξ`` s.t. (6.15b–f) = (5.15b–f) and
+    (6.15g) ``α_f ξ_N + Σ_i 1ᵀξ_i <= bound`` (ℓ1 slack norm, linear since ``ξ >= 0``).
+
+    Parameters ``x0``, ``u_p``, ``bound`` (``= (1−ρ) h̃(ξ̃_k) + ρ h̃(ξ*_{k−1})``). Variables ``z``,
+    ``v``, ``xi``, ``xi_N``. Default ``J = ‖u_p − (v_0 + K(x_k − z_0))‖²``.
+    """
+    sets = robust_sets(X, U, error, U_tight)
+    ocp = OCP(system, N, name=name, state_name="z", input_name="v")
+    x0 = _tube_blocks(ocp, system, sets, error)                      # (6.15b–d)
+    u_p = ocp.parameter("u_p", system.nu)
+    bound = ocp.parameter("bound", 1)
+    xi = ocp.variable("xi", sets.X_E.n_rows, N, lb=0.0, role="slack")
+    xi_N = ocp.variable("xi_N", 1, 1, lb=0.0, role="slack")
+    ocp.state_constraint(sets.X_E, tightening=deltas, slack=xi)      # (6.15e)
+    ocp.terminal_cbf(h_f, slack=xi_N)                                # (6.15f)
+    ocp.decrease(alpha_f * xi_N + ca.sum1(ca.sum2(xi)), bound, name="slack_decrease")  # (6.15g)
+    syms = _syms(ocp, x0, u_p, error)
+    ocp.minimize(objective(ocp, syms) if objective is not None
+                 else squared_norm(syms["u0"] - u_p, label="filter"))
+    return ocp
+
+
+def decrease_bound(h_tilde_candidate: float, h_tilde_previous: float, rho: float) -> float:
+    """Right side of (6.15g): ``(1 − ρ) h̃(ξ̃_k) + ρ h̃(ξ*_{k−1})`` for ``ρ ∈ [0, 1)``."""
+    if not 0.0 <= rho < 1.0:
+        raise BalustradeError(f"(6.15g): ρ must lie in [0, 1), got {rho}")
+    return (1.0 - rho) * h_tilde_candidate + rho * h_tilde_previous
