@@ -126,7 +126,7 @@ def test_algorithm_5_2_monte_carlo(d):
     ctl = RobustPCBFSafetyFilter(d["slack_ip"], d["filter_ca"], system, d["X_E"], s.U, error,
                                  cbf, cbf.policy, s.deltas(), s.alpha_f)
     rng = np.random.default_rng(2024)
-    runs, steps, entered, positive, fallbacks = 200, 20, 0, 0, 0
+    runs, steps, entered, positive, fallbacks = 200, 15, 0, 0, 0
     for r in range(runs):
         ctl.reset()
         while True:  # initial states in D_r = {h_r <= α_f γ_f} (Theorem 5.15)

@@ -31,7 +31,7 @@ from balustrade.errors import BalustradeError
 from balustrade.problems.robust import Objective, _syms, _tube_blocks, robust_sets
 
 
-# -- linear design (6.9)–(6.13) ---------------------------------------------------------------------
+# -- linear design (6.9)–(6.13) ----------------------------------------------------------------
 def terminal_weight(A: np.ndarray, B: np.ndarray, K: np.ndarray, Q: np.ndarray, R: np.ndarray,
                     printed: bool = False) -> np.ndarray:
     """``P`` of (6.13): ``A_Kᵀ P A_K − P = −(Q + KᵀRK)`` (SPEC [Default]); ``printed=True``
@@ -75,7 +75,8 @@ class LinearLyapunovDesign:
                                              name="Xf")[self.N]
 
     # costs and V (6.2)
-    def l(self, x: np.ndarray, u: np.ndarray) -> float:
+    def stage(self, x: np.ndarray, u: np.ndarray) -> float:
+        """``l(x, u) = ½xᵀQx + ½uᵀRu``."""
         return float(0.5 * x @ self.Q @ x + 0.5 * u @ self.R @ u)
 
     def m(self, x: np.ndarray) -> float:
@@ -94,7 +95,7 @@ class LinearLyapunovDesign:
         """(6.2): ``Σ_i l(φ_i, u_i) + m(φ_N)``."""
         u = np.asarray(u, dtype=float).reshape(self.system.nu, -1)
         z = self.rollout(x, u)
-        return sum(self.l(z[:, i], u[:, i]) for i in range(u.shape[1])) + self.m(z[:, -1])
+        return sum(self.stage(z[:, i], u[:, i]) for i in range(u.shape[1])) + self.m(z[:, -1])
 
     # warm-start generators
     def xi_c(self, x_next: np.ndarray, v: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -142,7 +143,7 @@ class LinearLyapunovDesign:
     def bound(self, x: np.ndarray, u_tilde: np.ndarray, rho: float) -> float:
         """Right side of (6.3h): ``V((x, ũ)) − (1 − ρ) l(x, ũ_0)``."""
         u_tilde = np.asarray(u_tilde, dtype=float).reshape(self.system.nu, -1)
-        return self.V(x, u_tilde) - (1.0 - rho) * self.l(x, u_tilde[:, 0])
+        return self.V(x, u_tilde) - (1.0 - rho) * self.stage(x, u_tilde[:, 0])
 
 
 def multiobjective_lyapunov_problem(design: LinearLyapunovDesign, decrease: bool = True,
@@ -184,7 +185,7 @@ def multiobjective_lyapunov_problem(design: LinearLyapunovDesign, decrease: bool
     return ocp
 
 
-# -- multiobjective robust PCBF (6.15) ---------------------------------------------------------------
+# -- multiobjective robust PCBF (6.15) -----------------------------------------------------------
 def multiobjective_pcbf_problem(system: System, X: Polytope, U: Polytope, h_f: Callable,
                                 N: int, deltas: np.ndarray, error: ErrorSet,
                                 alpha_f: float = 1e6, objective: Objective | None = None,
