@@ -166,7 +166,7 @@ class _Problem:
         prob = cp.Problem(cp.Minimize(objective) if minimize else cp.Maximize(objective),
                           self.cons)
         try:
-            prob.solve(solver=solver, **solver_opts)
+            prob.solve(solver=solver, **_defaults(solver, self.split, dict(solver_opts)))
             status = str(prob.status)
         except cp.error.SolverError as exc:
             status = f"solver_error: {exc}"
@@ -195,6 +195,14 @@ def _psd_sizes(prob: cp.Problem) -> list[int]:
 
 def _solver_opts(solver_opts: dict | None) -> dict:
     return dict(solver_opts or {})
+
+
+def _defaults(solver: str, split: bool, opts: dict) -> dict:
+    """Clarabel: our split is already the chordal decomposition; its own merging of the
+    cones only enlarges them again (measured 2.5x slower), so it is switched off."""
+    if solver.upper() == "CLARABEL" and split:
+        opts.setdefault("chordal_decomposition_enable", False)
+    return opts
 
 
 def _p_blocks(ops: Operators, start_block: int = 1) -> list[slice]:
