@@ -1,0 +1,116 @@
+"""Regret SDPs of the rocket (Section 3.8): structured synthesis against a dense transcription.
+
+Each case runs in a fresh subprocess so that its peak resident memory can be reported
+(``peak_mem_mb`` = the child's max RSS, Python and imports included, about 100 MB).
+
+* ours: :func:`balustrade.problems.regret.generalized_regret` — causal variables only,
+  Φ_x eliminated, cost compressed by the square-root factor, chordal split of the LMI;
+* dense: a direct transcription of (3.28) — dense Φ with (3.14) and causality as equality
+  constraints, C^{1/2} and 𝒪 blocks in one LMI of size 1 + pT + (n+m)(T+1).
+
+Both without the constraints (3.41), so that the two SDPs are the same problem; the row
+records the relative difference of the optimal levels. Quick: T = 5 (both). Full: T = 10
+(both) and T = 25 (ours; the dense T = 25 baseline, ≈ 100 s and ≈ 9 GB, only when the
+environment variable BALUSTRADE_BENCH_DENSE_T25=1 is set and enough memory is free).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+_CHILD = r"""
+import json, resource, sys, time
+import numpy as np
+import cvxpy as cp
+from balustrade.models.rocket import RocketRegretSetup
+from balustrade.problems.regret import LTVSystem, build_operators, generalized_regret
+
+T, W, kind = int(sys.argv[1]), sys.argv[2], sys.argv[3]
+s = RocketRegretSetup(T=T)
+ops = build_operators(LTVSystem.create(s.A, s.B, T))
+x0, om = s.x0, s.omega
+t0 = time.perf_counter()
+if kind == "ours":
+    res = generalized_regret(ops, x0, om, W)
+    level, status = res.level, res.status
+else:
+    n, nd = ops.n, ops.nd
+    Nx, Nu = n * (T + 1), ops.m * (T + 1)
+    Wm = np.eye(nd) if W == "I" else ops.O
+    W1, W2, W3 = ops.partition(Wm)
+    O1, O2, O3 = ops.O_parts
+    Ch = np.eye(Nx + Nu)      # C = blkdiag(Q, R) = I for the rocket
+    Phi = cp.Variable((Nx + Nu, nd))
+    Px, Pu = Phi[:Nx], Phi[Nx:]
+    cons = [(np.eye(Nx) - ops.Z @ ops.Acal) @ Px - ops.Z @ ops.Bcal @ Pu == ops.Ecal]
+    for t in range(T + 1):
+        after = ops.d_blocks[t].stop
+        if after < nd:
+            cons.append(Pu[ops.u_blocks[t], after:] == 0)
+    mu, lam = cp.Variable(), cp.Variable(nonneg=True)
+    top = cp.reshape(mu * (x0 @ W1 @ x0) + x0 @ O1 @ x0 - lam * om, (1, 1), order="F")
+    r12 = cp.reshape(x0 @ O2.T + mu * (x0 @ W2.T), (1, nd - n), order="F")
+    c0 = cp.reshape(Ch @ Phi[:, :n] @ x0, (Nx + Nu, 1), order="F")
+    lmi = cp.bmat([[top, r12, c0.T],
+                   [r12.T, lam * np.eye(nd - n) + O3 + mu * W3, (Ch @ Phi[:, n:]).T],
+                   [c0, Ch @ Phi[:, n:], np.eye(Nx + Nu)]])
+    cons.append(0.5 * (lmi + lmi.T) >> 0)
+    prob = cp.Problem(cp.Minimize(mu), cons)
+    prob.solve(solver="CLARABEL")
+    level, status = mu.value, prob.status
+elapsed = time.perf_counter() - t0
+rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps({"time": elapsed, "level": None if level is None else float(level),
+                  "status": status, "rss_mb": rss}))
+"""
+
+
+def _run_case(T: int, W: str, kind: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", _CHILD, str(T), W, kind],
+                         capture_output=True, text=True, check=False)
+    if out.returncode != 0:
+        return {"time": float("nan"), "level": None, "status": f"error: {out.stderr[-300:]}",
+                "rss_mb": float("nan")}
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _mem_available_gb() -> float:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable"):
+                    return int(line.split()[1]) / 1024**2
+    except OSError:
+        pass
+    return 0.0
+
+
+def _row(T: int, W: str, ours: dict, dense: dict | None) -> dict:
+    label = "dynamic regret" if W == "I" else "competitive ratio"
+    row = {"name": f"rocket (3.28) {label} T={T}", "median_s": ours["time"],
+           "peak_mem_mb": round(ours["rss_mb"], 1), "level": ours["level"],
+           "status": ours["status"]}
+    if dense is not None:
+        row.update({"baseline": "dense (3.28)", "ratio": dense["time"] / ours["time"],
+                    "baseline_s": dense["time"], "baseline_peak_mem_mb": round(dense["rss_mb"], 1),
+                    "baseline_status": dense["status"]})
+        if ours["level"] is not None and dense["level"] is not None:
+            row["level_rel_diff"] = abs(ours["level"] - dense["level"]) / abs(dense["level"])
+    return row
+
+
+def run(quick: bool) -> list[dict]:
+    rows = []
+    cases = [(5, True)] if quick else [(10, True), (25, False)]
+    for T, with_dense in cases:
+        for W in ("I", "O"):
+            ours = _run_case(T, W, "ours")
+            dense_wanted = with_dense or (
+                T == 25 and os.environ.get("BALUSTRADE_BENCH_DENSE_T25") == "1"
+                and _mem_available_gb() > 14)
+            dense = _run_case(T, W, "dense") if dense_wanted else None
+            rows.append(_row(T, W, ours, dense))
+    return rows
