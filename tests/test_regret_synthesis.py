@@ -222,3 +222,24 @@ def test_chordal_split_equals_single_cone():
         assert a.ok and b.ok
         assert a.level == pytest.approx(b.level, rel=1e-6)
         assert max(a.info["psd_cone_sizes"]) < max(b.info["psd_cone_sizes"])
+
+
+def test_competitive_ratio_and_energy_constraints_hold_on_samples():
+    """SPEC 4 item 16: J ≤ (1+μ)J* on sampled w ∈ ℓ₂^ω; Remark 3.16 constraints hold."""
+    ops, rng = random_ops(13, n=2, m=1, T=5)
+    x0, omega = np.array([0.3, -0.2]), 0.5
+    box = np.vstack([np.eye(2), -np.eye(2)])
+    cons = StateInputConstraints.from_halfspaces(box, np.full(4, 3.0),
+                                                 np.array([[1.0], [-1.0]]), np.full(2, 5.0))
+    res = generalized_regret(ops, x0, omega, "O", constraints=cons)
+    assert res.ok
+    ctrl = res.controller()
+    for _ in range(50):
+        w = rng.standard_normal((ops.T, 2))
+        w *= np.sqrt(omega) / np.linalg.norm(w) * rng.uniform(0.2, 1.0)
+        run = ctrl.simulate(x0, w, constraints=cons)
+        assert run.J <= (1 + res.level) * run.J_star * (1 + 1e-6)
+        assert run.satisfied
+    worst = worst_case_regret_energy(ops, res.Phi_u, x0, omega)
+    run = ctrl.simulate(x0, worst.w.reshape(ops.T, 2), constraints=cons)
+    assert run.satisfied and run.ratio <= 1 + res.level * (1 + 1e-6)
