@@ -14,6 +14,7 @@ rocket of :mod:`balustrade.models.rocket` with the constraints (3.41) for the po
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -121,6 +122,8 @@ def synthesize_all(setup: RocketRegretSetup, solver_opts: dict | None = None) ->
         res = make()
         res.info["wall_s"] = time.perf_counter() - t0
         results[name] = res
+        print(f"[rocket-regret] T={setup.T} {name}: {res.status}, level {res.level}, "
+              f"{res.info['wall_s']:.1f} s", file=sys.stderr, flush=True)
     return {"ops": ops, "constraints": cons, "results": results}
 
 
