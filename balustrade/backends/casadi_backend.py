@@ -30,9 +30,11 @@ DEFAULT_OPTIONS: dict[str, dict] = {
                   "qpsol_options": {"print_iter": False, "print_header": False,
                                     "print_info": False, "error_on_fail": False},
                   "max_iter": 100, "tol_pr": 1e-9, "tol_du": 1e-6,
-                  # qrqp needs a positive definite Hessian: regularize the Lagrangian's
-                  # (singular for LP-like slack problems and input-only filter costs).
-                  "convexify_strategy": "regularize", "error_on_fail": False},
+                  # qrqp needs a positive definite Hessian (the Lagrangian's is singular
+                  # for LP-like slack problems and input-only filter costs). Eigenvalue
+                  # clipping, not "regularize"/"none": with those, CasADi 3.8's qrqp
+                  # corrupts the heap on small problems (docs/design-notes.md).
+                  "convexify_strategy": "eigen-clip", "error_on_fail": False},
 }
 
 
@@ -246,14 +248,11 @@ class CasadiCompiled:
 
 
 def sqp_retry_strategies(options: dict) -> list[str]:
-    """Hessian convexifications for cold-start ``sqpmethod`` retries: the other one of
-    ``regularize``/``none`` (qrqp needs a regularized Hessian on LP-like problems and stalls
-    with it at some degenerate points), then eigenvalue clipping, which converges on the
-    degenerate filter QPs (2.23) at the state-constraint boundary where both stall."""
+    """Hessian convexifications for cold-start ``sqpmethod`` retries: the eigenvalue-based
+    ones (clip, reflect) other than the one in ``options``. ``regularize`` and ``none`` are
+    never used: CasADi 3.8's qrqp corrupts the heap with them on small problems."""
     strategy = options.get("convexify_strategy", "none")
-    first = "none" if strategy != "none" else "regularize"
-    second = "eigen-clip" if strategy != "eigen-clip" else "eigen-reflect"
-    return [first, second]
+    return [s for s in ("eigen-clip", "eigen-reflect") if s != strategy]
 
 
 def default_retries(solver: str, options: dict) -> list[tuple[str, dict]]:
