@@ -44,6 +44,7 @@ from balustrade.problems.multiobjective import (
 from balustrade.problems.robust import (
     Candidate,
     Objective,
+    polished_slacks,
     robust_candidate,
     robust_pcbf_slack_problem,
     robust_sets,
@@ -192,17 +193,17 @@ class MultiobjectivePCBFController:
             if not s0.success:
                 info.status, info.fallback = f"init_{s0.status}", "projected_proposal"
                 return project(u_p, self.U), info
-            xi0 = np.maximum(np.asarray(s0["xi"], dtype=float).reshape(self.X_E.n_rows, -1), 0)
-            xi0_N = max(float(np.asarray(s0["xi_N"]).reshape(-1)[0]), 0.0)
+            xi0, xi0_N = polished_slacks(s0, self.X_E, self.h_f, self.deltas)
             self.candidate = Candidate(np.asarray(s0["z"], dtype=float),
                                        np.asarray(s0["v"], dtype=float).reshape(nu, -1),
                                        xi0, xi0_N)
             self.h_prev = self.h_tilde(xi0, xi0_N)
             if self.record_h_r:
-                info.values["h_r"] = max(float(s0.objective), 0.0)
+                info.values["h_r"] = self.h_prev
         elif self.record_h_r:
             s_r = self._h_r(x)
-            info.values["h_r"] = max(float(s_r.objective), 0.0) if s_r.success else np.nan
+            info.values["h_r"] = self.h_tilde(*polished_slacks(
+                s_r, self.X_E, self.h_f, self.deltas)) if s_r.success else np.nan
         c = self.candidate
         h_cand = self.h_tilde(c.xi, c.xi_N)
         bound = decrease_bound(h_cand, float(self.h_prev), self.rho)
@@ -216,8 +217,7 @@ class MultiobjectivePCBFController:
             self._last = sol
             z = np.asarray(sol["z"], dtype=float)
             v = np.asarray(sol["v"], dtype=float).reshape(nu, -1)
-            xi = np.maximum(np.asarray(sol["xi"], dtype=float).reshape(self.X_E.n_rows, -1), 0)
-            xi_N = max(float(np.asarray(sol["xi_N"]).reshape(-1)[0]), 0.0)
+            xi, xi_N = polished_slacks(sol, self.X_E, self.h_f, self.deltas)
             info.status = "ok"
         else:
             z, v, xi, xi_N = c.z, c.v, c.xi, c.xi_N

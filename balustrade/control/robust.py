@@ -33,6 +33,7 @@ from balustrade.errors import NonFiniteError
 from balustrade.problems.robust import (
     Candidate,
     Objective,
+    polished_slacks,
     robust_candidate,
     robust_pcbf_filter_problem,
     robust_pcbf_slack_problem,
@@ -88,9 +89,14 @@ class RobustPCBFSafetyFilter:
         self.candidate: Candidate | None = None
 
     def h_r(self, x: np.ndarray) -> tuple[float, Solution]:
-        """Solve (5.15) at ``x``: ``(h_r(x), solution)`` (``nan`` if the solve failed)."""
+        """Solve (5.15) at ``x``: ``(h_r(x), solution)`` (``nan`` if the solve failed); the
+        value is ``h̃`` of the polished slacks (:func:`polished_slacks`)."""
         s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=self._last_slack)
-        return (max(float(s.objective), 0.0) if s.success else float("nan")), s
+        if not s.success:
+            return float("nan"), s
+        xi, xi_N = polished_slacks(s, self.X_E, self.h_f, self.deltas)
+        return min(max(float(s.objective), 0.0),
+                   slack_cost(xi, xi_N, self.alpha_f, self.slack_norm)), s
 
     def _applied(self, x: np.ndarray, z0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         return np.asarray(v0, dtype=float).reshape(-1) + self.error.kappa(x - z0)
@@ -117,8 +123,7 @@ class RobustPCBFSafetyFilter:
             return self._fallback(x, u_p, info)
         self._last_slack = s1
         info.values["h_r"] = h_r
-        xi = np.maximum(np.asarray(s1["xi"], dtype=float).reshape(self.X_E.n_rows, -1), 0.0)
-        xi_N = max(float(np.asarray(s1["xi_N"]).reshape(-1)[0]), 0.0)
+        xi, xi_N = polished_slacks(s1, self.X_E, self.h_f, self.deltas)
         warm = self._last_filter if self._last_filter is not None else {"z": s1["z"],
                                                                          "v": s1["v"]}
         s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
@@ -148,7 +153,11 @@ class RobustPCBFSafetyFilter:
 
 def _opts(solver: str | None, options: dict | None) -> dict | None:
     """sqpmethod gets ``max_iter = 500`` (the default 100 stops early on tube problems) and
-    the user's options; other solvers their defaults."""
+    the user's options; other solvers the user's options that carry their prefix
+    (``ipopt.*``) or none."""
     if solver == "sqpmethod":
-        return {"max_iter": 500, **(options or {})}
+        return {"max_iter": 500, **{k: v for k, v in (options or {}).items()
+                                    if not k.startswith("ipopt.")}}
+    if solver == "ipopt" and options:
+        return {k: v for k, v in options.items() if k.startswith("ipopt.")} or None
     return None

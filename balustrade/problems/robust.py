@@ -273,3 +273,27 @@ def terminal_cbf_with_domain(A: np.ndarray, B: np.ndarray, X_E: Polytope, U_E: P
     cbf = synthesize_terminal_cbf(A, B, X_E, scaled, delta_N=delta_N,
                                   decrease_factor=decrease_factor)
     return replace(cbf, gamma_f=largest_level(cbf.P, cbf.K, U_E))
+
+
+def minimal_slacks(X_E: Polytope, h_f: Callable, deltas: np.ndarray, z: np.ndarray
+                   ) -> tuple[np.ndarray, float]:
+    """The smallest slacks a nominal trajectory ``z`` needs in (5.15e–f):
+    ``ξ_i = max(0, c_x^E(z_i) + Δ_i 1)``, ``ξ_N = max(0, h_f(z_N))`` (SPEC §1.4).
+
+    Applied to an interior-point optimizer of (5.15)/(6.15) it removes the barrier's slack
+    residue (IPOPT leaves ``α_f ξ_N ≈ 10⁻⁶…10⁻⁵`` on ``S_r``) without changing ``z``, so the
+    polished ``h̃`` is an upper bound on ``h_r`` at least as tight as the solver's value."""
+    z = np.asarray(z, dtype=float)
+    deltas = np.asarray(deltas, dtype=float).reshape(-1)
+    N = deltas.size
+    xi = np.maximum(0.0, X_E.H @ z[:, :N] - X_E.h[:, None] + deltas[None, :])
+    return xi, max(0.0, float(h_f(z[:, N])))
+
+
+def polished_slacks(solution, X_E: Polytope, h_f: Callable, deltas: np.ndarray
+                    ) -> tuple[np.ndarray, float]:
+    """Elementwise minimum of a solution's slacks and :func:`minimal_slacks` of its ``z``."""
+    xi = np.maximum(np.asarray(solution["xi"], dtype=float).reshape(X_E.n_rows, -1), 0.0)
+    xi_N = max(float(np.asarray(solution["xi_N"]).reshape(-1)[0]), 0.0)
+    xi_min, xi_N_min = minimal_slacks(X_E, h_f, deltas, solution["z"])
+    return np.minimum(xi, xi_min), min(xi_N, xi_N_min)
