@@ -24,7 +24,9 @@ from balustrade.errors import SolverError
 DEFAULT_OPTIONS: dict[str, dict] = {
     "ipopt": {"ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
               "ipopt.tol": 1e-10, "ipopt.acceptable_tol": 1e-8, "ipopt.max_iter": 500,
-              "ipopt.bound_relax_factor": 0.0},
+              # exact bounds and complementarity: slacks weighted by alpha_f = 1e6 would
+              # otherwise sit ~1e-12 inside their bounds, i.e. ~1e-6 in h_PB
+              "ipopt.bound_relax_factor": 0.0, "ipopt.compl_inf_tol": 1e-12},
     "sqpmethod": {"qpsol": "qrqp", "print_time": False, "print_header": False,
                   "print_iteration": False, "print_status": False,
                   "qpsol_options": {"print_iter": False, "print_header": False,
@@ -138,8 +140,8 @@ class CasadiCompiled:
         #: cold-start attempts after a failed solve: (solver plugin, option overrides)
         self.retries = default_retries(solver, opts) if retries is None else list(retries)
         self._retry: list[ca.Function] | None = None
-        self._dm = {k: ca.DM(getattr(self, k)) for k in ("lbx", "ubx", "lbg", "ubg")}
         self._g_function: ca.Function | None = None
+        self._dm = {k: ca.DM(getattr(self, k)) for k in ("lbx", "ubx", "lbg", "ubg")}
         self._objective = ca.Function("objective", [w_user, p], [ocp.cost.expr()])
 
     def solve(self, params: dict[str, object] | None = None,
@@ -149,7 +151,9 @@ class CasadiCompiled:
 
         A failed solve is retried from a cold start with each entry of :attr:`retries`
         in turn (see :func:`default_retries`); ``Solution.message`` and
-        ``Solution.solver`` say when a retry was used.
+        ``Solution.solver`` say when a retry was used. If no attempt converges but one
+        ended primal feasible (rows within 1e-8 relative), it is returned with status
+        ``"feasible"`` (not a success: feasible, not certified optimal).
         """
         p = self.ocp.pack_parameters(params)
         sol = self._solve_with(self.solver, p, self._initial_guess(warm_start))
@@ -159,6 +163,12 @@ class CasadiCompiled:
                 break
             attempts.append(self._solve_with(solver, p, self._initial_guess(None)))
         final = attempts[-1] if attempts[-1].success else attempts[0]
+        if not final.success:
+            feasible = [a for a in reversed(attempts) if a.raw.get("x") is not None
+                        and self._primal_feasible(a.raw["x"], p)]
+            if feasible:  # no attempt converged; report a primal-feasible point as such
+                final = feasible[0]
+                final.status = "feasible"
         if len(attempts) > 1:
             final.solve_time = sum(a.solve_time for a in attempts)
             final.iterations = sum(a.iterations for a in attempts)
@@ -194,12 +204,6 @@ class CasadiCompiled:
         lam_x = np.asarray(res["lam_x"]).reshape(-1)
         w = w_all[: self.n_user]
         status = _status(stats)
-        stalled = stats.get("return_status") == "Search_Direction_Becomes_Too_Small"
-        if status == "failed" and stalled and self._primal_feasible(w_all, p):
-            # The SQP step vanished at a primal-feasible point: the convex QP model has its
-            # KKT point at d = 0, i.e. the NLP is stationary; the dual-infeasibility test only
-            # failed on its absolute tolerance (multipliers of order alpha_f = 1e6).
-            status = "optimal_inaccurate"
         dual = {name: lam_g[s] for name, s in self.block_slices.items()}
         for name, arr in self.ocp.unpack_variables(lam_x[: self.n_user]).items():
             dual[f"bound:{name}"] = arr
@@ -218,6 +222,9 @@ class CasadiCompiled:
                              "dm": (res["x"], res["lam_x"], res["lam_g"])})
 
     def _primal_feasible(self, w_all: np.ndarray, p: np.ndarray, tol: float = 1e-8) -> bool:
+        """Bounds and constraint rows hold up to ``tol`` (rows scaled by ``1 + |g|``)."""
+        if not np.all(np.isfinite(w_all)):
+            return False
         if self._g_function is None:
             self._g_function = ca.Function("g", [self.nlp["x"], self.nlp["p"]],
                                            [self.nlp["g"]])

@@ -13,10 +13,11 @@ SUCCESS_STATUSES = ("optimal", "optimal_inaccurate")
 class Solution:
     """Result of one solve.
 
-    ``status`` is one of ``optimal``, ``optimal_inaccurate``, ``infeasible``,
-    ``max_iterations``, ``failed``; ``primal`` maps variable names to arrays of their
-    declared shapes; ``dual`` maps constraint-block names (and ``bound:<variable>``) to
-    multipliers; ``objective`` is the declared cost evaluated at the primal solution.
+    ``status`` is one of ``optimal``, ``optimal_inaccurate``, ``feasible`` (no convergence,
+    but a primal-feasible point), ``infeasible``, ``max_iterations``, ``failed``; ``primal``
+    maps variable names to arrays of their declared shapes; ``dual`` maps constraint-block
+    names (and ``bound:<variable>``) to multipliers; ``objective`` is the declared cost
+    evaluated at the primal solution.
     ``w`` is the stacked decision vector (declaration order), ``p`` the stacked parameters.
     """
 
@@ -36,6 +37,11 @@ class Solution:
     @property
     def success(self) -> bool:
         return self.status in SUCCESS_STATUSES
+
+    @property
+    def usable(self) -> bool:
+        """Converged, or at least primal feasible: safe to apply in a closed loop."""
+        return self.success or self.status == "feasible"
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.primal[name]

@@ -35,7 +35,8 @@ from balustrade.dsl.sets import Box
 from balustrade.errors import CodegenError
 
 MANIFEST_VERSION = 1
-#: scaled primal violation under which a stalled solve is accepted (as the CasADi backend)
+#: scaled primal violation under which a solve that no retry made converge is reported as
+#: BAL_FEASIBLE (a safe, possibly suboptimal point; the Python backend retries with IPOPT)
 STALL_TOL = 1e-8
 
 
@@ -113,8 +114,8 @@ def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> li
 def _kkt_function(c: CasadiCompiled, sym: str) -> ca.Function:
     """The solver's own convergence measures at a point, as a C-emittable function:
     ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``,
-    ``feas`` = largest violation with constraint rows scaled by ``1 + |g|`` (the test
-    :mod:`balustrade.backends.casadi_backend` applies to stalled SQP solves)."""
+    ``feas`` = largest violation with constraint rows scaled by ``1 + |g|`` (the test for
+    ``BAL_FEASIBLE`` after all retries)."""
     w, p, f, g = c.nlp["x"], c.nlp["p"], c.nlp["f"], c.nlp["g"]
     cls = type(w)
     lam_x = cls.sym("lam_x", w.numel())
@@ -331,12 +332,11 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
     (full primal solution; ``<name>_W_u`` is the offset of ``u``, so ``u_{0|k}`` is
     ``wk->x[<name>_W_u]``), ``wk->f`` (value), return value = status (``BAL_*``).
 
-    ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``; a solve that stops
-    without dual convergence but with a scaled constraint violation ``<= accept_tol``
-    (default ``1e-8``, the backend's test for stalled SQP solves) returns ``BAL_FEASIBLE``.
-    Unsolved attempts are retried from a cold start with the other Hessian convexification,
-    as the backend does, then with eigenvalue clipping instead of the backend's last resort
-    IPOPT (which cannot be emitted); see :func:`_retry_strategies`."""
+    ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``. Attempts that do not
+    converge are retried from a cold start with the backend's ``sqpmethod`` retries
+    (:func:`_retry_strategies`; the backend's last resort, IPOPT, cannot be emitted). If
+    none converges and the last attempt's scaled constraint violation is ``<= accept_tol``
+    (default ``1e-8``) the status is ``BAL_FEASIBLE``: safe to apply, possibly suboptimal."""
     _check_identifier(name)
     libs = _check_compiled(compiled, name, allow_external)
     out_dir = Path(out_dir)

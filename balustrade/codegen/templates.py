@@ -42,10 +42,13 @@ extern "C" {
 #define BAL_NOT_CONVERGED 1   /* stopped without convergence (iteration limit, infeasible) */
 #define BAL_EVAL_ERROR 2      /* CasADi reported an evaluation error, or not initialized */
 #define BAL_NONFINITE 3       /* the solution contains NaN or inf */
-#define BAL_FEASIBLE 4        /* not converged, but primal feasible up to the problem's
-                                 acceptance tolerance: the solver stopped on a vanishing
-                                 step, which CasADi's sqpmethod reports as success
-                                 (Search_Direction_Becomes_Too_Small), or on max_iter */
+#define BAL_FEASIBLE 4        /* no attempt converged (all retries done), but the last one
+                                 is primal feasible up to the problem's acceptance
+                                 tolerance (e.g. the SQP stalled on a vanishing step):
+                                 safe to apply, possibly suboptimal */
+/* the controllers apply converged and, after all retries, primal-feasible solutions (a
+   feasible point of (2.24)/(2.23) keeps the guarantees of the constraints), exactly as
+   balustrade.control does with the backend's "feasible" status */
 #define BAL_SOLVED(s) ((s) == BAL_OK || (s) == BAL_FEASIBLE)
 #define BAL_NOT_RUN (-1)      /* the solve was not attempted */
 #endif
@@ -74,11 +77,10 @@ PROBLEM_H = Template("""\
  * Parameters p (stacked, $np values):$param_doc
  * Decision vector x ($nw values):$var_doc
  * Constraint rows: $ng. BAL_OK when max violation < $tol_pr and inf-norm of the
- * Lagrangian gradient < $tol_du (the solver's own tests); else BAL_FEASIBLE when the
- * violation scaled by 1 + |g| is <= $accept_tol (a stalled SQP at a primal-feasible point,
- * as balustrade.backends accepts it). An unsolved attempt is retried from a cold start
- * with, in order: $retry_doc.
- * The PCBF step accepts BAL_OK and BAL_FEASIBLE (BAL_SOLVED).
+ * Lagrangian gradient < $tol_du (the solver's own tests). An attempt that did not
+ * converge is retried from a cold start with, in order: $retry_doc. If none converges,
+ * BAL_FEASIBLE when the last attempt's violation scaled by 1 + |g| is <= $accept_tol.
+ * The PCBF step applies BAL_OK and BAL_FEASIBLE solutions (BAL_SOLVED), else falls back.
  */
 #define ${P}_NP $np
 #define ${P}_NW $nw
@@ -226,12 +228,15 @@ int ${P}_solve(${P}_work* wk, const casadi_real* p) {
   if (!wk->ready) return BAL_EVAL_ERROR;
   wk->attempts = 0;
   first = ${P}_attempt(wk, p, 0);
-  if (BAL_SOLVED(first)) return first;
+  if (first == BAL_OK) return first;
+  status = first;
   for (which = 1; which < $n_solvers; ++which) {
     status = ${P}_attempt(wk, p, which);
-    if (BAL_SOLVED(status)) return status;
+    if (status == BAL_OK) return status;
   }
-  return first;  /* wk->x holds the last attempt */
+  /* nothing converged: a primal-feasible last attempt is reported as BAL_FEASIBLE (safe to
+     apply, possibly suboptimal); otherwise the first attempt's status */
+  return status == BAL_FEASIBLE ? status : first;  /* wk->x holds the last attempt */
 }
 
 const casadi_real* ${P}_primal(const ${P}_work* wk) { return wk->x; }

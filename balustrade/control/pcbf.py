@@ -2,7 +2,10 @@
 slack problem (2.24) for ``h_PB(x_k)`` and ``ξ*``, then the filter (2.23) with the slacks
 fixed to ``ξ*``, and apply ``u*_{0|k}``.
 
-Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
+A solve that did not converge after the backend's retries but ended primal feasible
+(``Solution.status == "feasible"``) is used as is — its point satisfies the constraints
+of (2.24)/(2.23) — and ``StepInfo.status`` says so. Fallbacks (never raise in the loop;
+each is recorded in ``StepInfo.fallback``):
 
 1. (2.23) fails but (2.24) succeeded → apply ``u_{0|k}`` of the (2.24) optimizer, which
    is feasible for (2.23) by construction (SPEC §2.7): ``"slack_solution"``.
@@ -60,10 +63,10 @@ class PCBFSafetyFilter:
             return self._fallback(u_p, StepInfo(status="non_finite_state"), "projected_proposal")
         s1 = self.slack.solve({"x0": x}, warm_start=self._last_slack)
         info = StepInfo(solve_time=s1.solve_time, solutions={"slack": s1})
-        if not s1.success:
+        if not s1.usable:
             info.status = f"slack_{s1.status}"
             return self._fallback(u_p, info, "shifted_plan")
-        self._last_slack = s1
+        self._last_slack = s1 if s1.success else self._last_slack
         h_pb = max(float(s1.objective), 0.0)
         info.values["h_PB"] = h_pb
         xi = np.maximum(np.asarray(s1["xi"]), 0.0)
@@ -73,10 +76,11 @@ class PCBFSafetyFilter:
         s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
-        if s2.success:
-            self._last_filter = s2
+        if s2.usable:
+            self._last_filter = s2 if s2.success else self._last_filter
             plan = np.asarray(s2["u"]).reshape(self.nu, -1)
-            info.status = "ok"
+            info.status = "ok" if s1.success and s2.success else (
+                f"slack_{s1.status}_filter_{s2.status}")
         else:
             info.status = f"filter_{s2.status}"
             info.fallback = "slack_solution"
