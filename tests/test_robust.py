@@ -11,6 +11,7 @@ from balustrade.control.robust import RobustPCBFSafetyFilter
 from balustrade.dsl.error_sets import ellipsoidal_rpi, minimal_rpi_outer
 from balustrade.models.unstable2d import unstable2d, unstable2d_setup
 from balustrade.problems.robust import (
+    polished_slacks,
     robust_candidate,
     robust_mpc_problem,
     robust_pcbf_filter_problem,
@@ -69,7 +70,9 @@ def test_h_r_lower_bound_and_zero_set(d):
         z0 = sol["z"][:, 0]
         assert sol.objective >= np.sum(np.maximum(d["X_E"].H @ z0 - d["X_E"].h, 0)) - 1e-9
     sol = d["slack_ca"].solve({"x0": np.zeros(2)})
-    assert abs(sol.objective) <= 1e-9
+    assert sol.success and abs(sol.objective) <= 1e-5
+    xi, xi_N = polished_slacks(sol, d["X_E"], d["cbf"], d["s"].deltas())
+    assert slack_cost(xi, xi_N, d["s"].alpha_f) <= 1e-12
 
 
 def test_filter_feasible_with_slack_optimum(d):
