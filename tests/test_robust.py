@@ -198,3 +198,13 @@ def test_robust_and_tube_mpc_compile_and_keep_the_tube(d, backend):
     assert a.success and b.success
     assert np.allclose(a["z"][:, 0], x)
     assert error.E.contains(x - b["z"][:, 0], tol=1e-7)
+
+
+@pytest.mark.slow
+def test_ch5_reproduction_writes_metrics_and_plots(tmp_path):
+    from balustrade.reproduce import registry
+
+    m = registry()["ch5-robust"](tmp_path, quick=True)
+    assert (tmp_path / "metrics.json").exists() and len(m["plots"]) == 2
+    assert all(c["max_violation"] == 0.0 for c in m["cases"]["robust"].values())
+    assert "thesis" in m["summary_table"]
