@@ -18,14 +18,17 @@ BACKENDS = {"casadi": CasadiCompiled, "cvxpy": CvxpyCompiled}
 
 
 def compile(ocp: OCP, backend: str = "casadi", solver: str | None = None,
-            options: dict | None = None) -> Compiled:
+            options: dict | None = None,
+            retries: list[tuple[str, dict]] | None = None) -> Compiled:
     """Compile ``ocp`` for ``backend``; CasADi's default solver is IPOPT, cvxpy's is PIQP
-    for LPs/QPs and Clarabel for conic problems."""
+    for LPs/QPs and Clarabel for conic problems. ``retries`` (CasADi only) replaces the
+    default retry chain after a failed solve (``[]`` turns retries off, e.g. for closed
+    loops that have their own fallbacks)."""
     if backend not in BACKENDS:
         raise SolverError(f"{ocp.name}: unknown backend {backend!r}; use one of "
                           f"{', '.join(BACKENDS)}")
     if backend == "casadi":
-        return CasadiCompiled(ocp, solver or "ipopt", options)
+        return CasadiCompiled(ocp, solver or "ipopt", options, retries)
     return CvxpyCompiled(ocp, solver, options)
 
 
