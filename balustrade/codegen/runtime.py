@@ -160,7 +160,23 @@ class _CProblemView:
         return out
 
 
-class CProblem:
+class _OwnsWork:
+    """Frees the C work structure allocated by the library (``self._work``, ``self._free``)
+    on :meth:`close` or garbage collection."""
+
+    def close(self) -> None:
+        if getattr(self, "_work", None):
+            self._free(self._work)
+            self._work = None
+
+    def __del__(self) -> None:  # pragma: no cover - interpreter shutdown order
+        try:
+            self.close()
+        except Exception:
+            pass
+
+
+class CProblem(_OwnsWork):
     """An emitted problem (:func:`~balustrade.codegen.emit.emit_problem`): ``solve(params)``
     returns ``(status, value, primal dict, w)`` from the C solver, warm-started from the
     previous converged solution unless ``warm=False``."""
@@ -207,19 +223,7 @@ class CProblem:
         return _STATUS.get(code, str(code)), float(self.view.value_fn(self._work)), \
             self.view.unpack(w), w
 
-    def close(self) -> None:
-        if getattr(self, "_work", None):
-            self._free(self._work)
-            self._work = None
-
-    def __del__(self) -> None:  # pragma: no cover
-        try:
-            self.close()
-        except Exception:
-            pass
-
-
-class CPCBFSafetyFilter:
+class CPCBFSafetyFilter(_OwnsWork):
     """The emitted PCBF step (2.24)+(2.23) as a closed-loop controller: the same
     ``step(x, u_p) -> (u, StepInfo)`` and ``reset()`` as
     :class:`~balustrade.control.pcbf.PCBFSafetyFilter`, the same fallbacks (computed in C),
@@ -295,18 +299,6 @@ class CPCBFSafetyFilter:
                               "filter": self.filter.unpack(self.filter.x.copy())}
         return u.copy(), info
 
-    def close(self) -> None:
-        if getattr(self, "_work", None):
-            self._free(self._work)
-            self._work = None
-
-    def __del__(self) -> None:  # pragma: no cover
-        try:
-            self.close()
-        except Exception:
-            pass
-
-
 def mirror_c_retries(compiled: object) -> object:
     """Make a compiled CasADi problem retry failed solves exactly as its emitted C does:
     the backend's cold-start ``sqpmethod`` retries without its last resort, IPOPT (which
@@ -319,7 +311,7 @@ def mirror_c_retries(compiled: object) -> object:
     return compiled
 
 
-class CApproximatePCBFFilter:
+class CApproximatePCBFFilter(_OwnsWork):
     """The emitted Algorithm 7.5 (:func:`~balustrade.codegen.emit.emit_approximate`) as a
     closed-loop controller with the interface and counters of
     :class:`~balustrade.control.approximate.ApproximatePCBFFilter`."""
@@ -382,14 +374,3 @@ class CApproximatePCBFFilter:
         if code not in (1, 3):
             info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))
         return self._u.copy(), info
-
-    def close(self) -> None:
-        if getattr(self, "_work", None):
-            self._free(self._work)
-            self._work = None
-
-    def __del__(self) -> None:  # pragma: no cover
-        try:
-            self.close()
-        except Exception:
-            pass

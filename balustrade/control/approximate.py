@@ -26,7 +26,7 @@ import numpy as np
 from balustrade._checks import as_vector
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.control.base import StepInfo
-from balustrade.control.pcbf import project
+from balustrade.control.fallbacks import project
 from balustrade.dsl.sets import Box, Set
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError

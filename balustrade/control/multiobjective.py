@@ -29,12 +29,11 @@ import numpy as np
 from balustrade._checks import as_vector
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.control.base import StepInfo
-from balustrade.control.pcbf import project
+from balustrade.control.fallbacks import finite_state, project, projected_proposal
 from balustrade.control.robust import _opts
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
-from balustrade.errors import NonFiniteError
 from balustrade.problems.multiobjective import (
     LinearLyapunovDesign,
     decrease_bound,
@@ -82,11 +81,9 @@ class MultiobjectiveLyapunovController:
         d = self.design
         nu = d.system.nu
         u_p = as_vector(u_p, "Algorithm 6.3: u_p", nu)
-        try:
-            x = as_vector(x, "Algorithm 6.3: x", d.system.nx)
-        except NonFiniteError:
-            return project(u_p, d.U), StepInfo(status="non_finite_state",
-                                               fallback="projected_proposal")
+        x = finite_state(x, d.system.nx, "Algorithm 6.3: x")
+        if x is None:
+            return projected_proposal(u_p, d.U)
         info = StepInfo()
         if self._prev is None:
             s0 = self.init.solve({"x0": x, "u_p": u_p})
@@ -181,11 +178,9 @@ class MultiobjectivePCBFController:
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         nu, nx = self.system.nu, self.system.nx
         u_p = as_vector(u_p, "Algorithm 6.4: u_p", nu)
-        try:
-            x = as_vector(x, "Algorithm 6.4: x", nx)
-        except NonFiniteError:
-            return project(u_p, self.U), StepInfo(status="non_finite_state",
-                                                  fallback="projected_proposal")
+        x = finite_state(x, nx, "Algorithm 6.4: x")
+        if x is None:
+            return projected_proposal(u_p, self.U)
         info = StepInfo()
         if self.candidate is None:                      # initialization from (5.15)
             s0 = self._h_r(x)

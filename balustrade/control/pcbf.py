@@ -23,9 +23,9 @@ import numpy as np
 from balustrade._checks import as_vector
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.control.base import StepInfo
-from balustrade.dsl.sets import Box, Set
+from balustrade.control.fallbacks import finite_state, project, projected_proposal
+from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
-from balustrade.errors import NonFiniteError
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
 
 
@@ -57,10 +57,9 @@ class PCBFSafetyFilter:
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         u_p = as_vector(u_p, "PCBFSafetyFilter.step: u_p", self.nu)
-        try:
-            x = as_vector(x, "PCBFSafetyFilter.step: x")
-        except NonFiniteError:
-            return self._fallback(u_p, StepInfo(status="non_finite_state"), "projected_proposal")
+        x = finite_state(x, None, "PCBFSafetyFilter.step: x")
+        if x is None:
+            return projected_proposal(u_p, self.U)
         s1 = self.slack.solve({"x0": x}, warm_start=self._last_slack)
         info = StepInfo(solve_time=s1.solve_time, solutions={"slack": s1})
         if not s1.usable:
@@ -97,20 +96,3 @@ class PCBFSafetyFilter:
             return self._plan[:, self._plan_age].copy(), info
         info.fallback = "projected_proposal"
         return project(u_p, self.U), info
-
-
-def project(u: np.ndarray, U: Set) -> np.ndarray:
-    """Euclidean projection onto ``U`` (clipping for boxes, a small QP otherwise)."""
-    u = np.asarray(u, dtype=float).reshape(-1)
-    if isinstance(U, Box):
-        return np.clip(u, U.lb, U.ub)
-    if U.contains(u):
-        return u
-    import cvxpy as cp
-
-    v = cp.Variable(U.dim)
-    H, h = getattr(U, "H", None), getattr(U, "h", None)
-    if H is None:
-        return u
-    cp.Problem(cp.Minimize(cp.sum_squares(v - u)), [H @ v <= h]).solve(solver="CLARABEL")
-    return np.asarray(v.value, dtype=float)

@@ -25,11 +25,10 @@ import numpy as np
 from balustrade._checks import as_vector
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.control.base import StepInfo
-from balustrade.control.pcbf import project
+from balustrade.control.fallbacks import finite_state, project, projected_proposal
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
-from balustrade.errors import NonFiniteError
 from balustrade.problems.robust import (
     Candidate,
     Objective,
@@ -107,11 +106,9 @@ class RobustPCBFSafetyFilter:
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         u_p = as_vector(u_p, "RobustPCBFSafetyFilter.step: u_p", self.system.nu)
-        try:
-            x = as_vector(x, "RobustPCBFSafetyFilter.step: x", self.system.nx)
-        except NonFiniteError:
-            return project(u_p, self.U), StepInfo(status="non_finite_state",
-                                                  fallback="projected_proposal")
+        x = finite_state(x, self.system.nx, "RobustPCBFSafetyFilter.step: x")
+        if x is None:
+            return projected_proposal(u_p, self.U)
         info = StepInfo()
         if self.candidate is not None:
             c = self.candidate

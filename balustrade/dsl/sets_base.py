@@ -7,6 +7,7 @@ The concrete sets live in :mod:`balustrade.dsl.sets` (Polytope, Box, Ellipsoid) 
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING
 
 import casadi as ca
@@ -46,7 +47,7 @@ def check_scalar(alpha: float, block: str) -> float:
     return a
 
 
-class Set:
+class Set(ABC):
     """A closed set ``{x ∈ R^dim : c(x) <= 0}``."""
 
     dim: int
@@ -54,18 +55,18 @@ class Set:
     #: make ``ndarray @ S`` call :meth:`__rmatmul__` instead of numpy broadcasting
     __array_ufunc__ = None
 
+    @abstractmethod
     def c(self, x: Symbolic) -> Symbolic:
         """Constraint function rows ``c(x)`` (a column), ``x ∈ S ⟺ c(x) <= 0``."""
-        raise NotImplementedError  # pragma: no cover - abstract
 
     @property
     def n_rows(self) -> int:
         """Number of rows of ``c``."""
         return int(self.c(ca.SX.sym("x", self.dim)).numel())
 
+    @abstractmethod
     def support(self, a: np.ndarray) -> float:
         """Support function ``h_S(a) = max_{x∈S} aᵀx``."""
-        raise NotImplementedError  # pragma: no cover - abstract
 
     def contains(self, x: np.ndarray, tol: float = 1e-9) -> bool:
         """Whether the point ``x`` lies in the set (up to ``tol``)."""
