@@ -190,3 +190,60 @@ def test_grid_filter_algorithm_8_7(states):
             assert float(h(SYS.step(x, u))) == pytest.approx(vals.min())
     g.reset()
     assert g.u_prev[0] == 0.0
+
+
+def h_monotone(x):
+    """A stand-in whose (7.6) minimizer often lies at a bound of ``U`` (a tilted bowl)."""
+    return h_nonneg(x) + 0.8 * x[1]
+
+
+@pytest.mark.parametrize("solver", ["sqpmethod", "ipopt"])
+@pytest.mark.parametrize("h_fun", [h_wavy, h_monotone])
+def test_fast_path_equals_the_compiled_solves(states, solver, h_fun):
+    """``fast=True`` (buffered evaluations, the KKT-vertex start, :class:`FastNLP`) gives
+    the answers of ``fast=False`` (every local solve through ``Compiled.solve``)."""
+    kw = dict(rho=0.4, solver=solver, certify=False)
+    fast = ApproximatePCBFFilter(SYS, U, h_fun, **kw)
+    slow = ApproximatePCBFFilter(SYS, U, h_fun, fast=False, **kw)
+    rng = np.random.default_rng(13)
+    tol = 1e-12 if solver == "sqpmethod" else 1e-7  # IPOPT stops near a bound, not on it
+    for x in states:
+        u_p = rng.uniform(-3.5, 3.5, 1)
+        a, b = fast.decrease.solve(x, u_p), slow.decrease.solve(x, u_p)
+        assert a.success and b.success
+        assert np.abs(a.u - b.u).max() <= tol and abs(a.dh - b.dh) <= tol
+        assert a.h_x == b.h_x and a.h_proposal == pytest.approx(b.h_proposal, abs=1e-14)
+        (u1, i1), (u2, i2) = fast.step(x, u_p), slow.step(x, u_p)
+        assert (i1.status, i1.fallback) == (i2.status, i2.fallback)
+        assert np.abs(u1 - u2).max() <= (1e-9 if solver == "sqpmethod" else 1e-6)
+    assert (fast.n_proposal_feasible, fast.n_fallbacks) == \
+        (slow.n_proposal_feasible, slow.n_fallbacks)
+
+
+def test_kkt_vertex_start_is_the_solvers_answer(states):
+    """Where the screened start is a vertex of ``U`` with ``∇_u ĥ(f(x, u))`` pointing out
+    of ``U``, ``sqpmethod`` started there returns the start itself: skipping it is exact."""
+    dec = MaximalDecrease(SYS, U, h_monotone, solver="sqpmethod")
+    rng = np.random.default_rng(2)
+    fired = 0
+    for x in np.vstack([states, rng.uniform([-2.0, -8.0], [2.0, 8.0], (100, 2))]):
+        res = dec.solve(x, np.zeros(1))
+        for c in (np.array([3.0]), np.array([-3.0])):
+            if dec._kkt_start(x, c):
+                fired += 1
+                sol = dec.compiled.solve({"x0": x}, warm_start={"u": c})
+                assert sol.success and np.array_equal(np.asarray(sol["u"]).reshape(1), c)
+        if res.n_kkt_starts:
+            assert res.u[0] in (3.0, -3.0) and not res.solutions
+    assert fired >= 20
+
+
+def test_buffered_evaluations_equal_the_casadi_calls(states):
+    f = ApproximatePCBFFilter(SYS, U, h_wavy, solver="sqpmethod")
+    h = as_h_function(h_wavy, 2)
+    rng = np.random.default_rng(4)
+    for x in states:
+        u = rng.uniform(-3, 3, 1)
+        assert f.decrease.h_next(x, u) == float(f._h_next(x, u))
+        assert f.decrease.h_value(x) == float(h(x))
+        assert f.certifies(x, u) == (float(f._h_next(x, u)) <= 0.0)

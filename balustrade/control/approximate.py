@@ -31,6 +31,8 @@ from balustrade.dsl.sets import Box, Set
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError
 from balustrade.problems.approximate import (
+    DecreaseResult,
+    FastNLP,
     HHat,
     MaximalDecrease,
     approximate_filter_problem,
@@ -54,17 +56,22 @@ class ApproximatePCBFFilter:
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
                  solver: str = "ipopt", options: dict | None = None, certify: bool = True,
                  grid_points: int = 5, n_local: int = 1, eps: float = 1e-6,
-                 exact_shortcut: bool = True):
+                 exact_shortcut: bool = True, fast: bool = True):
         if not 0.0 < float(rho) <= 1.0:
             raise BalustradeError(f"ApproximatePCBFFilter: rho must lie in (0, 1], got {rho!r}")
         self.system, self.U, self.rho, self.certify = system, U, float(rho), bool(certify)
         self.exact_shortcut = bool(exact_shortcut)
         self.nu = system.nu
         self.h = as_h_function(h_hat, system.nx)
-        self.decrease = MaximalDecrease(system, U, self.h, solver, options, grid_points, n_local)
+        self.fast = bool(fast)
+        self.decrease = MaximalDecrease(system, U, self.h, solver, options, grid_points, n_local,
+                                        fast=self.fast)
         self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps),
                                         "casadi", solver, solver_options(solver, options))
         self._h_next = self.decrease._h_next
+        self._fast_filter: FastNLP | None = None
+        if isinstance(U, Box):
+            self._u_lo, self._u_hi = U.lb - 1e-9, U.ub + 1e-9
         self.reset()
 
     def reset(self) -> None:
@@ -73,7 +80,11 @@ class ApproximatePCBFFilter:
 
     def certifies(self, x: np.ndarray, u_p: np.ndarray) -> bool:
         """Line 4 of Algorithm 7.5: ``u_p ∈ U`` and ``ĥ(f(x, u_p)) <= 0``."""
-        return bool(in_set(u_p, self.U) and float(self._h_next(x, u_p)) <= 0.0)
+        if isinstance(self.U, Box):  # in_set(u_p, U) for a box, inlined
+            inside = bool((u_p >= self._u_lo).all() and (u_p <= self._u_hi).all())
+        else:
+            inside = in_set(u_p, self.U)
+        return inside and self.decrease.h_next(x, u_p) <= 0.0
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         self.n_steps += 1
@@ -100,30 +111,63 @@ class ApproximatePCBFFilter:
 
     def _solve(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         self.n_solved += 1
+        start = time.perf_counter()
         dec = self.decrease.solve(x, u_p)
-        info = StepInfo(solve_time=dec.solve_time, solutions={"max_decrease": dec.solutions})
+        info = StepInfo(solutions={"max_decrease": dec.solutions})
         info.values.update(certified=0.0, h_hat=dec.h_x, dh=dec.dh)
         if not dec.success:
             info.status, info.fallback = "max_decrease_failed", "grid_minimizer"
             self.n_fallbacks += 1
+            info.solve_time = time.perf_counter() - start
             return dec.u.copy(), info
-        if self.exact_shortcut and in_set(u_p, self.U) and \
-                self.decrease.h_next(x, u_p) - dec.h_x <= decrease_bound(dec.dh, self.rho):
-            # u_p is feasible in (7.5), where the cost is 0: it is the minimizer (exact)
-            self.n_proposal_feasible += 1
-            info.status = "proposal_feasible"
-            return u_p.copy(), info
-        sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},
-                                warm_start={"u": dec.u})
-        info.solve_time += sol.solve_time
-        info.solutions["filter"] = sol
-        u = np.asarray(sol["u"], float).reshape(self.nu) if sol.success else None
+        if self.exact_shortcut and in_set(u_p, self.U):
+            # ĥ(f(x, u_p)): u_p is the screening candidate clip_U(u_p) unless it lies
+            # within the 1e-9 tolerance outside U
+            h_up = dec.h_proposal if np.array_equal(dec.u_proposal, u_p) \
+                else self.decrease.h_next(x, u_p)
+            if h_up - dec.h_x <= decrease_bound(dec.dh, self.rho):
+                # u_p is feasible in (7.5), where the cost is 0: it is the minimizer (exact)
+                self.n_proposal_feasible += 1
+                info.status = "proposal_feasible"
+                info.solve_time = time.perf_counter() - start
+                return u_p.copy(), info
+        u, status = self._filter(x, u_p, dec, info)
+        info.solve_time = time.perf_counter() - start
         if u is not None and in_set(u, self.U, 1e-7):
             info.status = "ok"
             return u, info
-        info.status, info.fallback = f"filter_{sol.status}", "max_decrease_solution"
+        info.status, info.fallback = f"filter_{status}", "max_decrease_solution"
         self.n_fallbacks += 1
         return dec.u.copy(), info
+
+    def _filter(self, x: np.ndarray, u_p: np.ndarray, dec: DecreaseResult,
+                info: StepInfo) -> tuple[np.ndarray | None, str]:
+        """(7.5) warm-started at the (7.6) minimizer: a :class:`FastNLP` solve (same
+        problem and options, cold multipliers), the compiled problem's ``solve`` (with
+        its retries) if that fails or ``fast=False``. Returns the minimizer (``None`` on
+        failure) and the solution status."""
+        if self.fast:
+            if self._fast_filter is None:
+                self._fast_filter = FastNLP(self.filter)
+                offsets = {}
+                k = 0
+                for prm in self.filter.ocp.parameters.values():
+                    offsets[prm.name] = slice(k, k + prm.shape[0] * prm.shape[1])
+                    k += prm.shape[0] * prm.shape[1]
+                self._p_filter = np.zeros(k)
+                self._p_offsets = offsets
+            p, o = self._p_filter, self._p_offsets
+            p[o["x0"]], p[o["u_p"]], p[o["dh"]], p[o["rho"]] = x, u_p, dec.dh, self.rho
+            out = self._fast_filter.solve(p, {"u": dec.u})
+            if out is not None:
+                u = out[0][self._fast_filter.offsets["u"]].copy()
+                if np.all(np.isfinite(u)):
+                    return u, "optimal"
+        sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},
+                                warm_start={"u": dec.u})
+        info.solutions["filter"] = sol
+        u = np.asarray(sol["u"], float).reshape(self.nu) if sol.success else None
+        return u, sol.status
 
 
 class GridPCBFFilter:
