@@ -24,43 +24,23 @@ import sys
 _CHILD = r"""
 import json, resource, sys, time
 import numpy as np
-import cvxpy as cp
 from balustrade.models.rocket import RocketRegretSetup
 from balustrade.problems.regret import LTVSystem, build_operators, generalized_regret
+from balustrade.problems.regret.dense import dense_generalized_regret
 
 T, W, kind = int(sys.argv[1]), sys.argv[2], sys.argv[3]
 s = RocketRegretSetup(T=T)
 ops = build_operators(LTVSystem.create(s.A, s.B, T))
 x0, om = s.x0, s.omega
+# both sides solved to the same tight tolerances, so that the levels can agree to 1e-6
+TOL = {"tol_gap_rel": 1e-10, "tol_gap_abs": 1e-10, "tol_feas": 1e-10}
 t0 = time.perf_counter()
 if kind == "ours":
-    res = generalized_regret(ops, x0, om, W)
+    res = generalized_regret(ops, x0, om, W, solver_opts=TOL)
     level, status = res.level, res.status
 else:
-    n, nd = ops.n, ops.nd
-    Nx, Nu = n * (T + 1), ops.m * (T + 1)
-    Wm = np.eye(nd) if W == "I" else ops.O
-    W1, W2, W3 = ops.partition(Wm)
-    O1, O2, O3 = ops.O_parts
-    Ch = np.eye(Nx + Nu)      # C = blkdiag(Q, R) = I for the rocket
-    Phi = cp.Variable((Nx + Nu, nd))
-    Px, Pu = Phi[:Nx], Phi[Nx:]
-    cons = [(np.eye(Nx) - ops.Z @ ops.Acal) @ Px - ops.Z @ ops.Bcal @ Pu == ops.Ecal]
-    for t in range(T + 1):
-        after = ops.d_blocks[t].stop
-        if after < nd:
-            cons.append(Pu[ops.u_blocks[t], after:] == 0)
-    mu, lam = cp.Variable(), cp.Variable(nonneg=True)
-    top = cp.reshape(mu * (x0 @ W1 @ x0) + x0 @ O1 @ x0 - lam * om, (1, 1), order="F")
-    r12 = cp.reshape(x0 @ O2.T + mu * (x0 @ W2.T), (1, nd - n), order="F")
-    c0 = cp.reshape(Ch @ Phi[:, :n] @ x0, (Nx + Nu, 1), order="F")
-    lmi = cp.bmat([[top, r12, c0.T],
-                   [r12.T, lam * np.eye(nd - n) + O3 + mu * W3, (Ch @ Phi[:, n:]).T],
-                   [c0, Ch @ Phi[:, n:], np.eye(Nx + Nu)]])
-    cons.append(0.5 * (lmi + lmi.T) >> 0)
-    prob = cp.Problem(cp.Minimize(mu), cons)
-    prob.solve(solver="CLARABEL")
-    level, status = mu.value, prob.status
+    Wm = np.eye(ops.nd) if W == "I" else ops.O
+    status, level = dense_generalized_regret(ops, x0, om, Wm, solver_opts=TOL)
 elapsed = time.perf_counter() - t0
 rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({"time": elapsed, "level": None if level is None else float(level),

@@ -1,6 +1,5 @@
 """Regret SDPs (3.19)-(3.34): tightness, orderings, and agreement with dense transcriptions."""
 
-import cvxpy as cp
 import numpy as np
 import pytest
 
@@ -17,6 +16,7 @@ from balustrade.problems.regret import (
     pointwise_regret,
     zero_x0_regret,
 )
+from balustrade.problems.regret.dense import dense_generalized_regret
 from balustrade.problems.regret.verify import (
     pointwise_regret_lower_bound,
     regret_matrix,
@@ -33,38 +33,10 @@ def random_ops(seed: int, n: int = 3, m: int = 2, T: int = 5):
 
 
 def dense_level(ops, x0, omega, W, zero_x0=False):
-    """Brute-force transcription of (3.28) / (3.30): dense Φ, explicit (3.14), causality by
-    equality constraints, C^{1/2} and 𝒪 blocks as printed in the thesis. No structure used."""
-    n, nd = ops.n, ops.nd
-    Nx, Nu = ops.n * (ops.T + 1), ops.m * (ops.T + 1)
-    Phi = cp.Variable((Nx + Nu, nd))
-    Phi_x, Phi_u = Phi[:Nx], Phi[Nx:]
-    cons = [(np.eye(Nx) - ops.Z @ ops.Acal) @ Phi_x - ops.Z @ ops.Bcal @ Phi_u == ops.Ecal]
-    for t in range(ops.T + 1):
-        after = ops.d_blocks[t].stop
-        if after < nd:
-            cons.append(Phi_u[ops.u_blocks[t], after:] == 0)
-    C = np.block([[ops.Qcal, np.zeros((Nx, Nu))], [np.zeros((Nu, Nx)), ops.Rcal]])
-    Ch = np.real(np.linalg.cholesky(C)).T   # Ch.T @ Ch = C
-    W1, W2, W3 = ops.partition(W)
-    O1, O2, O3 = ops.O_parts
-    mu = cp.Variable()
-    if zero_x0:
-        lmi = cp.bmat([[mu * W3 + O3, (Ch @ Phi[:, n:]).T], [Ch @ Phi[:, n:], np.eye(Nx + Nu)]])
-    else:
-        lam = cp.Variable(nonneg=True)
-        cons.append(lam >= 0)
-        top = cp.reshape(mu * (x0 @ W1 @ x0) + x0 @ O1 @ x0 - lam * omega, (1, 1), order="F")
-        r12 = cp.reshape(x0 @ O2.T + mu * (x0 @ W2.T), (1, nd - n), order="F")
-        c0 = cp.reshape(Ch @ Phi[:, :n] @ x0, (Nx + Nu, 1), order="F")
-        lmi = cp.bmat([[top, r12, c0.T],
-                       [r12.T, lam * np.eye(nd - n) + O3 + mu * W3, (Ch @ Phi[:, n:]).T],
-                       [c0, Ch @ Phi[:, n:], np.eye(Nx + Nu)]])
-    cons.append(0.5 * (lmi + lmi.T) >> 0)
-    prob = cp.Problem(cp.Minimize(mu), cons)
-    prob.solve(solver="CLARABEL")
-    assert prob.status == "optimal"
-    return mu.value
+    """Level of the unstructured reference transcription (dense Φ, (3.14) explicit)."""
+    status, level = dense_generalized_regret(ops, x0, omega, W, zero_x0=zero_x0)
+    assert status == "optimal"
+    return level
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
