@@ -154,6 +154,29 @@ def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ..
     return libs
 
 
+def _controller_pair(controller: object, name: str, kind: str, first: object, second: object,
+                     labels: tuple[str, str], allow_external: bool
+                     ) -> tuple[CasadiCompiled, CasadiCompiled, Box, tuple[str, ...]]:
+    """The two compiled problems and the box U of a two-problem controller, checked for C."""
+    U = getattr(controller, "U", None)
+    if first is None or second is None or U is None:
+        raise CodegenError(f"{name}: expected a {kind}, got {type(controller).__name__}")
+    libs = _check_compiled(first, f"{name}: {labels[0]}", allow_external)
+    libs += _check_compiled(second, f"{name}: {labels[1]}", allow_external)
+    if not isinstance(U, Box):
+        raise CodegenError(f"{name}: the C step projects onto U by clipping, so U must be a "
+                           f"Box, got {type(U).__name__}")
+    return first, second, U, libs
+
+
+def _require(name: str, needed: dict[str, tuple[dict, list[str]]], hint: str) -> None:
+    """Raise a CodegenError naming the parameters/variables a generated step relies on."""
+    for what, (have, names) in needed.items():
+        missing = [n for n in names if n not in have]
+        if missing:
+            raise CodegenError(f"{name}: the {what}s {missing} are missing ({hint})")
+
+
 def _retry_strategies(options: dict) -> list[str]:
     """The emittable part of the backend's retry chain: its ``sqpmethod`` convexifications
     (:func:`~balustrade.backends.casadi_backend.sqp_retry_strategies`); the backend's last
@@ -363,27 +386,19 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     IPOPT retry, replaced by an emittable ``sqpmethod`` with eigenvalue clipping.
     """
     _check_identifier(name)
-    slack, filt, U = (getattr(controller, k, None) for k in ("slack", "filter", "U"))
-    if slack is None or filt is None or U is None:
-        raise CodegenError(f"{name}: expected a PCBFSafetyFilter (attributes slack, filter, "
-                           f"U), got {type(controller).__name__}")
-    libs = _check_compiled(slack, f"{name}: slack problem (2.24)", allow_external)
-    libs += _check_compiled(filt, f"{name}: filter problem (2.23)", allow_external)
-    if not isinstance(U, Box):
-        raise CodegenError(f"{name}: the C fallback projects onto U by clipping, so U must "
-                           f"be a Box, got {type(U).__name__}")
+    slack, filt, U, libs = _controller_pair(
+        controller, name, "PCBFSafetyFilter (attributes slack, filter, U)",
+        getattr(controller, "slack", None), getattr(controller, "filter", None),
+        ("slack problem (2.24)", "filter problem (2.23)"), allow_external)
     s = _Problem(slack, f"{name}_slack", f"slack problem (2.24) {slack.ocp.name!r}", name,
                  accept_tol)
     f = _Problem(filt, f"{name}_filter", f"filter problem (2.23) {filt.ocp.name!r}", name,
                  accept_tol)
-    need = {"slack parameter": (s.params, ["x0"]), "slack variable": (s.vars, ["u", "xi", "xi_N"]),
-            "filter parameter": (f.params, ["x0", "u_p", "xi", "xi_N"]),
-            "filter variable": (f.vars, ["u"])}
-    for what, (have, names) in need.items():
-        missing = [n for n in names if n not in have]
-        if missing:
-            raise CodegenError(f"{name}: the {what}s {missing} of the PCBF pair are missing "
-                               "(build the problems with balustrade.problems.pcbf)")
+    _require(name, {"slack parameter": (s.params, ["x0"]),
+                    "slack variable": (s.vars, ["u", "xi", "xi_N"]),
+                    "filter parameter": (f.params, ["x0", "u_p", "xi", "xi_N"]),
+                    "filter variable": (f.vars, ["u"])},
+             "build the problems of the PCBF pair with balustrade.problems.pcbf")
     if np.prod(s.vars["xi"]["shape"]) != np.prod(f.params["xi"]["shape"]):
         raise CodegenError(f"{name}: slack xi {s.vars['xi']['shape']} and filter parameter xi "
                            f"{f.params['xi']['shape']} differ")
@@ -463,29 +478,19 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     at the (7.6) minimizer, with the controller's fallbacks. ``ĥ`` and ``ĥ(f(x, u))`` are
     emitted as ``<name>_h`` and ``<name>_h_next``; ``U`` must be a Box."""
     _check_identifier(name)
-    dec = getattr(getattr(controller, "decrease", None), "compiled", None)
-    filt = getattr(controller, "filter", None)
-    U = getattr(controller, "U", None)
-    if dec is None or filt is None or U is None:
-        raise CodegenError(f"{name}: expected an ApproximatePCBFFilter (attributes decrease, "
-                           f"filter, U), got {type(controller).__name__}")
-    libs = _check_compiled(dec, f"{name}: maximal decrease problem (7.6)", allow_external)
-    libs += _check_compiled(filt, f"{name}: filter problem (7.5)", allow_external)
-    if not isinstance(U, Box):
-        raise CodegenError(f"{name}: the C step clips to U, so U must be a Box, got "
-                           f"{type(U).__name__}")
+    dec, filt, U, libs = _controller_pair(
+        controller, name, "ApproximatePCBFFilter (attributes decrease, filter, U)",
+        getattr(getattr(controller, "decrease", None), "compiled", None),
+        getattr(controller, "filter", None),
+        ("maximal decrease problem (7.6)", "filter problem (7.5)"), allow_external)
     system = controller.system
     d = _Problem(dec, f"{name}_dec", f"maximal decrease (7.6) {dec.ocp.name!r}", name,
                  accept_tol)
     f = _Problem(filt, f"{name}_filter", f"filter (7.5) {filt.ocp.name!r}", name, accept_tol)
-    for what, have, names in (("(7.6) parameter", d.params, ["x0"]),
-                              ("(7.6) variable", d.vars, ["u"]),
-                              ("(7.5) parameter", f.params, ["x0", "u_p", "dh", "rho"]),
-                              ("(7.5) variable", f.vars, ["u"])):
-        missing = [n for n in names if n not in have]
-        if missing:
-            raise CodegenError(f"{name}: the {what}s {missing} are missing (build the "
-                               "problems with balustrade.problems.approximate)")
+    _require(name, {"(7.6) parameter": (d.params, ["x0"]), "(7.6) variable": (d.vars, ["u"]),
+                    "(7.5) parameter": (f.params, ["x0", "u_p", "dh", "rho"]),
+                    "(7.5) variable": (f.vars, ["u"])},
+             "build the problems with balustrade.problems.approximate")
     grid = np.atleast_2d(np.asarray(controller.decrease.grid, dtype=float))
     x, u = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu)
     h = controller.h
