@@ -70,7 +70,7 @@ def test_warm_started_line_walk_agrees_with_cold_solves(problems):
     assert [s.in_s for s in line_w] == [s.in_s for s in line_c]
     # the line crosses ∂S_PB, so both problems and the switching were exercised
     assert line_w[0].in_s and not line_w[-1].in_s
-    # warm starts save interior-point iterations
+    # warm starts save iterations (warm sqpmethod ≈ 1 SQP iteration vs cold IPOPT)
     assert sum(s.iterations for s in line_w) < 0.7 * sum(s.iterations for s in line_c)
     # against the convex reference solver (Clarabel through cvxpy) at a few points
     ref = PCBFProblems(compile(problems.slack.ocp, "cvxpy"),
@@ -78,6 +78,37 @@ def test_warm_started_line_walk_agrees_with_cold_solves(problems):
     for s in line_w[::25]:
         r, _ = Evaluator(ref, warm=False).point(s.x, Seed(s.x))
         assert s.h == pytest.approx(r.h, rel=1e-5, abs=1e-5)
+
+
+@pytest.fixture(scope="module")
+def clarabel(problems) -> PCBFProblems:
+    """(2.24) and (7.8) on the cvxpy backend (Clarabel: an independent conic solver)."""
+    return PCBFProblems(compile(problems.slack.ocp, "cvxpy"),
+                        compile(problems.extended.ocp, "cvxpy"), problems.X)
+
+
+@pytest.mark.parametrize("solver", ["sqpmethod", "ipopt"])
+def test_sampled_values_agree_with_clarabel_on_a_test_grid(problems, clarabel, solver):
+    """Warm-started sampling (``sqpmethod`` warm + IPOPT cold, the default, or IPOPT
+    only) against Clarabel at every point: a coarse snake grid over 1.25 × X (points far
+    outside S_PB, h up to ~1e8) and a fine line walk through ∂S_PB."""
+    probs = problems if solver == "sqpmethod" else ProblemSpec.of("pendulum",
+                                                                   solver=solver).build()
+    assert probs.slack.solver_name == solver
+    ev = Evaluator(probs, warm=True)
+    grid = ev.path(snake_grid([-2.5, -10.0], [2.5, 10.0], [0.5, 2.0]))
+    x0 = np.zeros(2)
+    line, _ = ev.walk(x0, np.array([0.9, 2.4]), 0.02, Seed(x0))
+    ref = Evaluator(clarabel, warm=False)
+    n_in = 0
+    for s in grid + line:
+        r, _ = ref.point(s.x, Seed(s.x))
+        assert s.ok and r.ok
+        assert abs(s.h - r.h) <= 1e-6 * max(1.0, abs(r.h)), (s.x, s.h, r.h)
+        if abs(r.h) > 1e-5:
+            assert s.in_s == r.in_s
+        n_in += s.in_s
+    assert 0 < n_in < len(grid) + len(line)
 
 
 def test_algorithm_7_6_values_are_consistent(problems):
