@@ -123,7 +123,7 @@ class ApproximatePCBFFilter:
         if self.exact_shortcut and in_set(u_p, self.U):
             # ĥ(f(x, u_p)): u_p is the screening candidate clip_U(u_p) unless it lies
             # within the 1e-9 tolerance outside U
-            h_up = dec.h_proposal if np.array_equal(dec.u_proposal, u_p) \
+            h_up = dec.h_proposal if (dec.u_proposal == u_p).all() \
                 else self.decrease.h_next(x, u_p)
             if h_up - dec.h_x <= decrease_bound(dec.dh, self.rho):
                 # u_p is feasible in (7.5), where the cost is 0: it is the minimizer (exact)
@@ -161,7 +161,7 @@ class ApproximatePCBFFilter:
             out = self._fast_filter.solve(p, {"u": dec.u})
             if out is not None:
                 u = out[0][self._fast_filter.offsets["u"]].copy()
-                if np.all(np.isfinite(u)):
+                if np.isfinite(u).all():
                     return u, "optimal"
         sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},
                                 warm_start={"u": dec.u})

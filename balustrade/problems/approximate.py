@@ -199,11 +199,13 @@ class FastNLP:
 
     def solve(self, p: np.ndarray, start: dict[str, np.ndarray]
               ) -> tuple[np.ndarray, float] | None:
-        """``(w, objective)`` of a successful solve with parameter vector ``p`` from the
-        primal ``start`` (missing variables take their ``init``), else ``None``."""
+        """``(w, objective)`` of a successful solve with parameter vector ``p`` (as
+        ``OCP.pack_parameters``) from the primal ``start`` (missing variables take their
+        ``init``), else ``None``. ``w`` is the solver's output buffer (overwritten by the
+        next solve): copy what you keep."""
         self._x0[:] = self._w0
-        for name, value in start.items():
-            self._x0[self.offsets[name]] = value
+        for name, value in start.items():  # column-major, as OCP.pack_variables
+            self._x0[self.offsets[name]] = np.ravel(value, order="F")
         self._p[:] = p
         for lam in self._lam:
             lam[:] = 0.0
@@ -394,10 +396,10 @@ class MaximalDecrease:
         if not self._box:
             return False
         at_ub, at_lb = c == self._ub, c == self._lb
-        if not np.all(at_ub | at_lb):
+        if not (at_ub | at_lb).all():
             return False
         g = self._grad(x, c)[0]
-        return bool(np.all((at_ub & (g <= 0.0)) | (at_lb & (g >= 0.0))))
+        return bool(((at_ub & (g <= 0.0)) | (at_lb & (g >= 0.0))).all())
 
     def _local(self, x: np.ndarray, c: np.ndarray
                ) -> tuple[np.ndarray, float] | Solution:
@@ -409,7 +411,7 @@ class MaximalDecrease:
         if out is not None:
             w, v = out
             u_loc = w[self._fast_nlp.offsets["u"]]
-            if np.all(np.isfinite(u_loc)) and np.isfinite(v):
+            if np.isfinite(u_loc).all() and np.isfinite(v):
                 return u_loc, v
         return self.compiled.solve({"x0": x}, warm_start={"u": c})
 
@@ -418,7 +420,7 @@ def in_set(u: np.ndarray, U: Set, tol: float = 1e-9) -> bool:
     """``u ∈ U`` up to ``tol`` (a vectorized check for boxes, ``U.contains`` otherwise)."""
     u = np.asarray(u, float).reshape(-1)
     if isinstance(U, Box):
-        return bool(np.all(u >= U.lb - tol) and np.all(u <= U.ub + tol))
+        return bool((u >= U.lb - tol).all() and (u <= U.ub + tol).all())
     return bool(U.contains(u, tol=tol))
 
 
