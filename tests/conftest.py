@@ -54,3 +54,22 @@ class Pendulum:
 @pytest.fixture(scope="session")
 def pend() -> Pendulum:
     return Pendulum()
+
+
+@pytest.fixture(scope="session")
+def unstable2d_tube():
+    """The §5.6 system (N = 10) with its ellipsoidal RPI error set, tightened sets, the terminal
+    CBF on X ⊖ E and the robust slack problem (5.15) — shared by the robust and the
+    multiobjective tests."""
+    from balustrade.dsl.error_sets import ellipsoidal_rpi
+    from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+    from balustrade.problems.robust import robust_pcbf_slack_problem, terminal_cbf_with_domain
+
+    N = 10
+    system, s = unstable2d(), unstable2d_setup(N)
+    error = ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U)
+    X_E, U_E = error.tighten_state(s.X), error.tighten_input(s.U)
+    cbf = terminal_cbf_with_domain(system.A, system.B, X_E, U_E, s.deltas()[-1], level=1.0)
+    slack = robust_pcbf_slack_problem(system, s.X, s.U, cbf, N, s.deltas(), error, s.alpha_f)
+    return {"system": system, "s": s, "error": error, "cbf": cbf, "X_E": X_E, "U_E": U_E,
+            "slack": slack, "N": N}

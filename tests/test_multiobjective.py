@@ -12,8 +12,7 @@ from balustrade.control.multiobjective import (
     MultiobjectiveLyapunovController,
     MultiobjectivePCBFController,
 )
-from balustrade.dsl.error_sets import ellipsoidal_rpi, minimal_rpi_outer
-from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+from balustrade.dsl.error_sets import minimal_rpi_outer
 from balustrade.problems.multiobjective import (
     LinearLyapunovDesign,
     decrease_bound,
@@ -22,9 +21,7 @@ from balustrade.problems.multiobjective import (
 )
 from balustrade.problems.robust import (
     robust_candidate,
-    robust_pcbf_slack_problem,
     slack_cost,
-    terminal_cbf_with_domain,
 )
 from balustrade.testing import verify
 
@@ -32,18 +29,14 @@ N = 10
 
 
 @pytest.fixture(scope="module")
-def d():
-    system, s = unstable2d(), unstable2d_setup(N)
-    error = ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U)
-    X_E, U_E = error.tighten_state(s.X), error.tighten_input(s.U)
-    cbf = terminal_cbf_with_domain(system.A, system.B, X_E, U_E, s.deltas()[-1], level=1.0)
+def d(unstable2d_tube):
+    t = unstable2d_tube
+    system, s, error, cbf, slack = t["system"], t["s"], t["error"], t["cbf"], t["slack"]
     A_K = system.A + system.B @ error.K
     Xf = minimal_rpi_outer(A_K, s.W, 1e-4).polytope().scale(3.0, name="Xf")
     design = LinearLyapunovDesign(system, s.X, s.U, Xf, s.W, error.K, np.eye(2), np.eye(1), N)
     mo = multiobjective_pcbf_problem(system, s.X, s.U, cbf, N, s.deltas(), error, s.alpha_f)
-    slack = robust_pcbf_slack_problem(system, s.X, s.U, cbf, N, s.deltas(), error, s.alpha_f)
-    return {"system": system, "s": s, "error": error, "cbf": cbf, "X_E": X_E, "U_E": U_E,
-            "design": design, "mo": mo, "slack": slack,
+    return {**t, "design": design, "mo": mo,
             "mo_ip": compile(mo, "casadi", "ipopt"), "mo_cv": compile(mo, "cvxpy"),
             "slack_ip": compile(slack, "casadi", "ipopt")}
 

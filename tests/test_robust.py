@@ -8,16 +8,13 @@ import pytest
 
 from balustrade.backends import Solution, compile
 from balustrade.control.robust import RobustPCBFSafetyFilter
-from balustrade.dsl.error_sets import ellipsoidal_rpi, minimal_rpi_outer
-from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+from balustrade.dsl.error_sets import minimal_rpi_outer
 from balustrade.problems.robust import (
     polished_slacks,
     robust_candidate,
     robust_mpc_problem,
     robust_pcbf_filter_problem,
-    robust_pcbf_slack_problem,
     slack_cost,
-    terminal_cbf_with_domain,
     tube_mpc_problem,
 )
 from balustrade.testing import verify
@@ -27,16 +24,12 @@ OPTS = {"max_iter": 500}
 
 
 @pytest.fixture(scope="module")
-def d():
-    system, s = unstable2d(), unstable2d_setup(N)
-    error = ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U)
-    X_E, U_E = error.tighten_state(s.X), error.tighten_input(s.U)
-    cbf = terminal_cbf_with_domain(system.A, system.B, X_E, U_E, s.deltas()[-1], level=1.0)
+def d(unstable2d_tube):
+    t = unstable2d_tube
+    system, s, error, cbf, slack = t["system"], t["s"], t["error"], t["cbf"], t["slack"]
     assert cbf.gamma_f >= 1.0 - 1e-6
-    slack = robust_pcbf_slack_problem(system, s.X, s.U, cbf, N, s.deltas(), error, s.alpha_f)
     filt = robust_pcbf_filter_problem(system, s.X, s.U, cbf, N, s.deltas(), error)
-    return {"system": system, "s": s, "error": error, "cbf": cbf, "X_E": X_E, "U_E": U_E,
-            "slack": slack, "filter": filt,
+    return {**t, "filter": filt,
             "slack_ca": compile(slack, "casadi", "sqpmethod", OPTS),
             "slack_ip": compile(slack, "casadi", "ipopt"),
             "filter_ca": compile(filt, "casadi", "sqpmethod", OPTS),

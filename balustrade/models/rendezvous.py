@@ -21,6 +21,7 @@ import scipy.linalg
 
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import LinearSystem
+from balustrade.models.setups import RobustPCBFSetup
 
 MEAN_MOTION = 0.01
 TS = 1.0
@@ -47,19 +48,14 @@ def rendezvous(n: float = MEAN_MOTION, ts: float = TS) -> LinearSystem:
 
 
 @dataclass(frozen=True)
-class RendezvousSetup:
-    X: Box
-    U: Box
-    W: Box
-    N: int = 200
-    T: int = 400
-    delta_step: float = 1e-3
-    alpha_f: float = 1e6
-    x0: tuple[float, ...] = (100.0, 100.0, 100.0, 0.0, 0.0, 0.0)
+class RendezvousSetup(RobustPCBFSetup):
+    """Sets and PCBF settings of Section 6.6: N = 200, task length T = 400 steps,
+    ``Δ_i = i · 10⁻³`` (SPEC [Gap]: the printed constant ``10⁻³`` is not increasing)."""
 
-    def deltas(self) -> np.ndarray:
-        """``Δ_i = i · 10⁻³`` (SPEC [Gap]: the printed constant ``10⁻³`` is not increasing)."""
-        return self.delta_step * np.arange(self.N)
+    N: int = 200
+    delta_step: float = 1e-3
+    T: int = 400
+    x0: tuple[float, ...] = (100.0, 100.0, 100.0, 0.0, 0.0, 0.0)
 
 
 def rendezvous_setup(N: int = 200, T: int = 400) -> RendezvousSetup:

@@ -13,6 +13,7 @@ import numpy as np
 
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import LinearSystem
+from balustrade.models.setups import RobustPCBFSetup
 
 A = np.array([[1.0, 0.1], [0.11, 1.0]])
 B = np.array([[0.0], [0.1]])
@@ -25,20 +26,10 @@ def unstable2d() -> LinearSystem:
 
 
 @dataclass(frozen=True)
-class Unstable2DSetup:
-    """Sets and PCBF settings of Section 5.6."""
+class Unstable2DSetup(RobustPCBFSetup):
+    """Sets and PCBF settings of Section 5.6 (``Δ_i = i · 10⁻⁴``, N = 100)."""
 
-    X: Box
-    U: Box
-    W: Box
-    N: int = 100
-    delta_step: float = 1e-4
-    alpha_f: float = 1e6
     x0: tuple[float, float] = (0.0, 1.0)
-
-    def deltas(self, N: int | None = None) -> np.ndarray:
-        """``Δ_i = i · 10⁻⁴`` for ``i ∈ I[0, N−1]``."""
-        return self.delta_step * np.arange(self.N if N is None else N)
 
 
 def unstable2d_setup(N: int = 100) -> Unstable2DSetup:
