@@ -31,6 +31,7 @@ from balustrade.dsl.sets import Box, Set
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError
 from balustrade.problems.approximate import (
+    Buffered,
     DecreaseResult,
     FastNLP,
     HHat,
@@ -198,6 +199,8 @@ class GridPCBFFilter:
         x, u = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu)
         self._h_next = ca.Function("h_next", [x, u], [self.h(system(x, u))])
         self._many = self._h_next.map(len(self.offsets))
+        self._many_buf = Buffered(self._many)  # one low-overhead call per step
+        self._h_buf = Buffered(self.h)
         self.u_init = np.zeros(self.nu) if u_init is None else np.asarray(u_init, float)
         self.reset()
 
@@ -227,10 +230,10 @@ class GridPCBFFilter:
                                                 fallback="previous_input")
         cand = self.candidates()
         padded = np.vstack([cand, np.repeat(cand[-1:], len(self.offsets) - len(cand), 0)])
-        values = np.asarray(self._many(np.tile(x.reshape(-1, 1), len(self.offsets)),
-                                       padded.T)).reshape(-1)[: len(cand)]
+        n = len(self.offsets)
+        values = self._many_buf(np.tile(x, n), padded.reshape(-1))[0][: len(cand)]
         values = np.where(np.isfinite(values), values, np.inf)
-        h_x = float(self.h(x))
+        h_x = float(self._h_buf(x)[0][0])
         ok = values <= self.rho * h_x
         info = StepInfo(values={"h_hat": h_x, "n_candidates": float(len(cand))})
         if not np.any(ok):
