@@ -247,3 +247,29 @@ def test_buffered_evaluations_equal_the_casadi_calls(states):
         assert f.decrease.h_next(x, u) == float(f._h_next(x, u))
         assert f.decrease.h_value(x) == float(h(x))
         assert f.certifies(x, u) == (float(f._h_next(x, u)) <= 0.0)
+
+
+def test_fast_path_two_inputs():
+    """Two inputs (a 5 × 5 screening grid, KKT vertices in two dimensions): the fast path
+    equals the compiled solves."""
+    from balustrade.dsl.sets import Box
+    from balustrade.dsl.system import LinearSystem
+
+    sys2 = LinearSystem(np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.05, 0.0], [0.1, 0.2]]))
+    U2 = Box(np.array([-1.0, -2.0]), np.array([1.0, 2.0]))
+
+    def h2(x):
+        return ca.mtimes([x.T, P, x]) - 1 + 0.4 * x[1] + 0.2 * ca.sin(2 * x[0])
+
+    kw = dict(rho=0.5, solver="sqpmethod", certify=False)
+    fast, slow = (ApproximatePCBFFilter(sys2, U2, h2, fast=f, **kw) for f in (True, False))
+    rng = np.random.default_rng(21)
+    kkt = 0
+    for x in rng.uniform([-1.5, -3.0], [1.5, 3.0], (80, 2)):
+        u_p = rng.uniform(-2.5, 2.5, 2)
+        a, b = fast.decrease.solve(x, u_p), slow.decrease.solve(x, u_p)
+        kkt += a.n_kkt_starts
+        assert np.abs(a.u - b.u).max() <= 1e-12 and abs(a.dh - b.dh) <= 1e-12
+        (u1, i1), (u2, i2) = fast.step(x, u_p), slow.step(x, u_p)
+        assert i1.status == i2.status and np.abs(u1 - u2).max() <= 1e-9
+    assert kkt > 0 and fast.n_proposal_feasible == slow.n_proposal_feasible
