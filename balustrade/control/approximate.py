@@ -52,6 +52,14 @@ class ApproximatePCBFFilter:
     ``n_proposal_feasible`` (after (7.6), ``u_p`` itself met the decrease of (7.5), so it
     is the minimizer and (7.5) is not solved; ``exact_shortcut=False`` always solves
     (7.5)), ``n_fallbacks``.
+
+    ``fast=True`` (default) runs the same algorithm with buffered CasADi evaluations, the
+    KKT-vertex start of (7.6) and :class:`~balustrade.problems.approximate.FastNLP` first
+    attempts (see :class:`~balustrade.problems.approximate.MaximalDecrease`); a failed
+    attempt goes through ``Compiled.solve`` and its retries, so statuses and fallbacks
+    are those of ``fast=False``. ``StepInfo.solve_time`` is the wall time of (7.6) and
+    (7.5) including screening; ``StepInfo.solutions`` holds the :class:`Solution` objects
+    of solves that went through ``Compiled.solve`` (none on the fast path).
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
