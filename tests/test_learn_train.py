@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from balustrade.errors import BalustradeError
 from balustrade.learn.export import evaluate, expression, to_casadi
 from balustrade.learn.train import MLPModel, TrainConfig, train
 
@@ -68,6 +69,23 @@ def test_training_is_seeded_and_learns():
     huber = train(X, y, TrainConfig(widths=(8,), epochs=3, loss="huber", batch_size=64))
     assert np.all(np.isfinite(huber(X)))
     assert [W.shape for W in huber.weights] == [(8, 2), (1, 8)]
+
+
+def test_cosine_learning_rate_schedule():
+    X, y = data()
+    base = dict(widths=(8, 8), epochs=15, batch_size=32, lr=1e-2, seed=1)
+    const = train(X, y, TrainConfig(**base))
+    cos = train(X, y, TrainConfig(**base, lr_schedule="cosine"))
+    assert const.history["lr"] == [1e-2] * 15
+    lr = np.array(cos.history["lr"])
+    assert np.all(np.diff(lr) < 0) and lr[-1] <= 1e-12  # annealed to 0 over all steps
+    expected = 1e-2 * 0.5 * (1 + np.cos(np.pi * np.arange(1, 16) / 15))  # end of epoch e
+    np.testing.assert_allclose(lr[:-1], expected[:-1], rtol=1e-9)
+    assert not np.array_equal(const.weights[0], cos.weights[0])
+    assert cos.config["lr_schedule"] == "cosine"
+    assert cos.history["val_loss"][-1] < 0.5 * cos.history["val_loss"][0]
+    with pytest.raises(BalustradeError):
+        TrainConfig(lr_schedule="step")
 
 
 def test_cube_root_transform_and_save_load(tmp_path):

@@ -29,7 +29,8 @@ SAMPLE_DEFAULTS: dict[str, Any] = {
 }
 TRAIN_DEFAULTS: dict[str, Any] = {
     "target": "h", "widths": [16, 16, 16], "epochs": 30, "lr": 5e-3, "batch_size": 8,
-    "loss": "mse", "transform": None, "val_fraction": 0.1, "seed": 0, "verbose": True,
+    "loss": "mse", "transform": None, "lr_schedule": None, "val_fraction": 0.1, "seed": 0,
+    "verbose": True,
 }
 
 
@@ -88,7 +89,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     X, y = ShardedDataset(cfg["data"]).arrays(cfg["target"])
     tc = TrainConfig(widths=tuple(cfg["widths"]), epochs=int(cfg["epochs"]), lr=float(cfg["lr"]),
                      batch_size=int(cfg["batch_size"]), loss=cfg["loss"],
-                     output_transform=cfg["transform"], val_fraction=float(cfg["val_fraction"]),
+                     output_transform=cfg["transform"], lr_schedule=cfg["lr_schedule"],
+                     val_fraction=float(cfg["val_fraction"]),
                      seed=int(cfg["seed"]))
     model = train(X, y, tc, verbose=bool(cfg["verbose"]))
     model.save(cfg["out"])
@@ -134,7 +136,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--lr", type=float)
     t.add_argument("--batch-size", dest="batch_size", type=int)
     t.add_argument("--loss", choices=["mse", "huber"])
-    t.add_argument("--transform", choices=["cbrt"])
+    t.add_argument("--transform", choices=["cbrt"],
+                   help="fit the cube root of the target, ĥ = net³ (Section 8.3)")
+    t.add_argument("--lr-schedule", dest="lr_schedule", choices=["cosine"],
+                   help="cosine annealing of the learning rate to 0 (default: constant)")
     t.add_argument("--val-fraction", dest="val_fraction", type=float)
     t.add_argument("--seed", type=int)
     t.add_argument("--quiet", dest="verbose", action="store_const", const=False)

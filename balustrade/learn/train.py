@@ -35,6 +35,7 @@ class TrainConfig:
     loss: str = "mse"            # "mse" | "huber"
     huber_delta: float = 1.0
     output_transform: str | None = None  # None | "cbrt"
+    lr_schedule: str | None = None  # None (constant) | "cosine" (to 0 over all steps)
     val_fraction: float = 0.1
     seed: int = 0
     standardize: bool = True
@@ -49,6 +50,9 @@ class TrainConfig:
         if self.output_transform not in (None, "cbrt"):
             raise BalustradeError("TrainConfig: output_transform must be None or 'cbrt', got "
                                   f"{self.output_transform!r}")
+        if self.lr_schedule not in (None, "cosine"):
+            raise BalustradeError("TrainConfig: lr_schedule must be None or 'cosine', got "
+                                  f"{self.lr_schedule!r}")
         if not 0.0 <= self.val_fraction < 1.0:
             raise BalustradeError(f"TrainConfig: val_fraction must be in [0, 1), got "
                                   f"{self.val_fraction}")
@@ -129,7 +133,9 @@ def train(X: np.ndarray, y: np.ndarray, config: TrainConfig | None = None,
           verbose: bool = False, return_net: bool = False):
     """Fit ``ĥ`` to ``(X, y)``; returns the :class:`MLPModel` (and the torch network if
     ``return_net``). ``history`` holds per-epoch training and validation loss (in the
-    transformed output space) and the validation MSE of ``ĥ`` itself."""
+    transformed output space), the validation MSE of ``ĥ`` itself and the learning rate
+    at the end of each epoch (``lr_schedule="cosine"``: cosine annealing to 0 over all
+    optimizer steps, so the last epochs average out the minibatch noise of small batches)."""
     try:
         import torch
     except ImportError as exc:  # pragma: no cover - depends on the environment
@@ -158,11 +164,15 @@ def train(X: np.ndarray, y: np.ndarray, config: TrainConfig | None = None,
     yt = torch.from_numpy(target).reshape(-1, 1)
     net = build_network(X.shape[1], cfg.widths)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    n_batches = -(-len(tr) // cfg.batch_size)
+    sched = (torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=cfg.epochs * n_batches)
+             if cfg.lr_schedule == "cosine" else None)
     loss_fn = (torch.nn.MSELoss() if cfg.loss == "mse"
                else torch.nn.HuberLoss(delta=cfg.huber_delta))
     gen = torch.Generator().manual_seed(cfg.seed)
     tr_idx = torch.from_numpy(tr)
-    history: dict[str, list[float]] = {"train_loss": [], "val_loss": [], "val_mse_h": []}
+    history: dict[str, list[float]] = {"train_loss": [], "val_loss": [], "val_mse_h": [],
+                                       "lr": []}
     start = time.perf_counter()
     for epoch in range(cfg.epochs):
         net.train()
@@ -174,8 +184,11 @@ def train(X: np.ndarray, y: np.ndarray, config: TrainConfig | None = None,
             loss = loss_fn(net(Xt[idx]), yt[idx])
             loss.backward()
             opt.step()
+            if sched is not None:
+                sched.step()
             total += float(loss.detach()) * len(idx)
         history["train_loss"].append(total / max(len(tr), 1))
+        history["lr"].append(float(opt.param_groups[0]["lr"]))  # at the end of the epoch
         if n_val:
             with torch.no_grad():
                 pred = net(Xt[val])
