@@ -83,3 +83,23 @@ def test_trust_region_hard_and_easy_cases():
             v = rng.standard_normal(3)
             v *= 2.0 / np.linalg.norm(v) * rng.uniform(0, 1) ** (1 / 3)
             assert v @ Amat @ v + 2 * np.dot(b, v) + c <= res.value + 1e-12
+
+
+def test_dense_cone_too_large_for_clarabel_is_a_status(monkeypatch):
+    """SCRW (W = 𝒪 with pointwise bounds) keeps one dense cone; when Clarabel's KKT block
+    would not fit in memory the synthesis returns a status naming the size and SCS."""
+    import balustrade.problems.regret.synthesis as syn
+
+    ops = build_operators(LTVSystem.create(A, B, 3))
+    monkeypatch.setattr(syn, "_mem_available_bytes", lambda: 1e3)
+    res = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O")
+    assert res.status == "too_large" and not res.ok
+    assert "size 11" in res.info["message"] and "SCS" in res.info["message"]
+    with pytest.raises(BalustradeError, match="too_large"):
+        res.controller()
+    res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", solver="SCS",
+                               solver_opts={"eps_abs": 1e-7, "eps_rel": 1e-7})
+    monkeypatch.undo()
+    res_cl = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O")
+    assert res_scs.ok and res_cl.ok
+    assert res_scs.level == pytest.approx(res_cl.level, rel=1e-4)
