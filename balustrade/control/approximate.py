@@ -25,15 +25,14 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.backends import Compiled, Solution, compile
+from balustrade.backends.casadi_fast import Buffered, FastNLP
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import project
 from balustrade.dsl.sets import Box, Set
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError
 from balustrade.problems.approximate import (
-    Buffered,
     DecreaseResult,
-    FastNLP,
     HHat,
     MaximalDecrease,
     approximate_filter_problem,
@@ -54,7 +53,7 @@ class ApproximatePCBFFilter:
     (7.5)), ``n_fallbacks``.
 
     ``fast=True`` (default) runs the same algorithm with buffered CasADi evaluations, the
-    KKT-vertex start of (7.6) and :class:`~balustrade.problems.approximate.FastNLP` first
+    KKT-vertex start of (7.6) and :class:`~balustrade.backends.casadi_fast.FastNLP` first
     attempts (see :class:`~balustrade.problems.approximate.MaximalDecrease`); a failed
     attempt goes through ``Compiled.solve`` and its retries, so statuses and fallbacks
     are those of ``fast=False``. ``StepInfo.solve_time`` is the wall time of (7.6) and
