@@ -103,7 +103,7 @@ def _filters(h_hat, solver: str, system, U, states, u_p) -> dict:
     for both in (False, True):
         f = ApproximatePCBFFilter(system, U, h_hat, rho=0.5, solver=solver, certify=False,
                                   exact_shortcut=not both)
-        f.step(states[0], u_p)  # build the FastNLP solvers outside the timing
+        f.step(states[0], u_p)  # warm-up call outside the timing
         f.reset()
         out[both] = f
     return out

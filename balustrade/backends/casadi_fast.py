@@ -62,10 +62,16 @@ class FastNLP:
         self._p = self.nlp.args[names.index("p")]
         self._lam = [self.nlp.args[names.index(n)] for n in ("lam_x0", "lam_g0")]
         self._w0 = np.concatenate([compiled.ocp.pack_variables({}), compiled.init_epi])
-        self.offsets, k = {}, 0
-        for v in compiled.ocp.variables.values():
-            self.offsets[v.name] = slice(k, k + v.shape[0] * v.shape[1])
-            k += v.shape[0] * v.shape[1]
+        self.offsets = _offsets(compiled.ocp.variables.values())
+        self.param_offsets = _offsets(compiled.ocp.parameters.values())
+
+    def pack(self, **params: object) -> np.ndarray:
+        """The parameter vector (as ``OCP.pack_parameters``; column-major) from values by
+        name, written into the solver's own input buffer (parameters not given keep their
+        previous values)."""
+        for name, value in params.items():
+            self._p[self.param_offsets[name]] = np.ravel(value, order="F")
+        return self._p
 
     def solve(self, p: np.ndarray, start: dict[str, np.ndarray]
               ) -> tuple[np.ndarray, float] | None:
@@ -84,3 +90,13 @@ class FastNLP:
         except RuntimeError:  # not converged (error_on_fail) or an evaluation error
             return None
         return self.nlp.res[0], float(self.nlp.res[1][0])
+
+
+def _offsets(items) -> dict[str, slice]:
+    """Slices of named blocks (variables or parameters) stacked column-major in order."""
+    out, k = {}, 0
+    for item in items:
+        n = item.shape[0] * item.shape[1]
+        out[item.name] = slice(k, k + n)
+        k += n
+    return out

@@ -77,9 +77,7 @@ class ApproximatePCBFFilter:
         self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps),
                                         "casadi", solver, solver_options(solver, options))
         self._h_next = self.decrease._h_next
-        self._fast_filter: FastNLP | None = None
-        if isinstance(U, Box):
-            self._u_lo, self._u_hi = U.lb - 1e-9, U.ub + 1e-9
+        self._fast_filter = FastNLP(self.filter) if self.fast else None
         self.reset()
 
     def reset(self) -> None:
@@ -88,11 +86,7 @@ class ApproximatePCBFFilter:
 
     def certifies(self, x: np.ndarray, u_p: np.ndarray) -> bool:
         """Line 4 of Algorithm 7.5: ``u_p ∈ U`` and ``ĥ(f(x, u_p)) <= 0``."""
-        if isinstance(self.U, Box):  # in_set(u_p, U) for a box, inlined
-            inside = bool((u_p >= self._u_lo).all() and (u_p <= self._u_hi).all())
-        else:
-            inside = in_set(u_p, self.U)
-        return inside and self.decrease.h_next(x, u_p) <= 0.0
+        return in_set(u_p, self.U) and self.decrease.h_next(x, u_p) <= 0.0
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         self.n_steps += 1
@@ -154,21 +148,11 @@ class ApproximatePCBFFilter:
         problem and options, cold multipliers), the compiled problem's ``solve`` (with
         its retries) if that fails or ``fast=False``. Returns the minimizer (``None`` on
         failure) and the solution status."""
-        if self.fast:
-            if self._fast_filter is None:
-                self._fast_filter = FastNLP(self.filter)
-                offsets = {}
-                k = 0
-                for prm in self.filter.ocp.parameters.values():
-                    offsets[prm.name] = slice(k, k + prm.shape[0] * prm.shape[1])
-                    k += prm.shape[0] * prm.shape[1]
-                self._p_filter = np.zeros(k)
-                self._p_offsets = offsets
-            p, o = self._p_filter, self._p_offsets
-            p[o["x0"]], p[o["u_p"]], p[o["dh"]], p[o["rho"]] = x, u_p, dec.dh, self.rho
-            out = self._fast_filter.solve(p, {"u": dec.u})
+        if self._fast_filter is not None:
+            fast = self._fast_filter
+            out = fast.solve(fast.pack(x0=x, u_p=u_p, dh=dec.dh, rho=self.rho), {"u": dec.u})
             if out is not None:
-                u = out[0][self._fast_filter.offsets["u"]].copy()
+                u = out[0][fast.offsets["u"]].copy()
                 if np.isfinite(u).all():
                     return u, "optimal"
         sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},

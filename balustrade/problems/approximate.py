@@ -227,7 +227,7 @@ class MaximalDecrease:
         self._h_buf = Buffered(ca.Function("h", [x], [self.h(x)]))
         self._grad = Buffered(ca.Function("h_next_grad", [x, u], [ca.gradient(h_next, u)]))
         self._box = isinstance(U, Box)
-        self._fast_nlp: FastNLP | None = None
+        self._fast_nlp = FastNLP(self.compiled) if self.fast else None
 
     def h_value(self, x: np.ndarray) -> float:
         return float(self._h_buf(x)[0][0])
@@ -335,9 +335,7 @@ class MaximalDecrease:
                ) -> tuple[np.ndarray, float] | Solution:
         """A local solve from ``c``: ``(u, value)`` from :class:`FastNLP`, or the
         compiled problem's :class:`Solution` (retry chain) when the fast solve fails."""
-        if self._fast_nlp is None:
-            self._fast_nlp = FastNLP(self.compiled)
-        out = self._fast_nlp.solve(x, {"u": c})
+        out = self._fast_nlp.solve(self._fast_nlp.pack(x0=x), {"u": c})
         if out is not None:
             w, v = out
             u_loc = w[self._fast_nlp.offsets["u"]]
