@@ -86,20 +86,24 @@ def test_trust_region_hard_and_easy_cases():
 
 
 def test_dense_cone_too_large_for_clarabel_is_a_status(monkeypatch):
-    """SCRW (W = 𝒪 with pointwise bounds) keeps one dense cone; when Clarabel's KKT block
-    would not fit in memory the synthesis returns a status naming the size and SCS."""
+    """SCRW (W = 𝒪 with pointwise bounds) outside banded coordinates is one dense cone; when
+    Clarabel's KKT block would not fit in memory the synthesis returns a status naming the size
+    and SCS. In banded coordinates (the default) it is decomposable and solved."""
     import balustrade.problems.regret.synthesis as syn
 
     ops = build_operators(LTVSystem.create(A, B, 3))
     monkeypatch.setattr(syn, "_mem_available_bytes", lambda: 1e3)
-    res = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O")
+    res = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", lmi="split")
     assert res.status == "too_large" and not res.ok
     assert "size 11" in res.info["message"] and "SCS" in res.info["message"]
     with pytest.raises(BalustradeError, match="too_large"):
         res.controller()
-    res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", solver="SCS",
+    res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", solver="SCS", lmi="split",
                                solver_opts={"eps_abs": 1e-7, "eps_rel": 1e-7})
+    res_banded = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O")
+    assert res_banded.ok and res_banded.info["lmi"] == "banded"
     monkeypatch.undo()
     res_cl = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O")
     assert res_scs.ok and res_cl.ok
     assert res_scs.level == pytest.approx(res_cl.level, rel=1e-4)
+    assert res_banded.level == pytest.approx(res_cl.level, rel=1e-6)

@@ -69,12 +69,12 @@ def test_generalized_regret_matches_dense_transcription(seed):
     ops, rng = random_ops(seed, T=4)
     x0, omega = rng.standard_normal(ops.n), 1.5
     for W in ("I", "O"):
-        ours = generalized_regret(ops, x0, omega, W)
-        mono = generalized_regret(ops, x0, omega, W, split=False)
         Wm = np.eye(ops.nd) if W == "I" else ops.O
         ref = dense_level(ops, x0, omega, Wm)
-        assert ours.level == pytest.approx(ref, rel=1e-6)
-        assert mono.level == pytest.approx(ref, rel=1e-6)
+        for form in ("banded", "split", "single"):
+            res = generalized_regret(ops, x0, omega, W, lmi=form)
+            assert res.info["lmi"] == form
+            assert res.level == pytest.approx(ref, rel=1e-6)
     # (3.28) with W = I bounds (3.19): γ* ≤ μ*(‖x0‖² + ω)  (SPEC 2.12 [Gap])
     g = dynamic_regret(ops, x0, omega).level
     mu = generalized_regret(ops, x0, omega, "I").level
@@ -176,24 +176,49 @@ def test_constraint_reformulation_3_41_is_exact_for_ellipsoids():
     assert best > 0.5     # some state row is close to its limit, so the check is not vacuous
 
 
-def test_chordal_split_equals_single_cone():
-    """The split of lmi.py (and the rotation for dense W) is exact: same optimum as one cone."""
-    ops, rng = random_ops(11, T=4)
+TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}
+
+
+@pytest.mark.parametrize("seed", [11, 3])
+def test_lmi_forms_are_exact_reformulations(seed):
+    """Banded coordinates (banded.py), the chordal split and one cone (lmi.py) are exact
+    reformulations of the same LMI: the same optimum for every problem, including the ones
+    with a dense weight (𝒪: competitive ratio, SH∞, SCRW) and pointwise multipliers."""
+    ops, rng = random_ops(seed, T=6)
     x0 = rng.standard_normal(ops.n)
     P = np.diag([2.0, 3.0, 4.0])
-    pairs = [
-        lambda s: adversarial_regret(ops, split=s),
-        lambda s: hinf(ops, split=s),
-        lambda s: zero_x0_regret(ops, "O", adversarial_x0=True, split=s),
-        lambda s: pointwise_regret(ops, x0, P, "I", split=s),
-        lambda s: pointwise_dynamic_regret(ops, x0, P, split=s),
-        lambda s: dynamic_regret(ops, x0, 1.3, split=s),
+    kw = {"solver_opts": TIGHT}
+    makers = [
+        lambda f: adversarial_regret(ops, lmi=f, **kw),
+        lambda f: hinf(ops, lmi=f, **kw),
+        lambda f: zero_x0_regret(ops, "O", adversarial_x0=True, lmi=f, **kw),
+        lambda f: zero_x0_regret(ops, "O", lmi=f, **kw),
+        lambda f: pointwise_regret(ops, x0, P, "I", lmi=f, **kw),
+        lambda f: pointwise_regret(ops, x0, P, "O", lmi=f, **kw),
+        lambda f: pointwise_dynamic_regret(ops, x0, P, lmi=f, **kw),
+        lambda f: dynamic_regret(ops, x0, 1.3, lmi=f, **kw),
+        lambda f: generalized_regret(ops, x0, 1.3, "O", lmi=f, **kw),
     ]
-    for make in pairs:
-        a, b = make(True), make(False)
-        assert a.ok and b.ok
-        assert a.level == pytest.approx(b.level, rel=1e-6)
-        assert max(a.info["psd_cone_sizes"]) < max(b.info["psd_cone_sizes"])
+    for make in makers:
+        banded, split, single = make("banded"), make("split"), make("single")
+        assert banded.ok and split.ok and single.ok
+        assert banded.info["lmi"] == "banded", banded.info["banded_fallback"]
+        assert banded.level == pytest.approx(single.level, rel=1e-7)
+        assert split.level == pytest.approx(single.level, rel=1e-7)
+        assert max(split.info["psd_cone_sizes"]) <= max(single.info["psd_cone_sizes"])
+
+
+def test_banded_falls_back_to_the_split_when_the_weight_has_no_banded_inverse():
+    """A user weight whose inverse is dense: no banded coordinates; the split is used, said so."""
+    ops, rng = random_ops(5, T=4)
+    x0 = rng.standard_normal(ops.n)
+    R = rng.standard_normal((ops.nd, ops.nd))
+    W = R @ R.T + ops.nd * np.eye(ops.nd)
+    res = generalized_regret(ops, x0, 1.0, W)
+    assert res.ok and res.info["lmi"] == "split"
+    assert "not block tridiagonal" in res.info["banded_fallback"]
+    ref = generalized_regret(ops, x0, 1.0, W, lmi="single")
+    assert res.level == pytest.approx(ref.level, rel=1e-6)
 
 
 def test_competitive_ratio_and_energy_constraints_hold_on_samples():

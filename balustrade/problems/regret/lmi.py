@@ -28,6 +28,10 @@ from dataclasses import dataclass
 
 import cvxpy as cp
 import numpy as np
+import scipy.sparse as sp
+
+from balustrade.problems.regret.banded import NotBanded, banded_congruence, drop_tiny
+from balustrade.problems.regret.parametrization import Parametrization
 
 
 @dataclass
@@ -105,3 +109,74 @@ def diagonal_groups(values: cp.Expression, group: int) -> list[tuple[slice, cp.E
         sl = slice(start, min(n, start + group))
         out.append((sl, cp.diag(values[sl])))
     return out
+
+
+@dataclass(frozen=True)
+class BandedPieces:
+    """The arrow LMI's data in banded coordinates cols = Cη (numeric, sparse where banded)."""
+
+    C: np.ndarray
+    A: sp.csr_matrix               # vec_F(LC) = Aθ + c
+    c: np.ndarray
+    D: list[sp.csr_matrix]         # CᵀD_iC
+    b: list[np.ndarray]            # Cᵀb_i
+
+
+def banded_pieces(par: Parametrization, cols: slice, D_mats: Sequence[np.ndarray],
+                  b_vecs: Sequence[np.ndarray] = ()) -> BandedPieces | NotBanded:
+    """Transform L = Y[:, cols], the D_i and the b_i by the congruence of :mod:`.banded`."""
+    ops, M = par.ops, par.M
+    d = cols.stop - cols.start
+    A, c = par.Y_map(cols)
+    free_mask = (np.diff(A.indptr) > 0).reshape((M, d), order="F")
+    L0 = c.reshape((M, d), order="F")
+    cong = banded_congruence(L0, free_mask, list(D_mats), ops.m, ops.p)
+    if isinstance(cong, NotBanded):
+        return cong
+    C = cong.C
+    kronC = sp.kron(sp.csr_matrix(C.T), sp.identity(M, format="csr"), format="csr")
+    return BandedPieces(C, (kronC @ A).tocsr(), drop_tiny(L0 @ C).ravel(order="F"),
+                        [sp.csr_matrix(drop_tiny(C.T @ Di @ C)) for Di in D_mats],
+                        [C.T @ bi for bi in b_vecs])
+
+
+def banded_lmi(par: Parametrization, cols: slice, D_terms: Sequence[tuple[object, np.ndarray]],
+               a: cp.Expression | None = None,
+               b_terms: Sequence[tuple[object, np.ndarray]] = (),
+               y: cp.Expression | None = None) -> list[cp.Constraint] | NotBanded:
+    """The arrow LMI with L = Y[:, cols], D = Σ α_iD_i, b = Σ β_ib_i in banded coordinates.
+
+    One PSD constraint whose sparsity pattern is chordal with small cliques (:mod:`.banded`);
+    it is meant for a solver that decomposes it (Clarabel's chordal decomposition). Returns
+    :class:`NotBanded` when the structure is missing, so the caller can use :func:`arrow_lmi`.
+    """
+    M, d = par.M, cols.stop - cols.start
+    pieces = banded_pieces(par, cols, [Di for _, Di in D_terms], [bi for _, bi in b_terms])
+    if isinstance(pieces, NotBanded):
+        return pieces
+    LC = cp.reshape(pieces.A @ par.theta + pieces.c, (M, d), order="F")
+    Dp = _combination([(alpha, Di) for (alpha, _), Di in zip(D_terms, pieces.D)])
+    grid: list[list] = []
+    if a is not None:
+        bcol = (cp.reshape(_combination([(beta, bi) for (beta, _), bi in zip(b_terms, pieces.b)]),
+                           (d, 1), order="F") if b_terms else np.zeros((d, 1)))
+        ycol = np.zeros((M, 1)) if y is None else cp.reshape(y, (M, 1), order="F")
+        grid.append([cp.reshape(a, (1, 1), order="F"), bcol.T, ycol.T])
+        grid.append([bcol, Dp, LC.T])
+        grid.append([ycol, LC, np.eye(M)])
+    else:
+        grid.append([Dp, LC.T])
+        grid.append([LC, np.eye(M)])
+    mat = cp.bmat(grid)
+    return [0.5 * (mat + mat.T) >> 0]
+
+
+def _combination(terms: Sequence[tuple[object, object]]) -> cp.Expression:
+    """Σ α_i K_i for scalar expressions (or numbers) α_i and constant matrices/vectors K_i."""
+    total: cp.Expression | None = None
+    for alpha, K in terms:
+        coef = alpha if isinstance(alpha, cp.Expression) else cp.Constant(float(alpha))
+        total = coef * K if total is None else total + coef * K
+    if total is None:
+        raise ValueError("empty combination")
+    return total

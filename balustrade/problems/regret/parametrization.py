@@ -1,9 +1,11 @@
 """Decision variables of the system level synthesis and the affine maps built on them.
 
-Only the causal (block lower-triangular) entries of Φ_u are variables (SPEC 2.9 [Default]);
-Φ_x = FΦ_u + G satisfies the achievability constraint (3.14) by construction, and the regret
-factor Y = S(Φ_u − Φ_u^nc) (:mod:`.operators`) is an explicit sparse affine map of them.
-The constraint rows H_zΦ of (3.41) are built the same way.
+The variables are the causal (block lower-triangular) entries of Ψ = SΦ_u (SPEC 2.9
+[Default]), S the lower block-triangular square-root factor of :mod:`.operators`: Ψ is causal
+exactly when Φ_u is, and the regret factor Y = S(Φ_u − Φ_u^nc) = Ψ − SΦ_u^nc is then an entry
+selection plus a constant (each variable enters one entry of Y instead of a column of S, which
+keeps the LMIs sparse). Φ_u = S⁻¹Ψ, and Φ_x = FΦ_u + G satisfies the achievability constraint
+(3.14) by construction. The constraint rows H_zΦ of (3.41) are affine maps of the same θ.
 """
 
 from __future__ import annotations
@@ -19,15 +21,15 @@ from balustrade.problems.regret.operators import Operators
 
 
 class Parametrization:
-    """θ = causal entries of Φ_u, with sparse maps to Y(θ) and Φ(θ)."""
+    """θ = causal entries of Ψ = SΦ_u, with sparse maps to Y(θ) and Φ(θ)."""
 
     def __init__(self, ops: Operators):
         self.ops = ops
         self.P = ops.causal_selector()
-        self.theta = cp.Variable(self.P.shape[1], name="Phi_u_causal")
-        M, nd = ops.m * (ops.T + 1), ops.nd
-        self.M = M
-        self.AY = (sp.kron(sp.identity(nd, format="csr"), sp.csr_matrix(ops.S)) @ self.P).tocsr()
+        self.theta = cp.Variable(self.P.shape[1], name="S_Phi_u_causal")
+        self.M = ops.m * (ops.T + 1)
+        self.S_inv = sla.solve_triangular(ops.S, np.eye(self.M), lower=True)
+        self.AY = self.P.tocsr()
         self.cY = -(ops.S @ ops.Phi_u_nc).ravel(order="F")
 
     # --- regret factor -----------------------------------------------------------------------
@@ -37,12 +39,17 @@ class Parametrization:
         k = cols.stop - cols.start
         return cp.reshape(self.AY[rows] @ self.theta + self.cY[rows], (self.M, k), order="F")
 
+    def Y_map(self, cols: slice, U: np.ndarray | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
+        """(A, c) with vec_F(Y[:, cols] U) = Aθ + c (U = I when omitted)."""
+        rows = slice(cols.start * self.M, cols.stop * self.M)
+        if U is None:
+            return self.AY[rows], self.cY[rows]
+        kronU = sp.kron(sp.csr_matrix(U.T), sp.identity(self.M, format="csr"), format="csr")
+        return (kronU @ self.AY[rows]).tocsr(), kronU @ self.cY[rows]
+
     def Y_times(self, cols: slice, U: np.ndarray) -> cp.Expression:
         """Y[:, cols] @ U (M × U.shape[1]) as an explicit sparse affine map of θ."""
-        rows = slice(cols.start * self.M, cols.stop * self.M)
-        kronU = sp.kron(sp.csr_matrix(U.T), sp.identity(self.M, format="csr"), format="csr")
-        A = (kronU @ self.AY[rows]).tocsr()
-        c = kronU @ self.cY[rows]
+        A, c = self.Y_map(cols, U)
         return cp.reshape(A @ self.theta + c, (self.M, U.shape[1]), order="F")
 
     def Y_x0(self, x0: np.ndarray) -> cp.Expression:
@@ -52,17 +59,18 @@ class Parametrization:
     # --- values --------------------------------------------------------------------------------
     def phi_u_value(self) -> np.ndarray:
         ops = self.ops
-        return (self.P @ self.theta.value).reshape((self.M, ops.nd), order="F")
+        Psi = (self.P @ self.theta.value).reshape((self.M, ops.nd), order="F")
+        return self.S_inv @ Psi
 
     # --- constraint rows (3.40)/(3.41) --------------------------------------------------------
     def constraint_rows(self, Hx: np.ndarray, Hu: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(H_Φ, H_c, times) with H_zΦ = H_Φ Φ_u + H_c, and the time step of each row."""
+        """(H_Ψ, H_c, times) with H_zΦ = H_Ψ Ψ + H_c, and the time step of each row."""
         ops = self.ops
         T = ops.T
         HxB = sla.block_diag(*([Hx] * (T + 1)))
         HuB = sla.block_diag(*([Hu] * (T + 1)))
-        H_phi = np.vstack([HxB @ ops.F, HuB])
+        H_phi = np.vstack([HxB @ ops.F, HuB]) @ self.S_inv
         H_c = np.vstack([HxB @ ops.G, np.zeros((HuB.shape[0], ops.nd))])
         times = np.concatenate([np.repeat(np.arange(T + 1), Hx.shape[0]),
                                 np.repeat(np.arange(T + 1), Hu.shape[0])])

@@ -31,11 +31,16 @@ import numpy as np
 
 from balustrade._checks import as_matrix, as_vector, check_psd
 from balustrade.errors import BalustradeError, ShapeError
-from balustrade.problems.regret.lmi import Leaf, arrow_lmi, diagonal_groups
+from balustrade.problems.regret.banded import NotBanded
+from balustrade.problems.regret.lmi import Leaf, arrow_lmi, banded_lmi, diagonal_groups
 from balustrade.problems.regret.operators import Operators, controller_from_responses
 from balustrade.problems.regret.parametrization import Parametrization, normalize_halfspaces
 
 OK_STATUSES = ("optimal", "optimal_inaccurate")
+# How the LMI reaches the solver: "banded" (banded coordinates, one cone the solver decomposes;
+# falls back to "split" when the structure is missing), "split" (chordal split of lmi.py),
+# "single" (one compressed cone).
+LMI_FORMS = ("banded", "split", "single")
 
 
 @dataclass(frozen=True)
@@ -139,12 +144,30 @@ def _is_block_diag(W: np.ndarray, ops: Operators, tol: float = 1e-12) -> bool:
 class _Problem:
     """Collects constraints over one :class:`Parametrization`, solves, packs the result."""
 
-    def __init__(self, ops: Operators, name: str, split: bool):
+    def __init__(self, ops: Operators, name: str, lmi: str):
         self.t0 = time.perf_counter()
-        self.ops, self.name, self.split = ops, name, split
+        if lmi not in LMI_FORMS:
+            raise BalustradeError(f"lmi: expected one of {LMI_FORMS}, got {lmi!r}")
+        self.ops, self.name, self.lmi = ops, name, lmi
+        self.split = lmi != "single"     # the form used when the banded one is not available
+        self.form = "split" if self.split else "single"
+        self.fallback_reason: str | None = None
         self.par = Parametrization(ops)
         self.cons: list[cp.Constraint] = []
         self.extra: dict[str, cp.Expression] = {}
+
+    def try_banded(self, cols: slice, D_terms: list, a: cp.Expression | None = None,
+                   b_terms: list | None = None, y: cp.Expression | None = None) -> bool:
+        """Add the LMI in banded coordinates (:mod:`.banded`); False if not asked/possible."""
+        if self.lmi != "banded":
+            return False
+        out = banded_lmi(self.par, cols, D_terms, a=a, b_terms=b_terms or [], y=y)
+        if isinstance(out, NotBanded):
+            self.fallback_reason = out.reason
+            return False
+        self.cons += out
+        self.form = "banded"
+        return True
 
     def add_constraints(self, constraints: StateInputConstraints | None, x0: np.ndarray | None,
                         P: np.ndarray | None = None, omega: float | None = None) -> None:
@@ -166,7 +189,7 @@ class _Problem:
         prob = cp.Problem(cp.Minimize(objective) if minimize else cp.Maximize(objective),
                           self.cons)
         try:
-            prob.solve(solver=solver, **_defaults(solver, self.split, dict(solver_opts)))
+            prob.solve(solver=solver, **_defaults(solver, self.form == "split", dict(solver_opts)))
             status = str(prob.status)
         except cp.error.SolverError as exc:
             status = f"solver_error: {exc}"
@@ -176,7 +199,8 @@ class _Problem:
         res = SynthesisResult(self.name, status, None, ops, solve_time=solve_time,
                               total_time=total,
                               info={"n_theta": self.par.theta.size,
-                                    "psd_cone_sizes": _psd_sizes(prob)})
+                                    "psd_cone_sizes": _psd_sizes(prob), "lmi": self.form,
+                                    "banded_fallback": self.fallback_reason})
         if status in OK_STATUSES and self.par.theta.value is not None:
             Phi_u = self.par.phi_u_value()
             Phi_x = ops.phi_x(Phi_u)
@@ -238,6 +262,13 @@ def _defaults(solver: str, split: bool, opts: dict) -> dict:
     return opts
 
 
+def _block_term(P: np.ndarray, sl: slice, d: int) -> np.ndarray:
+    """The d×d matrix with P on the diagonal block ``sl`` (one S-procedure term of (3.32))."""
+    out = np.zeros((d, d))
+    out[sl, sl] = P
+    return out
+
+
 def _p_blocks(ops: Operators, start_block: int = 1) -> list[slice]:
     """Slices of the w-blocks relative to the start of w (or of δ when start_block = 0)."""
     off = ops.d_blocks[start_block].start
@@ -249,15 +280,18 @@ def _p_blocks(ops: Operators, start_block: int = 1) -> list[slice]:
 # ----------------------------------------------------------------------------------------------
 def dynamic_regret(ops: Operators, x0: object, omega: float, *,
                    constraints: StateInputConstraints | None = None,
-                   constraint_P: object | None = None, split: bool = True,
+                   constraint_P: object | None = None, lmi: str = "banded",
                    solver: str = "CLARABEL", solver_opts: dict | None = None) -> SynthesisResult:
     """Theorem 3.5, SDP (3.19): min γ s.t. the worst-case regret over ‖w‖² ≤ ω is ≤ γ."""
     x0v, om = _x0(ops, x0), _omega(omega)
-    pr = _Problem(ops, "dynamic regret (3.19)", split)
+    pr = _Problem(ops, "dynamic regret (3.19)", lmi)
     gamma, lam = cp.Variable(), cp.Variable(nonneg=True)
-    Yw = pr.par.Y(slice(ops.n, ops.nd))
-    leaves = [Leaf(lam * np.eye(ops.p), Yw[:, sl]) for sl in _p_blocks(ops)]
-    pr.cons += arrow_lmi(pr.par.M, leaves, a=gamma - lam * om, y=pr.par.Y_x0(x0v), split=split)
+    w_cols = slice(ops.n, ops.nd)
+    a, y = gamma - lam * om, pr.par.Y_x0(x0v)
+    if not pr.try_banded(w_cols, [(lam, np.eye(ops.p * ops.T))], a=a, y=y):
+        Yw = pr.par.Y(w_cols)
+        leaves = [Leaf(lam * np.eye(ops.p), Yw[:, sl]) for sl in _p_blocks(ops)]
+        pr.cons += arrow_lmi(pr.par.M, leaves, a=a, y=y, split=pr.split)
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P), om)
     pr.extra = {"lambda": lam}
     return pr.solve(gamma, lambda: gamma.value, solver, _solver_opts(solver_opts))
@@ -272,15 +306,17 @@ def _opt_P(ops: Operators, P: object | None) -> np.ndarray | None:
 # ----------------------------------------------------------------------------------------------
 def adversarial_regret(ops: Operators, *, constraints: StateInputConstraints | None = None,
                        x0: object | None = None, constraint_P: object | None = None,
-                       omega: float | None = None, split: bool = True,
+                       omega: float | None = None, lmi: str = "banded",
                        solver: str = "CLARABEL", solver_opts: dict | None = None
                        ) -> SynthesisResult:
     """(3.24): min ‖ΦᵀCΦ − 𝒪‖₂ = min γ s.t. γI − YᵀY ⪰ 0 (worst-case regret ωγ* on ‖δ‖² ≤ ω)."""
-    pr = _Problem(ops, "adversarial regret (3.24)", split)
+    pr = _Problem(ops, "adversarial regret (3.24)", lmi)
     gamma = cp.Variable()
-    Y = pr.par.Y(slice(0, ops.nd))
-    leaves = [Leaf(gamma * np.eye(sl.stop - sl.start), Y[:, sl]) for sl in ops.d_blocks]
-    pr.cons += arrow_lmi(pr.par.M, leaves, split=split)
+    all_cols = slice(0, ops.nd)
+    if not pr.try_banded(all_cols, [(gamma, np.eye(ops.nd))]):
+        Y = pr.par.Y(all_cols)
+        leaves = [Leaf(gamma * np.eye(sl.stop - sl.start), Y[:, sl]) for sl in ops.d_blocks]
+        pr.cons += arrow_lmi(pr.par.M, leaves, split=pr.split)
     x0v = None if x0 is None else _x0(ops, x0)
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P),
                        None if omega is None else _omega(omega))
@@ -292,7 +328,7 @@ def adversarial_regret(ops: Operators, *, constraints: StateInputConstraints | N
 # ----------------------------------------------------------------------------------------------
 def generalized_regret(ops: Operators, x0: object, omega: float, W: object = "I", *,
                        constraints: StateInputConstraints | None = None,
-                       constraint_P: object | None = None, split: bool = True,
+                       constraint_P: object | None = None, lmi: str = "banded",
                        solver: str = "CLARABEL", solver_opts: dict | None = None
                        ) -> SynthesisResult:
     """Theorem 3.8, SDP (3.28): min μ s.t. J − J* ≤ μ δᵀW_wδ for all ‖w‖² ≤ ω.
@@ -304,24 +340,29 @@ def generalized_regret(ops: Operators, x0: object, omega: float, W: object = "I"
     Wm = _weight(ops, W)
     W1, W2, W3 = ops.partition(Wm)
     pr = _Problem(ops, f"generalized regret (3.28), W={W if isinstance(W, str) else 'user'}",
-                  split)
+                  lmi)
     mu, lam = cp.Variable(), cp.Variable(nonneg=True)
     a = mu * float(x0v @ W1 @ x0v) - lam * om
     b_full = W2 @ x0v
-    pr.cons += _energy_lmi(pr, mu, lam, W3, b_full, a, x0v, split)
+    pr.cons += _energy_lmi(pr, mu, lam, W3, b_full, a, x0v)
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P), om)
     pr.extra = {"lambda": lam}
     return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts))
 
 
 def _energy_lmi(pr: _Problem, mu: cp.Variable, lam: cp.Variable | None, W3: np.ndarray,
-                b_full: np.ndarray, a: cp.Expression | None, x0v: np.ndarray | None,
-                split: bool) -> list[cp.Constraint]:
-    """Arrow LMI with D = λI + μW₃ on the w-block; rotates w by the eigenvectors of W₃ if dense."""
+                b_full: np.ndarray, a: cp.Expression | None, x0v: np.ndarray | None
+                ) -> list[cp.Constraint]:
+    """Arrow LMI with D = λI + μW₃ on the w-block: banded coordinates if possible, else the
+    chordal split (after rotating w by the eigenvectors of W₃ if it is dense)."""
     ops, M = pr.ops, pr.par.M
     w_cols = slice(ops.n, ops.nd)
     has_b = bool(np.any(b_full != 0))
     lam_I = 0 if lam is None else lam
+    y = None if x0v is None else pr.par.Y_x0(x0v)
+    D_terms = [(mu, W3)] + ([] if lam is None else [(lam, np.eye(W3.shape[0]))])
+    if pr.try_banded(w_cols, D_terms, a=a, b_terms=[(mu, b_full)] if has_b else [], y=y):
+        return []
     if _is_block_diag(np.pad(W3, ((ops.n, 0), (ops.n, 0))), ops):
         Yw = pr.par.Y(w_cols)
         leaves = [Leaf(lam_I * np.eye(sl.stop - sl.start) + mu * W3[sl, sl], Yw[:, sl],
@@ -333,8 +374,7 @@ def _energy_lmi(pr: _Problem, mu: cp.Variable, lam: cp.Variable | None, W3: np.n
         bU = U.T @ b_full
         leaves = [Leaf(D, YwU[:, sl], (mu * bU[sl]) if has_b else None)
                   for sl, D in diagonal_groups(diag, ops.p)]
-    y = None if x0v is None else pr.par.Y_x0(x0v)
-    return arrow_lmi(M, leaves, a=a, y=y, split=split)
+    return arrow_lmi(M, leaves, a=a, y=y, split=pr.split)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -343,7 +383,7 @@ def _energy_lmi(pr: _Problem, mu: cp.Variable, lam: cp.Variable | None, W3: np.n
 def zero_x0_regret(ops: Operators, W: object = "I", *, adversarial_x0: bool = False,
                    constraints: StateInputConstraints | None = None,
                    constraint_P: object | None = None, omega: float | None = None,
-                   split: bool = True, solver: str = "CLARABEL",
+                   lmi: str = "banded", solver: str = "CLARABEL",
                    solver_opts: dict | None = None) -> SynthesisResult:
     """(3.30): min μ s.t. μW₃ − Φ^wᵀCΦ^w + 𝒪₃ ⪰ 0 (x₀ = 0; no ω needed). The tight level (3.29).
 
@@ -351,16 +391,17 @@ def zero_x0_regret(ops: Operators, W: object = "I", *, adversarial_x0: bool = Fa
     """
     Wm = _weight(ops, W)
     name = "adversarial-x0 regret (3.30)" if adversarial_x0 else "zero-x0 regret (3.30)"
-    pr = _Problem(ops, name, split)
+    pr = _Problem(ops, name, lmi)
     mu = cp.Variable()
     if adversarial_x0:
-        evals, U = np.linalg.eigh(Wm)
-        YU = pr.par.Y_times(slice(0, ops.nd), U)
-        leaves = [Leaf(D, YU[:, sl]) for sl, D in diagonal_groups(mu * evals, ops.p)]
-        pr.cons += arrow_lmi(pr.par.M, leaves, split=split)
+        if not pr.try_banded(slice(0, ops.nd), [(mu, Wm)]):
+            evals, U = np.linalg.eigh(Wm)
+            YU = pr.par.Y_times(slice(0, ops.nd), U)
+            leaves = [Leaf(D, YU[:, sl]) for sl, D in diagonal_groups(mu * evals, ops.p)]
+            pr.cons += arrow_lmi(pr.par.M, leaves, split=pr.split)
     else:
         W3 = ops.partition(Wm)[2]
-        pr.cons += _energy_lmi(pr, mu, None, W3, np.zeros(ops.p * ops.T), None, None, split)
+        pr.cons += _energy_lmi(pr, mu, None, W3, np.zeros(ops.p * ops.T), None, None)
     x0v = np.zeros(ops.n)
     pr.add_constraints(constraints, None if adversarial_x0 else x0v,
                        _opt_P(ops, constraint_P), None if omega is None else _omega(omega))
@@ -371,7 +412,7 @@ def zero_x0_regret(ops: Operators, W: object = "I", *, adversarial_x0: bool = Fa
 # (3.32) pointwise ellipsoidal bounds, generalized; (3.34) pointwise dynamic regret
 # ----------------------------------------------------------------------------------------------
 def pointwise_regret(ops: Operators, x0: object, P: object, W: object = "I", *,
-                     constraints: StateInputConstraints | None = None, split: bool = True,
+                     constraints: StateInputConstraints | None = None, lmi: str = "banded",
                      solver: str = "CLARABEL", solver_opts: dict | None = None
                      ) -> SynthesisResult:
     """SDP (3.32): min μ̄ s.t. J − J* ≤ μ̄ δᵀW_wδ for all w_kᵀPw_k ≤ 1 (S-procedure, λ̄_i ≥ 0)."""
@@ -379,43 +420,67 @@ def pointwise_regret(ops: Operators, x0: object, P: object, W: object = "I", *,
     Wm = _weight(ops, W)
     W1, W2, W3 = ops.partition(Wm)
     pr = _Problem(ops, f"pointwise regret (3.32), W={W if isinstance(W, str) else 'user'}",
-                  split)
+                  lmi)
     mu, lams = cp.Variable(), cp.Variable(ops.T, nonneg=True)
     a = mu * float(x0v @ W1 @ x0v) - cp.sum(lams)
     b_full = W2 @ x0v
     has_b = bool(np.any(b_full != 0))
-    Yw = pr.par.Y(slice(ops.n, ops.nd))
+    w_cols = slice(ops.n, ops.nd)
     blocks = _p_blocks(ops)
-    if _is_block_diag(np.pad(W3, ((ops.n, 0), (ops.n, 0))), ops):
-        leaves = [Leaf(lams[i] * Pm + mu * W3[sl, sl], Yw[:, sl],
-                       (mu * b_full[sl]) if has_b else None) for i, sl in enumerate(blocks)]
-        pr.cons += arrow_lmi(pr.par.M, leaves, a=a, y=pr.par.Y_x0(x0v), split=split)
-    else:
-        # Σλ_iP_i + μW₃ is dense and not diagonalizable jointly in (λ, μ): one cone.
-        refusal = _dense_cone_refusal(pr, 1 + pr.par.M + ops.p * ops.T, solver)
+    D_terms = [(mu, W3)] + [(lams[i], _block_term(Pm, sl, W3.shape[0]))
+                            for i, sl in enumerate(blocks)]
+    y = pr.par.Y_x0(x0v)
+    if not pr.try_banded(w_cols, D_terms, a=a, b_terms=[(mu, b_full)] if has_b else [], y=y):
+        refusal = _pointwise_fallback(pr, mu, lams, a, y, W3, Pm, b_full if has_b else None,
+                                      solver)
         if refusal is not None:
             return refusal
-        D = mu * W3 + cp.bmat([[lams[i] * Pm if i == j else np.zeros((ops.p, ops.p))
-                               for j in range(ops.T)] for i in range(ops.T)])
-        D = 0.5 * (D + D.T)
-        leaf = Leaf(D, Yw, (mu * b_full) if has_b else None)
-        pr.cons += arrow_lmi(pr.par.M, [leaf], a=a, y=pr.par.Y_x0(x0v), split=False)
     pr.add_constraints(constraints, x0v, Pm)
     pr.extra = {"lambda": lams}
     return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts))
 
 
+def _pointwise_fallback(pr: _Problem, mu: cp.Variable, lams: cp.Variable, a: cp.Expression,
+                        y: cp.Expression, W3: np.ndarray, Pm: np.ndarray,
+                        b_full: np.ndarray | None, solver: str) -> SynthesisResult | None:
+    """(3.32) outside banded coordinates: the chordal split for a block-diagonal W₃, else one
+    dense cone (Σλ_iP_i + μW₃ is not diagonalizable jointly in (λ, μ)), refused with a status
+    when Clarabel's dense KKT block would not fit in memory."""
+    ops = pr.ops
+    w_cols, blocks = slice(ops.n, ops.nd), _p_blocks(ops)
+    if _is_block_diag(np.pad(W3, ((ops.n, 0), (ops.n, 0))), ops):
+        Yw = pr.par.Y(w_cols)
+        leaves = [Leaf(lams[i] * Pm + mu * W3[sl, sl], Yw[:, sl],
+                       None if b_full is None else mu * b_full[sl])
+                  for i, sl in enumerate(blocks)]
+        pr.cons += arrow_lmi(pr.par.M, leaves, a=a, y=y, split=pr.split)
+        return None
+    refusal = _dense_cone_refusal(pr, 1 + pr.par.M + ops.p * ops.T, solver)
+    if refusal is not None:
+        return refusal
+    D = mu * W3 + cp.bmat([[lams[i] * Pm if i == j else np.zeros((ops.p, ops.p))
+                           for j in range(ops.T)] for i in range(ops.T)])
+    D = 0.5 * (D + D.T)
+    leaf = Leaf(D, pr.par.Y(w_cols), None if b_full is None else mu * b_full)
+    pr.cons += arrow_lmi(pr.par.M, [leaf], a=a, y=y, split=False)
+    return None
+
+
 def pointwise_dynamic_regret(ops: Operators, x0: object, P: object, *,
                              constraints: StateInputConstraints | None = None,
-                             split: bool = True, solver: str = "CLARABEL",
+                             lmi: str = "banded", solver: str = "CLARABEL",
                              solver_opts: dict | None = None) -> SynthesisResult:
     """Theorem 3.12, SDP (3.34): γ̄* = min Σ_{i=0}^T λ̄_i, with (2/π)γ̄* ≤ R⁰_PWB ≤ γ̄* (3.36)."""
     x0v, Pm = _x0(ops, x0), _pointwise_P(ops, P)
-    pr = _Problem(ops, "pointwise dynamic regret (3.34)", split)
+    pr = _Problem(ops, "pointwise dynamic regret (3.34)", lmi)
     lams = cp.Variable(ops.T + 1, nonneg=True)
-    Yw = pr.par.Y(slice(ops.n, ops.nd))
-    leaves = [Leaf(lams[i + 1] * Pm, Yw[:, sl]) for i, sl in enumerate(_p_blocks(ops))]
-    pr.cons += arrow_lmi(pr.par.M, leaves, a=lams[0], y=pr.par.Y_x0(x0v), split=split)
+    w_cols, blocks = slice(ops.n, ops.nd), _p_blocks(ops)
+    D_terms = [(lams[i + 1], _block_term(Pm, sl, ops.p * ops.T)) for i, sl in enumerate(blocks)]
+    y = pr.par.Y_x0(x0v)
+    if not pr.try_banded(w_cols, D_terms, a=lams[0], y=y):
+        Yw = pr.par.Y(w_cols)
+        leaves = [Leaf(lams[i + 1] * Pm, Yw[:, sl]) for i, sl in enumerate(blocks)]
+        pr.cons += arrow_lmi(pr.par.M, leaves, a=lams[0], y=y, split=pr.split)
     pr.add_constraints(constraints, x0v, Pm)
     pr.extra = {"lambda": lams}
     total = cp.sum(lams)
@@ -433,7 +498,7 @@ def h2(ops: Operators, x0: object, *, constraints: StateInputConstraints | None 
     Written as ‖Y⁰x₀‖² + ‖Y^w‖_F² + x₀ᵀ𝒪₁x₀ + tr 𝒪₃; the level reported is that expected cost.
     """
     x0v = _x0(ops, x0)
-    pr = _Problem(ops, "SH2", True)
+    pr = _Problem(ops, "SH2", "split")
     O1, _, O3 = ops.O_parts
     const = float(x0v @ O1 @ x0v + np.trace(O3))
     Yw = pr.par.Y(slice(ops.n, ops.nd))
@@ -445,15 +510,16 @@ def h2(ops: Operators, x0: object, *, constraints: StateInputConstraints | None 
 
 def hinf(ops: Operators, *, x0: object | None = None,
          constraints: StateInputConstraints | None = None, constraint_P: object | None = None,
-         omega: float | None = None, split: bool = True, solver: str = "CLARABEL",
+         omega: float | None = None, lmi: str = "banded", solver: str = "CLARABEL",
          solver_opts: dict | None = None) -> SynthesisResult:
     """SH∞: min γ s.t. γI − ΦᵀCΦ ⪰ 0 on the whole δ (SLP H∞); here γI − 𝒪 − YᵀY ⪰ 0."""
-    pr = _Problem(ops, "SH-inf", split)
+    pr = _Problem(ops, "SH-inf", lmi)
     gamma = cp.Variable()
-    evals, U = np.linalg.eigh(ops.O)
-    YU = pr.par.Y_times(slice(0, ops.nd), U)
-    leaves = [Leaf(D, YU[:, sl]) for sl, D in diagonal_groups(gamma - evals, ops.p)]
-    pr.cons += arrow_lmi(pr.par.M, leaves, split=split)
+    if not pr.try_banded(slice(0, ops.nd), [(gamma, np.eye(ops.nd)), (-1.0, ops.O)]):
+        evals, U = np.linalg.eigh(ops.O)
+        YU = pr.par.Y_times(slice(0, ops.nd), U)
+        leaves = [Leaf(D, YU[:, sl]) for sl, D in diagonal_groups(gamma - evals, ops.p)]
+        pr.cons += arrow_lmi(pr.par.M, leaves, split=pr.split)
     x0v = None if x0 is None else _x0(ops, x0)
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P),
                        None if omega is None else _omega(omega))

@@ -1,0 +1,127 @@
+"""Banded coordinates of the regret LMIs (problems/regret/banded.py).
+
+The two structural facts the construction rests on are checked on random LTV systems, and the
+congruence is checked against its definition: for random decision values, the transformed LMI
+matrix has the same inertia as the original one (Sylvester), so the two constraints are the same
+set — independently of any SDP solver.
+"""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from balustrade.problems.regret import LTVSystem, build_operators
+from balustrade.problems.regret.banded import (
+    BandedCongruence,
+    NotBanded,
+    banded_congruence,
+    block_bandwidth,
+)
+from balustrade.problems.regret.lmi import banded_pieces
+from balustrade.problems.regret.parametrization import Parametrization
+
+
+def random_ltv(seed: int, n: int, m: int, T: int):
+    rng = np.random.default_rng(seed)
+    A = [0.8 * rng.standard_normal((n, n)) for _ in range(T)]
+    B = [rng.standard_normal((n, m)) for _ in range(T)]
+    E = [np.eye(n) + 0.3 * rng.standard_normal((n, n)) for _ in range(T)]
+    Q = [np.diag(rng.uniform(0.5, 2.0, n)) for _ in range(T + 1)]
+    R = [np.diag(rng.uniform(0.5, 2.0, m)) for _ in range(T + 1)]
+    return build_operators(LTVSystem.create(A, B, T, E=E, Q=Q, R=R)), rng
+
+
+systems = st.tuples(st.integers(0, 10_000), st.integers(1, 3), st.integers(1, 2),
+                    st.integers(2, 6))
+
+
+@settings(max_examples=25, deadline=None)
+@given(systems)
+def test_noncausal_cost_has_block_tridiagonal_inverse(case):
+    ops, _ = random_ltv(*case)
+    Oinv = np.linalg.inv(ops.O)
+    assert block_bandwidth(Oinv, ops.n, tol=1e-9) <= 1
+    W3inv = np.linalg.inv(ops.partition(ops.O)[2])
+    assert block_bandwidth(W3inv, ops.p, tol=1e-9) <= 1
+
+
+@settings(max_examples=25, deadline=None)
+@given(systems)
+def test_anticausal_part_of_the_noncausal_optimum_has_hankel_rank_at_most_n(case):
+    ops, _ = random_ltv(*case)
+    N = ops.S @ ops.Phi_u_nc
+    m, n = ops.m, ops.n
+    for k in range(ops.T):
+        H = N[: m * (k + 1), ops.d_blocks[k + 1].start:]
+        sv = np.linalg.svd(H, compute_uv=False)
+        assert np.sum(sv > 1e-9 * max(sv[0], 1e-300)) <= n
+
+
+def _arrow(L, D, a=None, b=None, y=None):
+    M = L.shape[0]
+    if a is None:
+        return np.block([[D, L.T], [L, np.eye(M)]])
+    return np.block([[np.array([[a]]), b[None, :], y[None, :]],
+                     [b[:, None], D, L.T],
+                     [y[:, None], L, np.eye(M)]])
+
+
+def _inertia(M, tol=1e-9):
+    ev = np.linalg.eigvalsh(0.5 * (M + M.T))
+    s = tol * np.max(np.abs(ev))
+    return int(np.sum(ev > s)), int(np.sum(ev < -s))
+
+
+@pytest.mark.parametrize("weight", ["I", "O"])
+@settings(max_examples=10, deadline=None)
+@given(systems)
+def test_banded_lmi_is_a_congruence_of_the_original(weight, case):
+    """Same inertia as the original arrow matrix for random θ and multipliers (x₀ row included)."""
+    ops, rng = random_ltv(*case)
+    par = Parametrization(ops)
+    cols = slice(ops.n, ops.nd)
+    d = cols.stop - cols.start
+    W3 = np.eye(d) if weight == "I" else ops.partition(ops.O)[2]
+    b0 = rng.standard_normal(d)
+    y0 = rng.standard_normal(par.M)
+    pieces = banded_pieces(par, cols, [np.eye(d), W3], [b0])
+    assert not isinstance(pieces, NotBanded)
+    Yrows = slice(cols.start * par.M, cols.stop * par.M)
+    for definite in (False, False, True):     # indefinite draws, then a positive definite one
+        theta = rng.standard_normal(par.theta.size)
+        L = (par.AY[Yrows] @ theta + par.cY[Yrows]).reshape((par.M, d), order="F")
+        lam, mu, a = rng.uniform(0.1, 3.0), rng.uniform(0.1, 3.0), 0.5
+        if definite:
+            lam = 2.0 * np.linalg.norm(L, 2) ** 2 + 1.0
+            a = 4.0 * (y0 @ y0 + mu**2 * (b0 @ b0)) + 1.0
+        orig = _arrow(L, lam * np.eye(d) + mu * W3, a, mu * b0, y0)
+        LC = (pieces.A @ theta + pieces.c).reshape((par.M, d), order="F")
+        Dp = (lam * pieces.D[0] + mu * pieces.D[1]).toarray()
+        banded = _arrow(LC, Dp, a, mu * pieces.b[0], y0)
+        inertia = _inertia(orig)
+        assert (inertia[1] == 0) == definite
+        assert _inertia(banded) == inertia
+        # the banded matrix is sparse: at most 3 disturbance blocks off the diagonal
+        assert block_bandwidth(Dp, ops.p) <= 3
+
+
+def test_construction_reports_why_it_does_not_apply():
+    ops, rng = random_ltv(1, 2, 1, 4)
+    par = Parametrization(ops)
+    cols = slice(ops.n, ops.nd)
+    d = cols.stop - cols.start
+    R = rng.standard_normal((d, d))
+    dense = R @ R.T + d * np.eye(d)     # inverse not banded
+    A, c = par.Y_map(cols)
+    mask = (np.diff(A.indptr) > 0).reshape((par.M, d), order="F")
+    L0 = c.reshape((par.M, d), order="F")
+    out = banded_congruence(L0, mask, [dense], ops.m, ops.p)
+    assert isinstance(out, NotBanded) and "tridiagonal" in out.reason
+    ok = banded_congruence(L0, mask, [np.eye(d)], ops.m, ops.p)
+    assert isinstance(ok, BandedCongruence)
+    assert max(ok.hankel_ranks) <= ops.n
+    # a constant part with full-rank Hankel blocks (not an LQ optimum) has no banded form
+    noisy = L0 + np.triu(rng.standard_normal(L0.shape), 1)
+    bad = banded_congruence(noisy, mask, [np.eye(d)], ops.m, ops.p)
+    assert isinstance(bad, NotBanded)
