@@ -49,7 +49,7 @@ ZERO_TOL = 1e-11
 
 @dataclass(frozen=True)
 class BandedCongruence:
-    """cols = C η, with C = B G (B = W⁻¹ or I, G block upper bidiagonal)."""
+    """cols = C η, with C = B G (B the banded factor of W⁻¹ or I, G block upper bidiagonal)."""
 
     C: np.ndarray
     hankel_ranks: tuple[int, ...]
@@ -74,10 +74,13 @@ def block_bandwidth(M: np.ndarray, p: int, tol: float = ZERO_TOL) -> int:
     return int(np.max(np.abs(i - j), initial=0))
 
 
-def weight_inverse(dense_terms: list[np.ndarray], p: int) -> np.ndarray | NotBanded | None:
-    """B = W⁻¹ for the one dense term W of D (None if all terms are block diagonal).
+def weight_factor(dense_terms: list[np.ndarray], p: int) -> np.ndarray | NotBanded | None:
+    """B with BᵀWB = I for the one dense term W of D (None if all terms are block diagonal).
 
-    B must be block tridiagonal; W = 𝒪 or its w-block always is (module docstring).
+    W⁻¹ must be block tridiagonal (𝒪 and its w-block are, module docstring); B is its lower
+    Cholesky factor, W⁻¹ = BBᵀ, which is block lower bidiagonal. Then BᵀB is tridiagonal,
+    BᵀD_iB is banded for block-diagonal D_i, XB stays causal, and cond(B) = cond(W)^{1/2}
+    (W⁻¹ itself would square the conditioning of the λ-terms).
     """
     if not dense_terms:
         return None
@@ -90,16 +93,14 @@ def weight_inverse(dense_terms: list[np.ndarray], p: int) -> np.ndarray | NotBan
     except np.linalg.LinAlgError:
         return NotBanded("the dense weight is not positive definite")
     inv_c = np.linalg.solve(cho, np.eye(W.shape[0]))
-    B = inv_c.T @ inv_c
-    if block_bandwidth(B, p) > 1:
+    Winv = inv_c.T @ inv_c
+    if block_bandwidth(Winv, p) > 1:
         return NotBanded("the inverse of the dense weight is not block tridiagonal")
-    return _keep_band(0.5 * (B + B.T), p, 1)
-
-
-def _keep_band(M: np.ndarray, p: int, bw: int) -> np.ndarray:
-    """M with every p×p block farther than bw blocks from the diagonal set to exact zero."""
-    blk = np.arange(M.shape[0]) // p
-    return np.where(np.abs(blk[:, None] - blk[None, :]) <= bw, M, 0.0)
+    blk = np.arange(W.shape[0]) // p
+    offset = blk[:, None] - blk[None, :]
+    Winv = np.where(np.abs(offset) <= 1, 0.5 * (Winv + Winv.T), 0.0)
+    B = np.linalg.cholesky(Winv)
+    return np.where((offset >= 0) & (offset <= 1), B, 0.0)
 
 
 def free_extent(free_mask: np.ndarray, m: int, p: int) -> np.ndarray:
@@ -162,7 +163,7 @@ def banded_congruence(L0: np.ndarray, free_mask: np.ndarray, D_terms: list[np.nd
     if d % p:
         return NotBanded(f"{d} columns are not whole blocks of {p}")
     dense = [Di for Di in D_terms if block_bandwidth(Di, p) > 0]
-    B = weight_inverse(dense, p)
+    B = weight_factor(dense, p)
     if isinstance(B, NotBanded):
         return B
     if B is None:

@@ -205,9 +205,16 @@ class Operators:
             mask[rs, : self.d_blocks[t].stop] = True
         return mask
 
-    def causal_selector(self) -> sp.csc_matrix:
-        """Sparse P with vec_F(Φ_u) = P θ, θ the causal entries of Φ_u in column-major order."""
+    def causal_selector(self, last_input: bool = True) -> sp.csc_matrix:
+        """Sparse P with vec_F(Φ_u) = P θ, θ the causal entries of Φ_u in column-major order.
+
+        ``last_input=False`` leaves out u_T: it affects no state of the horizon, so it enters
+        J only through u_Tᵀ R_T u_T and J* not at all; u_T = 0 is optimal for every problem of
+        Chapter 3 (and satisfies (3.40), whose right-hand sides are positive).
+        """
         mask = self.causal_mask()
+        if not last_input:
+            mask[self.u_blocks[-1], :] = False
         idx = np.flatnonzero(mask.ravel(order="F"))
         return sp.csc_matrix((np.ones(idx.size), (idx, np.arange(idx.size))),
                              shape=(mask.size, idx.size))

@@ -6,6 +6,8 @@ exactly when Φ_u is, and the regret factor Y = S(Φ_u − Φ_u^nc) = Ψ − SΦ
 selection plus a constant (each variable enters one entry of Y instead of a column of S, which
 keeps the LMIs sparse). Φ_u = S⁻¹Ψ, and Φ_x = FΦ_u + G satisfies the achievability constraint
 (3.14) by construction. The constraint rows H_zΦ of (3.41) are affine maps of the same θ.
+The last input u_T is fixed to zero (it cannot affect the states of the horizon, see
+:meth:`.Operators.causal_selector`).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ class Parametrization:
 
     def __init__(self, ops: Operators):
         self.ops = ops
-        self.P = ops.causal_selector()
+        self.P = ops.causal_selector(last_input=False)
         self.theta = cp.Variable(self.P.shape[1], name="S_Phi_u_causal")
         self.M = ops.m * (ops.T + 1)
         self.S_inv = sla.solve_triangular(ops.S, np.eye(self.M), lower=True)
