@@ -107,3 +107,15 @@ def test_dense_cone_too_large_for_clarabel_is_a_status(monkeypatch):
     assert res_scs.ok and res_cl.ok
     assert res_scs.level == pytest.approx(res_cl.level, rel=1e-4)
     assert res_banded.level == pytest.approx(res_cl.level, rel=1e-6)
+
+
+@pytest.mark.parametrize("eps", [1e-6, 1e-8, 1e-10])
+def test_trust_region_near_hard_case_attains_its_dual_bound(eps):
+    """β tiny but nonzero on the top eigenvector: ν − α_max is below the resolution of the
+    secular equation. The attained value must still meet the dual bound (before the fix the
+    maximizer stopped short of the boundary and the gap was ~1e-6 relative on the rocket)."""
+    Amat = np.diag([3.0, 1.0, 0.5, -2.0])
+    b = np.array([eps, 0.3, -0.2, 0.1])
+    res = maximize_quadratic_on_ball(Amat, b, 0.5, 2.0)
+    assert res.w @ res.w == pytest.approx(2.0, rel=1e-12)
+    assert res.value == pytest.approx(res.upper, rel=1e-10, abs=1e-12)

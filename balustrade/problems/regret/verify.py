@@ -82,6 +82,7 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, c: float, omega: fl
         nu = brentq(f, lo, hi, xtol=1e-15 * max(1.0, abs(amax)), rtol=1e-15, maxiter=500) \
             if f(lo) < 0 < f(hi) else hi
         v = beta / (nu - alpha)
+        v = _fill_top(v, beta, top, omega, lambda u: _quad(alpha, beta, c, u))
     w = V @ v
     value = float(w @ A @ w + 2 * b @ w + c)
     # dual bound: for ν ≥ α_max, max ≤ c + νω + Σ β_i²/(ν − α_i) over the range of νI − A
@@ -89,6 +90,28 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, c: float, omega: fl
     safe = gap > tiny
     upper = float(c + nu * omega + np.sum(beta[safe] ** 2 / gap[safe]))
     return TrustRegionCertificate(value, upper, w, float(nu), hard)
+
+
+def _quad(alpha: np.ndarray, beta: np.ndarray, c: float, v: np.ndarray) -> float:
+    """vᵀdiag(α)v + 2βᵀv + c: the trust-region objective in eigen-coordinates."""
+    return float(alpha @ v**2 + 2 * beta @ v + c)
+
+
+def _fill_top(v: np.ndarray, beta: np.ndarray, top: np.ndarray, omega: float, objective
+              ) -> np.ndarray:
+    """Near the hard case (β tiny on the top eigenspace) ν − α_max is below the resolution of
+    the secular equation and v falls short of the boundary; the maximizer is then v with its
+    top-eigenspace part set so that ‖v‖² = ω (sign of β kept). The filled point is used when v
+    is outside the ball (rounding of ν) or when it is better; the value stays attained."""
+    rest_sq = float(v[~top] @ v[~top])
+    room = omega - rest_sq
+    if room <= 0.0:
+        return v
+    direction = v[top] if np.any(v[top]) else np.sign(beta[top]) + (beta[top] == 0)
+    filled = v.copy()
+    filled[top] = direction / np.linalg.norm(direction) * np.sqrt(room)
+    outside = float(v @ v) > omega
+    return filled if outside or objective(filled) > objective(v) else v
 
 
 def worst_case_regret_energy(ops: Operators, Phi_u: np.ndarray, x0: object, omega: float
@@ -100,6 +123,32 @@ def worst_case_regret_energy(ops: Operators, Phi_u: np.ndarray, x0: object, omeg
     A, b = M[n:, n:], M[n:, :n] @ x0v
     c = float(x0v @ M[:n, :n] @ x0v)
     return maximize_quadratic_on_ball(A, b, c, float(omega))
+
+
+def generalized_level_energy(ops: Operators, Phi_u: np.ndarray, x0: object, omega: float,
+                             W: np.ndarray, rtol: float = 1e-10) -> float:
+    """Exact generalized regret level (3.28) of the responses Φ_u over ‖w‖² ≤ ω, fixed x₀:
+    the smallest μ with max_w δᵀ(M − μW)δ ≤ 0, by bisection on μ over exact trust-region
+    solutions (the maximum is decreasing in μ for W ≻ 0). Independent of any SDP solver."""
+    x0v = as_vector(x0, "x0", ops.n)
+    Wm = np.asarray(W, dtype=float)
+    M = regret_matrix(ops, Phi_u)
+    n = ops.n
+
+    def worst(mu: float) -> float:
+        D = M - mu * Wm
+        return maximize_quadratic_on_ball(D[n:, n:], D[n:, :n] @ x0v,
+                                          float(x0v @ D[:n, :n] @ x0v), float(omega)).value
+
+    lo, hi = 0.0, 1.0
+    while worst(hi) > 0.0:
+        lo, hi = hi, 2.0 * hi
+        if hi > 1e15:
+            raise BalustradeError("generalized_level_energy: level above 1e15 (W singular?)")
+    while hi - lo > rtol * max(hi, 1e-300):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if worst(mid) > 0.0 else (lo, mid)
+    return hi
 
 
 @dataclass(frozen=True)
