@@ -41,7 +41,16 @@ def test_profiles_lie_in_the_pointwise_set():
 
 
 def _check_metrics(m: dict) -> None:
-    assert all(st == "optimal" for st in m["status"].values()), m["status"]
+    # "optimal_inaccurate" (Clarabel stalled within 10x of its tolerances, seen for the 𝒪-weighted
+    # SDPs at T = 25) is accepted because the levels are certified below, without the solver
+    assert all(st in ("optimal", "optimal_inaccurate") for st in m["status"].values()), m["status"]
+    cert = m["certificates"]
+    assert set(cert) == {"SDR", "SCR", "SDRW", "SCRW"}
+    for name in ("SDR", "SCR"):       # energy bounds: the S-procedure is lossless, level exact
+        assert cert[name]["exact"] == pytest.approx(cert[name]["sdp"], rel=1e-5), name
+    for name in ("SDRW", "SCRW"):     # pointwise: a certified lower bound under the SDP level
+        assert cert[name]["lower_bound"] <= cert[name]["sdp"] * (1 + 1e-6), name
+        assert cert[name]["lower_bound"] >= 2 / np.pi * cert[name]["sdp"] * 0.5, name
     assert m["constraints_satisfied"] and m["closed_loop_runs"] > 0
     norm = m["normalized_cost"]
     for prof in PROFILES:

@@ -23,12 +23,17 @@ import numpy as np
 from balustrade.models.rocket import RocketRegretSetup
 from balustrade.problems.regret import (
     LTVSystem,
+    Operators,
     StateInputConstraints,
     build_operators,
     generalized_regret,
     h2,
     hinf,
     pointwise_regret,
+)
+from balustrade.problems.regret.verify import (
+    generalized_level_energy,
+    pointwise_regret_lower_bound,
 )
 
 NAMES = ("rocket-regret",)
@@ -99,25 +104,32 @@ def random_profiles(T: int, P: np.ndarray, draws: int, seed: int) -> dict[str, n
 # ---------------------------------------------------------------------------------------------
 # synthesis and evaluation
 # ---------------------------------------------------------------------------------------------
-def synthesize_all(setup: RocketRegretSetup, solver_opts: dict | None = None) -> dict:
-    """The six controllers of Table 3.1 (SPEC 2.17), all with the constraints (3.41)."""
+def synthesis_makers(setup: RocketRegretSetup, solver_opts: dict | None = None,
+                     lmi: str = "banded") -> tuple[dict, Operators, StateInputConstraints]:
+    """(name → zero-argument synthesis of the six controllers of Table 3.1 (SPEC 2.17), all
+    with the constraints (3.41); ops; constraints). ``lmi``: how the LMIs reach Clarabel."""
     ops = build_operators(LTVSystem.create(setup.A, setup.B, setup.T))
     cons = StateInputConstraints.from_halfspaces(*setup.state_halfspaces(),
                                                  *setup.input_halfspaces())
     x0, P, om = setup.x0, setup.P, setup.omega
     kw = {"solver_opts": solver_opts}
-    makers = {
+    return {
         "SH2": lambda: h2(ops, x0, constraints=cons, constraint_P=P, **kw),
-        "SH∞": lambda: hinf(ops, x0=x0, constraints=cons, constraint_P=P, **kw),
+        "SH∞": lambda: hinf(ops, x0=x0, constraints=cons, constraint_P=P, lmi=lmi, **kw),
         "SDR": lambda: generalized_regret(ops, x0, om, "I", constraints=cons, constraint_P=P,
-                                          **kw),
+                                          lmi=lmi, **kw),
         "SCR": lambda: generalized_regret(ops, x0, om, "O", constraints=cons, constraint_P=P,
-                                          **kw),
-        "SDRW": lambda: pointwise_regret(ops, x0, P, "I", constraints=cons, **kw),
+                                          lmi=lmi, **kw),
+        "SDRW": lambda: pointwise_regret(ops, x0, P, "I", constraints=cons, lmi=lmi, **kw),
         # Σλ_iP_i + μ𝒪 has no block-diagonal split; in banded coordinates (𝒪⁻¹ is block
         # tridiagonal, banded.py) Clarabel decomposes it like the others.
-        "SCRW": lambda: pointwise_regret(ops, x0, P, "O", constraints=cons, **kw),
-    }
+        "SCRW": lambda: pointwise_regret(ops, x0, P, "O", constraints=cons, lmi=lmi, **kw),
+    }, ops, cons
+
+
+def synthesize_all(setup: RocketRegretSetup, solver_opts: dict | None = None) -> dict:
+    """The six controllers of Table 3.1, synthesized one after the other (timed)."""
+    makers, ops, cons = synthesis_makers(setup, solver_opts)
     results = {}
     for name, make in makers.items():
         t0 = time.perf_counter()
@@ -156,6 +168,29 @@ def evaluate(setup: RocketRegretSetup, synth: dict, draws: int, seed: int = 0) -
             cost[prof][name] = float(np.mean(Js))
     return {"cost": cost, "worst_violation": float(worst_violation),
             "runs_checked": runs_checked, "example_runs": example_runs}
+
+
+def certify_levels(setup: RocketRegretSetup, synth: dict) -> dict[str, dict[str, float]]:
+    """Solver-independent checks of the four regret levels (verify.py): for the energy-bound
+    controllers the exact level of the synthesized Φ (trust region + bisection; equals the SDP
+    level when the S-procedure is tight), for the pointwise ones a certified lower bound
+    (conditional-gradient ascent over the pointwise set; ≤ the SDP level)."""
+    ops = synth["ops"]
+    W = {"I": np.eye(ops.nd), "O": ops.O}
+    out: dict[str, dict[str, float]] = {}
+    for name, weight, pointwise in (("SDR", "I", False), ("SCR", "O", False),
+                                    ("SDRW", "I", True), ("SCRW", "O", True)):
+        res = synth["results"].get(name)
+        if res is None or not res.ok:
+            continue
+        if pointwise:
+            lb = pointwise_regret_lower_bound(ops, res.Phi_u, setup.x0, setup.P, W=W[weight],
+                                              starts=20, iters=200)
+            out[name] = {"sdp": res.level, "lower_bound": lb.value}
+        else:
+            exact = generalized_level_energy(ops, res.Phi_u, setup.x0, setup.omega, W[weight])
+            out[name] = {"sdp": res.level, "exact": exact}
+    return out
 
 
 def normalized_table(cost: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
@@ -262,6 +297,7 @@ def run(out: Path, quick: bool = False) -> dict:
         "constraints_satisfied": bool(ev["worst_violation"] <= 1e-7),
         "closed_loop_runs": ev["runs_checked"],
         "summary_table": table,
+        "certificates": certify_levels(setup, synth),
     }
     metrics["plots"] = _plots(out, norm, ev, setup)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1, ensure_ascii=False))

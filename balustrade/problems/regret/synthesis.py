@@ -189,7 +189,7 @@ class _Problem:
         prob = cp.Problem(cp.Minimize(objective) if minimize else cp.Maximize(objective),
                           self.cons)
         try:
-            prob.solve(solver=solver, verbose=bool(__import__("os").environ.get("BALU_VERBOSE")), **_defaults(solver, self.form == "split", dict(solver_opts)))
+            prob.solve(solver=solver, **_defaults(solver, self.form == "split", dict(solver_opts)))
             status = str(prob.status)
         except cp.error.SolverError as exc:
             status = f"solver_error: {exc}"
