@@ -3,17 +3,21 @@
 Each case runs in a fresh subprocess so that its peak resident memory can be reported
 (``peak_mem_mb`` = the child's max RSS, Python and imports included, about 100 MB).
 
-* ours: :func:`balustrade.problems.regret.generalized_regret` — causal variables only,
-  Φ_x eliminated, cost compressed by the square-root factor, chordal split of the LMI;
-* unsplit: the same compressed LMI as one cone, left to Clarabel's own chordal decomposition
-  (``split=False``) — a second structured variant, reported in its own rows;
+* banded (ours, the default): :func:`balustrade.problems.regret.generalized_regret` — causal
+  variables only, Φ_x eliminated, cost compressed by the square-root factor, the LMI in banded
+  coordinates (problems/regret/banded.py) decomposed by Clarabel;
+* split / single: the same compressed LMI with our chordal split, or as one cone in the
+  original coordinates (``lmi="split"`` / ``lmi="single"``), reported in their own rows;
 * dense: a direct transcription of (3.28) — dense Φ with (3.14) and causality as equality
   constraints, C^{1/2} and 𝒪 blocks in one LMI of size 1 + pT + (n+m)(T+1).
 
-Both without the constraints (3.41), so that the two SDPs are the same problem; the row
-records the relative difference of the optimal levels. Quick: T = 5 (both). Full: T = 10
-(both) and T = 25 (ours; the dense T = 25 baseline, ≈ 100 s and ≈ 9 GB, only when the
-environment variable BALUSTRADE_BENCH_DENSE_T25=1 is set and enough memory is free).
+These rows are without the constraints (3.41), so that both sides are the same SDP; each row
+records the relative difference of the optimal levels. Quick: T = 5. Full: T = 10 (all forms
+and dense), T = 25 (banded and single; the dense T = 25 transcription, ≈ 100 s and ≈ 9 GB on
+the machine of the issue and killed at 24 GB here, only with BALUSTRADE_BENCH_DENSE_T25=1 and
+enough free memory), and the six Table 3.1 syntheses at T = 25 *with* (3.41), banded (their
+baseline is the chordal split of the same problem, measured in the same run only with
+BALUSTRADE_BENCH_SPLIT_T25=1: 6–10 min each).
 """
 
 from __future__ import annotations
@@ -37,8 +41,13 @@ x0, om = s.x0, s.omega
 # both sides solved to the same tight tolerances, so that the levels can agree to 1e-6
 TOL = {"tol_gap_rel": 1e-10, "tol_gap_abs": 1e-10, "tol_feas": 1e-10}
 t0 = time.perf_counter()
-if kind in ("ours", "unsplit"):
-    res = generalized_regret(ops, x0, om, W, split=kind == "ours", solver_opts=TOL)
+if kind.startswith("table:"):
+    from balustrade.reproduce.rocket_regret import synthesis_makers
+    form = kind.split(":")[2]
+    res = synthesis_makers(s, lmi=form)[0][kind.split(":")[1]]()
+    level, status = res.level, res.status
+elif kind in ("banded", "split", "single"):
+    res = generalized_regret(ops, x0, om, W, lmi=kind, solver_opts=TOL)
     level, status = res.level, res.status
 else:
     Wm = np.eye(ops.nd) if W == "I" else ops.O
@@ -86,15 +95,30 @@ def _row(T: int, W: str, ours: dict, dense: dict | None, variant: str = "") -> d
 
 def run(quick: bool) -> list[dict]:
     rows = []
-    cases = [(5, True)] if quick else [(10, True), (25, False)]
-    for T, with_dense in cases:
+    cases = [(5, True, ("split", "single"))] if quick else [
+        (10, True, ("split", "single")), (25, False, ("single",))]
+    for T, with_dense, variants in cases:
         for W in ("I", "O"):
-            ours = _run_case(T, W, "ours")
+            ours = _run_case(T, W, "banded")
             dense_wanted = with_dense or (
                 T == 25 and os.environ.get("BALUSTRADE_BENCH_DENSE_T25") == "1"
                 and _mem_available_gb() > 14)
             dense = _run_case(T, W, "dense") if dense_wanted else None
             rows.append(_row(T, W, ours, dense))
-            unsplit = _run_case(T, W, "unsplit")
-            rows.append(_row(T, W, unsplit, dense, " (one LMI, Clarabel's decomposition)"))
+            for form in variants:
+                other = _run_case(T, W, form)
+                rows.append(_row(T, W, other, dense, f" (lmi={form})"))
+    if not quick:
+        with_split = os.environ.get("BALUSTRADE_BENCH_SPLIT_T25") == "1"
+        for name in ("SH2", "SH∞", "SDR", "SCR", "SDRW", "SCRW"):
+            ours = _run_case(25, "-", f"table:{name}:banded")
+            row = {"name": f"rocket Table 3.1 {name} T=25 with (3.41)", "median_s": ours["time"],
+                   "peak_mem_mb": round(ours["rss_mb"], 1), "level": ours["level"],
+                   "status": ours["status"], "goal_s": 10.0, "goal_mem_mb": 2048}
+            if with_split and name != "SH2":
+                base = _run_case(25, "-", f"table:{name}:split")
+                row.update({"baseline": "chordal split (lmi='split')",
+                            "ratio": base["time"] / ours["time"], "baseline_s": base["time"],
+                            "baseline_peak_mem_mb": round(base["rss_mb"], 1)})
+            rows.append(row)
     return rows
