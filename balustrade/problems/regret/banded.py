@@ -16,9 +16,9 @@ facts of the LQ structure make a C with banded results exist:
 * 𝒪⁻¹ is block tridiagonal. 𝒪 (3.6) is the quadratic form of the non-causal optimal cost,
   J*(δ) = min ‖C^{1/2}z‖² s.t. the dynamics (3.14) hold, whose value is
   δᵀℰᵀ(𝒟C⁻¹𝒟ᵀ)⁻¹ℰδ with the block-bidiagonal dynamics operator 𝒟 = [I − Z𝒜, −Zℬ]; so
-  𝒪⁻¹ = ℰ⁻¹𝒟C⁻¹𝒟ᵀℰ⁻ᵀ. With ``B = W⁻¹`` for a dense weight W = 𝒪 (or W₃ = 𝒪's w-block,
-  whose inverse is banded too), BᵀWB = B and B·blockdiag·B are banded, and XB stays causal up
-  to one block.
+  𝒪⁻¹ = ℰ⁻¹𝒟C⁻¹𝒟ᵀℰ⁻ᵀ (and the inverse of 𝒪's w-block is banded too). For a dense weight W
+  with banded W⁻¹, B = its block-bidiagonal Cholesky factor (W⁻¹ = BBᵀ) gives BᵀWB = I and
+  banded BᵀB, B·blockdiag·B, and XB stays causal.
 * The anti-causal part of Φ_u^nc is semiseparable: its Hankel blocks L₀[u_{0..k}, δ_{>k}]
   have rank ≤ n (the non-causal optimal input reacts to the future only through the n-dim
   co-state of the LQ problem). With an orthonormal basis Π_j of the row space of the Hankel
@@ -28,13 +28,13 @@ facts of the LQ structure make a C with banded results exist:
 With C = BG, every term is block banded: CᵀD_iC (bandwidth ≤ 3 blocks), LC (free part causal
 up to ≤ 2 blocks, constant part the same), so the LMI's pattern is a "staircase" whose chordal
 cliques have at most 2–4 disturbance blocks plus the future rows of Y. Clarabel's chordal
-decomposition then splits the single cone into small cones joined in a chain (measured at
-T = 25 for the rocket: 24.5 s and 1.3 GB against 93 s and 2.5 GB for the same LMI in the
-original coordinates; see docs/regret.md).
+decomposition then splits the single cone into small cones joined in a chain (rocket, T = 25,
+dynamic regret: 20 s and 1.0 GB against 67 s and 2.1 GB for the same LMI in the original
+coordinates; docs/regret.md).
 
-:func:`banded_congruence` builds C (or returns ``None`` with the reason when a condition fails:
-a dense weight whose inverse is not banded, a Hankel rank above the block size, a singular
-first block) — callers then fall back to the chordal split of :mod:`.lmi`.
+:func:`banded_congruence` builds C, or returns :class:`NotBanded` with the reason when a
+condition fails (a dense weight whose inverse is not banded, a Hankel rank above the block
+size, a singular first block) — callers then fall back to the chordal split of :mod:`.lmi`.
 """
 
 from __future__ import annotations
