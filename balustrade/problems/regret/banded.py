@@ -42,6 +42,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 # Relative size below which a computed entry is taken as an exact zero of the banded structure.
 ZERO_TOL = 1e-11
@@ -138,9 +139,7 @@ def semiseparable_coordinates(L0: np.ndarray, extent: np.ndarray, m: int, p: int
             Pi = Vt[:r]
         if r > p:
             return NotBanded(f"Hankel block at column block {j} has rank {r} > {p}")
-        V = Pi[:, :p]
-        _, sv2, Vt2 = np.linalg.svd(V, full_matrices=True) if r else (None, np.zeros(0),
-                                                                       np.eye(p))
+        _, sv2, Vt2 = np.linalg.svd(Pi[:, :p], full_matrices=True)   # Vt2: p×p, also r = 0
         if r and sv2[r - 1] <= 1e-6 * max(sv2[0], 1e-300):
             return NotBanded(f"first block of the Hankel basis at column block {j} is singular")
         ranks.append(r)
@@ -180,7 +179,14 @@ def banded_congruence(L0: np.ndarray, free_mask: np.ndarray, D_terms: list[np.nd
     return BandedCongruence(C, ranks, B is not None)
 
 
-def drop_tiny(M: np.ndarray, tol: float = ZERO_TOL) -> np.ndarray:
-    """Entries below tol·max|M| set to exact zero (rounding noise of the banded products)."""
+def drop_tiny(M: np.ndarray | sp.csr_matrix, tol: float = ZERO_TOL
+              ) -> np.ndarray | sp.csr_matrix:
+    """Entries below tol·max|M| set to exact zero (rounding noise of the banded products);
+    a sparse matrix also loses them from its pattern."""
+    if sp.issparse(M):
+        out = M.tocsr(copy=True)
+        out.data = drop_tiny(out.data, tol)
+        out.eliminate_zeros()
+        return out
     scale = float(np.max(np.abs(M), initial=0.0))
     return np.where(np.abs(M) > tol * scale, M, 0.0)

@@ -30,12 +30,7 @@ import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 
-from balustrade.problems.regret.banded import (
-    ZERO_TOL,
-    NotBanded,
-    banded_congruence,
-    drop_tiny,
-)
+from balustrade.problems.regret.banded import NotBanded, banded_congruence, drop_tiny
 from balustrade.problems.regret.parametrization import Parametrization
 
 
@@ -140,10 +135,7 @@ def banded_pieces(par: Parametrization, cols: slice, D_mats: Sequence[np.ndarray
         return cong
     C = cong.C
     kronC = sp.kron(sp.csr_matrix(C.T), sp.identity(M, format="csr"), format="csr")
-    AC = (kronC @ A).tocsr()
-    AC.data[np.abs(AC.data) <= ZERO_TOL * np.max(np.abs(AC.data), initial=0.0)] = 0.0
-    AC.eliminate_zeros()
-    return BandedPieces(C, AC, drop_tiny(L0 @ C).ravel(order="F"),
+    return BandedPieces(C, drop_tiny(kronC @ A), drop_tiny(L0 @ C).ravel(order="F"),
                         [sp.csr_matrix(drop_tiny(C.T @ Di @ C)) for Di in D_mats],
                         [C.T @ bi for bi in b_vecs])
 

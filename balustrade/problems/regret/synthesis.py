@@ -149,12 +149,16 @@ class _Problem:
         if lmi not in LMI_FORMS:
             raise BalustradeError(f"lmi: expected one of {LMI_FORMS}, got {lmi!r}")
         self.ops, self.name, self.lmi = ops, name, lmi
-        self.split = lmi != "single"     # the form used when the banded one is not available
-        self.form = "split" if self.split else "single"
+        self.form = "single" if lmi == "single" else "split"   # until try_banded succeeds
         self.fallback_reason: str | None = None
         self.par = Parametrization(ops)
         self.cons: list[cp.Constraint] = []
         self.extra: dict[str, cp.Expression] = {}
+
+    @property
+    def split(self) -> bool:
+        """Whether the fallback (non-banded) LMI is the chordal split rather than one cone."""
+        return self.lmi != "single"
 
     def try_banded(self, cols: slice, D_terms: list, a: cp.Expression | None = None,
                    b_terms: list | None = None, y: cp.Expression | None = None) -> bool:

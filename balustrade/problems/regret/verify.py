@@ -118,11 +118,15 @@ def worst_case_regret_energy(ops: Operators, Phi_u: np.ndarray, x0: object, omeg
                              ) -> TrustRegionCertificate:
     """Exact worst-case regret (3.8)/(3.18) of the responses Φ_u for fixed x₀ and ‖w‖² ≤ ω."""
     x0v = as_vector(x0, "x0", ops.n)
-    M = regret_matrix(ops, Phi_u)
-    n = ops.n
-    A, b = M[n:, n:], M[n:, :n] @ x0v
-    c = float(x0v @ M[:n, :n] @ x0v)
-    return maximize_quadratic_on_ball(A, b, c, float(omega))
+    return _max_over_energy_ball(regret_matrix(ops, Phi_u), x0v, omega)
+
+
+def _max_over_energy_ball(D: np.ndarray, x0v: np.ndarray, omega: float
+                          ) -> TrustRegionCertificate:
+    """max δᵀDδ over δ = (x₀, w), ‖w‖² ≤ ω, for a δ-space matrix D and fixed x₀."""
+    n = x0v.size
+    return maximize_quadratic_on_ball(D[n:, n:], D[n:, :n] @ x0v, float(x0v @ D[:n, :n] @ x0v),
+                                      float(omega))
 
 
 def generalized_level_energy(ops: Operators, Phi_u: np.ndarray, x0: object, omega: float,
@@ -133,12 +137,9 @@ def generalized_level_energy(ops: Operators, Phi_u: np.ndarray, x0: object, omeg
     x0v = as_vector(x0, "x0", ops.n)
     Wm = np.asarray(W, dtype=float)
     M = regret_matrix(ops, Phi_u)
-    n = ops.n
 
     def worst(mu: float) -> float:
-        D = M - mu * Wm
-        return maximize_quadratic_on_ball(D[n:, n:], D[n:, :n] @ x0v,
-                                          float(x0v @ D[:n, :n] @ x0v), float(omega)).value
+        return _max_over_energy_ball(M - mu * Wm, x0v, omega).value
 
     lo, hi = 0.0, 1.0
     while worst(hi) > 0.0:
