@@ -1,5 +1,6 @@
 """Regret SDPs (3.19)-(3.34): tightness, orderings, and agreement with dense transcriptions."""
 
+import cvxpy as cp
 import numpy as np
 import pytest
 
@@ -17,6 +18,7 @@ from balustrade.problems.regret import (
     zero_x0_regret,
 )
 from balustrade.problems.regret.dense import dense_generalized_regret
+from balustrade.problems.regret.parametrization import parallel_rows
 from balustrade.problems.regret.verify import (
     pointwise_regret_lower_bound,
     regret_matrix,
@@ -174,6 +176,51 @@ def test_constraint_reformulation_3_41_is_exact_for_ellipsoids():
             assert bound <= 1 + 1e-6
             best = max(best, bound)
     assert best > 0.5     # some state row is close to its limit, so the check is not vacuous
+
+
+def test_shared_robust_terms_equal_a_naive_transcription_of_3_41():
+    """(3.41) with shared SOC terms for parallel rows (parametrization.parallel_rows: h and −h
+    of a box, and a scaled copy 2h) against a naive cvxpy transcription: dense Φ_u with a
+    causality mask, u_T free, Φ_x = FΦ_u + G, one norm per (row, step, block). SH2 optimum."""
+    ops, rng = random_ops(4, n=2, m=1, T=4)
+    x0 = np.array([0.3, -0.2])
+    P = np.array([[30.0, 5.0], [5.0, 20.0]])
+    Ax = np.vstack([np.eye(2), -np.eye(2), [[1.0, 1.0]], [[2.0, 2.0]]])
+    cons = StateInputConstraints.from_halfspaces(Ax, np.array([1.1, 0.9, 1.1, 0.9, 1.5, 2.2]),
+                                                 np.array([[1.0], [-1.0]]), np.array([0.3, 0.6]))
+    rep, alpha = parallel_rows(cons.Hx, cons.Hu, ops.T)
+    kx = cons.Hx.shape[0]
+    assert list(rep[:kx]) == [0, 1, 0, 1, 4, 4] and alpha[2] == pytest.approx(-1.1 / 1.1)
+    assert alpha[5] == pytest.approx((2 / 2.2) / (1 / 1.5))
+    res = h2(ops, x0, constraints=cons, constraint_P=P, solver_opts=TIGHT)
+    assert res.ok
+    assert res.level > 1.1 * h2(ops, x0).level          # the constraints bind
+
+    Phi_u = cp.Variable((ops.m * (ops.T + 1), ops.nd))
+    Phi_x = ops.F @ Phi_u + ops.G
+    mask = ops.causal_mask()
+    Lq, Lr = _psd_root(ops.Qcal), _psd_root(ops.Rcal)
+    Pmh = np.linalg.inv(np.linalg.cholesky(P)).T            # P^{-1/2} up to a rotation
+    cons_cp = [Phi_u[~mask] == 0]
+    for t in range(ops.T + 1):
+        for H, blk in ((cons.Hx, ops.x_blocks[t]), (cons.Hu, ops.u_blocks[t])):
+            Z = Phi_x if H is cons.Hx else Phi_u
+            for h in H:
+                row = h @ Z[blk, :]
+                terms = [cp.norm(row[ops.d_blocks[j]] @ Pmh) for j in range(1, t + 1)]
+                cons_cp.append(row[ops.d_blocks[0]] @ x0 + sum(terms) <= 1)
+    obj = (cp.sum_squares(Lq.T @ Phi_x[:, ops.d_blocks[0]] @ x0)
+           + cp.sum_squares(Lr.T @ Phi_u[:, ops.d_blocks[0]] @ x0)
+           + cp.sum_squares(Lq.T @ Phi_x[:, ops.n:]) + cp.sum_squares(Lr.T @ Phi_u[:, ops.n:]))
+    naive = cp.Problem(cp.Minimize(obj), cons_cp)
+    naive.solve(solver="CLARABEL", **TIGHT)
+    assert naive.status == "optimal"
+    assert res.level == pytest.approx(naive.value, rel=1e-6)
+
+
+def _psd_root(Q: np.ndarray) -> np.ndarray:
+    lam, V = np.linalg.eigh(Q)
+    return V * np.sqrt(np.clip(lam, 0.0, None))
 
 
 TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}

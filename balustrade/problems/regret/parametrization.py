@@ -83,40 +83,84 @@ class Parametrization:
         """SOC form of (3.41): [H_z]_iΦ⁰x₀ + Σ_j ‖[H_z]_i[[Φ^w]]_j P^{-1/2}‖ ≤ 1 for every row i.
 
         Rows and blocks that are structurally zero (w_{j−1} cannot affect time t < j) are
-        skipped. With ``x0 = None`` the initial-state column is required to vanish from the
-        constraint (the constraint must then hold for the nominal x₀ = 0).
+        skipped. Parallel rows of one step (h and −h of a box, or rows αh) have proportional
+        norm terms, ‖(αh)ᵀΦP^{-1/2}‖ = |α|·‖hᵀΦP^{-1/2}‖, so they share one set of SOC epigraph
+        variables (exact; halves the cones for symmetric bounds). With ``x0 = None`` the
+        initial-state column is required to vanish from the constraint (the constraint must
+        then hold for the nominal x₀ = 0).
         """
         ops = self.ops
         H_phi, H_c, times = self.constraint_rows(Hx, Hu)
+        rep_of, scale = parallel_rows(Hx, Hu, ops.T)
+        reps = np.unique(rep_of)
         nr, p = H_phi.shape[0], ops.p
         M = self.M
         PmhT = sp.csr_matrix(np.where(np.abs(P_half_inv) > 0, P_half_inv, 0.0).T)
-        pieces, consts, pair_rows = [], [], []
+        pieces, pair_rows = [], []
+        fixed = np.zeros(nr)        # Σ_j of the norm terms that do not depend on θ, per rep
         for j in range(1, ops.T + 1):
             cols = ops.d_blocks[j]
-            rows = np.flatnonzero(times >= j)
+            rows = reps[times[reps] >= j]
             if rows.size == 0:
                 continue
+            k = rows.size
             Pj = self.P[cols.start * M: cols.stop * M]
-            A = sp.kron(PmhT, sp.csr_matrix(H_phi[rows]), format="csr") @ Pj
+            A = (sp.kron(PmhT, sp.csr_matrix(H_phi[rows]), format="csr") @ Pj).tocsr()
             c = (H_c[rows][:, cols] @ P_half_inv).ravel(order="F")
-            pieces.append((A.tocsr(), c, rows.size))
-            pair_rows.append(rows)
-        exprs = [cp.reshape(A @ self.theta + c, (k, p), order="F") for A, c, k in pieces]
-        X = cp.vstack(exprs)
-        npairs = X.shape[0]
-        s = cp.Variable(npairs, nonneg=True)
-        all_rows = np.concatenate(pair_rows)
-        summ = sp.csr_matrix((np.ones(npairs), (all_rows, np.arange(npairs))), shape=(nr, npairs))
-        cons: list[cp.Constraint] = [cp.SOC(s, X, axis=1)]
-        lhs = summ @ s
+            # entry (pair i, coordinate q) is row i + k·q; pairs without θ (x_t's response to
+            # w_{t−1} is the constant E) are a number, not a cone
+            free = (A.getnnz(axis=1).reshape(p, k) > 0).any(axis=0)
+            fixed[rows[~free]] += np.linalg.norm(c.reshape(p, k)[:, ~free], axis=0)
+            keep = (np.flatnonzero(free)[None, :] + k * np.arange(p)[:, None]).ravel()
+            pieces.append((A[keep], c[keep], int(free.sum())))
+            pair_rows.append(rows[free])
+        exprs = [cp.reshape(A @ self.theta + c, (k, p), order="F")
+                 for A, c, k in pieces if k]
+        pair_rep = np.concatenate(pair_rows) if pair_rows else np.zeros(0, dtype=int)
+        npairs = pair_rep.size
+        # row i of (3.41) uses the pairs of its representative, weighted by |α_i|
+        members = {int(r): np.flatnonzero(rep_of == r) for r in reps}
+        ri = [members[int(r)] for r in pair_rep]
+        rr = np.concatenate(ri) if ri else np.zeros(0, dtype=int)
+        cc = np.concatenate([np.full(len(m), k) for k, m in enumerate(ri)]) if ri else rr
+        summ = sp.csr_matrix((np.abs(scale[rr]), (rr, cc)), shape=(nr, npairs))
+        lhs: cp.Expression = cp.Constant(np.abs(scale) * fixed[rep_of])
+        cons: list[cp.Constraint] = []
+        if npairs:
+            s = cp.Variable(npairs, nonneg=True)
+            cons.append(cp.SOC(s, cp.vstack(exprs), axis=1))
+            lhs = lhs + summ @ s
         if x0 is not None:
             cols0 = ops.d_blocks[0]
             P0 = self.P[cols0.start * M: cols0.stop * M]
             A0 = sp.kron(sp.csr_matrix(x0.reshape(1, -1)), sp.csr_matrix(H_phi), format="csr")
             lhs = lhs + (A0 @ P0) @ self.theta + H_c[:, cols0] @ x0
-        consts.append(lhs <= 1)
-        return cons + consts
+        return cons + [lhs <= 1]
+
+
+def parallel_rows(Hx: np.ndarray, Hu: np.ndarray, T: int, rtol: float = 1e-12
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(rep, α) over the rows of :meth:`Parametrization.constraint_rows`: row i = α_i · row
+    rep_i, rep_i the first row of the same step parallel to it (α_i = 1 for representatives)."""
+    def within(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        k = H.shape[0]
+        rep, alpha = np.arange(k), np.ones(k)
+        for i in range(k):
+            for r in range(i):
+                if rep[r] != r:
+                    continue
+                a = float(H[i] @ H[r]) / float(H[r] @ H[r])
+                if np.linalg.norm(H[i] - a * H[r]) <= rtol * np.linalg.norm(H[i]):
+                    rep[i], alpha[i] = r, a
+                    break
+        return rep, alpha
+
+    rep_x, a_x = within(Hx)
+    rep_u, a_u = within(Hu)
+    kx, ku, steps = Hx.shape[0], Hu.shape[0], np.arange(T + 1)
+    rep = np.concatenate([(steps[:, None] * kx + rep_x[None, :]).ravel(),
+                          (T + 1) * kx + (steps[:, None] * ku + rep_u[None, :]).ravel()])
+    return rep, np.concatenate([np.tile(a_x, T + 1), np.tile(a_u, T + 1)])
 
 
 def normalize_halfspaces(A: object, b: object, block: str) -> np.ndarray:
