@@ -47,7 +47,11 @@ def _check_metrics(m: dict) -> None:
     cert = m["certificates"]
     assert set(cert) == {"SDR", "SCR", "SDRW", "SCRW"}
     for name in ("SDR", "SCR"):       # energy bounds: the S-procedure is lossless, level exact
-        assert cert[name]["exact"] == pytest.approx(cert[name]["sdp"], rel=1e-5), name
+        # to the solver's accuracy: its gap tolerance (1e-8), or for "optimal_inaccurate" the
+        # reduced one it then met (Clarabel's reduced_tol_gap_rel = 5e-5; the 𝒪-weighted SCR at
+        # T = 25 lands 1.4e-5 above its controller's exact level)
+        rel = 1e-5 if m["status"][name] == "optimal" else 5e-5
+        assert cert[name]["exact"] == pytest.approx(cert[name]["sdp"], rel=rel), name
     for name in ("SDRW", "SCRW"):     # pointwise: a certified lower bound under the SDP level
         assert cert[name]["lower_bound"] <= cert[name]["sdp"] * (1 + 1e-6), name
         assert cert[name]["lower_bound"] >= 2 / np.pi * cert[name]["sdp"] * 0.5, name
