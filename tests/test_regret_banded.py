@@ -19,7 +19,7 @@ from balustrade.problems.regret.banded import (
     block_bandwidth,
 )
 from balustrade.problems.regret.lmi import banded_pieces
-from balustrade.problems.regret.parametrization import Parametrization
+from balustrade.problems.regret.parametrization import Parametrization, parallel_rows
 
 
 def random_ltv(seed: int, n: int, m: int, T: int):
@@ -125,3 +125,30 @@ def test_construction_reports_why_it_does_not_apply():
     noisy = L0 + np.triu(rng.standard_normal(L0.shape), 1)
     bad = banded_congruence(noisy, mask, [np.eye(d)], ops.m, ops.p)
     assert isinstance(bad, NotBanded)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), kx=st.integers(1, 4), ku=st.integers(1, 3),
+       copies=st.lists(st.tuples(st.booleans(), st.integers(0, 3),
+                                 st.floats(-3, 3).filter(lambda a: abs(a) > 1e-3)), max_size=4),
+       T=st.integers(1, 4))
+def test_parallel_rows_recovers_scaled_copies(seed, kx, ku, copies, T):
+    """parallel_rows (shared (3.41) terms): every row is α·(its representative), the
+    representative is the first row of its direction, and generic rows stay their own."""
+    rng = np.random.default_rng(seed)
+    Hx, Hu = rng.standard_normal((kx, 3)), rng.standard_normal((ku, 2))
+    for in_x, src, a in copies:                      # append scaled copies of existing rows
+        if in_x:
+            Hx = np.vstack([Hx, a * Hx[src % Hx.shape[0]]])
+        else:
+            Hu = np.vstack([Hu, a * Hu[src % Hu.shape[0]]])
+    rep, alpha = parallel_rows(Hx, Hu, T)
+    full = [Hx[i % Hx.shape[0]] for i in range((T + 1) * Hx.shape[0])]
+    full += [Hu[i % Hu.shape[0]] for i in range((T + 1) * Hu.shape[0])]
+    step = np.concatenate([np.repeat(np.arange(T + 1), Hx.shape[0]),
+                           np.repeat(np.arange(T + 1), Hu.shape[0])])
+    for i, (r, a) in enumerate(zip(rep, alpha)):
+        assert step[r] == step[i] and rep[r] == r and r <= i
+        assert np.allclose(full[i], a * full[r], atol=1e-12)
+    n_generic = kx + ku                               # the random rows are pairwise independent
+    assert len(np.unique(rep)) == (T + 1) * n_generic

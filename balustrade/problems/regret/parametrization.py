@@ -147,7 +147,7 @@ def parallel_rows(Hx: np.ndarray, Hu: np.ndarray, T: int, rtol: float = 1e-12
         rep, alpha = np.arange(k), np.ones(k)
         for i in range(k):
             for r in range(i):
-                if rep[r] != r:
+                if rep[r] != r or not np.any(H[r]):
                     continue
                 a = float(H[i] @ H[r]) / float(H[r] @ H[r])
                 if np.linalg.norm(H[i] - a * H[r]) <= rtol * np.linalg.norm(H[i]):
