@@ -128,27 +128,24 @@ def test_construction_reports_why_it_does_not_apply():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 10_000), kx=st.integers(1, 4), ku=st.integers(1, 3),
-       copies=st.lists(st.tuples(st.booleans(), st.integers(0, 3),
+@given(seed=st.integers(0, 10_000), k=st.integers(1, 4), dim=st.integers(2, 5),
+       copies=st.lists(st.tuples(st.integers(0, 2), st.integers(0, 3),
                                  st.floats(-3, 3).filter(lambda a: abs(a) > 1e-3)), max_size=4),
-       T=st.integers(1, 4))
-def test_parallel_rows_recovers_scaled_copies(seed, kx, ku, copies, T):
+       n_groups=st.integers(1, 3))
+def test_parallel_rows_recovers_scaled_copies(seed, k, dim, copies, n_groups):
     """parallel_rows (shared (3.41) terms): every row is α·(its representative), the
-    representative is the first row of its direction, and generic rows stay their own."""
+    representative is the first row of its direction in its group, and generic rows stay
+    their own."""
     rng = np.random.default_rng(seed)
-    Hx, Hu = rng.standard_normal((kx, 3)), rng.standard_normal((ku, 2))
-    for in_x, src, a in copies:                      # append scaled copies of existing rows
-        if in_x:
-            Hx = np.vstack([Hx, a * Hx[src % Hx.shape[0]]])
-        else:
-            Hu = np.vstack([Hu, a * Hu[src % Hu.shape[0]]])
-    rep, alpha = parallel_rows(Hx, Hu, T)
-    full = [Hx[i % Hx.shape[0]] for i in range((T + 1) * Hx.shape[0])]
-    full += [Hu[i % Hu.shape[0]] for i in range((T + 1) * Hu.shape[0])]
-    step = np.concatenate([np.repeat(np.arange(T + 1), Hx.shape[0]),
-                           np.repeat(np.arange(T + 1), Hu.shape[0])])
+    blocks = [rng.standard_normal((k, dim)) for _ in range(n_groups)]
+    for g, src, a in copies:                         # append scaled copies of existing rows
+        B = blocks[g % n_groups]
+        blocks[g % n_groups] = np.vstack([B, a * B[src % B.shape[0]]])
+    R = np.vstack(blocks)
+    groups = np.concatenate([np.full(B.shape[0], g) for g, B in enumerate(blocks)])
+    rep, alpha = parallel_rows(R, groups)
     for i, (r, a) in enumerate(zip(rep, alpha)):
-        assert step[r] == step[i] and rep[r] == r and r <= i
-        assert np.allclose(full[i], a * full[r], atol=1e-12)
-    n_generic = kx + ku                               # the random rows are pairwise independent
-    assert len(np.unique(rep)) == (T + 1) * n_generic
+        assert groups[r] == groups[i] and rep[r] == r and r <= i
+        assert np.allclose(R[i], a * R[r], atol=1e-12)
+    n_generic = k * n_groups                          # the random rows are pairwise independent
+    assert len(np.unique(rep)) == n_generic

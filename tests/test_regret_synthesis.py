@@ -4,6 +4,7 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
+from balustrade.backends.structure import psd_factor
 from balustrade.problems.regret import (
     LTVSystem,
     StateInputConstraints,
@@ -188,7 +189,7 @@ def test_shared_robust_terms_equal_a_naive_transcription_of_3_41():
     Ax = np.vstack([np.eye(2), -np.eye(2), [[1.0, 1.0]], [[2.0, 2.0]]])
     cons = StateInputConstraints.from_halfspaces(Ax, np.array([1.1, 0.9, 1.1, 0.9, 1.5, 2.2]),
                                                  np.array([[1.0], [-1.0]]), np.array([0.3, 0.6]))
-    rep, alpha = parallel_rows(cons.Hx, cons.Hu, ops.T)
+    rep, alpha = parallel_rows(cons.Hx, np.zeros(cons.Hx.shape[0]))
     kx = cons.Hx.shape[0]
     assert list(rep[:kx]) == [0, 1, 0, 1, 4, 4] and alpha[2] == pytest.approx(-1.1 / 1.1)
     assert alpha[5] == pytest.approx((2 / 2.2) / (1 / 1.5))
@@ -199,7 +200,7 @@ def test_shared_robust_terms_equal_a_naive_transcription_of_3_41():
     Phi_u = cp.Variable((ops.m * (ops.T + 1), ops.nd))
     Phi_x = ops.F @ Phi_u + ops.G
     mask = ops.causal_mask()
-    Lq, Lr = _psd_root(ops.Qcal), _psd_root(ops.Rcal)
+    Lq, Lr = psd_factor(ops.Qcal), psd_factor(ops.Rcal)
     Pmh = np.linalg.inv(np.linalg.cholesky(P)).T            # P^{-1/2} up to a rotation
     cons_cp = [Phi_u[~mask] == 0]
     for t in range(ops.T + 1):
@@ -209,18 +210,13 @@ def test_shared_robust_terms_equal_a_naive_transcription_of_3_41():
                 row = h @ Z[blk, :]
                 terms = [cp.norm(row[ops.d_blocks[j]] @ Pmh) for j in range(1, t + 1)]
                 cons_cp.append(row[ops.d_blocks[0]] @ x0 + sum(terms) <= 1)
-    obj = (cp.sum_squares(Lq.T @ Phi_x[:, ops.d_blocks[0]] @ x0)
-           + cp.sum_squares(Lr.T @ Phi_u[:, ops.d_blocks[0]] @ x0)
-           + cp.sum_squares(Lq.T @ Phi_x[:, ops.n:]) + cp.sum_squares(Lr.T @ Phi_u[:, ops.n:]))
+    obj = (cp.sum_squares(Lq @ Phi_x[:, ops.d_blocks[0]] @ x0)
+           + cp.sum_squares(Lr @ Phi_u[:, ops.d_blocks[0]] @ x0)
+           + cp.sum_squares(Lq @ Phi_x[:, ops.n:]) + cp.sum_squares(Lr @ Phi_u[:, ops.n:]))
     naive = cp.Problem(cp.Minimize(obj), cons_cp)
     naive.solve(solver="CLARABEL", **TIGHT)
     assert naive.status == "optimal"
     assert res.level == pytest.approx(naive.value, rel=1e-6)
-
-
-def _psd_root(Q: np.ndarray) -> np.ndarray:
-    lam, V = np.linalg.eigh(Q)
-    return V * np.sqrt(np.clip(lam, 0.0, None))
 
 
 TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}

@@ -91,7 +91,7 @@ class Parametrization:
         """
         ops = self.ops
         H_phi, H_c, times = self.constraint_rows(Hx, Hu)
-        rep_of, scale = parallel_rows(Hx, Hu, ops.T)
+        rep_of, scale = parallel_rows(np.hstack([H_phi, H_c]), times)
         reps = np.unique(rep_of)
         nr, p = H_phi.shape[0], ops.p
         M = self.M
@@ -101,9 +101,9 @@ class Parametrization:
         for j in range(1, ops.T + 1):
             cols = ops.d_blocks[j]
             rows = reps[times[reps] >= j]
-            if rows.size == 0:
-                continue
             k = rows.size
+            if k == 0:
+                continue
             Pj = self.P[cols.start * M: cols.stop * M]
             A = (sp.kron(PmhT, sp.csr_matrix(H_phi[rows]), format="csr") @ Pj).tocsr()
             c = (H_c[rows][:, cols] @ P_half_inv).ravel(order="F")
@@ -111,25 +111,25 @@ class Parametrization:
             # w_{t−1} is the constant E) are a number, not a cone
             free = (A.getnnz(axis=1).reshape(p, k) > 0).any(axis=0)
             fixed[rows[~free]] += np.linalg.norm(c.reshape(p, k)[:, ~free], axis=0)
-            keep = (np.flatnonzero(free)[None, :] + k * np.arange(p)[:, None]).ravel()
-            pieces.append((A[keep], c[keep], int(free.sum())))
-            pair_rows.append(rows[free])
-        exprs = [cp.reshape(A @ self.theta + c, (k, p), order="F")
-                 for A, c, k in pieces if k]
-        pair_rep = np.concatenate(pair_rows) if pair_rows else np.zeros(0, dtype=int)
-        npairs = pair_rep.size
-        # row i of (3.41) uses the pairs of its representative, weighted by |α_i|
-        members = {int(r): np.flatnonzero(rep_of == r) for r in reps}
-        ri = [members[int(r)] for r in pair_rep]
-        rr = np.concatenate(ri) if ri else np.zeros(0, dtype=int)
-        cc = np.concatenate([np.full(len(m), k) for k, m in enumerate(ri)]) if ri else rr
-        summ = sp.csr_matrix((np.abs(scale[rr]), (rr, cc)), shape=(nr, npairs))
-        lhs: cp.Expression = cp.Constant(np.abs(scale) * fixed[rep_of])
-        cons: list[cp.Constraint] = []
-        if npairs:
+            if free.any():
+                keep = (np.flatnonzero(free)[None, :] + k * np.arange(p)[:, None]).ravel()
+                pieces.append(cp.reshape(A[keep] @ self.theta + c[keep],
+                                         (int(free.sum()), p), order="F"))
+                pair_rows.append(rows[free])
+        # row i of (3.41) is |α_i| times the terms of its representative rep_i
+        expand = sp.csr_matrix((np.abs(scale), (np.arange(nr), rep_of)), shape=(nr, nr))
+        per_rep: cp.Expression = cp.Constant(fixed)
+        if pieces:
+            pair_rep = np.concatenate(pair_rows)
+            npairs = pair_rep.size
             s = cp.Variable(npairs, nonneg=True)
-            cons.append(cp.SOC(s, cp.vstack(exprs), axis=1))
-            lhs = lhs + summ @ s
+            to_rep = sp.csr_matrix((np.ones(npairs), (pair_rep, np.arange(npairs))),
+                                   shape=(nr, npairs))
+            cons: list[cp.Constraint] = [cp.SOC(s, cp.vstack(pieces), axis=1)]
+            per_rep = per_rep + to_rep @ s
+        else:
+            cons = []
+        lhs = expand @ per_rep
         if x0 is not None:
             cols0 = ops.d_blocks[0]
             P0 = self.P[cols0.start * M: cols0.stop * M]
@@ -138,29 +138,24 @@ class Parametrization:
         return cons + [lhs <= 1]
 
 
-def parallel_rows(Hx: np.ndarray, Hu: np.ndarray, T: int, rtol: float = 1e-12
+def parallel_rows(R: np.ndarray, groups: np.ndarray, rtol: float = 1e-12
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """(rep, α) over the rows of :meth:`Parametrization.constraint_rows`: row i = α_i · row
-    rep_i, rep_i the first row of the same step parallel to it (α_i = 1 for representatives)."""
-    def within(H: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        k = H.shape[0]
-        rep, alpha = np.arange(k), np.ones(k)
-        for i in range(k):
-            for r in range(i):
-                if rep[r] != r or not np.any(H[r]):
+    """(rep, α): row i of R equals α_i · row rep_i, rep_i the first row of the same group
+    parallel to it (rep_i = i and α_i = 1 for representatives). Zero rows are never
+    representatives of others (a zero row gets α = 0 if its group has a nonzero row)."""
+    n = R.shape[0]
+    rep, alpha = np.arange(n), np.ones(n)
+    for g in np.unique(groups):
+        members = np.flatnonzero(groups == g)
+        for pos, i in enumerate(members):
+            for r in members[:pos]:
+                if rep[r] != r or not np.any(R[r]):
                     continue
-                a = float(H[i] @ H[r]) / float(H[r] @ H[r])
-                if np.linalg.norm(H[i] - a * H[r]) <= rtol * np.linalg.norm(H[i]):
+                a = float(R[i] @ R[r]) / float(R[r] @ R[r])
+                if np.linalg.norm(R[i] - a * R[r]) <= rtol * np.linalg.norm(R[i]):
                     rep[i], alpha[i] = r, a
                     break
-        return rep, alpha
-
-    rep_x, a_x = within(Hx)
-    rep_u, a_u = within(Hu)
-    kx, ku, steps = Hx.shape[0], Hu.shape[0], np.arange(T + 1)
-    rep = np.concatenate([(steps[:, None] * kx + rep_x[None, :]).ravel(),
-                          (T + 1) * kx + (steps[:, None] * ku + rep_u[None, :]).ravel()])
-    return rep, np.concatenate([np.tile(a_x, T + 1), np.tile(a_u, T + 1)])
+    return rep, alpha
 
 
 def normalize_halfspaces(A: object, b: object, block: str) -> np.ndarray:
