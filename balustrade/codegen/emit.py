@@ -22,17 +22,20 @@ every function graph is searched for Python callbacks
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import casadi as ca
 import numpy as np
 
+from balustrade._checks import as_vector
 from balustrade.backends.casadi_backend import CasadiCompiled, sqp_retry_strategies
+from balustrade.codegen import status as S
 from balustrade.codegen import templates as T
 from balustrade.codegen.support import check_no_callbacks, solver_libraries
 from balustrade.dsl.sets import Box
-from balustrade.errors import CodegenError
+from balustrade.errors import CodegenError, NonFiniteError, ShapeError
 
 MANIFEST_VERSION = 1
 #: scaled primal violation under which a solve that no retry made converge is reported as
@@ -61,6 +64,40 @@ def _check_identifier(name: str, what: str = "name") -> str:
     if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
         raise CodegenError(f"{what} {name!r} must be an ASCII C identifier")
     return name
+
+
+def _out_dir(out_dir: str | Path, name: str) -> Path:
+    """Create ``out_dir`` (and parents) and check that it is a writable folder, so that a
+    bad path is reported with its name before CasADi generates anything."""
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise CodegenError(f"{name}: out_dir must be a path, got {type(out_dir).__name__}")
+    path = Path(out_dir)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a parent (or the path itself) is a file, permissions, ...
+        raise CodegenError(f"{name}: cannot create the output folder {str(path)!r}: "
+                           f"{exc.strerror or exc}") from exc
+    if not path.is_dir() or not os.access(path, os.W_OK | os.X_OK):
+        raise CodegenError(f"{name}: the output folder {str(path)!r} is not a writable "
+                           "folder")
+    return path
+
+
+def _check_accept_tol(name: str, accept_tol: float | None) -> None:
+    if accept_tol is None:
+        return
+    try:
+        tol = float(accept_tol)
+    except (TypeError, ValueError) as exc:
+        raise CodegenError(f"{name}: accept_tol must be a number, got {accept_tol!r}") from exc
+    if not np.isfinite(tol) or tol < 0:
+        raise CodegenError(f"{name}: accept_tol must be finite and >= 0, got {accept_tol!r}")
+
+
+def _check_dynamics(name: str, dynamics: object) -> None:
+    if dynamics is not None and not isinstance(dynamics, ca.Function):
+        raise CodegenError(f"{name}: dynamics must be a casadi.Function (e.g. "
+                           f"system.function), got {type(dynamics).__name__}")
 
 
 def _c_array(values: np.ndarray | list[float], min_len: int = 1) -> str:
@@ -205,6 +242,10 @@ class _Problem:
             self.solvers.append((f"{P}_nlp", c.solver_name, dict(c.options)))
         self.vars = _layout(c.ocp.variables)
         self.params = _layout(c.ocp.parameters)
+        for nm, par in c.ocp.parameters.items():  # declared values: used when not given
+            if getattr(par, "default", None) is not None:
+                self.params[nm]["default"] = [float(v) for v in
+                                              np.reshape(par.default, -1, order="F")]
         init = np.concatenate([c.ocp.pack_variables({}), c.init_epi])
         self.init = np.where(np.isfinite(init), init, 0.0)
 
@@ -295,13 +336,13 @@ def _write_module(name: str, out_dir: Path, what: str, header_body: str, source_
     NAME = name.upper()
     h = out_dir / f"{name}.h"
     c = out_dir / f"{name}.c"
-    h.write_text(T.HEADER_TOP.substitute(name=name, NAME=NAME, what=what) + header_body
+    h.write_text(T.HEADER_TOP.substitute(name=name, NAME=NAME, what=what,
+                                         solve_status=S.c_defines(S.SOLVE)) + header_body
                  + T.HEADER_BOTTOM.substitute(NAME=NAME))
     c.write_text(T.SOURCE_TOP.substitute(name=name) + source_body)
     manifest = {"version": MANIFEST_VERSION, "name": name, "casadi": ca.__version__,
                 "libraries": list(libs), **manifest,
-                "status_codes": {"ok": 0, "not_converged": 1, "eval_error": 2, "nonfinite": 3,
-                                 "feasible": 4, "not_run": -1}}
+                "status_codes": S.manifest(S.SOLVE)}
     (out_dir / f"{name}.json").write_text(json.dumps(manifest, indent=1))
     return Emitted(name, out_dir, [c, casadi_files[0]], [h, casadi_files[1]], manifest, libs)
 
@@ -318,6 +359,9 @@ def emit_functions(functions: dict[str, ca.Function] | ca.Function, name: str,
     _check_identifier(name)
     if isinstance(functions, ca.Function):
         functions = {functions.name(): functions}
+    if not isinstance(functions, dict):
+        raise CodegenError(f"{name}: expected a casadi.Function or a dict C symbol -> "
+                           f"casadi.Function, got {type(functions).__name__}")
     if not functions:
         raise CodegenError(f"{name}: no functions to emit")
     for sym, fn in functions.items():
@@ -328,7 +372,7 @@ def emit_functions(functions: dict[str, ca.Function] | ca.Function, name: str,
         if fn.has_free():
             raise CodegenError(f"{name}: function {sym!r} has free symbols "
                                f"{fn.get_free()}; make them inputs")
-    out_dir = Path(out_dir)
+    out_dir = _out_dir(out_dir, name)
     files = _generate(dict(functions), name, out_dir)
     info = {sym: {"n_in": fn.n_in(), "n_out": fn.n_out(),
                   "in": [[fn.size1_in(i), fn.size2_in(i)] for i in range(fn.n_in())],
@@ -361,8 +405,9 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
     none converges and the last attempt's scaled constraint violation is ``<= accept_tol``
     (default ``1e-8``) the status is ``BAL_FEASIBLE``: safe to apply, possibly suboptimal."""
     _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
     libs = _check_compiled(compiled, name, allow_external)
-    out_dir = Path(out_dir)
+    out_dir = _out_dir(out_dir, name)
     prob = _Problem(compiled, name + "_p", compiled.ocp.name, name, accept_tol)
     files = _generate(prob.functions(), name, out_dir)
     return _write_module(name, out_dir, f"the problem {compiled.ocp.name!r}", prob.header(),
@@ -386,6 +431,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     IPOPT retry, replaced by an emittable ``sqpmethod`` with eigenvalue clipping.
     """
     _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
+    _check_dynamics(name, dynamics)
+    out_dir = _out_dir(out_dir, name)
     slack, filt, U, libs = _controller_pair(
         controller, name, "PCBFSafetyFilter (attributes slack, filter, U)",
         getattr(controller, "slack", None), getattr(controller, "filter", None),
@@ -418,9 +466,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     functions = {**s.functions(), **f.functions()}
     if dynamics is not None:
         functions[f"{Q}_dynamics"] = dynamics
-    out_dir = Path(out_dir)
     files = _generate(functions, name, out_dir)
-    header = s.header() + f.header() + T.PCBF_H.substitute(Q=Q, nx=nx, nu=nu, N=N)
+    header = s.header() + f.header() + T.PCBF_H.substitute(Q=Q, nx=nx, nu=nu, N=N,
+                                                          pcbf_status=S.c_defines(S.PCBF))
     source = s.source() + f.source() + T.PCBF_C.substitute(
         Q=Q, u_lb=_c_array(U.lb), u_ub=_c_array(U.ub), s_p_x0=s.params["x0"]["offset"],
         f_p_x0=f.params["x0"]["offset"], f_p_u_p=f.params["u_p"]["offset"],
@@ -433,8 +481,7 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
                 "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
                 "problems": {"slack": s.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
-                "pcbf_status": {"0": "ok", "1": "slack_solution", "2": "shifted_plan",
-                                "3": "projected_proposal"}}
+                "pcbf_status": S.manifest(S.PCBF)}
     return _write_module(name, out_dir, "the PCBF safety filter (2.24)+(2.23)", header,
                          source, files, manifest, tuple(sorted(set(libs))))
 
@@ -450,10 +497,18 @@ def write_example(emitted: Emitted, x_init: np.ndarray, u_p: np.ndarray | float,
                            "its dynamics (emit_pcbf(..., dynamics=system.function))")
     nx, nu = m["nx"], m["nu"]
     x_init = np.atleast_2d(np.asarray(x_init, dtype=float))
-    if x_init.shape[1] != nx:
-        raise CodegenError(f"{emitted.name}: initial states must have {nx} columns, got "
-                           f"{x_init.shape}")
-    u_p = np.broadcast_to(np.asarray(u_p, dtype=float).reshape(-1), (nu,))
+    if x_init.ndim != 2 or x_init.shape[1] != nx:
+        raise ShapeError(f"{emitted.name}: initial states x_init", f"(n, {nx})",
+                         x_init.shape, what="shape")
+    u_p = np.asarray(u_p, dtype=float).reshape(-1)
+    if u_p.size == 1:
+        u_p = np.broadcast_to(u_p, (nu,))
+    u_p = as_vector(u_p, f"{emitted.name}: proposal u_p", nu)
+    if not np.all(np.isfinite(x_init)):
+        raise NonFiniteError(f"{emitted.name}: initial states x_init contain NaN or inf "
+                             f"(shape {x_init.shape})")
+    if int(steps) != steps or steps < 1:
+        raise CodegenError(f"{emitted.name}: steps must be a positive integer, got {steps!r}")
     rows = ",\n  ".join(_c_array(r) for r in x_init)
     main = T.MAIN_C.substitute(Q=emitted.name, name=emitted.name, n_init=len(x_init),
                                steps=int(steps), x_init="{\n  " + rows + "\n}",
@@ -478,6 +533,9 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     at the (7.6) minimizer, with the controller's fallbacks. ``ĥ`` and ``ĥ(f(x, u))`` are
     emitted as ``<name>_h`` and ``<name>_h_next``; ``U`` must be a Box."""
     _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
+    _check_dynamics(name, dynamics)
+    out_dir = _out_dir(out_dir, name)
     dec, filt, U, libs = _controller_pair(
         controller, name, "ApproximatePCBFFilter (attributes decrease, filter, U)",
         getattr(getattr(controller, "decrease", None), "compiled", None),
@@ -500,12 +558,12 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
                                                ["x", "u"], ["h_next"])}
     if dynamics is not None:
         functions[f"{name}_dynamics"] = dynamics
-    out_dir = Path(out_dir)
     files = _generate(functions, name, out_dir)
     A = name
     nc = len(grid) + 2
     header = d.header() + f.header() + T.APPROX_H.substitute(
         A=A, nx=system.nx, nu=system.nu, nc=nc, n_local=int(controller.decrease.n_local),
+        approx_status=S.c_defines(S.APPROX),
         rho=_c_double(controller.rho),
         exact_shortcut=int(bool(getattr(controller, "exact_shortcut", False))))
     rows = ",\n  ".join(_c_array(r) for r in grid)
@@ -522,9 +580,7 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
                 "problems": {"dec": d.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
                 "exact_shortcut": bool(getattr(controller, "exact_shortcut", False)),
-                "approx_status": {"0": "ok", "1": "certified", "2": "max_decrease_solution",
-                                  "3": "projected_proposal", "4": "grid_minimizer",
-                                  "5": "proposal_feasible"}}
+                "approx_status": S.manifest(S.APPROX)}
     return _write_module(name, out_dir, "Algorithm 7.5, the approximate PCBF filter "
                          "(7.5)+(7.6)", header, source, files, manifest,
                          tuple(sorted(set(libs))))

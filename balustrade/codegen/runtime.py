@@ -20,13 +20,16 @@ from pathlib import Path
 
 import numpy as np
 
+from balustrade._checks import as_vector
+from balustrade.codegen import status as S
 from balustrade.control.base import StepInfo
-from balustrade.errors import CodegenError
+from balustrade.errors import BalustradeError, CodegenError, NonFiniteError, ShapeError
 
 _dbl_p = ctypes.POINTER(ctypes.c_double)
-_STATUS = {0: "ok", 1: "not_converged", 2: "eval_error", 3: "nonfinite", 4: "feasible",
-           -1: "not_run"}
-_FALLBACK = {0: None, 1: "slack_solution", 2: "shifted_plan", 3: "projected_proposal"}
+#: solve status code -> name (``balustrade.codegen.status.SOLVE``)
+_STATUS = {code: st.name for code, st in S.by_code(S.SOLVE).items()}
+_SOLVED = (S.code_of(S.SOLVE, "ok"), S.code_of(S.SOLVE, "feasible"))
+_BAD_INPUT = S.code_of(S.SOLVE, "bad_input")
 
 
 def _ptr(a: np.ndarray) -> ctypes._Pointer:
@@ -38,9 +41,15 @@ def load_manifest(src_dir: str | Path, name: str | None = None) -> dict:
     src_dir = Path(src_dir)
     path = src_dir / f"{name}.json" if name else next(iter(sorted(src_dir.glob("*.json"))),
                                                        None)
-    if path is None or not path.exists():
+    if path is None or not path.is_file():
         raise CodegenError(f"no balustrade manifest (<name>.json) in {src_dir}")
-    return json.loads(path.read_text())
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CodegenError(f"{path}: not a readable balustrade manifest: {exc}") from exc
+    if not isinstance(manifest, dict) or "kind" not in manifest:
+        raise CodegenError(f"{path}: not a balustrade manifest (no 'kind')")
+    return manifest
 
 
 class _Library:
@@ -202,26 +211,54 @@ class CProblem(_OwnsWork):
         self._p_ptr = _ptr(self._p)
 
     def pack(self, params: dict[str, object]) -> np.ndarray:
+        """Stack ``params`` in declaration order (declared values fill the missing ones),
+        checked as :meth:`balustrade.dsl.OCP.pack_parameters` does: unknown or missing
+        names raise :class:`~balustrade.errors.BalustradeError`, a wrong shape
+        :class:`~balustrade.errors.ShapeError`, NaN or inf
+        :class:`~balustrade.errors.NonFiniteError` — before C is called."""
+        P, lays = self.info["prefix"], self.info["parameters"]
+        if not isinstance(params, dict):
+            raise BalustradeError(f"{P}: parameters must be a dict name -> value, got "
+                                  f"{type(params).__name__}")
+        unknown = sorted(set(params) - set(lays))
+        if unknown:
+            raise BalustradeError(f"{P}: unknown parameters {unknown}; declared: {list(lays)}")
         p = np.zeros(self.info["np"])
-        for name, lay in self.info["parameters"].items():
-            if name not in params:
-                raise CodegenError(f"{self.info['prefix']}: no value for parameter {name!r}")
-            n = int(np.prod(lay["shape"]))
-            p[lay["offset"]: lay["offset"] + n] = np.asarray(params[name], float).reshape(
-                -1, order="F")
+        for name, lay in lays.items():
+            if name in params:
+                flat = _param_value(params[name], tuple(lay["shape"]),
+                                    f"{P}: parameter {name!r}")
+            elif lay.get("default") is not None:
+                flat = np.asarray(lay["default"], dtype=float)
+            else:
+                raise BalustradeError(f"{P}: no value for parameter {name!r} (shape "
+                                      f"{tuple(lay['shape'])})")
+            p[lay["offset"]: lay["offset"] + flat.size] = flat
         return p
 
     def solve(self, params: dict[str, object], warm: bool = True
               ) -> tuple[str, float, dict[str, np.ndarray], np.ndarray]:
-        self._p[: self.info["np"]] = self.pack(params)
+        """Solve with named parameters (checked by :meth:`pack` before C runs)."""
+        return self.solve_packed(self.pack(params), warm)
+
+    def solve_packed(self, p: np.ndarray, warm: bool = True
+                     ) -> tuple[str, float, dict[str, np.ndarray], np.ndarray]:
+        """Solve with the stacked parameter vector ``p`` (``np`` values, only its size is
+        checked here: a NaN or inf entry reaches the C, which refuses it with
+        ``BAL_BAD_INPUT``, status ``"bad_input"``, value NaN)."""
+        p = np.asarray(p, dtype=float).reshape(-1)
+        if p.size != self.info["np"]:
+            raise ShapeError(f"{self.info['prefix']}: stacked parameters",
+                             (self.info["np"],), p.shape)
+        self._p[: self.info["np"]] = p
         if not warm:
             self._cold(self._work)
         code = self._solve(self._work, self._p_ptr)
-        if code in (0, 4):
+        if code in _SOLVED:
             self._warm(self._work)
         w = self.view.x.copy()
-        return _STATUS.get(code, str(code)), float(self.view.value_fn(self._work)), \
-            self.view.unpack(w), w
+        value = float(self.view.value_fn(self._work)) if code != _BAD_INPUT else float("nan")
+        return _STATUS.get(code, str(code)), value, self.view.unpack(w), w
 
 class CPCBFSafetyFilter(_OwnsWork):
     """The emitted PCBF step (2.24)+(2.23) as a closed-loop controller: the same
@@ -264,6 +301,9 @@ class CPCBFSafetyFilter(_OwnsWork):
     def reset(self) -> None:
         self._reset(self._work)
 
+    _CODES = S.by_code(S.PCBF)
+    _BAD = S.code_of(S.PCBF, "bad_input")
+
     def step_raw(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, float, int]:
         """One C step without building a StepInfo: ``(u, h_PB, status code)``; the
         returned ``u`` is a view of the output buffer (copy it to keep it)."""
@@ -273,23 +313,29 @@ class CPCBFSafetyFilter(_OwnsWork):
         return self._u, float(self._h[0]), code
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        u_p = np.broadcast_to(np.asarray(u_p, dtype=float).reshape(-1), (self.nu,))
-        x = np.asarray(x, dtype=float).reshape(-1)
-        if x.size != self.nx:
-            raise CodegenError(f"CPCBFSafetyFilter.step: x must have {self.nx} entries, got "
-                               f"{x.size}")
+        """One C step. Wrong shapes raise :class:`~balustrade.errors.ShapeError`; a NaN
+        or inf ``x`` or ``u_p`` is refused by the C (``BAL_PCBF_BAD_INPUT``: the proposal,
+        NaN as 0, clipped to ``U``; status ``"non_finite_state"`` as in
+        :class:`~balustrade.control.pcbf.PCBFSafetyFilter`, ``"bad_input"`` for ``u_p``)."""
+        u_p = np.asarray(u_p, dtype=float).reshape(-1)
+        if u_p.size == 1:
+            u_p = np.broadcast_to(u_p, (self.nu,))
+        u_p = as_vector(u_p, "CPCBFSafetyFilter.step: u_p", self.nu, finite=False)
+        x = as_vector(x, "CPCBFSafetyFilter.step: x", self.nx, finite=False)
         start = time.perf_counter()
         u, h, code = self.step_raw(x, u_p)
         elapsed = time.perf_counter() - start
         s_code = self._status_fn(self._work, 0)
         f_code = self._status_fn(self._work, 1)
-        info = StepInfo(solve_time=elapsed, fallback=_FALLBACK.get(code, "unknown"))
+        known = self._CODES.get(code)
+        info = StepInfo(solve_time=elapsed,
+                        fallback=known.fallback if known is not None else "unknown")
         if code == 0:
             info.status = "ok"
         elif code == 1:
             info.status = f"filter_{_STATUS.get(f_code, f_code)}"
-        elif s_code == -1:
-            info.status = "non_finite_state"
+        elif code == self._BAD:
+            info.status = "non_finite_state" if not np.all(np.isfinite(x)) else "bad_input"
         else:
             info.status = f"slack_{_STATUS.get(s_code, s_code)}"
         if np.isfinite(h):
@@ -316,8 +362,7 @@ class CApproximatePCBFFilter(_OwnsWork):
     closed-loop controller with the interface and counters of
     :class:`~balustrade.control.approximate.ApproximatePCBFFilter`."""
 
-    _FALLBACKS = {0: None, 1: None, 2: "max_decrease_solution", 3: "projected_proposal",
-                  4: "grid_minimizer", 5: None}
+    _CODES = S.by_code(S.APPROX)
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
         self._lib = _Library(lib_path, manifest)
@@ -362,15 +407,42 @@ class CApproximatePCBFFilter(_OwnsWork):
         raise AttributeError(name)
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        self._x[:] = np.asarray(x, dtype=float).reshape(-1)
-        self._u_p[:] = np.broadcast_to(np.asarray(u_p, dtype=float).reshape(-1), (self.nu,))
+        """One C step (wrong shapes raise ShapeError; NaN or inf ``x``/``u_p``: status
+        ``"bad_input"``, the proposal with NaN as 0 clipped to ``U``, as the Python
+        controller)."""
+        u_p = np.asarray(u_p, dtype=float).reshape(-1)
+        if u_p.size == 1:
+            u_p = np.broadcast_to(u_p, (self.nu,))
+        self._u_p[:] = as_vector(u_p, "CApproximatePCBFFilter.step: u_p", self.nu,
+                                 finite=False)
+        self._x[:] = as_vector(x, "CApproximatePCBFFilter.step: x", self.nx, finite=False)
         start = time.perf_counter()
         code = self._step(*self._args)
+        known = self._CODES.get(code)
         info = StepInfo(solve_time=time.perf_counter() - start,
-                        fallback=self._FALLBACKS.get(code, "unknown"))
-        info.status = {0: "ok", 1: "certified", 2: "filter_failed", 3: "bad_input",
-                       4: "max_decrease_failed", 5: "proposal_feasible"}.get(code, str(code))
+                        fallback=known.fallback if known is not None else "unknown")
+        info.status = known.name if known is not None else str(code)
         info.values["certified"] = 1.0 if code == 1 else 0.0
-        if code not in (1, 3):
+        if code not in (1, S.code_of(S.APPROX, "bad_input")):
             info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))
         return self._u.copy(), info
+
+
+def _param_value(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
+    """``value`` as the column-major flat array of a parameter of ``shape`` (a scalar for
+    (1, 1), a flat array for a vector or a row), else ShapeError/NonFiniteError naming it."""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise BalustradeError(f"{block}: expected numbers of shape {shape}, got "
+                              f"{type(value).__name__}: {exc}") from exc
+    if arr.ndim == 0 and shape == (1, 1):
+        arr = arr.reshape(1, 1)
+    elif arr.ndim == 1 and arr.size == shape[0] * shape[1] and 1 in shape:
+        arr = arr.reshape(shape)
+    if tuple(arr.shape) != tuple(shape):
+        raise ShapeError(block, shape, arr.shape)
+    if not np.all(np.isfinite(arr)):
+        raise NonFiniteError(f"{block}: contains NaN or inf (shape {arr.shape}); the C "
+                             "would refuse it (BAL_BAD_INPUT)")
+    return arr.reshape(-1, order="F")

@@ -38,19 +38,10 @@ extern "C" {
 #ifndef BAL_STATUS_CODES
 #define BAL_STATUS_CODES
 /* Status of one solve (return value of <problem>_solve). */
-#define BAL_OK 0              /* converged: primal and dual residuals below the tolerances */
-#define BAL_NOT_CONVERGED 1   /* stopped without convergence (iteration limit, infeasible) */
-#define BAL_EVAL_ERROR 2      /* CasADi reported an evaluation error, or not initialized */
-#define BAL_NONFINITE 3       /* the solution contains NaN or inf */
-#define BAL_FEASIBLE 4        /* no attempt converged (all retries done), but the last one
-                                 is primal feasible up to the problem's acceptance
-                                 tolerance (e.g. the SQP stalled on a vanishing step):
-                                 safe to apply, possibly suboptimal */
-/* the controllers apply converged and, after all retries, primal-feasible solutions (a
+$solve_status/* the controllers apply converged and, after all retries, primal-feasible solutions (a
    feasible point of (2.24)/(2.23) keeps the guarantees of the constraints), exactly as
    balustrade.control does with the backend's "feasible" status */
 #define BAL_SOLVED(s) ((s) == BAL_OK || (s) == BAL_FEASIBLE)
-#define BAL_NOT_RUN (-1)      /* the solve was not attempted */
 #endif
 
 """)
@@ -120,7 +111,8 @@ void ${P}_cold_start(${P}_work* wk);
 /* Warm start := the last solution (primal and multipliers). */
 void ${P}_warm_start(${P}_work* wk);
 /* Solve with parameters p (${P}_NP values) from the warm start in wk; returns BAL_*
-   (call ${P}_warm_start afterwards to start the next solve from this solution). */
+   (call ${P}_warm_start afterwards to start the next solve from this solution).
+   A NaN or inf parameter returns BAL_BAD_INPUT without solving (x and f are then NaN). */
 int ${P}_solve(${P}_work* wk, const casadi_real* p);
 /* Pointers into wk, for foreign-function callers. */
 const casadi_real* ${P}_primal(const ${P}_work* wk);
@@ -223,10 +215,27 @@ $dispatch  }
   return wk->feas <= $accept_tol ? BAL_FEASIBLE : BAL_NOT_CONVERGED;
 }
 
+/* 1 if the ${P}_NP parameters are all finite (NaN compares false: a NaN parameter would
+   make the residual tests pass), else 0 */
+static int ${P}_finite_params(const casadi_real* p) {
+  casadi_int i;
+  for (i = 0; i < ${P}_NP; ++i) {
+    if (!isfinite(p[i])) return 0;
+  }
+  return 1;
+}
+
 int ${P}_solve(${P}_work* wk, const casadi_real* p) {
   int first, status, which;
-  if (!wk->ready) return BAL_EVAL_ERROR;
+  casadi_int i;
+  if (!wk || !wk->ready) return BAL_EVAL_ERROR;
   wk->attempts = 0;
+  if ((${P}_NP > 0 && !p) || (p && !${P}_finite_params(p))) {
+    /* refuse before any solver runs; the outputs say "no solution" */
+    for (i = 0; i < ${P}_NW; ++i) wk->x[i] = NAN;
+    wk->f = wk->pr_inf = wk->du_inf = wk->feas = NAN;
+    return BAL_BAD_INPUT;
+  }
   first = ${P}_attempt(wk, p, 0);
   if (first == BAL_OK) return first;
   status = first;
@@ -263,16 +272,14 @@ PCBF_H = Template("""\
  * inputs of (2.24)); apply u*_{0|k}. Fallbacks, as balustrade.control.pcbf:
  *   (2.23) fails                 -> u_{0|k} of (2.24)              BAL_PCBF_SLACK_SOLUTION
  *   (2.24) fails                 -> next input of the last plan    BAL_PCBF_SHIFTED_PLAN
- *   no plan left / x not finite  -> u_p clipped to U               BAL_PCBF_PROJECTED
+ *   no plan left                 -> u_p clipped to U               BAL_PCBF_PROJECTED
+ *   x or u_p NaN/inf, NULL args  -> u_p (NaN -> 0) clipped to U    BAL_PCBF_BAD_INPUT
+ *                                   (nothing solved; both solve statuses BAL_BAD_INPUT)
  * The solutions stay in work->slack / work->filter (x: full primal, f: optimum). */
 #define ${Q}_NX $nx
 #define ${Q}_NU $nu
 #define ${Q}_N $N
-#define BAL_PCBF_OK 0
-#define BAL_PCBF_SLACK_SOLUTION 1
-#define BAL_PCBF_SHIFTED_PLAN 2
-#define BAL_PCBF_PROJECTED 3
-
+$pcbf_status
 typedef struct ${Q}_work {
   ${Q}_slack_work slack;
   ${Q}_filter_work filter;
@@ -303,9 +310,24 @@ PCBF_C = Template("""\
 static const casadi_real ${Q}_u_lb[${Q}_NU] = $u_lb;
 static const casadi_real ${Q}_u_ub[${Q}_NU] = $u_ub;
 
+/* u_p clipped to U; a NaN entry counts as 0 (fmax would silently pick the lower bound),
+   +-inf is clipped to the bound, as numpy.clip(numpy.nan_to_num(u_p), lb, ub) */
 static void ${Q}_project(const casadi_real* u_p, casadi_real* u_out) {
   casadi_int i;
-  for (i = 0; i < ${Q}_NU; ++i) u_out[i] = fmin(fmax(u_p[i], ${Q}_u_lb[i]), ${Q}_u_ub[i]);
+  casadi_real v;
+  for (i = 0; i < ${Q}_NU; ++i) {
+    v = isnan(u_p[i]) ? 0.0 : u_p[i];
+    u_out[i] = fmin(fmax(v, ${Q}_u_lb[i]), ${Q}_u_ub[i]);
+  }
+}
+
+/* 1 if the n values are all finite */
+static int ${Q}_finite(const casadi_real* v, casadi_int n) {
+  casadi_int i;
+  for (i = 0; i < n; ++i) {
+    if (!isfinite(v[i])) return 0;
+  }
+  return 1;
 }
 
 int ${Q}_init(${Q}_work* wk) {
@@ -355,14 +377,19 @@ int ${Q}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
               casadi_real* h_out, int* status, ${Q}_work* wk) {
   casadi_int i;
   const casadi_real* plan_src;
+  if (!x || !u_p || !u_out || !h_out || !status || !wk) {
+    if (status) *status = BAL_PCBF_BAD_INPUT;
+    return BAL_PCBF_BAD_INPUT;
+  }
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
   *h_out = NAN;
-  for (i = 0; i < ${Q}_NX; ++i) {
-    if (!isfinite(x[i])) {
-      ${Q}_project(u_p, u_out);
-      *status = BAL_PCBF_PROJECTED;
-      return *status;
-    }
+  if (!${Q}_finite(x, ${Q}_NX) || !${Q}_finite(u_p, ${Q}_NU)) {
+    /* nothing is solved with a NaN or inf state or proposal (as
+       balustrade.control.fallbacks.projected_proposal); the plan is kept */
+    wk->slack_status = wk->filter_status = BAL_BAD_INPUT;
+    ${Q}_project(u_p, u_out);
+    *status = BAL_PCBF_BAD_INPUT;
+    return *status;
   }
   /* (2.24): h_PB(x_k) and the slacks xi* */
   for (i = 0; i < ${Q}_NX; ++i) wk->p_slack[$s_p_x0 + i] = x[i];
@@ -568,19 +595,13 @@ APPROX_H = Template("""\
  *   h_out = h^(x_k). Fallbacks, as balustrade.control.approximate:
  *   (7.5) fails or leaves U      -> the (7.6) minimizer       BAL_APPROX_MAX_DECREASE
  *   (7.6) finds nothing finite   -> best screened candidate   BAL_APPROX_GRID_MINIMIZER
- *   x not finite                 -> u_p clipped to U          BAL_APPROX_PROJECTED */
+ *   x or u_p NaN/inf, NULL args  -> u_p (NaN -> 0) clipped to U BAL_APPROX_BAD_INPUT */
 #define ${A}_NX $nx
 #define ${A}_NU $nu
 #define ${A}_NC $nc
 #define ${A}_N_LOCAL $n_local
 #define ${A}_RHO $rho
-#define BAL_APPROX_OK 0
-#define BAL_APPROX_CERTIFIED 1
-#define BAL_APPROX_MAX_DECREASE 2
-#define BAL_APPROX_PROJECTED 3
-#define BAL_APPROX_GRID_MINIMIZER 4
-#define BAL_APPROX_PROPOSAL_FEASIBLE 5
-#define ${A}_EXACT_SHORTCUT $exact_shortcut
+$approx_status#define ${A}_EXACT_SHORTCUT $exact_shortcut
 #define ${A}_MAX2(a, b) ((a) > (b) ? (a) : (b))
 #define ${A}_HSZ_ARG ${A}_MAX2(${A}_h_SZ_ARG, ${A}_h_next_SZ_ARG)
 #define ${A}_HSZ_RES ${A}_MAX2(${A}_h_SZ_RES, ${A}_h_next_SZ_RES)
@@ -623,9 +644,23 @@ static const casadi_real ${A}_u_lb[${A}_NU] = $u_lb;
 static const casadi_real ${A}_u_ub[${A}_NU] = $u_ub;
 static const casadi_real ${A}_grid[${A}_NC - 2][${A}_NU] = $grid;
 
+/* u clipped to U; a NaN entry counts as 0, +-inf is clipped to the bound */
 static void ${A}_clip(const casadi_real* u, casadi_real* out) {
   casadi_int i;
-  for (i = 0; i < ${A}_NU; ++i) out[i] = fmin(fmax(u[i], ${A}_u_lb[i]), ${A}_u_ub[i]);
+  casadi_real v;
+  for (i = 0; i < ${A}_NU; ++i) {
+    v = isnan(u[i]) ? 0.0 : u[i];
+    out[i] = fmin(fmax(v, ${A}_u_lb[i]), ${A}_u_ub[i]);
+  }
+}
+
+/* 1 if the n values are all finite */
+static int ${A}_finite(const casadi_real* v, casadi_int n) {
+  casadi_int i;
+  for (i = 0; i < n; ++i) {
+    if (!isfinite(v[i])) return 0;
+  }
+  return 1;
 }
 
 static int ${A}_in_box(const casadi_real* u, casadi_real tol) {
@@ -778,17 +813,22 @@ static int ${A}_max_decrease(${A}_work* wk, const casadi_real* x, const casadi_r
 int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
               casadi_real* h_out, int* status, ${A}_work* wk) {
   casadi_int i;
+  if (!x || !u_p || !u_out || !h_out || !status || !wk) {
+    if (status) *status = BAL_APPROX_BAD_INPUT;
+    return BAL_APPROX_BAD_INPUT;
+  }
   wk->n_steps++;
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->dh = NAN;
   *h_out = NAN;
-  for (i = 0; i < ${A}_NX; ++i) {
-    if (!isfinite(x[i])) {
-      wk->n_fallbacks++;
-      ${A}_clip(u_p, u_out);
-      *status = BAL_APPROX_PROJECTED;
-      return *status;
-    }
+  if (!${A}_finite(x, ${A}_NX) || !${A}_finite(u_p, ${A}_NU)) {
+    /* nothing is evaluated with a NaN or inf state or proposal (as
+       balustrade.control.approximate: "bad_input", projected proposal) */
+    wk->n_fallbacks++;
+    wk->dec_status = wk->filter_status = BAL_BAD_INPUT;
+    ${A}_clip(u_p, u_out);
+    *status = BAL_APPROX_BAD_INPUT;
+    return *status;
   }
   /* line 4: certification by one evaluation */
   if (wk->certify && ${A}_in_box(u_p, 1e-9) && ${A}_eval_h_next(wk, x, u_p) <= 0.0) {

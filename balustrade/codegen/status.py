@@ -1,0 +1,105 @@
+"""The status codes of the emitted C, defined once: the ``#define`` lines of the generated
+headers (:mod:`~balustrade.codegen.templates`), the manifests written by
+:mod:`~balustrade.codegen.emit` and the Python names read by
+:mod:`~balustrade.codegen.runtime` are all generated from these tables.
+
+Three families:
+
+* :data:`SOLVE` — return value of ``<problem>_solve`` (one problem, e.g. (2.24));
+* :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
+* :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6).
+
+Each family has a *bad input* code: a parameter, state or proposal that is NaN or inf is
+refused before any solver runs (NaN compares false, so a residual test would pass it as
+converged); the steps then apply the proposal, NaN entries replaced by 0, clipped to ``U``
+(the fallback of :func:`balustrade.control.fallbacks.projected_proposal`).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+
+class Status(NamedTuple):
+    """One status code: C macro, value, Python name, fallback applied (steps), C comment."""
+
+    macro: str
+    code: int
+    name: str
+    fallback: str | None
+    doc: str
+
+
+#: ``<problem>_solve``: ``name`` is the status string of :class:`~balustrade.codegen.CProblem`.
+SOLVE: tuple[Status, ...] = (
+    Status("BAL_OK", 0, "ok", None,
+           "converged: primal and dual residuals below the tolerances"),
+    Status("BAL_NOT_CONVERGED", 1, "not_converged", None,
+           "stopped without convergence (iteration limit, infeasible)"),
+    Status("BAL_EVAL_ERROR", 2, "eval_error", None,
+           "CasADi reported an evaluation error, or not initialized"),
+    Status("BAL_NONFINITE", 3, "nonfinite", None, "the solution contains NaN or inf"),
+    Status("BAL_FEASIBLE", 4, "feasible", None,
+           "no attempt converged (all retries done), but the last one is primal feasible up "
+           "to the problem's acceptance tolerance (e.g. the SQP stalled on a vanishing "
+           "step): safe to apply, possibly suboptimal"),
+    Status("BAL_BAD_INPUT", 5, "bad_input", None,
+           "a parameter is NaN or inf (or p is NULL): nothing was solved, the solution "
+           "and value are NaN"),
+    Status("BAL_NOT_RUN", -1, "not_run", None, "the solve was not attempted"),
+)
+
+#: The PCBF step (2.24)+(2.23): ``fallback`` is the StepInfo fallback of
+#: :class:`~balustrade.control.pcbf.PCBFSafetyFilter`.
+PCBF: tuple[Status, ...] = (
+    Status("BAL_PCBF_OK", 0, "ok", None, "u*_{0|k} of the filter (2.23)"),
+    Status("BAL_PCBF_SLACK_SOLUTION", 1, "slack_solution", "slack_solution",
+           "(2.23) failed: u_{0|k} of (2.24)"),
+    Status("BAL_PCBF_SHIFTED_PLAN", 2, "shifted_plan", "shifted_plan",
+           "(2.24) failed: the next input of the last plan"),
+    Status("BAL_PCBF_PROJECTED", 3, "projected_proposal", "projected_proposal",
+           "(2.24) failed and no plan is left: u_p clipped to U"),
+    Status("BAL_PCBF_BAD_INPUT", 4, "bad_input", "projected_proposal",
+           "x or u_p is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
+           "clipped to U"),
+)
+
+#: The Algorithm 7.5 step: ``fallback`` as in
+#: :class:`~balustrade.control.approximate.ApproximatePCBFFilter`.
+APPROX: tuple[Status, ...] = (
+    Status("BAL_APPROX_OK", 0, "ok", None, "the minimizer of the filter (7.5)"),
+    Status("BAL_APPROX_CERTIFIED", 1, "certified", None,
+           "u_p certified by one evaluation (line 4)"),
+    Status("BAL_APPROX_MAX_DECREASE", 2, "filter_failed", "max_decrease_solution",
+           "(7.5) failed or left U: the (7.6) minimizer"),
+    Status("BAL_APPROX_BAD_INPUT", 3, "bad_input", "projected_proposal",
+           "x or u_p is NaN or inf (or a pointer is NULL): u_p (NaN -> 0) clipped to U"),
+    Status("BAL_APPROX_GRID_MINIMIZER", 4, "max_decrease_failed", "grid_minimizer",
+           "(7.6) found nothing finite: the best screened candidate"),
+    Status("BAL_APPROX_PROPOSAL_FEASIBLE", 5, "proposal_feasible", None,
+           "u_p meets the decrease of (7.5): its minimizer (exact shortcut)"),
+)
+
+
+def by_code(family: tuple[Status, ...]) -> dict[int, Status]:
+    """``{code: Status}`` of a family."""
+    return {s.code: s for s in family}
+
+
+def code_of(family: tuple[Status, ...], name: str) -> int:
+    """The code of the status called ``name`` in ``family``."""
+    return next(s.code for s in family if s.name == name)
+
+
+def c_defines(family: tuple[Status, ...]) -> str:
+    """``#define`` lines of a family for the generated header (negative codes bracketed)."""
+    lines = []
+    for s in family:
+        value = f"({s.code})" if s.code < 0 else str(s.code)
+        lines.append(f"#define {s.macro} {value}  /* {s.doc} */")
+    return "\n".join(lines) + "\n"
+
+
+def manifest(family: tuple[Status, ...]) -> dict[str, int]:
+    """``{name: code}`` of a family, as written to the manifest."""
+    return {s.name: s.code for s in family}
