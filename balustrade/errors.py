@@ -47,3 +47,12 @@ class SolverError(BalustradeError, ValueError):
 
 class CodegenError(BalustradeError, RuntimeError):
     """C code generation, compilation or loading failed."""
+
+
+class BalustradeWarning(UserWarning):
+    """Base class of balustrade warnings: a result is returned, but read it with care."""
+
+
+class DegenerateResultWarning(BalustradeWarning):
+    """A synthesis succeeded but its result is degenerate (e.g. a terminal CBF level
+    ``γ_f ≈ 0``); the result names the reason."""

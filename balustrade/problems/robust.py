@@ -265,14 +265,10 @@ def terminal_cbf_with_domain(A: np.ndarray, B: np.ndarray, X_E: Polytope, U_E: P
     ellipsoid touch the input constraint, so ``γ_f ≈ 0`` and ``D_r = {h_r <= α_f γ_f}`` of
     Theorem 5.15 collapses onto ``S_r``; a positive level gives the decrease guarantee a
     region. The ellipsoid stays inside ``X ⊖ E`` and ``U ⊖ κ(E)`` as the thesis requires."""
-    from dataclasses import replace
+    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
-    from balustrade.problems.terminal_cbf import largest_level, synthesize_terminal_cbf
-
-    scaled = U_E.scale(1.0 / np.sqrt(1.0 + level), name=f"{U_E.name}/sqrt(1+{level:g})")
-    cbf = synthesize_terminal_cbf(A, B, X_E, scaled, delta_N=delta_N,
-                                  decrease_factor=decrease_factor)
-    return replace(cbf, gamma_f=largest_level(cbf.P, cbf.K, U_E))
+    return synthesize_terminal_cbf(A, B, X_E, U_E, delta_N=delta_N,
+                                   decrease_factor=decrease_factor, min_level=level)
 
 
 def minimal_slacks(X_E: Polytope, h_f: Callable, deltas: np.ndarray, z: np.ndarray

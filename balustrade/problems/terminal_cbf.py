@@ -6,11 +6,20 @@ for every state row and ``[[b̄_u,j², a_jᵀY], [Yᵀa_j, E]] ⪰ 0`` for every
 ``P = E⁻¹``, ``K = Y P``, ``h_f(x) = xᵀPx − 1``, ``π_f(x) = Kx`` and
 ``γ_f = min_j b̄_u,j² / (a_jᵀ K E Kᵀ a_j) − 1``, the largest level with ``Kx ∈ U`` on
 ``D_f = {h_f <= γ_f}`` (SPEC §2.27 [Default]).
+
+**Degenerate level.** The volume-maximal ellipsoid usually touches an input row: its LMI
+is then active, ``a_jᵀKEKᵀa_j = b̄_u,j²``, and ``γ_f = 0`` up to the solver's accuracy —
+``D_f`` collapses onto ``S_f = {h_f <= 0}`` and ``D_PB = {h_PB <= α_f γ_f}`` onto ``S_PB``
+(Assumption 2.29 needs ``γ_f > 0``). :func:`synthesize_terminal_cbf` then warns
+(:class:`~balustrade.errors.DegenerateResultWarning`) naming the active input rows, and
+records the reason in :attr:`TerminalCBF.degenerate`; ``min_level = γ`` reserves a level
+(the input LMI on ``b̄_u / sqrt(1 + γ)``, so ``γ_f >= γ``).
 """
 
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 
 import casadi as ca
@@ -19,7 +28,16 @@ import numpy as np
 
 from balustrade._checks import as_matrix
 from balustrade.dsl.sets import Polytope
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade.errors import (
+    BalustradeError,
+    DegenerateResultWarning,
+    NonFiniteError,
+    ShapeError,
+)
+
+#: ``γ_f`` below this is reported as degenerate (it is ``b²/(aᵀKEKᵀa) − 1`` of an active
+#: input row: 0 in exact arithmetic, ~1e-10 from an interior-point solver)
+DEGENERATE_LEVEL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -32,6 +50,10 @@ class TerminalCBF:
     decrease_factor: float = 1.0
     status: str = "optimal"
     solve_time: float = 0.0
+    #: input rows of ``U`` attaining the minimum in ``γ_f`` (the rows that bound ``D_f``)
+    limiting_rows: tuple[int, ...] = ()
+    #: why ``γ_f`` is degenerate (``γ_f`` < :data:`DEGENERATE_LEVEL`), else ``""``
+    degenerate: str = ""
 
     def __call__(self, x: object) -> object:
         """``h_f(x)`` on CasADi symbols or numbers."""
@@ -51,10 +73,23 @@ class TerminalCBF:
 
 def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polytope,
                             delta_N: float = 0.0, decrease_factor: float = 0.99,
-                            solver: str = "CLARABEL") -> TerminalCBF:
+                            solver: str = "CLARABEL", min_level: float = 0.0) -> TerminalCBF:
     """Solve (7.11)/(6.17) for ``x⁺ = Ax + Bu`` with state rows tightened by ``delta_N``
     (``Δ_{N−1}``) and return the terminal CBF. ``X``/``U`` may already be tightened by an
-    RPI set (Chapters 5, 6). ``decrease_factor`` is ``λ`` in the invariance LMI."""
+    RPI set (Chapters 5, 6). ``decrease_factor`` is ``λ`` in the invariance LMI.
+
+    ``min_level = γ > 0`` imposes the input LMI on ``b̄_u / sqrt(1 + γ)``, so that
+    ``γ_f >= γ`` (``γ_f`` is computed on ``U`` itself). A degenerate ``γ_f ≈ 0`` is
+    returned with a :class:`~balustrade.errors.DegenerateResultWarning` naming the
+    limiting input rows (see the module docstring)."""
+    for what, S in (("X", X), ("U", U)):
+        if not isinstance(S, Polytope):
+            raise BalustradeError(f"terminal CBF SDP: {what} must be a Polytope (a Box or "
+                                  f"H x <= h), got {type(S).__name__}")
+    delta_N = _finite_scalar(delta_N, "delta_N")
+    min_level = _finite_scalar(min_level, "min_level")
+    if min_level < 0:
+        raise BalustradeError(f"terminal CBF SDP: min_level must be >= 0, got {min_level}")
     A = as_matrix(A, "terminal CBF SDP: A")
     n = A.shape[0]
     if A.shape != (n, n):
@@ -64,7 +99,7 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
     if X.dim != n or U.dim != m:
         raise ShapeError("terminal CBF SDP: sets", f"X of dim {n}, U of dim {m}",
                          f"X of dim {X.dim}, U of dim {U.dim}", what="")
-    if not 0 < decrease_factor <= 1:
+    if not 0 < _finite_scalar(decrease_factor, "decrease factor") <= 1:
         raise BalustradeError(f"terminal CBF SDP: decrease factor must lie in (0, 1], got "
                               f"{decrease_factor}")
     bx = X.h - delta_N
@@ -78,7 +113,7 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
     for a, b in zip(X.H, bx):
         row = cp.reshape(a @ E, (1, n), order="F")
         cons.append(cp.bmat([[np.array([[b ** 2]]), row], [row.T, E]]) >> 0)
-    for a, b in zip(U.H, U.h):
+    for a, b in zip(U.H, U.h / np.sqrt(1.0 + min_level)):
         row = cp.reshape(a @ Y, (1, n), order="F")
         cons.append(cp.bmat([[np.array([[b ** 2]]), row], [row.T, E]]) >> 0)
     prob = cp.Problem(cp.Minimize(-cp.log_det(E)), cons)
@@ -92,19 +127,73 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
         raise BalustradeError(f"terminal CBF SDP: no solution ({prob.status}); the constraints "
                               "may admit no invariant ellipsoid")
     Ev = 0.5 * (E.value + E.value.T)
+    if not np.all(np.isfinite(Ev)) or np.min(np.linalg.eigvalsh(Ev)) <= 0:
+        raise BalustradeError(f"terminal CBF SDP: {solver} returned a singular ellipsoid "
+                              f"(eigenvalues of E {np.linalg.eigvalsh(Ev)}); the constraints "
+                              "may admit no invariant ellipsoid with nonempty interior")
     P = np.linalg.inv(Ev)
     P = 0.5 * (P + P.T)
     K = Y.value @ P
-    return TerminalCBF(P=P, K=K, gamma_f=largest_level(P, K, U), decrease_factor=decrease_factor,
-                       status=prob.status, solve_time=elapsed)
+    levels = input_levels(P, K, U)
+    gamma_f = float(np.min(levels)) if levels.size else float("inf")
+    limiting = tuple(int(j) for j in np.flatnonzero(levels <= gamma_f + DEGENERATE_LEVEL))
+    reason = _degenerate_reason(gamma_f, limiting, U) if gamma_f < DEGENERATE_LEVEL else ""
+    if reason:
+        warnings.warn(reason, DegenerateResultWarning, stacklevel=2)
+    return TerminalCBF(P=P, K=K, gamma_f=gamma_f, decrease_factor=decrease_factor,
+                       status=prob.status, solve_time=elapsed, limiting_rows=limiting,
+                       degenerate=reason)
 
 
-def largest_level(P: np.ndarray, K: np.ndarray, U: Polytope) -> float:
-    """``γ_f = min_j b_u,j² / (a_jᵀ K P⁻¹ Kᵀ a_j) − 1``: the largest ``γ`` with ``Kx ∈ U``
-    on ``{xᵀPx − 1 <= γ}`` (SPEC §2.27 [Default])."""
+def _finite_scalar(value: object, what: str) -> float:
+    try:
+        v = float(np.asarray(value, dtype=float))
+    except (TypeError, ValueError) as exc:
+        raise BalustradeError(f"terminal CBF SDP: {what} must be a number, got "
+                              f"{value!r}") from exc
+    if not np.isfinite(v):
+        raise NonFiniteError(f"terminal CBF SDP: {what} is {v}")
+    return v
+
+
+def _row_text(a: np.ndarray, b: float) -> str:
+    """``a_jᵀu <= b_j`` as text, e.g. ``-u_0 <= 5``."""
+    text = ""
+    for i, c in enumerate(a):
+        if c == 0:
+            continue
+        sign = "-" if c < 0 else ("+" if text else "")
+        text += f"{' ' if text else ''}{sign}{'' if abs(c) == 1 else f'{abs(c):g}·'}u_{i}"
+    return f"{text or '0'} <= {b:g}"
+
+
+def _degenerate_reason(gamma_f: float, rows: tuple[int, ...], U: Polytope) -> str:
+    """Why ``γ_f`` vanishes: the input rows whose LMI is active at the SDP solution."""
+    names = " and ".join(f"{j} ({_row_text(U.H[j], float(U.h[j]))})" for j in rows)
+    plural = "s" if len(rows) > 1 else ""
+    verb = "are" if len(rows) > 1 else "is"
+    return (f"terminal CBF SDP: degenerate level gamma_f = {gamma_f:.3g} (Assumption 2.29 "
+            f"needs gamma_f > 0): the LMI{plural} of input row{plural} {names} of "
+            f"{U.name!r} {verb} active at the SDP solution (b_j^2 = a_j^T K E K^T a_j) — the "
+            "volume-maximal ellipsoid is input-limited: pi_f(x) = Kx reaches that input "
+            "bound on the boundary of S_f = {h_f <= 0} itself, so D_f = {h_f <= gamma_f} "
+            "collapses onto S_f and D_PB = {h_PB <= alpha_f gamma_f} onto S_PB. Pass "
+            "min_level=gamma > 0 (input LMI on b_u / sqrt(1 + gamma)) to reserve a level")
+
+
+def input_levels(P: np.ndarray, K: np.ndarray, U: Polytope) -> np.ndarray:
+    """``b_u,j² / (a_jᵀ K P⁻¹ Kᵀ a_j) − 1`` for every input row ``j`` (``+inf`` for a row
+    ``K`` does not reach): the level at which ``Kx`` meets row ``j``."""
     E = np.linalg.inv(P)
     levels = []
     for a, b in zip(U.H, U.h):
         s = float(a @ K @ E @ K.T @ a)
         levels.append(np.inf if s <= 0 else b ** 2 / s - 1.0)
-    return float(min(levels))
+    return np.asarray(levels, dtype=float)
+
+
+def largest_level(P: np.ndarray, K: np.ndarray, U: Polytope) -> float:
+    """``γ_f = min_j b_u,j² / (a_jᵀ K P⁻¹ Kᵀ a_j) − 1``: the largest ``γ`` with ``Kx ∈ U``
+    on ``{xᵀPx − 1 <= γ}`` (SPEC §2.27 [Default])."""
+    levels = input_levels(P, K, U)
+    return float(np.min(levels)) if levels.size else float("inf")
