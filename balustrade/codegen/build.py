@@ -33,8 +33,9 @@ def find_compiler() -> str:
     return found
 
 
-def _sources(src_dir: Path) -> list[Path]:
-    return sorted(p for p in src_dir.glob("*.c") if p.name != "main.c")
+def _sources(src_dir: Path, main: str = "main.c") -> list[Path]:
+    """The library sources of ``src_dir``: every ``*.c`` except ``main.c`` and ``main``."""
+    return sorted(p for p in src_dir.glob("*.c") if p.name not in ("main.c", Path(main).name))
 
 
 def _run(cmd: list[str], what: str) -> None:
@@ -76,6 +77,6 @@ def build_executable(src_dir: str | Path, main: str = "main.c", werror: bool = T
     cc = find_compiler()
     target = Path(out) if out is not None else src_dir / Path(main).stem
     cmd = [cc, "-O3", "-Wall", "-Wextra", *(["-Werror"] if werror else []), *extra_flags,
-           "-o", str(target), str(src_dir / main), *map(str, _sources(src_dir)), "-lm"]
+           "-o", str(target), str(src_dir / main), *map(str, _sources(src_dir, main)), "-lm"]
     _run(cmd, f"building {target.name}")
     return target
