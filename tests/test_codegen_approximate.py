@@ -10,7 +10,7 @@ from balustrade.codegen import CApproximatePCBFFilter, build, emit_approximate
 from balustrade.codegen.examples import pendulum_approximate_filter
 from balustrade.codegen.runtime import mirror_c_retries
 from balustrade.control.base import simulate
-from balustrade.errors import CodegenError
+from balustrade.errors import CodegenError, ShapeError
 from balustrade.models.pendulum import pendulum
 
 
@@ -86,3 +86,26 @@ def test_approximate_exact_shortcut_rho_half(tmp_path) -> None:
         u2, i2 = c.step(x, u_p)
         assert i1.status == i2.status and np.abs(u1 - u2).max() <= 1e-6
     assert py.n_proposal_feasible == c.n_proposal_feasible > 0
+
+
+def test_approximate_non_finite_input_falls_back_as_python(approx: dict) -> None:
+    """NaN or inf state or proposal: the C step (BAL_APPROX_BAD_INPUT) applies what the
+    Python controller applies (the proposal, NaN as 0, clipped to U), never raises, and
+    the next finite step is solved normally."""
+    py, c = approx["py"], CApproximatePCBFFilter(approx["lib"])
+    py.reset()
+    c.reset()
+    cases = [([np.nan, 0.0], 2.0), ([0.1, np.inf], 7.0), ([0.1, 0.2], np.nan),
+             ([0.1, 0.2], np.inf), ([0.1, 0.2], -np.inf), ([np.nan, np.nan], np.nan)]
+    for x, u_p in cases:
+        u1, i1 = py.step(np.array(x), np.array([u_p]))
+        u2, i2 = c.step(np.array(x), np.array([u_p]))
+        assert np.array_equal(u1, u2), (x, u_p, u1, u2)
+        assert i1.status.startswith("bad_input") and i2.status == "bad_input"
+        assert i1.fallback == i2.fallback == "projected_proposal"
+    assert py.n_fallbacks == c.n_fallbacks == len(cases)
+    u1, i1 = py.step(np.array([0.3, 0.5]), np.array([3.5]))
+    u2, i2 = c.step(np.array([0.3, 0.5]), np.array([3.5]))
+    assert i1.status == i2.status and np.abs(u1 - u2).max() <= 1e-6
+    with pytest.raises(ShapeError, match="CApproximatePCBFFilter.step: x"):
+        c.step(np.zeros(3), np.array([1.0]))
