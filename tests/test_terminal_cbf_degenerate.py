@@ -97,3 +97,22 @@ def test_bad_input_is_refused_before_the_solver(kwargs: dict, error: type,
     args = {"A": system.A, "B": system.B, "X": s.X, "U": s.U, **kwargs}
     with pytest.raises(error, match=match):
         synthesize_terminal_cbf(**args)
+
+
+def test_ch5_robust_design_is_input_limited_and_its_note_says_so() -> None:
+    """§5.6: the terminal CBF of the ch5-robust reproduction (SDP (6.17) on X ⊖ E, U ⊖ κ(E))
+    has γ_f ≈ 0 by the thesis' design; the reproduction prints a note instead of warning."""
+    from balustrade.dsl.error_sets import ellipsoidal_rpi
+    from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+    from balustrade.reproduce.ch5_robust import terminal_note
+
+    system, s = unstable2d(), unstable2d_setup(30)
+    error = ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U)
+    X_E, U_E = error.tighten_state(s.X), error.tighten_input(s.U)
+    with pytest.warns(DegenerateResultWarning, match=r"input rows 0 \(u_0 <= 1.3\d*\) and 1"):
+        cbf = synthesize_terminal_cbf(system.A, system.B, X_E, U_E, delta_N=s.deltas()[-1])
+    note = terminal_note(cbf)
+    assert "input-limited" in note and "input row(s) 0, 1" in note
+    assert terminal_note(synthesize_terminal_cbf(
+        system.A, system.B, X_E, U_E, delta_N=s.deltas()[-1], min_level=1.0)).startswith(
+        "note: terminal CBF level gamma_f = 1")
