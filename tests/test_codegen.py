@@ -32,7 +32,7 @@ from balustrade.codegen.examples import (
 )
 from balustrade.codegen.runtime import mirror_c_retries
 from balustrade.control.base import simulate
-from balustrade.errors import CodegenError
+from balustrade.errors import BalustradeError, CodegenError, ShapeError
 from balustrade.models.pendulum import pendulum
 
 N_STATES = 1000
@@ -118,6 +118,17 @@ def test_plain_functions_equal_casadi_to_1e12(functions_c: dict) -> None:
             got = cfn(*args)
             for a, b in zip(want, got):
                 assert np.abs(a.reshape(b.shape) - b).max() <= 1e-12, sym
+
+
+def test_plain_function_refuses_wrong_inputs(functions_c: dict) -> None:
+    cfn = CFunction(functions_c["lib"], "dynamics")
+    with pytest.raises(ShapeError, match=r"dynamics: input 0: expected shape \(2, 1\), got "
+                                         r"shape \(3,\)"):
+        cfn(np.zeros(3), np.zeros(1))
+    with pytest.raises(BalustradeError, match="input 1 must be numbers"):
+        cfn(np.zeros(2), "u")
+    with pytest.raises(CodegenError, match="expected 2 inputs, got 1"):
+        cfn(np.zeros(2))
 
 
 def test_closed_loop_with_c_filter_matches_python(pcbf_c: dict) -> None:

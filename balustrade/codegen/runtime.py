@@ -119,12 +119,16 @@ class CFunction:
         if len(inputs) != len(self._inputs):
             raise CodegenError(f"{self.sym}: expected {len(self._inputs)} inputs, got "
                                f"{len(inputs)}")
-        for buf, n, val, shape in zip(self._inputs, self._in_sizes, inputs, self._in_shapes):
+        for k, (buf, n, val, shape) in enumerate(zip(self._inputs, self._in_sizes, inputs,
+                                                     self._in_shapes)):
             if n:
-                flat = np.ravel(val, order="F")
+                try:
+                    flat = np.ravel(np.asarray(val, dtype=float), order="F")
+                except (TypeError, ValueError) as exc:
+                    raise BalustradeError(f"{self.sym}: input {k} must be numbers of shape "
+                                          f"{shape}, got {type(val).__name__}") from exc
                 if flat.size != n:
-                    raise CodegenError(f"{self.sym}: input of shape {shape} expected, got "
-                                       f"{np.shape(val)}")
+                    raise ShapeError(f"{self.sym}: input {k}", shape, np.shape(val))
                 buf[:n] = flat
         if self._f(*self._args):
             raise CodegenError(f"{self.sym}: evaluation failed")
