@@ -248,6 +248,12 @@ def test_emitters_refuse_wrong_objects(pcbf: dict, tmp_path) -> None:
         write_example(em, [[0.0, 0.0, 0.0]], 2.0)
     with pytest.raises(CodegenError, match="steps must be a positive integer"):
         write_example(em, [[0.0, 0.0]], 2.0, steps=0)
+    with pytest.raises(CodegenError, match="build: .*nowhere.* is not a folder"):
+        build(tmp_path / "nowhere")
+    with pytest.raises(CodegenError, match="src_dir must be a path"):
+        build(None)
+    with pytest.raises(CodegenError, match="no 'drv.c'"):
+        build_executable(tmp_path, main="drv.c")
     (tmp_path / "x.json").write_text("{not json")
     with pytest.raises(CodegenError, match="not a readable balustrade manifest"):
         load_manifest(tmp_path, "x")

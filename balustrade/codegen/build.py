@@ -38,6 +38,16 @@ def _sources(src_dir: Path, main: str = "main.c") -> list[Path]:
     return sorted(p for p in src_dir.glob("*.c") if p.name not in ("main.c", Path(main).name))
 
 
+def _src_dir(src_dir: str | Path, what: str) -> Path:
+    """``src_dir`` as an existing folder, else a CodegenError naming it."""
+    if not isinstance(src_dir, (str, os.PathLike)):
+        raise CodegenError(f"{what}: src_dir must be a path, got {type(src_dir).__name__}")
+    path = Path(src_dir)
+    if not path.is_dir():
+        raise CodegenError(f"{what}: {str(path)!r} is not a folder of emitted sources")
+    return path
+
+
 def _run(cmd: list[str], what: str) -> None:
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -53,7 +63,7 @@ def build(src_dir: str | Path, name: str | None = None, werror: bool = False,
     """Compile every ``*.c`` in ``src_dir`` except ``main.c`` into a shared library
     (``cc -O3 -fPIC -shared -Wall -Wextra [-Werror] ... -lm``) and return its path
     (default ``src_dir/lib<name>.so``; ``name`` defaults to the folder's manifest)."""
-    src_dir = Path(src_dir)
+    src_dir = _src_dir(src_dir, "build")
     sources = _sources(src_dir)
     if not sources:
         raise CodegenError(f"no C sources in {src_dir}")
@@ -73,7 +83,10 @@ def build_executable(src_dir: str | Path, main: str = "main.c", werror: bool = T
                      out: str | Path | None = None) -> Path:
     """Compile ``main.c`` with the other sources of ``src_dir`` into an executable
     (``-Wall -Wextra -Werror`` by default, as the generated Makefile does)."""
-    src_dir = Path(src_dir)
+    src_dir = _src_dir(src_dir, "build_executable")
+    if not (src_dir / main).is_file():
+        raise CodegenError(f"build_executable: no {main!r} in {src_dir} (write_example writes "
+                           "main.c)")
     cc = find_compiler()
     target = Path(out) if out is not None else src_dir / Path(main).stem
     cmd = [cc, "-O3", "-Wall", "-Wextra", *(["-Werror"] if werror else []), *extra_flags,
