@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import cvxpy as cp
 import numpy as np
 
-from balustrade._checks import as_matrix
+from balustrade._checks import as_count, as_matrix
 from balustrade.dsl.sets import Box, Ellipsoid, Polytope, Set
 from balustrade.errors import BalustradeError, EmptySetError, ShapeError
 
@@ -134,6 +134,12 @@ def reachable_support(A_K: np.ndarray, W: Set, H: np.ndarray, N: int,
     ((2.13), §6.3.2); ``s[0] = 0`` because ``E_0 = {0}``."""
     A_K = as_matrix(A_K, "reachable_support: A_K")
     n = A_K.shape[0]
+    if A_K.shape != (n, n):
+        raise ShapeError("reachable_support: A_K", "a square matrix", A_K.shape)
+    N = as_count(N, "reachable_support: horizon N")
+    if not isinstance(W, Set) or W.dim != (n if G is None else W.dim):
+        raise ShapeError("reachable_support: W", f"a Set of dimension {n}",
+                         f"{type(W).__name__} of dimension {getattr(W, 'dim', '?')}", what="")
     H = as_matrix(H, "reachable_support: H", (None, n))
     _, hW = _disturbance(W, G, n)
     s = np.zeros((N + 1, H.shape[0]))

@@ -42,7 +42,7 @@ import casadi as ca
 import numpy as np
 import scipy.optimize
 
-from balustrade._checks import as_matrix, as_vector, check_psd
+from balustrade._checks import as_count, as_matrix, as_vector, check_name, check_psd
 from balustrade.dsl import sets_geometry as geo
 from balustrade.dsl.sets_base import (
     RngLike,
@@ -82,7 +82,11 @@ class Polytope(Set):
     name: str = "Polytope"
 
     def __post_init__(self) -> None:
+        check_name(self.name, "Polytope: name")
         H = as_matrix(self.H, f"{self.name}: H")
+        if H.shape[1] == 0:
+            raise ShapeError(f"{self.name}: H", "at least one column (the set's dimension)",
+                             H.shape)
         h = as_vector(self.h, f"{self.name}: h")
         if H.shape[0] != h.size:
             raise ShapeError(f"{self.name}: h must have one entry per row of H",
@@ -209,7 +213,11 @@ class Box(Polytope):
     bound are left out)."""
 
     def __init__(self, lb: np.ndarray, ub: np.ndarray, name: str = "Box"):
+        check_name(name, "Box: name")
         lb = as_vector(lb, f"{name}: lb", finite=False)
+        if lb.size == 0:
+            raise ShapeError(f"{name}: lb", "at least one bound (a box of dimension >= 1)",
+                             lb.shape)
         ub = as_vector(ub, f"{name}: ub", lb.size, finite=False)
         if np.any(np.isnan(lb)) or np.any(np.isnan(ub)):
             raise NonFiniteError(f"{name}: bounds contain NaN (lb={lb}, ub={ub})")
@@ -236,10 +244,17 @@ class Box(Polytope):
     @classmethod
     def symmetric(cls, bound: np.ndarray | float, dim: int | None = None,
                   name: str = "Box") -> Box:
-        """``{|x_i| <= bound_i}``."""
-        b = np.atleast_1d(np.asarray(bound, dtype=float))
-        if dim is not None and b.size == 1:
-            b = np.full(dim, float(b[0]))
+        """``{|x_i| <= bound_i}`` (``bound >= 0``; ``inf`` for no bound)."""
+        b = as_vector(bound, f"{name}: bound", finite=False)
+        if dim is not None:
+            dim = as_count(dim, f"{name}: dim", low=1)
+            if b.size == 1:
+                b = np.full(dim, float(b[0]))
+            elif b.size != dim:
+                raise ShapeError(f"{name}: bound", (dim,), b.shape)
+        if np.any(b < 0):
+            raise EmptySetError(f"{name}: symmetric bound {b} has negative entries "
+                                f"{np.flatnonzero(b < 0).tolist()}: the box is empty")
         return cls(-b, b, name=name)
 
     @property
@@ -337,6 +352,7 @@ class Ellipsoid(Set):
     name: str = "Ellipsoid"
 
     def __post_init__(self) -> None:
+        check_name(self.name, "Ellipsoid: name")
         P = check_psd(self.P, f"{self.name}: P", strict=True)
         q = np.zeros(P.shape[0]) if self.center is None else as_vector(
             self.center, f"{self.name}: center", P.shape[0])

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_matrix, as_vector
-from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
+from balustrade._checks import as_matrix, as_scalar, as_vector
+from balustrade.errors import BalustradeError, ShapeError
 
 if TYPE_CHECKING:
     from balustrade.dsl.sets import Box
@@ -41,10 +41,7 @@ def check_count(n: int, block: str) -> int:
 
 def check_scalar(alpha: float, block: str) -> float:
     """Validate a finite scale factor."""
-    a = float(alpha)
-    if not np.isfinite(a):
-        raise NonFiniteError(f"{block}: scale factor is {a}")
-    return a
+    return as_scalar(alpha, f"{block}: scale factor")
 
 
 class Set(ABC):
@@ -84,7 +81,8 @@ class Set(ABC):
         return np.all(vals <= tol, axis=0)
 
     def _points(self, X: np.ndarray, what: str) -> np.ndarray:
-        X = np.asarray(X, dtype=float)
+        X = as_matrix(X, f"{self.name}.{what}", finite=False) if np.ndim(X) != 1 \
+            else as_vector(X, f"{self.name}.{what}", finite=False)
         if X.ndim == 1 and self.dim == 1:
             X = X[:, None]
         if X.ndim != 2 or X.shape[1] != self.dim:
