@@ -10,7 +10,7 @@ from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
 from balustrade.backends.solution import Solution
 from balustrade.dsl.ocp import OCP
-from balustrade.errors import SolverError
+from balustrade.errors import BalustradeError, SolverError
 
 Compiled = CasadiCompiled | CvxpyCompiled
 
@@ -24,7 +24,9 @@ def compile(ocp: OCP, backend: str = "casadi", solver: str | None = None,
     for LPs/QPs and Clarabel for conic problems. ``retries`` (CasADi only) replaces the
     default retry chain after a failed solve (``[]`` turns retries off, e.g. for closed
     loops that have their own fallbacks)."""
-    if backend not in BACKENDS:
+    if not isinstance(ocp, OCP):
+        raise BalustradeError(f"compile: expected a balustrade OCP, got {type(ocp).__name__}")
+    if not isinstance(backend, str) or backend not in BACKENDS:
         raise SolverError(f"{ocp.name}: unknown backend {backend!r}; use one of "
                           f"{', '.join(BACKENDS)}")
     if backend == "casadi":
