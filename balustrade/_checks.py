@@ -169,3 +169,46 @@ def check_symbolic(expr: ca.SX, block: str) -> ca.SX:
 
 def _fmt(shape: tuple[int | None, ...]) -> str:
     return "(" + ", ".join("n" if s is None else str(s) for s in shape) + ")"
+
+
+# -- arguments of the formulation builders (balustrade.problems) -------------------------------
+def check_horizon(N: object, block: str) -> int:
+    """A prediction horizon: an integer ``N >= 1``."""
+    return as_count(N, f"{block}: horizon N", low=1)
+
+
+def check_deltas(deltas: object, N: int, block: str) -> np.ndarray:
+    """Tightenings ``Δ_0, …, Δ_{N−1}``: ``N`` finite nonnegative numbers (a scalar is
+    repeated)."""
+    where = f"{block}: tightenings deltas (Δ_i)"
+    arr = as_float_array(deltas, where)
+    if arr.ndim == 0:
+        arr = np.full(N, float(arr))
+    d = as_vector(arr, where, N)
+    if np.any(d < 0):
+        raise BalustradeError(f"{where}: must be >= 0, got negative entries at steps "
+                              f"{np.flatnonzero(d < 0).tolist()} ({d[d < 0]})")
+    return d
+
+
+def check_weight(M: object, n: int, block: str, strict: bool = False) -> np.ndarray:
+    """A cost weight: an ``(n, n)`` symmetric positive (semi)definite matrix."""
+    M = as_matrix(M, block)
+    if M.shape != (n, n):
+        raise ShapeError(block, (n, n), M.shape)
+    return check_psd(M, block, strict=strict)
+
+
+def check_norm_order(order: object, block: str) -> object:
+    """A slack norm order: 1, 2 or inf."""
+    if isinstance(order, bool) or not isinstance(order, (int, float, str)) \
+            or order not in (1, 2, np.inf, "inf"):
+        raise BalustradeError(f"{block}: norm order must be 1, 2 or inf, got {order!r}")
+    return order
+
+
+def check_instance(value: object, kind: type | tuple[type, ...], block: str) -> None:
+    """``value`` is a ``kind`` (a System, a Set, a Polytope, ...)."""
+    if not isinstance(value, kind):
+        names = " or ".join(k.__name__ for k in (kind if isinstance(kind, tuple) else (kind,)))
+        raise BalustradeError(f"{block}: expected a {names}, got {type(value).__name__}")

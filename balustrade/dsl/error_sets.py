@@ -54,6 +54,17 @@ class ErrorSet:
     kappa_fn: Callable[[np.ndarray], np.ndarray] | None = None
     info: dict = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        if not isinstance(self.E, Set):
+            raise BalustradeError(f"ErrorSet: E must be a balustrade Set, got "
+                                  f"{type(self.E).__name__}")
+        if self.K is not None:
+            object.__setattr__(self, "K", as_matrix(self.K, f"ErrorSet({self.E.name}): K",
+                                                    (None, self.E.dim)))
+        if self.kappa_fn is not None and not callable(self.kappa_fn):
+            raise BalustradeError(f"ErrorSet({self.E.name}): kappa_fn must be callable, got "
+                                  f"{type(self.kappa_fn).__name__}")
+
     def kappa(self, e: np.ndarray) -> np.ndarray:
         """``κ(e)``: ``K e`` or the user's feedback."""
         e = np.asarray(e, dtype=float).reshape(-1)

@@ -17,7 +17,7 @@ import casadi as ca
 import cvxpy as cp
 import numpy as np
 
-from balustrade._checks import as_matrix
+from balustrade._checks import as_matrix, as_scalar, check_instance, check_psd
 from balustrade.dsl.sets import Polytope
 from balustrade.errors import BalustradeError, ShapeError
 
@@ -61,6 +61,13 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
         raise ShapeError("terminal CBF SDP: A", (n, n), A.shape)
     B = as_matrix(B, "terminal CBF SDP: B", (n, None))
     m = B.shape[1]
+    check_instance(X, Polytope, "terminal CBF SDP: X")
+    check_instance(U, Polytope, "terminal CBF SDP: U")
+    delta_N = as_scalar(delta_N, "terminal CBF SDP: delta_N (Δ_{N−1})", low=0.0)
+    decrease_factor = as_scalar(decrease_factor, "terminal CBF SDP: decrease factor λ")
+    if not isinstance(solver, str):
+        raise BalustradeError(f"terminal CBF SDP: solver must be a cvxpy solver name, got "
+                              f"{type(solver).__name__}")
     if X.dim != n or U.dim != m:
         raise ShapeError("terminal CBF SDP: sets", f"X of dim {n}, U of dim {m}",
                          f"X of dim {X.dim}, U of dim {U.dim}", what="")
@@ -102,6 +109,9 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
 def largest_level(P: np.ndarray, K: np.ndarray, U: Polytope) -> float:
     """``γ_f = min_j b_u,j² / (a_jᵀ K P⁻¹ Kᵀ a_j) − 1``: the largest ``γ`` with ``Kx ∈ U``
     on ``{xᵀPx − 1 <= γ}`` (SPEC §2.27 [Default])."""
+    check_instance(U, Polytope, "largest_level: U")
+    P = check_psd(P, "largest_level: P", strict=True)
+    K = as_matrix(K, "largest_level: K", (U.dim, P.shape[0]))
     E = np.linalg.inv(P)
     levels = []
     for a, b in zip(U.H, U.h):
