@@ -51,6 +51,7 @@ from balustrade.dsl.sets_base import (
     as_rng,
     check_count,
     check_scalar,
+    check_tol,
     linear_map,
     minkowski_sum,
     pontryagin_difference,
@@ -107,6 +108,7 @@ class Polytope(Set):
 
     def contains_many(self, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         X = self._points(X, "contains_many(X)")
+        tol = check_tol(tol, f"{self.name}.contains_many")
         return np.all(X @ self.H.T - self.h <= tol, axis=1)
 
     def is_empty(self) -> bool:
@@ -340,6 +342,12 @@ class Box(Polytope):
         if not self.is_bounded():
             raise BalustradeError(f"{self.name}.sample: cannot sample an unbounded box "
                                   f"(lb={self.lb}, ub={self.ub})")
+        with np.errstate(over="ignore"):
+            width = self.ub - self.lb
+        if not np.all(np.isfinite(width)):
+            raise BalustradeError(f"{self.name}.sample: the box is too wide to sample in "
+                                  f"floating point (ub - lb overflows: lb={self.lb}, "
+                                  f"ub={self.ub})")
         return as_rng(rng).uniform(self.lb, self.ub, size=(n, self.dim))
 
 
@@ -380,6 +388,7 @@ class Ellipsoid(Set):
 
     def contains_many(self, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         D = self._points(X, "contains_many(X)") - self.center
+        tol = check_tol(tol, f"{self.name}.contains_many")
         return np.einsum("ij,jk,ik->i", D, self.P, D) - 1.0 <= tol
 
     def support(self, a: np.ndarray) -> float:
@@ -439,6 +448,10 @@ class Ellipsoid(Set):
 
     def max_quadratic_over(self, other: Ellipsoid) -> float:
         """``max_{x ∈ other} (x - q)ᵀP(x - q)`` exactly (trust-region subproblem)."""
+        if not isinstance(other, Ellipsoid):
+            raise BalustradeError(f"{self.name}.max_quadratic_over: expected an Ellipsoid, got "
+                                  f"{type(other).__name__}")
+        self._check_same_dim(other, "max_quadratic_over")
         L = other._root()
         d = other.center - self.center
         G = L.T @ self.P @ L
