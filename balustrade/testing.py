@@ -91,7 +91,7 @@ def verify(problem: OCP, solution: Solution, tol: float = 1e-6) -> VerificationR
                                   inf, inf, tol, [f"no primal point ({solution.status})"])
     evaluate = ca.Function("blocks", [w_sym, p_sym], [b.expr for b in problem.blocks]
                            + [problem.cost.expr()])
-    values = evaluate(w, p)
+    values = evaluate.call([w, p])  # a list, also with a single output
     block_violation, dynamics = {}, 0.0
     for block, value in zip(problem.blocks, values[:-1]):
         g = np.asarray(value, dtype=float).reshape(-1)

@@ -498,7 +498,31 @@ many("compile", {
     "None": lambda: compile(None),
     "unknown backend": lambda: compile(compiled()[0], "julia"),
     "backend not a string": lambda: compile(compiled()[0], 3),
+    "no decision variables": lambda: compile(OCP(name="empty")),
+    "zero-size variable only": lambda: compile(_zero_var()),
+    "solver not a string": lambda: compile(compiled()[0], "casadi", 3),
+    "options a list": lambda: compile(compiled()[0], "casadi", "ipopt", [1]),
+    "retries a string": lambda: compile(compiled()[0], "casadi", "ipopt", None, "x"),
 })
+
+
+def _zero_var() -> OCP:
+    o = OCP(name="zero")
+    o.variable("v", 0)
+    return o
+
+
+def _parameter_free(backend: str) -> tuple[OCP, Solution]:
+    o = OCP(name="free")
+    v = o.variable("v", 1, lb=-1.0, ub=1.0)
+    if backend == "cvxpy":
+        o.minimize(v ** 2)
+    return o, compile(o, backend).solve()
+
+
+for _b in ("casadi", "cvxpy"):
+    case(f"parameter-free problem verifies ({_b})", expect="any")(
+        lambda b=_b: _parameter_free(b))
 many("Compiled.solve", {
     "params list": lambda: compiled()[1].solve([0.1, 0.0]),
     "params string": lambda: compiled()[1].solve("x0"),

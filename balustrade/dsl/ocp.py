@@ -396,13 +396,15 @@ class OCP:
 
     # -- flattening (used by backends and verify) --------------------------------------
     def decision_vector(self) -> ca.SX:
-        return ca.vertcat(*[ca.vec(v.sym) for v in self.variables.values()])
+        """All variables stacked (an empty ``SX`` column if there are none)."""
+        return ca.vertcat(ca.SX(0, 1), *[ca.vec(v.sym) for v in self.variables.values()])
 
     def parameter_vector(self) -> ca.SX:
-        return ca.vertcat(*[ca.vec(p.sym) for p in self.parameters.values()])
+        """All parameters stacked (an empty ``SX`` column if there are none)."""
+        return ca.vertcat(ca.SX(0, 1), *[ca.vec(p.sym) for p in self.parameters.values()])
 
     def constraint_vector(self) -> ca.SX:
-        return ca.vertcat(*[b.expr for b in self.blocks])
+        return ca.vertcat(ca.SX(0, 1), *[b.expr for b in self.blocks])
 
     def pack_parameters(self, values: dict[str, object] | None) -> np.ndarray:
         """Stack parameter values (checked for shape and finiteness) in declaration order."""
@@ -460,8 +462,10 @@ class OCP:
         return np.concatenate(chunks) if chunks else np.zeros(0)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        lb = np.concatenate([v.lb.reshape(-1, order="F") for v in self.variables.values()])
-        ub = np.concatenate([v.ub.reshape(-1, order="F") for v in self.variables.values()])
+        lb = np.concatenate([np.zeros(0)] + [v.lb.reshape(-1, order="F")
+                                             for v in self.variables.values()])
+        ub = np.concatenate([np.zeros(0)] + [v.ub.reshape(-1, order="F")
+                                             for v in self.variables.values()])
         return lb, ub
 
     def describe(self) -> str:
