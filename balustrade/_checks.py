@@ -81,12 +81,13 @@ def check_psd(M: np.ndarray, block: str, strict: bool = False, tol: float = 1e-9
     scale = max(1.0, float(np.max(np.abs(M))))
     if not np.allclose(M, M.T, atol=tol * scale):
         raise NotPSDError(f"{block}: matrix of shape {M.shape} is not symmetric")
-    lam_min = float(np.min(np.linalg.eigvalsh(0.5 * (M + M.T))))
+    sym = 0.5 * M + 0.5 * M.T  # no overflow near the largest floats
+    lam_min = float(np.min(np.linalg.eigvalsh(sym)))
     if lam_min < -tol * scale or (strict and lam_min <= tol * scale):
         kind = "positive definite" if strict else "positive semidefinite"
         raise NotPSDError(f"{block}: matrix of shape {M.shape} is not {kind} "
                           f"(smallest eigenvalue {lam_min:.3g})")
-    return 0.5 * (M + M.T)
+    return sym
 
 
 def as_scalar(value: object, block: str, low: float | None = None, high: float | None = None,

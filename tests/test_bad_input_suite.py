@@ -52,18 +52,36 @@ from balustrade.dsl import (
     squared_norm,
     sum_norms,
 )
-from balustrade.dsl.error_sets import ErrorSet, reachable_support
+from balustrade.dsl.error_sets import (
+    ErrorSet,
+    is_rpi,
+    reachable_support,
+    reachable_tightened_sets,
+    tighten,
+    tighten_by_feedback,
+)
 from balustrade.errors import BalustradeError
 from balustrade.problems.approximate import approximate_filter_problem, max_decrease_problem
-from balustrade.problems.mpc import mpc_problem, soft_mpc_problem
-from balustrade.problems.multiobjective import decrease_bound
+from balustrade.problems.mpc import (
+    cbf_filter_problem,
+    mpc_problem,
+    predictive_safety_filter,
+    soft_mpc_problem,
+)
+from balustrade.problems.multiobjective import decrease_bound, multiobjective_pcbf_problem
 from balustrade.problems.pcbf import (
     combined_h,
     extended_pcbf_problem,
     pcbf_filter_problem,
     pcbf_slack_problem,
 )
-from balustrade.problems.robust import robust_pcbf_slack_problem, slack_cost
+from balustrade.problems.robust import (
+    robust_mpc_problem,
+    robust_pcbf_filter_problem,
+    robust_pcbf_slack_problem,
+    slack_cost,
+    tube_mpc_problem,
+)
 from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 from balustrade.testing import verify
 
@@ -756,6 +774,90 @@ def test_solve_property(x0: object) -> None:
     """Any parameter value: a clean error, an honest status, or a solution that verifies."""
     ocp, c = compiled("cvxpy")
     _tally_property(lambda: (ocp, c.solve({"x0": x0})))
+
+
+# -- every argument of every builder × a pool of junk values -----------------------------------
+JUNK = [None, "ab", -1, 0, 2.5, np.nan, np.inf, -np.inf, 1e308, [], [1.0], [np.nan, 1.0],
+        -np.eye(2), np.ones((3, 3)), [[1, 2], [3]], True, {}, (1, 2), ca.SX.sym("s", 2), X, U,
+        h_f, SYS, ERROR, np.zeros(4), 1j, object()]
+_W = Box([-0.01, -0.01], [0.01, 0.01], name="W")
+_K = np.array([[-1.0, -1.5]])
+ENTRIES: dict[str, tuple[Callable, list]] = {
+    "pcbf_slack_problem": (pcbf_slack_problem, [SYS, X, U, h_f, N, DELTAS, 1e3, 1]),
+    "pcbf_filter_problem": (pcbf_filter_problem, [SYS, X, U, h_f, N, DELTAS, 1e-6]),
+    "extended_pcbf_problem": (extended_pcbf_problem, [SYS, X, U, h_f, N, DELTAS]),
+    "mpc_problem": (mpc_problem, [SYS, X, U, None, N, np.eye(2), np.eye(1), np.eye(2)]),
+    "soft_mpc_problem": (soft_mpc_problem, [SYS, X, U, X, N, np.eye(2), np.eye(1), np.eye(2),
+                                            1e3, 1]),
+    "predictive_safety_filter": (predictive_safety_filter, [SYS, X, U, X, N]),
+    "cbf_filter_problem": (cbf_filter_problem, [SYS, U, h_f, 0.1]),
+    "robust_pcbf_slack_problem": (robust_pcbf_slack_problem, [SYS, X, U, h_f, N, DELTAS, ERROR,
+                                                              1e3, 1]),
+    "robust_pcbf_filter_problem": (robust_pcbf_filter_problem, [SYS, X, U, h_f, N, DELTAS,
+                                                                ERROR, 1e-6]),
+    "tube_mpc_problem": (tube_mpc_problem, [SYS, X, U, X, N, ERROR, np.eye(2), np.eye(1),
+                                            np.eye(2)]),
+    "robust_mpc_problem": (robust_mpc_problem, [SYS, X, U, X, N, A + B @ _K, _K, _W, np.eye(2),
+                                                np.eye(1), np.eye(2)]),
+    "multiobjective_pcbf_problem": (multiobjective_pcbf_problem, [SYS, X, U, h_f, N, DELTAS,
+                                                                  ERROR, 1e3]),
+    "max_decrease_problem": (max_decrease_problem, [SYS, U, h_f]),
+    "approximate_filter_problem": (approximate_filter_problem, [SYS, U, h_f, 1e-6]),
+    "reachable_tightened_sets": (reachable_tightened_sets, [X, 0.5 * A, _W, N]),
+    "tighten": (tighten, [X, Ellipsoid(np.eye(2) * 100)]),
+    "tighten_by_feedback": (tighten_by_feedback, [U, _K, Ellipsoid(np.eye(2) * 100)]),
+    "is_rpi": (is_rpi, [Ellipsoid(np.eye(2)), 0.5 * A, _W]),
+    "slack_cost": (slack_cost, [np.zeros((2, 2)), 0.0, 1.0]),
+    "combined_h": (combined_h, [0.0, 0.0, 1.0]),
+    "decrease_bound (6.15g)": (decrease_bound, [1.0, 1.0, 0.5]),
+    "Box": (Box, [[0.0], [1.0]]),
+    "Polytope": (Polytope, [np.eye(2), np.ones(2)]),
+    "Ellipsoid": (Ellipsoid, [np.eye(2), None]),
+    "FunctionSet": (FunctionSet, [h_f, 2]),
+    "LinearSystem": (LinearSystem, [A, B, None]),
+    "System": (System, [lambda x, u: x + ca.mtimes(ca.DM(B), u), 2, 1]),
+    "System.from_continuous": (System.from_continuous, [lambda x, u: -x, 2, 1, 0.1]),
+    "norm": (norm, [ca.SX.sym("a", 2), 2]),
+    "quad": (quad, [ca.SX.sym("a", 2), np.eye(2)]),
+    "OCP": (OCP, [SYS, N]),
+    "OCP.parameter": (lambda *a: OCP().parameter(*a), ["p", 2, 1, None]),
+    "OCP.variable": (lambda *a: OCP().variable(*a), ["v", 2, 1, -1.0, 1.0, 0.0]),
+    "OCP.state_constraint": (lambda *a: _ocp().state_constraint(*a), [X, None, None, None]),
+    "OCP.input_constraint": (lambda *a: _ocp().input_constraint(*a), [U, None, None]),
+    "OCP.terminal_constraint": (lambda *a: _ocp().terminal_constraint(*a), [X, 0.0, None]),
+    "OCP.terminal_cbf": (lambda *a: _ocp().terminal_cbf(*a), [h_f, None]),
+    "OCP.initial_tube": (lambda *a: OCP(SYS, N).initial_tube(*a), [[0.0, 0.0], X]),
+    "OCP.dynamics": (lambda *a: OCP(SYS, N).dynamics(*a), [None, None]),
+    "OCP.le": (lambda *a: _ocp().le(*a), [1.0, 2.0]),
+    "OCP.minimize": (lambda *a: _ocp().minimize(*a), [1.0]),
+    "Set.scale": (X.scale, [2.0]),
+    "Set.translate": (X.translate, [[0.0, 0.0]]),
+    "Set.linear_map": (X.linear_map, [np.eye(2)]),
+    "Set.sample": (X.sample, [3, 0]),
+    "Set.contains": (X.contains, [[0.0, 0.0], 1e-9]),
+    "Set.support": (X.support, [[1.0, 0.0]]),
+    "Set.is_subset_of": (X.is_subset_of, [X, 1e-7]),
+    "Ellipsoid.scale": (Ellipsoid(np.eye(2)).scale, [2.0]),
+    "System.step": (SYS.step, [[0.0, 0.0], [0.0]]),
+    "Compiled.solve": (lambda *a: compiled()[1].solve(*a), [{"x0": [0.1, 0.0]}]),
+    "verify": (verify, [compiled()[0], solved()[1], 1e-6]),
+    "simulate": (simulate, [SYS, _Hold(), [0.0, 0.0], 2, 0.0, None]),
+}
+
+
+@pytest.mark.parametrize("entry", sorted(ENTRIES))
+def test_junk_in_every_argument(entry: str) -> None:
+    """Each argument of each entry point, replaced by each junk value: a BalustradeError
+    or a sound result, never a raw exception."""
+    fn, base = ENTRIES[entry]
+    assert classify(lambda: fn(*base))[0] == "ok", f"{entry}: the valid call fails"
+    for i in range(len(base)):
+        for junk in JUNK:
+            args = list(base)
+            args[i] = junk
+            outcome, detail = classify(lambda a=args: (compiled()[0], fn(*a))
+                                       if entry == "Compiled.solve" else fn(*a))
+            check_case(Case(f"{entry}[{i}] = {junk!r:.30}", fn, "any"), outcome, detail)
 
 
 def test_zz_tally() -> None:

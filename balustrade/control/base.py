@@ -124,8 +124,19 @@ def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
                  np.array(solve_times), np.array(step_times), infos, stopped)
 
 
+def _call(fn: Callable, k: int, x: np.ndarray, what: str) -> object:
+    """The user's ``fn(k, x)``; its failure is reported with the step."""
+    try:
+        return fn(k, x)
+    except BalustradeError:
+        raise
+    except Exception as exc:  # the user's function failed
+        raise BalustradeError(f"simulate: {what}(k, x) failed at step {k}: "
+                              f"{type(exc).__name__}: {exc}") from exc
+
+
 def _proposal(proposal: Proposal, k: int, x: np.ndarray, nu: int) -> np.ndarray:
-    value = proposal(k, x) if callable(proposal) else proposal
+    value = _call(proposal, k, x, "proposal") if callable(proposal) else proposal
     block = "simulate: proposed input u_p"
     arr = as_float_array(value, block)
     return as_vector(np.broadcast_to(arr, (nu,)) if arr.ndim == 0 else arr, block, nu)
@@ -153,5 +164,6 @@ def _disturbance_table(disturbance: Disturbance, steps: int, nw: int) -> Disturb
 def _disturbance(disturbance: Disturbance, k: int, x: np.ndarray, nw: int) -> np.ndarray:
     if disturbance is None or nw == 0:
         return np.zeros(nw)
-    value = disturbance(k, x) if callable(disturbance) else np.asarray(disturbance)[k]
+    value = _call(disturbance, k, x, "disturbance") if callable(disturbance) \
+        else np.asarray(disturbance)[k]
     return as_vector(value, f"simulate: disturbance at step {k}", nw)

@@ -331,7 +331,7 @@ class OCP:
             lb = -np.inf if signed else 0.0
             return self.variable(self._unique_symbol(f"xi_{block}"), shape[0], shape[1],
                                  lb=lb, role="slack")
-        expr = ca.SX(slack)
+        expr = _as_sx(slack, f"{self.name}: {block}: slack")
         if expr.shape != tuple(shape) and expr.numel() != 1:
             raise ShapeError(f"{self.name}: {block}: slack", tuple(shape), expr.shape)
         return expr
@@ -345,7 +345,8 @@ class OCP:
     def _steps(self, steps: Sequence[int] | None, block: str) -> list[int]:
         if steps is None:
             return list(range(self.N))
-        if isinstance(steps, (str, bytes)) or not hasattr(steps, "__iter__"):
+        if isinstance(steps, (str, bytes, ca.SX, ca.MX, ca.DM)) \
+                or not hasattr(steps, "__iter__"):
             raise BalustradeError(f"{self.name}: {block}: steps must be a sequence of step "
                                   f"indices, got {type(steps).__name__}")
         out = [as_count(i, f"{self.name}: {block}: step index") for i in steps]
@@ -379,12 +380,18 @@ class OCP:
         if tightening is None:
             return [0.0] * len(steps)
         if callable(tightening):
-            values = [as_scalar(tightening(i), f"{where} Δ_{i}") for i in steps]
-        elif np.ndim(tightening) == 0:
-            values = [as_scalar(tightening, where)] * len(steps)
-        else:
-            values = [float(d) for d in as_vector(tightening, where, len(steps))]
-        return values
+            values = []
+            for i in steps:
+                try:
+                    value = tightening(i)
+                except Exception as exc:  # the user's function failed
+                    raise BalustradeError(f"{where}: Δ(i) failed at step {i}: {exc}") from exc
+                values.append(as_scalar(value, f"{where} Δ_{i}"))
+            return values
+        arr = as_float_array(tightening, where)
+        if arr.ndim == 0:
+            return [as_scalar(arr, where)] * len(steps)
+        return [float(d) for d in as_vector(arr, where, len(steps))]
 
     def _as_column(self, value: object, size: int, block: str) -> ca.SX:
         if isinstance(value, (ca.SX, ca.DM)):

@@ -431,7 +431,9 @@ class Ellipsoid(Set):
         if a == 0.0:
             raise BalustradeError(f"{self.name}.scale: 0·{self.name} is a point, not an "
                                   "ellipsoid with P ≻ 0")
-        return Ellipsoid(self.P / a**2, a * self.center, name=name or f"{a:g}·{self.name}")
+        with np.errstate(over="ignore", under="ignore"):
+            P = self.P / np.float64(a) ** 2
+        return Ellipsoid(P, a * self.center, name=name or f"{a:g}·{self.name}")
 
     def translate(self, v: np.ndarray, name: str | None = None) -> Ellipsoid:
         v = as_vector(v, f"{self.name}.translate(v)", self.dim)

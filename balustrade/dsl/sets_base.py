@@ -28,9 +28,11 @@ def as_rng(rng: RngLike) -> np.random.Generator:
     """A numpy ``Generator`` from an int seed, a ``Generator`` or ``None`` (fresh entropy)."""
     if isinstance(rng, np.random.Generator):
         return rng
-    if rng is None or isinstance(rng, (int, np.integer)):
+    if rng is None or (isinstance(rng, (int, np.integer)) and not isinstance(rng, bool)
+                       and rng >= 0):
         return np.random.default_rng(rng)
-    raise BalustradeError(f"rng must be an int seed or a numpy Generator, got {type(rng).__name__}")
+    raise BalustradeError(f"rng must be an int seed >= 0 or a numpy Generator, got "
+                          f"{type(rng).__name__} {rng!r:.30}")
 
 
 def check_count(n: int, block: str) -> int:

@@ -24,15 +24,18 @@ from balustrade.dsl.sets import Polytope, Set
 from balustrade.dsl.system import System
 from balustrade.errors import ShapeError
 
+_SKIP = object()
 
-def check_system_sets(block: str, system: object, X: object | None, U: object | None,
-                      polytope: bool = False) -> None:
-    """``system`` is a System; ``X``/``U`` are sets (polytopes if ``polytope``) of its state
-    and input dimensions."""
+
+def check_system_sets(block: str, system: object, X: object = _SKIP, U: object = _SKIP,
+                      polytope: bool = False, Xf: object = _SKIP) -> None:
+    """``system`` is a System; the sets given (``X``, ``Xf``: state sets, ``U``: input set;
+    ``None`` is refused, leave an argument out to skip it) are sets (polytopes if
+    ``polytope``) of the system's state and input dimensions."""
     check_instance(system, System, f"{block}: system")
     kind = Polytope if polytope else Set
-    for label, S, dim in (("X", X, system.nx), ("U", U, system.nu)):
-        if S is None:
+    for label, S, dim in (("X", X, system.nx), ("U", U, system.nu), ("Xf", Xf, system.nx)):
+        if S is _SKIP:
             continue
         check_instance(S, kind, f"{block}: {label}")
         if S.dim != dim:

@@ -83,7 +83,7 @@ def max_decrease_problem(system: System, U: Set, h_hat: HHat,
 
     Parameters: ``x0``. Variable: ``u``.
     """
-    check_system_sets(name, system, None, U)
+    check_system_sets(name, system, U=U)
     h = as_h_function(h_hat, system.nx)
     ocp = OCP(None, name=name)
     u = _input_variable(ocp, U, system.nu)
@@ -101,7 +101,7 @@ def approximate_filter_problem(system: System, U: Set, h_hat: HHat, eps: float =
     default 1), so one compiled problem serves every ``ρ``. ``eps`` is the numerical margin
     that keeps the (7.6) minimizer strictly feasible at ``ρ = 1`` (Proposition 7.3).
     """
-    check_system_sets(name, system, None, U)
+    check_system_sets(name, system, U=U)
     eps = nonnegative(eps, f"{name}: eps")
     h = as_h_function(h_hat, system.nx)
     ocp = OCP(None, name=name)
@@ -202,7 +202,7 @@ class MaximalDecrease:
     def __init__(self, system: System, U: Set, h_hat: HHat, solver: str = "ipopt",
                  options: dict | None = None, grid_points: int = 5, n_local: int = 1,
                  fast: bool = True):
-        check_system_sets("MaximalDecrease", system, None, U)
+        check_system_sets("MaximalDecrease", system, U=U)
         self.system, self.U = system, U
         self.h = as_h_function(h_hat, system.nx)
         self.ocp = max_decrease_problem(system, U, self.h)

@@ -15,6 +15,7 @@ import numpy as np
 
 from balustrade._checks import as_scalar, check_callable, check_horizon
 from balustrade.dsl import OCP, Set, System, quad, squared_norm, sum_norms
+from balustrade.errors import BalustradeError
 from balustrade.problems._args import (
     check_norm_order,
     check_system_sets,
@@ -36,7 +37,7 @@ def _check(name: str, system: System, X: Set, U: Set, Xf: Set | None, N: int,
            ) -> tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     check_system_sets(name, system, X, U)
     if Xf is not None:
-        check_system_sets(name + " (Xf)", system, Xf, None)
+        check_system_sets(name, system, Xf=Xf)
     N = check_horizon(N, name)
     return N, check_weights(name, system.nx, system.nu, Q, R, P)
 
@@ -84,7 +85,7 @@ def predictive_safety_filter(system: System, X: Set, U: Set, Xf: Set, N: int,
     """(2.19): ``min ‖u_0 − u_p‖²`` subject to the constraints of (2.9) (squared Euclidean
     norm, SPEC §2.5 [Default]: same minimizer as the norm). Parameters: ``x0``, ``u_p``."""
     check_system_sets(name, system, X, U)
-    check_system_sets(name + " (Xf)", system, Xf, None)
+    check_system_sets(name, system, Xf=Xf)
     N = check_horizon(N, name)
     ocp = OCP(system, N, name=name)
     ocp.initial_state(ocp.parameter("x0", system.nx))
@@ -105,7 +106,7 @@ def cbf_filter_problem(system: System, U: Set, h: Callable, decrease: Callable |
     Parameters: ``x``, ``u_p``; variable ``u``. For a quadratic ``h`` and linear ``f`` the
     problem is a convex QCQP and compiles on both backends.
     """
-    check_system_sets(name, system, None, U)
+    check_system_sets(name, system, U=U)
     check_callable(h, f"{name}: h")
     if not callable(decrease):
         decrease = as_scalar(decrease, f"{name}: decrease")
@@ -114,7 +115,12 @@ def cbf_filter_problem(system: System, U: Set, h: Callable, decrease: Callable |
     u_p = ocp.parameter("u_p", system.nu)
     u = ocp.variable("u", system.nu, role="input")
     ocp.le(U.c(u), 0, name="input", tag="input")
-    alpha = decrease(x) if callable(decrease) else float(decrease)
-    ocp.decrease(h(system(x, u)) - h(x) + alpha, 0, name="cbf_decrease")
+    try:
+        alpha = decrease(x) if callable(decrease) else float(decrease)
+        lhs = h(system(x, u)) - h(x) + alpha
+    except Exception as exc:  # the user's functions failed on symbols
+        raise BalustradeError(f"{name}: h(f(x, u)) − h(x) + α(x) failed on CasADi symbols "
+                              f"x ({system.nx}, 1), u ({system.nu}, 1): {exc}") from exc
+    ocp.decrease(lhs, 0, name="cbf_decrease")
     ocp.minimize(squared_norm(u - u_p, label="filter"))
     return ocp

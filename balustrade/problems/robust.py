@@ -48,7 +48,7 @@ def robust_mpc_problem(system: System, X: Polytope, U: Polytope, Xf: Polytope, N
     ``z_i ∈ X ⊖ E_i``, ``v_i ∈ U ⊖ K E_i``, ``z_N ∈ X_f ⊖ E_N`` with
     ``E_i = ⊕_{j<i} A_K^j G W`` (support-function tightenings). Parameter ``x0``."""
     check_system_sets(name, system, X, U, polytope=True)
-    check_system_sets(name + " (Xf)", system, Xf, None, polytope=True)
+    check_system_sets(name, system, Xf=Xf, polytope=True)
     N = check_horizon(N, name)
     Q, R, P = check_weights(name, system.nx, system.nu, Q, R, P)
     A_K = as_matrix(A_K, f"{name}: A_K", (system.nx, system.nx))
@@ -72,7 +72,7 @@ def tube_mpc_problem(system: System, X: Polytope, U: Polytope, Xf: Polytope, N: 
     """(2.15): ``x_k − z_0 ∈ E`` (``z_0`` free), nominal dynamics, ``z_i ∈ X ⊖ E``,
     ``v_i ∈ U ⊖ K E``, ``z_N ∈ X_f``; apply ``v*_0 + K(x_k − z*_0)``. Parameter ``x0``."""
     check_system_sets(name, system, X, U, polytope=True)
-    check_system_sets(name + " (Xf)", system, Xf, None)
+    check_system_sets(name, system, Xf=Xf)
     N = check_horizon(N, name)
     Q, R, P = check_weights(name, system.nx, system.nu, Q, R, P)
     check_instance(error, ErrorSet, f"{name}: error")
