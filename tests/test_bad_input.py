@@ -146,9 +146,12 @@ def test_solution_primal_is_the_one_source_of_truth(pend):
     w[:] = 0.0
     sol.w = w
     assert np.all(sol.primal["x"] == 0.0) and sol.primal["x"].shape == (2, pend.N + 1)
-    with pytest.raises(BalustradeError, match="differs from the stacked primal"):
+    given = Solution("optimal", 0.0, {"a": np.zeros(2)}, {}, 0.0, 0, "hand", "hand",
+                     w=np.ones(2), p=np.zeros(0))
+    assert np.all(given.primal["a"] == 1.0)         # a constructor's w is the point
+    with pytest.raises(ShapeError, match=r"Solution.w: expected shape \(2,\), got shape \(3,\)"):
         Solution("optimal", 0.0, {"a": np.zeros(2)}, {}, 0.0, 0, "hand", "hand",
-                 w=np.ones(2), p=np.zeros(0))
+                 w=np.ones(3), p=np.zeros(0))
     with pytest.raises(BalustradeError, match=r"no variable named 'xi_typo'.*'xi_N'"):
         sol["xi_typo"]
 

@@ -563,9 +563,10 @@ def _edited(value: object) -> tuple[OCP, Solution]:
 
 many("Solution", {
     "missing name": lambda: solved()[1]["xi_typo"],
-    "w disagrees with primal": lambda: Solution("optimal", 0.0, {"a": np.zeros(2)}, {}, 0.0,
-                                                0, "none", "none", w=np.ones(2),
-                                                p=np.zeros(0)),
+    "w of the wrong size": lambda: Solution("optimal", 0.0, {"a": np.zeros(2)}, {}, 0.0,
+                                            0, "none", "none", w=np.ones(3), p=np.zeros(0)),
+    "w of strings": lambda: Solution("optimal", 0.0, {"a": np.zeros(2)}, {}, 0.0,
+                                     0, "none", "none", w=["a", "b"], p=np.zeros(0)),
     "primal not a dict": lambda: Solution("optimal", 0.0, [1.0], {}, 0.0, 0, "none", "none"),
     "w setter wrong size": lambda: setattr(solved()[1], "w", np.zeros(1)),
 }, match="")

@@ -25,8 +25,9 @@ class Solution:
     ``primal`` is the one source of truth for the point: ``w``, the stacked decision vector
     (declaration order, column-major per variable), is derived from it on every access, so
     editing ``sol.primal["u"]`` (in place or by assignment) changes ``sol.w`` and what
-    :func:`balustrade.verify` checks. Assigning ``sol.w`` writes back into ``primal``. The
-    ``w`` given to the constructor must agree with ``primal``.
+    :func:`balustrade.verify` checks. Assigning ``sol.w`` writes back into ``primal``, and so
+    does a ``w`` given to the constructor (``Solution(**{**sol.__dict__, "w": w2})`` is the
+    point ``w2``); the constructor copies the ``primal`` dict, so solutions never share it.
     """
 
     status: str
@@ -49,6 +50,7 @@ class Solution:
         if not isinstance(primal, dict):
             raise BalustradeError(f"Solution: primal must be a dict name -> array, got "
                                   f"{type(primal).__name__}")
+        primal = dict(primal)
         self.status, self.objective, self.primal, self.dual = status, objective, primal, dual
         self.solve_time, self.iterations = solve_time, iterations
         self.backend, self.solver, self.message = backend, solver, message
@@ -56,13 +58,8 @@ class Solution:
         self.raw = {} if raw is None else raw
         if w is not None:
             given = as_float_array(w, "Solution: w").reshape(-1)
-            stacked = self.w
-            if given.shape != stacked.shape or not np.array_equal(given, stacked,
-                                                                   equal_nan=True):
-                raise BalustradeError(
-                    f"Solution: w ({given.size} entries) differs from the stacked primal "
-                    f"({stacked.size} entries of {list(primal)}); primal is the source of "
-                    "truth, give w=None or the stacked primal")
+            if not np.array_equal(given, self.w, equal_nan=True):
+                self.w = given  # checks the size against primal's, then writes primal
 
     @property
     def w(self) -> np.ndarray:
