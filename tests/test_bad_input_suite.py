@@ -161,6 +161,8 @@ def judge(result: object) -> tuple[str, str]:
         scale = max(1.0, float(np.max(np.abs(sol.w), initial=0.0)))
         report = verify(ocp, sol, tol=1e-6 * scale)
         return ("ok", sol.status) if report.ok else ("bad", str(report))
+    if isinstance(result, Solution):
+        raise AssertionError("a case returned a bare Solution: return (ocp, solution)")
     if isinstance(result, Trace):
         finite = np.all(np.isfinite(result.states)) or result.stopped
         return ("ok", "trace") if finite else ("bad", "trace with NaN and no stop reason")
@@ -679,8 +681,10 @@ for _backend in ("cvxpy", "casadi"):
                         ("max float", (np.finfo(float).max / 1e10, 0.0))):
         case(f"extreme x0 {_label} ({_backend})", expect="any", risky=True)(
             lambda b=_backend, x=_x0: solved(b, x))
-case("extreme alpha_f 1e300 (casadi)", expect="any", risky=True)(
-    lambda: compile(_slack(alpha_f=1e300), "casadi", "ipopt").solve({"x0": [2.0, 0.0]}))
+for _alpha in (1e300, 1e-300):
+    case(f"extreme alpha_f {_alpha:g} (casadi)", expect="any", risky=True)(
+        lambda a=_alpha: (lambda o: (o, compile(o, "casadi", "ipopt").solve({"x0": [2.0, 0.0]})))(
+            _slack(alpha_f=a)))
 case("tiny box (cvxpy)", expect="any", risky=True)(
     lambda: _solve_small_box(1e-12))
 
