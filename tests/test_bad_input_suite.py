@@ -551,6 +551,8 @@ many("Compiled.solve", {
     "value NaN": lambda: compiled()[1].solve({"x0": [np.nan, 0.0]}),
     "value wrong shape": lambda: compiled()[1].solve({"x0": [0.0, 0.0, 0.0]}),
     "unknown name": lambda: compiled()[1].solve({"x0": [0.0, 0.0], "y": 1.0}),
+    "unknown names of mixed types": lambda: compiled()[1].solve({"x0": [0.0, 0.0], 1: 1.0,
+                                                                 "y": 2.0}),
     "missing name": lambda: compiled()[1].solve({}),
     "casadi params list": lambda: compiled("casadi")[1].solve([0.1, 0.0]),
     "casadi value inf": lambda: compiled("casadi")[1].solve({"x0": [np.inf, 0.0]}),

@@ -422,7 +422,8 @@ class OCP:
         values = dict(values or {})
         unknown = set(values) - set(self.parameters)
         if unknown:
-            raise BalustradeError(f"{self.name}: unknown parameters {sorted(unknown)}; "
+            names = ", ".join(sorted(map(repr, unknown)))
+            raise BalustradeError(f"{self.name}: unknown parameters {names}; "
                                   f"declared: {list(self.parameters)}")
         chunks = []
         for p in self.parameters.values():
@@ -457,7 +458,8 @@ class OCP:
                                   f"got {type(values).__name__}")
         unknown = set(values) - set(self.variables)
         if unknown:
-            raise BalustradeError(f"{self.name}: unknown variables {sorted(map(str, unknown))}; "
+            names = ", ".join(sorted(map(repr, unknown)))
+            raise BalustradeError(f"{self.name}: unknown variables {names}; "
                                   f"declared: {list(self.variables)}")
         chunks = []
         for v in self.variables.values():
