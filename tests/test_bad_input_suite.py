@@ -68,7 +68,11 @@ from balustrade.problems.mpc import (
     predictive_safety_filter,
     soft_mpc_problem,
 )
-from balustrade.problems.multiobjective import decrease_bound, multiobjective_pcbf_problem
+from balustrade.problems.multiobjective import (
+    decrease_bound,
+    multiobjective_lyapunov_problem,
+    multiobjective_pcbf_problem,
+)
 from balustrade.problems.pcbf import (
     combined_h,
     extended_pcbf_problem,
@@ -494,6 +498,7 @@ many("robust builders", {
     "slack_cost NaN": lambda: slack_cost(np.zeros((2, 2)), float("nan"), 1.0),
     "slack_cost alpha_f<0": lambda: slack_cost(np.zeros((2, 2)), 0.0, -1.0),
     "decrease_bound rho=1": lambda: decrease_bound(1.0, 1.0, 1.0),
+    "multiobjective_lyapunov design string": lambda: multiobjective_lyapunov_problem("d"),
     "decrease_bound NaN": lambda: decrease_bound(float("nan"), 1.0, 0.5),
 })
 many("terminal CBF SDP", {

@@ -187,6 +187,9 @@ def multiobjective_lyapunov_problem(design: LinearLyapunovDesign, decrease: bool
     (``V((z_1, ξ_c(z_1, v, 0)))``, a convex quadratic). Parameters ``x0``, ``u_p``, ``bound``.
     ``decrease=False`` drops (6.3h): the feasibility problem of Algorithm 6.3 step 2 (cost
     ``‖v‖²``). Default ``J = ‖v_0 − u_p‖²``."""
+    check_instance(design, LinearLyapunovDesign, f"{name}: design")
+    if objective is not None:
+        check_callable(objective, f"{name}: objective")
     d, N = design, design.N
     ocp = OCP(d.system, N, name=name, state_name="z", input_name="v")
     x0 = ocp.parameter("x0", d.system.nx)
