@@ -19,6 +19,21 @@ from balustrade.errors import (
 
 __version__ = "0.1.0"
 
+
+def __getattr__(name: str) -> object:
+    """``balustrade.compile`` and ``balustrade.verify``, imported on first use (they pull in
+    CasADi and cvxpy; ``import balustrade`` stays light)."""
+    if name == "compile":
+        from balustrade.backends import compile
+
+        return compile
+    if name == "verify":
+        from balustrade.testing import verify
+
+        return verify
+    raise AttributeError(f"module 'balustrade' has no attribute {name!r}")
+
+
 __all__ = [
     "BalustradeError",
     "CodegenError",
@@ -29,4 +44,6 @@ __all__ = [
     "ShapeError",
     "SolverError",
     "__version__",
+    "compile",
+    "verify",
 ]

@@ -1,8 +1,9 @@
 """Checking compiled problems without trusting their solver (DESIGN.md principle 3).
 
 * :func:`verify` evaluates every declared block of an :class:`~balustrade.dsl.ocp.OCP` at a
-  :class:`~balustrade.backends.Solution`'s primal point: dynamics residual, constraint
-  violation per block, variable bounds (slack signs) and the reported objective.
+  :class:`~balustrade.backends.Solution`'s primal point (``sol.primal``, what the user sees,
+  packed with the problem's own layout): dynamics residual, constraint violation per block,
+  variable bounds (slack signs) and the reported objective. NaN is never "ok".
 * :func:`compare_backends` compiles one formulation on both backends and compares optima.
 
 Users call these in their own tests; so do ours.
@@ -15,9 +16,10 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from balustrade._checks import as_float_array, as_scalar
 from balustrade.backends import Solution, compile
 from balustrade.dsl.ocp import OCP
-from balustrade.errors import BalustradeError
+from balustrade.errors import BalustradeError, ShapeError
 
 
 @dataclass
@@ -34,17 +36,20 @@ class VerificationReport:
 
     @property
     def max_violation(self) -> float:
+        """The largest violation; ``inf`` if any is NaN (a NaN is never satisfied)."""
         values = list(self.block_violation.values()) + list(self.bound_violation.values())
-        return max(values, default=0.0)
+        return float(max((_nan_to_inf(v) for v in values), default=0.0))
 
     @property
     def ok(self) -> bool:
-        return self.max_violation <= self.tol and self.objective_error <= self.tol * 10
+        return bool(self.max_violation <= self.tol
+                    and _nan_to_inf(self.objective_error) <= self.tol * 10
+                    and _nan_to_inf(self.dynamics_residual) <= self.tol)
 
     def __str__(self) -> str:
         worst = sorted({**self.block_violation, **{f"bound:{k}": v for k, v in
                                                      self.bound_violation.items()}}.items(),
-                       key=lambda kv: -kv[1])[:5]
+                       key=lambda kv: -_nan_to_inf(kv[1]))[:5]
         return (f"verify({self.problem}): {'ok' if self.ok else 'FAILED'}; max violation "
                 f"{self.max_violation:.3g} (tol {self.tol:g}), dynamics residual "
                 f"{self.dynamics_residual:.3g}, objective error {self.objective_error:.3g}; "
@@ -60,38 +65,83 @@ def verify(problem: OCP, solution: Solution, tol: float = 1e-6) -> VerificationR
 
     Equality blocks report ``max |g|``, inequality blocks ``max(g, 0)``, variables the
     distance outside their bounds (so a negative slack declared nonnegative shows up); the
-    objective is recomputed from the declared cost and compared relatively.
+    objective is recomputed from the declared cost and compared relatively. The point is
+    ``solution.primal`` (every declared variable, by name and shape); a NaN anywhere counts
+    as an infinite violation.
     """
+    if not isinstance(problem, OCP):
+        raise BalustradeError(f"verify: expected an OCP as the problem, got "
+                              f"{type(problem).__name__}")
+    if not isinstance(solution, Solution):
+        raise BalustradeError(f"verify({problem.name}): expected a Solution (from "
+                              f"compile(...).solve), got {type(solution).__name__}")
+    tol = as_scalar(tol, f"verify({problem.name}): tol", low=0.0)
     w_sym, p_sym = problem.decision_vector(), problem.parameter_vector()
-    if solution.w.size != w_sym.numel() or solution.p.size != p_sym.numel():
-        raise BalustradeError(f"verify({problem.name}): the solution has {solution.w.size} "
-                              f"variables and {solution.p.size} parameters, the problem "
-                              f"{w_sym.numel()} and {p_sym.numel()}: not a solution of it")
-    if not np.all(np.isfinite(solution.w)):
+    w = _pack_primal(problem, solution.primal)
+    p = as_float_array(solution.p, f"verify({problem.name}): solution.p").reshape(-1)
+    if p.size != p_sym.numel():
+        raise BalustradeError(f"verify({problem.name}): the solution has {p.size} parameter "
+                              f"values, the problem {p_sym.numel()}: not a solution of it")
+    if not np.all(np.isfinite(p)):
+        raise BalustradeError(f"verify({problem.name}): the solution's parameters contain "
+                              "NaN or inf")
+    if not np.all(np.isfinite(w)):
         inf = float("inf")
         return VerificationReport(problem.name, {b.name: inf for b in problem.blocks}, {},
                                   inf, inf, tol, [f"no primal point ({solution.status})"])
     evaluate = ca.Function("blocks", [w_sym, p_sym], [b.expr for b in problem.blocks]
                            + [problem.cost.expr()])
-    values = evaluate(solution.w, solution.p)
+    values = evaluate.call([w, p])  # a list, also with a single output
     block_violation, dynamics = {}, 0.0
     for block, value in zip(problem.blocks, values[:-1]):
         g = np.asarray(value, dtype=float).reshape(-1)
-        viol = float(np.max(np.abs(g))) if block.kind == "eq" else float(np.max(g, initial=0.0))
+        viol = _nan_to_inf(float(np.max(np.abs(g), initial=0.0)) if block.kind == "eq"
+                           else float(np.max(g, initial=0.0)))
         block_violation[block.name] = max(viol, 0.0)
         if block.tag == "dynamics":
             dynamics = max(dynamics, viol)
     bound_violation = {}
-    primal = problem.unpack_variables(solution.w)
+    primal = problem.unpack_variables(w)
     for name, v in problem.variables.items():
         val = np.asarray(primal[name], dtype=float).reshape(v.shape)
         below = np.max(v.lb - val, initial=0.0)
         above = np.max(val - v.ub, initial=0.0)
         bound_violation[name] = float(max(below, above, 0.0))
     objective = float(values[-1])
-    obj_err = abs(objective - solution.objective) / max(1.0, abs(objective))
+    try:
+        reported = float(solution.objective)
+    except (TypeError, ValueError):
+        reported = float("nan")
+    obj_err = _nan_to_inf(abs(objective - reported) / max(1.0, abs(objective)))
     return VerificationReport(problem.name, block_violation, bound_violation, dynamics,
                               obj_err, tol)
+
+
+def _nan_to_inf(value: float) -> float:
+    return float("inf") if np.isnan(value) else float(value)
+
+
+def _pack_primal(problem: OCP, primal: object) -> np.ndarray:
+    """Stack ``primal`` with ``problem``'s layout; every declared variable must be there with
+    its declared shape (a 1-D array for a column), and nothing else."""
+    where = f"verify({problem.name})"
+    if not isinstance(primal, dict):
+        raise BalustradeError(f"{where}: solution.primal must be a dict, got "
+                              f"{type(primal).__name__}")
+    missing = [n for n in problem.variables if n not in primal]
+    extra = [n for n in primal if n not in problem.variables]
+    if missing or extra:
+        raise BalustradeError(f"{where}: the solution's variables {list(primal)} are not the "
+                              f"problem's {list(problem.variables)} (missing {missing}, "
+                              f"unknown {extra}): not a solution of it")
+    chunks = []
+    for name, v in problem.variables.items():
+        arr = as_float_array(primal[name], f"{where}: primal[{name!r}]")
+        if arr.size != v.shape[0] * v.shape[1] or (arr.ndim == 2 and arr.shape != v.shape):
+            raise ShapeError(f"{where}: primal[{name!r}]", v.shape, arr.shape)
+        chunks.append(arr.reshape(v.shape, order="F" if arr.ndim < 2 else "C")
+                      .reshape(-1, order="F"))
+    return np.concatenate(chunks) if chunks else np.zeros(0)
 
 
 @dataclass

@@ -128,3 +128,47 @@ def test_parameter_values_property(pend, value):
     elif not np.all(np.isfinite(arr)):
         with pytest.raises(NonFiniteError, match="parameter 'x0'"):
             c.solve({"x0": arr})
+
+
+def test_solution_primal_is_the_one_source_of_truth(pend):
+    """``w`` is derived from ``primal``: edits (in place or by assignment) are what verify
+    checks, assigning ``w`` writes ``primal``, and a disagreeing ``w`` is refused."""
+    from balustrade.backends import Solution
+    from balustrade.testing import verify
+
+    sol = pend.compiled["slack", "cvxpy"].solve({"x0": [0.1, 0.0]})
+    assert verify(pend.slack, sol).ok
+    sol.primal["u"][0] = 100.0                      # in place
+    assert not verify(pend.slack, sol).ok
+    sol.primal["u"] = np.zeros_like(sol.primal["u"]) + 100.0  # by assignment
+    assert not verify(pend.slack, sol).ok
+    w = sol.w.copy()
+    w[:] = 0.0
+    sol.w = w
+    assert np.all(sol.primal["x"] == 0.0) and sol.primal["x"].shape == (2, pend.N + 1)
+    given = Solution("optimal", 0.0, {"a": np.zeros(2)}, {}, 0.0, 0, "hand", "hand",
+                     w=np.ones(2), p=np.zeros(0))
+    assert np.all(given.primal["a"] == 1.0)         # a constructor's w is the point
+    with pytest.raises(ShapeError, match=r"Solution.w: expected shape \(2,\), got shape \(3,\)"):
+        Solution("optimal", 0.0, {"a": np.zeros(2)}, {}, 0.0, 0, "hand", "hand",
+                 w=np.ones(3), p=np.zeros(0))
+    with pytest.raises(BalustradeError, match=r"no variable named 'xi_typo'.*'xi_N'"):
+        sol["xi_typo"]
+
+
+def test_headline_bad_inputs_of_issue_12(pend):
+    """math.sin dynamics, NaN tightening, negative alpha_f: refused, naming the thing."""
+    import math
+
+    from balustrade.dsl import System
+    from balustrade.problems.pcbf import pcbf_slack_problem
+
+    with pytest.raises(NonFiniteError, match=r"pendulum: f\(x, u, w, theta\).*ca\.sin"):
+        System(lambda x, u: ca.vertcat(x[1], -math.sin(x[0]) + u), 2, 1, name="pendulum")
+    args = (pend.system, pend.X, pend.U, pend.h_f, pend.N)
+    nan_deltas = np.array(pend.deltas, dtype=float)
+    nan_deltas[1] = np.nan
+    with pytest.raises(NonFiniteError, match="pcbf_slack: tightenings deltas"):
+        pcbf_slack_problem(*args, nan_deltas)
+    with pytest.raises(BalustradeError, match=r"pcbf_slack: alpha_f: must lie in \(0, inf\)"):
+        pcbf_slack_problem(*args, pend.deltas, alpha_f=-1.0)

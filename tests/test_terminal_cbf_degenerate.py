@@ -81,14 +81,14 @@ def test_pendulum_level_is_not_degenerate() -> None:
 
 
 @pytest.mark.parametrize("kwargs, error, match", [
-    ({"delta_N": np.nan}, NonFiniteError, "delta_N is nan"),
-    ({"delta_N": -np.inf}, NonFiniteError, "delta_N is -inf"),
-    ({"decrease_factor": np.nan}, NonFiniteError, "decrease factor is nan"),
-    ({"delta_N": [0.1, 0.2]}, BalustradeError, "delta_N must be a number"),
-    ({"min_level": -1.0}, BalustradeError, "min_level must be >= 0"),
-    ({"min_level": np.inf}, NonFiniteError, "min_level is inf"),
-    ({"X": None}, BalustradeError, "X must be a Polytope.*NoneType"),
-    ({"U": [-3, 3]}, BalustradeError, "U must be a Polytope.*list"),
+    ({"delta_N": np.nan}, NonFiniteError, r"delta_N \(Δ_\{N−1\}\): must be finite, got nan"),
+    ({"delta_N": -np.inf}, NonFiniteError, "must be finite, got -inf"),
+    ({"decrease_factor": np.nan}, NonFiniteError, "decrease factor λ: must be finite, got nan"),
+    ({"delta_N": [0.1, 0.2]}, BalustradeError, "delta_N .*expected a real number, got list"),
+    ({"min_level": -1.0}, BalustradeError, r"min_level: must lie in \[0, inf\)"),
+    ({"min_level": np.inf}, NonFiniteError, "min_level: must be finite, got inf"),
+    ({"X": None}, BalustradeError, "X: expected a Polytope, got NoneType"),
+    ({"U": [-3, 3]}, BalustradeError, "U: expected a Polytope, got list"),
     ({"A": np.full((2, 2), np.nan)}, NonFiniteError, "A: contains NaN"),
 ])
 def test_bad_input_is_refused_before_the_solver(kwargs: dict, error: type,

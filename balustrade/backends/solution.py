@@ -6,10 +6,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from balustrade._checks import as_float_array
+from balustrade.errors import BalustradeError, ShapeError
+
 SUCCESS_STATUSES = ("optimal", "optimal_inaccurate")
 
 
-@dataclass
+@dataclass(init=False)
 class Solution:
     """Result of one solve.
 
@@ -17,8 +20,14 @@ class Solution:
     but a primal-feasible point), ``infeasible``, ``max_iterations``, ``failed``; ``primal``
     maps variable names to arrays of their declared shapes; ``dual`` maps constraint-block
     names (and ``bound:<variable>``) to multipliers; ``objective`` is the declared cost
-    evaluated at the primal solution.
-    ``w`` is the stacked decision vector (declaration order), ``p`` the stacked parameters.
+    evaluated at the primal solution; ``p`` is the stacked parameter vector.
+
+    ``primal`` is the one source of truth for the point: ``w``, the stacked decision vector
+    (declaration order, column-major per variable), is derived from it on every access, so
+    editing ``sol.primal["u"]`` (in place or by assignment) changes ``sol.w`` and what
+    :func:`balustrade.verify` checks. Assigning ``sol.w`` writes back into ``primal``, and so
+    does a ``w`` given to the constructor (``Solution(**{**sol.__dict__, "w": w2})`` is the
+    point ``w2``); the constructor copies the ``primal`` dict, so solutions never share it.
     """
 
     status: str
@@ -29,10 +38,46 @@ class Solution:
     iterations: int
     backend: str
     solver: str
-    w: np.ndarray
     p: np.ndarray
     message: str = ""
     raw: dict = field(default_factory=dict, repr=False)
+
+    def __init__(self, status: str, objective: float, primal: dict[str, np.ndarray],
+                 dual: dict[str, np.ndarray], solve_time: float, iterations: int,
+                 backend: str, solver: str, w: np.ndarray | None = None,
+                 p: np.ndarray | None = None, message: str = "",
+                 raw: dict | None = None):
+        if not isinstance(primal, dict):
+            raise BalustradeError(f"Solution: primal must be a dict name -> array, got "
+                                  f"{type(primal).__name__}")
+        primal = dict(primal)
+        self.status, self.objective, self.primal, self.dual = status, objective, primal, dual
+        self.solve_time, self.iterations = solve_time, iterations
+        self.backend, self.solver, self.message = backend, solver, message
+        self.p = np.zeros(0) if p is None else as_float_array(p, "Solution: p").reshape(-1)
+        self.raw = {} if raw is None else raw
+        if w is not None:
+            given = as_float_array(w, "Solution: w").reshape(-1)
+            if not np.array_equal(given, self.w, equal_nan=True):
+                self.w = given  # checks the size against primal's, then writes primal
+
+    @property
+    def w(self) -> np.ndarray:
+        """The stacked decision vector, derived from :attr:`primal` (declaration order)."""
+        chunks = [as_float_array(v, f"Solution.primal[{k!r}]").reshape(-1, order="F")
+                  for k, v in self.primal.items()]
+        return np.concatenate(chunks) if chunks else np.zeros(0)
+
+    @w.setter
+    def w(self, value: np.ndarray) -> None:
+        value = as_float_array(value, "Solution.w").reshape(-1)
+        sizes = [np.size(v) for v in self.primal.values()]
+        if value.size != sum(sizes):
+            raise ShapeError("Solution.w", (sum(sizes),), value.shape)
+        k = 0
+        for (name, old), n in zip(list(self.primal.items()), sizes):
+            self.primal[name] = value[k:k + n].reshape(np.shape(old), order="F").copy()
+            k += n
 
     @property
     def success(self) -> bool:
@@ -44,7 +89,11 @@ class Solution:
         return self.success or self.status == "feasible"
 
     def __getitem__(self, name: str) -> np.ndarray:
-        return self.primal[name]
+        try:
+            return self.primal[name]
+        except (KeyError, TypeError):
+            raise BalustradeError(f"Solution: no variable named {name!r}; the solution has "
+                                  f"{list(self.primal)}") from None
 
     def summary(self) -> str:
         return (f"{self.backend}/{self.solver}: {self.status}, objective {self.objective:.6g}, "

@@ -16,9 +16,9 @@ from typing import Protocol
 
 import numpy as np
 
-from balustrade._checks import as_vector
+from balustrade._checks import as_count, as_float_array, as_vector
 from balustrade.dsl.system import System
-from balustrade.errors import BalustradeError
+from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 
 @dataclass
@@ -74,9 +74,15 @@ def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
     ``(steps, nw)`` or ``w(k, x)``. If the state stops being finite (divergence), the run
     stops and ``Trace.stopped`` says why; it never raises for solver failures.
     """
+    if not isinstance(plant, System):
+        raise BalustradeError(f"simulate: plant must be a balustrade System, got "
+                              f"{type(plant).__name__}")
+    if not callable(getattr(controller, "step", None)):
+        raise BalustradeError(f"simulate: controller must have a step(x, u_p) method, got "
+                              f"{type(controller).__name__}")
     x = as_vector(x0, "simulate: x0", plant.nx)
-    if not isinstance(steps, (int, np.integer)) or steps < 0:
-        raise BalustradeError(f"simulate: steps must be a nonnegative integer, got {steps!r}")
+    steps = as_count(steps, "simulate: steps")
+    disturbance = _disturbance_table(disturbance, steps, plant.nw)
     states, inputs, proposed, dists = [x], [], [], []
     values: dict[str, list[float]] = {}
     statuses, fallbacks, solve_times, step_times, infos = [], [], [], [], []
@@ -84,8 +90,12 @@ def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
     for k in range(steps):
         u_p = _proposal(proposal, k, x, plant.nu)
         start = time.perf_counter()
-        u, info = controller.step(x, u_p)
+        out = controller.step(x, u_p)
         step_times.append(time.perf_counter() - start)
+        if not (isinstance(out, tuple) and len(out) == 2 and isinstance(out[1], StepInfo)):
+            raise BalustradeError(f"simulate: {type(controller).__name__}.step must return "
+                                  f"(u, StepInfo), got {type(out).__name__} at step {k}")
+        u, info = out
         u = as_vector(u, "simulate: controller output u", plant.nu, finite=False)
         w = _disturbance(disturbance, k, x, plant.nw)
         inputs.append(u)
@@ -114,14 +124,46 @@ def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
                  np.array(solve_times), np.array(step_times), infos, stopped)
 
 
+def _call(fn: Callable, k: int, x: np.ndarray, what: str) -> object:
+    """The user's ``fn(k, x)``; its failure is reported with the step."""
+    try:
+        return fn(k, x)
+    except BalustradeError:
+        raise
+    except Exception as exc:  # the user's function failed
+        raise BalustradeError(f"simulate: {what}(k, x) failed at step {k}: "
+                              f"{type(exc).__name__}: {exc}") from exc
+
+
 def _proposal(proposal: Proposal, k: int, x: np.ndarray, nu: int) -> np.ndarray:
-    value = proposal(k, x) if callable(proposal) else proposal
-    return as_vector(np.broadcast_to(np.asarray(value, dtype=float), (nu,))
-                     if np.ndim(value) == 0 else value, "simulate: proposed input u_p", nu)
+    value = _call(proposal, k, x, "proposal") if callable(proposal) else proposal
+    block = "simulate: proposed input u_p"
+    arr = as_float_array(value, block)
+    return as_vector(np.broadcast_to(arr, (nu,)) if arr.ndim == 0 else arr, block, nu)
+
+
+def _disturbance_table(disturbance: Disturbance, steps: int, nw: int) -> Disturbance:
+    """Check a disturbance sequence up front: ``(steps, nw)`` (or longer), finite."""
+    if disturbance is None or callable(disturbance):
+        return disturbance
+    table = as_float_array(disturbance, "simulate: disturbance sequence")
+    if nw == 0:
+        return None
+    if table.ndim == 1 and nw == 1:
+        table = table.reshape(-1, 1)
+    if table.ndim != 2 or table.shape[1] != nw or table.shape[0] < steps:
+        raise ShapeError("simulate: disturbance sequence", f"({steps}, {nw}) (one row per step)",
+                         table.shape, what="shape")
+    bad = np.flatnonzero(~np.all(np.isfinite(table[:steps]), axis=1))
+    if bad.size:
+        raise NonFiniteError(f"simulate: disturbance sequence contains NaN or inf at steps "
+                             f"{bad.tolist()}")
+    return table
 
 
 def _disturbance(disturbance: Disturbance, k: int, x: np.ndarray, nw: int) -> np.ndarray:
     if disturbance is None or nw == 0:
         return np.zeros(nw)
-    value = disturbance(k, x) if callable(disturbance) else np.asarray(disturbance)[k]
+    value = _call(disturbance, k, x, "disturbance") if callable(disturbance) \
+        else np.asarray(disturbance)[k]
     return as_vector(value, f"simulate: disturbance at step {k}", nw)

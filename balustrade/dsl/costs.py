@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import check_psd
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade._checks import as_float_array, check_psd, check_symbolic
+from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 NORM_KINDS = {1: "norm1", 2: "norm2", np.inf: "norminf", "inf": "norminf"}
 
@@ -67,13 +67,16 @@ class Cost:
             return value
         if isinstance(value, Term):
             return Cost([value])
-        if isinstance(value, (int, float, np.floating, np.integer)):
+        if isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value,
+                                                                                       bool):
+            if not np.isfinite(value):
+                raise NonFiniteError(f"cost: a constant cost term is {value}")
             return Cost([Term("smooth", ca.SX(float(value)))])
         if isinstance(value, (ca.SX, ca.DM)):
             expr = ca.SX(value)
             if expr.numel() != 1:
                 raise ShapeError("cost", "a scalar expression", expr.shape)
-            return Cost([Term("smooth", expr)])
+            return Cost([Term("smooth", check_symbolic(expr, "cost: smooth term"))])
         raise BalustradeError(f"cost: cannot use an object of type {type(value).__name__} as "
                               "a cost term (use a CasADi scalar, norm(), max_of(), quad())")
 
@@ -82,11 +85,27 @@ class Cost:
 
     __radd__ = __add__
 
+    def __sub__(self, other: object) -> Cost:
+        return self + (-1.0) * Cost.of(other)
+
+    def __rsub__(self, other: object) -> Cost:
+        return Cost.of(other) + (-1.0) * self
+
+    def __neg__(self) -> Cost:
+        return (-1.0) * self
+
     def __mul__(self, factor: object) -> Cost:
-        if not isinstance(factor, (int, float, np.floating, np.integer)):
+        if isinstance(factor, (ca.SX, ca.DM)) and ca.SX(factor).is_constant() \
+                and ca.SX(factor).numel() == 1:
+            factor = float(ca.DM(factor))
+        if not isinstance(factor, (int, float, np.floating, np.integer)) \
+                or isinstance(factor, bool):
             raise BalustradeError("cost: a cost can only be scaled by a number (got "
-                                  f"{type(factor).__name__})")
+                                  f"{type(factor).__name__}; a parameter-dependent weight "
+                                  "is not supported on norm or max terms)")
         factor = float(factor)
+        if not np.isfinite(factor):
+            raise NonFiniteError(f"cost: scale factor is {factor}")
         if factor < 0 and any(t.kind != "smooth" for t in self.terms):
             raise BalustradeError("cost: a norm or max term scaled by a negative number is not "
                                   "convex and cannot be lowered to an epigraph")
@@ -104,15 +123,25 @@ class Cost:
 
 def _as_sx(a: object, block: str) -> ca.SX:
     if isinstance(a, (ca.SX, ca.DM)):
-        return ca.vec(ca.SX(a))
-    if isinstance(a, (int, float, np.ndarray, list, tuple)):
-        return ca.vec(ca.SX(ca.DM(np.asarray(a, dtype=float))))
+        return check_symbolic(ca.vec(ca.SX(a)), block)
+    if isinstance(a, (int, float, np.ndarray, list, tuple)) and not isinstance(a, bool):
+        try:
+            arr = as_float_array(a, block)
+        except BalustradeError:
+            try:  # a list of SX entries
+                return check_symbolic(ca.vec(ca.vertcat(*a)), block)
+            except Exception:  # noqa: BLE001 - report the numeric error
+                pass
+            raise
+        if not np.all(np.isfinite(arr)):
+            raise NonFiniteError(f"{block}: contains NaN or inf")
+        return ca.vec(ca.SX(ca.DM(arr)))
     raise BalustradeError(f"{block}: expected a CasADi SX expression, got {type(a).__name__}")
 
 
 def norm(a: object, ord: int | float | str = 2, label: str = "") -> Cost:
     """``‖a‖_ord`` for ``ord ∈ {1, 2, inf}`` (exactly lowered on every backend)."""
-    if ord not in NORM_KINDS:
+    if isinstance(ord, bool) or not isinstance(ord, (int, float, str)) or ord not in NORM_KINDS:
         raise BalustradeError(f"norm: unsupported order {ord!r}; use 1, 2 or inf")
     return Cost([Term(NORM_KINDS[ord], _as_sx(a, "norm"), 1.0, label)])
 
@@ -125,7 +154,8 @@ def squared_norm(a: object, label: str = "") -> Cost:
 def sum_norms(M: object, ord: int | float | str = 2, label: str = "") -> Cost:
     """``Σ_i ‖M[:, i]‖_ord``: the slack cost ``Σ_i ‖ξ_i‖`` of SPEC §1.12."""
     if not isinstance(M, ca.SX):
-        raise BalustradeError("sum_norms: expected a CasADi SX matrix")
+        raise BalustradeError(f"sum_norms: expected a CasADi SX matrix, got "
+                              f"{type(M).__name__}")
     cost = Cost()
     for i in range(M.shape[1]):
         cost = cost + norm(M[:, i], ord, label=f"{label}[{i}]" if label else "")
@@ -142,7 +172,7 @@ def quad(a: object, Q: object | None = None, label: str = "") -> ca.SX:
     a = _as_sx(a, "quad")
     if Q is None:
         return ca.sumsqr(a)
-    Qm = check_psd(np.asarray(Q, dtype=float), f"quad{(' ' + label) if label else ''}: Q")
+    Qm = check_psd(Q, f"quad{(' ' + label) if label else ''}: Q")
     if Qm.shape[0] != a.numel():
         raise ShapeError(f"quad{(' ' + label) if label else ''}: Q", (a.numel(), a.numel()),
                          Qm.shape)

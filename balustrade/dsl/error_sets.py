@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import cvxpy as cp
 import numpy as np
 
-from balustrade._checks import as_matrix
+from balustrade._checks import as_count, as_matrix, check_instance
 from balustrade.dsl.sets import Box, Ellipsoid, Polytope, Set
 from balustrade.errors import BalustradeError, EmptySetError, ShapeError
 
@@ -53,6 +53,17 @@ class ErrorSet:
     K: np.ndarray | None
     kappa_fn: Callable[[np.ndarray], np.ndarray] | None = None
     info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.E, Set):
+            raise BalustradeError(f"ErrorSet: E must be a balustrade Set, got "
+                                  f"{type(self.E).__name__}")
+        if self.K is not None:
+            object.__setattr__(self, "K", as_matrix(self.K, f"ErrorSet({self.E.name}): K",
+                                                    (None, self.E.dim)))
+        if self.kappa_fn is not None and not callable(self.kappa_fn):
+            raise BalustradeError(f"ErrorSet({self.E.name}): kappa_fn must be callable, got "
+                                  f"{type(self.kappa_fn).__name__}")
 
     def kappa(self, e: np.ndarray) -> np.ndarray:
         """``κ(e)``: ``K e`` or the user's feedback."""
@@ -85,6 +96,7 @@ def tighten(S: Polytope, E: Set, name: str | None = None) -> Polytope:
 
     Raises :class:`EmptySetError` naming ``S`` and ``E`` when the result is empty.
     """
+    check_instance(E, Set, "tighten: E")
     if not isinstance(S, Polytope):
         raise BalustradeError(f"tighten: the minuend must be a Polytope or Box, got "
                               f"{type(S).__name__} {getattr(S, 'name', '')!r}")
@@ -98,6 +110,8 @@ def tighten(S: Polytope, E: Set, name: str | None = None) -> Polytope:
 def tighten_by_feedback(U: Polytope, K: np.ndarray, E: Set, name: str | None = None
                         ) -> Polytope:
     """``U ⊖ K E = {v : A_u v <= b_u − [h_E(Kᵀ [A_u]_jᵀ)]_j}`` (SPEC §1.5)."""
+    check_instance(U, Polytope, "tighten_by_feedback: U")
+    check_instance(E, Set, "tighten_by_feedback: E")
     K = as_matrix(K, "tighten_by_feedback: K", (U.dim, E.dim))
     s = np.array([_row_support(E, K.T @ row) for row in U.H])
     return _shifted(U, s, name or f"{U.name}⊖K{E.name}", f"{U.name} by K·{E.name}")
@@ -134,6 +148,12 @@ def reachable_support(A_K: np.ndarray, W: Set, H: np.ndarray, N: int,
     ((2.13), §6.3.2); ``s[0] = 0`` because ``E_0 = {0}``."""
     A_K = as_matrix(A_K, "reachable_support: A_K")
     n = A_K.shape[0]
+    if A_K.shape != (n, n):
+        raise ShapeError("reachable_support: A_K", "a square matrix", A_K.shape)
+    N = as_count(N, "reachable_support: horizon N")
+    if not isinstance(W, Set) or W.dim != (n if G is None else W.dim):
+        raise ShapeError("reachable_support: W", f"a Set of dimension {n}",
+                         f"{type(W).__name__} of dimension {getattr(W, 'dim', '?')}", what="")
     H = as_matrix(H, "reachable_support: H", (None, n))
     _, hW = _disturbance(W, G, n)
     s = np.zeros((N + 1, H.shape[0]))
@@ -151,6 +171,7 @@ def reachable_tightened_sets(S: Polytope, A_K: np.ndarray, W: Set, N: int,
 
     Raises :class:`EmptySetError` naming the step whose tightening empties ``S``.
     """
+    check_instance(S, Polytope, "reachable_tightened_sets: S")
     H = S.H if K is None else S.H @ as_matrix(K, "reachable_tightened_sets: K",
                                                   (S.dim, None))
     s = reachable_support(A_K, W, H, N, G)
@@ -184,9 +205,17 @@ def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polyto
     """
     A = as_matrix(A, "RPI SDP: A")
     n = A.shape[0]
+    if A.shape != (n, n):
+        raise ShapeError("RPI SDP: A", "a square matrix", A.shape)
     B = as_matrix(B, "RPI SDP: B", (n, None))
     m = B.shape[1]
+    check_instance(W, Set, "RPI SDP: W")
+    check_instance(X, Polytope, "RPI SDP: X")
+    check_instance(U, Polytope, "RPI SDP: U")
     G = np.eye(n) if G is None else as_matrix(G, "RPI SDP: G", (n, W.dim))
+    if G.shape[1] != W.dim:
+        raise ShapeError(f"RPI SDP: W ({W.name})", f"dimension {G.shape[1]}",
+                         f"dimension {W.dim}")
     if X.dim != n or U.dim != m:
         raise ShapeError("RPI SDP: sets", f"X of dim {n}, U of dim {m}",
                          f"X of dim {X.dim}, U of dim {U.dim}", what="")
@@ -300,6 +329,9 @@ def minimal_rpi_outer(A_K: np.ndarray, W: Polytope, eps: float = 1e-3,
     """
     A_K = as_matrix(A_K, "minimal_rpi_outer: A_K")
     n = A_K.shape[0]
+    if A_K.shape != (n, n):
+        raise ShapeError("minimal_rpi_outer: A_K", "a square matrix", A_K.shape)
+    check_instance(W, Polytope, "minimal_rpi_outer: W")
     if np.max(np.abs(np.linalg.eigvals(A_K))) >= 1:
         raise BalustradeError("minimal_rpi_outer: A_K is not Schur stable "
                               f"(spectral radius {np.max(np.abs(np.linalg.eigvals(A_K))):.4g})")
@@ -357,9 +389,14 @@ def is_rpi(E: Set, A_cl: np.ndarray, W: Set, G: np.ndarray | None = None, tol: f
       ``e ∈ ∂E``, ``w ∈ W`` (a necessary-condition search that finds counterexamples).
     Returns an :class:`RPICheck` whose ``margin`` is in units of ``c_E``.
     """
+    check_instance(E, Set, "is_rpi: E")
+    check_instance(W, Set, "is_rpi: W")
     A_cl = as_matrix(A_cl, "is_rpi: A_cl", (E.dim, E.dim))
     n = E.dim
     G = np.eye(n) if G is None else as_matrix(G, "is_rpi: G", (n, W.dim))
+    if G.shape[1] != W.dim:
+        raise ShapeError(f"is_rpi: W ({W.name})", f"dimension {G.shape[1]}",
+                         f"dimension {W.dim}")
     g = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     if isinstance(E, Polytope):
         margins = [E.support(A_cl.T @ a) + W.support(G.T @ a) - b for a, b in zip(E.H, E.h)]

@@ -19,17 +19,25 @@ Nothing here knows about backends (DESIGN.md); :mod:`balustrade.backends` lowers
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_vector
+from balustrade._checks import (
+    as_count,
+    as_float_array,
+    as_scalar,
+    as_vector,
+    check_callable,
+    check_name,
+    check_symbolic,
+)
 from balustrade.dsl.costs import Cost
 from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 SlackSpec = str | ca.SX | None
 Tightening = float | Sequence[float] | np.ndarray | Callable[[int], float] | None
@@ -94,7 +102,12 @@ class OCP:
 
     def __init__(self, system: System | None = None, N: int = 0, name: str = "ocp",
                  state_name: str = "x", input_name: str = "u"):
-        if system is not None and (not isinstance(N, (int, np.integer)) or N < 1):
+        check_name(name, "OCP: name")
+        if system is not None and not isinstance(system, System):
+            raise BalustradeError(f"{name}: expected a balustrade System (or None), got "
+                                  f"{type(system).__name__}")
+        if system is not None and (not isinstance(N, (int, np.integer)) or isinstance(N, bool)
+                                   or N < 1):
             raise BalustradeError(f"{name}: horizon N must be a positive integer, got {N!r}")
         self.system, self.N, self.name = system, int(N), name
         self.variables: dict[str, Variable] = {}
@@ -111,25 +124,47 @@ class OCP:
     # -- symbols ---------------------------------------------------------------------
     def variable(self, name: str, rows: int, cols: int = 1, lb: object = -np.inf,
                  ub: object = np.inf, init: object = 0.0, role: str = "free") -> ca.SX:
-        """Add a decision variable of shape ``(rows, cols)`` and return its symbol."""
+        """Add a decision variable of shape ``(rows, cols)`` and return its symbol.
+
+        ``lb``/``ub`` may be infinite but not NaN, with ``lb <= ub``; ``init`` is finite."""
         self._check_new_name(name)
-        sym = ca.SX.sym(name, rows, cols)
-        shape = (rows, cols)
-        self.variables[name] = Variable(name, sym, _broadcast(lb, shape, f"{name}: lb"),
-                                        _broadcast(ub, shape, f"{name}: ub"),
-                                        _broadcast(init, shape, f"{name}: init"), role)
+        shape = self._shape(name, rows, cols)
+        where = f"{self.name}: variable {name!r}"
+        lo = _broadcast(lb, shape, f"{where}: lb")
+        hi = _broadcast(ub, shape, f"{where}: ub")
+        start = _broadcast(init, shape, f"{where}: init")
+        for label, arr in (("lb", lo), ("ub", hi)):
+            if np.any(np.isnan(arr)):
+                raise NonFiniteError(f"{where}: {label} contains NaN (use ±inf for no bound)")
+        if np.any(lo > hi):
+            bad = np.argwhere(lo > hi)[0].tolist()
+            raise BalustradeError(f"{where}: lower bound exceeds upper bound at entry {bad} "
+                                  f"({lo[tuple(bad)]:g} > {hi[tuple(bad)]:g})")
+        if not np.all(np.isfinite(start)):
+            raise NonFiniteError(f"{where}: init contains NaN or inf")
+        sym = ca.SX.sym(name, *shape)
+        self.variables[name] = Variable(name, sym, lo, hi, start, role)
         return sym
 
     def parameter(self, name: str, rows: int, cols: int = 1,
                   value: object | None = None) -> ca.SX:
         """Add a parameter of shape ``(rows, cols)``; its value is given at solve time."""
         self._check_new_name(name)
-        sym = ca.SX.sym(name, rows, cols)
-        default = None if value is None else _broadcast(value, (rows, cols), f"{name}: value")
+        shape = self._shape(name, rows, cols)
+        where = f"{self.name}: parameter {name!r}"
+        default = None if value is None else _broadcast(value, shape, f"{where}: value")
+        if default is not None and not np.all(np.isfinite(default)):
+            raise NonFiniteError(f"{where}: value contains NaN or inf")
+        sym = ca.SX.sym(name, *shape)
         self.parameters[name] = Parameter(name, sym, default)
         return sym
 
+    def _shape(self, name: str, rows: object, cols: object) -> tuple[int, int]:
+        return (as_count(rows, f"{self.name}: {name!r}: rows"),
+                as_count(cols, f"{self.name}: {name!r}: cols"))
+
     def _check_new_name(self, name: str) -> None:
+        check_name(name, f"{self.name}: symbol name")
         if not name.isidentifier():
             raise BalustradeError(f"{self.name}: symbol name {name!r} is not an identifier")
         if name in self.variables or name in self.parameters:
@@ -149,11 +184,13 @@ class OCP:
 
     def _add(self, name: str, kind: str, lhs: object, rhs: object, tag: str,
              info: dict) -> Block:
-        lhs_sx, rhs_sx = ca.SX(lhs), ca.SX(rhs)
+        check_name(name, f"{self.name}: block name")
+        lhs_sx = _as_sx(lhs, f"{self.name}: block {name!r}: left side")
+        rhs_sx = _as_sx(rhs, f"{self.name}: block {name!r}: right side")
         if rhs_sx.numel() not in (1, lhs_sx.numel()) and lhs_sx.numel() != 1:
             raise ShapeError(f"{self.name}: block {name!r}", f"right side of shape {lhs_sx.shape}"
                              " or a scalar", rhs_sx.shape)
-        expr = ca.vec(lhs_sx - rhs_sx)
+        expr = check_symbolic(ca.vec(lhs_sx - rhs_sx), f"{self.name}: block {name!r}")
         unique = self._unique_block_name(name)
         block = Block(unique, kind, expr, tag, dict(info))
         self.blocks.append(block)
@@ -207,7 +244,7 @@ class OCP:
                          tightening: Tightening = None, name: str = "input") -> Block:
         """``u_{i|k} ∈ U`` (or ``U_i`` per step, e.g. ``U ⊖ K E_i`` (2.14)) for the steps."""
         sys = self._need_system("input_constraint")
-        steps = list(range(self.N)) if steps is None else list(steps)
+        steps = self._steps(steps, name)
         sets = self._per_step_sets(U, steps, sys.nu, name)
         delta = self._deltas(tightening, steps, name)
         rows = [S.c(self.u[:, i]) + d for S, i, d in zip(sets, steps, delta)]
@@ -227,7 +264,7 @@ class OCP:
         ``tightening`` a scalar, a sequence ``Δ_i`` over ``steps`` or a callable ``i ↦ Δ_i``.
         """
         sys = self._need_system("state_constraint")
-        steps = list(range(self.N)) if steps is None else list(steps)
+        steps = self._steps(steps, name)
         sets = self._per_step_sets(X, steps, sys.nx, name)
         delta = self._deltas(tightening, steps, name)
         rows = [S.c(self.x[:, i]) + d for S, i, d in zip(sets, steps, delta)]
@@ -248,7 +285,8 @@ class OCP:
         """``c_{x,f}(x_{N|k}) + Δ <= ξ_N`` (hard when ``slack=None``) ((2.9), (2.11))."""
         sys = self._need_system("terminal_constraint")
         self._check_set_dim(Xf, sys.nx, name)
-        lhs = Xf.c(self.x[:, self.N]) + float(tightening)
+        delta = as_scalar(tightening, f"{self.name}: {name}: tightening")
+        lhs = Xf.c(self.x[:, self.N]) + delta
         xi = self._slack(slack, lhs.shape, signed, name)
         self.le(lhs, 0 if xi is None else xi, name=name, tag="terminal")
         return xi
@@ -257,6 +295,7 @@ class OCP:
                      signed: bool = False, name: str = "terminal_cbf") -> ca.SX | None:
         """``h_f(x_{N|k}) <= ξ_{N|k}`` ((2.24), (5.15f)); hard ``h_f(x_N) <= 0`` if no slack."""
         sys = self._need_system("terminal_cbf")
+        check_callable(h_f, f"{self.name}: {name}: h_f")
         try:
             value = ca.SX(h_f(self.x[:, self.N]))
         except Exception as exc:  # the user's function failed on a symbol
@@ -271,7 +310,14 @@ class OCP:
     # -- cost ----------------------------------------------------------------------
     def minimize(self, cost: object) -> None:
         """Set the objective (a CasADi scalar, a :class:`Cost`, or a sum of both)."""
-        self.cost = Cost.of(cost)
+        cost = Cost.of(cost)
+        for k, term in enumerate(cost.terms):
+            label = f", {term.label}" if term.label else ""
+            where = f"{self.name}: cost term {k} ({term.kind}{label})"
+            if not np.isfinite(term.coef):
+                raise NonFiniteError(f"{where}: coefficient is {term.coef}")
+            check_symbolic(term.expr, where)
+        self.cost = cost
 
     # -- helpers ---------------------------------------------------------------------
     def _slack(self, slack: SlackSpec, shape: tuple[int, int], signed: bool,
@@ -285,7 +331,7 @@ class OCP:
             lb = -np.inf if signed else 0.0
             return self.variable(self._unique_symbol(f"xi_{block}"), shape[0], shape[1],
                                  lb=lb, role="slack")
-        expr = ca.SX(slack)
+        expr = _as_sx(slack, f"{self.name}: {block}: slack")
         if expr.shape != tuple(shape) and expr.numel() != 1:
             raise ShapeError(f"{self.name}: {block}: slack", tuple(shape), expr.shape)
         return expr
@@ -295,6 +341,18 @@ class OCP:
         while name in self.variables or name in self.parameters:
             name, k = f"{base}_{k}", k + 1
         return name
+
+    def _steps(self, steps: Sequence[int] | None, block: str) -> list[int]:
+        if steps is None:
+            return list(range(self.N))
+        if isinstance(steps, (str, bytes, ca.SX, ca.MX, ca.DM)) \
+                or not hasattr(steps, "__iter__"):
+            raise BalustradeError(f"{self.name}: {block}: steps must be a sequence of step "
+                                  f"indices, got {type(steps).__name__}")
+        out = [as_count(i, f"{self.name}: {block}: step index") for i in steps]
+        if not out:
+            raise BalustradeError(f"{self.name}: {block}: steps is empty")
+        return out
 
     def _per_step_sets(self, S: Set | Sequence[Set], steps: list[int], dim: int,
                        block: str) -> list[Set]:
@@ -318,16 +376,22 @@ class OCP:
                              f"dimension {S.dim}")
 
     def _deltas(self, tightening: Tightening, steps: list[int], block: str) -> list[float]:
+        where = f"{self.name}: {block}: tightening"
         if tightening is None:
             return [0.0] * len(steps)
         if callable(tightening):
-            values = [float(tightening(i)) for i in steps]
-        elif np.ndim(tightening) == 0:
-            values = [float(tightening)] * len(steps)
-        else:
-            values = list(as_vector(tightening, f"{self.name}: {block}: tightening",
-                                    len(steps)))
-        return values
+            values = []
+            for i in steps:
+                try:
+                    value = tightening(i)
+                except Exception as exc:  # the user's function failed
+                    raise BalustradeError(f"{where}: Δ(i) failed at step {i}: {exc}") from exc
+                values.append(as_scalar(value, f"{where} Δ_{i}"))
+            return values
+        arr = as_float_array(tightening, where)
+        if arr.ndim == 0:
+            return [as_scalar(arr, where)] * len(steps)
+        return [float(d) for d in as_vector(arr, where, len(steps))]
 
     def _as_column(self, value: object, size: int, block: str) -> ca.SX:
         if isinstance(value, (ca.SX, ca.DM)):
@@ -339,20 +403,27 @@ class OCP:
 
     # -- flattening (used by backends and verify) --------------------------------------
     def decision_vector(self) -> ca.SX:
-        return ca.vertcat(*[ca.vec(v.sym) for v in self.variables.values()])
+        """All variables stacked (an empty ``SX`` column if there are none)."""
+        return ca.vertcat(ca.SX(0, 1), *[ca.vec(v.sym) for v in self.variables.values()])
 
     def parameter_vector(self) -> ca.SX:
-        return ca.vertcat(*[ca.vec(p.sym) for p in self.parameters.values()])
+        """All parameters stacked (an empty ``SX`` column if there are none)."""
+        return ca.vertcat(ca.SX(0, 1), *[ca.vec(p.sym) for p in self.parameters.values()])
 
     def constraint_vector(self) -> ca.SX:
-        return ca.vertcat(*[b.expr for b in self.blocks])
+        return ca.vertcat(ca.SX(0, 1), *[b.expr for b in self.blocks])
 
     def pack_parameters(self, values: dict[str, object] | None) -> np.ndarray:
         """Stack parameter values (checked for shape and finiteness) in declaration order."""
+        if values is not None and not isinstance(values, Mapping):
+            raise BalustradeError(f"{self.name}: parameter values must be a dict name -> "
+                                  f"value, got {type(values).__name__}; declared: "
+                                  f"{list(self.parameters)}")
         values = dict(values or {})
         unknown = set(values) - set(self.parameters)
         if unknown:
-            raise BalustradeError(f"{self.name}: unknown parameters {sorted(unknown)}; "
+            names = ", ".join(sorted(map(repr, unknown)))
+            raise BalustradeError(f"{self.name}: unknown parameters {names}; "
                                   f"declared: {list(self.parameters)}")
         chunks = []
         for p in self.parameters.values():
@@ -369,7 +440,10 @@ class OCP:
     def unpack_variables(self, w: np.ndarray) -> dict[str, np.ndarray]:
         """Split a stacked decision vector into named arrays of their declared shapes."""
         out, k = {}, 0
-        w = np.asarray(w, dtype=float)
+        w = as_float_array(w, f"{self.name}: stacked decision vector").reshape(-1)
+        n_total = sum(v.shape[0] * v.shape[1] for v in self.variables.values())
+        if w.size != n_total:
+            raise ShapeError(f"{self.name}: stacked decision vector", (n_total,), w.shape)
         for v in self.variables.values():
             n = v.shape[0] * v.shape[1]
             arr = w[k:k + n].reshape(v.shape, order="F")
@@ -379,6 +453,14 @@ class OCP:
 
     def pack_variables(self, values: dict[str, object]) -> np.ndarray:
         """Stack named variable values (missing ones take their ``init``)."""
+        if not isinstance(values, Mapping):
+            raise BalustradeError(f"{self.name}: variable values must be a dict name -> value, "
+                                  f"got {type(values).__name__}")
+        unknown = set(values) - set(self.variables)
+        if unknown:
+            names = ", ".join(sorted(map(repr, unknown)))
+            raise BalustradeError(f"{self.name}: unknown variables {names}; "
+                                  f"declared: {list(self.variables)}")
         chunks = []
         for v in self.variables.values():
             if v.name in values:
@@ -389,8 +471,10 @@ class OCP:
         return np.concatenate(chunks) if chunks else np.zeros(0)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        lb = np.concatenate([v.lb.reshape(-1, order="F") for v in self.variables.values()])
-        ub = np.concatenate([v.ub.reshape(-1, order="F") for v in self.variables.values()])
+        lb = np.concatenate([np.zeros(0)] + [v.lb.reshape(-1, order="F")
+                                             for v in self.variables.values()])
+        ub = np.concatenate([np.zeros(0)] + [v.ub.reshape(-1, order="F")
+                                             for v in self.variables.values()])
         return lb, ub
 
     def describe(self) -> str:
@@ -409,8 +493,26 @@ class OCP:
         return "\n".join(lines)
 
 
+def _as_sx(value: object, block: str) -> ca.SX:
+    if isinstance(value, ca.SX):
+        return value
+    if isinstance(value, ca.MX):
+        raise BalustradeError(f"{block}: MX expressions are not supported; build blocks from "
+                              "the OCP's SX symbols")
+    if isinstance(value, ca.DM):
+        return ca.SX(value)
+    try:
+        return ca.SX(ca.DM(as_float_array(value, block)))
+    except BalustradeError:
+        try:  # e.g. a list of SX entries
+            return ca.SX(value)
+        except Exception:  # noqa: BLE001 - not an expression: report the numeric error
+            pass
+        raise
+
+
 def _broadcast(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
+    arr = as_float_array(value, block)
     if arr.ndim == 0:
         return np.full(shape, float(arr))
     if arr.size == shape[0] and shape[1] > 1 and arr.ndim == 1:
@@ -421,7 +523,7 @@ def _broadcast(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
 
 
 def _flat_value(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
+    arr = as_float_array(value, block)
     if arr.ndim == 0 and shape == (1, 1):
         arr = arr.reshape(1, 1)
     elif arr.ndim == 1 and (arr.size == shape[0] * shape[1]) and 1 in shape:
@@ -429,7 +531,5 @@ def _flat_value(value: object, shape: tuple[int, int], block: str) -> np.ndarray
     if tuple(arr.shape) != tuple(shape):
         raise ShapeError(block, shape, arr.shape)
     if not np.all(np.isfinite(arr)):
-        from balustrade.errors import NonFiniteError
-
         raise NonFiniteError(f"{block}: contains NaN or inf (shape {arr.shape})")
     return arr.reshape(-1, order="F")

@@ -42,7 +42,7 @@ import casadi as ca
 import numpy as np
 import scipy.optimize
 
-from balustrade._checks import as_matrix, as_vector, check_psd
+from balustrade._checks import as_count, as_matrix, as_vector, check_name, check_psd
 from balustrade.dsl import sets_geometry as geo
 from balustrade.dsl.sets_base import (
     RngLike,
@@ -51,6 +51,7 @@ from balustrade.dsl.sets_base import (
     as_rng,
     check_count,
     check_scalar,
+    check_tol,
     linear_map,
     minkowski_sum,
     pontryagin_difference,
@@ -82,7 +83,11 @@ class Polytope(Set):
     name: str = "Polytope"
 
     def __post_init__(self) -> None:
+        check_name(self.name, "Polytope: name")
         H = as_matrix(self.H, f"{self.name}: H")
+        if H.shape[1] == 0:
+            raise ShapeError(f"{self.name}: H", "at least one column (the set's dimension)",
+                             H.shape)
         h = as_vector(self.h, f"{self.name}: h")
         if H.shape[0] != h.size:
             raise ShapeError(f"{self.name}: h must have one entry per row of H",
@@ -103,6 +108,7 @@ class Polytope(Set):
 
     def contains_many(self, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         X = self._points(X, "contains_many(X)")
+        tol = check_tol(tol, f"{self.name}.contains_many")
         return np.all(X @ self.H.T - self.h <= tol, axis=1)
 
     def is_empty(self) -> bool:
@@ -209,7 +215,11 @@ class Box(Polytope):
     bound are left out)."""
 
     def __init__(self, lb: np.ndarray, ub: np.ndarray, name: str = "Box"):
+        check_name(name, "Box: name")
         lb = as_vector(lb, f"{name}: lb", finite=False)
+        if lb.size == 0:
+            raise ShapeError(f"{name}: lb", "at least one bound (a box of dimension >= 1)",
+                             lb.shape)
         ub = as_vector(ub, f"{name}: ub", lb.size, finite=False)
         if np.any(np.isnan(lb)) or np.any(np.isnan(ub)):
             raise NonFiniteError(f"{name}: bounds contain NaN (lb={lb}, ub={ub})")
@@ -236,10 +246,17 @@ class Box(Polytope):
     @classmethod
     def symmetric(cls, bound: np.ndarray | float, dim: int | None = None,
                   name: str = "Box") -> Box:
-        """``{|x_i| <= bound_i}``."""
-        b = np.atleast_1d(np.asarray(bound, dtype=float))
-        if dim is not None and b.size == 1:
-            b = np.full(dim, float(b[0]))
+        """``{|x_i| <= bound_i}`` (``bound >= 0``; ``inf`` for no bound)."""
+        b = as_vector(bound, f"{name}: bound", finite=False)
+        if dim is not None:
+            dim = as_count(dim, f"{name}: dim", low=1)
+            if b.size == 1:
+                b = np.full(dim, float(b[0]))
+            elif b.size != dim:
+                raise ShapeError(f"{name}: bound", (dim,), b.shape)
+        if np.any(b < 0):
+            raise EmptySetError(f"{name}: symmetric bound {b} has negative entries "
+                                f"{np.flatnonzero(b < 0).tolist()}: the box is empty")
         return cls(-b, b, name=name)
 
     @property
@@ -325,6 +342,12 @@ class Box(Polytope):
         if not self.is_bounded():
             raise BalustradeError(f"{self.name}.sample: cannot sample an unbounded box "
                                   f"(lb={self.lb}, ub={self.ub})")
+        with np.errstate(over="ignore"):
+            width = self.ub - self.lb
+        if not np.all(np.isfinite(width)):
+            raise BalustradeError(f"{self.name}.sample: the box is too wide to sample in "
+                                  f"floating point (ub - lb overflows: lb={self.lb}, "
+                                  f"ub={self.ub})")
         return as_rng(rng).uniform(self.lb, self.ub, size=(n, self.dim))
 
 
@@ -337,6 +360,7 @@ class Ellipsoid(Set):
     name: str = "Ellipsoid"
 
     def __post_init__(self) -> None:
+        check_name(self.name, "Ellipsoid: name")
         P = check_psd(self.P, f"{self.name}: P", strict=True)
         q = np.zeros(P.shape[0]) if self.center is None else as_vector(
             self.center, f"{self.name}: center", P.shape[0])
@@ -364,6 +388,7 @@ class Ellipsoid(Set):
 
     def contains_many(self, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         D = self._points(X, "contains_many(X)") - self.center
+        tol = check_tol(tol, f"{self.name}.contains_many")
         return np.einsum("ij,jk,ik->i", D, self.P, D) - 1.0 <= tol
 
     def support(self, a: np.ndarray) -> float:
@@ -406,7 +431,9 @@ class Ellipsoid(Set):
         if a == 0.0:
             raise BalustradeError(f"{self.name}.scale: 0·{self.name} is a point, not an "
                                   "ellipsoid with P ≻ 0")
-        return Ellipsoid(self.P / a**2, a * self.center, name=name or f"{a:g}·{self.name}")
+        with np.errstate(over="ignore", under="ignore"):
+            P = self.P / np.float64(a) ** 2
+        return Ellipsoid(P, a * self.center, name=name or f"{a:g}·{self.name}")
 
     def translate(self, v: np.ndarray, name: str | None = None) -> Ellipsoid:
         v = as_vector(v, f"{self.name}.translate(v)", self.dim)
@@ -423,6 +450,10 @@ class Ellipsoid(Set):
 
     def max_quadratic_over(self, other: Ellipsoid) -> float:
         """``max_{x ∈ other} (x - q)ᵀP(x - q)`` exactly (trust-region subproblem)."""
+        if not isinstance(other, Ellipsoid):
+            raise BalustradeError(f"{self.name}.max_quadratic_over: expected an Ellipsoid, got "
+                                  f"{type(other).__name__}")
+        self._check_same_dim(other, "max_quadratic_over")
         L = other._root()
         d = other.center - self.center
         G = L.T @ self.P @ L

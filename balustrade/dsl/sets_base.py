@@ -13,38 +13,46 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_matrix, as_vector
-from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
+from balustrade._checks import as_matrix, as_scalar, as_vector
+from balustrade.errors import BalustradeError, ShapeError
 
 if TYPE_CHECKING:
     from balustrade.dsl.sets import Box
 
 Symbolic = ca.SX | ca.MX | ca.DM
 RngLike = int | np.random.Generator | None
+MAX_SAMPLES = 10**8
 
 
 def as_rng(rng: RngLike) -> np.random.Generator:
     """A numpy ``Generator`` from an int seed, a ``Generator`` or ``None`` (fresh entropy)."""
     if isinstance(rng, np.random.Generator):
         return rng
-    if rng is None or isinstance(rng, (int, np.integer)):
+    if rng is None or (isinstance(rng, (int, np.integer)) and not isinstance(rng, bool)
+                       and rng >= 0):
         return np.random.default_rng(rng)
-    raise BalustradeError(f"rng must be an int seed or a numpy Generator, got {type(rng).__name__}")
+    raise BalustradeError(f"rng must be an int seed >= 0 or a numpy Generator, got "
+                          f"{type(rng).__name__} {rng!r:.30}")
 
 
 def check_count(n: int, block: str) -> int:
     """Validate a sample count."""
     if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 0:
         raise BalustradeError(f"{block}: the number of samples must be an int >= 0, got {n!r}")
+    if n > MAX_SAMPLES:
+        raise BalustradeError(f"{block}: {n} samples requested, at most {MAX_SAMPLES:.0e} per "
+                              "call (draw them in batches)")
     return int(n)
+
+
+def check_tol(tol: float, block: str) -> float:
+    """A finite tolerance (membership, inclusion)."""
+    return as_scalar(tol, f"{block}: tol")
 
 
 def check_scalar(alpha: float, block: str) -> float:
     """Validate a finite scale factor."""
-    a = float(alpha)
-    if not np.isfinite(a):
-        raise NonFiniteError(f"{block}: scale factor is {a}")
-    return a
+    return as_scalar(alpha, f"{block}: scale factor")
 
 
 class Set(ABC):
@@ -71,11 +79,13 @@ class Set(ABC):
     def contains(self, x: np.ndarray, tol: float = 1e-9) -> bool:
         """Whether the point ``x`` lies in the set (up to ``tol``)."""
         x = as_vector(x, f"{self.name}.contains(x)", self.dim)
+        tol = check_tol(tol, f"{self.name}.contains")
         return bool(np.all(np.asarray(ca.evalf(self.c(ca.DM(x)))).ravel() <= tol))
 
     def contains_many(self, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         """Row-wise :meth:`contains` for the points ``X`` of shape ``(n, dim)`` (bool array)."""
         X = self._points(X, "contains_many(X)")
+        tol = check_tol(tol, f"{self.name}.contains_many")
         if X.shape[0] == 0:
             return np.zeros(0, dtype=bool)
         x = ca.SX.sym("x", self.dim)
@@ -84,7 +94,8 @@ class Set(ABC):
         return np.all(vals <= tol, axis=0)
 
     def _points(self, X: np.ndarray, what: str) -> np.ndarray:
-        X = np.asarray(X, dtype=float)
+        X = as_matrix(X, f"{self.name}.{what}", finite=False) if np.ndim(X) != 1 \
+            else as_vector(X, f"{self.name}.{what}", finite=False)
         if X.ndim == 1 and self.dim == 1:
             X = X[:, None]
         if X.ndim != 2 or X.shape[1] != self.dim:
@@ -92,6 +103,10 @@ class Set(ABC):
         return X
 
     def _check_point_dim(self, x: Symbolic, block: str) -> None:
+        if not isinstance(x, (ca.SX, ca.MX, ca.DM)):
+            raise BalustradeError(f"{block} of {self.name}: expected a CasADi column of shape "
+                                  f"({self.dim}, 1), got {type(x).__name__} (use contains() "
+                                  "for numeric points)")
         if x.shape != (self.dim, 1):
             raise ShapeError(f"{block} of {self.name}", (self.dim, 1), x.shape)
 
@@ -160,7 +175,8 @@ class Set(ABC):
         """Whether ``S ⊆ T``, up to ``tol`` in the units of ``T.c`` (see module table)."""
         from balustrade.dsl import sets_ops
 
-        return sets_ops.is_subset(self, other, tol)
+        self._check_same_dim(other, "⊆")
+        return sets_ops.is_subset(self, other, check_tol(tol, f"{self.name} ⊆ {other.name}"))
 
     def sample(self, n: int, rng: RngLike = None) -> np.ndarray:
         """``n`` points drawn uniformly from the set, shape ``(n, dim)``."""

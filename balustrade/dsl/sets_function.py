@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_vector
+from balustrade._checks import as_count, as_vector, check_callable, check_name, check_symbolic
 from balustrade.dsl.sets_base import RngLike, Set, Symbolic, as_rng, check_count, check_scalar
 from balustrade.errors import BalustradeError, ShapeError
 
@@ -25,17 +25,25 @@ class FunctionSet(Set):
     """
 
     def __init__(self, c: Callable[[Symbolic], Symbolic], dim: int, name: str = "FunctionSet"):
+        self.name = check_name(name, "FunctionSet: name")
+        check_callable(c, f"{name}: c")
         self._fun = c
-        self.dim = int(dim)
-        self.name = name
+        self.dim = as_count(dim, f"{name}: dim", low=1)
         try:
             out = c(ca.SX.sym("x", self.dim))
         except Exception as exc:  # the user's function failed on a symbol
             raise BalustradeError(f"{name}: c(x) failed on a CasADi symbol of shape "
                                   f"({self.dim}, 1): {exc}") from exc
-        out = ca.SX(out) if not isinstance(out, ca.SX) else out
+        try:
+            out = ca.SX(out) if not isinstance(out, ca.SX) else out
+        except Exception as exc:  # noqa: BLE001 - not a CasADi expression
+            raise BalustradeError(f"{name}: c(x) returned a {type(out).__name__}, not a "
+                                  f"CasADi expression ({exc})") from exc
         if out.shape[1] != 1 and out.shape[0] != 1:
             raise ShapeError(f"{name}: c(x)", "a column of constraint rows", out.shape)
+        if out.numel() == 0:
+            raise ShapeError(f"{name}: c(x)", "at least one constraint row", out.shape)
+        check_symbolic(out, f"{name}: c(x)")
 
     def __repr__(self) -> str:
         return f"FunctionSet(dim={self.dim}, name={self.name!r})"

@@ -19,8 +19,17 @@ from collections.abc import Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_matrix, as_vector
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade._checks import (
+    SYMBOL_LOST,
+    as_count,
+    as_matrix,
+    as_scalar,
+    as_vector,
+    check_callable,
+    check_name,
+    nan_constants,
+)
+from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 Dynamics = Callable[..., object]
 
@@ -37,10 +46,12 @@ class System:
 
     def __init__(self, f: Dynamics, nx: int, nu: int, nw: int = 0, ntheta: int = 0,
                  name: str = "system"):
-        self.nx, self.nu, self.nw, self.ntheta = int(nx), int(nu), int(nw), int(ntheta)
-        self.name = name
-        if self.nx <= 0:
-            raise ShapeError(f"{name}: nx", "a positive state dimension", nx, what="value")
+        self.name = check_name(name, "System: name")
+        self.nx = as_count(nx, f"{name}: nx (state dimension)", low=1)
+        self.nu = as_count(nu, f"{name}: nu (input dimension)")
+        self.nw = as_count(nw, f"{name}: nw (disturbance dimension)")
+        self.ntheta = as_count(ntheta, f"{name}: ntheta (parameter dimension)")
+        check_callable(f, f"{name}: dynamics f")
         x = ca.SX.sym("x", self.nx)
         u = ca.SX.sym("u", self.nu)
         w = ca.SX.sym("w", self.nw)
@@ -53,12 +64,22 @@ class System:
             raise BalustradeError(
                 f"{name}: f(x, u, w, theta) failed on CasADi symbols with shapes "
                 f"x ({self.nx}, 1), u ({self.nu}, 1), w ({self.nw}, 1), "
-                f"theta ({self.ntheta}, 1): {exc}") from exc
-        out = ca.vec(ca.SX(out) if not isinstance(out, ca.SX) else out) \
-            if not isinstance(out, (list, tuple)) else ca.vertcat(*out)
+                f"theta ({self.ntheta}, 1): {exc} (use CasADi's functions on symbols: "
+                "ca.sin, ca.fmax, ca.if_else, ...)") from exc
+        try:
+            out = ca.vec(ca.SX(out) if not isinstance(out, ca.SX) else out) \
+                if not isinstance(out, (list, tuple)) else ca.vertcat(*out)
+        except Exception as exc:  # e.g. a numpy object array or a string
+            raise BalustradeError(f"{name}: f(x, u, w, theta) returned a "
+                                  f"{type(out).__name__} that is not a CasADi expression "
+                                  f"({exc}); return ca.vertcat(...) of the next state") from exc
         if out.numel() != self.nx:
             raise ShapeError(f"{name}: f(x, u, w, theta)", f"{self.nx} entries (nx)",
                              f"{out.numel()} entries (shape {out.shape})", what="output with")
+        if nan_constants(out):
+            rows = [i for i in range(self.nx) if nan_constants(out[i])]
+            raise NonFiniteError(f"{name}: f(x, u, w, theta) evaluates to NaN in rows {rows} "
+                                 f"on symbols: {SYMBOL_LOST}")
         self._f_expr = out
         self.function = ca.Function(name, [x, u, w, th], [out], ["x", "u", "w", "theta"],
                                     ["x_next"])
@@ -86,7 +107,8 @@ class System:
         xs, us = ca.SX.sym("x", self.nx), ca.SX.sym("u", self.nu)
         fx = self(xs, us)
         jac = ca.Function("linearization", [xs, us], [ca.jacobian(fx, xs), ca.jacobian(fx, us)])
-        A, B = jac(as_vector(x, "x", self.nx), as_vector(u, "u", self.nu))
+        A, B = jac(as_vector(x, f"{self.name}.jacobians: x", self.nx),
+                   as_vector(u, f"{self.name}.jacobians: u", self.nu))
         return np.asarray(A), np.asarray(B)
 
     # -- constructors ----------------------------------------------------------------
@@ -97,6 +119,7 @@ class System:
         """Discrete dynamics from sympy expressions ``x⁺_i = exprs[i](x, u, w, θ)``."""
         import sympy
 
+        name = check_name(name, "System.from_sympy: name")
         symbols = list(x) + list(u) + list(w) + list(theta)
         exprs = list(exprs)
         if len(exprs) != len(x):
@@ -115,7 +138,13 @@ class System:
             args += [ws[i] for i in range(nw)] + [ths[i] for i in range(nth)]
             return ca.vertcat(*lowered(*args))
 
-        return cls(f, nx, nu, nw, nth, name=name)
+        try:
+            return cls(f, nx, nu, nw, nth, name=name)
+        except NonFiniteError as exc:
+            raise NonFiniteError(
+                f"{name}: from_sympy: an expression lowers to NaN: it uses a sympy function "
+                f"without a CasADi counterpart (supported: {', '.join(_SYMPY_TO_CASADI)}, "
+                f"and +, -, *, /, **); rewrite it with these ({exc})") from exc
 
     @classmethod
     def from_continuous(cls, f_ct: Dynamics, nx: int, nu: int, dt: float,
@@ -126,11 +155,12 @@ class System:
         The input and disturbance are held constant over the sample (zero-order hold);
         ``steps`` sub-steps of length ``dt/steps`` are taken.
         """
+        name = check_name(name, "System.from_continuous: name")
         if method not in ("euler", "rk4"):
             raise BalustradeError(f"{name}: unknown discretization {method!r}; "
                                   "use 'euler' or 'rk4'")
-        if not dt > 0:
-            raise BalustradeError(f"{name}: sampling time must be positive, got {dt}")
+        dt = as_scalar(dt, f"{name}: sampling time dt", low=0.0, low_open=True)
+        steps = as_count(steps, f"{name}: steps (sub-steps per sample)", low=1)
         ct = cls(f_ct, nx, nu, nw, ntheta, name=f"{name}_ct")
         h = dt / steps
 
@@ -155,6 +185,7 @@ class LinearSystem(System):
     is_linear = True
 
     def __init__(self, A: object, B: object, E: object | None = None, name: str = "linear"):
+        name = check_name(name, "LinearSystem: name")
         A = as_matrix(A, f"{name}: A")
         if A.shape[0] != A.shape[1]:
             raise ShapeError(f"{name}: A", "a square matrix (nx, nx)", A.shape)

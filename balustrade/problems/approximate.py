@@ -26,11 +26,13 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from balustrade._checks import as_count, check_name, check_symbolic
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.backends.casadi_fast import Buffered, FastNLP
 from balustrade.dsl import OCP, Set, System, squared_norm
 from balustrade.dsl.sets import Box
 from balustrade.errors import BalustradeError, ShapeError
+from balustrade.problems._args import check_system_sets, nonnegative
 
 HHat = ca.Function | Callable[[ca.SX], object]
 
@@ -38,6 +40,8 @@ HHat = ca.Function | Callable[[ca.SX], object]
 def as_h_function(h_hat: HHat, nx: int, name: str = "h_hat") -> ca.Function:
     """Normalize ``ĥ`` (a CasADi Function ``x ↦ ĥ(x)`` or a callable on an ``(nx, 1)`` SX
     symbol) to a CasADi Function with one input of shape ``(nx, 1)`` and a scalar output."""
+    check_name(name, "as_h_function: name")
+    nx = as_count(nx, f"{name}: nx", low=1)
     if isinstance(h_hat, ca.Function):
         if h_hat.n_in() != 1 or h_hat.size1_in(0) * h_hat.size2_in(0) != nx:
             raise ShapeError(f"{name}: input of the CasADi Function", (nx, 1),
@@ -46,6 +50,9 @@ def as_h_function(h_hat: HHat, nx: int, name: str = "h_hat") -> ca.Function:
             raise ShapeError(f"{name}: output of the CasADi Function", "a scalar",
                              (h_hat.size1_out(0), h_hat.size2_out(0)))
         return h_hat
+    if not callable(h_hat):
+        raise BalustradeError(f"{name}: ĥ must be a CasADi Function or a callable on an "
+                              f"({nx}, 1) symbol, got {type(h_hat).__name__}")
     x = ca.SX.sym("x", nx)
     try:
         value = ca.SX(h_hat(x))
@@ -54,6 +61,7 @@ def as_h_function(h_hat: HHat, nx: int, name: str = "h_hat") -> ca.Function:
                               ) from exc
     if value.numel() != 1:
         raise ShapeError(f"{name}: ĥ(x)", "a scalar", value.shape)
+    check_symbolic(value, f"{name}: ĥ(x)")
     return ca.Function(name, [x], [value], ["x"], ["h"])
 
 
@@ -75,6 +83,7 @@ def max_decrease_problem(system: System, U: Set, h_hat: HHat,
 
     Parameters: ``x0``. Variable: ``u``.
     """
+    check_system_sets(name, system, U=U)
     h = as_h_function(h_hat, system.nx)
     ocp = OCP(None, name=name)
     u = _input_variable(ocp, U, system.nu)
@@ -92,6 +101,8 @@ def approximate_filter_problem(system: System, U: Set, h_hat: HHat, eps: float =
     default 1), so one compiled problem serves every ``ρ``. ``eps`` is the numerical margin
     that keeps the (7.6) minimizer strictly feasible at ``ρ = 1`` (Proposition 7.3).
     """
+    check_system_sets(name, system, U=U)
+    eps = nonnegative(eps, f"{name}: eps")
     h = as_h_function(h_hat, system.nx)
     ocp = OCP(None, name=name)
     u = _input_variable(ocp, U, system.nu)
@@ -133,6 +144,8 @@ def decrease_bound(dh: object, rho: object) -> object:
 def coarse_grid(U: Set, points_per_dim: int = 5, max_points: int = 125) -> np.ndarray:
     """A coarse grid over the bounding box of ``U`` (rows are inputs), kept to points of
     ``U``; with too many dimensions, the box vertices and centre instead."""
+    points_per_dim = as_count(points_per_dim, "coarse_grid: points_per_dim", low=1)
+    max_points = as_count(max_points, "coarse_grid: max_points", low=1)
     box = U if isinstance(U, Box) else U.bounding_box()
     lb, ub = np.asarray(box.lb, float), np.asarray(box.ub, float)
     if not (np.all(np.isfinite(lb)) and np.all(np.isfinite(ub))):
@@ -189,13 +202,14 @@ class MaximalDecrease:
     def __init__(self, system: System, U: Set, h_hat: HHat, solver: str = "ipopt",
                  options: dict | None = None, grid_points: int = 5, n_local: int = 1,
                  fast: bool = True):
+        check_system_sets("MaximalDecrease", system, U=U)
         self.system, self.U = system, U
         self.h = as_h_function(h_hat, system.nx)
         self.ocp = max_decrease_problem(system, U, self.h)
         self.compiled: Compiled = compile(self.ocp, "casadi", solver,
                                           solver_options(solver, options))
         self.grid = coarse_grid(U, grid_points)
-        self.n_local = int(n_local)
+        self.n_local = as_count(n_local, "MaximalDecrease: n_local")
         self.fast = bool(fast)
         nx, nu = system.nx, system.nu
         x, u = ca.SX.sym("x", nx), ca.SX.sym("u", nu)

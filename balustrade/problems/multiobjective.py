@@ -24,10 +24,22 @@ import casadi as ca
 import numpy as np
 import scipy.linalg
 
-from balustrade._checks import as_matrix
+from balustrade._checks import (
+    as_matrix,
+    as_scalar,
+    check_callable,
+    check_horizon,
+    check_instance,
+)
 from balustrade.dsl import OCP, LinearSystem, Polytope, System, squared_norm
 from balustrade.dsl.error_sets import ErrorSet, reachable_tightened_sets
 from balustrade.errors import BalustradeError
+from balustrade.problems._args import (
+    check_pcbf_args,
+    check_system_sets,
+    check_weights,
+    positive,
+)
 from balustrade.problems.robust import Objective, _syms, _tube_blocks, robust_sets
 
 
@@ -36,7 +48,17 @@ def terminal_weight(A: np.ndarray, B: np.ndarray, K: np.ndarray, Q: np.ndarray, 
                     printed: bool = False) -> np.ndarray:
     """``P`` of (6.13): ``A_Kᵀ P A_K − P = −(Q + KᵀRK)`` (SPEC [Default]); ``printed=True``
     solves the thesis' printed ``A_Kᵀ P A_K − P = −Q`` (violates Assumption 6.7.5 if ``K ≠ 0``)."""
+    A = as_matrix(A, "terminal_weight: A")
+    n = A.shape[0]
+    if A.shape != (n, n):
+        raise BalustradeError(f"terminal_weight: A must be square, got shape {A.shape}")
+    B = as_matrix(B, "terminal_weight: B", (n, None))
+    K = as_matrix(K, "terminal_weight: K", (B.shape[1], n))
+    Q, R, _ = check_weights("terminal_weight", n, B.shape[1], Q, R, np.eye(n))
     A_K = A + B @ K
+    if np.max(np.abs(np.linalg.eigvals(A_K))) >= 1:
+        raise BalustradeError("terminal_weight: A + BK is not Schur stable; the Lyapunov "
+                              "equation (6.13) has no PSD solution")
     rhs = Q if printed else Q + K.T @ R @ K
     P = scipy.linalg.solve_discrete_lyapunov(A_K.T, rhs)
     return 0.5 * (P + P.T)
@@ -59,7 +81,17 @@ class LinearLyapunovDesign:
     P: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        check_instance(self.system, LinearSystem, "LinearLyapunovDesign: system")
+        check_system_sets("LinearLyapunovDesign", self.system, self.X, self.U, polytope=True)
+        check_system_sets("LinearLyapunovDesign", self.system, Xf=self.Xf, polytope=True)
+        check_instance(self.W, Polytope, "LinearLyapunovDesign: W")
+        self.N = check_horizon(self.N, "LinearLyapunovDesign")
         A, B = self.system.A, self.system.B
+        self.Q, self.R, _ = check_weights("LinearLyapunovDesign", A.shape[0], B.shape[1],
+                                          self.Q, self.R, np.eye(A.shape[0]))
+        if self.P is not None:
+            self.P = check_weights("LinearLyapunovDesign", A.shape[0], B.shape[1], self.Q,
+                                   self.R, self.P)[2]
         self.K = as_matrix(self.K, "LinearLyapunovDesign: K", (B.shape[1], A.shape[0]))
         self.A_K = A + B @ self.K
         if np.max(np.abs(np.linalg.eigvals(self.A_K))) >= 1:
@@ -155,6 +187,9 @@ def multiobjective_lyapunov_problem(design: LinearLyapunovDesign, decrease: bool
     (``V((z_1, ξ_c(z_1, v, 0)))``, a convex quadratic). Parameters ``x0``, ``u_p``, ``bound``.
     ``decrease=False`` drops (6.3h): the feasibility problem of Algorithm 6.3 step 2 (cost
     ``‖v‖²``). Default ``J = ‖v_0 − u_p‖²``."""
+    check_instance(design, LinearLyapunovDesign, f"{name}: design")
+    if objective is not None:
+        check_callable(objective, f"{name}: objective")
     d, N = design, design.N
     ocp = OCP(d.system, N, name=name, state_name="z", input_name="v")
     x0 = ocp.parameter("x0", d.system.nx)
@@ -197,6 +232,10 @@ def multiobjective_pcbf_problem(system: System, X: Polytope, U: Polytope, h_f: C
     Parameters ``x0``, ``u_p``, ``bound`` (``= (1−ρ) h̃(ξ̃_k) + ρ h̃(ξ*_{k−1})``). Variables ``z``,
     ``v``, ``xi``, ``xi_N``. Default ``J = ‖u_p − (v_0 + K(x_k − z_0))‖²``.
     """
+    N, deltas = check_pcbf_args(name, system, X, U, h_f, N, deltas, polytope=True)
+    alpha_f = positive(alpha_f, f"{name}: alpha_f")
+    if objective is not None:
+        check_callable(objective, f"{name}: objective")
     sets = robust_sets(X, U, error, U_tight)
     ocp = OCP(system, N, name=name, state_name="z", input_name="v")
     x0 = _tube_blocks(ocp, system, sets, error)                      # (6.15b–d)
@@ -215,6 +254,7 @@ def multiobjective_pcbf_problem(system: System, X: Polytope, U: Polytope, h_f: C
 
 def decrease_bound(h_tilde_candidate: float, h_tilde_previous: float, rho: float) -> float:
     """Right side of (6.15g): ``(1 − ρ) h̃(ξ̃_k) + ρ h̃(ξ*_{k−1})`` for ``ρ ∈ [0, 1)``."""
-    if not 0.0 <= rho < 1.0:
-        raise BalustradeError(f"(6.15g): ρ must lie in [0, 1), got {rho}")
+    rho = as_scalar(rho, "(6.15g): ρ", low=0.0, high=1.0, high_open=True)
+    h_tilde_candidate = as_scalar(h_tilde_candidate, "(6.15g): h̃(ξ̃_k)")
+    h_tilde_previous = as_scalar(h_tilde_previous, "(6.15g): h̃(ξ*_{k−1})")
     return (1.0 - rho) * h_tilde_candidate + rho * h_tilde_previous

@@ -18,7 +18,9 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
+from balustrade._checks import as_scalar
 from balustrade.dsl import OCP, Set, System, squared_norm, sum_norms
+from balustrade.problems._args import check_norm_order, check_pcbf_args, nonnegative, positive
 
 
 def pcbf_slack_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
@@ -29,6 +31,9 @@ def pcbf_slack_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
 
     Parameters: ``x0``. Variables: ``x``, ``u``, ``xi`` (rows of ``c_x`` × N), ``xi_N``.
     """
+    N, deltas = check_pcbf_args(name, system, X, U, h_f, N, deltas)
+    alpha_f = positive(alpha_f, f"{name}: alpha_f")
+    check_norm_order(slack_norm, f"{name}: slack_norm")
     ocp = OCP(system, N, name=name)
     ocp.initial_state(ocp.parameter("x0", system.nx))
     ocp.dynamics()
@@ -45,6 +50,8 @@ def pcbf_filter_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
     """(2.23): ``min ‖u_0 − u_p‖²`` s.t. the constraints of (2.24) with the slacks fixed to
     the parameters ``xi``, ``xi_N`` (the optimum of (2.24)) plus the numerical margin ``eps``
     (SPEC §2.7 implementation notes). Parameters: ``x0``, ``u_p``, ``xi``, ``xi_N``."""
+    N, deltas = check_pcbf_args(name, system, X, U, h_f, N, deltas)
+    eps = nonnegative(eps, f"{name}: eps")
     ocp = OCP(system, N, name=name)
     ocp.initial_state(ocp.parameter("x0", system.nx))
     u_p = ocp.parameter("u_p", system.nu)
@@ -64,6 +71,7 @@ def extended_pcbf_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
     ``h_f(x_N) <= t`` and (2.24b–d). The signed slacks of (7.8) are all equal to the
     epigraph variable ``t``; a per-row signed slack (``state_constraint(signed=True)``)
     gives the same value but a degenerate problem. Parameter: ``x0``; variable ``t``."""
+    N, deltas = check_pcbf_args(name, system, X, U, h_f, N, deltas)
     ocp = OCP(system, N, name=name)
     ocp.initial_state(ocp.parameter("x0", system.nx))
     ocp.dynamics()
@@ -78,6 +86,9 @@ def extended_pcbf_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
 def combined_h(h_pb: float, h_bar: float, c_h: float = 1.0, tol: float = 1e-6) -> float:
     """(7.7)/(7.9): ``h = h_PB`` on ``D_PB \\ S_PB`` and ``c_h · h̄_PB`` on ``S_PB``;
     ``S_PB = {h_PB <= tol}`` numerically."""
+    h_pb, h_bar = as_scalar(h_pb, "combined_h: h_pb"), as_scalar(h_bar, "combined_h: h_bar")
+    c_h = positive(c_h, "combined_h: c_h")
+    tol = nonnegative(tol, "combined_h: tol")
     return c_h * h_bar if h_pb <= tol else h_pb
 
 

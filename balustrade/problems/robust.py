@@ -22,10 +22,19 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from balustrade._checks import as_matrix, as_scalar, check_callable, check_horizon, check_instance
 from balustrade.dsl import OCP, Polytope, System, squared_norm, sum_norms
 from balustrade.dsl.costs import Cost
 from balustrade.dsl.error_sets import ErrorSet, reachable_tightened_sets, tighten
 from balustrade.errors import BalustradeError
+from balustrade.problems._args import (
+    check_norm_order,
+    check_pcbf_args,
+    check_system_sets,
+    check_weights,
+    nonnegative,
+    positive,
+)
 
 Objective = Callable[[OCP, dict], object]
 
@@ -38,6 +47,12 @@ def robust_mpc_problem(system: System, X: Polytope, U: Polytope, Xf: Polytope, N
     """(2.14): ``min Σ l(z_i, v_i) + l_f(z_N)`` s.t. ``z_0 = x_k``, nominal dynamics,
     ``z_i ∈ X ⊖ E_i``, ``v_i ∈ U ⊖ K E_i``, ``z_N ∈ X_f ⊖ E_N`` with
     ``E_i = ⊕_{j<i} A_K^j G W`` (support-function tightenings). Parameter ``x0``."""
+    check_system_sets(name, system, X, U, polytope=True)
+    check_system_sets(name, system, Xf=Xf, polytope=True)
+    N = check_horizon(N, name)
+    Q, R, P = check_weights(name, system.nx, system.nu, Q, R, P)
+    A_K = as_matrix(A_K, f"{name}: A_K", (system.nx, system.nx))
+    K = as_matrix(K, f"{name}: K", (system.nu, system.nx))
     Xs = reachable_tightened_sets(X, A_K, W, N, G, name="X")
     Us = reachable_tightened_sets(U, A_K, W, N, G, K=K, name="U")
     Xf_N = reachable_tightened_sets(Xf, A_K, W, N, G, name="Xf")[N]
@@ -56,6 +71,11 @@ def tube_mpc_problem(system: System, X: Polytope, U: Polytope, Xf: Polytope, N: 
                      name: str = "tube_mpc") -> OCP:
     """(2.15): ``x_k − z_0 ∈ E`` (``z_0`` free), nominal dynamics, ``z_i ∈ X ⊖ E``,
     ``v_i ∈ U ⊖ K E``, ``z_N ∈ X_f``; apply ``v*_0 + K(x_k − z*_0)``. Parameter ``x0``."""
+    check_system_sets(name, system, X, U, polytope=True)
+    check_system_sets(name, system, Xf=Xf)
+    N = check_horizon(N, name)
+    Q, R, P = check_weights(name, system.nx, system.nu, Q, R, P)
+    check_instance(error, ErrorSet, f"{name}: error")
     ocp = OCP(system, N, name=name, state_name="z", input_name="v")
     ocp.initial_tube(ocp.parameter("x0", system.nx), error.E)
     ocp.dynamics()
@@ -86,6 +106,9 @@ class RobustSets:
 def robust_sets(X: Polytope, U: Polytope, error: ErrorSet,
                 U_tight: Polytope | None = None) -> RobustSets:
     """``X ⊖ E`` and ``U ⊖ K E`` (or the user's ``U_tight`` for a nonlinear κ)."""
+    check_instance(error, ErrorSet, "robust_sets: error")
+    if U_tight is not None:
+        check_instance(U_tight, Polytope, "robust_sets: U_tight")
     X_E = tighten(X, error.E, name=f"{X.name}⊖E")
     U_E = U_tight if U_tight is not None else error.tighten_input(U, name=f"{U.name}⊖KE")
     return RobustSets(X_E, U_E)
@@ -108,6 +131,9 @@ def robust_pcbf_slack_problem(system: System, X: Polytope, U: Polytope, h_f: Cal
 
     Parameter ``x0``; variables ``z``, ``v``, ``xi`` (rows of ``c_x`` × N, ``>= 0``), ``xi_N``.
     """
+    N, deltas = check_pcbf_args(name, system, X, U, h_f, N, deltas, polytope=True)
+    alpha_f = positive(alpha_f, f"{name}: alpha_f")
+    check_norm_order(slack_norm, f"{name}: slack_norm")
     sets = robust_sets(X, U, error, U_tight)
     ocp = OCP(system, N, name=name, state_name="z", input_name="v")
     _tube_blocks(ocp, system, sets, error)
@@ -132,6 +158,10 @@ def robust_pcbf_filter_problem(system: System, X: Polytope, U: Polytope, h_f: Ca
     any cost; ``syms`` holds ``x0``, ``u_p``, ``z``, ``v``, ``u0`` (the applied input expression).
     Parameters ``x0``, ``u_p``, ``xi``, ``xi_N``.
     """
+    N, deltas = check_pcbf_args(name, system, X, U, h_f, N, deltas, polytope=True)
+    eps = nonnegative(eps, f"{name}: eps")
+    if objective is not None:
+        check_callable(objective, f"{name}: objective")
     sets = robust_sets(X, U, error, U_tight)
     ocp = OCP(system, N, name=name, state_name="z", input_name="v")
     x0 = _tube_blocks(ocp, system, sets, error)
@@ -162,8 +192,11 @@ def fuel_objective(ocp: OCP, syms: dict) -> Cost:
 def slack_cost(xi: np.ndarray, xi_N: float, alpha_f: float, slack_norm: int | float = 1
                ) -> float:
     """``h̃(ξ) = α_f ξ_N + Σ_i ‖ξ_i‖`` (SPEC §1.12); ``xi`` has one column per step."""
-    xi = np.asarray(xi, dtype=float).reshape(np.shape(xi)[0], -1)
-    return float(alpha_f * float(np.asarray(xi_N).reshape(-1)[0])
+    xi = as_matrix(xi, "slack_cost: xi")
+    xi_N = as_scalar(xi_N, "slack_cost: xi_N")
+    alpha_f = positive(alpha_f, "slack_cost: alpha_f")
+    check_norm_order(slack_norm, "slack_cost: slack_norm")
+    return float(alpha_f * xi_N
                  + sum(np.linalg.norm(xi[:, i], slack_norm) for i in range(xi.shape[1])))
 
 
@@ -267,6 +300,8 @@ def terminal_cbf_with_domain(A: np.ndarray, B: np.ndarray, X_E: Polytope, U_E: P
     region. The ellipsoid stays inside ``X ⊖ E`` and ``U ⊖ κ(E)`` as the thesis requires."""
     from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
+    level = nonnegative(level, "terminal_cbf_with_domain: level")
+    check_instance(U_E, Polytope, "terminal_cbf_with_domain: U_E")
     return synthesize_terminal_cbf(A, B, X_E, U_E, delta_N=delta_N,
                                    decrease_factor=decrease_factor, min_level=level)
 

@@ -26,12 +26,11 @@ import casadi as ca
 import cvxpy as cp
 import numpy as np
 
-from balustrade._checks import as_matrix
+from balustrade._checks import as_matrix, as_scalar, check_instance, check_psd
 from balustrade.dsl.sets import Polytope
 from balustrade.errors import (
     BalustradeError,
     DegenerateResultWarning,
-    NonFiniteError,
     ShapeError,
 )
 
@@ -82,26 +81,24 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
     ``γ_f >= γ`` (``γ_f`` is computed on ``U`` itself). A degenerate ``γ_f ≈ 0`` is
     returned with a :class:`~balustrade.errors.DegenerateResultWarning` naming the
     limiting input rows (see the module docstring)."""
-    for what, S in (("X", X), ("U", U)):
-        if not isinstance(S, Polytope):
-            raise BalustradeError(f"terminal CBF SDP: {what} must be a Polytope (a Box or "
-                                  f"H x <= h), got {type(S).__name__}")
-    delta_N = _finite_scalar(delta_N, "delta_N")
-    min_level = _finite_scalar(min_level, "min_level")
-    if min_level < 0:
-        raise BalustradeError(f"terminal CBF SDP: min_level must be >= 0, got {min_level}")
+    check_instance(X, Polytope, "terminal CBF SDP: X")
+    check_instance(U, Polytope, "terminal CBF SDP: U")
+    delta_N = as_scalar(delta_N, "terminal CBF SDP: delta_N (Δ_{N−1})", low=0.0)
+    min_level = as_scalar(min_level, "terminal CBF SDP: min_level", low=0.0)
+    decrease_factor = as_scalar(decrease_factor, "terminal CBF SDP: decrease factor λ",
+                                low=0.0, high=1.0, low_open=True)
     A = as_matrix(A, "terminal CBF SDP: A")
     n = A.shape[0]
     if A.shape != (n, n):
         raise ShapeError("terminal CBF SDP: A", (n, n), A.shape)
     B = as_matrix(B, "terminal CBF SDP: B", (n, None))
     m = B.shape[1]
+    if not isinstance(solver, str):
+        raise BalustradeError(f"terminal CBF SDP: solver must be a cvxpy solver name, got "
+                              f"{type(solver).__name__}")
     if X.dim != n or U.dim != m:
         raise ShapeError("terminal CBF SDP: sets", f"X of dim {n}, U of dim {m}",
                          f"X of dim {X.dim}, U of dim {U.dim}", what="")
-    if not 0 < _finite_scalar(decrease_factor, "decrease factor") <= 1:
-        raise BalustradeError(f"terminal CBF SDP: decrease factor must lie in (0, 1], got "
-                              f"{decrease_factor}")
     bx = X.h - delta_N
     if np.any(bx <= 0) or np.any(U.h <= 0):
         raise BalustradeError("terminal CBF SDP: the origin must lie in the interior of the "
@@ -145,17 +142,6 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
                        degenerate=reason)
 
 
-def _finite_scalar(value: object, what: str) -> float:
-    try:
-        v = float(np.asarray(value, dtype=float))
-    except (TypeError, ValueError) as exc:
-        raise BalustradeError(f"terminal CBF SDP: {what} must be a number, got "
-                              f"{value!r}") from exc
-    if not np.isfinite(v):
-        raise NonFiniteError(f"terminal CBF SDP: {what} is {v}")
-    return v
-
-
 def _row_text(a: np.ndarray, b: float) -> str:
     """``a_jᵀu <= b_j`` as text, e.g. ``-u_0 <= 5``."""
     text = ""
@@ -184,6 +170,9 @@ def _degenerate_reason(gamma_f: float, rows: tuple[int, ...], U: Polytope) -> st
 def input_levels(P: np.ndarray, K: np.ndarray, U: Polytope) -> np.ndarray:
     """``b_u,j² / (a_jᵀ K P⁻¹ Kᵀ a_j) − 1`` for every input row ``j`` (``+inf`` for a row
     ``K`` does not reach): the level at which ``Kx`` meets row ``j``."""
+    check_instance(U, Polytope, "input_levels: U")
+    P = check_psd(P, "input_levels: P", strict=True)
+    K = as_matrix(K, "input_levels: K", (U.dim, P.shape[0]))
     E = np.linalg.inv(P)
     levels = []
     for a, b in zip(U.H, U.h):
