@@ -32,6 +32,15 @@ from balustrade.errors import ConvexityError, SolverError
 #: bounds and constant row offsets at least this large in magnitude are infinite: such a
 #: bound is not sent to the solver (an interior-point solver cannot hold a 1e30 row)
 INFINITE_BOUND = 1e20
+#: bounds (and constant row offsets) from this size on are "large but finite" (``|u| <= 1e12``
+#: used as "unbounded"): they are left out of the problem sent first and only imposed, by a
+#: second solve, when its solution violates them (a relaxation's minimizer that satisfies
+#: the left-out rows is a minimizer of the whole problem); as rows they make PIQP and
+#: Clarabel stall
+LARGE_BOUND = 1e9
+
+#: a cost coefficient above this makes a failed solve be retried with the cost rescaled
+BIG_WEIGHT = 1e6
 
 #: solvers whose cvxpy interface warm-starts from the variables' values (``W.value``)
 _WARM_FROM_VALUES = frozenset({"GUROBI", "MOSEK", "CPLEX", "XPRESS", "COPT"})
@@ -59,6 +68,7 @@ class CvxpyCompiled:
         self.P = cp.Parameter(int(p_sym.numel()), name="p") if p_sym.numel() else None
         self.conic = False  # becomes True when a second-order cone is needed
         self.derived: list[tuple] = []  # (CasADi function of p, cvxpy parameter)
+        self._large_rows: list[structure.Affine] = []  # rows A w + c <= 0 with large |c|
         #: per block: (rows, constraint, factor from the constraint's dual to the rows')
         self.block_constraints: dict[str, list[tuple[np.ndarray, cp.Constraint, float]]] = {}
         constraints: list[cp.Constraint] = []
@@ -69,12 +79,15 @@ class CvxpyCompiled:
         self.bound_constraints = self._bounds()
         objective = self._lower_cost(w_sym, p_sym)
         self.problem = cp.Problem(cp.Minimize(objective), constraints + self.bound_constraints)
+        self.large = _stack(self._large_rows)
+        self._full: cp.Problem | None = None  # with the large rows, built when needed
         if (self.P is not None or self.derived) and not self.problem.is_dpp():
             raise ConvexityError(f"{ocp.name}: parameters enter the problem in a way that is not "
                                  "DPP (disciplined parametrized); check parameter products")
         self.solver_name = self._choose_solver(solver)
         self.solver_options = {**SOLVER_OPTIONS.get(self.solver_name, {}), **(options or {})}
         self._feasibility: cp.Problem | None = None  # built on the first "infeasible"
+        self._scaled: cp.Problem | None = None  # built on the first failure, see _rescaled
         self._last: Solution | None = None  # what the solver cache of OSQP/SCS holds
         import casadi as ca
 
@@ -82,11 +95,24 @@ class CvxpyCompiled:
 
     # -- pass 1+2: constraints ---------------------------------------------------------
     def _bounds(self) -> list[cp.Constraint]:
-        """Variable bounds; those with ``|bound| >= INFINITE_BOUND`` are left out."""
+        """Variable bounds; those with ``|bound| >= INFINITE_BOUND`` are left out, those
+        with ``|bound| >= LARGE_BOUND`` are kept aside (:attr:`large`)."""
+        import scipy.sparse as sp
+
         lb, ub = self.ocp.bounds()
         out = []
-        finite_lb = np.flatnonzero(lb > -INFINITE_BOUND)
-        finite_ub = np.flatnonzero(ub < INFINITE_BOUND)
+        finite_lb = np.flatnonzero(lb > -LARGE_BOUND)
+        finite_ub = np.flatnonzero(ub < LARGE_BOUND)
+        n = self.W.size
+        for sign, bound in ((-1.0, lb), (1.0, ub)):
+            large = np.flatnonzero((np.abs(bound) >= LARGE_BOUND)
+                                   & (np.abs(bound) < INFINITE_BOUND))
+            if large.size:  # sign w_i − sign b_i <= 0
+                A = sp.csr_matrix((np.full(large.size, sign), (np.arange(large.size), large)),
+                                  shape=(large.size, n))
+                self._large_rows.append(structure.Affine(
+                    A, sp.csr_matrix((large.size, 0 if self.P is None else self.P.size)),
+                    -sign * bound[large]))
         if finite_lb.size:
             out.append(self.W[finite_lb] >= lb[finite_lb])
         if finite_ub.size:
@@ -148,8 +174,14 @@ class CvxpyCompiled:
         with an infinite offset (``c <= −INFINITE_BOUND``) or no variables and ``c <= 0``."""
         if kind == "eq":
             return [(rows, self._affine_expr(aff) == 0, 1.0)]
-        empty = (np.diff(aff.A.indptr) == 0) & (np.diff(aff.B.indptr) == 0)
-        keep = np.flatnonzero(~((aff.c <= -INFINITE_BOUND) | (empty & (aff.c <= 0))))
+        no_p = np.diff(aff.B.indptr) == 0
+        empty = (np.diff(aff.A.indptr) == 0) & no_p
+        large = np.flatnonzero(no_p & ~empty & (aff.c <= -LARGE_BOUND)
+                               & (aff.c > -INFINITE_BOUND))
+        if large.size:
+            self._large_rows.append(structure.Affine(aff.A[large], aff.B[large], aff.c[large]))
+        keep = np.flatnonzero(~((aff.c <= -LARGE_BOUND) & no_p | (empty & (aff.c <= 0))
+                                | (aff.c <= -INFINITE_BOUND)))
         if keep.size == 0:
             return []
         if keep.size < rows.size:
@@ -189,11 +221,14 @@ class CvxpyCompiled:
 
     # -- pass 2: cost ------------------------------------------------------------------
     def _lower_cost(self, w_sym, p_sym) -> cp.Expression:
+        """The cost; records :attr:`cost_scale`, its largest coefficient."""
         total: cp.Expression | float = 0.0
+        self.cost_scale = 0.0
         for k, term in enumerate(self.ocp.cost.terms):
             label = term.label or f"{term.kind}#{k}"
             if term.kind == "smooth":
-                total = total + term.coef * self._smooth_cost(term.expr, w_sym, p_sym, label)
+                total = total + term.coef * self._smooth_cost(term.expr, w_sym, p_sym, label,
+                                                              abs(term.coef))
                 continue
             aff = structure.affine(term.expr, w_sym, p_sym, label)
             if aff is None:
@@ -201,15 +236,23 @@ class CvxpyCompiled:
                                      "affine in the decision variables for the cvxpy backend")
             arg = self._affine_expr(aff)
             atom = _ATOMS[term.kind](arg)
+            size = float(np.abs(aff.A.data).max(initial=0.0))
+            self._record_scale(abs(term.coef) * (size ** 2 if term.kind == "squared2" else size))
             if term.kind == "norm2":
                 self.conic = True
             total = total + term.coef * atom
         return total
 
-    def _smooth_cost(self, expr, w_sym, p_sym, label: str) -> cp.Expression:
+    def _record_scale(self, value: float) -> None:
+        self.cost_scale = max(self.cost_scale, value)
+
+    def _smooth_cost(self, expr, w_sym, p_sym, label: str, coef: float) -> cp.Expression:
         """A quadratic cost term; its parameter-only part is dropped (the reported objective
         is re-evaluated from the declared cost)."""
         q = structure.quadratic(expr, w_sym, p_sym, f"cost term {label!r}")
+        self._record_scale(coef * max(float(np.abs(q.a).max(initial=0.0)),
+                                      float((q.L ** 2).sum(axis=0).max(initial=0.0)),
+                                      float(np.abs(q.M.data).max(initial=0.0))))
         value = q.a @ self.W
         if q.L.size:
             value = value + 0.5 * cp.sum_squares(q.L @ self.W[q.index])
@@ -251,6 +294,15 @@ class CvxpyCompiled:
         status, message = _run(self.problem, self.solver_name, self.solver_options, warm)
         if status == "infeasible":
             status, message = self._check_infeasible(message)
+        if self.large is not None and not (status == "infeasible" or self._within_large()):
+            first = "violated them" if status in ("optimal", "optimal_inaccurate") else status
+            status, message = _run(self._full_problem(), self.solver_name,
+                                   self.solver_options, False)
+            message += (f" (with the {self.large.c.size} large bounds/rows |b| >= "
+                        f"{LARGE_BOUND:g}; the solve without them: {first})")
+        if status in ("failed", "max_iterations", "optimal_inaccurate") \
+                and self.cost_scale > BIG_WEIGHT:
+            status, message = self._rescaled(status, message)
         elapsed = time.perf_counter() - start
         n = self.W.size
         w = np.asarray(self.W.value, dtype=float).reshape(-1) if self.W.value is not None \
@@ -294,6 +346,38 @@ class CvxpyCompiled:
                               "e.g. from badly scaled cost weights")
         return "infeasible", message
 
+    def _within_large(self) -> bool:
+        """The solution exists and satisfies the large rows left out of the problem."""
+        if self.problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) \
+                or self.W.value is None:
+            return False
+        residual = self.large.A @ np.asarray(self.W.value).reshape(-1) + self.large.c
+        return bool(np.all(residual <= 1e-12 * np.abs(self.large.c)))
+
+    def _full_problem(self) -> cp.Problem:
+        if self._full is None:
+            self._full = cp.Problem(self.problem.objective, self.problem.constraints
+                                    + [self._affine_expr(self.large) <= 0])
+        return self._full
+
+    def _rescaled(self, status: str, message: str) -> tuple[str, str]:
+        """Re-solve with the cost divided by :attr:`cost_scale`: with weights of 1e9 and
+        more (exact-penalty slacks) the multipliers are huge and PIQP/Clarabel mistake them
+        for an infeasibility certificate or stall. The minimizer of the scaled problem is
+        the same, but it is accurate only relative to the largest weight, hence at best
+        ``optimal_inaccurate``."""
+        if self._scaled is None:
+            self._scaled = cp.Problem(cp.Minimize(self.problem.objective.args[0]
+                                                  / self.cost_scale),
+                                      self.problem.constraints)
+        retry, words = _run(self._scaled, self.solver_name, self.solver_options, False)
+        if status == "optimal_inaccurate" and retry != "optimal":
+            return status, message  # keep the first answer unless the retry converged
+        if retry in ("optimal", "optimal_inaccurate"):
+            return "optimal_inaccurate", (f"{message}; solved with the cost scaled by "
+                                          f"1/{self.cost_scale:.3g}: {words}")
+        return status, f"{message}; with the cost scaled by 1/{self.cost_scale:.3g}: {words}"
+
     def _duals(self) -> dict[str, np.ndarray]:
         out = {}
         for block in self.ocp.blocks:
@@ -303,6 +387,16 @@ class CvxpyCompiled:
                     values[rows] = scale * np.asarray(con.dual_value, dtype=float).reshape(-1)
             out[block.name] = values
         return out
+
+
+def _stack(parts: list[structure.Affine]) -> structure.Affine | None:
+    import scipy.sparse as sp
+
+    if not parts:
+        return None
+    return structure.Affine(sp.vstack([a.A for a in parts]).tocsr(),
+                            sp.vstack([a.B for a in parts]).tocsr(),
+                            np.concatenate([a.c for a in parts]))
 
 
 def _run(problem: cp.Problem, solver: str, options: dict, warm_start: bool

@@ -175,7 +175,20 @@ def _require_psd(H: np.ndarray, where: str) -> None:
 
 
 def psd_factor(H: np.ndarray) -> np.ndarray:
-    """``L`` with ``LᵀL = H`` for ``H ⪰ 0`` (eigen-factor, drops null directions)."""
-    lam, V = np.linalg.eigh(0.5 * (H + H.T))
-    keep = lam > 1e-12 * max(1.0, float(lam.max(initial=0.0)))
+    """``L`` with ``LᵀL = H`` for ``H ⪰ 0`` and orthogonal rows; drops null directions.
+
+    A diagonal ``H`` is factored exactly (``√H_ii``); otherwise by eigenvalues, dropping only
+    those at the level of the eigen-solver's rounding (``8 n ε max λ``): a cost
+    ``10¹² u₀² + u₁²`` must keep its ``u₁²``.
+    """
+    H = 0.5 * (H + H.T)
+    n = H.shape[0]
+    if n and not np.any(H - np.diag(np.diagonal(H))):
+        d = np.diagonal(H)
+        keep = np.flatnonzero(d > 0)
+        L = np.zeros((keep.size, n))
+        L[np.arange(keep.size), keep] = np.sqrt(d[keep])
+        return L
+    lam, V = np.linalg.eigh(H)
+    keep = lam > 8 * max(n, 1) * np.finfo(float).eps * max(float(lam.max(initial=0.0)), 1e-300)
     return (V[:, keep] * np.sqrt(lam[keep])).T
