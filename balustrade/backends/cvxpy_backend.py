@@ -292,6 +292,7 @@ class CvxpyCompiled:
         warm = self._use_warm_start(warm_start)
         start = time.perf_counter()
         status, message = _run(self.problem, self.solver_name, self.solver_options, warm)
+        first_message = message
         if status == "infeasible":
             status, message = self._check_infeasible(message)
         if self.large is not None and not (status == "infeasible" or self._within_large()):
@@ -315,7 +316,8 @@ class CvxpyCompiled:
                        solve_time=elapsed,
                        iterations=int(getattr(stats, "num_iters", 0) or 0) if stats else 0,
                        backend="cvxpy", solver=self.solver_name, w=w, p=p, message=message)
-        self._last = sol
+        # OSQP/SCS cache the last solve of self.problem: a warm start only if that is `sol`
+        self._last = sol if message == first_message else None
         return sol
 
     def _use_warm_start(self, warm_start: Solution | dict | None) -> bool:
@@ -370,9 +372,11 @@ class CvxpyCompiled:
             self._scaled = cp.Problem(cp.Minimize(self.problem.objective.args[0]
                                                   / self.cost_scale),
                                       self.problem.constraints)
+        first = self.W.value
         retry, words = _run(self._scaled, self.solver_name, self.solver_options, False)
         if status == "optimal_inaccurate" and retry != "optimal":
-            return status, message  # keep the first answer unless the retry converged
+            self.W.value = first  # keep the first answer unless the retry converged
+            return status, message
         if retry in ("optimal", "optimal_inaccurate"):
             return "optimal_inaccurate", (f"{message}; solved with the cost scaled by "
                                           f"1/{self.cost_scale:.3g}: {words}")
