@@ -6,6 +6,13 @@ block's rows are classified here, then :mod:`balustrade.backends.cvxpy_backend` 
 pieces into DPP-parametrized cvxpy atoms. Parameters must enter affinely and must not
 multiply decision variables inside a constraint; the multiplier of a parameter-affine
 linear cost term is allowed (``(b + M p)ᵀ w`` is DPP).
+
+A row that is a convex quadratic jointly in ``(w, p)`` — the tube's initial constraint
+``(x_k − z_0)ᵀ P (x_k − z_0) <= 1`` ((2.15), (5.15b)) with the state ``x_k`` a parameter —
+is kept about its centre (:func:`joint_quadratic`): ``½‖L_w w + L_p p + l‖² + affine``.
+Expanding it around zero instead (``‖L z_0‖² − 2 (P x_k)ᵀ z_0 + x_kᵀ P x_k <= 1``) makes
+the solver cancel constants of size ``|x_k|²‖P‖`` (1.4·10⁵ on the rendezvous), which it
+cannot do to its tolerances.
 """
 
 from __future__ import annotations
@@ -99,6 +106,64 @@ def quadratic(expr: ca.SX, w: ca.SX, p: ca.SX, where: str) -> Quadratic:
     return Quadratic(index, psd_factor(Hs), a, _dm_to_sparse(_evaluate(M, w, p)), b, c, phi)
 
 
+@dataclass
+class JointQuadratic:
+    """``½ ‖L_w w_I + L_p p_J + l‖² + aᵀ w + bᵀ p + c``: a row that is a convex quadratic
+    jointly in the decision variables and the parameters (constant joint Hessian
+    ``[L_w L_p]ᵀ[L_w L_p] ⪰ 0`` on the indices ``I``, ``J``), written about its centre.
+    ``a``, ``b`` hold only the gradient outside the range of the Hessian (often zero), so
+    that ``c`` is the row's value at the centre (``−1`` for an ellipsoid ``(x−z)ᵀP(x−z) − 1``).
+    """
+
+    w_index: np.ndarray
+    p_index: np.ndarray
+    Lw: np.ndarray
+    Lp: np.ndarray
+    l: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    c: float
+
+    @property
+    def linear_free(self) -> bool:
+        """No affine part: the row is ``½‖·‖² + c <= 0``, i.e. the cone ``‖·‖ <= √(−2c)``."""
+        return not (np.any(self.a) or np.any(self.b))
+
+
+def joint_quadratic(expr: ca.SX, w: ca.SX, p: ca.SX) -> JointQuadratic | None:
+    """Decompose a scalar row that is quadratic jointly in ``(w, p)`` with a positive
+    semidefinite joint Hessian ``H`` as ``½‖L z + l‖² + gᵣᵀ z + c'`` (``z = (w, p)``,
+    ``LᵀL = H``, ``Lᵀl`` the part of the gradient at zero ``g`` in the range of ``H``,
+    ``gᵣ = g − Lᵀl``, ``c' = expr(0) − ½‖l‖²``); ``None`` if it is not (its Hessian depends on
+    ``(w, p)``, e.g. a nonlinear ``−h(x_k)``, or is indefinite, e.g. ``−x_kᵀ P x_k``)."""
+    z = ca.vertcat(w, p)
+    grad = ca.gradient(expr, z)
+    Hz = ca.jacobian(grad, z)
+    if not _constant(Hz, w, p):
+        return None
+    H = np.asarray(ca.densify(_evaluate(Hz, w, p)), dtype=float)
+    H = 0.5 * (H + H.T)
+    support = np.flatnonzero(np.any(H != 0, axis=0))
+    Hs = H[np.ix_(support, support)]
+    if Hs.size:
+        lam = np.linalg.eigvalsh(Hs)
+        if lam.min() < -1e-9 * max(1.0, float(np.abs(lam).max())):
+            return None
+    L = psd_factor(Hs)
+    g = np.asarray(_evaluate(grad, w, p), dtype=float).reshape(-1)
+    c = float(np.asarray(_evaluate(expr, w, p), dtype=float).reshape(-1)[0])
+    # L has orthogonal rows (eigen-factor): Lᵀl = projection of g onto range(H)
+    row_norms2 = np.einsum("ij,ij->i", L, L)
+    l = (L @ g[support]) / row_norms2 if L.size else np.zeros(0)
+    g_rest = g.copy()
+    g_rest[support] -= L.T @ l
+    g_rest[np.abs(g_rest) <= 1e-12 * max(1.0, float(np.abs(g).max(initial=0.0)))] = 0.0
+    nw = int(w.numel())
+    in_w = support < nw
+    return JointQuadratic(support[in_w], support[~in_w] - nw, L[:, in_w], L[:, ~in_w], l,
+                          g_rest[:nw], g_rest[nw:], c - 0.5 * float(l @ l))
+
+
 def _require_psd(H: np.ndarray, where: str) -> None:
     if H.size == 0:
         return
@@ -110,7 +175,20 @@ def _require_psd(H: np.ndarray, where: str) -> None:
 
 
 def psd_factor(H: np.ndarray) -> np.ndarray:
-    """``L`` with ``LᵀL = H`` for ``H ⪰ 0`` (eigen-factor, drops null directions)."""
-    lam, V = np.linalg.eigh(0.5 * (H + H.T))
-    keep = lam > 1e-12 * max(1.0, float(lam.max(initial=0.0)))
+    """``L`` with ``LᵀL = H`` for ``H ⪰ 0`` and orthogonal rows; drops null directions.
+
+    A diagonal ``H`` is factored exactly (``√H_ii``); otherwise by eigenvalues, dropping only
+    those at the level of the eigen-solver's rounding (``8 n ε max λ``): a cost
+    ``10¹² u₀² + u₁²`` must keep its ``u₁²``.
+    """
+    H = 0.5 * (H + H.T)
+    n = H.shape[0]
+    if n and not np.any(H - np.diag(np.diagonal(H))):
+        d = np.diagonal(H)
+        keep = np.flatnonzero(d > 0)
+        L = np.zeros((keep.size, n))
+        L[np.arange(keep.size), keep] = np.sqrt(d[keep])
+        return L
+    lam, V = np.linalg.eigh(H)
+    keep = lam > 8 * max(n, 1) * np.finfo(float).eps * max(float(lam.max(initial=0.0)), 1e-300)
     return (V[:, keep] * np.sqrt(lam[keep])).T
