@@ -90,3 +90,15 @@ def test_robust_filter_flags_an_inaccurate_h_r(unstable2d_tube):
     _, info = ctl.step(x, np.array([0.5]))
     assert info.uncertified == {"slack": "optimal_inaccurate"}
     assert info.status == "slack_optimal_inaccurate" and np.isfinite(info.values["h_r"])
+
+
+def test_a_feasible_point_of_cost_zero_is_certified_by_the_lower_bound(pend):
+    """h_PB >= 0: sqpmethod's unconverged zero step at the origin (cost 0) is optimal all
+    the same, and used as such (as the emitted C does)."""
+    slack = compile(pend.slack, "casadi", "sqpmethod", retries=[])
+    sol = slack.solve({"x0": [0.0, 0.0]})
+    assert sol.status == "feasible" and sol.objective == pytest.approx(0.0, abs=1e-12)
+    ctl = PCBFSafetyFilter(slack, pend.compiled["filter", "casadi"], pend.U)
+    _, info = ctl.step(np.zeros(2), np.array([2.0]))
+    assert info.status == "ok" and info.fallback is None and not info.uncertified
+    assert info.values["h_PB"] == pytest.approx(0.0, abs=1e-12)

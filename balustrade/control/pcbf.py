@@ -9,7 +9,9 @@ CBF decrease behind the guarantee) is about (SPEC §2.7). So (issue #12):
 * ``optimal_inaccurate`` (converged to the solver's acceptable tolerances) → used as above,
   flagged: ``StepInfo.uncertified["slack"]`` and ``StepInfo.status`` name the status, and
   the value is recorded as ``h_PB`` (accurate to those tolerances);
-* ``feasible`` (no convergence, a primal-feasible point) → *not* ``h_PB``: its cost is
+* ``feasible`` (no convergence, a primal-feasible point) with cost ``<= ZERO_TOL`` → optimal
+  all the same (``h_PB >= 0`` is a lower bound it attains): used as an optimal solve;
+* ``feasible`` with a larger cost → *not* ``h_PB``: its cost is
   recorded as ``values["h_PB_upper"]`` (any feasible point of (2.24) bounds ``h_PB`` from
   above), ``values["h_PB"]`` is ``nan``, and the step is a failed (2.24): fallback 2 below;
   only when there is no plan left are its slacks used in (2.23) (they relax the
@@ -38,6 +40,9 @@ from balustrade.control.fallbacks import finite_state, project, projected_propos
 from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
+
+#: a merely feasible (2.24) point of cost <= ZERO_TOL is optimal (``h_PB >= 0``)
+ZERO_TOL = 1e-9
 
 
 class PCBFSafetyFilter:
@@ -76,9 +81,13 @@ class PCBFSafetyFilter:
         if not s1.usable:
             info.status = f"slack_{s1.status}"
             return self._fallback(u_p, info, "shifted_plan")
-        note_solve(info, "slack", s1.status)
         value = max(float(s1.objective), 0.0)
-        if not s1.success:  # primal feasible, not converged: an upper bound, not h_PB
+        # h_PB >= 0 (nonnegative slacks and norms): a feasible point of cost <= ZERO_TOL is
+        # optimal by that lower bound, converged or not (e.g. sqpmethod's zero step at x = 0)
+        certified = s1.status == "optimal" or (s1.status == "feasible" and value <= ZERO_TOL)
+        if not certified:
+            note_solve(info, "slack", s1.status)
+        if not s1.success and not certified:  # feasible, not converged: an upper bound
             info.status = f"slack_{s1.status}"
             info.values.update(h_PB=float("nan"), h_PB_upper=value)
             if self._plan is not None and self._plan_age + 1 < self._plan.shape[1]:
@@ -97,14 +106,14 @@ class PCBFSafetyFilter:
             note_solve(info, "filter", s2.status)
             self._last_filter = s2 if s2.success else self._last_filter
             plan = np.asarray(s2["u"]).reshape(self.nu, -1)
-            info.status = "ok" if s1.status == s2.status == "optimal" else (
+            info.status = "ok" if certified and s2.status == "optimal" else (
                 f"slack_{s1.status}_filter_{s2.status}")
         else:
-            info.status = ("" if s1.status == "optimal" else f"slack_{s1.status}_") + \
+            info.status = ("" if certified else f"slack_{s1.status}_") + \
                 f"filter_{s2.status}"
             info.fallback = "slack_solution"
             plan = np.asarray(s1["u"]).reshape(self.nu, -1)
-        if not s1.success:
+        if not s1.success and not certified:
             info.fallback = "feasible_slack"
         self._plan, self._plan_age = plan, 0
         return plan[:, 0].copy(), info
