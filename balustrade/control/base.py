@@ -23,13 +23,26 @@ from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 @dataclass
 class StepInfo:
-    """What a controller did at one step."""
+    """What a controller did at one step.
+
+    ``uncertified`` maps each solve the step relied on that did not end ``optimal`` to its
+    status (e.g. ``{"slack": "optimal_inaccurate"}``): values computed from it are not
+    certified optima (see :func:`note_solve`)."""
 
     status: str = "ok"
     fallback: str | None = None
     values: dict[str, float] = field(default_factory=dict)
     solve_time: float = 0.0
     solutions: dict = field(default_factory=dict, repr=False)
+    uncertified: dict[str, str] = field(default_factory=dict)
+
+
+def note_solve(info: StepInfo, name: str, status: str) -> bool:
+    """Record in ``info.uncertified`` a solve of problem ``name`` whose status is not
+    ``optimal``; returns whether it was ``optimal``."""
+    if status != "optimal":
+        info.uncertified[name] = status
+    return status == "optimal"
 
 
 class Controller(Protocol):
@@ -55,10 +68,17 @@ class Trace:
     step_times: np.ndarray
     infos: list[StepInfo] = field(repr=False, default_factory=list)
     stopped: str | None = None
+    #: per step, :attr:`StepInfo.uncertified` (solves used that did not end ``optimal``)
+    uncertified: list[dict[str, str]] = field(default_factory=list)
 
     @property
     def n_fallbacks(self) -> int:
         return sum(f is not None for f in self.fallbacks)
+
+    @property
+    def n_uncertified(self) -> int:
+        """Steps that relied on at least one solve not certified ``optimal``."""
+        return sum(bool(u) for u in self.uncertified)
 
 
 Proposal = np.ndarray | float | Callable[[int, np.ndarray], np.ndarray]
@@ -86,6 +106,7 @@ def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
     states, inputs, proposed, dists = [x], [], [], []
     values: dict[str, list[float]] = {}
     statuses, fallbacks, solve_times, step_times, infos = [], [], [], [], []
+    uncertified: list[dict[str, str]] = []
     stopped = None
     for k in range(steps):
         u_p = _proposal(proposal, k, x, plant.nu)
@@ -103,6 +124,7 @@ def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
         dists.append(w)
         statuses.append(info.status)
         fallbacks.append(info.fallback)
+        uncertified.append(dict(info.uncertified))
         solve_times.append(info.solve_time)
         for key in set(values) | set(info.values):
             values.setdefault(key, [np.nan] * k).append(info.values.get(key, np.nan))
@@ -121,7 +143,7 @@ def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
                  np.array(proposed).reshape(-1, plant.nu),
                  np.array(dists).reshape(len(dists), plant.nw),
                  {k: np.array(v) for k, v in values.items()}, statuses, fallbacks,
-                 np.array(solve_times), np.array(step_times), infos, stopped)
+                 np.array(solve_times), np.array(step_times), infos, stopped, uncertified)
 
 
 def _call(fn: Callable, k: int, x: np.ndarray, what: str) -> object:

@@ -15,6 +15,7 @@ solve (6.3) without (6.3h) for a feasible ``ũ_0`` (SPEC [Default]); then at eve
 
 The decrease bounds get a margin ``bound_tol · max(1, bound)`` (default ``1e-9``) so that a
 candidate that meets them with equality is not declared infeasible by solver round-off.
+A solve used although it ended ``optimal_inaccurate`` is flagged in ``StepInfo.uncertified``.
 Recorded values: 6.3 — ``V`` (``V((x_k, ṽ_k))``), ``V_bound``; 6.4 — ``h_tilde``
 (``h̃(ξ*_k)``), ``bound``, ``h_cand`` (``h̃(ξ̃_k)``) and, with ``record_h_r=True``, ``h_r``
 (an extra (5.15) solve, not counted in ``solve_time``).
@@ -28,7 +29,7 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.backends import Compiled, Solution, compile
-from balustrade.control.base import StepInfo
+from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.fallbacks import finite_state, project, projected_proposal
 from balustrade.control.robust import _opts
 from balustrade.dsl.error_sets import ErrorSet
@@ -92,6 +93,7 @@ class MultiobjectiveLyapunovController:
                 info.status = f"init_{s0.status}"
                 info.fallback = "projected_proposal"
                 return project(u_p, d.U), info
+            note_solve(info, "init", s0.status)
             self.u_tilde = np.asarray(s0["v"], dtype=float).reshape(nu, -1)
             info.values["switch"] = 0.0
         else:
@@ -109,6 +111,7 @@ class MultiobjectiveLyapunovController:
         info.solutions["problem"] = sol
         if sol.success:
             v = np.asarray(sol["v"], dtype=float).reshape(nu, -1)
+            note_solve(info, "problem", sol.status)   # optimal_inaccurate: flagged only
             info.status = "ok"
         else:
             v = self.u_tilde
@@ -188,6 +191,7 @@ class MultiobjectivePCBFController:
             if not s0.success:
                 info.status, info.fallback = f"init_{s0.status}", "projected_proposal"
                 return project(u_p, self.U), info
+            note_solve(info, "slack", s0.status)
             xi0, xi0_N = polished_slacks(s0, self.X_E, self.h_f, self.deltas)
             self.candidate = Candidate(np.asarray(s0["z"], dtype=float),
                                        np.asarray(s0["v"], dtype=float).reshape(nu, -1),
@@ -197,6 +201,8 @@ class MultiobjectivePCBFController:
                 info.values["h_r"] = self.h_prev
         elif self.record_h_r:
             s_r = self._h_r(x)
+            if s_r.success:
+                note_solve(info, "slack", s_r.status)
             info.values["h_r"] = self.h_tilde(*polished_slacks(
                 s_r, self.X_E, self.h_f, self.deltas)) if s_r.success else np.nan
         c = self.candidate
@@ -213,6 +219,7 @@ class MultiobjectivePCBFController:
             z = np.asarray(sol["z"], dtype=float)
             v = np.asarray(sol["v"], dtype=float).reshape(nu, -1)
             xi, xi_N = polished_slacks(sol, self.X_E, self.h_f, self.deltas)
+            note_solve(info, "problem", sol.status)   # optimal_inaccurate: flagged only
             info.status = "ok"
         else:
             z, v, xi, xi_N = c.z, c.v, c.xi, c.xi_N

@@ -2,16 +2,29 @@
 slack problem (2.24) for ``h_PB(x_k)`` and ``ξ*``, then the filter (2.23) with the slacks
 fixed to ``ξ*``, and apply ``u*_{0|k}``.
 
-A solve that did not converge after the backend's retries but ended primal feasible
-(``Solution.status == "feasible"``) is used as is — its point satisfies the constraints
-of (2.24)/(2.23) — and ``StepInfo.status`` says so. Fallbacks (never raise in the loop;
-each is recorded in ``StepInfo.fallback``):
+Only an optimal solve of (2.24) gives ``h_PB(x_k)`` and the ``ξ*`` that Theorem 2.30 (the
+CBF decrease behind the guarantee) is about (SPEC §2.7). So (issue #12):
+
+* ``optimal`` → ``StepInfo.values["h_PB"]``; the algorithm as above;
+* ``optimal_inaccurate`` (converged to the solver's acceptable tolerances) → used as above,
+  flagged: ``StepInfo.uncertified["slack"]`` and ``StepInfo.status`` name the status, and
+  the value is recorded as ``h_PB`` (accurate to those tolerances);
+* ``feasible`` (no convergence, a primal-feasible point) with cost ``<= ZERO_TOL`` → optimal
+  all the same (``h_PB >= 0`` is a lower bound it attains): used as an optimal solve;
+* ``feasible`` with a larger cost → *not* ``h_PB``: its cost is
+  recorded as ``values["h_PB_upper"]`` (any feasible point of (2.24) bounds ``h_PB`` from
+  above), ``values["h_PB"]`` is ``nan``, and the step is a failed (2.24): fallback 2 below;
+  only when there is no plan left are its slacks used in (2.23) (they relax the
+  constraints by at least ``ξ*``; ``fallback = "feasible_slack"``).
+
+Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
 
 1. (2.23) fails but (2.24) succeeded → apply ``u_{0|k}`` of the (2.24) optimizer, which
    is feasible for (2.23) by construction (SPEC §2.7): ``"slack_solution"``.
-2. (2.24) fails → apply the next input of the last successful plan (shifted solution,
-   as in the recursive-feasibility candidate), ``"shifted_plan"``;
-3. no plan left → the proposed input projected onto ``U``: ``"projected_proposal"``.
+2. (2.24) fails or is not converged → apply the next input of the last successful plan
+   (shifted solution, as in the recursive-feasibility candidate), ``"shifted_plan"``;
+3. no plan left → the proposed input projected onto ``U``: ``"projected_proposal"``
+   (or, after a merely ``feasible`` (2.24), the filter on its slacks, ``"feasible_slack"``).
 """
 
 from __future__ import annotations
@@ -22,11 +35,14 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.backends import Compiled, Solution, compile
-from balustrade.control.base import StepInfo
+from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.fallbacks import finite_state, project, projected_proposal
 from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
+
+#: a merely feasible (2.24) point of cost <= ZERO_TOL is optimal (``h_PB >= 0``)
+ZERO_TOL = 1e-9
 
 
 class PCBFSafetyFilter:
@@ -65,9 +81,20 @@ class PCBFSafetyFilter:
         if not s1.usable:
             info.status = f"slack_{s1.status}"
             return self._fallback(u_p, info, "shifted_plan")
-        self._last_slack = s1 if s1.success else self._last_slack
-        h_pb = max(float(s1.objective), 0.0)
-        info.values["h_PB"] = h_pb
+        value = max(float(s1.objective), 0.0)
+        # h_PB >= 0 (nonnegative slacks and norms): a feasible point of cost <= ZERO_TOL is
+        # optimal by that lower bound, converged or not (e.g. sqpmethod's zero step at x = 0)
+        certified = s1.status == "optimal" or (s1.status == "feasible" and value <= ZERO_TOL)
+        if not certified:
+            note_solve(info, "slack", s1.status)
+        if not s1.success and not certified:  # feasible, not converged: an upper bound
+            info.status = f"slack_{s1.status}"
+            info.values.update(h_PB=float("nan"), h_PB_upper=value)
+            if self._plan is not None and self._plan_age + 1 < self._plan.shape[1]:
+                return self._fallback(u_p, info, "shifted_plan")
+        else:
+            self._last_slack = s1
+            info.values["h_PB"] = value
         xi = np.maximum(np.asarray(s1["xi"]), 0.0)
         xi_N = max(float(np.asarray(s1["xi_N"]).reshape(-1)[0]), 0.0)
         warm = self._last_filter if self._last_filter is not None else {
@@ -76,14 +103,18 @@ class PCBFSafetyFilter:
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
         if s2.usable:
+            note_solve(info, "filter", s2.status)
             self._last_filter = s2 if s2.success else self._last_filter
             plan = np.asarray(s2["u"]).reshape(self.nu, -1)
-            info.status = "ok" if s1.success and s2.success else (
+            info.status = "ok" if certified and s2.status == "optimal" else (
                 f"slack_{s1.status}_filter_{s2.status}")
         else:
-            info.status = f"filter_{s2.status}"
+            info.status = ("" if certified else f"slack_{s1.status}_") + \
+                f"filter_{s2.status}"
             info.fallback = "slack_solution"
             plan = np.asarray(s1["u"]).reshape(self.nu, -1)
+        if not s1.success and not certified:
+            info.fallback = "feasible_slack"
         self._plan, self._plan_age = plan, 0
         return plan[:, 0].copy(), info
 

@@ -12,6 +12,10 @@ Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
    ``"candidate"``; the next candidate is built from it;
 3. no candidate → the proposed input projected onto ``U``: ``"projected_proposal"``.
 
+A (5.15) solve that did not converge (``feasible``, ``max_iterations``, …) is a failed
+(5.15) (fallback 2); one that converged to the solver's acceptable tolerances
+(``optimal_inaccurate``) is used and flagged in ``StepInfo.uncertified`` and ``status``.
+
 Recorded values: ``h_r`` (the optimal value of (5.15)) and ``h_cand`` (``h̃`` of the candidate
 (5.17) built at the previous step, an upper bound on ``h_r`` by Theorem 5.15).
 """
@@ -24,7 +28,7 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.backends import Compiled, Solution, compile
-from balustrade.control.base import StepInfo
+from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.fallbacks import finite_state, project, projected_proposal
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
@@ -119,6 +123,7 @@ class RobustPCBFSafetyFilter:
             info.status = f"slack_{s1.status}"
             return self._fallback(x, u_p, info)
         self._last_slack = s1
+        note_solve(info, "slack", s1.status)   # optimal_inaccurate: h_r flagged, not certified
         info.values["h_r"] = h_r
         xi, xi_N = polished_slacks(s1, self.X_E, self.h_f, self.deltas)
         warm = self._last_filter if self._last_filter is not None else {"z": s1["z"],
@@ -128,7 +133,10 @@ class RobustPCBFSafetyFilter:
         info.solutions["filter"] = s2
         if s2.success:
             self._last_filter = s2
-            chosen, info.status = s2, "ok"
+            note_solve(info, "filter", s2.status)
+            chosen = s2
+            info.status = "ok" if not info.uncertified else "_".join(
+                f"{k}_{v}" for k, v in info.uncertified.items())
         else:
             chosen, info.status, info.fallback = s1, f"filter_{s2.status}", "slack_solution"
         z = np.asarray(chosen["z"], dtype=float)
