@@ -59,33 +59,34 @@ def _run(flt: RobustPCBFSafetyFilter, design: dict, run: int) -> tuple[bool, lis
     x = SCALE * rng.uniform([-0.5, -0.3], [0.5, 0.3])
     u_p = np.array([2.0 * SCALE * direction])  # full input towards the boundary
     flt.reset()
-    left, statuses = False, []
+    left, fallbacks = False, []
     for _ in range(STEPS):
         u, info = flt.step(x, u_p)
-        statuses.append(info.status)
+        fallbacks.append(info.fallback)
         w = {"uniform": rng.uniform(-1.0, 1.0, 2) * W_BOUND,
              "vertex": vertices[rng.integers(4)],
              "constant": direction * W_BOUND}[kind]
         x = design["system"].A @ x + design["system"].B @ u + w
         left |= not design["X"].contains(x, tol=1e-9)
-    return left, statuses
+    return left, fallbacks
 
 
 def _monte_carlo(design: dict, backend: str, runs: range) -> tuple[list[int], list[str]]:
     flt = _filter(design, backend)
     violating, not_ok = [], []
     for r in runs:
-        left, statuses = _run(flt, design, r)
+        left, fallbacks = _run(flt, design, r)
         if left:
             violating.append(r)
-        not_ok += [f"run {r}: {s}" for s in statuses if s != "ok"]
+        not_ok += [f"run {r}: {s}" for s in fallbacks if s is not None]
     return violating, not_ok
 
 
 def _check(design: dict, backend: str, runs: range) -> None:
     violating, not_ok = _monte_carlo(design, backend, runs)
     assert violating == [], f"{backend}: runs leaving X: {violating}"
-    if backend == "cvxpy":  # and every step solved (no fallback)
+    if backend == "cvxpy":  # and every step solved (no fallback; an optimal_inaccurate
+        # filter solve is used and flagged in StepInfo.uncertified, not a fallback)
         assert not_ok == [], not_ok[:10]
 
 
