@@ -219,3 +219,36 @@ def pointwise_regret_lower_bound(ops: Operators, Phi_u: np.ndarray, x0: object, 
             best_val, best_v = val, v
     w = (Lmap @ best_v).reshape(T, p)
     return PointwiseLowerBound(float(best_val), w, len(inits))
+
+
+# ---------------------------------------------------------------------------------------------
+# exact levels of a controller for the energy-bound and adversarial problems (certificates of
+# the syntheses, see synthesis.SynthesisResult.info["certificate"])
+# ---------------------------------------------------------------------------------------------
+def adversarial_level(ops: Operators, Phi_u: np.ndarray) -> float:
+    """(3.24): ‖ΦᵀCΦ − 𝒪‖₂ of the responses Φ_u (M ⪰ 0, so its largest eigenvalue)."""
+    return float(np.linalg.eigvalsh(regret_matrix(ops, Phi_u))[-1])
+
+
+def hinf_level(ops: Operators, Phi_u: np.ndarray) -> float:
+    """SH∞: λ_max(ΦᵀCΦ) on the whole δ, the squared ℓ₂ gain of the closed loop."""
+    C = ops.cost_matrix(ops.phi_x(Phi_u), Phi_u)
+    return float(np.linalg.eigvalsh(0.5 * (C + C.T))[-1])
+
+
+def weighted_level(M: np.ndarray, W: np.ndarray) -> float:
+    """min μ with μW − M ⪰ 0 for W ≻ 0: λ_max(W^{-1/2}MW^{-1/2}) ((3.29)/(3.30))."""
+    lam, U = np.linalg.eigh(0.5 * (W + W.T))
+    Wmh = (U / np.sqrt(lam)) @ U.T
+    K = Wmh @ M @ Wmh
+    return float(np.linalg.eigvalsh(0.5 * (K + K.T))[-1])
+
+
+def zero_x0_level(ops: Operators, Phi_u: np.ndarray, W: np.ndarray,
+                  adversarial_x0: bool = False) -> float:
+    """(3.29)/(3.30): the tight level of Φ_u for x₀ = 0 (w-blocks of M and W) or, with
+    ``adversarial_x0``, on the whole δ."""
+    M = regret_matrix(ops, Phi_u)
+    if adversarial_x0:
+        return weighted_level(M, W)
+    return weighted_level(ops.partition(M)[2], ops.partition(W)[2])
