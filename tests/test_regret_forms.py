@@ -246,3 +246,20 @@ def test_rocket10_all_forms():
     for W in ("I", "O"):
         check_forms("pointwise (3.32)", ops, x0, omega, P, W, None, 0)
         check_forms("generalized (3.28)", ops, x0, omega, P, W, None, 0)
+
+
+def test_rocket8_scrw_level_is_not_below_what_its_controller_attains():
+    """Rocket of Section 3.8 at T = 8 with (3.41), SCRW ((3.32), W = 𝒪): the banded solve ends
+    "optimal" at 0.0104890, but its controller attains ≥ 0.0104892 (certified lower bound) and
+    the optimum (split) is 0.0104891. The certificate must catch it and the re-solve fix it."""
+    from balustrade.models.rocket import RocketRegretSetup
+    from balustrade.reproduce.rocket_regret import synthesis_makers
+
+    setup = RocketRegretSetup(T=8)
+    makers, ops, _ = synthesis_makers(setup)
+    res = makers["SCRW"]()
+    assert res.ok
+    lb = pointwise_regret_lower_bound(ops, res.Phi_u, setup.x0, setup.P, W=ops.O, starts=30,
+                                      seed=5).value
+    assert lb <= res.level * (1 + TOL)
+    assert res.level == pytest.approx(0.0104891, rel=2e-5)
