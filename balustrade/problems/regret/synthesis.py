@@ -444,7 +444,8 @@ def generalized_regret(ops: Operators, x0: object, omega: float, W: object = "I"
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P), om)
     pr.extra = {"lambda": lam}
     return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts),
-                    certify=lambda Pu: ("exact", generalized_level_energy(ops, Pu, x0v, om, Wm)))
+                    certify=lambda Pu: ("exact", generalized_level_energy(ops, Pu, x0v, om, Wm,
+                                                                      guess=mu.value)))
 
 
 def _energy_lmi(pr: _Problem, mu: cp.Variable, lam: cp.Variable | None, W3: np.ndarray,

@@ -130,10 +130,13 @@ def _max_over_energy_ball(D: np.ndarray, x0v: np.ndarray, omega: float
 
 
 def generalized_level_energy(ops: Operators, Phi_u: np.ndarray, x0: object, omega: float,
-                             W: np.ndarray, rtol: float = 1e-10) -> float:
+                             W: np.ndarray, rtol: float = 1e-10, guess: float | None = None
+                             ) -> float:
     """Exact generalized regret level (3.28) of the responses Φ_u over ‖w‖² ≤ ω, fixed x₀:
     the smallest μ with max_w δᵀ(M − μW)δ ≤ 0, by bisection on μ over exact trust-region
-    solutions (the maximum is decreasing in μ for W ≻ 0). Independent of any SDP solver."""
+    solutions (the maximum is decreasing in μ for W ≻ 0). Independent of any SDP solver;
+    ``guess`` (e.g. the SDP's level) only narrows the first bracket to ±1e-6 around it when
+    the bracket holds (15 trust-region solves instead of ≈ 40)."""
     x0v = as_vector(x0, "x0", ops.n)
     Wm = np.asarray(W, dtype=float)
     M = regret_matrix(ops, Phi_u)
@@ -142,6 +145,10 @@ def generalized_level_energy(ops: Operators, Phi_u: np.ndarray, x0: object, omeg
         return _max_over_energy_ball(M - mu * Wm, x0v, omega).value
 
     lo, hi = 0.0, 1.0
+    if guess is not None and np.isfinite(guess) and guess > 0:
+        hi = guess * (1 + 1e-6)
+        if worst(guess * (1 - 1e-6)) > 0.0:
+            lo = guess * (1 - 1e-6)
     while worst(hi) > 0.0:
         lo, hi = hi, 2.0 * hi
         if hi > 1e15:
