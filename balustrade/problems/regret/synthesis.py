@@ -289,8 +289,12 @@ def _retry_outside_banded(fn: Callable[..., SynthesisResult]) -> Callable[..., S
         if res.info.get("lmi") != "banded" or res.ok:
             return res
         retry = fn(*args, **{**kwargs, "lmi": "split"})
-        attempt = (f"banded solve ended {res.status!r} (level {res.level}, "
-                   f"{res.total_time:.1f} s); re-solved with lmi='split'")
+        cert = res.info.get("certificate", {})
+        why = (f"certificate {cert.get('kind')} {cert.get('value')} above the SDP level "
+               f"{cert.get('sdp_level')}" if not cert.get("consistent", True) else "")
+        attempt = (f"banded solve ended {res.status!r} (level {res.level}"
+                   + (f"; {why}" if why else "") + f", {res.total_time:.1f} s); "
+                   "re-solved with lmi='split'")
         if retry.ok:
             retry.info["banded_fallback"] = attempt
             retry.total_time += res.total_time
