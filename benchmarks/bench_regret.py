@@ -12,7 +12,9 @@ Each case runs in a fresh subprocess so that its peak resident memory can be rep
   constraints, C^{1/2} and 𝒪 blocks in one LMI of size 1 + pT + (n+m)(T+1).
 
 These rows are without the constraints (3.41), so that both sides are the same SDP; each row
-records the relative difference of the optimal levels. Quick: T = 5. Full: T = 10 (all forms
+records the relative difference of the optimal levels, ``ok`` and the form actually used
+(``lmi_used``: a banded solve that is not ok is re-solved with lmi="split", and its time
+includes both). Quick: T = 5. Full: T = 10 (all forms
 and dense), T = 25 (banded and single; the dense T = 25 transcription, ≈ 100 s and ≈ 9 GB on
 the machine of the issue and killed at 24 GB here, only with BALUSTRADE_BENCH_DENSE_T25=1 and
 enough free memory), and the six Table 3.1 syntheses at T = 25 *with* (3.41), banded (their
@@ -45,17 +47,18 @@ if kind.startswith("table:"):
     from balustrade.reproduce.rocket_regret import synthesis_makers
     form = kind.split(":")[2]
     res = synthesis_makers(s, lmi=form)[0][kind.split(":")[1]]()
-    level, status = res.level, res.status
+    level, status, ok, used = res.level, res.status, res.ok, res.info.get("lmi")
 elif kind in ("banded", "split", "single"):
     res = generalized_regret(ops, x0, om, W, lmi=kind, solver_opts=TOL)
-    level, status = res.level, res.status
+    level, status, ok, used = res.level, res.status, res.ok, res.info.get("lmi")
 else:
     Wm = np.eye(ops.nd) if W == "I" else ops.O
     status, level = dense_generalized_regret(ops, x0, om, Wm, solver_opts=TOL)
+    ok, used = status == "optimal", "dense"
 elapsed = time.perf_counter() - t0
 rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 print(json.dumps({"time": elapsed, "level": None if level is None else float(level),
-                  "status": status, "rss_mb": rss}))
+                  "status": status, "ok": ok, "lmi_used": used, "rss_mb": rss}))
 """
 
 
@@ -83,7 +86,7 @@ def _row(T: int, W: str, ours: dict, dense: dict | None, variant: str = "") -> d
     label = "dynamic regret" if W == "I" else "competitive ratio"
     row = {"name": f"rocket (3.28) {label} T={T}{variant}", "median_s": ours["time"],
            "peak_mem_mb": round(ours["rss_mb"], 1), "level": ours["level"],
-           "status": ours["status"]}
+           "status": ours["status"], "ok": ours.get("ok"), "lmi_used": ours.get("lmi_used")}
     if dense is not None:
         row.update({"baseline": "dense (3.28)", "ratio": dense["time"] / ours["time"],
                     "baseline_s": dense["time"], "baseline_peak_mem_mb": round(dense["rss_mb"], 1),
@@ -114,7 +117,8 @@ def run(quick: bool) -> list[dict]:
             ours = _run_case(25, "-", f"table:{name}:banded")
             row = {"name": f"rocket Table 3.1 {name} T=25 with (3.41)", "median_s": ours["time"],
                    "peak_mem_mb": round(ours["rss_mb"], 1), "level": ours["level"],
-                   "status": ours["status"], "goal_s": 10.0, "goal_mem_mb": 2048}
+                   "status": ours["status"], "ok": ours.get("ok"),
+                   "lmi_used": ours.get("lmi_used"), "goal_s": 10.0, "goal_mem_mb": 2048}
             if with_split and name != "SH2":
                 base = _run_case(25, "-", f"table:{name}:split")
                 row.update({"baseline": "chordal split (lmi='split')",

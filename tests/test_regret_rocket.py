@@ -44,6 +44,11 @@ def _check_metrics(m: dict) -> None:
     # "optimal_inaccurate" (Clarabel stalled within 10x of its tolerances, seen for the 𝒪-weighted
     # SDPs at T = 25) is accepted because the levels are certified below, without the solver
     assert all(st in ("optimal", "optimal_inaccurate") for st in m["status"].values()), m["status"]
+    # every synthesis is ok (optimal and certified), except a banded one that could not be
+    # re-solved outside banded coordinates (SCRW at T = 25: its dense cone is too large), and
+    # that must be said in the metrics
+    for name, ok in m["ok"].items():
+        assert ok or m["banded_fallback"][name]["status"] == "too_large", (name, m["status"])
     cert = m["certificates"]
     assert set(cert) == {"SDR", "SCR", "SDRW", "SCRW"}
     for name in ("SDR", "SCR"):       # energy bounds: the S-procedure is lossless, level exact

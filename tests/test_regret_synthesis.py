@@ -231,20 +231,20 @@ def test_lmi_forms_are_exact_reformulations(seed):
     x0 = rng.standard_normal(ops.n)
     P = np.diag([2.0, 3.0, 4.0])
     kw = {"solver_opts": TIGHT}
-    makers = [
-        lambda f: adversarial_regret(ops, lmi=f, **kw),
-        lambda f: hinf(ops, lmi=f, **kw),
-        lambda f: zero_x0_regret(ops, "O", adversarial_x0=True, lmi=f, **kw),
-        lambda f: zero_x0_regret(ops, "O", lmi=f, **kw),
-        lambda f: pointwise_regret(ops, x0, P, "I", lmi=f, **kw),
-        lambda f: pointwise_regret(ops, x0, P, "O", lmi=f, **kw),
-        lambda f: pointwise_dynamic_regret(ops, x0, P, lmi=f, **kw),
-        lambda f: dynamic_regret(ops, x0, 1.3, lmi=f, **kw),
-        lambda f: generalized_regret(ops, x0, 1.3, "O", lmi=f, **kw),
+    makers = [  # (synthesis, arguments after ops, keywords)
+        (adversarial_regret, (), {}), (hinf, (), {}),
+        (zero_x0_regret, ("O",), {"adversarial_x0": True}), (zero_x0_regret, ("O",), {}),
+        (pointwise_regret, (x0, P, "I"), {}), (pointwise_regret, (x0, P, "O"), {}),
+        (pointwise_dynamic_regret, (x0, P), {}), (dynamic_regret, (x0, 1.3), {}),
+        (generalized_regret, (x0, 1.3, "O"), {}),
     ]
-    for make in makers:
-        banded, split, single = make("banded"), make("split"), make("single")
-        assert banded.ok and split.ok and single.ok
+    for fn, args, kwa in makers:
+        # the banded form itself (without the re-solve of a result that is not ok): at these
+        # tight tolerances Clarabel may end it "optimal_inaccurate" (the 𝒪-weighted LMIs are
+        # ill-conditioned in banded coordinates, banded.py), but at the same optimum
+        banded = fn.__wrapped__(ops, *args, lmi="banded", **kwa, **kw)
+        split, single = (fn(ops, *args, lmi=f, **kwa, **kw) for f in ("split", "single"))
+        assert banded.status in ("optimal", "optimal_inaccurate") and split.ok and single.ok
         assert banded.info["lmi"] == "banded", banded.info["banded_fallback"]
         assert banded.level == pytest.approx(single.level, rel=1e-7)
         assert split.level == pytest.approx(single.level, rel=1e-7)

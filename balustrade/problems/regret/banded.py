@@ -32,6 +32,14 @@ decomposition then splits the single cone into small cones joined in a chain (ro
 dynamic regret: 20 s and 1.0 GB against 67 s and 2.1 GB for the same LMI in the original
 coordinates; docs/regret.md).
 
+**Conditioning (issue #12).** The congruence is exact but not well conditioned when a dense
+weight is whitened: cond C ≈ cond B · cond G (rocket, T = 10, W = 𝒪: 44 · 25 → 834), and the
+LMI's coefficient map carries cond(C)². The optimal D block of (3.32) with W = 𝒪 has condition
+55 in the original coordinates and 8.6·10⁵ in these; Clarabel then stalls (AlmostSolved 33 %
+above the optimum) or ends "optimal" slightly off. No rescaling of C fixed it reliably, so
+the syntheses certify every result independently and re-solve a banded result that is not ok
+outside banded coordinates (``synthesis._retry_outside_banded``; docs/regret.md).
+
 :func:`banded_congruence` builds C, or returns :class:`NotBanded` with the reason when a
 condition fails (a dense weight whose inverse is not banded, a Hankel rank above the block
 size, a singular first block) — callers then fall back to the chordal split of :mod:`.lmi`.

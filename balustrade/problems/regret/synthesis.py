@@ -19,11 +19,27 @@ function                    thesis problem
 
 All accept ``constraints=`` (:class:`StateInputConstraints`) imposed robustly by (3.41) for a
 pointwise set ``P`` or, for energy bounds, conservatively per step (Remark 3.16).
+
+Every result carries a solver-independent certificate (:mod:`.verify`) in
+``info["certificate"]``: for the energy-bound and adversarial problems the exact worst-case
+level of the returned controller, which is then the reported ``level`` (the SDP's own value is
+``info["sdp_level"]``; the two agree to the solver's accuracy when the solve is accurate, and a
+level is never reported below what its controller attains); for the pointwise problems
+(3.32)/(3.34) a certified lower bound on the controller's worst case, which must not exceed the
+level. ``res.ok`` means: the solver reports ``optimal`` (full accuracy) and the certificate
+agrees. ``optimal_inaccurate`` is never ``ok`` — Clarabel's reduced tolerances were measured
+to hide a level 33 % above the optimum in banded coordinates (:mod:`.banded`), and an
+"optimal" banded SCRW level 1.5e-5 below what its controller attains — so a banded solve that
+is not ok is re-solved outside banded coordinates, the reason
+recorded in ``info["banded_fallback"]`` (or, when that form cannot run, in
+``info["banded_retry"]`` and the inaccurate result is returned with ``ok`` False).
 """
 
 from __future__ import annotations
 
+import functools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cvxpy as cp
@@ -35,6 +51,14 @@ from balustrade.problems.regret.banded import NotBanded
 from balustrade.problems.regret.lmi import Leaf, arrow_lmi, banded_lmi, diagonal_groups
 from balustrade.problems.regret.operators import Operators, controller_from_responses
 from balustrade.problems.regret.parametrization import Parametrization, normalize_halfspaces
+from balustrade.problems.regret.verify import (
+    adversarial_level,
+    generalized_level_energy,
+    hinf_level,
+    pointwise_regret_lower_bound,
+    worst_case_regret_energy,
+    zero_x0_level,
+)
 
 OK_STATUSES = ("optimal", "optimal_inaccurate")
 # How the LMI reaches the solver: "banded" (banded coordinates, one cone the solver decomposes;
@@ -85,13 +109,24 @@ class SynthesisResult:
 
     @property
     def ok(self) -> bool:
-        return self.status in OK_STATUSES
+        """Solved to full accuracy (status "optimal") and the level agrees with its certificate.
 
-    def controller(self):  # -> RegretController (import here: controller imports this module)
-        from balustrade.problems.regret.controller import RegretController
+        "optimal_inaccurate" is not ok: the solver met only its reduced tolerances, and on
+        ill-conditioned SDPs (banded coordinates with the 𝒪 weight) that was measured to mean a
+        level far from the optimum. Such a result keeps its controller and certificate for a
+        caller that checks them itself (``controller(allow_inaccurate=True)``).
+        """
+        return (self.status == "optimal" and self.K is not None
+                and self.info.get("certificate", {}).get("consistent", True))
 
-        if not self.ok:
-            raise BalustradeError(f"{self.name}: no controller, synthesis status {self.status!r}")
+    def controller(self, allow_inaccurate: bool = False):  # -> RegretController
+        from balustrade.problems.regret.controller import RegretController  # (import cycle)
+
+        usable = self.ok or (allow_inaccurate and self.status in OK_STATUSES
+                             and self.K is not None)
+        if not usable:
+            raise BalustradeError(f"{self.name}: no controller, synthesis status {self.status!r}"
+                                  + ("" if self.K is None else " (not certified, see .ok)"))
         return RegretController(self.ops, self.K, self.Phi_u, name=self.name)
 
 
@@ -188,7 +223,10 @@ class _Problem:
         self.cons += self.par.robust_constraints(constraints.Hx, constraints.Hu, x0, Pmh)
 
     def solve(self, objective: cp.Expression, level_fn, solver: str, solver_opts: dict,
-              minimize: bool = True) -> SynthesisResult:
+              minimize: bool = True, certify: Callable[[np.ndarray], tuple[str, float]] | None
+              = None) -> SynthesisResult:
+        """Solve; with ``certify`` (Φ_u → ("exact" | "lower_bound", value)) attach the
+        solver-independent certificate of :mod:`.verify` (module docstring)."""
         ops = self.ops
         prob = cp.Problem(cp.Minimize(objective) if minimize else cp.Maximize(objective),
                           self.cons)
@@ -213,7 +251,60 @@ class _Problem:
             res.level = float(level_fn())
             res.multipliers = {k: np.asarray(v.value).copy() for k, v in self.extra.items()
                                if v.value is not None}
+            if certify is not None:
+                _attach_certificate(res, *certify(Phi_u))
+            res.total_time = time.perf_counter() - self.t0
         return res
+
+
+# Relative slack of the certificate checks: the solver's tolerances (1e-8) with margin.
+CERT_RTOL = 1e-6
+
+
+def _attach_certificate(res: SynthesisResult, kind: str, value: float) -> None:
+    """The SDP's level must bound what its own controller attains: consistent when the exact
+    level ("exact") or the certified lower bound ("lower_bound") does not exceed it beyond
+    CERT_RTOL. An exact level becomes the reported level (the SDP value stays in
+    info["sdp_level"]): it is what the returned controller guarantees."""
+    sdp = float(res.level)
+    cert = {"kind": kind, "value": float(value), "sdp_level": sdp,
+            "consistent": bool(value <= sdp + CERT_RTOL * max(abs(sdp), 1e-12))}
+    if kind == "exact":
+        res.level = float(value)
+    res.info["certificate"] = cert
+    res.info["sdp_level"] = sdp
+
+
+def _retry_outside_banded(fn: Callable[..., SynthesisResult]) -> Callable[..., SynthesisResult]:
+    """A banded solve that is not ok (not "optimal", or its level below what its own controller
+    attains: both measured with the 𝒪 weight, banded.py) is re-solved in the form used when banded
+    coordinates do not apply (``lmi="split"``: the chordal split, or one dense cone where no
+    split exists, refused with "too_large" when it would not fit in memory). The retry is
+    returned when it is ok, with the banded attempt in info["banded_fallback"]; otherwise the
+    banded result is returned with the retry's outcome in info["banded_retry"]."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs) -> SynthesisResult:
+        res = fn(*args, **kwargs)
+        if res.info.get("lmi") != "banded" or res.ok:
+            return res
+        retry = fn(*args, **{**kwargs, "lmi": "split"})
+        cert = res.info.get("certificate", {})
+        why = (f"certificate {cert.get('kind')} {cert.get('value')} above the SDP level "
+               f"{cert.get('sdp_level')}" if not cert.get("consistent", True) else "")
+        attempt = (f"banded solve ended {res.status!r} (level {res.level}"
+                   + (f"; {why}" if why else "") + f", {res.total_time:.1f} s); "
+                   "re-solved with lmi='split'")
+        if retry.ok:
+            retry.info["banded_fallback"] = attempt
+            retry.total_time += res.total_time
+            return retry
+        res.info["banded_retry"] = {"status": retry.status, "level": retry.level,
+                                    "message": retry.info.get("message")}
+        res.total_time += retry.total_time
+        return res
+
+    return wrapper
 
 
 # Clarabel keeps a dense block of (svec size)² per PSD cone in its KKT system; the measured
@@ -282,6 +373,7 @@ def _p_blocks(ops: Operators, start_block: int = 1) -> list[slice]:
 # ----------------------------------------------------------------------------------------------
 # (3.19) dynamic regret, known x0, energy bound
 # ----------------------------------------------------------------------------------------------
+@_retry_outside_banded
 def dynamic_regret(ops: Operators, x0: object, omega: float, *,
                    constraints: StateInputConstraints | None = None,
                    constraint_P: object | None = None, lmi: str = "banded",
@@ -298,7 +390,8 @@ def dynamic_regret(ops: Operators, x0: object, omega: float, *,
         pr.cons += arrow_lmi(pr.par.M, leaves, a=a, y=y, split=pr.split)
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P), om)
     pr.extra = {"lambda": lam}
-    return pr.solve(gamma, lambda: gamma.value, solver, _solver_opts(solver_opts))
+    return pr.solve(gamma, lambda: gamma.value, solver, _solver_opts(solver_opts),
+                    certify=lambda Pu: ("exact", worst_case_regret_energy(ops, Pu, x0v, om).upper))
 
 
 def _opt_P(ops: Operators, P: object | None) -> np.ndarray | None:
@@ -308,6 +401,7 @@ def _opt_P(ops: Operators, P: object | None) -> np.ndarray | None:
 # ----------------------------------------------------------------------------------------------
 # (3.24) adversarial δ
 # ----------------------------------------------------------------------------------------------
+@_retry_outside_banded
 def adversarial_regret(ops: Operators, *, constraints: StateInputConstraints | None = None,
                        x0: object | None = None, constraint_P: object | None = None,
                        omega: float | None = None, lmi: str = "banded",
@@ -324,12 +418,14 @@ def adversarial_regret(ops: Operators, *, constraints: StateInputConstraints | N
     x0v = None if x0 is None else _x0(ops, x0)
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P),
                        None if omega is None else _omega(omega))
-    return pr.solve(gamma, lambda: gamma.value, solver, _solver_opts(solver_opts))
+    return pr.solve(gamma, lambda: gamma.value, solver, _solver_opts(solver_opts),
+                    certify=lambda Pu: ("exact", adversarial_level(ops, Pu)))
 
 
 # ----------------------------------------------------------------------------------------------
 # (3.28) generalized regret
 # ----------------------------------------------------------------------------------------------
+@_retry_outside_banded
 def generalized_regret(ops: Operators, x0: object, omega: float, W: object = "I", *,
                        constraints: StateInputConstraints | None = None,
                        constraint_P: object | None = None, lmi: str = "banded",
@@ -351,7 +447,9 @@ def generalized_regret(ops: Operators, x0: object, omega: float, W: object = "I"
     pr.cons += _energy_lmi(pr, mu, lam, W3, b_full, a, x0v)
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P), om)
     pr.extra = {"lambda": lam}
-    return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts))
+    return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts),
+                    certify=lambda Pu: ("exact", generalized_level_energy(ops, Pu, x0v, om, Wm,
+                                                                      guess=mu.value)))
 
 
 def _energy_lmi(pr: _Problem, mu: cp.Variable, lam: cp.Variable | None, W3: np.ndarray,
@@ -384,6 +482,7 @@ def _energy_lmi(pr: _Problem, mu: cp.Variable, lam: cp.Variable | None, W3: np.n
 # ----------------------------------------------------------------------------------------------
 # (3.30) x0 = 0 and adversarial x0
 # ----------------------------------------------------------------------------------------------
+@_retry_outside_banded
 def zero_x0_regret(ops: Operators, W: object = "I", *, adversarial_x0: bool = False,
                    constraints: StateInputConstraints | None = None,
                    constraint_P: object | None = None, omega: float | None = None,
@@ -409,12 +508,14 @@ def zero_x0_regret(ops: Operators, W: object = "I", *, adversarial_x0: bool = Fa
     x0v = np.zeros(ops.n)
     pr.add_constraints(constraints, None if adversarial_x0 else x0v,
                        _opt_P(ops, constraint_P), None if omega is None else _omega(omega))
-    return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts))
+    return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts),
+                    certify=lambda Pu: ("exact", zero_x0_level(ops, Pu, Wm, adversarial_x0)))
 
 
 # ----------------------------------------------------------------------------------------------
 # (3.32) pointwise ellipsoidal bounds, generalized; (3.34) pointwise dynamic regret
 # ----------------------------------------------------------------------------------------------
+@_retry_outside_banded
 def pointwise_regret(ops: Operators, x0: object, P: object, W: object = "I", *,
                      constraints: StateInputConstraints | None = None, lmi: str = "banded",
                      solver: str = "CLARABEL", solver_opts: dict | None = None
@@ -441,7 +542,8 @@ def pointwise_regret(ops: Operators, x0: object, P: object, W: object = "I", *,
             return refusal
     pr.add_constraints(constraints, x0v, Pm)
     pr.extra = {"lambda": lams}
-    return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts))
+    return pr.solve(mu, lambda: mu.value, solver, _solver_opts(solver_opts),
+                    certify=lambda Pu: ("lower_bound", _pointwise_lb(ops, Pu, x0v, Pm, Wm)))
 
 
 def _pointwise_fallback(pr: _Problem, mu: cp.Variable, lams: cp.Variable, a: cp.Expression,
@@ -470,6 +572,7 @@ def _pointwise_fallback(pr: _Problem, mu: cp.Variable, lams: cp.Variable, a: cp.
     return None
 
 
+@_retry_outside_banded
 def pointwise_dynamic_regret(ops: Operators, x0: object, P: object, *,
                              constraints: StateInputConstraints | None = None,
                              lmi: str = "banded", solver: str = "CLARABEL",
@@ -488,7 +591,14 @@ def pointwise_dynamic_regret(ops: Operators, x0: object, P: object, *,
     pr.add_constraints(constraints, x0v, Pm)
     pr.extra = {"lambda": lams}
     total = cp.sum(lams)
-    return pr.solve(total, lambda: total.value, solver, _solver_opts(solver_opts))
+    return pr.solve(total, lambda: total.value, solver, _solver_opts(solver_opts),
+                    certify=lambda Pu: ("lower_bound", _pointwise_lb(ops, Pu, x0v, Pm, None)))
+
+
+def _pointwise_lb(ops: Operators, Phi_u: np.ndarray, x0: np.ndarray, P: np.ndarray,
+                  W: np.ndarray | None) -> float:
+    """Certified lower bound on the pointwise worst case of Φ_u (verify.py; 20 starts)."""
+    return pointwise_regret_lower_bound(ops, Phi_u, x0, P, W=W, starts=20, iters=200).value
 
 
 # ----------------------------------------------------------------------------------------------
@@ -512,6 +622,7 @@ def h2(ops: Operators, x0: object, *, constraints: StateInputConstraints | None 
     return pr.solve(obj, lambda: obj.value + const, solver, _solver_opts(solver_opts))
 
 
+@_retry_outside_banded
 def hinf(ops: Operators, *, x0: object | None = None,
          constraints: StateInputConstraints | None = None, constraint_P: object | None = None,
          omega: float | None = None, lmi: str = "banded", solver: str = "CLARABEL",
@@ -527,4 +638,5 @@ def hinf(ops: Operators, *, x0: object | None = None,
     x0v = None if x0 is None else _x0(ops, x0)
     pr.add_constraints(constraints, x0v, _opt_P(ops, constraint_P),
                        None if omega is None else _omega(omega))
-    return pr.solve(gamma, lambda: gamma.value, solver, _solver_opts(solver_opts))
+    return pr.solve(gamma, lambda: gamma.value, solver, _solver_opts(solver_opts),
+                    certify=lambda Pu: ("exact", hinf_level(ops, Pu)))
