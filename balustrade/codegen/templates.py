@@ -110,6 +110,9 @@ void ${P}_free(${P}_work* wk);
 void ${P}_cold_start(${P}_work* wk);
 /* Warm start := the last solution (primal and multipliers). */
 void ${P}_warm_start(${P}_work* wk);
+/* Warm start := the last solution's primal, zero multipliers (epigraph variables at their
+   initial values): what balustrade's backend does with a solution that did not converge. */
+void ${P}_warm_start_primal(${P}_work* wk);
 /* Solve with parameters p (${P}_NP values) from the warm start in wk; returns BAL_*
    (call ${P}_warm_start afterwards to start the next solve from this solution).
    A NaN or inf parameter returns BAL_BAD_INPUT without solving (x and f are then NaN). */
@@ -175,6 +178,11 @@ void ${P}_warm_start(${P}_work* wk) {
   memcpy(wk->x0, wk->x, sizeof(wk->x0));
   memcpy(wk->lam_x0, wk->lam_x, sizeof(wk->lam_x0));
   memcpy(wk->lam_g0, wk->lam_g, sizeof(wk->lam_g0));
+}
+
+void ${P}_warm_start_primal(${P}_work* wk) {
+  ${P}_cold_start(wk);
+  memcpy(wk->x0, wk->x, $n_user * sizeof(casadi_real));
 }
 
 /* One solver run: which = 0 from the warm start in wk, else retry `which` from a cold start. */
@@ -264,7 +272,8 @@ PCBF_H = Template("""\
  *   x      measured state x_k              (${Q}_NX values, read)
  *   u_p    proposed input u_{p,k}          (${Q}_NU values, read)
  *   u_out  input to apply u_k              (${Q}_NU values, written)
- *   h_out  h_PB(x_k) = max(optimum of (2.24), 0) (NAN if (2.24) was not solved)
+ *   h_out  h_PB(x_k) = max(optimum of (2.24), 0) (NAN if (2.24) was not solved to
+ *          optimality: see ${Q}_h_upper)
  *   status BAL_PCBF_* below (also returned)
  * Per step: solve (2.24) warm-started from its last converged solution; clip its slacks
  * at 0 and fix them (plus eps, built into the problem) as parameters of (2.23); solve
@@ -273,19 +282,31 @@ PCBF_H = Template("""\
  *   (2.23) fails                 -> u_{0|k} of (2.24)              BAL_PCBF_SLACK_SOLUTION
  *   (2.24) fails                 -> next input of the last plan    BAL_PCBF_SHIFTED_PLAN
  *   no plan left                 -> u_p clipped to U               BAL_PCBF_PROJECTED
- *   x or u_p NaN/inf, NULL args  -> u_p (NaN -> 0) clipped to U    BAL_PCBF_BAD_INPUT
+ *   (2.24) BAL_FEASIBLE, cost > ${Q}_ZERO_TOL (not converged: its cost only bounds h_PB
+ *          from above; h_out NAN, ${Q}_h_upper the bound) -> a failed (2.24): the shifted
+ *          plan; no plan left -> (2.23) on its slacks          BAL_PCBF_FEASIBLE_SLACK
+ *          (a BAL_FEASIBLE point of cost <= ${Q}_ZERO_TOL is optimal: h_PB >= 0)
+ *   x NaN/inf, NULL args         -> u_p (NaN -> 0) clipped to U    BAL_PCBF_BAD_INPUT
  *                                   (nothing solved; both solve statuses BAL_BAD_INPUT)
+ *   u_p NaN/inf (x finite)       -> those entries of u_p read as 0, the step runs as usual
+ *                                   (${Q}_proposal_replaced counts them)
+ * Warm starts as balustrade's backend: from a converged solution (primal and multipliers);
+ * from the primal of a certified BAL_FEASIBLE (2.24) (zero multipliers); never from an
+ * uncertified one; (2.23) only from BAL_OK solutions.
  * The solutions stay in work->slack / work->filter (x: full primal, f: optimum). */
 #define ${Q}_NX $nx
 #define ${Q}_NU $nu
 #define ${Q}_N $N
+#define ${Q}_ZERO_TOL $zero_tol
 $pcbf_status
 typedef struct ${Q}_work {
   ${Q}_slack_work slack;
   ${Q}_filter_work filter;
   casadi_real p_slack[${Q}_slack_NP + 1], p_filter[${Q}_filter_NP + 1];
   casadi_real plan[${Q}_NU * ${Q}_N];
-  int plan_age, have_plan, have_slack, have_filter;
+  casadi_real u_p[${Q}_NU];  /* the proposal used (non-finite entries replaced by 0) */
+  casadi_real h_upper;  /* cost of an uncertified BAL_FEASIBLE (2.24), else NAN */
+  int plan_age, have_plan, have_slack, have_filter, n_replaced;
   int slack_status, filter_status;  /* BAL_* of the last step's solves */
   int ready;
 } ${Q}_work;
@@ -302,6 +323,10 @@ int ${Q}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
 ${Q}_slack_work* ${Q}_slack_problem(${Q}_work* wk);
 ${Q}_filter_work* ${Q}_filter_problem(${Q}_work* wk);
 int ${Q}_solve_status(const ${Q}_work* wk, int which);  /* 0: (2.24), 1: (2.23) */
+/* The last step's upper bound on h_PB from a merely feasible (2.24) (NAN if none). */
+casadi_real ${Q}_h_upper(const ${Q}_work* wk);
+/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
+int ${Q}_proposal_replaced(const ${Q}_work* wk);
 
 """)
 
@@ -310,8 +335,8 @@ PCBF_C = Template("""\
 static const casadi_real ${Q}_u_lb[${Q}_NU] = $u_lb;
 static const casadi_real ${Q}_u_ub[${Q}_NU] = $u_ub;
 
-/* u_p clipped to U; a NaN entry counts as 0 (fmax would silently pick the lower bound),
-   +-inf is clipped to the bound, as numpy.clip(numpy.nan_to_num(u_p), lb, ub) */
+/* u_p clipped to U (the step passes its proposal with non-finite entries already read as
+   0; a NaN would otherwise make fmax silently pick the lower bound) */
 static void ${Q}_project(const casadi_real* u_p, casadi_real* u_out) {
   casadi_int i;
   casadi_real v;
@@ -369,48 +394,76 @@ void ${Q}_reset(${Q}_work* wk) {
   ${Q}_filter_cold_start(&wk->filter);
   memset(wk->plan, 0, sizeof(wk->plan));
   wk->plan_age = 0;
-  wk->have_plan = wk->have_slack = wk->have_filter = 0;
+  wk->have_plan = wk->have_slack = wk->have_filter = wk->n_replaced = 0;
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_upper = NAN;
+}
+
+/* A failed (2.24): the next input of the last plan, or u_p clipped to U (proposal_fallback
+   of balustrade.control.pcbf). */
+static int ${Q}_fallback(${Q}_work* wk, casadi_real* u_out, int* status) {
+  casadi_int i;
+  if (wk->have_plan && wk->plan_age + 1 < ${Q}_N) {
+    wk->plan_age++;
+    for (i = 0; i < ${Q}_NU; ++i) u_out[i] = wk->plan[wk->plan_age * ${Q}_NU + i];
+    *status = BAL_PCBF_SHIFTED_PLAN;
+  } else {
+    ${Q}_project(wk->u_p, u_out);
+    *status = BAL_PCBF_PROJECTED;
+  }
+  return *status;
 }
 
 int ${Q}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
               casadi_real* h_out, int* status, ${Q}_work* wk) {
   casadi_int i;
+  int certified;
   const casadi_real* plan_src;
   if (!x || !u_p || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_PCBF_BAD_INPUT;
     return BAL_PCBF_BAD_INPUT;
   }
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_upper = NAN;
   *h_out = NAN;
-  if (!${Q}_finite(x, ${Q}_NX) || !${Q}_finite(u_p, ${Q}_NU)) {
-    /* nothing is solved with a NaN or inf state or proposal (as
+  /* a NaN or inf proposal entry is read as 0 (finite_proposal of
+     balustrade.control.fallbacks): the filter still certifies what is applied */
+  wk->n_replaced = 0;
+  for (i = 0; i < ${Q}_NU; ++i) {
+    wk->n_replaced += !isfinite(u_p[i]);
+    wk->u_p[i] = isfinite(u_p[i]) ? u_p[i] : 0.0;
+  }
+  if (!${Q}_finite(x, ${Q}_NX)) {
+    /* nothing is solved with a NaN or inf state (as
        balustrade.control.fallbacks.projected_proposal); the plan is kept */
     wk->slack_status = wk->filter_status = BAL_BAD_INPUT;
-    ${Q}_project(u_p, u_out);
+    ${Q}_project(wk->u_p, u_out);
     *status = BAL_PCBF_BAD_INPUT;
     return *status;
   }
   /* (2.24): h_PB(x_k) and the slacks xi* */
   for (i = 0; i < ${Q}_NX; ++i) wk->p_slack[$s_p_x0 + i] = x[i];
   wk->slack_status = ${Q}_slack_solve(&wk->slack, wk->p_slack);
-  if (!BAL_SOLVED(wk->slack_status)) {
-    if (wk->have_plan && wk->plan_age + 1 < ${Q}_N) {
-      wk->plan_age++;
-      for (i = 0; i < ${Q}_NU; ++i) u_out[i] = wk->plan[wk->plan_age * ${Q}_NU + i];
-      *status = BAL_PCBF_SHIFTED_PLAN;
+  if (!BAL_SOLVED(wk->slack_status)) return ${Q}_fallback(wk, u_out, status);
+  /* only an optimal (2.24) gives h_PB; a feasible point of cost <= ZERO_TOL is optimal
+     (h_PB >= 0 is a lower bound it attains), a costlier one only bounds h_PB above */
+  certified = wk->slack_status == BAL_OK || fmax(wk->slack.f, 0.0) <= ${Q}_ZERO_TOL;
+  if (certified) {
+    if (wk->slack_status == BAL_OK) {
+      ${Q}_slack_warm_start(&wk->slack);
     } else {
-      ${Q}_project(u_p, u_out);
-      *status = BAL_PCBF_PROJECTED;
+      ${Q}_slack_warm_start_primal(&wk->slack);
     }
-    return *status;
+    wk->have_slack = 1;
+    *h_out = fmax(wk->slack.f, 0.0);
+  } else {
+    /* a failed (2.24) (Theorem 2.30 needs its optimum): the shifted plan if any */
+    wk->h_upper = fmax(wk->slack.f, 0.0);
+    if (wk->have_plan && wk->plan_age + 1 < ${Q}_N) return ${Q}_fallback(wk, u_out, status);
   }
-  ${Q}_slack_warm_start(&wk->slack);
-  wk->have_slack = 1;
-  *h_out = fmax(wk->slack.f, 0.0);
   /* (2.23) with the slacks fixed: clip slightly negative solver slacks to 0 */
   for (i = 0; i < ${Q}_NX; ++i) wk->p_filter[$f_p_x0 + i] = x[i];
-  for (i = 0; i < ${Q}_NU; ++i) wk->p_filter[$f_p_u_p + i] = u_p[i];
+  for (i = 0; i < ${Q}_NU; ++i) wk->p_filter[$f_p_u_p + i] = wk->u_p[i];
   for (i = 0; i < $n_xi; ++i) wk->p_filter[$f_p_xi + i] = fmax(wk->slack.x[$s_w_xi + i], 0.0);
   wk->p_filter[$f_p_xi_N] = fmax(wk->slack.x[$s_w_xi_N], 0.0);
   if (!wk->have_filter) {
@@ -418,14 +471,17 @@ int ${Q}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
 $copy_shared  }
   wk->filter_status = ${Q}_filter_solve(&wk->filter, wk->p_filter);
   if (BAL_SOLVED(wk->filter_status)) {
-    ${Q}_filter_warm_start(&wk->filter);
-    wk->have_filter = 1;
+    if (wk->filter_status == BAL_OK) {
+      ${Q}_filter_warm_start(&wk->filter);
+      wk->have_filter = 1;
+    }
     plan_src = wk->filter.x + $f_w_u;
     *status = BAL_PCBF_OK;
   } else {
     plan_src = wk->slack.x + $s_w_u;
     *status = BAL_PCBF_SLACK_SOLUTION;
   }
+  if (!certified) *status = BAL_PCBF_FEASIBLE_SLACK;
   memcpy(wk->plan, plan_src, sizeof(wk->plan));
   wk->plan_age = 0;
   wk->have_plan = 1;
@@ -438,6 +494,8 @@ ${Q}_filter_work* ${Q}_filter_problem(${Q}_work* wk) { return &wk->filter; }
 int ${Q}_solve_status(const ${Q}_work* wk, int which) {
   return which == 0 ? wk->slack_status : wk->filter_status;
 }
+casadi_real ${Q}_h_upper(const ${Q}_work* wk) { return wk->h_upper; }
+int ${Q}_proposal_replaced(const ${Q}_work* wk) { return wk->n_replaced; }
 
 """)
 
