@@ -71,3 +71,41 @@ def test_feasible_slack_decisions_equal_python(truncated: dict) -> None:
     assert (None, "ok") in seen
     assert ("shifted_plan", "slack_feasible") in seen
     assert ("feasible_slack", "slack_feasible") in seen
+
+
+@pytest.fixture(scope="module")
+def truncated_approx(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    from balustrade.codegen import CApproximatePCBFFilter, emit_approximate
+    from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.models.pendulum import pendulum_setup
+    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
+
+    system, s = pendulum(), pendulum_setup()
+    h = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
+    # one SQP iteration: (7.6) (bounds only) ends feasible, (7.5) feasible or not
+    py = ApproximatePCBFFilter(system, s.U, h, solver="sqpmethod", options={"max_iter": 1})
+    mirror_c_retries(py.decrease.compiled)
+    mirror_c_retries(py.filter)
+    out = tmp_path_factory.mktemp("approx_truncated")
+    emitted = emit_approximate(py, "atrunc", out)
+    return {"py": py, "c": CApproximatePCBFFilter(build(out, emitted.name, werror=True))}
+
+
+def test_approximate_feasible_solves_equal_python(truncated_approx: dict) -> None:
+    """Algorithm 7.5 with (7.6) and (7.5) that never converge: a feasible (7.6) point is a
+    candidate and a feasible (7.5) point is applied (``"filter_feasible"``, flagged), in
+    Python as in C (the C used to apply it as ``"ok"``, Python to discard it)."""
+    py, c = truncated_approx["py"], truncated_approx["c"]
+    rng = np.random.default_rng(5)
+    statuses = []
+    for x, u_p in zip(rng.uniform([-0.7, -2.0], [0.7, 2.0], size=(150, 2)),
+                      rng.uniform(-4, 4, size=(150, 1))):
+        u1, i1 = py.step(x, u_p)
+        u2, i2 = c.step(x, u_p)
+        # the C names every failed (7.5) "filter_failed" (BAL_APPROX_MAX_DECREASE)
+        status = "filter_failed" if i1.fallback == "max_decrease_solution" else i1.status
+        assert (status, i1.fallback, i1.uncertified) == \
+            (i2.status, i2.fallback, i2.uncertified), (x, u_p)
+        assert np.abs(u1 - u2).max() <= 1e-6, (x, u_p, u1, u2)
+        statuses.append(status)
+    assert {"filter_feasible", "certified", "ok", "filter_failed"} <= set(statuses)

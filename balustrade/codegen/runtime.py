@@ -400,6 +400,8 @@ class CApproximatePCBFFilter(_OwnsWork):
     :class:`~balustrade.control.approximate.ApproximatePCBFFilter`."""
 
     _CODES = S.by_code(S.APPROX)
+    _BAD = S.code_of(S.APPROX, "bad_input")
+    _FILTER_FEASIBLE = S.code_of(S.APPROX, "filter_feasible")
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
         self._lib = _Library(lib_path, manifest)
@@ -417,6 +419,7 @@ class CApproximatePCBFFilter(_OwnsWork):
         self._dh = self._lib.fn(f"{A}_dh", ctypes.c_double, [vp])
         self._counter = self._lib.fn(f"{A}_counter", ctypes.c_long, [vp, ctypes.c_int])
         self._set_certify = self._lib.fn(f"{A}_set_certify", None, [vp, ctypes.c_int])
+        self._replaced = self._lib.fn(f"{A}_proposal_replaced", ctypes.c_int, [vp])
         self._work = self._lib.fn(f"{A}_alloc", vp, [])()
         if not self._work:
             raise CodegenError(f"{A}_alloc failed (no CasADi memory left)")
@@ -444,9 +447,11 @@ class CApproximatePCBFFilter(_OwnsWork):
         raise AttributeError(name)
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        """One C step (wrong shapes raise ShapeError; NaN or inf ``x``/``u_p``: status
-        ``"bad_input"``, the proposal with NaN as 0 clipped to ``U``, as the Python
-        controller)."""
+        """One C step, reported as the Python controller reports it. Wrong shapes raise
+        ShapeError; a NaN or inf ``x``: status ``"non_finite_state"``, the proposal
+        (non-finite entries as 0) clipped to ``U``; NaN or inf entries of ``u_p`` are read
+        as 0 and the step runs as usual (``"non_finite_proposal[_<status>]"``); a (7.5)
+        solve that is only feasible: ``"filter_feasible"``, flagged in ``uncertified``."""
         u_p = np.asarray(u_p, dtype=float).reshape(-1)
         if u_p.size == 1:
             u_p = np.broadcast_to(u_p, (self.nu,))
@@ -459,9 +464,15 @@ class CApproximatePCBFFilter(_OwnsWork):
         info = StepInfo(solve_time=time.perf_counter() - start,
                         fallback=known.fallback if known is not None else "unknown")
         info.status = known.name if known is not None else str(code)
+        if code == self._BAD:
+            info.status = "non_finite_state"
+            return self._u.copy(), info
         info.values["certified"] = 1.0 if code == 1 else 0.0
-        if code not in (1, S.code_of(S.APPROX, "bad_input")):
+        if code != 1:
             info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))
+        if code == self._FILTER_FEASIBLE:
+            info.uncertified["filter"] = "feasible"
+        note_proposal(info, int(self._replaced(self._work)))
         return self._u.copy(), info
 
 

@@ -70,7 +70,8 @@ PROBLEM_H = Template("""\
  * Constraint rows: $ng. BAL_OK when max violation < $tol_pr and inf-norm of the
  * Lagrangian gradient < $tol_du (the solver's own tests). An attempt that did not
  * converge is retried from a cold start with, in order: $retry_doc. If none converges,
- * BAL_FEASIBLE when the last attempt's violation scaled by 1 + |g| is <= $accept_tol.
+ * BAL_FEASIBLE with the last attempt whose violation scaled by 1 + |g| is <= $accept_tol
+ * (its point, value and multipliers in the work struct), as balustrade's backend.
  * The PCBF step applies BAL_OK and BAL_FEASIBLE solutions (BAL_SOLVED), else falls back.
  */
 #define ${P}_NP $np
@@ -86,6 +87,9 @@ typedef struct ${P}_work {
   casadi_real lam_p[${P}_NP + 1];
   casadi_real f, pr_inf, du_inf, feas;
   int attempts;  /* solver runs in the last ${P}_solve (> 1: retried) */
+  /* the last BAL_FEASIBLE attempt of a ${P}_solve, restored if no attempt converges */
+  casadi_real kx[${P}_NW], klam_x[${P}_NW], klam_g[${P}_NG + 1], kg[${P}_NG + 1];
+  casadi_real kf, kpr_inf, kdu_inf, kfeas;
   /* CasADi work vectors (sizes from ${name}_casadi.h), shared by the solver and retries */
   const casadi_real* arg[${P}_SZ_ARG];
   casadi_real* res[${P}_SZ_RES];
@@ -233,8 +237,31 @@ static int ${P}_finite_params(const casadi_real* p) {
   return 1;
 }
 
+/* keep (save = 1) or restore (save = 0) the point of a BAL_FEASIBLE attempt */
+static void ${P}_feasible_copy(${P}_work* wk, int save) {
+  if (save) {
+    memcpy(wk->kx, wk->x, sizeof(wk->kx));
+    memcpy(wk->klam_x, wk->lam_x, sizeof(wk->klam_x));
+    memcpy(wk->klam_g, wk->lam_g, sizeof(wk->klam_g));
+    memcpy(wk->kg, wk->g, sizeof(wk->kg));
+    wk->kf = wk->f;
+    wk->kpr_inf = wk->pr_inf;
+    wk->kdu_inf = wk->du_inf;
+    wk->kfeas = wk->feas;
+  } else {
+    memcpy(wk->x, wk->kx, sizeof(wk->kx));
+    memcpy(wk->lam_x, wk->klam_x, sizeof(wk->klam_x));
+    memcpy(wk->lam_g, wk->klam_g, sizeof(wk->klam_g));
+    memcpy(wk->g, wk->kg, sizeof(wk->kg));
+    wk->f = wk->kf;
+    wk->pr_inf = wk->kpr_inf;
+    wk->du_inf = wk->kdu_inf;
+    wk->feas = wk->kfeas;
+  }
+}
+
 int ${P}_solve(${P}_work* wk, const casadi_real* p) {
-  int first, status, which;
+  int first, status, which, have_feasible;
   casadi_int i;
   if (!wk || !wk->ready) return BAL_EVAL_ERROR;
   wk->attempts = 0;
@@ -246,14 +273,24 @@ int ${P}_solve(${P}_work* wk, const casadi_real* p) {
   }
   first = ${P}_attempt(wk, p, 0);
   if (first == BAL_OK) return first;
-  status = first;
+  have_feasible = first == BAL_FEASIBLE;
+  if (have_feasible) ${P}_feasible_copy(wk, 1);
   for (which = 1; which < $n_solvers; ++which) {
     status = ${P}_attempt(wk, p, which);
     if (status == BAL_OK) return status;
+    if (status == BAL_FEASIBLE) {
+      ${P}_feasible_copy(wk, 1);
+      have_feasible = 1;
+    }
   }
-  /* nothing converged: a primal-feasible last attempt is reported as BAL_FEASIBLE (safe to
-     apply, possibly suboptimal); otherwise the first attempt's status */
-  return status == BAL_FEASIBLE ? status : first;  /* wk->x holds the last attempt */
+  /* nothing converged: the last primal-feasible attempt is reported as BAL_FEASIBLE (safe
+     to apply, possibly suboptimal), never the point of a later infeasible attempt;
+     otherwise the first attempt's status (wk->x then holds the last attempt) */
+  if (have_feasible) {
+    ${P}_feasible_copy(wk, 0);
+    return BAL_FEASIBLE;
+  }
+  return first;
 }
 
 const casadi_real* ${P}_primal(const ${P}_work* wk) { return wk->x; }
@@ -652,8 +689,12 @@ APPROX_H = Template("""\
  *      else the filter (7.5) with (x, u_p, dh, rho), warm-started at the (7.6) minimizer.
  *   h_out = h^(x_k). Fallbacks, as balustrade.control.approximate:
  *   (7.5) fails or leaves U      -> the (7.6) minimizer       BAL_APPROX_MAX_DECREASE
+ *   (7.5) only BAL_FEASIBLE      -> its point (in U, meets the decrease: safe)
+ *                                                             BAL_APPROX_FILTER_FEASIBLE
  *   (7.6) finds nothing finite   -> best screened candidate   BAL_APPROX_GRID_MINIMIZER
- *   x or u_p NaN/inf, NULL args  -> u_p (NaN -> 0) clipped to U BAL_APPROX_BAD_INPUT */
+ *   x NaN/inf, NULL args         -> u_p (NaN -> 0) clipped to U BAL_APPROX_BAD_INPUT
+ *   u_p NaN/inf (x finite)       -> those entries read as 0, the step runs as usual
+ *                                   (${A}_proposal_replaced counts them) */
 #define ${A}_NX $nx
 #define ${A}_NU $nu
 #define ${A}_NC $nc
@@ -671,6 +712,7 @@ typedef struct ${A}_work {
   ${A}_filter_work filter;
   casadi_real p_dec[${A}_dec_NP + 1], p_filter[${A}_filter_NP + 1];
   casadi_real cand[${A}_NC * ${A}_NU], values[${A}_NC], best_u[${A}_NU];
+  casadi_real u_p[${A}_NU];  /* the proposal used (non-finite entries replaced by 0) */
   int order[${A}_NC], tried[${A}_NC];
   casadi_real h_x, dh, best_v;
   const casadi_real* harg[${A}_HSZ_ARG];
@@ -678,7 +720,7 @@ typedef struct ${A}_work {
   casadi_int hiw[${A}_HSZ_IW + 1];
   casadi_real hw[${A}_HSZ_W + 1];
   int hmem, nmem;
-  int dec_status, filter_status, certify, ready;
+  int dec_status, filter_status, certify, ready, n_replaced;
   long n_steps, n_certified, n_solved, n_fallbacks, n_proposal_feasible;
 } ${A}_work;
 
@@ -691,6 +733,8 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
               casadi_real* h_out, int* status, ${A}_work* wk);
 void ${A}_set_certify(${A}_work* wk, int certify);  /* 0: always solve (7.6), (7.5) */
 casadi_real ${A}_dh(const ${A}_work* wk);  /* dh of the last solved step (NAN if none) */
+/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
+int ${A}_proposal_replaced(const ${A}_work* wk);
 /* which: 0 steps, 1 certified, 2 solved, 3 fallbacks, 4 proposal feasible */
 long ${A}_counter(const ${A}_work* wk, int which);
 
@@ -702,7 +746,7 @@ static const casadi_real ${A}_u_lb[${A}_NU] = $u_lb;
 static const casadi_real ${A}_u_ub[${A}_NU] = $u_ub;
 static const casadi_real ${A}_grid[${A}_NC - 2][${A}_NU] = $grid;
 
-/* u clipped to U; a NaN entry counts as 0, +-inf is clipped to the bound */
+/* u clipped to U; a NaN entry counts as 0 (the step passes finite proposals) */
 static void ${A}_clip(const casadi_real* u, casadi_real* out) {
   casadi_int i;
   casadi_real v;
@@ -803,10 +847,12 @@ void ${A}_reset(${A}_work* wk) {
   wk->n_proposal_feasible = 0;
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_x = wk->dh = wk->best_v = NAN;
+  wk->n_replaced = 0;
 }
 
 void ${A}_set_certify(${A}_work* wk, int certify) { wk->certify = certify; }
 casadi_real ${A}_dh(const ${A}_work* wk) { return wk->dh; }
+int ${A}_proposal_replaced(const ${A}_work* wk) { return wk->n_replaced; }
 long ${A}_counter(const ${A}_work* wk, int which) {
   return which == 0 ? wk->n_steps : which == 1 ? wk->n_certified
          : which == 2 ? wk->n_solved : which == 3 ? wk->n_fallbacks : wk->n_proposal_feasible;
@@ -868,10 +914,11 @@ static int ${A}_max_decrease(${A}_work* wk, const casadi_real* x, const casadi_r
   return found || isfinite(wk->best_v);
 }
 
-int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
+int ${A}_step(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u_out,
               casadi_real* h_out, int* status, ${A}_work* wk) {
   casadi_int i;
-  if (!x || !u_p || !u_out || !h_out || !status || !wk) {
+  const casadi_real* u_p;
+  if (!x || !u_p_in || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_APPROX_BAD_INPUT;
     return BAL_APPROX_BAD_INPUT;
   }
@@ -879,9 +926,17 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->dh = NAN;
   *h_out = NAN;
-  if (!${A}_finite(x, ${A}_NX) || !${A}_finite(u_p, ${A}_NU)) {
-    /* nothing is evaluated with a NaN or inf state or proposal (as
-       balustrade.control.approximate: "bad_input", projected proposal) */
+  /* a NaN or inf proposal entry is read as 0 (finite_proposal of
+     balustrade.control.fallbacks): the filter still certifies what is applied */
+  wk->n_replaced = 0;
+  for (i = 0; i < ${A}_NU; ++i) {
+    wk->n_replaced += !isfinite(u_p_in[i]);
+    wk->u_p[i] = isfinite(u_p_in[i]) ? u_p_in[i] : 0.0;
+  }
+  u_p = wk->u_p;
+  if (!${A}_finite(x, ${A}_NX)) {
+    /* nothing is evaluated with a NaN or inf state (as balustrade.control.approximate:
+       "non_finite_state", projected proposal) */
     wk->n_fallbacks++;
     wk->dec_status = wk->filter_status = BAL_BAD_INPUT;
     ${A}_clip(u_p, u_out);
@@ -923,7 +978,7 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
   wk->filter_status = ${A}_filter_solve(&wk->filter, wk->p_filter);
   if (BAL_SOLVED(wk->filter_status) && ${A}_in_box(wk->filter.x + $f_w_u, 1e-7)) {
     for (i = 0; i < ${A}_NU; ++i) u_out[i] = wk->filter.x[$f_w_u + i];
-    *status = BAL_APPROX_OK;
+    *status = wk->filter_status == BAL_OK ? BAL_APPROX_OK : BAL_APPROX_FILTER_FEASIBLE;
   } else {
     wk->n_fallbacks++;
     for (i = 0; i < ${A}_NU; ++i) u_out[i] = wk->best_u[i];
