@@ -38,9 +38,10 @@ extern "C" {
 #ifndef BAL_STATUS_CODES
 #define BAL_STATUS_CODES
 /* Status of one solve (return value of <problem>_solve). */
-$solve_status/* the controllers apply converged and, after all retries, primal-feasible solutions (a
-   feasible point of (2.24)/(2.23) keeps the guarantees of the constraints), exactly as
-   balustrade.control does with the backend's "feasible" status */
+$solve_status/* converged and, after all retries, primal-feasible solutions are usable (a
+   feasible point of (2.23)/(7.5) keeps the guarantees of the constraints; a feasible (2.24)
+   of positive cost only bounds h_PB, so the PCBF step treats it as a failed (2.24)),
+   exactly as balustrade.control does with the backend's "feasible" status */
 #define BAL_SOLVED(s) ((s) == BAL_OK || (s) == BAL_FEASIBLE)
 #endif
 
@@ -72,7 +73,8 @@ PROBLEM_H = Template("""\
  * converge is retried from a cold start with, in order: $retry_doc. If none converges,
  * BAL_FEASIBLE with the last attempt whose violation scaled by 1 + |g| is <= $accept_tol
  * (its point, value and multipliers in the work struct), as balustrade's backend.
- * The PCBF step applies BAL_OK and BAL_FEASIBLE solutions (BAL_SOLVED), else falls back.
+ * The steps use BAL_OK and BAL_FEASIBLE solutions (BAL_SOLVED) as balustrade.control uses
+ * "optimal" and "feasible" ones (a feasible (2.24) only bounds h_PB: see the step).
  */
 #define ${P}_NP $np
 #define ${P}_NW $nw

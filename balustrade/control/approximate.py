@@ -195,7 +195,10 @@ class GridPCBFFilter:
 
     def __init__(self, system: System, U: Set, h_hat: HHat, half_width: object,
                  spacing: object, rho: float = 0.9, u_init: np.ndarray | None = None):
-        self.system, self.U, self.rho = system, U, float(rho)
+        check_instance(system, System, "GridPCBFFilter: system")
+        check_instance(U, Set, "GridPCBFFilter: U")
+        self.system, self.U = system, U
+        self.rho = as_scalar(rho, "GridPCBFFilter: rho", 0.0, 1.0, low_open=True)
         self.nu = system.nu
         self.half_width = as_vector(half_width, "GridPCBFFilter: half_width", self.nu)
         self.spacing = as_vector(spacing, "GridPCBFFilter: spacing", self.nu)
@@ -214,7 +217,8 @@ class GridPCBFFilter:
         self._many = self._h_next.map(len(self.offsets))
         self._many_buf = Buffered(self._many)  # one low-overhead call per step
         self._h_buf = Buffered(self.h)
-        self.u_init = np.zeros(self.nu) if u_init is None else np.asarray(u_init, float)
+        self.u_init = np.zeros(self.nu) if u_init is None else \
+            as_vector(u_init, "GridPCBFFilter: u_init", self.nu)
         self.reset()
 
     def reset(self) -> None:
@@ -235,12 +239,16 @@ class GridPCBFFilter:
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         self.n_steps += 1
         start = time.perf_counter()
-        try:
-            x = as_vector(x, "GridPCBFFilter.step: x", self.system.nx)
-            u_p = as_vector(u_p, "GridPCBFFilter.step: u_p", self.nu)
-        except BalustradeError as exc:
-            return self.u_prev.copy(), StepInfo(status=f"bad_input: {exc}",
+        u_p, replaced = finite_proposal(u_p, self.nu, "GridPCBFFilter.step: u_p")
+        x = finite_state(x, self.system.nx, "GridPCBFFilter.step: x")
+        if x is None:  # keep the last input (Algorithm 8.7 is rate-limited around it)
+            return self.u_prev.copy(), StepInfo(status="non_finite_state",
                                                 fallback="previous_input")
+        u, info = self._step(x, u_p, start)
+        return u, note_proposal(info, replaced)
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray, start: float
+              ) -> tuple[np.ndarray, StepInfo]:
         cand = self.candidates()
         padded = np.vstack([cand, np.repeat(cand[-1:], len(self.offsets) - len(cand), 0)])
         n = len(self.offsets)
