@@ -141,13 +141,25 @@ def test_certification_requires_u_p_in_U():
     assert info.status == "ok" and u[0] <= 3.0 + 1e-7 and f.n_certified == 0
 
 
-def test_controller_never_raises():
+def test_controller_never_raises_for_runtime_data():
+    """NaN/inf values fall back (state) or are read as 0 (proposal); wrong shapes and junk
+    arguments are programming errors and raise a BalustradeError naming the argument."""
     f = ApproximatePCBFFilter(SYS, U, h_wavy, solver="sqpmethod")
     u, info = f.step(np.array([np.nan, 0.0]), np.array([5.0]))
     assert info.fallback == "projected_proposal" and u[0] == 3.0
-    u, info = f.step(np.zeros(3), np.array([1.0]))
-    assert info.fallback == "projected_proposal"
-    assert f.n_fallbacks == 2 and f.n_steps == 2
+    assert info.status == "non_finite_state"
+    x = np.array([0.2, 0.1])
+    u0, info0 = f.step(x, np.array([0.0]))
+    u, info = f.step(x, np.array([np.nan]))
+    assert np.array_equal(u, u0) and info.values["non_finite_proposal"] == 1.0
+    assert info.status.startswith("non_finite_proposal") and info.fallback == info0.fallback
+    assert f.n_fallbacks == 1 and f.n_steps == 3
+    with pytest.raises(ShapeError, match="ApproximatePCBFFilter.step: x"):
+        f.step(np.zeros(3), np.array([1.0]))
+    with pytest.raises(BalustradeError, match="ApproximatePCBFFilter.step: u_p"):
+        f.step(x, "a")
+    with pytest.raises(BalustradeError, match="ApproximatePCBFFilter: rho"):
+        ApproximatePCBFFilter(SYS, U, h_wavy, rho="a")
     f.reset()
     assert f.n_steps == 0
 

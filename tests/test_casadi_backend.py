@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from balustrade.backends import compile
-from balustrade.backends.casadi_backend import _status, solver_options
+from balustrade.backends.casadi_backend import _status, _unbounded, solver_options
 from balustrade.dsl import OCP, Box, LinearSystem
 from balustrade.dsl.costs import norm, squared_norm
 from balustrade.errors import SolverError
@@ -141,6 +141,29 @@ def test_truncated_solves_are_not_optimal(pend, solver, opt):
                              pend.alpha_f, slack_norm=2)
     sol = compile(ocp, "casadi", solver, opt, retries=[]).solve({"x0": [0.6, 1.0]})
     assert sol.status in ("max_iterations", "feasible") and "Maximum_Iterations" in sol.message
+
+
+@pytest.mark.parametrize("solver", ["ipopt", "sqpmethod"])
+def test_unbounded_problem_is_failed_not_feasible(solver):
+    """``min v`` with ``v`` free: IPOPT's iterates diverge (objective ~ -1e20 at a
+    "primal-feasible" point); this used to come back ``feasible`` (usable in a closed loop).
+    sqpmethod's default retry chain ends with IPOPT, which gives the same evidence."""
+    ocp = OCP(name="unbounded")
+    ocp.minimize(ocp.variable("v", 1)[0])
+    sol = compile(ocp, "casadi", solver).solve({})
+    assert sol.status == "failed" and not sol.usable, sol.summary()
+    assert "appears unbounded" in sol.message and "Diverging_Iterates" in sol.message
+    bounded = OCP(name="bounded")
+    bounded.minimize(bounded.variable("v", 1, lb=-2.0)[0])
+    assert compile(bounded, "casadi", solver).solve({}).objective == pytest.approx(-2.0)
+
+
+def test_unbounded_evidence():
+    assert _unbounded("Diverging_Iterates", -1.0) == "diverging iterates"
+    assert "objective" in _unbounded("Maximum_Iterations_Exceeded", -7e21)
+    assert "objective" in _unbounded("Solve_Succeeded", -np.inf)
+    assert _unbounded("Maximum_Iterations_Exceeded", -1e9) is None
+    assert _unbounded("Restoration_Failed", np.nan) is None
 
 
 def test_return_status_mapping():

@@ -81,3 +81,48 @@ def test_non_finite_state_is_a_recorded_fallback(pend, controller):
     u, info = controller.step(np.array([np.nan, 0.0]), np.array([1.0]))
     assert info.fallback == "projected_proposal" and info.status == "non_finite_state"
     assert u[0] == 1.0
+
+
+def test_non_finite_proposal_is_filtered_as_zero(pend, controller, unstable2d_tube):
+    """NaN/inf entries of u_p are runtime data: read as 0 and filtered (the applied input
+    is the filter's, certified), recorded as non_finite_proposal, never raised; a wrong
+    shape still raises (PCBF (2.23) and robust Algorithm 5.2)."""
+    from balustrade.control.robust import RobustPCBFSafetyFilter
+    from balustrade.errors import BalustradeError, ShapeError
+
+    d = unstable2d_tube
+    s, cbf = d["s"], d["cbf"]
+    robust = RobustPCBFSafetyFilter.build(d["system"], s.X, s.U, cbf, cbf.policy, d["N"],
+                                          s.deltas(), d["error"], s.alpha_f, backend="cvxpy")
+    for ctl, x in ((controller, np.array([0.45, 1.0])), (robust, np.array([0.3, 0.2]))):
+        ctl.reset()
+        u0, info0 = ctl.step(x, np.array([0.0]))
+        assert info0.status == "ok"
+        for bad in (np.nan, np.inf, -np.inf):
+            ctl.reset()
+            u, info = ctl.step(x, np.array([bad]))
+            assert u == pytest.approx(u0, abs=1e-7)
+            assert info.status == "non_finite_proposal" and info.fallback is None
+            assert info.values["non_finite_proposal"] == 1.0
+        with pytest.raises(ShapeError, match="step: u_p"):
+            ctl.step(x, np.zeros(2))
+        with pytest.raises(BalustradeError, match="step: u_p"):
+            ctl.step(x, "junk")
+    assert controller.step(np.array([0.45, 1.0]), np.array([0.0]))[0][0] < -2.9  # it acts
+
+
+def test_controller_arguments_are_validated():
+    from balustrade.control.fallbacks import project
+    from balustrade.control.multiobjective import MultiobjectiveLyapunovController
+    from balustrade.dsl import Box
+    from balustrade.errors import BalustradeError, ShapeError
+
+    with pytest.raises(BalustradeError, match="rho"):
+        MultiobjectiveLyapunovController(None, None, None, rho="a")
+    with pytest.raises(BalustradeError, match=r"rho.*\[0, 1\)"):
+        MultiobjectiveLyapunovController(None, None, None, rho=1.0)
+    with pytest.raises(BalustradeError, match="project: u"):
+        project("junk", Box.symmetric([1.0]))
+    with pytest.raises(ShapeError, match="project: u"):
+        project(np.zeros(3), Box.symmetric([1.0]))
+    assert project(np.array([np.nan]), Box.symmetric([1.0]))[0] == 0.0

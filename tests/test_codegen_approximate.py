@@ -89,21 +89,31 @@ def test_approximate_exact_shortcut_rho_half(tmp_path) -> None:
 
 
 def test_approximate_non_finite_input_falls_back_as_python(approx: dict) -> None:
-    """NaN or inf state or proposal: the C step (BAL_APPROX_BAD_INPUT) applies what the
-    Python controller applies (the proposal, NaN as 0, clipped to U), never raises, and
-    the next finite step is solved normally."""
+    """A NaN or inf state: the C step (BAL_APPROX_BAD_INPUT) applies what the Python
+    controller applies (the proposal, non-finite entries as 0, clipped to U). A NaN or inf
+    proposal with a finite state: both read it as 0 and run Algorithm 7.5 as usual, so
+    the input is the filter's (status non_finite_proposal...). Never raises."""
     py, c = approx["py"], CApproximatePCBFFilter(approx["lib"])
     py.reset()
     c.reset()
-    cases = [([np.nan, 0.0], 2.0), ([0.1, np.inf], 7.0), ([0.1, 0.2], np.nan),
-             ([0.1, 0.2], np.inf), ([0.1, 0.2], -np.inf), ([np.nan, np.nan], np.nan)]
-    for x, u_p in cases:
+    bad_x = [([np.nan, 0.0], 2.0), ([0.1, np.inf], 7.0), ([np.nan, np.nan], np.nan)]
+    for x, u_p in bad_x:
         u1, i1 = py.step(np.array(x), np.array([u_p]))
         u2, i2 = c.step(np.array(x), np.array([u_p]))
         assert np.array_equal(u1, u2), (x, u_p, u1, u2)
-        assert i1.status.startswith("bad_input") and i2.status == "bad_input"
-        assert i1.fallback == i2.fallback == "projected_proposal"
-    assert py.n_fallbacks == c.n_fallbacks == len(cases)
+        assert (i1.status, i1.fallback) == (i2.status, i2.fallback) == (
+            "non_finite_state", "projected_proposal")
+    assert py.n_fallbacks == c.n_fallbacks == len(bad_x)
+    for x in ([0.1, 0.2], [0.45, 1.3], [-0.45, -1.3]):   # certified, filtered, filtered
+        u0, i0 = py.step(np.array(x), np.array([0.0]))
+        for u_p in (np.nan, np.inf, -np.inf):
+            u1, i1 = py.step(np.array(x), np.array([u_p]))
+            u2, i2 = c.step(np.array(x), np.array([u_p]))
+            assert np.abs(u1 - u0).max() <= 1e-9 and np.abs(u1 - u2).max() <= 1e-6
+            assert (i1.status, i1.fallback) == (i2.status, i2.fallback), (x, u_p)
+            want = "non_finite_proposal" if i0.status == "ok" else \
+                f"non_finite_proposal_{i0.status}"
+            assert i1.status == want and i1.fallback == i0.fallback
     u1, i1 = py.step(np.array([0.3, 0.5]), np.array([3.5]))
     u2, i2 = c.step(np.array([0.3, 0.5]), np.array([3.5]))
     assert i1.status == i2.status and np.abs(u1 - u2).max() <= 1e-6

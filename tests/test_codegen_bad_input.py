@@ -4,7 +4,8 @@
   compares false, so the residual tests passed); now ``BAL_BAD_INPUT`` — checked from C
   (a driver compiled with -Werror, run under valgrind when available) and through ctypes
   without the Python checks;
-* the C control steps fall back as the Python controllers do (projected proposal);
+* the C control steps fall back as the Python controllers do: a non-finite state → the
+  projected proposal; non-finite proposal entries → read as 0, the filter runs as usual;
 * the Python runtime raises ShapeError / NonFiniteError before calling C;
 * the emitters refuse unwritable folders and wrong objects before CasADi runs.
 
@@ -66,10 +67,13 @@ int main(void) {
   x[1] = 0.2;
   u_p[0] = NAN;
   pendulum_pcbf_step(x, u_p, u, &h, &st, wk);
-  printf("step_nan_u %d %.17g\n", st, u[0]);
+  printf("step_nan_u %d %.17g %d\n", st, u[0], pendulum_pcbf_proposal_replaced(wk));
   u_p[0] = -INFINITY;
   pendulum_pcbf_step(x, u_p, u, &h, &st, wk);
-  printf("step_minf_u %d %.17g\n", st, u[0]);
+  printf("step_minf_u %d %.17g %d\n", st, u[0], pendulum_pcbf_proposal_replaced(wk));
+  u_p[0] = 0.0;
+  pendulum_pcbf_step(x, u_p, u, &h, &st, wk);
+  printf("step_zero_u %d %.17g %d\n", st, u[0], pendulum_pcbf_proposal_replaced(wk));
   printf("step_null %d\n", pendulum_pcbf_step(0, u_p, u, &h, &st, wk));
   u_p[0] = 2.0;
   pendulum_pcbf_step(x, u_p, u, &h, &st, wk);
@@ -117,8 +121,13 @@ def test_c_driver_gets_bad_input_status_from_c(pcbf: dict) -> None:
     assert res["solve_ok"] == [str(ok)]
     # NaN state: u_p = 2 clipped to U = [-3, 3], nothing solved (as PCBFSafetyFilter)
     assert res["step_nan_x"] == [step_bad, "2", "1", str(bad)]
-    assert res["step_nan_u"] == [step_bad, "0"]  # NaN proposal -> 0, not the lower bound
-    assert res["step_minf_u"] == [step_bad, "-3"]
+    # a NaN or -inf proposal is read as 0 and filtered as usual: the input of u_p = 0
+    ok_code = str(S.code_of(S.PCBF, "ok"))
+    zero = float(res["step_zero_u"][1])
+    assert res["step_zero_u"][::2] == [ok_code, "0"]
+    for key in ("step_nan_u", "step_minf_u"):
+        assert res[key][::2] == [ok_code, "1"], key
+        assert abs(float(res[key][1]) - zero) <= 1e-6, key
     assert res["step_null"] == [step_bad]
     assert res["step_ok"] == [str(S.code_of(S.PCBF, "ok")), "1"]
 
@@ -178,10 +187,20 @@ def test_c_filter_falls_back_as_python_on_nan_state(pcbf: dict) -> None:
             assert np.array_equal(u1, u2)
             assert (i1.status, i1.fallback) == (i2.status, i2.fallback) == (
                 "non_finite_state", "projected_proposal")
-    # a non-finite proposal (Python: NonFiniteError) is a fallback in C, never an exception
-    for u_p, u in ((np.nan, 0.0), (np.inf, 3.0), (-np.inf, -3.0)):
-        u2, i2 = c.step(np.array([0.1, 0.2]), np.array([u_p]))
-        assert u2[0] == u and (i2.status, i2.fallback) == ("bad_input", "projected_proposal")
+    # a non-finite proposal: read as 0 and filtered, in Python and C alike (the applied
+    # input is the filter's for u_p = 0, certified safe; not the bare projection)
+    x = np.array([0.45, 1.0])   # outside S_PB: the filter must act
+    py.reset()
+    u0, _ = py.step(x, np.array([0.0]))
+    for u_p in (np.nan, np.inf, -np.inf):
+        py.reset()
+        c.reset()
+        u1, i1 = py.step(x, np.array([u_p]))
+        u2, i2 = c.step(x, np.array([u_p]))
+        assert np.abs(u1 - u0).max() <= 1e-9 and np.abs(u1 - u2).max() <= 1e-6
+        assert (i1.status, i1.fallback) == (i2.status, i2.fallback) == (
+            "non_finite_proposal", None)
+        assert i1.values["non_finite_proposal"] == i2.values["non_finite_proposal"] == 1.0
     with pytest.raises(ShapeError, match="CPCBFSafetyFilter.step: x"):
         c.step(np.zeros(3), np.array([1.0]))
     with pytest.raises(ShapeError, match="CPCBFSafetyFilter.step: u_p"):

@@ -257,6 +257,12 @@ class CasadiCompiled:
         infeasible problem from a failed line search, but its default retry chain ends
         with IPOPT), the status is ``"infeasible"``; else the first attempt's status
         (``failed``, ``max_iterations``).
+
+        An attempt whose iterates diverged (IPOPT's ``Diverging_Iterates``) or whose
+        objective is below :data:`UNBOUNDED_OBJECTIVE` or not finite is ``failed`` with a
+        message saying the problem appears unbounded (:func:`_unbounded`); when no attempt
+        converged, such an attempt is returned, never rescued as ``"feasible"`` (a point
+        of an unbounded problem is no answer to use in a closed loop).
         """
         p = self.ocp.pack_parameters(params)
         sol = self._solve_with(self.solver, p, self._initial_guess(warm_start))
@@ -266,7 +272,10 @@ class CasadiCompiled:
                 break
             attempts.append(self._solve_with(solver, p, self._initial_guess(None)))
         final = attempts[-1] if attempts[-1].success else attempts[0]
-        if not final.success:
+        unbounded = [a for a in attempts if a.raw.get("unbounded")]
+        if unbounded and not final.success:  # evidence of unboundedness beats any rescue
+            final = unbounded[-1]
+        elif not final.success:
             feasible = [a for a in reversed(attempts) if a.raw.get("x") is not None
                         and self._primal_feasible(a.raw["x"], p)]
             infeasible = [a for a in attempts if a.status == "infeasible"]
@@ -316,13 +325,18 @@ class CasadiCompiled:
         # the declared cost at the returned point (exact; the epigraph value may differ by
         # solver tolerances or, for the 2-norm, by up to NORM2_EPS/4 per term)
         objective = float(self._objective(w, p)) if np.all(np.isfinite(w)) else np.nan
+        message = str(stats.get("return_status", ""))
+        why = _unbounded(message, objective)
+        if why is not None:
+            status, message = "failed", f"{message}: the problem appears unbounded ({why})"
         return Solution(status=status, objective=objective,
                         primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
                         iterations=int(stats.get("iter_count", 0)), backend="casadi",
                         solver=_SOLVER_NAMES.get(solver.class_name(), solver.class_name()),
                         w=w, p=p,
-                        message=str(stats.get("return_status", "")),
+                        message=message,
                         raw={"x": w_all, "lam_x": lam_x, "lam_g": lam_g,
+                             "unbounded": why is not None,
                              # the solver's own outputs, passed back as a warm start as-is
                              "dm": (res["x"], res["lam_x"], res["lam_g"])})
 
@@ -357,6 +371,24 @@ class CasadiCompiled:
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
                         iterations=0, backend="casadi", solver=self.solver_name, w=w, p=p,
                         message=message)
+
+
+#: an objective below this (IPOPT's default ``diverging_iterates_tol`` is 1e20) is taken as
+#: evidence that the problem is unbounded below
+UNBOUNDED_OBJECTIVE = -1e19
+
+
+def _unbounded(message: str, objective: float) -> str | None:
+    """Why a solver run looks unbounded below, or ``None``: diverging iterates (IPOPT's
+    ``Diverging_Iterates``), an objective below :data:`UNBOUNDED_OBJECTIVE`, or a
+    non-finite objective at a finite point."""
+    if message == "Diverging_Iterates":
+        return "diverging iterates"
+    if np.isnan(objective):
+        return None  # no finite point: an evaluation failure, not unboundedness
+    if not np.isfinite(objective) or objective < UNBOUNDED_OBJECTIVE:
+        return f"objective {objective:.3g}"
+    return None
 
 
 def sqp_retry_strategies(options: dict) -> list[str]:

@@ -34,6 +34,7 @@ from balustrade.backends.casadi_backend import CasadiCompiled, sqp_retry_strateg
 from balustrade.codegen import status as S
 from balustrade.codegen import templates as T
 from balustrade.codegen.support import check_no_callbacks, solver_libraries
+from balustrade.control.pcbf import ZERO_TOL
 from balustrade.dsl.sets import Box
 from balustrade.errors import CodegenError, NonFiniteError, ShapeError
 
@@ -318,7 +319,8 @@ class _Problem:
             dispatch=code["dispatch"], n_solvers=code["n_solvers"], nw=self.nw,
             ng1=max(self.ng, 1), lbx=_c_array(self.c.lbx),
             ubx=_c_array(self.c.ubx), lbg=_c_array(self.c.lbg), ubg=_c_array(self.c.ubg),
-            init=_c_array(self.init), tol_pr=_c_double(self.tol_pr),
+            init=_c_array(self.init), n_user=int(self.c.n_user),
+            tol_pr=_c_double(self.tol_pr),
             tol_du=_c_double(self.tol_du), accept_tol=_c_double(self.accept_tol))
 
     def manifest(self) -> dict:
@@ -467,8 +469,8 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     if dynamics is not None:
         functions[f"{Q}_dynamics"] = dynamics
     files = _generate(functions, name, out_dir)
-    header = s.header() + f.header() + T.PCBF_H.substitute(Q=Q, nx=nx, nu=nu, N=N,
-                                                          pcbf_status=S.c_defines(S.PCBF))
+    header = s.header() + f.header() + T.PCBF_H.substitute(
+        Q=Q, nx=nx, nu=nu, N=N, pcbf_status=S.c_defines(S.PCBF), zero_tol=_c_double(ZERO_TOL))
     source = s.source() + f.source() + T.PCBF_C.substitute(
         Q=Q, u_lb=_c_array(U.lb), u_ub=_c_array(U.ub), s_p_x0=s.params["x0"]["offset"],
         f_p_x0=f.params["x0"]["offset"], f_p_u_p=f.params["u_p"]["offset"],

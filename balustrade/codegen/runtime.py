@@ -23,13 +23,18 @@ import numpy as np
 from balustrade._checks import as_vector
 from balustrade.codegen import status as S
 from balustrade.control.base import StepInfo
+from balustrade.control.fallbacks import note_proposal
 from balustrade.errors import BalustradeError, CodegenError, NonFiniteError, ShapeError
 
 _dbl_p = ctypes.POINTER(ctypes.c_double)
 #: solve status code -> name (``balustrade.codegen.status.SOLVE``)
 _STATUS = {code: st.name for code, st in S.by_code(S.SOLVE).items()}
-_SOLVED = (S.code_of(S.SOLVE, "ok"), S.code_of(S.SOLVE, "feasible"))
+_OK, _FEASIBLE = S.code_of(S.SOLVE, "ok"), S.code_of(S.SOLVE, "feasible")
+_SOLVED = (_OK, _FEASIBLE)
 _BAD_INPUT = S.code_of(S.SOLVE, "bad_input")
+#: solve status code -> the Solution status of the Python backend where they coincide
+#: (a converged C solve is the backend's "optimal"); the others keep the C name
+_PY_STATUS = {**_STATUS, _OK: "optimal"}
 
 
 def _ptr(a: np.ndarray) -> ctypes._Pointer:
@@ -288,6 +293,8 @@ class CPCBFSafetyFilter(_OwnsWork):
                                   [_dbl_p, _dbl_p, _dbl_p, _dbl_p,
                                    ctypes.POINTER(ctypes.c_int), vp])
         self._status_fn = self._lib.fn(f"{Q}_solve_status", ctypes.c_int, [vp, ctypes.c_int])
+        self._h_upper = self._lib.fn(f"{Q}_h_upper", ctypes.c_double, [vp])
+        self._replaced = self._lib.fn(f"{Q}_proposal_replaced", ctypes.c_int, [vp])
         self._work = self._alloc()
         if not self._work:
             raise CodegenError(f"{Q}_alloc failed (no CasADi memory left)")
@@ -317,10 +324,13 @@ class CPCBFSafetyFilter(_OwnsWork):
         return self._u, float(self._h[0]), code
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        """One C step. Wrong shapes raise :class:`~balustrade.errors.ShapeError`; a NaN
-        or inf ``x`` or ``u_p`` is refused by the C (``BAL_PCBF_BAD_INPUT``: the proposal,
-        NaN as 0, clipped to ``U``; status ``"non_finite_state"`` as in
-        :class:`~balustrade.control.pcbf.PCBFSafetyFilter`, ``"bad_input"`` for ``u_p``)."""
+        """One C step, reported as :class:`~balustrade.control.pcbf.PCBFSafetyFilter`
+        reports it (status, fallback, ``values["h_PB"]``/``["h_PB_upper"]``,
+        ``uncertified``; see :func:`_pcbf_info`). Wrong shapes raise
+        :class:`~balustrade.errors.ShapeError`; a NaN or inf ``x`` is refused by the C
+        (``BAL_PCBF_BAD_INPUT``: the proposal, non-finite entries as 0, clipped to ``U``;
+        ``"non_finite_state"``); NaN or inf entries of ``u_p`` are read as 0 and the
+        step runs as usual (``"non_finite_proposal[_<status>]"``)."""
         u_p = np.asarray(u_p, dtype=float).reshape(-1)
         if u_p.size == 1:
             u_p = np.broadcast_to(u_p, (self.nu,))
@@ -329,25 +339,48 @@ class CPCBFSafetyFilter(_OwnsWork):
         start = time.perf_counter()
         u, h, code = self.step_raw(x, u_p)
         elapsed = time.perf_counter() - start
-        s_code = self._status_fn(self._work, 0)
-        f_code = self._status_fn(self._work, 1)
-        known = self._CODES.get(code)
-        info = StepInfo(solve_time=elapsed,
-                        fallback=known.fallback if known is not None else "unknown")
-        if code == 0:
-            info.status = "ok"
-        elif code == 1:
-            info.status = f"filter_{_STATUS.get(f_code, f_code)}"
-        elif code == self._BAD:
-            info.status = "non_finite_state" if not np.all(np.isfinite(x)) else "bad_input"
-        else:
-            info.status = f"slack_{_STATUS.get(s_code, s_code)}"
-        if np.isfinite(h):
-            info.values["h_PB"] = h
+        info = _pcbf_info(code, self._status_fn(self._work, 0), self._status_fn(self._work, 1),
+                          h, float(self._h_upper(self._work)))
+        info.solve_time = elapsed
+        if code != self._BAD:
+            note_proposal(info, int(self._replaced(self._work)))
         if self.keep_solutions:
             info.solutions = {"slack": self.slack.unpack(self.slack.x.copy()),
                               "filter": self.filter.unpack(self.filter.x.copy())}
         return u.copy(), info
+
+def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float) -> StepInfo:
+    """The :class:`StepInfo` :class:`~balustrade.control.pcbf.PCBFSafetyFilter` records for
+    the same decisions, from the C step's code and its two solve statuses: ``status``
+    (``"ok"``, ``"slack_<s>"``, ``"slack_<s>_filter_<f>"``, ``"filter_<f>"``, with a
+    converged C solve named ``optimal``), ``fallback``, ``h_PB`` (NaN after a merely
+    feasible (2.24), whose cost is ``h_PB_upper``) and ``uncertified``."""
+    known = S.by_code(S.PCBF).get(code)
+    info = StepInfo(fallback=known.fallback if known is not None else "unknown")
+    s, f = _PY_STATUS.get(s_code, str(s_code)), _PY_STATUS.get(f_code, str(f_code))
+    if known is None:
+        info.status = str(code)
+        return info
+    if known.name == "bad_input":
+        info.status = "non_finite_state"
+        return info
+    certified = s_code == _OK or (s_code == _FEASIBLE and np.isfinite(h))
+    if s_code == _FEASIBLE and not certified:
+        info.uncertified["slack"] = s
+        info.values.update(h_PB=float("nan"), h_PB_upper=h_upper)
+    elif certified:
+        info.values["h_PB"] = h
+    if known.name in ("shifted_plan", "projected_proposal"):
+        info.status = f"slack_{s}"
+        return info
+    if f_code in _SOLVED:
+        if f_code != _OK:
+            info.uncertified["filter"] = f
+        info.status = "ok" if certified and f_code == _OK else f"slack_{s}_filter_{f}"
+    else:
+        info.status = ("" if certified else f"slack_{s}_") + f"filter_{f}"
+    return info
+
 
 def mirror_c_retries(compiled: object) -> object:
     """Make a compiled CasADi problem retry failed solves exactly as its emitted C does:
@@ -367,6 +400,8 @@ class CApproximatePCBFFilter(_OwnsWork):
     :class:`~balustrade.control.approximate.ApproximatePCBFFilter`."""
 
     _CODES = S.by_code(S.APPROX)
+    _BAD = S.code_of(S.APPROX, "bad_input")
+    _FILTER_FEASIBLE = S.code_of(S.APPROX, "filter_feasible")
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
         self._lib = _Library(lib_path, manifest)
@@ -384,6 +419,7 @@ class CApproximatePCBFFilter(_OwnsWork):
         self._dh = self._lib.fn(f"{A}_dh", ctypes.c_double, [vp])
         self._counter = self._lib.fn(f"{A}_counter", ctypes.c_long, [vp, ctypes.c_int])
         self._set_certify = self._lib.fn(f"{A}_set_certify", None, [vp, ctypes.c_int])
+        self._replaced = self._lib.fn(f"{A}_proposal_replaced", ctypes.c_int, [vp])
         self._work = self._lib.fn(f"{A}_alloc", vp, [])()
         if not self._work:
             raise CodegenError(f"{A}_alloc failed (no CasADi memory left)")
@@ -411,9 +447,11 @@ class CApproximatePCBFFilter(_OwnsWork):
         raise AttributeError(name)
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        """One C step (wrong shapes raise ShapeError; NaN or inf ``x``/``u_p``: status
-        ``"bad_input"``, the proposal with NaN as 0 clipped to ``U``, as the Python
-        controller)."""
+        """One C step, reported as the Python controller reports it. Wrong shapes raise
+        ShapeError; a NaN or inf ``x``: status ``"non_finite_state"``, the proposal
+        (non-finite entries as 0) clipped to ``U``; NaN or inf entries of ``u_p`` are read
+        as 0 and the step runs as usual (``"non_finite_proposal[_<status>]"``); a (7.5)
+        solve that is only feasible: ``"filter_feasible"``, flagged in ``uncertified``."""
         u_p = np.asarray(u_p, dtype=float).reshape(-1)
         if u_p.size == 1:
             u_p = np.broadcast_to(u_p, (self.nu,))
@@ -426,9 +464,15 @@ class CApproximatePCBFFilter(_OwnsWork):
         info = StepInfo(solve_time=time.perf_counter() - start,
                         fallback=known.fallback if known is not None else "unknown")
         info.status = known.name if known is not None else str(code)
+        if code == self._BAD:
+            info.status = "non_finite_state"
+            return self._u.copy(), info
         info.values["certified"] = 1.0 if code == 1 else 0.0
-        if code not in (1, S.code_of(S.APPROX, "bad_input")):
+        if code != 1:
             info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))
+        if code == self._FILTER_FEASIBLE:
+            info.uncertified["filter"] = "feasible"
+        note_proposal(info, int(self._replaced(self._work)))
         return self._u.copy(), info
 
 

@@ -9,10 +9,14 @@ Three families:
 * :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
 * :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6).
 
-Each family has a *bad input* code: a parameter, state or proposal that is NaN or inf is
-refused before any solver runs (NaN compares false, so a residual test would pass it as
+Each family has a *bad input* code: a parameter or state that is NaN or inf is refused
+before any solver runs (NaN compares false, so a residual test would pass it as
 converged); the steps then apply the proposal, NaN entries replaced by 0, clipped to ``U``
-(the fallback of :func:`balustrade.control.fallbacks.projected_proposal`).
+(the fallback of :func:`balustrade.control.fallbacks.projected_proposal`). A non-finite
+*proposal* with a finite state is not refused: its non-finite entries are replaced by 0
+and the step runs as usual, so the applied input is still the safety filter's
+(:func:`balustrade.control.fallbacks.finite_proposal`); the step's
+``<name>_proposal_replaced`` says how many entries were replaced.
 """
 
 from __future__ import annotations
@@ -60,8 +64,11 @@ PCBF: tuple[Status, ...] = (
     Status("BAL_PCBF_PROJECTED", 3, "projected_proposal", "projected_proposal",
            "(2.24) failed and no plan is left: u_p clipped to U"),
     Status("BAL_PCBF_BAD_INPUT", 4, "bad_input", "projected_proposal",
-           "x or u_p is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
+           "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
            "clipped to U"),
+    Status("BAL_PCBF_FEASIBLE_SLACK", 5, "feasible_slack", "feasible_slack",
+           "(2.24) only feasible (not converged, cost > 0: an upper bound on h_PB, h_out "
+           "NAN) and no plan left: (2.23) on its slacks (or its u_{0|k} if (2.23) fails)"),
 )
 
 #: The Algorithm 7.5 step: ``fallback`` as in
@@ -73,11 +80,14 @@ APPROX: tuple[Status, ...] = (
     Status("BAL_APPROX_MAX_DECREASE", 2, "filter_failed", "max_decrease_solution",
            "(7.5) failed or left U: the (7.6) minimizer"),
     Status("BAL_APPROX_BAD_INPUT", 3, "bad_input", "projected_proposal",
-           "x or u_p is NaN or inf (or a pointer is NULL): u_p (NaN -> 0) clipped to U"),
+           "x is NaN or inf (or a pointer is NULL): u_p (NaN -> 0) clipped to U"),
     Status("BAL_APPROX_GRID_MINIMIZER", 4, "max_decrease_failed", "grid_minimizer",
            "(7.6) found nothing finite: the best screened candidate"),
     Status("BAL_APPROX_PROPOSAL_FEASIBLE", 5, "proposal_feasible", None,
            "u_p meets the decrease of (7.5): its minimizer (exact shortcut)"),
+    Status("BAL_APPROX_FILTER_FEASIBLE", 6, "filter_feasible", None,
+           "(7.5) only feasible (not converged): a safe input in U meeting the decrease, "
+           "possibly not the closest to u_p"),
 )
 
 

@@ -38,9 +38,10 @@ extern "C" {
 #ifndef BAL_STATUS_CODES
 #define BAL_STATUS_CODES
 /* Status of one solve (return value of <problem>_solve). */
-$solve_status/* the controllers apply converged and, after all retries, primal-feasible solutions (a
-   feasible point of (2.24)/(2.23) keeps the guarantees of the constraints), exactly as
-   balustrade.control does with the backend's "feasible" status */
+$solve_status/* converged and, after all retries, primal-feasible solutions are usable (a
+   feasible point of (2.23)/(7.5) keeps the guarantees of the constraints; a feasible (2.24)
+   of positive cost only bounds h_PB, so the PCBF step treats it as a failed (2.24)),
+   exactly as balustrade.control does with the backend's "feasible" status */
 #define BAL_SOLVED(s) ((s) == BAL_OK || (s) == BAL_FEASIBLE)
 #endif
 
@@ -70,8 +71,10 @@ PROBLEM_H = Template("""\
  * Constraint rows: $ng. BAL_OK when max violation < $tol_pr and inf-norm of the
  * Lagrangian gradient < $tol_du (the solver's own tests). An attempt that did not
  * converge is retried from a cold start with, in order: $retry_doc. If none converges,
- * BAL_FEASIBLE when the last attempt's violation scaled by 1 + |g| is <= $accept_tol.
- * The PCBF step applies BAL_OK and BAL_FEASIBLE solutions (BAL_SOLVED), else falls back.
+ * BAL_FEASIBLE with the last attempt whose violation scaled by 1 + |g| is <= $accept_tol
+ * (its point, value and multipliers in the work struct), as balustrade's backend.
+ * The steps use BAL_OK and BAL_FEASIBLE solutions (BAL_SOLVED) as balustrade.control uses
+ * "optimal" and "feasible" ones (a feasible (2.24) only bounds h_PB: see the step).
  */
 #define ${P}_NP $np
 #define ${P}_NW $nw
@@ -86,6 +89,9 @@ typedef struct ${P}_work {
   casadi_real lam_p[${P}_NP + 1];
   casadi_real f, pr_inf, du_inf, feas;
   int attempts;  /* solver runs in the last ${P}_solve (> 1: retried) */
+  /* the last BAL_FEASIBLE attempt of a ${P}_solve, restored if no attempt converges */
+  casadi_real kx[${P}_NW], klam_x[${P}_NW], klam_g[${P}_NG + 1], kg[${P}_NG + 1];
+  casadi_real kf, kpr_inf, kdu_inf, kfeas;
   /* CasADi work vectors (sizes from ${name}_casadi.h), shared by the solver and retries */
   const casadi_real* arg[${P}_SZ_ARG];
   casadi_real* res[${P}_SZ_RES];
@@ -110,6 +116,9 @@ void ${P}_free(${P}_work* wk);
 void ${P}_cold_start(${P}_work* wk);
 /* Warm start := the last solution (primal and multipliers). */
 void ${P}_warm_start(${P}_work* wk);
+/* Warm start := the last solution's primal, zero multipliers (epigraph variables at their
+   initial values): what balustrade's backend does with a solution that did not converge. */
+void ${P}_warm_start_primal(${P}_work* wk);
 /* Solve with parameters p (${P}_NP values) from the warm start in wk; returns BAL_*
    (call ${P}_warm_start afterwards to start the next solve from this solution).
    A NaN or inf parameter returns BAL_BAD_INPUT without solving (x and f are then NaN). */
@@ -177,6 +186,11 @@ void ${P}_warm_start(${P}_work* wk) {
   memcpy(wk->lam_g0, wk->lam_g, sizeof(wk->lam_g0));
 }
 
+void ${P}_warm_start_primal(${P}_work* wk) {
+  ${P}_cold_start(wk);
+  memcpy(wk->x0, wk->x, $n_user * sizeof(casadi_real));
+}
+
 /* One solver run: which = 0 from the warm start in wk, else retry `which` from a cold start. */
 static int ${P}_attempt(${P}_work* wk, const casadi_real* p, int which) {
   casadi_int i;
@@ -225,8 +239,31 @@ static int ${P}_finite_params(const casadi_real* p) {
   return 1;
 }
 
+/* keep (save = 1) or restore (save = 0) the point of a BAL_FEASIBLE attempt */
+static void ${P}_feasible_copy(${P}_work* wk, int save) {
+  if (save) {
+    memcpy(wk->kx, wk->x, sizeof(wk->kx));
+    memcpy(wk->klam_x, wk->lam_x, sizeof(wk->klam_x));
+    memcpy(wk->klam_g, wk->lam_g, sizeof(wk->klam_g));
+    memcpy(wk->kg, wk->g, sizeof(wk->kg));
+    wk->kf = wk->f;
+    wk->kpr_inf = wk->pr_inf;
+    wk->kdu_inf = wk->du_inf;
+    wk->kfeas = wk->feas;
+  } else {
+    memcpy(wk->x, wk->kx, sizeof(wk->kx));
+    memcpy(wk->lam_x, wk->klam_x, sizeof(wk->klam_x));
+    memcpy(wk->lam_g, wk->klam_g, sizeof(wk->klam_g));
+    memcpy(wk->g, wk->kg, sizeof(wk->kg));
+    wk->f = wk->kf;
+    wk->pr_inf = wk->kpr_inf;
+    wk->du_inf = wk->kdu_inf;
+    wk->feas = wk->kfeas;
+  }
+}
+
 int ${P}_solve(${P}_work* wk, const casadi_real* p) {
-  int first, status, which;
+  int first, status, which, have_feasible;
   casadi_int i;
   if (!wk || !wk->ready) return BAL_EVAL_ERROR;
   wk->attempts = 0;
@@ -238,14 +275,24 @@ int ${P}_solve(${P}_work* wk, const casadi_real* p) {
   }
   first = ${P}_attempt(wk, p, 0);
   if (first == BAL_OK) return first;
-  status = first;
+  have_feasible = first == BAL_FEASIBLE;
+  if (have_feasible) ${P}_feasible_copy(wk, 1);
   for (which = 1; which < $n_solvers; ++which) {
     status = ${P}_attempt(wk, p, which);
     if (status == BAL_OK) return status;
+    if (status == BAL_FEASIBLE) {
+      ${P}_feasible_copy(wk, 1);
+      have_feasible = 1;
+    }
   }
-  /* nothing converged: a primal-feasible last attempt is reported as BAL_FEASIBLE (safe to
-     apply, possibly suboptimal); otherwise the first attempt's status */
-  return status == BAL_FEASIBLE ? status : first;  /* wk->x holds the last attempt */
+  /* nothing converged: the last primal-feasible attempt is reported as BAL_FEASIBLE (safe
+     to apply, possibly suboptimal), never the point of a later infeasible attempt;
+     otherwise the first attempt's status (wk->x then holds the last attempt) */
+  if (have_feasible) {
+    ${P}_feasible_copy(wk, 0);
+    return BAL_FEASIBLE;
+  }
+  return first;
 }
 
 const casadi_real* ${P}_primal(const ${P}_work* wk) { return wk->x; }
@@ -264,7 +311,8 @@ PCBF_H = Template("""\
  *   x      measured state x_k              (${Q}_NX values, read)
  *   u_p    proposed input u_{p,k}          (${Q}_NU values, read)
  *   u_out  input to apply u_k              (${Q}_NU values, written)
- *   h_out  h_PB(x_k) = max(optimum of (2.24), 0) (NAN if (2.24) was not solved)
+ *   h_out  h_PB(x_k) = max(optimum of (2.24), 0) (NAN if (2.24) was not solved to
+ *          optimality: see ${Q}_h_upper)
  *   status BAL_PCBF_* below (also returned)
  * Per step: solve (2.24) warm-started from its last converged solution; clip its slacks
  * at 0 and fix them (plus eps, built into the problem) as parameters of (2.23); solve
@@ -273,19 +321,31 @@ PCBF_H = Template("""\
  *   (2.23) fails                 -> u_{0|k} of (2.24)              BAL_PCBF_SLACK_SOLUTION
  *   (2.24) fails                 -> next input of the last plan    BAL_PCBF_SHIFTED_PLAN
  *   no plan left                 -> u_p clipped to U               BAL_PCBF_PROJECTED
- *   x or u_p NaN/inf, NULL args  -> u_p (NaN -> 0) clipped to U    BAL_PCBF_BAD_INPUT
+ *   (2.24) BAL_FEASIBLE, cost > ${Q}_ZERO_TOL (not converged: its cost only bounds h_PB
+ *          from above; h_out NAN, ${Q}_h_upper the bound) -> a failed (2.24): the shifted
+ *          plan; no plan left -> (2.23) on its slacks          BAL_PCBF_FEASIBLE_SLACK
+ *          (a BAL_FEASIBLE point of cost <= ${Q}_ZERO_TOL is optimal: h_PB >= 0)
+ *   x NaN/inf, NULL args         -> u_p (NaN -> 0) clipped to U    BAL_PCBF_BAD_INPUT
  *                                   (nothing solved; both solve statuses BAL_BAD_INPUT)
+ *   u_p NaN/inf (x finite)       -> those entries of u_p read as 0, the step runs as usual
+ *                                   (${Q}_proposal_replaced counts them)
+ * Warm starts as balustrade's backend: from a converged solution (primal and multipliers);
+ * from the primal of a certified BAL_FEASIBLE (2.24) (zero multipliers); never from an
+ * uncertified one; (2.23) only from BAL_OK solutions.
  * The solutions stay in work->slack / work->filter (x: full primal, f: optimum). */
 #define ${Q}_NX $nx
 #define ${Q}_NU $nu
 #define ${Q}_N $N
+#define ${Q}_ZERO_TOL $zero_tol
 $pcbf_status
 typedef struct ${Q}_work {
   ${Q}_slack_work slack;
   ${Q}_filter_work filter;
   casadi_real p_slack[${Q}_slack_NP + 1], p_filter[${Q}_filter_NP + 1];
   casadi_real plan[${Q}_NU * ${Q}_N];
-  int plan_age, have_plan, have_slack, have_filter;
+  casadi_real u_p[${Q}_NU];  /* the proposal used (non-finite entries replaced by 0) */
+  casadi_real h_upper;  /* cost of an uncertified BAL_FEASIBLE (2.24), else NAN */
+  int plan_age, have_plan, have_slack, have_filter, n_replaced;
   int slack_status, filter_status;  /* BAL_* of the last step's solves */
   int ready;
 } ${Q}_work;
@@ -302,6 +362,10 @@ int ${Q}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
 ${Q}_slack_work* ${Q}_slack_problem(${Q}_work* wk);
 ${Q}_filter_work* ${Q}_filter_problem(${Q}_work* wk);
 int ${Q}_solve_status(const ${Q}_work* wk, int which);  /* 0: (2.24), 1: (2.23) */
+/* The last step's upper bound on h_PB from a merely feasible (2.24) (NAN if none). */
+casadi_real ${Q}_h_upper(const ${Q}_work* wk);
+/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
+int ${Q}_proposal_replaced(const ${Q}_work* wk);
 
 """)
 
@@ -310,8 +374,8 @@ PCBF_C = Template("""\
 static const casadi_real ${Q}_u_lb[${Q}_NU] = $u_lb;
 static const casadi_real ${Q}_u_ub[${Q}_NU] = $u_ub;
 
-/* u_p clipped to U; a NaN entry counts as 0 (fmax would silently pick the lower bound),
-   +-inf is clipped to the bound, as numpy.clip(numpy.nan_to_num(u_p), lb, ub) */
+/* u_p clipped to U (the step passes its proposal with non-finite entries already read as
+   0; a NaN would otherwise make fmax silently pick the lower bound) */
 static void ${Q}_project(const casadi_real* u_p, casadi_real* u_out) {
   casadi_int i;
   casadi_real v;
@@ -369,48 +433,76 @@ void ${Q}_reset(${Q}_work* wk) {
   ${Q}_filter_cold_start(&wk->filter);
   memset(wk->plan, 0, sizeof(wk->plan));
   wk->plan_age = 0;
-  wk->have_plan = wk->have_slack = wk->have_filter = 0;
+  wk->have_plan = wk->have_slack = wk->have_filter = wk->n_replaced = 0;
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_upper = NAN;
+}
+
+/* A failed (2.24): the next input of the last plan, or u_p clipped to U (proposal_fallback
+   of balustrade.control.pcbf). */
+static int ${Q}_fallback(${Q}_work* wk, casadi_real* u_out, int* status) {
+  casadi_int i;
+  if (wk->have_plan && wk->plan_age + 1 < ${Q}_N) {
+    wk->plan_age++;
+    for (i = 0; i < ${Q}_NU; ++i) u_out[i] = wk->plan[wk->plan_age * ${Q}_NU + i];
+    *status = BAL_PCBF_SHIFTED_PLAN;
+  } else {
+    ${Q}_project(wk->u_p, u_out);
+    *status = BAL_PCBF_PROJECTED;
+  }
+  return *status;
 }
 
 int ${Q}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
               casadi_real* h_out, int* status, ${Q}_work* wk) {
   casadi_int i;
+  int certified;
   const casadi_real* plan_src;
   if (!x || !u_p || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_PCBF_BAD_INPUT;
     return BAL_PCBF_BAD_INPUT;
   }
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_upper = NAN;
   *h_out = NAN;
-  if (!${Q}_finite(x, ${Q}_NX) || !${Q}_finite(u_p, ${Q}_NU)) {
-    /* nothing is solved with a NaN or inf state or proposal (as
+  /* a NaN or inf proposal entry is read as 0 (finite_proposal of
+     balustrade.control.fallbacks): the filter still certifies what is applied */
+  wk->n_replaced = 0;
+  for (i = 0; i < ${Q}_NU; ++i) {
+    wk->n_replaced += !isfinite(u_p[i]);
+    wk->u_p[i] = isfinite(u_p[i]) ? u_p[i] : 0.0;
+  }
+  if (!${Q}_finite(x, ${Q}_NX)) {
+    /* nothing is solved with a NaN or inf state (as
        balustrade.control.fallbacks.projected_proposal); the plan is kept */
     wk->slack_status = wk->filter_status = BAL_BAD_INPUT;
-    ${Q}_project(u_p, u_out);
+    ${Q}_project(wk->u_p, u_out);
     *status = BAL_PCBF_BAD_INPUT;
     return *status;
   }
   /* (2.24): h_PB(x_k) and the slacks xi* */
   for (i = 0; i < ${Q}_NX; ++i) wk->p_slack[$s_p_x0 + i] = x[i];
   wk->slack_status = ${Q}_slack_solve(&wk->slack, wk->p_slack);
-  if (!BAL_SOLVED(wk->slack_status)) {
-    if (wk->have_plan && wk->plan_age + 1 < ${Q}_N) {
-      wk->plan_age++;
-      for (i = 0; i < ${Q}_NU; ++i) u_out[i] = wk->plan[wk->plan_age * ${Q}_NU + i];
-      *status = BAL_PCBF_SHIFTED_PLAN;
+  if (!BAL_SOLVED(wk->slack_status)) return ${Q}_fallback(wk, u_out, status);
+  /* only an optimal (2.24) gives h_PB; a feasible point of cost <= ZERO_TOL is optimal
+     (h_PB >= 0 is a lower bound it attains), a costlier one only bounds h_PB above */
+  certified = wk->slack_status == BAL_OK || fmax(wk->slack.f, 0.0) <= ${Q}_ZERO_TOL;
+  if (certified) {
+    if (wk->slack_status == BAL_OK) {
+      ${Q}_slack_warm_start(&wk->slack);
     } else {
-      ${Q}_project(u_p, u_out);
-      *status = BAL_PCBF_PROJECTED;
+      ${Q}_slack_warm_start_primal(&wk->slack);
     }
-    return *status;
+    wk->have_slack = 1;
+    *h_out = fmax(wk->slack.f, 0.0);
+  } else {
+    /* a failed (2.24) (Theorem 2.30 needs its optimum): the shifted plan if any */
+    wk->h_upper = fmax(wk->slack.f, 0.0);
+    if (wk->have_plan && wk->plan_age + 1 < ${Q}_N) return ${Q}_fallback(wk, u_out, status);
   }
-  ${Q}_slack_warm_start(&wk->slack);
-  wk->have_slack = 1;
-  *h_out = fmax(wk->slack.f, 0.0);
   /* (2.23) with the slacks fixed: clip slightly negative solver slacks to 0 */
   for (i = 0; i < ${Q}_NX; ++i) wk->p_filter[$f_p_x0 + i] = x[i];
-  for (i = 0; i < ${Q}_NU; ++i) wk->p_filter[$f_p_u_p + i] = u_p[i];
+  for (i = 0; i < ${Q}_NU; ++i) wk->p_filter[$f_p_u_p + i] = wk->u_p[i];
   for (i = 0; i < $n_xi; ++i) wk->p_filter[$f_p_xi + i] = fmax(wk->slack.x[$s_w_xi + i], 0.0);
   wk->p_filter[$f_p_xi_N] = fmax(wk->slack.x[$s_w_xi_N], 0.0);
   if (!wk->have_filter) {
@@ -418,14 +510,17 @@ int ${Q}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
 $copy_shared  }
   wk->filter_status = ${Q}_filter_solve(&wk->filter, wk->p_filter);
   if (BAL_SOLVED(wk->filter_status)) {
-    ${Q}_filter_warm_start(&wk->filter);
-    wk->have_filter = 1;
+    if (wk->filter_status == BAL_OK) {
+      ${Q}_filter_warm_start(&wk->filter);
+      wk->have_filter = 1;
+    }
     plan_src = wk->filter.x + $f_w_u;
     *status = BAL_PCBF_OK;
   } else {
     plan_src = wk->slack.x + $s_w_u;
     *status = BAL_PCBF_SLACK_SOLUTION;
   }
+  if (!certified) *status = BAL_PCBF_FEASIBLE_SLACK;
   memcpy(wk->plan, plan_src, sizeof(wk->plan));
   wk->plan_age = 0;
   wk->have_plan = 1;
@@ -438,6 +533,8 @@ ${Q}_filter_work* ${Q}_filter_problem(${Q}_work* wk) { return &wk->filter; }
 int ${Q}_solve_status(const ${Q}_work* wk, int which) {
   return which == 0 ? wk->slack_status : wk->filter_status;
 }
+casadi_real ${Q}_h_upper(const ${Q}_work* wk) { return wk->h_upper; }
+int ${Q}_proposal_replaced(const ${Q}_work* wk) { return wk->n_replaced; }
 
 """)
 
@@ -594,8 +691,12 @@ APPROX_H = Template("""\
  *      else the filter (7.5) with (x, u_p, dh, rho), warm-started at the (7.6) minimizer.
  *   h_out = h^(x_k). Fallbacks, as balustrade.control.approximate:
  *   (7.5) fails or leaves U      -> the (7.6) minimizer       BAL_APPROX_MAX_DECREASE
+ *   (7.5) only BAL_FEASIBLE      -> its point (in U, meets the decrease: safe)
+ *                                                             BAL_APPROX_FILTER_FEASIBLE
  *   (7.6) finds nothing finite   -> best screened candidate   BAL_APPROX_GRID_MINIMIZER
- *   x or u_p NaN/inf, NULL args  -> u_p (NaN -> 0) clipped to U BAL_APPROX_BAD_INPUT */
+ *   x NaN/inf, NULL args         -> u_p (NaN -> 0) clipped to U BAL_APPROX_BAD_INPUT
+ *   u_p NaN/inf (x finite)       -> those entries read as 0, the step runs as usual
+ *                                   (${A}_proposal_replaced counts them) */
 #define ${A}_NX $nx
 #define ${A}_NU $nu
 #define ${A}_NC $nc
@@ -613,6 +714,7 @@ typedef struct ${A}_work {
   ${A}_filter_work filter;
   casadi_real p_dec[${A}_dec_NP + 1], p_filter[${A}_filter_NP + 1];
   casadi_real cand[${A}_NC * ${A}_NU], values[${A}_NC], best_u[${A}_NU];
+  casadi_real u_p[${A}_NU];  /* the proposal used (non-finite entries replaced by 0) */
   int order[${A}_NC], tried[${A}_NC];
   casadi_real h_x, dh, best_v;
   const casadi_real* harg[${A}_HSZ_ARG];
@@ -620,7 +722,7 @@ typedef struct ${A}_work {
   casadi_int hiw[${A}_HSZ_IW + 1];
   casadi_real hw[${A}_HSZ_W + 1];
   int hmem, nmem;
-  int dec_status, filter_status, certify, ready;
+  int dec_status, filter_status, certify, ready, n_replaced;
   long n_steps, n_certified, n_solved, n_fallbacks, n_proposal_feasible;
 } ${A}_work;
 
@@ -633,6 +735,8 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
               casadi_real* h_out, int* status, ${A}_work* wk);
 void ${A}_set_certify(${A}_work* wk, int certify);  /* 0: always solve (7.6), (7.5) */
 casadi_real ${A}_dh(const ${A}_work* wk);  /* dh of the last solved step (NAN if none) */
+/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
+int ${A}_proposal_replaced(const ${A}_work* wk);
 /* which: 0 steps, 1 certified, 2 solved, 3 fallbacks, 4 proposal feasible */
 long ${A}_counter(const ${A}_work* wk, int which);
 
@@ -644,7 +748,7 @@ static const casadi_real ${A}_u_lb[${A}_NU] = $u_lb;
 static const casadi_real ${A}_u_ub[${A}_NU] = $u_ub;
 static const casadi_real ${A}_grid[${A}_NC - 2][${A}_NU] = $grid;
 
-/* u clipped to U; a NaN entry counts as 0, +-inf is clipped to the bound */
+/* u clipped to U; a NaN entry counts as 0 (the step passes finite proposals) */
 static void ${A}_clip(const casadi_real* u, casadi_real* out) {
   casadi_int i;
   casadi_real v;
@@ -745,10 +849,12 @@ void ${A}_reset(${A}_work* wk) {
   wk->n_proposal_feasible = 0;
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_x = wk->dh = wk->best_v = NAN;
+  wk->n_replaced = 0;
 }
 
 void ${A}_set_certify(${A}_work* wk, int certify) { wk->certify = certify; }
 casadi_real ${A}_dh(const ${A}_work* wk) { return wk->dh; }
+int ${A}_proposal_replaced(const ${A}_work* wk) { return wk->n_replaced; }
 long ${A}_counter(const ${A}_work* wk, int which) {
   return which == 0 ? wk->n_steps : which == 1 ? wk->n_certified
          : which == 2 ? wk->n_solved : which == 3 ? wk->n_fallbacks : wk->n_proposal_feasible;
@@ -810,10 +916,11 @@ static int ${A}_max_decrease(${A}_work* wk, const casadi_real* x, const casadi_r
   return found || isfinite(wk->best_v);
 }
 
-int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
+int ${A}_step(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u_out,
               casadi_real* h_out, int* status, ${A}_work* wk) {
   casadi_int i;
-  if (!x || !u_p || !u_out || !h_out || !status || !wk) {
+  const casadi_real* u_p;
+  if (!x || !u_p_in || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_APPROX_BAD_INPUT;
     return BAL_APPROX_BAD_INPUT;
   }
@@ -821,9 +928,17 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->dh = NAN;
   *h_out = NAN;
-  if (!${A}_finite(x, ${A}_NX) || !${A}_finite(u_p, ${A}_NU)) {
-    /* nothing is evaluated with a NaN or inf state or proposal (as
-       balustrade.control.approximate: "bad_input", projected proposal) */
+  /* a NaN or inf proposal entry is read as 0 (finite_proposal of
+     balustrade.control.fallbacks): the filter still certifies what is applied */
+  wk->n_replaced = 0;
+  for (i = 0; i < ${A}_NU; ++i) {
+    wk->n_replaced += !isfinite(u_p_in[i]);
+    wk->u_p[i] = isfinite(u_p_in[i]) ? u_p_in[i] : 0.0;
+  }
+  u_p = wk->u_p;
+  if (!${A}_finite(x, ${A}_NX)) {
+    /* nothing is evaluated with a NaN or inf state (as balustrade.control.approximate:
+       "non_finite_state", projected proposal) */
     wk->n_fallbacks++;
     wk->dec_status = wk->filter_status = BAL_BAD_INPUT;
     ${A}_clip(u_p, u_out);
@@ -865,7 +980,7 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
   wk->filter_status = ${A}_filter_solve(&wk->filter, wk->p_filter);
   if (BAL_SOLVED(wk->filter_status) && ${A}_in_box(wk->filter.x + $f_w_u, 1e-7)) {
     for (i = 0; i < ${A}_NU; ++i) u_out[i] = wk->filter.x[$f_w_u + i];
-    *status = BAL_APPROX_OK;
+    *status = wk->filter_status == BAL_OK ? BAL_APPROX_OK : BAL_APPROX_FILTER_FEASIBLE;
   } else {
     wk->n_fallbacks++;
     for (i = 0; i < ${A}_NU; ++i) u_out[i] = wk->best_u[i];

@@ -12,7 +12,14 @@ Neither raises in the loop (DESIGN.md principle 4). Fallbacks of Algorithm 7.5, 
 ``StepInfo.fallback``: (7.5) fails → the (7.6) minimizer, feasible by Proposition 7.3
 (``"max_decrease_solution"``); every local (7.6) solve fails → the best screened candidate
 of the multi-start grid (``"grid_minimizer"``); a non-finite state → ``u_p`` projected on
-``U`` (``"projected_proposal"``).
+``U`` (status ``"non_finite_state"``, ``"projected_proposal"``). A (7.5) solve that ends
+merely ``feasible`` (not converged, primal feasible) is applied: it lies in ``U`` and meets
+the decrease of (7.5), so it is safe, only possibly not the closest input to ``u_p``
+(status ``"filter_feasible"``, flagged in ``StepInfo.uncertified``); likewise a feasible
+local (7.6) point is a valid candidate of the maximal decrease (any ``u ∈ U`` bounds it).
+NaN or inf entries of ``u_p`` are read as 0 and the step runs as usual (status
+``"non_finite_proposal[_<status>]"``, :func:`~balustrade.control.fallbacks.finite_proposal`).
+The emitted C step (:func:`balustrade.codegen.emit_approximate`) takes the same decisions.
 """
 
 from __future__ import annotations
@@ -23,14 +30,20 @@ import time
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_vector
+from balustrade._checks import as_count, as_scalar, as_vector, check_instance
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.backends.casadi_fast import Buffered, FastNLP
-from balustrade.control.base import StepInfo
-from balustrade.control.fallbacks import project
+from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.fallbacks import (
+    finite_proposal,
+    finite_state,
+    note_proposal,
+    project,
+    projected_proposal,
+)
 from balustrade.dsl.sets import Box, Set
 from balustrade.dsl.system import System
-from balustrade.errors import BalustradeError, NonFiniteError
+from balustrade.errors import BalustradeError
 from balustrade.problems.approximate import (
     DecreaseResult,
     HHat,
@@ -65,9 +78,13 @@ class ApproximatePCBFFilter:
                  solver: str = "ipopt", options: dict | None = None, certify: bool = True,
                  grid_points: int = 5, n_local: int = 1, eps: float = 1e-6,
                  exact_shortcut: bool = True, fast: bool = True):
-        if not 0.0 < float(rho) <= 1.0:
-            raise BalustradeError(f"ApproximatePCBFFilter: rho must lie in (0, 1], got {rho!r}")
-        self.system, self.U, self.rho, self.certify = system, U, float(rho), bool(certify)
+        check_instance(system, System, "ApproximatePCBFFilter: system")
+        check_instance(U, Set, "ApproximatePCBFFilter: U")
+        rho = as_scalar(rho, "ApproximatePCBFFilter: rho", 0.0, 1.0, low_open=True)
+        eps = as_scalar(eps, "ApproximatePCBFFilter: eps", 0.0)
+        as_count(grid_points, "ApproximatePCBFFilter: grid_points", 1)
+        as_count(n_local, "ApproximatePCBFFilter: n_local", 1)
+        self.system, self.U, self.rho, self.certify = system, U, rho, bool(certify)
         self.exact_shortcut = bool(exact_shortcut)
         self.nu = system.nu
         self.h = as_h_function(h_hat, system.nx)
@@ -89,15 +106,18 @@ class ApproximatePCBFFilter:
         return in_set(u_p, self.U) and self.decrease.h_next(x, u_p) <= 0.0
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        """One step of Algorithm 7.5 (module docstring). Wrong shapes or types raise a
+        :class:`~balustrade.errors.BalustradeError`; NaN or inf values never do."""
+        u_p, replaced = finite_proposal(u_p, self.nu, "ApproximatePCBFFilter.step: u_p")
+        x = finite_state(x, self.system.nx, "ApproximatePCBFFilter.step: x")
         self.n_steps += 1
-        try:
-            u_p = as_vector(u_p, "ApproximatePCBFFilter.step: u_p", self.nu)
-            x = as_vector(x, "ApproximatePCBFFilter.step: x", self.system.nx)
-        except (NonFiniteError, BalustradeError) as exc:
+        if x is None:
             self.n_fallbacks += 1
-            u_safe = np.nan_to_num(np.asarray(u_p, float).reshape(-1)[: self.nu])
-            return project(u_safe, self.U), StepInfo(status=f"bad_input: {exc}",
-                                                     fallback="projected_proposal")
+            return projected_proposal(u_p, self.U)
+        u, info = self._step(x, u_p)
+        return u, note_proposal(info, replaced)
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         start = time.perf_counter()
         if self.certify and self.certifies(x, u_p):
             self.n_certified += 1
@@ -136,7 +156,8 @@ class ApproximatePCBFFilter:
         u, status = self._filter(x, u_p, dec, info)
         info.solve_time = time.perf_counter() - start
         if u is not None and in_set(u, self.U, 1e-7):
-            info.status = "ok"
+            # a merely feasible (7.5) point meets the decrease in U: safe, flagged
+            info.status = "ok" if note_solve(info, "filter", status) else f"filter_{status}"
             return u, info
         info.status, info.fallback = f"filter_{status}", "max_decrease_solution"
         self.n_fallbacks += 1
@@ -146,8 +167,9 @@ class ApproximatePCBFFilter:
                 info: StepInfo) -> tuple[np.ndarray | None, str]:
         """(7.5) warm-started at the (7.6) minimizer: a :class:`FastNLP` solve (same
         problem and options, cold multipliers), the compiled problem's ``solve`` (with
-        its retries) if that fails or ``fast=False``. Returns the minimizer (``None`` on
-        failure) and the solution status."""
+        its retries) if that fails or ``fast=False``. Returns the minimizer, or the
+        feasible point of a solve that did not converge (``None`` if not even that), and
+        the solution status."""
         if self._fast_filter is not None:
             fast = self._fast_filter
             out = fast.solve(fast.pack(x0=x, u_p=u_p, dh=dec.dh, rho=self.rho), {"u": dec.u})
@@ -158,7 +180,7 @@ class ApproximatePCBFFilter:
         sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},
                                 warm_start={"u": dec.u})
         info.solutions["filter"] = sol
-        u = np.asarray(sol["u"], float).reshape(self.nu) if sol.success else None
+        u = np.asarray(sol["u"], float).reshape(self.nu) if sol.usable else None
         return u, sol.status
 
 
@@ -173,7 +195,10 @@ class GridPCBFFilter:
 
     def __init__(self, system: System, U: Set, h_hat: HHat, half_width: object,
                  spacing: object, rho: float = 0.9, u_init: np.ndarray | None = None):
-        self.system, self.U, self.rho = system, U, float(rho)
+        check_instance(system, System, "GridPCBFFilter: system")
+        check_instance(U, Set, "GridPCBFFilter: U")
+        self.system, self.U = system, U
+        self.rho = as_scalar(rho, "GridPCBFFilter: rho", 0.0, 1.0, low_open=True)
         self.nu = system.nu
         self.half_width = as_vector(half_width, "GridPCBFFilter: half_width", self.nu)
         self.spacing = as_vector(spacing, "GridPCBFFilter: spacing", self.nu)
@@ -192,7 +217,8 @@ class GridPCBFFilter:
         self._many = self._h_next.map(len(self.offsets))
         self._many_buf = Buffered(self._many)  # one low-overhead call per step
         self._h_buf = Buffered(self.h)
-        self.u_init = np.zeros(self.nu) if u_init is None else np.asarray(u_init, float)
+        self.u_init = np.zeros(self.nu) if u_init is None else \
+            as_vector(u_init, "GridPCBFFilter: u_init", self.nu)
         self.reset()
 
     def reset(self) -> None:
@@ -213,12 +239,16 @@ class GridPCBFFilter:
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         self.n_steps += 1
         start = time.perf_counter()
-        try:
-            x = as_vector(x, "GridPCBFFilter.step: x", self.system.nx)
-            u_p = as_vector(u_p, "GridPCBFFilter.step: u_p", self.nu)
-        except BalustradeError as exc:
-            return self.u_prev.copy(), StepInfo(status=f"bad_input: {exc}",
+        u_p, replaced = finite_proposal(u_p, self.nu, "GridPCBFFilter.step: u_p")
+        x = finite_state(x, self.system.nx, "GridPCBFFilter.step: x")
+        if x is None:  # keep the last input (Algorithm 8.7 is rate-limited around it)
+            return self.u_prev.copy(), StepInfo(status="non_finite_state",
                                                 fallback="previous_input")
+        u, info = self._step(x, u_p, start)
+        return u, note_proposal(info, replaced)
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray, start: float
+              ) -> tuple[np.ndarray, StepInfo]:
         cand = self.candidates()
         padded = np.vstack([cand, np.repeat(cand[-1:], len(self.offsets) - len(cand), 0)])
         n = len(self.offsets)

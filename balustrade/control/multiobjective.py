@@ -16,6 +16,9 @@ solve (6.3) without (6.3h) for a feasible ``ũ_0`` (SPEC [Default]); then at eve
 The decrease bounds get a margin ``bound_tol · max(1, bound)`` (default ``1e-9``) so that a
 candidate that meets them with equality is not declared infeasible by solver round-off.
 A solve used although it ended ``optimal_inaccurate`` is flagged in ``StepInfo.uncertified``.
+NaN or inf entries of ``u_p`` (which only enters the costs) are read as 0 and the step runs
+as usual (status ``"non_finite_proposal[_<status>]"``); a non-finite state → the projected
+proposal (``"non_finite_state"``) (:mod:`balustrade.control.fallbacks`).
 Recorded values: 6.3 — ``V`` (``V((x_k, ṽ_k))``), ``V_bound``; 6.4 — ``h_tilde``
 (``h̃(ξ*_k)``), ``bound``, ``h_cand`` (``h̃(ξ̃_k)``) and, with ``record_h_r=True``, ``h_r``
 (an extra (5.15) solve, not counted in ``solve_time``).
@@ -27,10 +30,16 @@ from collections.abc import Callable
 
 import numpy as np
 
-from balustrade._checks import as_vector
+from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.control.base import StepInfo, note_solve
-from balustrade.control.fallbacks import finite_state, project, projected_proposal
+from balustrade.control.fallbacks import (
+    finite_proposal,
+    finite_state,
+    note_proposal,
+    project,
+    projected_proposal,
+)
 from balustrade.control.robust import _opts
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
@@ -57,10 +66,10 @@ class MultiobjectiveLyapunovController:
 
     def __init__(self, design: LinearLyapunovDesign, problem: Compiled, init: Compiled,
                  rho: float = 0.5, bound_tol: float = 1e-9):
-        if not 0.0 <= rho < 1.0:
-            raise ValueError(f"Algorithm 6.3: ρ must lie in [0, 1), got {rho}")
+        self.rho = as_scalar(rho, "Algorithm 6.3: rho (ρ)", 0.0, 1.0, high_open=True)
+        self.bound_tol = as_scalar(bound_tol, "Algorithm 6.3: bound_tol", 0.0)
+        check_instance(design, LinearLyapunovDesign, "Algorithm 6.3: design")
         self.design, self.problem, self.init = design, problem, init
-        self.rho, self.bound_tol = rho, bound_tol
         self.reset()
 
     @classmethod
@@ -79,12 +88,18 @@ class MultiobjectiveLyapunovController:
         self._prev: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # x, u, ṽ
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        """One step of Algorithm 6.3 (module docstring); never raises for runtime data."""
         d = self.design
-        nu = d.system.nu
-        u_p = as_vector(u_p, "Algorithm 6.3: u_p", nu)
+        u_p, replaced = finite_proposal(u_p, d.system.nu, "Algorithm 6.3: u_p")
         x = finite_state(x, d.system.nx, "Algorithm 6.3: x")
         if x is None:
             return projected_proposal(u_p, d.U)
+        u, info = self._step(x, u_p)
+        return u, note_proposal(info, replaced)
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        d = self.design
+        nu = d.system.nu
         info = StepInfo()
         if self._prev is None:
             s0 = self.init.solve({"x0": x, "u_p": u_p})
@@ -129,8 +144,11 @@ class MultiobjectivePCBFController:
                  U: Polytope, U_E: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
                  deltas: np.ndarray, alpha_f: float, rho: float = 0.9,
                  bound_tol: float = 1e-9, record_h_r: bool = False):
-        if not 0.0 <= rho < 1.0:
-            raise ValueError(f"Algorithm 6.4: ρ must lie in [0, 1), got {rho}")
+        rho = as_scalar(rho, "Algorithm 6.4: rho (ρ)", 0.0, 1.0, high_open=True)
+        bound_tol = as_scalar(bound_tol, "Algorithm 6.4: bound_tol", 0.0)
+        alpha_f = as_scalar(alpha_f, "Algorithm 6.4: alpha_f", 0.0, low_open=True)
+        check_instance(system, System, "Algorithm 6.4: system")
+        check_instance(error, ErrorSet, "Algorithm 6.4: error")
         self.slack, self.problem, self.system = slack, problem, system
         self.X_E, self.U, self.U_E, self.error = X_E, U, U_E, error
         self.h_f, self.pi_f = h_f, pi_f
@@ -179,11 +197,16 @@ class MultiobjectivePCBFController:
                                 xi, self.U_E)
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        nu, nx = self.system.nu, self.system.nx
-        u_p = as_vector(u_p, "Algorithm 6.4: u_p", nu)
-        x = finite_state(x, nx, "Algorithm 6.4: x")
+        """One step of Algorithm 6.4 (module docstring); never raises for runtime data."""
+        u_p, replaced = finite_proposal(u_p, self.system.nu, "Algorithm 6.4: u_p")
+        x = finite_state(x, self.system.nx, "Algorithm 6.4: x")
         if x is None:
             return projected_proposal(u_p, self.U)
+        u, info = self._step(x, u_p)
+        return u, note_proposal(info, replaced)
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        nu = self.system.nu
         info = StepInfo()
         if self.candidate is None:                      # initialization from (5.15)
             s0 = self._h_r(x)

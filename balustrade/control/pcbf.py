@@ -25,6 +25,15 @@ Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
    (shifted solution, as in the recursive-feasibility candidate), ``"shifted_plan"``;
 3. no plan left → the proposed input projected onto ``U``: ``"projected_proposal"``
    (or, after a merely ``feasible`` (2.24), the filter on its slacks, ``"feasible_slack"``).
+
+Bad runtime data (:mod:`balustrade.control.fallbacks`): a NaN or inf state → nothing solved,
+the projected proposal (``"non_finite_state"``); NaN or inf entries of ``u_p`` → read as 0
+and the step runs as usual (status ``"non_finite_proposal[_<status>]"``): (2.23) certifies
+whatever proposal it is given, ``u_p`` only enters its cost.
+
+The emitted C step (:func:`balustrade.codegen.emit_pcbf`) takes the same decisions, with
+the same warm starts (a converged solution: primal and multipliers; a certified
+``feasible`` (2.24): its primal only; (2.23) only from a converged solution).
 """
 
 from __future__ import annotations
@@ -33,12 +42,19 @@ from collections.abc import Callable
 
 import numpy as np
 
-from balustrade._checks import as_vector
+from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.control.base import StepInfo, note_solve
-from balustrade.control.fallbacks import finite_state, project, projected_proposal
+from balustrade.control.fallbacks import (
+    finite_proposal,
+    finite_state,
+    note_proposal,
+    project,
+    projected_proposal,
+)
 from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
+from balustrade.errors import BalustradeError
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
 
 #: a merely feasible (2.24) point of cost <= ZERO_TOL is optimal (``h_PB >= 0``)
@@ -49,7 +65,14 @@ class PCBFSafetyFilter:
     """Closed-loop PCBF filter over two compiled problems (any backend)."""
 
     def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6):
-        self.slack, self.filter, self.U, self.eps = slack, filter, U, eps
+        check_instance(U, Set, "PCBFSafetyFilter: U")
+        for name, prob in (("slack", slack), ("filter", filter)):
+            if not callable(getattr(prob, "solve", None)):
+                raise BalustradeError(f"PCBFSafetyFilter: {name} must be a compiled problem "
+                                      f"(balustrade.backends.compile), got "
+                                      f"{type(prob).__name__}")
+        self.slack, self.filter, self.U = slack, filter, U
+        self.eps = as_scalar(eps, "PCBFSafetyFilter: eps", low=0.0)
         self.nu = U.dim
         self.reset()
 
@@ -72,10 +95,15 @@ class PCBFSafetyFilter:
         self._plan_age = 0
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        u_p = as_vector(u_p, "PCBFSafetyFilter.step: u_p", self.nu)
+        """One step of the algorithm (module docstring); never raises for runtime data."""
+        u_p, replaced = finite_proposal(u_p, self.nu, "PCBFSafetyFilter.step: u_p")
         x = finite_state(x, None, "PCBFSafetyFilter.step: x")
         if x is None:
             return projected_proposal(u_p, self.U)
+        u, info = self._step(x, u_p)
+        return u, note_proposal(info, replaced)
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         s1 = self.slack.solve({"x0": x}, warm_start=self._last_slack)
         info = StepInfo(solve_time=s1.solve_time, solutions={"slack": s1})
         if not s1.usable:

@@ -12,6 +12,10 @@ Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
    ``"candidate"``; the next candidate is built from it;
 3. no candidate → the proposed input projected onto ``U``: ``"projected_proposal"``.
 
+NaN or inf entries of ``u_p`` are read as 0 and the step runs as usual (status
+``"non_finite_proposal[_<status>]"``): (5.16) certifies whatever it is given; a non-finite
+state → the projected proposal (``"non_finite_state"``) (:mod:`balustrade.control.fallbacks`).
+
 A (5.15) solve that did not converge (``feasible``, ``max_iterations``, …) is a failed
 (5.15) (fallback 2); one that converged to the solver's acceptable tolerances
 (``optimal_inaccurate``) is used and flagged in ``StepInfo.uncertified`` and ``status``.
@@ -26,10 +30,16 @@ from collections.abc import Callable
 
 import numpy as np
 
-from balustrade._checks import as_vector
+from balustrade._checks import as_scalar, as_vector, check_deltas, check_instance, check_norm_order
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.control.base import StepInfo, note_solve
-from balustrade.control.fallbacks import finite_state, project, projected_proposal
+from balustrade.control.fallbacks import (
+    finite_proposal,
+    finite_state,
+    note_proposal,
+    project,
+    projected_proposal,
+)
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
@@ -52,12 +62,19 @@ class RobustPCBFSafetyFilter:
                  U: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
                  deltas: np.ndarray, alpha_f: float, slack_norm: int | float = 1,
                  U_E: Polytope | None = None):
+        block = "RobustPCBFSafetyFilter"
+        check_instance(system, System, f"{block}: system")
+        check_instance(X_E, Polytope, f"{block}: X_E")
+        check_instance(U, Polytope, f"{block}: U")
+        check_instance(error, ErrorSet, f"{block}: error")
         self.slack, self.filter, self.system = slack, filter, system
         self.X_E, self.U, self.error = X_E, U, error
         self.U_E = U_E if U_E is not None else error.tighten_input(U)
         self.h_f, self.pi_f = h_f, pi_f
-        self.deltas = np.asarray(deltas, dtype=float).reshape(-1)
-        self.alpha_f, self.slack_norm = alpha_f, slack_norm
+        d = as_vector(deltas, f"{block}: tightenings deltas", finite=False)
+        self.deltas = check_deltas(d, d.size, block)
+        self.alpha_f = as_scalar(alpha_f, f"{block}: alpha_f", 0.0, low_open=True)
+        self.slack_norm = check_norm_order(slack_norm, f"{block}: slack_norm")
         self.reset()
 
     @classmethod
@@ -109,10 +126,15 @@ class RobustPCBFSafetyFilter:
                                 self.U_E)
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        u_p = as_vector(u_p, "RobustPCBFSafetyFilter.step: u_p", self.system.nu)
+        """One step of Algorithm 5.2 (module docstring); never raises for runtime data."""
+        u_p, replaced = finite_proposal(u_p, self.system.nu, "RobustPCBFSafetyFilter.step: u_p")
         x = finite_state(x, self.system.nx, "RobustPCBFSafetyFilter.step: x")
         if x is None:
             return projected_proposal(u_p, self.U)
+        u, info = self._step(x, u_p)
+        return u, note_proposal(info, replaced)
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         info = StepInfo()
         if self.candidate is not None:
             c = self.candidate

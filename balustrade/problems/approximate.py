@@ -274,7 +274,7 @@ class MaximalDecrease:
             tried.append(cand[idx])
             sol = self.compiled.solve({"x0": x}, warm_start={"u": cand[idx]})
             sols.append(sol)
-            if sol.success or sol.status == "max_iterations":
+            if sol.usable:  # a feasible point is in U: a valid (7.6) candidate
                 u_loc = np.asarray(sol["u"], float).reshape(nu)
                 if np.all(np.isfinite(u_loc)) and in_set(u_loc, self.U, 1e-7):
                     v = self.h_next(x, u_loc)
@@ -316,7 +316,7 @@ class MaximalDecrease:
             local = self._local(x, c)
             if isinstance(local, Solution):
                 sols.append(local)
-                if not (local.success or local.status == "max_iterations"):
+                if not local.usable:  # as the emitted C (BAL_SOLVED)
                     continue
                 u_loc = np.asarray(local["u"], float).reshape(nu)
                 if not (np.all(np.isfinite(u_loc)) and in_set(u_loc, self.U, 1e-7)):
