@@ -240,7 +240,9 @@ class CasadiCompiled:
         self._retry: list[ca.Function] | None = None
         self._g_function: ca.Function | None = None
         self._dm = {k: ca.DM(getattr(self, k)) for k in ("lbx", "ubx", "lbg", "ubg")}
-        self._objective = ca.Function("objective", [w_user, p], [ocp.cost.expr()])
+        #: the declared cost as a function of the solver's full primal vector, called with the
+        #: solver's own DM outputs (no numpy round trip on the closed-loop hot path)
+        self._objective = ca.Function("objective", [w, p], [ocp.cost.expr()])
 
     def solve(self, params: dict[str, object] | None = None,
               warm_start: Solution | dict[str, object] | None = None) -> Solution:
@@ -304,9 +306,10 @@ class CasadiCompiled:
 
     def _solve_with(self, solver: ca.Function, p: np.ndarray, guess: tuple) -> Solution:
         x0, lam_x0, lam_g0 = guess
+        p_dm = ca.DM(p)
         start = time.perf_counter()
         try:
-            res = solver(x0=x0, p=p, lbx=self._dm["lbx"], ubx=self._dm["ubx"],
+            res = solver(x0=x0, p=p_dm, lbx=self._dm["lbx"], ubx=self._dm["ubx"],
                          lbg=self._dm["lbg"], ubg=self._dm["ubg"], lam_x0=lam_x0,
                          lam_g0=lam_g0)
             elapsed = time.perf_counter() - start
@@ -324,7 +327,8 @@ class CasadiCompiled:
             dual[f"bound:{name}"] = arr
         # the declared cost at the returned point (exact; the epigraph value may differ by
         # solver tolerances or, for the 2-norm, by up to NORM2_EPS/4 per term)
-        objective = float(self._objective(w, p)) if np.all(np.isfinite(w)) else np.nan
+        objective = float(self._objective.call([res["x"], p_dm])[0]) \
+            if np.all(np.isfinite(w)) else np.nan
         message = str(stats.get("return_status", ""))
         why = _unbounded(message, objective)
         if why is not None:
@@ -333,7 +337,7 @@ class CasadiCompiled:
                         primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
                         iterations=int(stats.get("iter_count", 0)), backend="casadi",
                         solver=_SOLVER_NAMES.get(solver.class_name(), solver.class_name()),
-                        w=w, p=p,
+                        p=p,  # w is derived from primal
                         message=message,
                         raw={"x": w_all, "lam_x": lam_x, "lam_g": lam_g,
                              "unbounded": why is not None,
