@@ -144,9 +144,10 @@ def check_callable(f: object, block: str) -> None:
 def nan_constants(expr: ca.SX) -> bool:
     """Whether the symbolic ``expr`` contains a NaN constant — what ``math.sin(x)``,
     ``float(x)`` or ``np.asarray(x, dtype=float)`` leave of a CasADi symbol ``x``."""
-    expr = ca.SX(expr)
-    if expr.numel() == 0:
-        return False
+    if not isinstance(expr, ca.SX):  # the copy costs ~20 us
+        expr = ca.SX(expr)
+    if expr.numel() == 0 or expr.is_valid_input():  # only symbols (the usual cost and
+        return False                                  # slack arguments): no constant at all
     if expr.is_constant():
         return bool(np.any(np.isnan(np.asarray(ca.DM(expr), dtype=float))))
     fun = ca.Function("nan_scan", ca.symvar(expr), [expr])
