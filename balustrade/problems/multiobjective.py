@@ -30,6 +30,7 @@ from balustrade._checks import (
     check_callable,
     check_horizon,
     check_instance,
+    check_weight,
 )
 from balustrade.dsl import OCP, LinearSystem, Polytope, System, squared_norm
 from balustrade.dsl.error_sets import ErrorSet, reachable_tightened_sets
@@ -37,7 +38,6 @@ from balustrade.errors import BalustradeError
 from balustrade.problems._args import (
     check_pcbf_args,
     check_system_sets,
-    check_weights,
     positive,
 )
 from balustrade.problems.robust import Objective, _syms, _tube_blocks, robust_sets
@@ -54,7 +54,8 @@ def terminal_weight(A: np.ndarray, B: np.ndarray, K: np.ndarray, Q: np.ndarray, 
         raise BalustradeError(f"terminal_weight: A must be square, got shape {A.shape}")
     B = as_matrix(B, "terminal_weight: B", (n, None))
     K = as_matrix(K, "terminal_weight: K", (B.shape[1], n))
-    Q, R, _ = check_weights("terminal_weight", n, B.shape[1], Q, R, np.eye(n))
+    Q = check_weight(Q, n, "terminal_weight: Q")
+    R = check_weight(R, B.shape[1], "terminal_weight: R")
     A_K = A + B @ K
     if np.max(np.abs(np.linalg.eigvals(A_K))) >= 1:
         raise BalustradeError("terminal_weight: A + BK is not Schur stable; the Lyapunov "
@@ -87,11 +88,11 @@ class LinearLyapunovDesign:
         check_instance(self.W, Polytope, "LinearLyapunovDesign: W")
         self.N = check_horizon(self.N, "LinearLyapunovDesign")
         A, B = self.system.A, self.system.B
-        self.Q, self.R, _ = check_weights("LinearLyapunovDesign", A.shape[0], B.shape[1],
-                                          self.Q, self.R, np.eye(A.shape[0]))
+        n, m = A.shape[0], B.shape[1]
+        self.Q = check_weight(self.Q, n, "LinearLyapunovDesign: Q")
+        self.R = check_weight(self.R, m, "LinearLyapunovDesign: R")
         if self.P is not None:
-            self.P = check_weights("LinearLyapunovDesign", A.shape[0], B.shape[1], self.Q,
-                                   self.R, self.P)[2]
+            self.P = check_weight(self.P, n, "LinearLyapunovDesign: P")
         self.K = as_matrix(self.K, "LinearLyapunovDesign: K", (B.shape[1], A.shape[0]))
         self.A_K = A + B @ self.K
         if np.max(np.abs(np.linalg.eigvals(self.A_K))) >= 1:
