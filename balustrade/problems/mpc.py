@@ -84,8 +84,7 @@ def predictive_safety_filter(system: System, X: Set, U: Set, Xf: Set, N: int,
                              name: str = "psf") -> OCP:
     """(2.19): ``min ‖u_0 − u_p‖²`` subject to the constraints of (2.9) (squared Euclidean
     norm, SPEC §2.5 [Default]: same minimizer as the norm). Parameters: ``x0``, ``u_p``."""
-    check_system_sets(name, system, X, U)
-    check_system_sets(name, system, Xf=Xf)
+    check_system_sets(name, system, X, U, Xf=Xf)
     N = check_horizon(N, name)
     ocp = OCP(system, N, name=name)
     ocp.initial_state(ocp.parameter("x0", system.nx))

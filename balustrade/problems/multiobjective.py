@@ -83,8 +83,8 @@ class LinearLyapunovDesign:
 
     def __post_init__(self) -> None:
         check_instance(self.system, LinearSystem, "LinearLyapunovDesign: system")
-        check_system_sets("LinearLyapunovDesign", self.system, self.X, self.U, polytope=True)
-        check_system_sets("LinearLyapunovDesign", self.system, Xf=self.Xf, polytope=True)
+        check_system_sets("LinearLyapunovDesign", self.system, self.X, self.U, polytope=True,
+                          Xf=self.Xf)
         check_instance(self.W, Polytope, "LinearLyapunovDesign: W")
         self.N = check_horizon(self.N, "LinearLyapunovDesign")
         A, B = self.system.A, self.system.B

@@ -47,8 +47,7 @@ def robust_mpc_problem(system: System, X: Polytope, U: Polytope, Xf: Polytope, N
     """(2.14): ``min Σ l(z_i, v_i) + l_f(z_N)`` s.t. ``z_0 = x_k``, nominal dynamics,
     ``z_i ∈ X ⊖ E_i``, ``v_i ∈ U ⊖ K E_i``, ``z_N ∈ X_f ⊖ E_N`` with
     ``E_i = ⊕_{j<i} A_K^j G W`` (support-function tightenings). Parameter ``x0``."""
-    check_system_sets(name, system, X, U, polytope=True)
-    check_system_sets(name, system, Xf=Xf, polytope=True)
+    check_system_sets(name, system, X, U, polytope=True, Xf=Xf)
     N = check_horizon(N, name)
     Q, R, P = check_weights(name, system.nx, system.nu, Q, R, P)
     A_K = as_matrix(A_K, f"{name}: A_K", (system.nx, system.nx))
