@@ -35,6 +35,8 @@ _BAD_INPUT = S.code_of(S.SOLVE, "bad_input")
 #: solve status code -> the Solution status of the Python backend where they coincide
 #: (a converged C solve is the backend's "optimal"); the others keep the C name
 _PY_STATUS = {**_STATUS, _OK: "optimal"}
+#: PCBF step code -> Status (``balustrade.codegen.status.PCBF``), read once per step
+_PCBF_CODES = S.by_code(S.PCBF)
 
 
 def _ptr(a: np.ndarray) -> ctypes._Pointer:
@@ -312,7 +314,6 @@ class CPCBFSafetyFilter(_OwnsWork):
     def reset(self) -> None:
         self._reset(self._work)
 
-    _CODES = S.by_code(S.PCBF)
     _BAD = S.code_of(S.PCBF, "bad_input")
 
     def step_raw(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, float, int]:
@@ -349,13 +350,14 @@ class CPCBFSafetyFilter(_OwnsWork):
                               "filter": self.filter.unpack(self.filter.x.copy())}
         return u.copy(), info
 
+
 def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float) -> StepInfo:
     """The :class:`StepInfo` :class:`~balustrade.control.pcbf.PCBFSafetyFilter` records for
     the same decisions, from the C step's code and its two solve statuses: ``status``
     (``"ok"``, ``"slack_<s>"``, ``"slack_<s>_filter_<f>"``, ``"filter_<f>"``, with a
     converged C solve named ``optimal``), ``fallback``, ``h_PB`` (NaN after a merely
     feasible (2.24), whose cost is ``h_PB_upper``) and ``uncertified``."""
-    known = S.by_code(S.PCBF).get(code)
+    known = _PCBF_CODES.get(code)
     info = StepInfo(fallback=known.fallback if known is not None else "unknown")
     s, f = _PY_STATUS.get(s_code, str(s_code)), _PY_STATUS.get(f_code, str(f_code))
     if known is None:
