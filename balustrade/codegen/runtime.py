@@ -409,6 +409,7 @@ class CApproximatePCBFFilter(_OwnsWork):
 
     _CODES = S.by_code(S.APPROX)
     _BAD = S.code_of(S.APPROX, "bad_input")
+    _CERTIFIED = S.code_of(S.APPROX, "certified")
     _FILTER_FEASIBLE = S.code_of(S.APPROX, "filter_feasible")
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
@@ -471,8 +472,8 @@ class CApproximatePCBFFilter(_OwnsWork):
         if code == self._BAD:
             info.status = "non_finite_state"
             return self._u.copy(), info
-        info.values["certified"] = 1.0 if code == 1 else 0.0
-        if code != 1:
+        info.values["certified"] = 1.0 if code == self._CERTIFIED else 0.0
+        if code != self._CERTIFIED:
             info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))
         if code == self._FILTER_FEASIBLE:
             info.uncertified["filter"] = "feasible"
