@@ -24,7 +24,8 @@ from balustrade._checks import as_vector
 from balustrade.codegen import status as S
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
-from balustrade.errors import BalustradeError, CodegenError, NonFiniteError, ShapeError
+from balustrade.dsl.ocp import _flat_value  # the checks of OCP.pack_parameters
+from balustrade.errors import BalustradeError, CodegenError, ShapeError
 
 _dbl_p = ctypes.POINTER(ctypes.c_double)
 #: solve status code -> name (``balustrade.codegen.status.SOLVE``)
@@ -246,7 +247,7 @@ class CProblem(_OwnsWork):
         p = np.zeros(self.info["np"])
         for name, lay in lays.items():
             if name in params:
-                flat = _param_value(params[name], tuple(lay["shape"]),
+                flat = _flat_value(params[name], tuple(lay["shape"]),
                                     f"{P}: parameter {name!r}")
             elif lay.get("default") is not None:
                 flat = np.asarray(lay["default"], dtype=float)
@@ -479,23 +480,3 @@ class CApproximatePCBFFilter(_OwnsWork):
             info.uncertified["filter"] = "feasible"
         note_proposal(info, int(self._replaced(self._work)))
         return self._u.copy(), info
-
-
-def _param_value(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
-    """``value`` as the column-major flat array of a parameter of ``shape`` (a scalar for
-    (1, 1), a flat array for a vector or a row), else ShapeError/NonFiniteError naming it."""
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise BalustradeError(f"{block}: expected numbers of shape {shape}, got "
-                              f"{type(value).__name__}: {exc}") from exc
-    if arr.ndim == 0 and shape == (1, 1):
-        arr = arr.reshape(1, 1)
-    elif arr.ndim == 1 and arr.size == shape[0] * shape[1] and 1 in shape:
-        arr = arr.reshape(shape)
-    if tuple(arr.shape) != tuple(shape):
-        raise ShapeError(block, shape, arr.shape)
-    if not np.all(np.isfinite(arr)):
-        raise NonFiniteError(f"{block}: contains NaN or inf (shape {arr.shape}); the C "
-                             "would refuse it (BAL_BAD_INPUT)")
-    return arr.reshape(-1, order="F")
