@@ -24,7 +24,8 @@ from balustrade._checks import as_vector
 from balustrade.codegen import status as S
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
-from balustrade.errors import BalustradeError, CodegenError, NonFiniteError, ShapeError
+from balustrade.dsl.ocp import _flat_value  # the checks of OCP.pack_parameters
+from balustrade.errors import BalustradeError, CodegenError, ShapeError
 
 _dbl_p = ctypes.POINTER(ctypes.c_double)
 #: solve status code -> name (``balustrade.codegen.status.SOLVE``)
@@ -35,6 +36,17 @@ _BAD_INPUT = S.code_of(S.SOLVE, "bad_input")
 #: solve status code -> the Solution status of the Python backend where they coincide
 #: (a converged C solve is the backend's "optimal"); the others keep the C name
 _PY_STATUS = {**_STATUS, _OK: "optimal"}
+#: PCBF step code -> Status (``balustrade.codegen.status.PCBF``), read once per step
+_PCBF_CODES = S.by_code(S.PCBF)
+
+
+def _proposal(u_p: object, nu: int, block: str) -> np.ndarray:
+    """``u_p`` as a vector of ``nu`` entries for a C step (a single value is repeated; NaN and
+    inf are kept: the C reads them as 0), else ShapeError naming ``block``."""
+    u_p = np.asarray(u_p, dtype=float).reshape(-1)
+    if u_p.size == 1 and nu > 1:  # np.broadcast_to costs ~5 us: only where it changes u_p
+        u_p = np.full(nu, u_p[0])
+    return as_vector(u_p, block, nu, finite=False)
 
 
 def _ptr(a: np.ndarray) -> ctypes._Pointer:
@@ -235,7 +247,7 @@ class CProblem(_OwnsWork):
         p = np.zeros(self.info["np"])
         for name, lay in lays.items():
             if name in params:
-                flat = _param_value(params[name], tuple(lay["shape"]),
+                flat = _flat_value(params[name], tuple(lay["shape"]),
                                     f"{P}: parameter {name!r}")
             elif lay.get("default") is not None:
                 flat = np.asarray(lay["default"], dtype=float)
@@ -312,7 +324,6 @@ class CPCBFSafetyFilter(_OwnsWork):
     def reset(self) -> None:
         self._reset(self._work)
 
-    _CODES = S.by_code(S.PCBF)
     _BAD = S.code_of(S.PCBF, "bad_input")
 
     def step_raw(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, float, int]:
@@ -331,10 +342,7 @@ class CPCBFSafetyFilter(_OwnsWork):
         (``BAL_PCBF_BAD_INPUT``: the proposal, non-finite entries as 0, clipped to ``U``;
         ``"non_finite_state"``); NaN or inf entries of ``u_p`` are read as 0 and the
         step runs as usual (``"non_finite_proposal[_<status>]"``)."""
-        u_p = np.asarray(u_p, dtype=float).reshape(-1)
-        if u_p.size == 1:
-            u_p = np.broadcast_to(u_p, (self.nu,))
-        u_p = as_vector(u_p, "CPCBFSafetyFilter.step: u_p", self.nu, finite=False)
+        u_p = _proposal(u_p, self.nu, "CPCBFSafetyFilter.step: u_p")
         x = as_vector(x, "CPCBFSafetyFilter.step: x", self.nx, finite=False)
         start = time.perf_counter()
         u, h, code = self.step_raw(x, u_p)
@@ -349,13 +357,14 @@ class CPCBFSafetyFilter(_OwnsWork):
                               "filter": self.filter.unpack(self.filter.x.copy())}
         return u.copy(), info
 
+
 def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float) -> StepInfo:
     """The :class:`StepInfo` :class:`~balustrade.control.pcbf.PCBFSafetyFilter` records for
     the same decisions, from the C step's code and its two solve statuses: ``status``
     (``"ok"``, ``"slack_<s>"``, ``"slack_<s>_filter_<f>"``, ``"filter_<f>"``, with a
     converged C solve named ``optimal``), ``fallback``, ``h_PB`` (NaN after a merely
     feasible (2.24), whose cost is ``h_PB_upper``) and ``uncertified``."""
-    known = S.by_code(S.PCBF).get(code)
+    known = _PCBF_CODES.get(code)
     info = StepInfo(fallback=known.fallback if known is not None else "unknown")
     s, f = _PY_STATUS.get(s_code, str(s_code)), _PY_STATUS.get(f_code, str(f_code))
     if known is None:
@@ -401,6 +410,7 @@ class CApproximatePCBFFilter(_OwnsWork):
 
     _CODES = S.by_code(S.APPROX)
     _BAD = S.code_of(S.APPROX, "bad_input")
+    _CERTIFIED = S.code_of(S.APPROX, "certified")
     _FILTER_FEASIBLE = S.code_of(S.APPROX, "filter_feasible")
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
@@ -452,11 +462,7 @@ class CApproximatePCBFFilter(_OwnsWork):
         (non-finite entries as 0) clipped to ``U``; NaN or inf entries of ``u_p`` are read
         as 0 and the step runs as usual (``"non_finite_proposal[_<status>]"``); a (7.5)
         solve that is only feasible: ``"filter_feasible"``, flagged in ``uncertified``."""
-        u_p = np.asarray(u_p, dtype=float).reshape(-1)
-        if u_p.size == 1:
-            u_p = np.broadcast_to(u_p, (self.nu,))
-        self._u_p[:] = as_vector(u_p, "CApproximatePCBFFilter.step: u_p", self.nu,
-                                 finite=False)
+        self._u_p[:] = _proposal(u_p, self.nu, "CApproximatePCBFFilter.step: u_p")
         self._x[:] = as_vector(x, "CApproximatePCBFFilter.step: x", self.nx, finite=False)
         start = time.perf_counter()
         code = self._step(*self._args)
@@ -467,30 +473,10 @@ class CApproximatePCBFFilter(_OwnsWork):
         if code == self._BAD:
             info.status = "non_finite_state"
             return self._u.copy(), info
-        info.values["certified"] = 1.0 if code == 1 else 0.0
-        if code != 1:
+        info.values["certified"] = 1.0 if code == self._CERTIFIED else 0.0
+        if code != self._CERTIFIED:
             info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))
         if code == self._FILTER_FEASIBLE:
             info.uncertified["filter"] = "feasible"
         note_proposal(info, int(self._replaced(self._work)))
         return self._u.copy(), info
-
-
-def _param_value(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
-    """``value`` as the column-major flat array of a parameter of ``shape`` (a scalar for
-    (1, 1), a flat array for a vector or a row), else ShapeError/NonFiniteError naming it."""
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise BalustradeError(f"{block}: expected numbers of shape {shape}, got "
-                              f"{type(value).__name__}: {exc}") from exc
-    if arr.ndim == 0 and shape == (1, 1):
-        arr = arr.reshape(1, 1)
-    elif arr.ndim == 1 and arr.size == shape[0] * shape[1] and 1 in shape:
-        arr = arr.reshape(shape)
-    if tuple(arr.shape) != tuple(shape):
-        raise ShapeError(block, shape, arr.shape)
-    if not np.all(np.isfinite(arr)):
-        raise NonFiniteError(f"{block}: contains NaN or inf (shape {arr.shape}); the C "
-                             "would refuse it (BAL_BAD_INPUT)")
-    return arr.reshape(-1, order="F")

@@ -305,6 +305,31 @@ void ${P}_residuals(const ${P}_work* wk, casadi_real* out) {
 
 """)
 
+#: Input checks shared by the PCBF and Algorithm 7.5 steps (``${X}``: the step's prefix).
+_STEP_INPUTS = """\
+/* 1 if the n values are all finite */
+static int ${X}_finite(const casadi_real* v, casadi_int n) {
+  casadi_int i;
+  for (i = 0; i < n; ++i) {
+    if (!isfinite(v[i])) return 0;
+  }
+  return 1;
+}
+
+/* out := u_p with its NaN or inf entries read as 0 (finite_proposal of
+   balustrade.control.fallbacks: the filter still certifies what is applied); returns how
+   many entries were replaced */
+static int ${X}_read_proposal(const casadi_real* u_p, casadi_real* out, casadi_int n) {
+  casadi_int i;
+  int replaced = 0;
+  for (i = 0; i < n; ++i) {
+    replaced += !isfinite(u_p[i]);
+    out[i] = isfinite(u_p[i]) ? u_p[i] : 0.0;
+  }
+  return replaced;
+}
+"""
+
 PCBF_H = Template("""\
 /* ---- the PCBF control step $Q: (2.24) then (2.23), one call per control step ----
  * ${Q}_step(x, u_p, u_out, h_out, status, work):
@@ -385,15 +410,7 @@ static void ${Q}_project(const casadi_real* u_p, casadi_real* u_out) {
   }
 }
 
-/* 1 if the n values are all finite */
-static int ${Q}_finite(const casadi_real* v, casadi_int n) {
-  casadi_int i;
-  for (i = 0; i < n; ++i) {
-    if (!isfinite(v[i])) return 0;
-  }
-  return 1;
-}
-
+""" + _STEP_INPUTS.replace("${X}", "${Q}") + """
 int ${Q}_init(${Q}_work* wk) {
   wk->ready = 0;
   if (${Q}_slack_init(&wk->slack)) return -1;
@@ -465,13 +482,7 @@ int ${Q}_step(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_upper = NAN;
   *h_out = NAN;
-  /* a NaN or inf proposal entry is read as 0 (finite_proposal of
-     balustrade.control.fallbacks): the filter still certifies what is applied */
-  wk->n_replaced = 0;
-  for (i = 0; i < ${Q}_NU; ++i) {
-    wk->n_replaced += !isfinite(u_p[i]);
-    wk->u_p[i] = isfinite(u_p[i]) ? u_p[i] : 0.0;
-  }
+  wk->n_replaced = ${Q}_read_proposal(u_p, wk->u_p, ${Q}_NU);
   if (!${Q}_finite(x, ${Q}_NX)) {
     /* nothing is solved with a NaN or inf state (as
        balustrade.control.fallbacks.projected_proposal); the plan is kept */
@@ -758,15 +769,7 @@ static void ${A}_clip(const casadi_real* u, casadi_real* out) {
   }
 }
 
-/* 1 if the n values are all finite */
-static int ${A}_finite(const casadi_real* v, casadi_int n) {
-  casadi_int i;
-  for (i = 0; i < n; ++i) {
-    if (!isfinite(v[i])) return 0;
-  }
-  return 1;
-}
-
+""" + _STEP_INPUTS.replace("${X}", "${A}") + """
 static int ${A}_in_box(const casadi_real* u, casadi_real tol) {
   casadi_int i;
   for (i = 0; i < ${A}_NU; ++i) {
@@ -928,13 +931,7 @@ int ${A}_step(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u_ou
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->dh = NAN;
   *h_out = NAN;
-  /* a NaN or inf proposal entry is read as 0 (finite_proposal of
-     balustrade.control.fallbacks): the filter still certifies what is applied */
-  wk->n_replaced = 0;
-  for (i = 0; i < ${A}_NU; ++i) {
-    wk->n_replaced += !isfinite(u_p_in[i]);
-    wk->u_p[i] = isfinite(u_p_in[i]) ? u_p_in[i] : 0.0;
-  }
+  wk->n_replaced = ${A}_read_proposal(u_p_in, wk->u_p, ${A}_NU);
   u_p = wk->u_p;
   if (!${A}_finite(x, ${A}_NX)) {
     /* nothing is evaluated with a NaN or inf state (as balustrade.control.approximate:
