@@ -373,7 +373,7 @@ class CasadiCompiled:
         w = np.full(self.n_user, np.nan)
         return Solution(status="failed", objective=np.nan,
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
-                        iterations=0, backend="casadi", solver=self.solver_name, w=w, p=p,
+                        iterations=0, backend="casadi", solver=self.solver_name, p=p,
                         message=message)
 
 

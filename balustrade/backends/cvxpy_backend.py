@@ -315,7 +315,8 @@ class CvxpyCompiled:
                        primal=self.ocp.unpack_variables(w), dual=dual,
                        solve_time=elapsed,
                        iterations=int(getattr(stats, "num_iters", 0) or 0) if stats else 0,
-                       backend="cvxpy", solver=self.solver_name, w=w, p=p, message=message)
+                       backend="cvxpy", solver=self.solver_name, p=p,  # w is derived from primal
+                       message=message)
         # OSQP/SCS cache the last solve of self.problem: a warm start only if that is `sol`
         self._last = sol if message == first_message else None
         return sol
