@@ -205,10 +205,7 @@ class CasadiCompiled:
             raise SolverError(f"{ocp.name}: unknown CasADi NLP solver {solver!r} "
                               "(try 'ipopt', 'sqpmethod' (with qrqp), 'fatrop')")
         self.ocp, self.solver_name = ocp, solver
-        try:
-            opts = solver_options(solver, options)
-        except SolverError as exc:
-            raise SolverError(f"{ocp.name}: {exc}") from None
+        opts = solver_options(solver, options)
         w_user = ocp.decision_vector()
         p = ocp.parameter_vector()
         epi = _lower_cost(ocp)
