@@ -359,7 +359,9 @@ class CasadiCompiled:
                 and warm.success and warm.raw["x"].size == self.lbx.size:
             return warm.raw["dm"]
         if isinstance(warm, Solution):
-            w_user = warm.w if np.all(np.isfinite(warm.w)) else self.ocp.pack_variables({})
+            w_user = warm.w  # derived from warm.primal on each access: once here
+            if not np.all(np.isfinite(w_user)):
+                w_user = self.ocp.pack_variables({})
         elif isinstance(warm, dict):
             w_user = self.ocp.pack_variables(warm)
         else:
