@@ -205,10 +205,7 @@ class CasadiCompiled:
             raise SolverError(f"{ocp.name}: unknown CasADi NLP solver {solver!r} "
                               "(try 'ipopt', 'sqpmethod' (with qrqp), 'fatrop')")
         self.ocp, self.solver_name = ocp, solver
-        try:
-            opts = solver_options(solver, options)
-        except SolverError as exc:
-            raise SolverError(f"{ocp.name}: {exc}") from None
+        opts = solver_options(solver, options)
         w_user = ocp.decision_vector()
         p = ocp.parameter_vector()
         epi = _lower_cost(ocp)
@@ -362,7 +359,9 @@ class CasadiCompiled:
                 and warm.success and warm.raw["x"].size == self.lbx.size:
             return warm.raw["dm"]
         if isinstance(warm, Solution):
-            w_user = warm.w if np.all(np.isfinite(warm.w)) else self.ocp.pack_variables({})
+            w_user = warm.w  # derived from warm.primal on each access: once here
+            if not np.all(np.isfinite(w_user)):
+                w_user = self.ocp.pack_variables({})
         elif isinstance(warm, dict):
             w_user = self.ocp.pack_variables(warm)
         else:
@@ -373,7 +372,7 @@ class CasadiCompiled:
         w = np.full(self.n_user, np.nan)
         return Solution(status="failed", objective=np.nan,
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
-                        iterations=0, backend="casadi", solver=self.solver_name, w=w, p=p,
+                        iterations=0, backend="casadi", solver=self.solver_name, p=p,
                         message=message)
 
 

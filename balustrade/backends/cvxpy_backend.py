@@ -211,12 +211,7 @@ class CvxpyCompiled:
                                              f"block {block.name!r}, row {r}")
             parts.append((np.array([r]), con, scale))
         if affine_rows:
-            import scipy.sparse as sp
-
-            stacked = structure.Affine(sp.vstack([a.A for a in affine_parts]).tocsr(),
-                                       sp.vstack([a.B for a in affine_parts]).tocsr(),
-                                       np.concatenate([a.c for a in affine_parts]))
-            parts += self._affine_part(np.array(affine_rows), stacked, block.kind)
+            parts += self._affine_part(np.array(affine_rows), _stack(affine_parts), block.kind)
         return parts
 
     # -- pass 2: cost ------------------------------------------------------------------
@@ -315,7 +310,8 @@ class CvxpyCompiled:
                        primal=self.ocp.unpack_variables(w), dual=dual,
                        solve_time=elapsed,
                        iterations=int(getattr(stats, "num_iters", 0) or 0) if stats else 0,
-                       backend="cvxpy", solver=self.solver_name, w=w, p=p, message=message)
+                       backend="cvxpy", solver=self.solver_name, p=p,  # w is derived from primal
+                       message=message)
         # OSQP/SCS cache the last solve of self.problem: a warm start only if that is `sol`
         self._last = sol if message == first_message else None
         return sol
@@ -394,6 +390,8 @@ class CvxpyCompiled:
 
 
 def _stack(parts: list[structure.Affine]) -> structure.Affine | None:
+    """The rows of ``parts`` as one :class:`~balustrade.backends.structure.Affine`
+    (``None`` for no parts)."""
     import scipy.sparse as sp
 
     if not parts:

@@ -145,10 +145,8 @@ def joint_quadratic(expr: ca.SX, w: ca.SX, p: ca.SX) -> JointQuadratic | None:
     H = 0.5 * (H + H.T)
     support = np.flatnonzero(np.any(H != 0, axis=0))
     Hs = H[np.ix_(support, support)]
-    if Hs.size:
-        lam = np.linalg.eigvalsh(Hs)
-        if lam.min() < -1e-9 * max(1.0, float(np.abs(lam).max())):
-            return None
+    if _negative_eigenvalue(Hs) is not None:
+        return None
     L = psd_factor(Hs)
     g = np.asarray(_evaluate(grad, w, p), dtype=float).reshape(-1)
     c = float(np.asarray(_evaluate(expr, w, p), dtype=float).reshape(-1)[0])
@@ -164,13 +162,21 @@ def joint_quadratic(expr: ca.SX, w: ca.SX, p: ca.SX) -> JointQuadratic | None:
                           g_rest[:nw], g_rest[nw:], c - 0.5 * float(l @ l))
 
 
-def _require_psd(H: np.ndarray, where: str) -> None:
+def _negative_eigenvalue(H: np.ndarray) -> float | None:
+    """The smallest eigenvalue of ``H`` if it is negative beyond rounding (``H`` is not
+    positive semidefinite), else ``None``."""
     if H.size == 0:
-        return
+        return None
     lam = np.linalg.eigvalsh(0.5 * (H + H.T))
-    if lam.min() < -1e-9 * max(1.0, float(np.abs(lam).max())):
+    return float(lam.min()) if lam.min() < -1e-9 * max(1.0, float(np.abs(lam).max())) \
+        else None
+
+
+def _require_psd(H: np.ndarray, where: str) -> None:
+    lam_min = _negative_eigenvalue(H)
+    if lam_min is not None:
         raise ConvexityError(f"{where}: the Hessian has a negative eigenvalue "
-                             f"({lam.min():.3g}); a nonconvex block cannot be sent to cvxpy "
+                             f"({lam_min:.3g}); a nonconvex block cannot be sent to cvxpy "
                              "(use backend='casadi')")
 
 

@@ -115,10 +115,11 @@ class PCBFSafetyFilter:
         certified = s1.status == "optimal" or (s1.status == "feasible" and value <= ZERO_TOL)
         if not certified:
             note_solve(info, "slack", s1.status)
-        if not s1.success and not certified:  # feasible, not converged: an upper bound
+        upper_only = not s1.success and not certified  # feasible, not converged
+        if upper_only:
             info.status = f"slack_{s1.status}"
             info.values.update(h_PB=float("nan"), h_PB_upper=value)
-            if self._plan is not None and self._plan_age + 1 < self._plan.shape[1]:
+            if self._has_shifted_plan():
                 return self._fallback(u_p, info, "shifted_plan")
         else:
             self._last_slack = s1
@@ -141,15 +142,18 @@ class PCBFSafetyFilter:
                 f"filter_{s2.status}"
             info.fallback = "slack_solution"
             plan = np.asarray(s1["u"]).reshape(self.nu, -1)
-        if not s1.success and not certified:
+        if upper_only:
             info.fallback = "feasible_slack"
         self._plan, self._plan_age = plan, 0
         return plan[:, 0].copy(), info
 
+    def _has_shifted_plan(self) -> bool:
+        """The last successful plan has an input left for the next step."""
+        return self._plan is not None and self._plan_age + 1 < self._plan.shape[1]
+
     def _fallback(self, u_p: np.ndarray, info: StepInfo, kind: str
                   ) -> tuple[np.ndarray, StepInfo]:
-        if kind == "shifted_plan" and self._plan is not None \
-                and self._plan_age + 1 < self._plan.shape[1]:
+        if kind == "shifted_plan" and self._has_shifted_plan():
             self._plan_age += 1
             info.fallback = "shifted_plan"
             return self._plan[:, self._plan_age].copy(), info
