@@ -46,8 +46,8 @@ def pcbf_c(tmp_path_factory: pytest.TempPathFactory) -> dict:
     py = pendulum_pcbf_filter()
     default = pendulum_pcbf_filter()  # the Python backend as shipped (IPOPT last resort)
     # the reference: the Python backend with the retries of the C (eigen-clip, not IPOPT)
-    mirror_c_retries(py.slack)
-    mirror_c_retries(py.filter)
+    py.slack = mirror_c_retries(py.slack)
+    py.filter = mirror_c_retries(py.filter)
     return {"out": out, "emitted": emitted, "lib": lib, "py": py, "default": default}
 
 

@@ -18,8 +18,8 @@ from balustrade.models.pendulum import pendulum
 def approx(tmp_path_factory: pytest.TempPathFactory) -> dict:
     py = pendulum_approximate_filter()
     # the reference: the Python backend with the retries of the C (eigen-clip, not IPOPT)
-    mirror_c_retries(py.decrease.compiled)
-    mirror_c_retries(py.filter)
+    py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
+    py.filter = mirror_c_retries(py.filter)
     out = tmp_path_factory.mktemp("approx")
     emitted = emit_approximate(py, "apx", out, dynamics=pendulum().function)
     return {"py": py, "lib": build(out, emitted.name, werror=True)}
@@ -76,8 +76,8 @@ def test_approximate_exact_shortcut_rho_half(tmp_path) -> None:
     system, s = pendulum(), pendulum_setup()
     h = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
     py = ApproximatePCBFFilter(system, s.U, h, rho=0.5, solver="sqpmethod")
-    mirror_c_retries(py.decrease.compiled)
-    mirror_c_retries(py.filter)
+    py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
+    py.filter = mirror_c_retries(py.filter)
     c = CApproximatePCBFFilter(build(emit_approximate(py, "apx_half", tmp_path).out_dir))
     rng = np.random.default_rng(1)
     for x, u_p in zip(rng.uniform([-0.7, -2.0], [0.7, 2.0], size=(300, 2)),

@@ -27,7 +27,7 @@ TRUNCATED = {"max_iter": 3, "tol_du": 1e-30}
 def truncated(tmp_path_factory: pytest.TempPathFactory) -> dict:
     py = pendulum_pcbf_filter()
     py.slack = mirror_c_retries(compile(py.slack.ocp, "casadi", "sqpmethod", TRUNCATED))
-    mirror_c_retries(py.filter)
+    py.filter = mirror_c_retries(py.filter)
     out = tmp_path_factory.mktemp("pcbf_truncated")
     emitted = emit_pcbf(py, "trunc", out)
     return {"py": py, "c": CPCBFSafetyFilter(build(out, emitted.name, werror=True))}
@@ -84,8 +84,8 @@ def truncated_approx(tmp_path_factory: pytest.TempPathFactory) -> dict:
     h = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
     # one SQP iteration: (7.6) (bounds only) ends feasible, (7.5) feasible or not
     py = ApproximatePCBFFilter(system, s.U, h, solver="sqpmethod", options={"max_iter": 1})
-    mirror_c_retries(py.decrease.compiled)
-    mirror_c_retries(py.filter)
+    py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
+    py.filter = mirror_c_retries(py.filter)
     out = tmp_path_factory.mktemp("approx_truncated")
     emitted = emit_approximate(py, "atrunc", out)
     return {"py": py, "c": CApproximatePCBFFilter(build(out, emitted.name, werror=True))}

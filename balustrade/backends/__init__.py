@@ -1,7 +1,8 @@
 """Backends: lower an :class:`~balustrade.dsl.ocp.OCP` to a solver, once.
 
-``compile(ocp, backend="casadi" | "cvxpy", solver=..., options=...)`` returns an object
-with ``solve(params, warm_start=None) -> Solution``.
+``compile(ocp, target)`` returns an object with ``solve(params, warm_start=None) ->
+Solution``; a target (:mod:`balustrade.backends.targets`) says which backend, solver,
+options and retry chain.
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ from __future__ import annotations
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
 from balustrade.backends.solution import Solution
+from balustrade.backends.targets import PRESETS, Target
+from balustrade.backends.targets import target as resolve_target
 from balustrade.dsl.ocp import OCP
 from balustrade.errors import BalustradeError, SolverError
 
@@ -17,13 +20,16 @@ Compiled = CasadiCompiled | CvxpyCompiled
 BACKENDS = {"casadi": CasadiCompiled, "cvxpy": CvxpyCompiled}
 
 
-def compile(ocp: OCP, backend: str = "casadi", solver: str | None = None,
+def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = None,
             options: dict | None = None,
             retries: list[tuple[str, dict]] | None = None) -> Compiled:
-    """Compile ``ocp`` for ``backend``; CasADi's default solver is IPOPT, cvxpy's is PIQP
-    for LPs/QPs and Clarabel for conic problems. ``retries`` (CasADi only) replaces the
-    default retry chain after a failed solve (``[]`` turns retries off, e.g. for closed
-    loops that have their own fallbacks)."""
+    """Compile ``ocp`` for ``target``: a :class:`~balustrade.backends.targets.Target`, a
+    preset name (:data:`~balustrade.backends.targets.PRESETS`) or a backend name
+    (``"casadi"``: IPOPT; ``"cvxpy"``: PIQP for LPs/QPs, Clarabel for conic problems);
+    ``None`` is ``"exact-ipopt"``. ``solver``/``options``/``retries`` override the target's
+    (see :func:`~balustrade.backends.targets.target`); ``retries`` (CasADi only) replaces
+    the default retry chain after a failed solve (``[]`` turns retries off, e.g. for closed
+    loops that have their own fallbacks). The returned object records ``.target``."""
     if not isinstance(ocp, OCP):
         raise BalustradeError(f"compile: expected a balustrade OCP, got {type(ocp).__name__}")
     if ocp.decision_vector().numel() == 0:
@@ -35,17 +41,23 @@ def compile(ocp: OCP, backend: str = "casadi", solver: str | None = None,
     if options is not None and not isinstance(options, dict):
         raise SolverError(f"compile({ocp.name}): options must be a dict or None, got "
                           f"{type(options).__name__}")
-    if retries is not None and not (isinstance(retries, list) and all(
+    if retries is not None and not (isinstance(retries, list | tuple) and all(
             isinstance(r, tuple) and len(r) == 2 and isinstance(r[0], str)
             and isinstance(r[1], dict) for r in retries)):
         raise SolverError(f"compile({ocp.name}): retries must be a list of (solver name, "
                           f"options dict) pairs or None, got {retries!r:.60}")
-    if not isinstance(backend, str) or backend not in BACKENDS:
-        raise SolverError(f"{ocp.name}: unknown backend {backend!r}; use one of "
-                          f"{', '.join(BACKENDS)}")
-    if backend == "casadi":
-        return CasadiCompiled(ocp, solver or "ipopt", options, retries)
-    return CvxpyCompiled(ocp, solver, options)
+    try:
+        tgt = resolve_target(target, solver=solver, options=options, retries=retries)
+    except SolverError as exc:
+        raise SolverError(f"{ocp.name}: {exc}") from None
+    if tgt.backend == "casadi":
+        compiled: Compiled = CasadiCompiled(ocp, tgt.solver or "ipopt", tgt.solver_options(),
+                                            tgt.retry_chain())
+    else:
+        compiled = CvxpyCompiled(ocp, tgt.solver, tgt.solver_options())
+    compiled.target = tgt
+    return compiled
 
 
-__all__ = ["BACKENDS", "CasadiCompiled", "Compiled", "CvxpyCompiled", "Solution", "compile"]
+__all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CvxpyCompiled", "Solution",
+           "Target", "compile", "resolve_target"]

@@ -40,6 +40,7 @@ primal point (never the epigraph value), so it is the exact value of that point.
 
 from __future__ import annotations
 
+import copy
 import re
 import time
 from dataclasses import dataclass
@@ -240,6 +241,16 @@ class CasadiCompiled:
         #: the declared cost as a function of the solver's full primal vector, called with the
         #: solver's own DM outputs (no numpy round trip on the closed-loop hot path)
         self._objective = ca.Function("objective", [w, p], [ocp.cost.expr()])
+
+    def with_retries(self, retries: list[tuple[str, dict]]) -> CasadiCompiled:
+        """A copy of this compiled problem (sharing its built solver) that runs ``retries``
+        after a failed solve; this object is unchanged."""
+        other = copy.copy(self)
+        other.retries = [(name, dict(opts)) for name, opts in retries]
+        other._retry = None
+        if getattr(self, "target", None) is not None:
+            other.target = self.target.with_retries(other.retries)
+        return other
 
     def solve(self, params: dict[str, object] | None = None,
               warm_start: Solution | dict[str, object] | None = None) -> Solution:

@@ -392,15 +392,14 @@ def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float) ->
 
 
 def mirror_c_retries(compiled: object) -> object:
-    """Make a compiled CasADi problem retry failed solves exactly as its emitted C does:
-    the backend's cold-start ``sqpmethod`` retries without its last resort, IPOPT (which
-    cannot be emitted), so Python and the deployed C can be compared step by step.
-    Returns ``compiled``, modified in place."""
+    """A copy of a compiled CasADi problem that retries failed solves exactly as its emitted
+    C does: the backend's cold-start ``sqpmethod`` retries without its last resort, IPOPT
+    (which cannot be emitted), so Python and the deployed C can be compared step by step.
+    ``compiled`` itself is not changed (it is returned as is for other solvers)."""
     if compiled.solver_name != "sqpmethod":
         return compiled
-    compiled.retries = [(name, opts) for name, opts in compiled.retries if name == "sqpmethod"]
-    compiled._retry = None
-    return compiled
+    return compiled.with_retries([(name, opts) for name, opts in compiled.retries
+                                  if name == "sqpmethod"])
 
 
 class CApproximatePCBFFilter(_OwnsWork):

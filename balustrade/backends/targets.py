@@ -1,0 +1,214 @@
+"""Solver targets: which backend, which solver, which options, which retry chain — as data.
+
+A :class:`Target` is the one place where a solver is chosen and tuned. Formulations
+(``problems/``) never name a solver; controllers (``control/``), the sampler (``learn/``),
+the reproductions and the tests take a target (or a preset name) and hand it to
+:func:`balustrade.backends.compile`. The presets below are the only definitions of solver
+options outside the backend modules themselves (issue #13, §1).
+
+Presets (see :data:`PRESETS`; ``docs/language.md`` explains when to use which):
+
+=====================  =========================================================================
+``"exact-ipopt"``      CasADi + IPOPT, tight tolerances, one cold retry. The default of
+                       :func:`~balustrade.backends.compile`: exact on every smooth NLP.
+``"fast-sqp"``         CasADi ``sqpmethod`` + ``qrqp`` (dense active set), eigenvalue-clipping
+                       convexification, retries with the other convexification, then IPOPT.
+                       The closed-loop default for small problems; the one that emits C.
+``"fast-sqp-noretry"`` ``fast-sqp`` without retries, for loops with their own fallbacks and for
+                       warm-started sampling (a failed warm solve is redone by a cold twin).
+``"robust-sqp"``       ``fast-sqp`` with 500 SQP iterations (the robust filter (5.16)).
+``"ipopt-adaptive"``   IPOPT with the adaptive barrier update (long horizons, e.g. the
+                       rendezvous N = 200).
+``"ipopt-sampling"``   IPOPT demanding absolute complementarity (slacks weighted by
+                       α_f = 1e6), for sampling value functions cold.
+``"ipopt-warm"``       ``ipopt-sampling`` with IPOPT's warm-start options, for warm solves
+                       along sampling paths.
+``"cvxpy"``            cvxpy: PIQP for LPs/QPs, Clarabel for conic problems, tight tolerances.
+``"clarabel"``         cvxpy + Clarabel, tight tolerances (SOCPs, SDPs).
+=====================  =========================================================================
+
+A target is immutable; ``with_options``/``with_retries``/``with_solver`` return new targets.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any
+
+from balustrade.errors import SolverError
+
+#: backends a target can name
+BACKEND_NAMES = ("casadi", "cvxpy")
+
+#: CasADi NLP solvers whose compiled problems :mod:`balustrade.codegen` can emit as C, with
+#: the QP solvers they may use (generated C needs a self-contained QP solver)
+EMITTABLE = {"sqpmethod": ("qrqp",)}
+
+
+def _frozen(options: Mapping[str, Any] | None) -> Mapping[str, Any]:
+    return MappingProxyType(dict(options or {}))
+
+
+def _plain(value: Any) -> Any:
+    """A deep plain-``dict`` copy of (possibly read-only, nested) options for a solver."""
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
+
+
+@dataclass(frozen=True)
+class Target:
+    """Where an :class:`~balustrade.dsl.ocp.OCP` is compiled to.
+
+    ``backend``: ``"casadi"`` or ``"cvxpy"``; ``solver``: a CasADi ``nlpsol`` plugin
+    (``"ipopt"``, ``"sqpmethod"``, ``"fatrop"``, …) or a cvxpy solver name (``"clarabel"``,
+    ``"piqp"``, …), ``None`` for the backend's default; ``options``: solver options
+    (added to the backend's defaults); ``retries`` (CasADi only): the cold-start chain run
+    after a failed solve as ``(solver, option overrides)`` pairs, ``None`` for the backend's
+    default chain and ``()`` for none; ``name``: a label shown in errors and traces.
+    """
+
+    backend: str = "casadi"
+    solver: str | None = None
+    options: Mapping[str, Any] = field(default_factory=lambda: _frozen(None), compare=False)
+    retries: tuple[tuple[str, Mapping[str, Any]], ...] | None = field(default=None,
+                                                                      compare=False)
+    name: str = "custom"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.backend, str) or self.backend not in BACKEND_NAMES:
+            raise SolverError(f"Target: unknown backend {self.backend!r}; use one of "
+                              f"{', '.join(BACKEND_NAMES)}")
+        if self.solver is not None and not isinstance(self.solver, str):
+            raise SolverError(f"Target({self.name}): solver must be a name (str) or None, got "
+                              f"{type(self.solver).__name__}")
+        if not isinstance(self.options, Mapping):
+            raise SolverError(f"Target({self.name}): options must be a dict, got "
+                              f"{type(self.options).__name__}")
+        object.__setattr__(self, "options", _frozen(self.options))
+        if self.retries is not None:
+            ok = isinstance(self.retries, list | tuple) and all(
+                isinstance(r, tuple | list) and len(r) == 2 and isinstance(r[0], str)
+                and isinstance(r[1], Mapping) for r in self.retries)
+            if not ok:
+                raise SolverError(f"Target({self.name}): retries must be a list of (solver "
+                                  f"name, options dict) pairs or None, got "
+                                  f"{self.retries!r:.60}")
+            if self.backend != "casadi" and self.retries:
+                raise SolverError(f"Target({self.name}): retry chains are a CasADi feature; "
+                                  f"the {self.backend} backend has its own status checks")
+            object.__setattr__(self, "retries",
+                               tuple((s, _frozen(o)) for s, o in self.retries))
+
+    # -- derived targets ------------------------------------------------------------
+    def with_options(self, options: Mapping[str, Any] | None = None, /,
+                     **more: Any) -> Target:
+        """A copy with ``options`` (and keyword options) added to this target's."""
+        return replace(self, options={**self.options, **(options or {}), **more},
+                       name=f"{self.name}+options")
+
+    def with_retries(self, retries: list[tuple[str, Mapping]] | tuple | None) -> Target:
+        """A copy with another retry chain (``()`` for none, ``None`` for the default)."""
+        return replace(self, retries=None if retries is None else tuple(retries))
+
+    def with_solver(self, solver: str | None) -> Target:
+        """A copy that uses ``solver`` on the same backend (options are kept)."""
+        return replace(self, solver=solver, name=f"{self.backend}:{solver}")
+
+    # -- what the backends read ---------------------------------------------------------
+    def solver_options(self) -> dict[str, Any]:
+        """The options as a plain (mutable, deep-copied) dict for the backend."""
+        return _plain(self.options)
+
+    def retry_chain(self) -> list[tuple[str, dict]] | None:
+        """The retry chain as plain ``(solver, options)`` pairs, or ``None`` (default)."""
+        if self.retries is None:
+            return None
+        return [(s, _plain(o)) for s, o in self.retries]
+
+    def emit_reason(self) -> str | None:
+        """Why problems compiled for this target cannot be emitted as C, or ``None`` if
+        they can (CasADi ``sqpmethod`` with a self-contained QP solver)."""
+        if self.backend != "casadi":
+            return f"target {self.name!r}: only CasADi problems can be emitted as C"
+        if self.solver not in EMITTABLE:
+            return (f"target {self.name!r}: solver {self.solver!r} cannot be emitted as C "
+                    f"(emittable: {', '.join(EMITTABLE)})")
+        qp = self.options.get("qpsol", EMITTABLE[self.solver][0])
+        if qp not in EMITTABLE[self.solver]:
+            return (f"target {self.name!r}: QP solver {qp!r} of {self.solver} cannot be "
+                    f"emitted as C (use {', '.join(EMITTABLE[self.solver])})")
+        return None
+
+    @property
+    def can_emit(self) -> bool:
+        """Whether problems compiled for this target can be emitted as C."""
+        return self.emit_reason() is None
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.backend}{':' + self.solver if self.solver else ''})"
+
+
+#: IPOPT's warm-start options (sampling paths, :mod:`balustrade.learn.sampler`)
+_IPOPT_WARM = {"ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,
+               "ipopt.warm_start_mult_bound_push": 1e-9,
+               "ipopt.warm_start_slack_bound_push": 1e-9, "ipopt.mu_init": 1e-6}
+# The slack costs carry α_f = 1e6: IPOPT's scaled complementarity test would stop with
+# α_f ξ_N ≈ 4e-6 at states of S_PB (above tol = 1e-6); demand absolute complementarity.
+_IPOPT_SAMPLING = {"ipopt.compl_inf_tol": 1e-12}
+
+PRESETS: dict[str, Target] = {t.name: t for t in (
+    Target("casadi", "ipopt", name="exact-ipopt"),
+    Target("casadi", "sqpmethod", name="fast-sqp"),
+    Target("casadi", "sqpmethod", retries=(), name="fast-sqp-noretry"),
+    Target("casadi", "sqpmethod", {"max_iter": 500}, name="robust-sqp"),
+    Target("casadi", "ipopt", {"ipopt.mu_strategy": "adaptive"}, name="ipopt-adaptive"),
+    Target("casadi", "ipopt", _IPOPT_SAMPLING, name="ipopt-sampling"),
+    Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="ipopt-warm"),
+    Target("cvxpy", None, name="cvxpy"),
+    Target("cvxpy", "clarabel", name="clarabel"),
+)}
+
+#: what a bare backend name means where a target is expected
+_BACKEND_DEFAULTS = {"casadi": "exact-ipopt", "cvxpy": "cvxpy"}
+
+
+def target(spec: Target | str | None = None, *, default: Target | str = "exact-ipopt",
+           solver: str | None = None, options: Mapping[str, Any] | None = None,
+           retries: list | tuple | None = None) -> Target:
+    """Resolve ``spec`` to a :class:`Target`.
+
+    ``spec`` is a target, a preset name (:data:`PRESETS`), a backend name (``"casadi"`` →
+    ``"exact-ipopt"``, ``"cvxpy"`` → ``"cvxpy"``), or ``None`` for ``default``.
+    ``solver``/``options``/``retries``, when given, override the resolved target's (options
+    are added to its own), so ``target("casadi", solver="sqpmethod")`` is a CasADi
+    sqpmethod target with the backend's defaults."""
+    if spec is None:
+        spec = default
+    if isinstance(spec, str):
+        name = _BACKEND_DEFAULTS.get(spec, spec)
+        if name not in PRESETS:
+            raise SolverError(f"unknown target {spec!r}; use a Target, a backend "
+                              f"({', '.join(BACKEND_NAMES)}) or a preset "
+                              f"({', '.join(PRESETS)})")
+        resolved = PRESETS[name]
+    elif isinstance(spec, Target):
+        resolved = spec
+    else:
+        raise SolverError(f"expected a Target, a preset name or a backend name, got "
+                          f"{type(spec).__name__}")
+    if solver is not None and solver != resolved.solver:
+        resolved = Target(resolved.backend, solver, options or {},
+                          None if retries is None else tuple(retries),
+                          name=f"{resolved.backend}:{solver}")
+        return resolved
+    if options:
+        resolved = resolved.with_options(options)
+    if retries is not None:
+        resolved = resolved.with_retries(retries)
+    return resolved
+
+
+__all__ = ["BACKEND_NAMES", "EMITTABLE", "PRESETS", "Target", "target"]
