@@ -10,7 +10,7 @@ from __future__ import annotations
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
 from balustrade.backends.solution import Solution
-from balustrade.backends.targets import PRESETS, Target
+from balustrade.backends.targets import PRESETS, Target, companion, sampling_targets
 from balustrade.backends.targets import target as resolve_target
 from balustrade.dsl.ocp import OCP
 from balustrade.errors import BalustradeError, SolverError
@@ -26,7 +26,7 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
     """Compile ``ocp`` for ``target``: a :class:`~balustrade.backends.targets.Target`, a
     preset name (:data:`~balustrade.backends.targets.PRESETS`) or a backend name
     (``"casadi"``: IPOPT; ``"cvxpy"``: PIQP for LPs/QPs, Clarabel for conic problems);
-    ``None`` is ``"exact-ipopt"``. ``solver``/``options``/``retries`` override the target's
+    ``None`` is ``"exact"``. ``solver``/``options``/``retries`` override the target's
     (see :func:`~balustrade.backends.targets.target`); ``retries`` (CasADi only) replaces
     the default retry chain after a failed solve (``[]`` turns retries off, e.g. for closed
     loops that have their own fallbacks). The returned object records ``.target``."""
@@ -60,4 +60,4 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
 
 
 __all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CvxpyCompiled", "Solution",
-           "Target", "compile", "resolve_target"]
+           "Target", "companion", "compile", "resolve_target", "sampling_targets"]

@@ -6,10 +6,12 @@ the reproductions and the tests take a target (or a preset name) and hand it to
 :func:`balustrade.backends.compile`. The presets below are the only definitions of solver
 options outside the backend modules themselves (issue #13, §1).
 
-Presets (see :data:`PRESETS`; ``docs/language.md`` explains when to use which):
+Presets (see :data:`PRESETS`; ``docs/language.md`` explains when to use which). They are
+named for what they are for, not for their solver, so code outside ``backends/`` never names
+a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
 
 =====================  =========================================================================
-``"exact-ipopt"``      CasADi + IPOPT, tight tolerances, one cold retry. The default of
+``"exact"``            CasADi + IPOPT, tight tolerances, one cold retry. The default of
                        :func:`~balustrade.backends.compile`: exact on every smooth NLP.
 ``"fast-sqp"``         CasADi ``sqpmethod`` + ``qrqp`` (dense active set), eigenvalue-clipping
                        convexification, retries with the other convexification, then IPOPT.
@@ -17,14 +19,14 @@ Presets (see :data:`PRESETS`; ``docs/language.md`` explains when to use which):
 ``"fast-sqp-noretry"`` ``fast-sqp`` without retries, for loops with their own fallbacks and for
                        warm-started sampling (a failed warm solve is redone by a cold twin).
 ``"robust-sqp"``       ``fast-sqp`` with 500 SQP iterations (the robust filter (5.16)).
-``"ipopt-adaptive"``   IPOPT with the adaptive barrier update (long horizons, e.g. the
+``"long-horizon"``     IPOPT with the adaptive barrier update (long horizons, e.g. the
                        rendezvous N = 200).
-``"ipopt-sampling"``   IPOPT demanding absolute complementarity (slacks weighted by
+``"sampling-cold"``    IPOPT demanding absolute complementarity (slacks weighted by
                        α_f = 1e6), for sampling value functions cold.
-``"ipopt-warm"``       ``ipopt-sampling`` with IPOPT's warm-start options, for warm solves
+``"sampling-warm"``    ``sampling-cold`` with IPOPT's warm-start options, for warm solves
                        along sampling paths.
 ``"cvxpy"``            cvxpy: PIQP for LPs/QPs, Clarabel for conic problems, tight tolerances.
-``"clarabel"``         cvxpy + Clarabel, tight tolerances (SOCPs, SDPs).
+``"conic"``            cvxpy + Clarabel, tight tolerances (SOCPs, SDPs).
 =====================  =========================================================================
 
 A target is immutable; ``with_options``/``with_retries``/``with_solver`` return new targets.
@@ -41,11 +43,6 @@ from balustrade.errors import SolverError
 
 #: backends a target can name
 BACKEND_NAMES = ("casadi", "cvxpy")
-
-#: CasADi NLP solvers whose compiled problems :mod:`balustrade.codegen` can emit as C, with
-#: the QP solvers they may use (generated C needs a self-contained QP solver)
-EMITTABLE = {"sqpmethod": ("qrqp",)}
-
 
 def _frozen(options: Mapping[str, Any] | None) -> Mapping[str, Any]:
     return MappingProxyType(dict(options or {}))
@@ -128,24 +125,40 @@ class Target:
             return None
         return [(s, _plain(o)) for s, o in self.retries]
 
-    def emit_reason(self) -> str | None:
+    def emit_reason(self, allow_external: bool = False) -> str | None:
         """Why problems compiled for this target cannot be emitted as C, or ``None`` if
-        they can (CasADi ``sqpmethod`` with a self-contained QP solver)."""
+        they can: CasADi ``sqpmethod`` with a self-contained QP solver, or (with
+        ``allow_external``) a solver whose C links an external library
+        (:mod:`balustrade.backends.emittable`)."""
+        from balustrade.backends.emittable import codegen_reason, full_options
+
         if self.backend != "casadi":
-            return f"target {self.name!r}: only CasADi problems can be emitted as C"
-        if self.solver not in EMITTABLE:
-            return (f"target {self.name!r}: solver {self.solver!r} cannot be emitted as C "
-                    f"(emittable: {', '.join(EMITTABLE)})")
-        qp = self.options.get("qpsol", EMITTABLE[self.solver][0])
-        if qp not in EMITTABLE[self.solver]:
-            return (f"target {self.name!r}: QP solver {qp!r} of {self.solver} cannot be "
-                    f"emitted as C (use {', '.join(EMITTABLE[self.solver])})")
-        return None
+            return (f"target {self.name!r}: only problems compiled on the CasADi backend can "
+                    f"be emitted as C")
+        solver = self.solver or "ipopt"
+        reason = codegen_reason(solver, full_options(solver, self.options), allow_external)
+        return None if reason is None else f"target {self.name!r}: {reason}"
 
     @property
     def can_emit(self) -> bool:
-        """Whether problems compiled for this target can be emitted as C."""
+        """Whether problems compiled for this target can be emitted as self-contained C."""
         return self.emit_reason() is None
+
+    def c_libraries(self) -> tuple[str, ...]:
+        """The libraries the C emitted for this target links with (empty: only libm)."""
+        from balustrade.backends.emittable import c_libraries, full_options
+
+        if self.backend != "casadi":
+            return ()
+        solver = self.solver or "ipopt"
+        return c_libraries(solver, full_options(solver, self.options))
+
+    def __reduce__(self) -> tuple:
+        """Pickle as plain data (the read-only option views do not pickle): targets travel
+        to sampling workers (:mod:`balustrade.learn.executors`)."""
+        retries = None if self.retries is None else tuple(
+            (s, _plain(o)) for s, o in self.retries)
+        return (Target, (self.backend, self.solver, _plain(self.options), retries, self.name))
 
     def __str__(self) -> str:
         return f"{self.name} ({self.backend}{':' + self.solver if self.solver else ''})"
@@ -160,28 +173,43 @@ _IPOPT_WARM = {"ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_pus
 _IPOPT_SAMPLING = {"ipopt.compl_inf_tol": 1e-12}
 
 PRESETS: dict[str, Target] = {t.name: t for t in (
-    Target("casadi", "ipopt", name="exact-ipopt"),
+    Target("casadi", "ipopt", name="exact"),
     Target("casadi", "sqpmethod", name="fast-sqp"),
     Target("casadi", "sqpmethod", retries=(), name="fast-sqp-noretry"),
     Target("casadi", "sqpmethod", {"max_iter": 500}, name="robust-sqp"),
-    Target("casadi", "ipopt", {"ipopt.mu_strategy": "adaptive"}, name="ipopt-adaptive"),
-    Target("casadi", "ipopt", _IPOPT_SAMPLING, name="ipopt-sampling"),
-    Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="ipopt-warm"),
+    Target("casadi", "ipopt", {"ipopt.mu_strategy": "adaptive"}, name="long-horizon"),
+    Target("casadi", "ipopt", _IPOPT_SAMPLING, name="sampling-cold"),
+    Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="sampling-warm"),
     Target("cvxpy", None, name="cvxpy"),
-    Target("cvxpy", "clarabel", name="clarabel"),
+    Target("cvxpy", "clarabel", name="conic"),
 )}
 
+#: the solver-named spellings of presets (kept so that existing scripts resolve)
+ALIASES: dict[str, str] = {"exact-ipopt": "exact", "ipopt-adaptive": "long-horizon",
+                           "ipopt-sampling": "sampling-cold", "ipopt-warm": "sampling-warm",
+                           "clarabel": "conic"}
+
+#: warm-started sampling (Algorithm 7.6, :func:`sampling_targets`): for a target name, the
+#: target of the warm solves along a path and that of the cold twin, which does the first
+#: point of a path and redoes a warm solve that failed. The warm SQP runs without retries
+#: (its cold twin is the retry).
+SAMPLING_PAIRS: dict[str, tuple[str, str]] = {
+    "fast-sqp": ("fast-sqp-noretry", "sampling-cold"),
+    "exact": ("sampling-warm", "sampling-cold"),
+}
+
 #: what a bare backend name means where a target is expected
-_BACKEND_DEFAULTS = {"casadi": "exact-ipopt", "cvxpy": "cvxpy"}
+_BACKEND_DEFAULTS = {"casadi": "exact", "cvxpy": "cvxpy", **ALIASES}
 
 
-def target(spec: Target | str | None = None, *, default: Target | str = "exact-ipopt",
+def target(spec: Target | str | None = None, *, default: Target | str = "exact",
            solver: str | None = None, options: Mapping[str, Any] | None = None,
            retries: list | tuple | None = None) -> Target:
     """Resolve ``spec`` to a :class:`Target`.
 
-    ``spec`` is a target, a preset name (:data:`PRESETS`), a backend name (``"casadi"`` →
-    ``"exact-ipopt"``, ``"cvxpy"`` → ``"cvxpy"``), or ``None`` for ``default``.
+    ``spec`` is a target, a preset name (:data:`PRESETS`, or one of its :data:`ALIASES`), a
+    backend name (``"casadi"`` → ``"exact"``, ``"cvxpy"`` → ``"cvxpy"``), or ``None`` for
+    ``default``.
     ``solver``/``options``/``retries``, when given, override the resolved target's (options
     are added to its own), so ``target("casadi", solver="sqpmethod")`` is a CasADi
     sqpmethod target with the backend's defaults."""
@@ -211,4 +239,29 @@ def target(spec: Target | str | None = None, *, default: Target | str = "exact-i
     return resolved
 
 
-__all__ = ["BACKEND_NAMES", "EMITTABLE", "PRESETS", "Target", "target"]
+def companion(spec: Target | str | None, main: Target | str) -> Target:
+    """The target of a controller's second problem: ``spec`` when given, else ``"exact"``
+    when ``main`` (the target of its first problem) is a CasADi target and ``main`` itself
+    otherwise — so ``target="cvxpy"`` alone moves both problems to cvxpy, while on CasADi the
+    slack problems (5.15) keep IPOPT (the SQP needs hundreds of iterations on them)."""
+    if spec is not None:
+        return target(spec)
+    main = target(main)
+    return PRESETS["exact"] if main.backend == "casadi" else main
+
+
+def sampling_targets(spec: Target | str) -> tuple[Target, Target | None]:
+    """The targets of warm-started sampling for ``spec``: ``(warm, cold twin)`` from
+    :data:`SAMPLING_PAIRS` for the names listed there (``"fast-sqp"``: warm SQP without
+    retries, cold IPOPT demanding absolute complementarity; ``"exact"``: IPOPT with its
+    warm-start options, the same cold twin), ``(target(spec), None)`` for any other target
+    (one compiled problem for warm and cold solves)."""
+    name = ALIASES.get(spec, spec) if isinstance(spec, str) else None
+    if name in SAMPLING_PAIRS:
+        warm, cold = SAMPLING_PAIRS[name]
+        return PRESETS[warm], PRESETS[cold]
+    return target(spec), None
+
+
+__all__ = ["ALIASES", "BACKEND_NAMES", "PRESETS", "SAMPLING_PAIRS", "Target", "companion",
+           "sampling_targets", "target"]

@@ -1,0 +1,130 @@
+"""Which CasADi solvers generate C, what that C links with, and which retries it runs.
+
+These are facts about solvers, so they live in ``backends/`` (issue #13, §1): the code
+generator (:mod:`balustrade.codegen`) asks a target (:meth:`Target.emit_reason
+<balustrade.backends.targets.Target.emit_reason>`, :meth:`Target.c_libraries
+<balustrade.backends.targets.Target.c_libraries>`) or the functions below instead of
+checking solver names itself.
+
+Facts (CasADi 3.8, checked by generating and compiling each plugin on a small NLP):
+
+============================  =========================================================
+solver                         generated C
+============================  =========================================================
+``sqpmethod`` + ``qrqp``       self-contained: needs only ``libm`` (the ``fast-sqp`` target)
+``sqpmethod`` + ``osqp``       calls OSQP: needs ``<osqp/osqp.h>`` and ``libosqp``
+``sqpmethod`` + ``daqp``       calls DAQP: needs ``<daqp/api.h>`` and ``libdaqp``
+``sqpmethod`` + ``highs``      calls HiGHS: needs ``<interfaces/highs_c_api.h>``, ``libhighs``
+``sqpmethod`` + ``hpipm``      calls HPIPM: needs ``libhpipm`` and ``libblasfeo``
+``fatrop``                     calls FATROP: needs ``libfatrop`` and ``libblasfeo``
+``ipopt``                      refused: the C only wraps IPOPT's C interface (``libipopt``,
+                               MUMPS, dynamic memory) — nothing embeddable is generated
+``sqpmethod`` + ``qpoases``    refused: the generated file contains ``#error Code
+                               generation not supported for QpoasesInterface``
+``feasiblesqpmethod``          refused: its generated C does not compile (CasADi 3.8)
+others                         refused (no code generation in CasADi)
+============================  =========================================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+from balustrade.backends.casadi_backend import solver_options, sqp_retry_strategies
+
+#: (nlpsol plugin, qpsol plugin or None) -> libraries the generated C must be linked with
+#: (empty: self-contained, needs only libm).
+SUPPORTED: dict[tuple[str, str | None], tuple[str, ...]] = {
+    ("sqpmethod", "qrqp"): (),
+    ("sqpmethod", "osqp"): ("osqp",),
+    ("sqpmethod", "daqp"): ("daqp",),
+    ("sqpmethod", "highs"): ("highs",),
+    ("sqpmethod", "hpipm"): ("hpipm", "blasfeo"),
+    ("fatrop", None): ("fatrop", "blasfeo"),
+}
+
+#: plugins known to have no usable code generation, with the reason shown to the user.
+REFUSED: dict[str, str] = {
+    "ipopt": "CasADi only emits a wrapper around IPOPT's C interface (libipopt with MUMPS "
+             "and dynamic memory), not a self-contained solver",
+    "qpoases": "CasADi's qpOASES interface has no code generation (the generated file "
+               "contains '#error Code generation not supported')",
+    "feasiblesqpmethod": "the C that CasADi 3.8 generates for it does not compile",
+    "blocksqp": "CasADi has no code generation for blockSQP",
+    "scpgen": "CasADi has no code generation for scpgen",
+    "bonmin": "CasADi has no code generation for Bonmin",
+}
+
+#: what to use instead, appended to every refusal.
+ADVICE = ("compile the problem for the 'fast-sqp' target (sqpmethod with qpsol 'qrqp', the "
+          "default in balustrade.backends), which generates self-contained C needing only libm")
+
+_SQP = "sqpmethod"
+_SQP_DEFAULT_QPSOL = "qpoases"  # CasADi's own default qpsol for sqpmethod
+
+
+def _qpsol(solver: str, options: Mapping) -> str | None:
+    return options.get("qpsol", _SQP_DEFAULT_QPSOL) if solver == _SQP else None
+
+
+def codegen_reason(solver: str, options: Mapping | None = None,
+                   allow_external: bool = False) -> str | None:
+    """Why the CasADi ``solver`` with ``options`` (as passed to ``nlpsol``) cannot be emitted
+    as C, or ``None`` if it can; with ``allow_external=False`` a solver whose C must be
+    linked with an external library is refused too."""
+    options = options or {}
+    qpsol = _qpsol(solver, options)
+    if solver in REFUSED:
+        return f"solver {solver!r} cannot be emitted as C: {REFUSED[solver]}; {ADVICE}"
+    if qpsol in REFUSED:
+        return (f"{solver} with qpsol {qpsol!r} cannot be emitted as C: {REFUSED[qpsol]}; "
+                f"{ADVICE}")
+    if (solver, qpsol) not in SUPPORTED:
+        name = solver if qpsol is None else f"{solver} with qpsol {qpsol!r}"
+        return f"solver {name} has no known C code generation; {ADVICE}"
+    libs = SUPPORTED[solver, qpsol]
+    if libs and not allow_external:
+        name = solver if qpsol is None else f"{solver}+{qpsol}"
+        return (f"the C generated for {name} must be linked with "
+                f"{', '.join('lib' + lib for lib in libs)} (not self-contained); "
+                f"pass allow_external=True and give build() the include and "
+                f"library flags, or {ADVICE}")
+    return None
+
+
+def c_libraries(solver: str, options: Mapping | None = None) -> tuple[str, ...]:
+    """The libraries the C generated for ``solver`` must be linked with (empty:
+    self-contained); ``()`` also for solvers without code generation (ask
+    :func:`codegen_reason` first)."""
+    return SUPPORTED.get((solver, _qpsol(solver, options or {})), ())
+
+
+def full_options(solver: str, options: Mapping | None = None) -> dict:
+    """The options ``nlpsol`` receives for ``solver``: the backend's defaults updated by
+    ``options`` (:func:`~balustrade.backends.casadi_backend.solver_options`)."""
+    return solver_options(solver, dict(options or {}))
+
+
+def c_attempts(solver: str, options: Mapping) -> list[tuple[str, dict, str]]:
+    """The cold-start retries emitted C runs after a failed first attempt, as
+    ``(solver, options overrides, label)``: for ``sqpmethod`` the backend's other Hessian
+    convexifications (:func:`~balustrade.backends.casadi_backend.sqp_retry_strategies`; the
+    backend's last resort, IPOPT, cannot be emitted), labelled by the strategy; for any other
+    solver the same solver again, labelled by its name."""
+    if solver == _SQP:
+        return [(_SQP, {"convexify_strategy": s}, s)
+                for s in sqp_retry_strategies(dict(options))]
+    return [(solver, {}, solver)]
+
+
+def c_retry_chain(solver: str, retries: list[tuple[str, dict]]) -> list[tuple[str, dict]]:
+    """The part of a compiled problem's retry chain that its emitted C runs too: for
+    ``sqpmethod`` its ``sqpmethod`` entries (the IPOPT last resort has no code generation);
+    any other solver's chain unchanged (the same list object)."""
+    if solver != _SQP:
+        return retries
+    return [(name, opts) for name, opts in retries if name == _SQP]
+
+
+__all__ = ["ADVICE", "REFUSED", "SUPPORTED", "c_attempts", "c_libraries", "c_retry_chain",
+           "codegen_reason", "full_options"]
