@@ -4,7 +4,8 @@
   :class:`~balustrade.backends.Solution`'s primal point (``sol.primal``, what the user sees,
   packed with the problem's own layout): dynamics residual, constraint violation per block,
   variable bounds (slack signs) and the reported objective. NaN is never "ok".
-* :func:`compare_backends` compiles one formulation on both backends and compares optima.
+* :func:`compare_backends` compiles one formulation for two targets (e.g. both backends) and
+  compares optima.
 
 Users call these in their own tests; so do ours.
 """
@@ -17,7 +18,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_float_array, as_scalar
-from balustrade.backends import Solution, compile
+from balustrade.backends import Solution, Target, compile, resolve_target
 from balustrade.dsl.ocp import OCP
 from balustrade.errors import BalustradeError, ShapeError
 
@@ -168,12 +169,14 @@ class BackendComparison:
 
 
 def compare_backends(problem: OCP, params: dict[str, object] | None = None,
-                     backends: tuple[tuple[str, str | None], ...] = (("casadi", "sqpmethod"),
-                                                                    ("cvxpy", None)),
+                     targets: tuple[Target | str, ...] = ("fast-sqp", "cvxpy"),
                      compiled: dict | None = None) -> BackendComparison:
-    """Compile ``problem`` on two backends (or reuse ``compiled``) and solve both."""
-    compiled = compiled if compiled is not None else {
-        f"{b}/{s or 'default'}": compile(problem, b, s) for b, s in backends}
+    """Compile ``problem`` for two targets (or presets, :mod:`balustrade.backends.targets`;
+    or reuse ``compiled``, a dict label → compiled problem) and solve both; results are
+    keyed by target name."""
+    if compiled is None:
+        resolved = [resolve_target(t) for t in targets]
+        compiled = {t.name: compile(problem, t) for t in resolved}
     sols = {key: c.solve(params) for key, c in compiled.items()}
     return BackendComparison({k: s.objective for k, s in sols.items()},
                              {k: s.status for k, s in sols.items()}, sols)

@@ -67,8 +67,8 @@ def run(quick: bool = False) -> list[dict]:
     h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
     args = (system, s.X, s.U, h_f, s.N, s.deltas)
     steps = 40 if quick else 150
-    ctl = {b: PCBFSafetyFilter.build(*args, alpha_f=s.alpha_f, slack_norm=1, backend=b,
-                                     solver="sqpmethod" if b == "casadi" else None)
+    ctl = {b: PCBFSafetyFilter.build(*args, alpha_f=s.alpha_f, slack_norm=1,
+                                     target="fast-sqp" if b == "casadi" else "cvxpy")
            for b in ("casadi", "cvxpy")}
     with tempfile.TemporaryDirectory(prefix="bal_bench_codegen_") as tmp:
         out = Path(tmp)

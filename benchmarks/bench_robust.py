@@ -86,7 +86,8 @@ def run(quick: bool = False) -> list[dict]:
     n_timed = 10 if quick else 12
     d = design(N, T)
     rows = []
-    compiled = {b: controllers(d, (0.9,), backend=b, record_h_r=False)
+    compiled = {b: controllers(d, (0.9,), target=None if b == "casadi" else b,
+                              record_h_r=False)
                 for b in ("casadi", "cvxpy")}
     # states of one disturbed closed loop of Algorithm 5.2 (CasADi): the operating points
     loop = closed_loop(compiled["casadi"]["robust"], d, disturbed=True)

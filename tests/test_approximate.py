@@ -43,10 +43,10 @@ def states() -> np.ndarray:
                       rng.uniform([-2.0, -8.0], [2.0, 8.0], (40, 2))])
 
 
-@pytest.mark.parametrize("solver", ["ipopt", "sqpmethod"])
+@pytest.mark.parametrize("solver", ["exact", "fast-sqp"])
 def test_proposition_7_3_filter_feasible_everywhere(states, solver):
     """Prop. 7.3: the (7.6) minimizer is feasible in (7.5); (7.5) solves at every state."""
-    ctl = {rho: ApproximatePCBFFilter(SYS, U, h_wavy, rho=rho, solver=solver, certify=False)
+    ctl = {rho: ApproximatePCBFFilter(SYS, U, h_wavy, rho=rho, target=solver, certify=False)
            for rho in (1.0, 0.5, 0.1)}
     h = as_h_function(h_wavy, 2)
     for rho, f in ctl.items():
@@ -103,7 +103,7 @@ def test_certification_returns_the_solvers_answer():
     """Alg. 7.5 line 4 with ``ĥ >= 0``: whenever the shortcut fires, solving (7.6)+(7.5)
     returns ``u_p`` itself (SPEC §2.28 note); so does the exact ``u_p``-feasible shortcut."""
     rng = np.random.default_rng(3)
-    fast = ApproximatePCBFFilter(SYS, U, h_nonneg, rho=1.0, solver="ipopt")
+    fast = ApproximatePCBFFilter(SYS, U, h_nonneg, rho=1.0, target="exact")
     fired = exact = 0
     for _ in range(150):
         x = rng.uniform([-0.6, -2.0], [0.6, 2.0])
@@ -121,7 +121,7 @@ def test_certification_returns_the_solvers_answer():
 
 
 def test_proposal_feasible_shortcut_is_the_minimizer(states):
-    f = ApproximatePCBFFilter(SYS, U, h_wavy, rho=0.3, solver="ipopt", certify=False)
+    f = ApproximatePCBFFilter(SYS, U, h_wavy, rho=0.3, target="exact", certify=False)
     rng = np.random.default_rng(11)
     seen = 0
     for x in states:
@@ -134,7 +134,7 @@ def test_proposal_feasible_shortcut_is_the_minimizer(states):
 
 
 def test_certification_requires_u_p_in_U():
-    f = ApproximatePCBFFilter(SYS, U, h_nonneg, solver="sqpmethod")
+    f = ApproximatePCBFFilter(SYS, U, h_nonneg, target="fast-sqp")
     assert f.certifies(np.zeros(2), np.array([0.5]))
     assert not f.certifies(np.zeros(2), np.array([3.5]))  # ĥ(f(x,u_p)) <= 0 but u_p ∉ U
     u, info = f.step(np.zeros(2), np.array([3.5]))
@@ -144,7 +144,7 @@ def test_certification_requires_u_p_in_U():
 def test_controller_never_raises_for_runtime_data():
     """NaN/inf values fall back (state) or are read as 0 (proposal); wrong shapes and junk
     arguments are programming errors and raise a BalustradeError naming the argument."""
-    f = ApproximatePCBFFilter(SYS, U, h_wavy, solver="sqpmethod")
+    f = ApproximatePCBFFilter(SYS, U, h_wavy, target="fast-sqp")
     u, info = f.step(np.array([np.nan, 0.0]), np.array([5.0]))
     assert info.fallback == "projected_proposal" and u[0] == 3.0
     assert info.status == "non_finite_state"
@@ -209,16 +209,16 @@ def h_monotone(x):
     return h_nonneg(x) + 0.8 * x[1]
 
 
-@pytest.mark.parametrize("solver", ["sqpmethod", "ipopt"])
+@pytest.mark.parametrize("solver", ["fast-sqp", "exact"])
 @pytest.mark.parametrize("h_fun", [h_wavy, h_monotone])
 def test_fast_path_equals_the_compiled_solves(states, solver, h_fun):
     """``fast=True`` (buffered evaluations, the KKT-vertex start, :class:`FastNLP`) gives
     the answers of ``fast=False`` (every local solve through ``Compiled.solve``)."""
-    kw = dict(rho=0.4, solver=solver, certify=False)
+    kw = dict(rho=0.4, target=solver, certify=False)
     fast = ApproximatePCBFFilter(SYS, U, h_fun, **kw)
     slow = ApproximatePCBFFilter(SYS, U, h_fun, fast=False, **kw)
     rng = np.random.default_rng(13)
-    tol = 1e-12 if solver == "sqpmethod" else 1e-7  # IPOPT stops near a bound, not on it
+    tol = 1e-12 if solver == "fast-sqp" else 1e-7  # IPOPT stops near a bound, not on it
     for x in states:
         u_p = rng.uniform(-3.5, 3.5, 1)
         a, b = fast.decrease.solve(x, u_p), slow.decrease.solve(x, u_p)
@@ -227,7 +227,7 @@ def test_fast_path_equals_the_compiled_solves(states, solver, h_fun):
         assert a.h_x == b.h_x and a.h_proposal == pytest.approx(b.h_proposal, abs=1e-14)
         (u1, i1), (u2, i2) = fast.step(x, u_p), slow.step(x, u_p)
         assert (i1.status, i1.fallback) == (i2.status, i2.fallback)
-        assert np.abs(u1 - u2).max() <= (1e-9 if solver == "sqpmethod" else 1e-6)
+        assert np.abs(u1 - u2).max() <= (1e-9 if solver == "fast-sqp" else 1e-6)
     assert (fast.n_proposal_feasible, fast.n_fallbacks) == \
         (slow.n_proposal_feasible, slow.n_fallbacks)
 
@@ -251,7 +251,7 @@ def test_kkt_vertex_start_is_the_solvers_answer(states):
 
 
 def test_buffered_evaluations_equal_the_casadi_calls(states):
-    f = ApproximatePCBFFilter(SYS, U, h_wavy, solver="sqpmethod")
+    f = ApproximatePCBFFilter(SYS, U, h_wavy, target="fast-sqp")
     h = as_h_function(h_wavy, 2)
     rng = np.random.default_rng(4)
     for x in states:
@@ -273,7 +273,7 @@ def test_fast_path_two_inputs():
     def h2(x):
         return ca.mtimes([x.T, P, x]) - 1 + 0.4 * x[1] + 0.2 * ca.sin(2 * x[0])
 
-    kw = dict(rho=0.5, solver="sqpmethod", certify=False)
+    kw = dict(rho=0.5, target="fast-sqp", certify=False)
     fast, slow = (ApproximatePCBFFilter(sys2, U2, h2, fast=f, **kw) for f in (True, False))
     rng = np.random.default_rng(21)
     kkt = 0

@@ -27,7 +27,7 @@ from balustrade.backends import compile
 from balustrade.control.approximate import ApproximatePCBFFilter, GridPCBFFilter
 from balustrade.control.base import simulate
 from balustrade.dsl import OCP, sum_norms
-from balustrade.learn.sampler import IPOPT_SAMPLING, ProblemSpec
+from balustrade.learn.sampler import ProblemSpec
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
@@ -60,8 +60,8 @@ class ExactPCBF:
     """``h_PB`` (2.24) and ``min_u h_PB(f(x, u))``, exact optimal values (warm-started)."""
 
     def __init__(self) -> None:
-        self.p = ProblemSpec.of("pendulum", solver="ipopt").build()
-        self.next_step = compile(next_step_problem(), "casadi", "ipopt", IPOPT_SAMPLING)
+        self.p = ProblemSpec.of("pendulum", target="exact").build()
+        self.next_step = compile(next_step_problem(), "sampling-cold")
         self._warm = None
         self.n_solves = 0
 
@@ -154,7 +154,7 @@ def test_theorem_7_5_iss_decrease_along_the_loop(exact, surrogate, eps, rho, x0,
     h_expr = noisy(surrogate, eps)
     x = ca.SX.sym("x", 2)
     h_hat = ca.Function("h_hat", [x], [h_expr(x)])
-    ctl = ApproximatePCBFFilter(SYS, SETUP.U, h_hat, rho=rho, solver="ipopt")
+    ctl = ApproximatePCBFFilter(SYS, SETUP.U, h_hat, rho=rho, target="exact")
     steps = 12
     tr = simulate(SYS, ctl, np.array(x0), steps, proposal=u_p)
     assert not tr.stopped

@@ -630,7 +630,7 @@ _FILTER: list[PCBFSafetyFilter] = []
 def pcbf_filter() -> PCBFSafetyFilter:
     if not _FILTER:
         _FILTER.append(PCBFSafetyFilter.build(SYS, X, U, h_f, N, DELTAS, alpha_f=1e3,
-                                              backend="cvxpy"))
+                                              target="cvxpy"))
     return _FILTER[0]
 
 

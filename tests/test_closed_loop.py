@@ -93,7 +93,7 @@ def test_non_finite_proposal_is_filtered_as_zero(pend, controller, unstable2d_tu
     d = unstable2d_tube
     s, cbf = d["s"], d["cbf"]
     robust = RobustPCBFSafetyFilter.build(d["system"], s.X, s.U, cbf, cbf.policy, d["N"],
-                                          s.deltas(), d["error"], s.alpha_f, backend="cvxpy")
+                                          s.deltas(), d["error"], s.alpha_f, target="cvxpy")
     for ctl, x in ((controller, np.array([0.45, 1.0])), (robust, np.array([0.3, 0.2]))):
         ctl.reset()
         u0, info0 = ctl.step(x, np.array([0.0]))

@@ -75,7 +75,7 @@ def test_approximate_exact_shortcut_rho_half(tmp_path) -> None:
 
     system, s = pendulum(), pendulum_setup()
     h = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
-    py = ApproximatePCBFFilter(system, s.U, h, rho=0.5, solver="sqpmethod")
+    py = ApproximatePCBFFilter(system, s.U, h, rho=0.5, target="fast-sqp")
     py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
     py.filter = mirror_c_retries(py.filter)
     c = CApproximatePCBFFilter(build(emit_approximate(py, "apx_half", tmp_path).out_dir))

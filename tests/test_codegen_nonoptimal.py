@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from balustrade.backends import compile
+from balustrade.backends import compile, resolve_target
 from balustrade.codegen import CPCBFSafetyFilter, build, emit_pcbf
 from balustrade.codegen.examples import pendulum_pcbf_filter
 from balustrade.codegen.runtime import mirror_c_retries
@@ -83,7 +83,8 @@ def truncated_approx(tmp_path_factory: pytest.TempPathFactory) -> dict:
     system, s = pendulum(), pendulum_setup()
     h = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
     # one SQP iteration: (7.6) (bounds only) ends feasible, (7.5) feasible or not
-    py = ApproximatePCBFFilter(system, s.U, h, solver="sqpmethod", options={"max_iter": 1})
+    py = ApproximatePCBFFilter(system, s.U, h,
+                               target=resolve_target("fast-sqp", options={"max_iter": 1}))
     py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
     py.filter = mirror_c_retries(py.filter)
     out = tmp_path_factory.mktemp("approx_truncated")

@@ -87,13 +87,13 @@ def clarabel(problems) -> PCBFProblems:
                         compile(problems.extended.ocp, "cvxpy"), problems.X)
 
 
-@pytest.mark.parametrize("solver", ["sqpmethod", "ipopt"])
-def test_sampled_values_agree_with_clarabel_on_a_test_grid(problems, clarabel, solver):
+@pytest.mark.parametrize(("target", "solver"), [("fast-sqp", "sqpmethod"), ("exact", "ipopt")])
+def test_sampled_values_agree_with_clarabel_on_a_test_grid(problems, clarabel, target, solver):
     """Warm-started sampling (``sqpmethod`` warm + IPOPT cold, the default, or IPOPT
     only) against Clarabel at every point: a coarse snake grid over 1.25 × X (points far
     outside S_PB, h up to ~1e8) and a fine line walk through ∂S_PB."""
-    probs = problems if solver == "sqpmethod" else ProblemSpec.of("pendulum",
-                                                                   solver=solver).build()
+    probs = problems if target == "fast-sqp" else ProblemSpec.of("pendulum",
+                                                                  target=target).build()
     assert probs.slack.solver_name == solver
     ev = Evaluator(probs, warm=True)
     grid = ev.path(snake_grid([-2.5, -10.0], [2.5, 10.0], [0.5, 2.0]))

@@ -83,7 +83,7 @@ def test_nominal_improvement_assumption_6_7_3(d):
 def test_algorithm_6_3_closed_loop(d, backend):
     """(6.10) stays feasible under random and vertex disturbances; with w = 0, V → 0."""
     des, s = d["design"], d["s"]
-    ctl = MultiobjectiveLyapunovController.build(des, rho=0.5, backend=backend)
+    ctl = MultiobjectiveLyapunovController.build(des, rho=0.5, target=backend)
     Wv = s.W.vertices()
     for seed in range(3):
         rng = np.random.default_rng(seed)

@@ -81,7 +81,7 @@ def test_robust_filter_flags_an_inaccurate_h_r(unstable2d_tube):
     d = unstable2d_tube
     s, cbf = d["s"], d["cbf"]
     ctl = RobustPCBFSafetyFilter.build(d["system"], s.X, s.U, cbf, cbf.policy, d["N"],
-                                       s.deltas(), d["error"], s.alpha_f, backend="cvxpy")
+                                       s.deltas(), d["error"], s.alpha_f, target="cvxpy")
     x = np.array([0.3, 0.2])
     _, info = ctl.step(x, np.array([0.5]))
     assert info.status == "ok" and not info.uncertified

@@ -39,7 +39,7 @@ def test_robust_and_multiobjective_pcbf_closed_loop(design):
     rng = np.random.default_rng(0)
     x0 = np.array([0.4, 0.0, 1.1, 0.0])  # adjacent lane: outside X, h_r > 0
     robust = RobustPCBFSafetyFilter.build(d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N,
-                                          d.deltas, d.error, d.alpha_f, solver="ipopt")
+                                          d.deltas, d.error, d.alpha_f, target="exact")
     mo = MultiobjectivePCBFController.build(d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N,
                                             d.deltas, d.error, d.alpha_f, rho=0.9)
     tr = simulate(d.system, robust, x0, 25, proposal=_human,

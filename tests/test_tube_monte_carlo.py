@@ -47,7 +47,8 @@ def design() -> dict:
 def _filter(design: dict, backend: str) -> RobustPCBFSafetyFilter:
     d = design
     return RobustPCBFSafetyFilter.build(d["system"], d["X"], d["U"], d["cbf"], d["cbf"].policy,
-                                        N, d["deltas"], d["error"], 1e6, backend=backend)
+                                        N, d["deltas"], d["error"], 1e6,
+                                        target="cvxpy" if backend == "cvxpy" else "robust-sqp")
 
 
 def _run(flt: RobustPCBFSafetyFilter, design: dict, run: int) -> tuple[bool, list[str]]:

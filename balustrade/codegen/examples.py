@@ -25,7 +25,7 @@ PENDULUM_U_P = 2.0
 
 
 def pendulum_pcbf_filter() -> object:
-    """The pendulum PCBF safety filter of Section 7.5 on CasADi ``sqpmethod`` + ``qrqp``."""
+    """The pendulum PCBF safety filter of Section 7.5 on the ``fast-sqp`` target."""
     from balustrade.control.pcbf import PCBFSafetyFilter
     from balustrade.models.pendulum import pendulum, pendulum_setup
     from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
@@ -33,7 +33,7 @@ def pendulum_pcbf_filter() -> object:
     system, s = pendulum(), pendulum_setup()
     h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
     return PCBFSafetyFilter.build(system, s.X, s.U, h_f, s.N, s.deltas, s.alpha_f,
-                                  slack_norm=1, backend="casadi", solver="sqpmethod")
+                                  slack_norm=1, target="fast-sqp")
 
 
 def pendulum_functions() -> dict[str, ca.Function]:
@@ -81,7 +81,7 @@ def emit_pendulum_pcbf(out_dir: str | Path, name: str = "pendulum_pcbf",
 
 
 def pendulum_approximate_filter(h_hat: Callable | None = None) -> object:
-    """Algorithm 7.5 for the pendulum on ``sqpmethod``; ``ĥ`` defaults to the terminal CBF
+    """Algorithm 7.5 for the pendulum on the ``fast-sqp`` target; ``ĥ`` defaults to the terminal CBF
     ``h_f`` of (7.11) (replace it by a trained surrogate)."""
     from balustrade.control.approximate import ApproximatePCBFFilter
     from balustrade.models.pendulum import pendulum, pendulum_setup
@@ -90,7 +90,7 @@ def pendulum_approximate_filter(h_hat: Callable | None = None) -> object:
     system, s = pendulum(), pendulum_setup()
     if h_hat is None:
         h_hat = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
-    return ApproximatePCBFFilter(system, s.U, h_hat, solver="sqpmethod")
+    return ApproximatePCBFFilter(system, s.U, h_hat, target="fast-sqp")
 
 
 def emit_pendulum_approximate(out_dir: str | Path,

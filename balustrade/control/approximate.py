@@ -31,7 +31,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_count, as_scalar, as_vector, check_instance
-from balustrade.backends import Compiled, Solution, compile
+from balustrade.backends import Compiled, Solution, Target, compile, resolve_target
 from balustrade.backends.casadi_fast import Buffered, FastNLP
 from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.fallbacks import (
@@ -52,7 +52,6 @@ from balustrade.problems.approximate import (
     as_h_function,
     decrease_bound,
     in_set,
-    solver_options,
 )
 
 
@@ -72,10 +71,13 @@ class ApproximatePCBFFilter:
     are those of ``fast=False``. ``StepInfo.solve_time`` is the wall time of (7.6) and
     (7.5) including screening; ``StepInfo.solutions`` holds the :class:`Solution` objects
     of solves that went through ``Compiled.solve`` (none on the fast path).
+
+    ``target``: the CasADi target (or preset name) (7.6) and (7.5) are compiled for:
+    ``"exact"`` (default) or ``"fast-sqp"`` (the one that emits C).
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
-                 solver: str = "ipopt", options: dict | None = None, certify: bool = True,
+                 target: Target | str = "exact", certify: bool = True,
                  grid_points: int = 5, n_local: int = 1, eps: float = 1e-6,
                  exact_shortcut: bool = True, fast: bool = True):
         check_instance(system, System, "ApproximatePCBFFilter: system")
@@ -89,10 +91,17 @@ class ApproximatePCBFFilter:
         self.nu = system.nu
         self.h = as_h_function(h_hat, system.nx)
         self.fast = bool(fast)
-        self.decrease = MaximalDecrease(system, U, self.h, solver, options, grid_points, n_local,
+        tgt = resolve_target(target)
+        if tgt.backend != "casadi":
+            raise BalustradeError(f"ApproximatePCBFFilter: target {tgt}: Algorithm 7.5 runs on "
+                                  "CasADi targets (its fast path evaluates CasADi functions)")
+        self.target = tgt
+        # MaximalDecrease (problems/) takes the target's solver and options until it takes
+        # the target itself (issue #13 §3 moves it to control/)
+        self.decrease = MaximalDecrease(system, U, self.h, tgt.solver or "ipopt",
+                                        tgt.solver_options() or None, grid_points, n_local,
                                         fast=self.fast)
-        self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps),
-                                        "casadi", solver, solver_options(solver, options))
+        self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps), tgt)
         self._h_next = self.decrease._h_next
         self._fast_filter = FastNLP(self.filter) if self.fast else None
         self.reset()

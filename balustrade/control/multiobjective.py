@@ -31,7 +31,7 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, check_instance
-from balustrade.backends import Compiled, Solution, compile
+from balustrade.backends import Compiled, Solution, Target, companion, compile
 from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.fallbacks import (
     finite_proposal,
@@ -40,7 +40,6 @@ from balustrade.control.fallbacks import (
     project,
     projected_proposal,
 )
-from balustrade.control.robust import _opts
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
@@ -74,13 +73,13 @@ class MultiobjectiveLyapunovController:
 
     @classmethod
     def build(cls, design: LinearLyapunovDesign, rho: float = 0.5,
-              objective: Objective | None = None, backend: str = "casadi",
-              solver: str | None = "ipopt") -> MultiobjectiveLyapunovController:
-        solver = solver if backend == "casadi" else None
-        prob = compile(multiobjective_lyapunov_problem(design, True, objective), backend, solver,
-                       _opts(solver, None))
+              objective: Objective | None = None, target: Target | str = "exact"
+              ) -> MultiobjectiveLyapunovController:
+        """Build and compile (6.10) and its initialization for ``target`` (a
+        :class:`~balustrade.backends.Target` or a preset name, e.g. ``"cvxpy"``)."""
+        prob = compile(multiobjective_lyapunov_problem(design, True, objective), target)
         init = compile(multiobjective_lyapunov_problem(design, False, name="mo_lyap_init"),
-                       backend, solver, _opts(solver, None))
+                       target)
         return cls(design, prob, init, rho)
 
     def reset(self) -> None:
@@ -160,19 +159,18 @@ class MultiobjectivePCBFController:
     @classmethod
     def build(cls, system: System, X: Polytope, U: Polytope, h_f: Callable, pi_f: Callable,
               N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
-              rho: float = 0.9, objective: Objective | None = None, backend: str = "casadi",
-              solver: str | None = "ipopt", slack_solver: str | None = "ipopt",
-              U_tight: Polytope | None = None, record_h_r: bool = False,
-              options: dict | None = None) -> MultiobjectivePCBFController:
-        """Build and compile (5.15) (ℓ1 slack norm) and (6.15) for ``backend``."""
-        solver = solver if backend == "casadi" else None
-        slack_solver = slack_solver if backend == "casadi" else None
+              rho: float = 0.9, objective: Objective | None = None,
+              target: Target | str = "exact", slack_target: Target | str | None = None,
+              U_tight: Polytope | None = None, record_h_r: bool = False
+              ) -> MultiobjectivePCBFController:
+        """Build and compile (5.15) (ℓ1 slack norm) for ``slack_target`` and (6.15) for
+        ``target`` (targets or preset names; ``slack_target=None``: ``"exact"`` on
+        CasADi, ``target`` on any other backend, see
+        :func:`~balustrade.backends.companion`)."""
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
-                                                  1, U_tight), backend, slack_solver,
-                        _opts(slack_solver, options))
+                                                  1, U_tight), companion(slack_target, target))
         prob = compile(multiobjective_pcbf_problem(system, X, U, h_f, N, deltas, error, alpha_f,
-                                                   objective, U_tight), backend, solver,
-                       _opts(solver, options))
+                                                   objective, U_tight), target)
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, prob, system, sets.X_E, U, sets.U_E, error, h_f, pi_f, deltas,
                    alpha_f, rho, record_h_r=record_h_r)

@@ -43,7 +43,7 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, check_instance
-from balustrade.backends import Compiled, Solution, compile
+from balustrade.backends import Compiled, Solution, Target, compile
 from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.fallbacks import (
     finite_proposal,
@@ -79,13 +79,12 @@ class PCBFSafetyFilter:
     @classmethod
     def build(cls, system: System, X: Set, U: Set, h_f: Callable, N: int,
               deltas: np.ndarray, alpha_f: float = 1e6, slack_norm: int | float = 1,
-              backend: str = "casadi", solver: str | None = "sqpmethod",
-              eps: float = 1e-6) -> PCBFSafetyFilter:
-        """Build and compile both problems ((2.24) and (2.23)) for ``backend``."""
-        solver = solver if backend == "casadi" else None
+              target: Target | str = "fast-sqp", eps: float = 1e-6) -> PCBFSafetyFilter:
+        """Build and compile both problems ((2.24) and (2.23)) for ``target`` (a
+        :class:`~balustrade.backends.Target` or a preset name, e.g. ``"cvxpy"``)."""
         slack = compile(pcbf_slack_problem(system, X, U, h_f, N, deltas, alpha_f, slack_norm),
-                        backend, solver)
-        filt = compile(pcbf_filter_problem(system, X, U, h_f, N, deltas, eps), backend, solver)
+                        target)
+        filt = compile(pcbf_filter_problem(system, X, U, h_f, N, deltas, eps), target)
         return cls(slack, filt, U, eps)
 
     def reset(self) -> None:
@@ -111,7 +110,8 @@ class PCBFSafetyFilter:
             return self._fallback(u_p, info, "shifted_plan")
         value = max(float(s1.objective), 0.0)
         # h_PB >= 0 (nonnegative slacks and norms): a feasible point of cost <= ZERO_TOL is
-        # optimal by that lower bound, converged or not (e.g. sqpmethod's zero step at x = 0)
+        # optimal by that lower bound, converged or not (e.g. the fast-sqp target's zero step
+        # at x = 0)
         certified = s1.status == "optimal" or (s1.status == "feasible" and value <= ZERO_TOL)
         if not certified:
             note_solve(info, "slack", s1.status)

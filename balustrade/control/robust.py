@@ -16,7 +16,7 @@ NaN or inf entries of ``u_p`` are read as 0 and the step runs as usual (status
 ``"non_finite_proposal[_<status>]"``): (5.16) certifies whatever it is given; a non-finite
 state → the projected proposal (``"non_finite_state"``) (:mod:`balustrade.control.fallbacks`).
 
-A (5.15) solve that did not converge (``feasible``, ``max_iterations``, …) is a failed
+A (5.15) solve that did not converge (``feasible``, the iteration limit, …) is a failed
 (5.15) (fallback 2); one that converged to the solver's acceptable tolerances
 (``optimal_inaccurate``) is used and flagged in ``StepInfo.uncertified`` and ``status``.
 
@@ -31,7 +31,7 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, as_vector, check_deltas, check_instance, check_norm_order
-from balustrade.backends import Compiled, Solution, compile
+from balustrade.backends import Compiled, Solution, Target, companion, compile
 from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.fallbacks import (
     finite_proposal,
@@ -81,24 +81,23 @@ class RobustPCBFSafetyFilter:
     def build(cls, system: System, X: Polytope, U: Polytope, h_f: Callable, pi_f: Callable,
               N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
               slack_norm: int | float = 1, objective: Objective | None = None,
-              backend: str = "casadi", solver: str | None = "sqpmethod",
-              slack_solver: str | None = "ipopt", eps: float = 1e-6,
-              U_tight: Polytope | None = None, options: dict | None = None
-              ) -> RobustPCBFSafetyFilter:
-        """Build and compile (5.15) and (5.16) for ``backend``.
+              target: Target | str = "robust-sqp", slack_target: Target | str | None = None,
+              eps: float = 1e-6, U_tight: Polytope | None = None) -> RobustPCBFSafetyFilter:
+        """Build and compile (5.15) for ``slack_target`` and (5.16) for ``target`` (targets
+        or preset names, e.g. ``target="cvxpy"``).
 
-        CasADi defaults: IPOPT for (5.15) (sqpmethod/qrqp needs hundreds of iterations when
-        ``h_r > 0``: the LP-like slack problem with quadratic tube/terminal rows is degenerate
-        for it) and sqpmethod for the QP-like filter (5.16); ``options`` go to sqpmethod.
+        Defaults: the ``robust-sqp`` target for the QP-like filter (5.16) (the fast SQP with
+        more iterations: the default limit stops early on tube problems) and, on CasADi,
+        ``exact`` for (5.15) (``slack_target=None``, :func:`~balustrade.backends.companion`:
+        the SQP needs hundreds of iterations when ``h_r > 0``, the LP-like slack problem with
+        quadratic tube/terminal rows is degenerate for it); on any other backend (5.15) uses
+        ``target``. Tune a target with :meth:`~balustrade.backends.Target.with_options`.
         """
-        solver = solver if backend == "casadi" else None
-        slack_solver = slack_solver if backend == "casadi" else None
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
-                                                  slack_norm, U_tight), backend, slack_solver,
-                        _opts(slack_solver, options))
+                                                  slack_norm, U_tight),
+                        companion(slack_target, target))
         filt = compile(robust_pcbf_filter_problem(system, X, U, h_f, N, deltas, error, eps,
-                                                  objective, U_tight), backend, solver,
-                       _opts(solver, options))
+                                                  objective, U_tight), target)
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, filt, system, sets.X_E, U, error, h_f, pi_f, deltas, alpha_f,
                    slack_norm, sets.U_E)
@@ -177,14 +176,3 @@ class RobustPCBFSafetyFilter:
         info.fallback = "projected_proposal"
         return project(u_p, self.U), info
 
-
-def _opts(solver: str | None, options: dict | None) -> dict | None:
-    """sqpmethod gets ``max_iter = 500`` (the default 100 stops early on tube problems) and
-    the user's options; other solvers the user's options that carry their prefix
-    (``ipopt.*``) or none."""
-    if solver == "sqpmethod":
-        return {"max_iter": 500, **{k: v for k, v in (options or {}).items()
-                                    if not k.startswith("ipopt.")}}
-    if solver == "ipopt" and options:
-        return {k: v for k, v in options.items() if k.startswith("ipopt.")} or None
-    return None

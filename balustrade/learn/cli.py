@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 SAMPLE_DEFAULTS: dict[str, Any] = {
-    "problem": "pendulum", "solver": "sqpmethod", "mode": "grid", "lower": [-2.0, -8.0],
+    "problem": "pendulum", "target": "fast-sqp", "mode": "grid", "lower": [-2.0, -8.0],
     "upper": [2.0, 8.0], "grid_step": [0.01, 0.04], "band": True, "cap": 10.0,
     "chunk_size": 500, "goals": 1024, "goals_per_chunk": 16, "line_step": 0.01, "seed": 0,
     "workers": None, "scheduler": None, "quiet": False, "cold": False,
@@ -59,7 +59,7 @@ def _cmd_sample(args: argparse.Namespace) -> int:
     cfg = _merge(args, SAMPLE_DEFAULTS)
     if not cfg.get("out"):
         raise BalustradeError("sample: --out (or 'out' in the config file) is required")
-    spec = ProblemSpec.of(cfg["problem"], solver=cfg["solver"])
+    spec = ProblemSpec.of(cfg["problem"], target=cfg["target"])
     X = spec.build().X
     if cfg["mode"] == "grid":
         chunks, plan = grid_plan(X, cfg["lower"], cfg["upper"], cfg["grid_step"],
@@ -107,8 +107,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--config", help="JSON file with any of the options below")
     s.add_argument("--out", help="dataset directory (Parquet shards + manifest.json)")
     s.add_argument("--problem", help="'pendulum' or 'package.module:function'")
-    s.add_argument("--solver", help="CasADi NLP solver: sqpmethod (default; warm-started "
-                   "line walks, IPOPT for cold starts and failed warm solves) or ipopt")
+    s.add_argument("--target", help="solver target (balustrade.backends presets): fast-sqp "
+                   "(default; warm-started line walks, the sampling-cold target for cold "
+                   "starts and failed warm solves) or exact (interior point, warm and cold)")
     s.add_argument("--mode", choices=["grid", "geometric"])
     s.add_argument("--lower", type=float, nargs="+", help="grid box lower corner")
     s.add_argument("--upper", type=float, nargs="+", help="grid box upper corner")

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from balustrade.backends import Compiled, Solution, compile
+from balustrade.backends import Compiled, Solution, Target, compile, sampling_targets
 from balustrade.dsl.sets import Box
 from balustrade.errors import BalustradeError
 
@@ -55,47 +55,34 @@ class PCBFProblems:
         return self.X.dim
 
 
-# IPOPT started from a previous primal-dual solution: use the multipliers, keep the point
-# where it is and start with a small barrier parameter.
-IPOPT_WARM = {"ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,
-              "ipopt.warm_start_mult_bound_push": 1e-9, "ipopt.warm_start_slack_bound_push": 1e-9,
-              "ipopt.mu_init": 1e-6}
+def compile_pair(ocp: object, target: Target | str) -> tuple[Compiled, Compiled | None]:
+    """Compile ``ocp`` for warm-started solves and a twin for cold starts, on the targets
+    :func:`~balustrade.backends.sampling_targets` gives for ``target``:
 
-
-# The slack costs carry α_f = 1e6: IPOPT's scaled complementarity test would stop with
-# α_f ξ_N ≈ 4e-6 at states of S_PB (above tol = 1e-6); demand absolute complementarity.
-IPOPT_SAMPLING = {"ipopt.compl_inf_tol": 1e-12}
-
-
-def compile_pair(ocp: object, solver: str) -> tuple[Compiled, Compiled | None]:
-    """Compile ``ocp`` for warm-started solves and a twin for cold starts.
-
-    * ``"sqpmethod"`` (default of :func:`pendulum_problems`): warm solves by
-      ``sqpmethod``/``qrqp`` from the previous primal-dual solution, with no retry chain —
-      a warm solve that does not converge is redone from scratch by the cold twin, IPOPT
-      (:data:`IPOPT_SAMPLING`), which also does every cold start (first point of a path,
-      first point after a switch between (2.24) and (7.8));
-    * ``"ipopt"``: IPOPT for both, the warm twin with :data:`IPOPT_WARM`;
-    * any other CasADi solver: one compiled problem, no twin.
+    * ``"fast-sqp"`` (default of :func:`pendulum_problems`): warm solves by the fast SQP from
+      the previous primal-dual solution, with no retry chain (``fast-sqp-noretry``) — a warm
+      solve that does not converge is redone from scratch by the cold twin
+      (``sampling-cold``: an interior-point target demanding absolute complementarity),
+      which also does every cold start (first point of a path, first point after a switch
+      between (2.24) and (7.8));
+    * ``"exact"``: the interior-point target for both, the warm twin with its warm-start
+      options (``sampling-warm``);
+    * any other target: one compiled problem, no twin.
     """
-    if solver == "ipopt":
-        return (compile(ocp, "casadi", "ipopt", {**IPOPT_SAMPLING, **IPOPT_WARM}),
-                compile(ocp, "casadi", "ipopt", IPOPT_SAMPLING))
-    if solver == "sqpmethod":
-        return (compile(ocp, "casadi", "sqpmethod", retries=[]),
-                compile(ocp, "casadi", "ipopt", IPOPT_SAMPLING))
-    return compile(ocp, "casadi", solver), None
+    warm, cold = sampling_targets(target)
+    return compile(ocp, warm), None if cold is None else compile(ocp, cold)
 
 
-def pendulum_problems(solver: str = "sqpmethod", slack_norm: int = 1) -> PCBFProblems:
+def pendulum_problems(target: str = "fast-sqp", slack_norm: int = 1) -> PCBFProblems:
     """(2.24) and (7.8) for the pendulum of Section 7.5 (SPEC §3.5), compiled by
     :func:`compile_pair`.
 
-    ``sqpmethod`` warm-started along lines/snake grids needs ≈ 1 SQP iteration per solve
-    and is 2.5–15× faster than warm-started IPOPT; with the backend's eigenvalue-clipping
-    convexification it agrees with Clarabel (cvxpy backend) to ≈ 3e-8 relative on the
-    Section 7.5 range (tested to 1e-6). Cold starts use IPOPT (``sqpmethod`` from the
-    default initial guess is slower and less reliable on these LP-like problems)."""
+    The fast SQP warm-started along lines/snake grids needs ≈ 1 SQP iteration per solve
+    and is 2.5–15× faster than the warm-started interior point (``target="exact"``); with
+    the backend's eigenvalue-clipping convexification it agrees with the cvxpy target to
+    ≈ 3e-8 relative on the Section 7.5 range (tested to 1e-6). Cold starts use the
+    ``sampling-cold`` target (the SQP from the default initial guess is slower and less
+    reliable on these LP-like problems)."""
     from balustrade.models.pendulum import pendulum, pendulum_setup
     from balustrade.problems.pcbf import extended_pcbf_problem, pcbf_slack_problem
     from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
@@ -104,8 +91,8 @@ def pendulum_problems(solver: str = "sqpmethod", slack_norm: int = 1) -> PCBFPro
     h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
     args = (system, s.X, s.U, h_f, s.N, s.deltas)
     slack, slack_cold = compile_pair(
-        pcbf_slack_problem(*args, alpha_f=s.alpha_f, slack_norm=slack_norm), solver)
-    extended, extended_cold = compile_pair(extended_pcbf_problem(*args), solver)
+        pcbf_slack_problem(*args, alpha_f=s.alpha_f, slack_norm=slack_norm), target)
+    extended, extended_cold = compile_pair(extended_pcbf_problem(*args), target)
     return PCBFProblems(slack, extended, s.X, 1.0, slack_cold, extended_cold)
 
 
@@ -185,9 +172,10 @@ class Evaluator:
             return self._cold_solve(which, x, seed)
         prob = self.p.slack if which == "slack" else self.p.extended
         if getattr(prob, "solver_name", warm.solver) != warm.solver:
-            # a solution of the cold twin (IPOPT): its interior-point multipliers are small
-            # but nonzero on inactive rows, which an active-set QP (qrqp) reads as a bad
-            # active-set guess (up to 1 s per solve measured); pass the primal point only
+            # a solution of the cold twin (another solver, e.g. an interior point): its
+            # multipliers are small but nonzero on inactive rows, which the fast SQP's
+            # active-set QP reads as a bad active-set guess (up to 1 s per solve measured);
+            # pass the primal point only
             warm = dict(warm.primal)
         sol = prob.solve({"x0": x}, warm_start=warm)
         if not sol.success:  # a bad warm start: retry from scratch

@@ -49,8 +49,10 @@ THESIS = {"nominal": "c_w=0: reaches x1=1 inside S_PB; growing c_w: converges to
           "robust": "remains in S_r for every c_w, h_r ≈ 0"}
 
 
-def build(N: int, backend: str = "casadi") -> dict:
-    """The shared design: RPI set, terminal CBF, both controllers."""
+def build(N: int, target: str | None = None) -> dict:
+    """The shared design: RPI set, terminal CBF, both controllers (each on its default
+    target, or all problems on ``target``, e.g. ``"cvxpy"``)."""
+    kw = {} if target is None else {"target": target}
     system, s = unstable2d(), unstable2d_setup(N)
     error = ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U)
     X_E, U_E = error.tighten_state(s.X), error.tighten_input(s.U)
@@ -58,9 +60,9 @@ def build(N: int, backend: str = "casadi") -> dict:
         warnings.simplefilter("ignore", DegenerateResultWarning)
         cbf = synthesize_terminal_cbf(system.A, system.B, X_E, U_E, delta_N=s.deltas()[-1])
     robust = RobustPCBFSafetyFilter.build(system, s.X, s.U, cbf, cbf.policy, N, s.deltas(),
-                                          error, s.alpha_f, slack_norm=1, backend=backend)
+                                          error, s.alpha_f, slack_norm=1, **kw)
     nominal = PCBFSafetyFilter.build(system, s.X, s.U, cbf, N, s.deltas(), s.alpha_f,
-                                     slack_norm=1, backend=backend)
+                                     slack_norm=1, **kw)
     return {"system": system, "setup": s, "error": error, "cbf": cbf, "robust": robust,
             "nominal": nominal}
 
@@ -99,11 +101,11 @@ def run_case(controller, system, x0: np.ndarray, w: np.ndarray, steps: int,
             "median_step_s": float(np.median(times)) if times else float("nan")}
 
 
-def run(out: Path, quick: bool = False, backend: str = "casadi") -> dict:
+def run(out: Path, quick: bool = False, target: str | None = None) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     N, steps = (30, 80) if quick else (100, 100)
-    d = build(N, backend)
+    d = build(N, target)
     system, s, error = d["system"], d["setup"], d["error"]
     rpi = is_rpi(error.E, system.A + system.B @ error.K, s.W)
     results: dict[str, dict[float, dict]] = {"nominal": {}, "robust": {}}
@@ -112,7 +114,8 @@ def run(out: Path, quick: bool = False, backend: str = "casadi") -> dict:
         results["robust"][cw] = run_case(d["robust"], system, s.x0, w, steps, "h_r")
         results["nominal"][cw] = run_case(d["nominal"], system, s.x0, w, steps, "h_PB")
     metrics = {
-        "N": N, "steps": steps, "backend": backend, "disturbance": "w_k = 0.03 * c_w * [1, 1]",
+        "N": N, "steps": steps, "target": target or "default",
+        "disturbance": "w_k = 0.03 * c_w * [1, 1]",
         "rpi": {"lambda": float(error.info["lambda"]), "objective": error.info["objective"],
                 "K": error.K.tolist(), "E_shape": np.linalg.inv(error.E.P).tolist(),
                 "rpi_check_ok": rpi.ok, "rpi_margin": rpi.margin},

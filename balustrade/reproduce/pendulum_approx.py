@@ -47,7 +47,7 @@ from balustrade.control.pcbf import PCBFSafetyFilter
 from balustrade.learn.dataset import ShardedDataset, grid_plan, run_sampling
 from balustrade.learn.executors import make_executor
 from balustrade.learn.export import to_casadi
-from balustrade.learn.sampler import IPOPT_SAMPLING, Evaluator, ProblemSpec
+from balustrade.learn.sampler import Evaluator, ProblemSpec
 from balustrade.learn.train import MLPModel, TrainConfig
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
@@ -75,7 +75,8 @@ QUICK = {"grid_step": (0.05, 0.2), "chunk_size": 250, "n_eval": 600, "steps": 15
 
 
 class PendulumPCBF:
-    """The pendulum, its terminal CBF (7.11) and the PCBF algorithm [41] on IPOPT."""
+    """The pendulum, its terminal CBF (7.11) and the PCBF algorithm [41] on the
+    ``sampling-cold`` target (the sampler's cold target)."""
 
     def __init__(self) -> None:
         self.system, s = pendulum(), pendulum_setup()
@@ -83,9 +84,9 @@ class PendulumPCBF:
         self.h_f = synthesize_terminal_cbf(self.system.A, self.system.B, s.X, s.U,
                                            delta_N=s.deltas[-1])
         args = (self.system, s.X, s.U, self.h_f, s.N, s.deltas)
-        slack = compile(pcbf_slack_problem(*args, alpha_f=s.alpha_f, slack_norm=1), "casadi",
-                        "ipopt", IPOPT_SAMPLING)
-        filt = compile(pcbf_filter_problem(*args), "casadi", "ipopt", IPOPT_SAMPLING)
+        slack = compile(pcbf_slack_problem(*args, alpha_f=s.alpha_f, slack_norm=1),
+                        "sampling-cold")
+        filt = compile(pcbf_filter_problem(*args), "sampling-cold")
         self.slack = slack
         self.pcbf = PCBFSafetyFilter(slack, filt, s.U)
 
@@ -101,7 +102,7 @@ def _train(X: np.ndarray, y: np.ndarray, params: dict, seed: int = 0) -> MLPMode
 
 
 def _sample(out: Path, cfg: dict, quick: bool) -> ShardedDataset:
-    spec = ProblemSpec.of("pendulum", solver="ipopt")
+    spec = ProblemSpec.of("pendulum", target="exact")
     X = spec.build().X
     chunks, plan = grid_plan(X, [-2.0, -8.0], [2.0, 8.0], cfg["grid_step"], cfg["chunk_size"],
                              cap=10.0, band=True)
@@ -121,7 +122,7 @@ def table_7_1(pend: PendulumPCBF, h_pb_model: MLPModel, h_model: MLPModel, n_eva
         fn = to_casadi(model, name=f"{name}_hat")
         for rho in (1.0, 0.2):
             filters[f"{name} rho={rho:g}"] = ApproximatePCBFFilter(
-                pend.system, pend.U, fn, rho=rho, solver="ipopt")
+                pend.system, pend.U, fn, rho=rho, target="exact")
     u_p = np.zeros(1)
     interventions = {c: np.zeros(n_eval) for c in COLUMNS}
     h_pb = np.zeros(n_eval)
@@ -162,8 +163,8 @@ def figure_7_1(pend: PendulumPCBF, model: MLPModel, steps: int, rho: float = 0.1
     each trajectory the exact ``h`` (7.7) and ``h_PB`` (sampler's :class:`Evaluator`) and
     the learned ``ĥ``."""
     approx = ApproximatePCBFFilter(pend.system, pend.U, to_casadi(model), rho=rho,
-                                   solver="ipopt")
-    spec = ProblemSpec.of("pendulum", solver="ipopt")
+                                   target="exact")
+    spec = ProblemSpec.of("pendulum", target="exact")
     ev = Evaluator(spec.build())
     runs = {}
     for w0 in OMEGA0:
@@ -198,7 +199,7 @@ def exact_h_closed_loop(x0: np.ndarray, steps: int, rho: float = 0.15, u_p: floa
     pend_sys = pendulum()
     A, B = np.asarray(pend_sys.A, float), np.asarray(pend_sys.B, float)[:, 0]
     lb, ub = pendulum_setup().U.lb[0], pendulum_setup().U.ub[0]
-    ev = Evaluator(ProblemSpec.of("pendulum", solver="ipopt").build())
+    ev = Evaluator(ProblemSpec.of("pendulum", target="exact").build())
 
     def h(points: np.ndarray) -> np.ndarray:
         return np.array([s.h for s in ev.path(np.atleast_2d(points), chain_distance=0.3)])
@@ -364,7 +365,7 @@ def run(out: Path, quick: bool = False) -> dict:
     t_exact = None
     if cfg["exact_loop"]:
         t3 = time.perf_counter()
-        ev = Evaluator(ProblemSpec.of("pendulum", solver="ipopt").build())
+        ev = Evaluator(ProblemSpec.of("pendulum", target="exact").build())
         for w0 in OMEGA0:
             r = exact_h_closed_loop(np.array([0.0, w0]), cfg["steps"])
             samples = ev.path(r["states"], chain_distance=0.5)
@@ -420,7 +421,7 @@ def run(out: Path, quick: bool = False) -> dict:
              + ", ".join(f"{k} {v:.4g}" if v is not None else f"{k} n/a"
                          for k, v in summary.items()),
              "thesis: slower convergence to S_PB with rho = 0.15; 0.021 s (PCBF, CVXPY+MOSEK) "
-             "vs 0.011 s (approximate, CasADi+IPOPT) per step"]
+             "vs 0.011 s (approximate, CasADi, interior point) per step"]
     metrics = {
         "table7_1": tab, "thesis_table7_1": THESIS_TABLE, "closed_loop": loop,
         "closed_loop_summary": summary, "validation_mse": val,
