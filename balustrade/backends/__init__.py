@@ -9,11 +9,16 @@ from __future__ import annotations
 
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
+from balustrade.backends.set_support import function_set_support
 from balustrade.backends.solution import Solution
 from balustrade.backends.targets import PRESETS, Target, companion, sampling_targets
 from balustrade.backends.targets import target as resolve_target
 from balustrade.dsl.ocp import OCP
+from balustrade.dsl.sets_function import register_support_solver
 from balustrade.errors import BalustradeError, SolverError
+
+# FunctionSet.support needs an NLP; the language names no solver, the backends give it one
+register_support_solver(function_set_support)
 
 Compiled = CasadiCompiled | CvxpyCompiled
 
@@ -51,7 +56,7 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
     except SolverError as exc:
         raise SolverError(f"{ocp.name}: {exc}") from None
     if tgt.backend == "casadi":
-        compiled: Compiled = CasadiCompiled(ocp, tgt.solver or "ipopt", tgt.solver_options(),
+        compiled: Compiled = CasadiCompiled(ocp, tgt.nlp_solver, tgt.solver_options(),
                                             tgt.retry_chain())
     else:
         compiled = CvxpyCompiled(ocp, tgt.solver, tgt.solver_options())

@@ -55,6 +55,10 @@ def _plain(value: Any) -> Any:
     return value
 
 
+#: the NLP solver of a CasADi target that names none
+_CASADI_DEFAULT_SOLVER = "ipopt"
+
+
 @dataclass(frozen=True)
 class Target:
     """Where an :class:`~balustrade.dsl.ocp.OCP` is compiled to.
@@ -115,6 +119,14 @@ class Target:
         return replace(self, solver=solver, name=f"{self.backend}:{solver}")
 
     # -- what the backends read ---------------------------------------------------------
+    @property
+    def nlp_solver(self) -> str | None:
+        """The CasADi NLP solver this target runs (the backend's default when ``solver`` is
+        ``None``); ``None`` for cvxpy targets (cvxpy picks per problem class)."""
+        if self.backend != "casadi":
+            return self.solver
+        return self.solver or _CASADI_DEFAULT_SOLVER
+
     def solver_options(self) -> dict[str, Any]:
         """The options as a plain (mutable, deep-copied) dict for the backend."""
         return _plain(self.options)
@@ -135,7 +147,7 @@ class Target:
         if self.backend != "casadi":
             return (f"target {self.name!r}: only problems compiled on the CasADi backend can "
                     f"be emitted as C")
-        solver = self.solver or "ipopt"
+        solver = self.nlp_solver
         reason = codegen_reason(solver, full_options(solver, self.options), allow_external)
         return None if reason is None else f"target {self.name!r}: {reason}"
 
@@ -150,7 +162,7 @@ class Target:
 
         if self.backend != "casadi":
             return ()
-        solver = self.solver or "ipopt"
+        solver = self.nlp_solver
         return c_libraries(solver, full_options(solver, self.options))
 
     def __reduce__(self) -> tuple:

@@ -14,7 +14,8 @@ Python runtime reads: sizes, offsets, status codes):
   ``<name>_step(x, u_p, u_out, h_out, status, work)``, with the fallbacks of
   :mod:`balustrade.control.pcbf`.
 
-Every solver is checked first (:func:`~balustrade.codegen.support.solver_libraries`) and
+Every compiled problem's target is asked first whether it can be emitted
+(:meth:`~balustrade.backends.Target.emit_reason`, facts in :mod:`balustrade.backends.emittable`) and
 every function graph is searched for Python callbacks
 (:func:`~balustrade.codegen.support.check_no_callbacks`).
 """
@@ -30,17 +31,19 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_vector
-from balustrade.backends.casadi_backend import CasadiCompiled, sqp_retry_strategies
+from balustrade.backends.casadi_backend import CasadiCompiled
+from balustrade.backends.emittable import c_attempts
 from balustrade.codegen import status as S
 from balustrade.codegen import templates as T
-from balustrade.codegen.support import check_no_callbacks, solver_libraries
+from balustrade.codegen.support import check_no_callbacks
 from balustrade.control.pcbf import ZERO_TOL
 from balustrade.dsl.sets import Box
 from balustrade.errors import CodegenError, NonFiniteError, ShapeError
 
 MANIFEST_VERSION = 1
 #: scaled primal violation under which a solve that no retry made converge is reported as
-#: BAL_FEASIBLE (a safe, possibly suboptimal point; the Python backend retries with IPOPT)
+#: BAL_FEASIBLE (a safe, possibly suboptimal point; the Python backend has a further,
+#: non-emittable retry)
 STALL_TOL = 1e-8
 
 
@@ -185,9 +188,12 @@ def _layout(items: dict, start: int = 0) -> dict[str, dict]:
 def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ...]:
     if not isinstance(c, CasadiCompiled):
         raise CodegenError(f"{what}: C code generation needs a problem compiled on the "
-                           f"CasADi backend, got {type(c).__name__} (use "
-                           "balustrade.backends.compile(ocp, 'casadi', 'sqpmethod'))")
-    libs = solver_libraries(c.solver_name, c.options, what, allow_external)
+                           f"CasADi backend, got {type(c).__name__} (compile it for the "
+                           "'fast-sqp' target: balustrade.backends.compile(ocp, 'fast-sqp'))")
+    reason = c.target.emit_reason(allow_external)
+    if reason is not None:
+        raise CodegenError(f"{what}: {reason}")
+    libs = c.target.c_libraries()
     check_no_callbacks(c.solver, what)
     return libs
 
@@ -215,13 +221,6 @@ def _require(name: str, needed: dict[str, tuple[dict, list[str]]], hint: str) ->
             raise CodegenError(f"{name}: the {what}s {missing} are missing ({hint})")
 
 
-def _retry_strategies(options: dict) -> list[str]:
-    """The emittable part of the backend's retry chain: its ``sqpmethod`` convexifications
-    (:func:`~balustrade.backends.casadi_backend.sqp_retry_strategies`); the backend's last
-    resort, IPOPT, cannot be emitted."""
-    return sqp_retry_strategies(options)
-
-
 class _Problem:
     """The C pieces of one compiled problem under the C prefix ``P``."""
 
@@ -235,12 +234,16 @@ class _Problem:
         self.tol_du = float(c.options.get("tol_du", 1e-6))
         self.accept_tol = STALL_TOL if accept_tol is None else float(accept_tol)
         self.solvers = [(f"{P}_nlp", c.solver_name, dict(c.options))]
-        if c.solver_name == "sqpmethod":
-            self.solvers += [(f"{P}_nlp_retry{k + 1}", "sqpmethod",
-                              {**c.options, "convexify_strategy": strategy})
-                             for k, strategy in enumerate(_retry_strategies(c.options))]
-        else:  # the backend retries other solvers from a cold start
-            self.solvers.append((f"{P}_nlp", c.solver_name, dict(c.options)))
+        # the cold-start retries the emitted C runs (backends.emittable.c_attempts): the
+        # same solver again reuses its function, other settings get their own
+        self.retry_labels, self.retry_docs = [], []
+        for k, (plugin, over, label) in enumerate(c_attempts(c.solver_name, c.options)):
+            sym = f"{P}_nlp" if plugin == c.solver_name and not over else \
+                f"{P}_nlp_retry{k + 1}"
+            self.solvers.append((sym, plugin, {**c.options, **over}))
+            self.retry_labels.append(label)
+            self.retry_docs.append(" ".join([plugin, *(f"{o} {v!r}" for o, v in over.items())])
+                                   if over else f"{plugin} again")
         self.vars = _layout(c.ocp.variables)
         self.params = _layout(c.ocp.parameters)
         for nm, par in c.ocp.parameters.items():  # declared values: used when not given
@@ -285,9 +288,7 @@ class _Problem:
             dispatch += (f"    case {k}:\n      flag = {sym}(wk->arg, wk->res, wk->iw, wk->w, "
                          f"wk->mem[{k}]);\n      break;\n")
         dispatch += "    default:\n      return BAL_EVAL_ERROR;\n"
-        doc = "; ".join(f"{plugin} convexify_strategy {opts.get('convexify_strategy')!r}"
-                        if plugin == "sqpmethod" else f"{plugin} again"
-                        for _, plugin, opts in self.solvers[1:])
+        doc = "; ".join(self.retry_docs)
         return {"sz_defs": sz, "solver_init": init, "solver_fini": fini,
                 "dispatch": dispatch, "retry_doc": doc, "n_solvers": str(len(syms))}
 
@@ -328,8 +329,7 @@ class _Problem:
                 "ng": self.ng, "n_user": int(self.c.n_user), "variables": self.vars,
                 "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
                 "accept_tol": self.accept_tol,
-                "retries": [opts.get("convexify_strategy", plugin)
-                            for _, plugin, opts in self.solvers[1:]],
+                "retries": list(self.retry_labels),
                 "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol")}
 
 
@@ -402,8 +402,9 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
     ``wk->x[<name>_W_u]``), ``wk->f`` (value), return value = status (``BAL_*``).
 
     ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``. Attempts that do not
-    converge are retried from a cold start with the backend's ``sqpmethod`` retries
-    (:func:`_retry_strategies`; the backend's last resort, IPOPT, cannot be emitted). If
+    converge are retried from a cold start with the retries of the target that emitted C
+    runs (:func:`~balustrade.backends.emittable.c_attempts`; the backend's last resort of
+    the fast-sqp target cannot be emitted). If
     none converges and the last attempt's scaled constraint violation is ``<= accept_tol``
     (default ``1e-8``) the status is ``BAL_FEASIBLE``: safe to apply, possibly suboptimal."""
     _check_identifier(name)
@@ -429,8 +430,8 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     proposal" clips to ``U``, which must be a :class:`~balustrade.dsl.sets.Box`.
 
     Solves are accepted and retried as in :func:`emit_problem` (``accept_tol``), which
-    mirrors :class:`~balustrade.backends.casadi_backend.CasadiCompiled` except for its final
-    IPOPT retry, replaced by an emittable ``sqpmethod`` with eigenvalue clipping.
+    mirrors :class:`~balustrade.backends.casadi_backend.CasadiCompiled` except for the
+    final, non-emittable retry of the fast-sqp target's chain.
     """
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
@@ -527,7 +528,7 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
                      accept_tol: float | None = None) -> Emitted:
     """Emit Algorithm 7.5 of an
     :class:`~balustrade.control.approximate.ApproximatePCBFFilter` (built with
-    ``solver="sqpmethod"``) as one C call per control step:
+    ``target="fast-sqp"``) as one C call per control step:
     ``<name>_step(x, u_p, u_out, h_out, status, work)`` — the certification shortcut
     ``u_p ∈ U ∧ ĥ(f(x, u_p)) <= 0``, else the maximal decrease (7.6) by the same screened
     multi-start (candidates ``clip(0)``, ``clip(u_p)`` and the controller's grid; local

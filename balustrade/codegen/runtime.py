@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from balustrade._checks import as_vector
+from balustrade.backends.emittable import c_retry_chain
 from balustrade.codegen import status as S
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
@@ -393,13 +394,12 @@ def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float) ->
 
 def mirror_c_retries(compiled: object) -> object:
     """A copy of a compiled CasADi problem that retries failed solves exactly as its emitted
-    C does: the backend's cold-start ``sqpmethod`` retries without its last resort, IPOPT
-    (which cannot be emitted), so Python and the deployed C can be compared step by step.
-    ``compiled`` itself is not changed (it is returned as is for other solvers)."""
-    if compiled.solver_name != "sqpmethod":
-        return compiled
-    return compiled.with_retries([(name, opts) for name, opts in compiled.retries
-                                  if name == "sqpmethod"])
+    C does: the part of its retry chain that has code generation
+    (:func:`~balustrade.backends.emittable.c_retry_chain`), so Python and the deployed C can
+    be compared step by step. ``compiled`` itself is not changed (it is returned as is when
+    its whole chain is emitted)."""
+    kept = c_retry_chain(compiled.solver_name, compiled.retries)
+    return compiled if kept is compiled.retries else compiled.with_retries(kept)
 
 
 class CApproximatePCBFFilter(_OwnsWork):

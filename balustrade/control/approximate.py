@@ -98,7 +98,7 @@ class ApproximatePCBFFilter:
         self.target = tgt
         # MaximalDecrease (problems/) takes the target's solver and options until it takes
         # the target itself (issue #13 §3 moves it to control/)
-        self.decrease = MaximalDecrease(system, U, self.h, tgt.solver or "ipopt",
+        self.decrease = MaximalDecrease(system, U, self.h, tgt.nlp_solver,
                                         tgt.solver_options() or None, grid_points, n_local,
                                         fast=self.fast)
         self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps), tgt)

@@ -1,4 +1,13 @@
-"""User-defined sets ``{x : c(x) <= 0}`` for a CasADi-callable ``c`` (SPEC (2.8))."""
+"""User-defined sets ``{x : c(x) <= 0}`` for a CasADi-callable ``c`` (SPEC (2.8)).
+
+The support function of such a set needs an NLP solver, and the language names none (it
+imports no backend, issue #13 §1). So :meth:`FunctionSet.support` calls a *support solver*:
+the one given to the set (``FunctionSet(..., support=fn)``), else the default registered with
+:func:`register_support_solver` — :mod:`balustrade.backends` registers its local NLP
+(:func:`balustrade.backends.set_support.function_set_support`) when it is imported. Without
+either, ``support`` (and what uses it: ``bounding_box``, ``is_subset_of`` into a polytope)
+raises an error saying so.
+"""
 
 from __future__ import annotations
 
@@ -15,6 +24,18 @@ from balustrade.errors import BalustradeError, ShapeError
 if TYPE_CHECKING:
     from balustrade.dsl.sets import Box
 
+#: ``support(fset, a) -> float``: ``max {aᵀx : fset.c(x) <= 0}`` (``a`` checked, 1-D)
+SupportSolver = Callable[["FunctionSet", np.ndarray], float]
+
+_DEFAULT_SUPPORT: list[SupportSolver] = []
+
+
+def register_support_solver(fn: SupportSolver) -> None:
+    """Make ``fn`` the default support solver of every :class:`FunctionSet` without its own
+    (:mod:`balustrade.backends` registers its NLP on import)."""
+    check_callable(fn, "register_support_solver: fn")
+    _DEFAULT_SUPPORT[:] = [fn]
+
 
 class FunctionSet(Set):
     """``{x : c(x) <= 0}`` for a CasADi-callable ``c`` (SPEC (2.8)).
@@ -22,12 +43,18 @@ class FunctionSet(Set):
     ``c`` takes a ``(dim, 1)`` CasADi symbol and returns a column of constraint rows. The
     convex backend accepts it only where it detects affine or convex-quadratic rows;
     anything else is refused there with an error naming this set.
+
+    ``support`` (optional): the support solver of this set, ``support(set, a) -> float``
+    (module docstring); ``None`` uses the registered default.
     """
 
-    def __init__(self, c: Callable[[Symbolic], Symbolic], dim: int, name: str = "FunctionSet"):
+    def __init__(self, c: Callable[[Symbolic], Symbolic], dim: int, name: str = "FunctionSet",
+                 support: SupportSolver | None = None):
         self.name = check_name(name, "FunctionSet: name")
         check_callable(c, f"{name}: c")
-        self._fun = c
+        if support is not None:
+            check_callable(support, f"{name}: support")
+        self._fun, self._support = c, support
         self.dim = as_count(dim, f"{name}: dim", low=1)
         try:
             out = c(ca.SX.sym("x", self.dim))
@@ -54,18 +81,15 @@ class FunctionSet(Set):
         return ca.vec(out)
 
     def support(self, a: np.ndarray) -> float:
-        """Support value by a local NLP (exact when ``c`` is convex)."""
+        """Support value ``max {aᵀx : c(x) <= 0}`` by the set's support solver (module
+        docstring; the backends' local NLP is exact when ``c`` is convex)."""
         a = as_vector(a, f"{self.name}.support(a)", self.dim)
-        x = ca.SX.sym("x", self.dim)
-        solver = ca.nlpsol("support", "ipopt", {"x": x, "f": -ca.dot(ca.DM(a), x),
-                                                "g": self.c(x)},
-                           {"ipopt.print_level": 0, "print_time": False,
-                            "ipopt.sb": "yes"})
-        res = solver(x0=np.zeros(self.dim), ubg=0)
-        if not solver.stats()["success"]:
-            raise BalustradeError(f"{self.name}.support: NLP failed "
-                                  f"({solver.stats()['return_status']})")
-        return float(-res["f"])
+        fn = self._support or (_DEFAULT_SUPPORT[0] if _DEFAULT_SUPPORT else None)
+        if fn is None:
+            raise BalustradeError(f"{self.name}.support: no support solver; import "
+                                  "balustrade.backends (it registers its NLP) or give "
+                                  "FunctionSet(..., support=fn)")
+        return float(fn(self, a))
 
     def linear_map(self, A: np.ndarray, name: str | None = None) -> FunctionSet:
         """``A·S = {y : c(A⁻¹y) <= 0}`` for invertible square ``A``."""
@@ -76,17 +100,19 @@ class FunctionSet(Set):
                                   f"matrix, got A of shape {A.shape}")
         Ainv = ca.DM(np.linalg.inv(A))
         return FunctionSet(lambda y: self.c(ca.mtimes(Ainv, y)), self.dim,
-                           name=name or f"A·{self.name}")
+                           name=name or f"A·{self.name}", support=self._support)
 
     def scale(self, alpha: float, name: str | None = None) -> FunctionSet:
         a = check_scalar(alpha, f"{self.name}.scale")
         if a == 0.0:
             raise BalustradeError(f"{self.name}.scale: 0·{self.name} is a point")
-        return FunctionSet(lambda y: self.c(y / a), self.dim, name=name or f"{a:g}·{self.name}")
+        return FunctionSet(lambda y: self.c(y / a), self.dim, name=name or f"{a:g}·{self.name}",
+                           support=self._support)
 
     def translate(self, v: np.ndarray, name: str | None = None) -> FunctionSet:
         v = ca.DM(as_vector(v, f"{self.name}.translate(v)", self.dim))
-        return FunctionSet(lambda y: self.c(y - v), self.dim, name=name or f"{self.name}+v")
+        return FunctionSet(lambda y: self.c(y - v), self.dim, name=name or f"{self.name}+v",
+                           support=self._support)
 
     def sample(self, n: int, rng: RngLike = None, bounds: Box | None = None,
                max_draws: int = 1_000_000) -> np.ndarray:

@@ -12,7 +12,8 @@ Both methods share the terminal CBF from the SDP (6.17) with the constraints tig
 ellipsoidal RPI set (:func:`~balustrade.dsl.error_sets.ellipsoidal_rpi`). Costs: nominal
 ``‖u_0 − 2.5‖²``, robust ``‖v_0 + K(x_k − z_0) − 2.5‖²`` (squared: same minimizer as the
 absolute value of the thesis for scalar inputs). Slack norm ``ℓ1`` (any norm preserves the
-theory, SPEC §1.12; keeps the problems LP/QP-like for CasADi's sqpmethod). A run is declared
+theory, SPEC §1.12; keeps the problems LP/QP-like for the SQP of the
+robust-sqp target). A run is declared
 *diverged* when ``‖x‖∞ > 50``, and stopped as *failed* after 3 consecutive solver failures (the
 thesis' crosses: "numerical issues"); both are reported, never raised.
 
