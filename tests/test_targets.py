@@ -56,7 +56,8 @@ def test_aliases_and_backend_names_resolve():
 
 
 def test_unknown_preset_error_lists_presets():
-    with pytest.raises(SolverError, match="unknown target 'fastest'") as exc:
+    with pytest.raises(SolverError, match=r"unknown backend 'fastest' \(nor a target preset\)"
+                       ) as exc:
         resolve_target("fastest")
     for name in PRESETS:
         assert name in str(exc.value)
@@ -161,7 +162,7 @@ def test_compile_records_target_and_with_retries_copies():
 
 
 def test_compile_rejects_unknown_targets_naming_the_problem():
-    with pytest.raises(SolverError, match="small: unknown target 'nope'"):
+    with pytest.raises(SolverError, match="small: unknown backend 'nope'"):
         compile(_small_ocp(), "nope")
 
 

@@ -230,8 +230,8 @@ def target(spec: Target | str | None = None, *, default: Target | str = "exact",
     if isinstance(spec, str):
         name = _BACKEND_DEFAULTS.get(spec, spec)
         if name not in PRESETS:
-            raise SolverError(f"unknown target {spec!r}; use a Target, a backend "
-                              f"({', '.join(BACKEND_NAMES)}) or a preset "
+            raise SolverError(f"unknown backend {spec!r} (nor a target preset); use a Target, "
+                              f"a backend ({', '.join(BACKEND_NAMES)}) or a preset "
                               f"({', '.join(PRESETS)})")
         resolved = PRESETS[name]
     elif isinstance(spec, Target):
