@@ -10,6 +10,7 @@ import numpy as np
 from balustrade._checks import as_float_array
 from balustrade.errors import BalustradeError, ShapeError
 
+
 class Status(StrEnum):
     """The outcome of one solve, the same for every backend (a ``str`` enum:
     ``status == "optimal"``, f-strings and JSON see the plain value)."""

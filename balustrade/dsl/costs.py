@@ -24,6 +24,7 @@ import numpy as np
 from balustrade._checks import as_float_array, check_psd, check_symbolic
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
+
 class TermKind(StrEnum):
     """What a cost term is (a ``str`` enum: ``kind == "norm2"`` keeps working)."""
 

@@ -37,7 +37,6 @@ from balustrade._checks import (
 )
 from balustrade.dsl.costs import Cost
 from balustrade.dsl.layout import Layout
-from balustrade.dsl.layout import flat_value as _flat_value
 from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
