@@ -19,9 +19,14 @@ from __future__ import annotations
 
 from balustrade.backends.passes.base import Pass, invert_chain, run_chain
 from balustrade.backends.passes.casadi_nlp import CasadiNLP
+from balustrade.backends.passes.classify import Classify
 from balustrade.backends.passes.epigraph import Epigraph
+from balustrade.backends.passes.to_cvxpy import ToCvxpy
 
 #: OCP → SmoothProblem → NLPData (the CasADi backend)
 CASADI_CHAIN: tuple[Pass, ...] = (Epigraph(), CasadiNLP())
+#: OCP → ClassifiedProblem → CvxpyProgram (the cvxpy backend)
+CVXPY_CHAIN: tuple[Pass, ...] = (Classify(), ToCvxpy())
 
-__all__ = ["CASADI_CHAIN", "CasadiNLP", "Epigraph", "Pass", "invert_chain", "run_chain"]
+__all__ = ["CASADI_CHAIN", "CVXPY_CHAIN", "CasadiNLP", "Classify", "Epigraph", "Pass",
+           "ToCvxpy", "invert_chain", "run_chain"]
