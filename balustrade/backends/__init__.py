@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
-from balustrade.backends.solution import Solution
+from balustrade.backends.solution import Solution, Status
 from balustrade.backends.targets import PRESETS, Target
 from balustrade.backends.targets import target as resolve_target
 from balustrade.dsl.ocp import OCP
@@ -60,4 +60,4 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
 
 
 __all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CvxpyCompiled", "Solution",
-           "Target", "compile", "resolve_target"]
+           "Status", "Target", "compile", "resolve_target"]
