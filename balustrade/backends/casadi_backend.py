@@ -53,7 +53,7 @@ import numpy as np
 from balustrade.backends.passes import CASADI_CHAIN, run_chain
 from balustrade.backends.passes.casadi_nlp import as_dm
 from balustrade.backends.passes.epigraph import EpigraphInverse
-from balustrade.backends.solution import Solution
+from balustrade.backends.solution import Solution, Status
 from balustrade.dsl.ocp import OCP
 from balustrade.errors import SolverError
 
@@ -216,10 +216,10 @@ class CasadiCompiled:
         elif not final.success:
             feasible = [a for a in reversed(attempts) if a.raw.get("x") is not None
                         and self._primal_feasible(a.raw["x"], p)]
-            infeasible = [a for a in attempts if a.status == "infeasible"]
+            infeasible = [a for a in attempts if a.status == Status.INFEASIBLE]
             if feasible:  # no attempt converged; report a primal-feasible point as such
                 final = feasible[0]
-                final.status = "feasible"
+                final.status = Status.FEASIBLE
             elif infeasible:
                 final = infeasible[-1]
         if len(attempts) > 1:
@@ -270,7 +270,7 @@ class CasadiCompiled:
         message = str(stats.get("return_status", ""))
         why = _unbounded(message, objective)
         if why is not None:
-            status, message = "failed", f"{message}: the problem appears unbounded ({why})"
+            status, message = Status.FAILED, f"{message}: the problem appears unbounded ({why})"
         return Solution(status=status, objective=objective,
                         primal=layout.unpack(w, user_only=True), dual=dual,
                         solve_time=elapsed,
@@ -312,7 +312,7 @@ class CasadiCompiled:
 
     def _failed(self, p: np.ndarray, elapsed: float, message: str) -> Solution:
         w = np.full(self.layout.user_size, np.nan)
-        return Solution(status="failed", objective=np.nan,
+        return Solution(status=Status.FAILED, objective=np.nan,
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
                         iterations=0, backend="casadi", solver=self.solver_name, p=p,
                         message=message)
@@ -360,25 +360,25 @@ _SOLVER_NAMES = {"Sqpmethod": "sqpmethod", "IpoptInterface": "ipopt"}
 #: e.g. sqpmethod's ``Search_Direction_Becomes_Too_Small`` or IPOPT's
 #: ``Restoration_Failed``, is ``failed``: neither certifies anything)
 _RETURN_STATUS = {
-    "Solve_Succeeded": "optimal",
-    "Solved_To_Acceptable_Level": "optimal_inaccurate",  # CasADi reports success=True
-    "Infeasible_Problem_Detected": "infeasible",         # IPOPT's local infeasibility
-    "Maximum_Iterations_Exceeded": "max_iterations",
-    "Maximum_CpuTime_Exceeded": "max_iterations",
-    "Maximum_WallTime_Exceeded": "max_iterations",
+    "Solve_Succeeded": Status.OPTIMAL,
+    "Solved_To_Acceptable_Level": Status.OPTIMAL_INACCURATE,  # CasADi reports success=True
+    "Infeasible_Problem_Detected": Status.INFEASIBLE,         # IPOPT's local infeasibility
+    "Maximum_Iterations_Exceeded": Status.MAX_ITERATIONS,
+    "Maximum_CpuTime_Exceeded": Status.MAX_ITERATIONS,
+    "Maximum_WallTime_Exceeded": Status.MAX_ITERATIONS,
 }
 
 
-def _status(stats: dict) -> str:
+def _status(stats: dict) -> Status:
     """The :class:`Solution` status of one solver run from its ``stats()``."""
     msg = str(stats.get("return_status", ""))
     if msg in _RETURN_STATUS:
         return _RETURN_STATUS[msg]
     if stats.get("success", False):  # another plugin's success string
-        return "optimal"
+        return Status.OPTIMAL
     low = msg.lower()
     if "infeasible" in low:
-        return "infeasible"
+        return Status.INFEASIBLE
     if "maximum" in low or "max_iter" in low:
-        return "max_iterations"
-    return "failed"
+        return Status.MAX_ITERATIONS
+    return Status.FAILED

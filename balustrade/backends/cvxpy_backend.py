@@ -31,7 +31,7 @@ from balustrade.backends.passes.to_cvxpy import (  # noqa: F401 - re-exported li
     LARGE_BOUND,
     CvxpyProgram,
 )
-from balustrade.backends.solution import Solution
+from balustrade.backends.solution import Solution, Status
 from balustrade.dsl.ocp import OCP
 from balustrade.errors import SolverError
 
@@ -107,23 +107,24 @@ class CvxpyCompiled:
         start = time.perf_counter()
         status, message = _run(self.problem, self.solver_name, self.solver_options, warm)
         first_message = message
-        if status == "infeasible":
+        if status == Status.INFEASIBLE:
             status, message = self._check_infeasible(message)
-        if self.large is not None and not (status == "infeasible" or self._within_large()):
-            first = "violated them" if status in ("optimal", "optimal_inaccurate") else status
+        if self.large is not None and not (status == Status.INFEASIBLE or self._within_large()):
+            first = "violated them" if status.success else status
             status, message = _run(self._full_problem(), self.solver_name,
                                    self.solver_options, False)
             message += (f" (with the {self.large.c.size} large bounds/rows |b| >= "
                         f"{LARGE_BOUND:g}; the solve without them: {first})")
-        if status in ("failed", "max_iterations", "optimal_inaccurate") \
+        if status in (Status.FAILED, Status.MAX_ITERATIONS, Status.OPTIMAL_INACCURATE) \
                 and self.cost_scale > BIG_WEIGHT:
             status, message = self._rescaled(status, message)
         elapsed = time.perf_counter() - start
         n = self.W.size
         w = np.asarray(self.W.value, dtype=float).reshape(-1) if self.W.value is not None \
-            and status not in ("infeasible", "failed", "max_iterations") else np.full(n, np.nan)
+            and status not in (Status.INFEASIBLE, Status.FAILED, Status.MAX_ITERATIONS) \
+            else np.full(n, np.nan)
         stats = self.problem.solver_stats
-        dual = self._duals() if status in ("optimal", "optimal_inaccurate") else {}
+        dual = self._duals() if status in (Status.OPTIMAL, Status.OPTIMAL_INACCURATE) else {}
         objective = float(self._objective(w, p)) if np.all(np.isfinite(w)) else np.nan
         sol = Solution(status=status, objective=objective,
                        primal=self.ocp.unpack_variables(w), dual=dual,
@@ -150,18 +151,18 @@ class CvxpyCompiled:
         self.W.value = w
         return True
 
-    def _check_infeasible(self, message: str) -> tuple[str, str]:
+    def _check_infeasible(self, message: str) -> tuple[Status, str]:
         """Confirm an "infeasible" verdict by solving the feasibility problem (the same
         constraints, no objective): a badly scaled objective (a 1e12 weight) can make a
         solver declare a feasible problem infeasible."""
         if self._feasibility is None:
             self._feasibility = cp.Problem(cp.Minimize(0), self.problem.constraints)
         status, check = _run(self._feasibility, self.solver_name, self.solver_options, False)
-        if status in ("optimal", "optimal_inaccurate"):
-            return "failed", (f"{message}; but the constraints alone are feasible "
+        if status in (Status.OPTIMAL, Status.OPTIMAL_INACCURATE):
+            return Status.FAILED, (f"{message}; but the constraints alone are feasible "
                               f"(feasibility solve: {check}): the verdict is numerical, "
                               "e.g. from badly scaled cost weights")
-        return "infeasible", message
+        return Status.INFEASIBLE, message
 
     def _within_large(self) -> bool:
         """The solution exists and satisfies the large rows left out of the problem."""
@@ -177,7 +178,7 @@ class CvxpyCompiled:
                                     + [self.program.affine_expr(self.large) <= 0])
         return self._full
 
-    def _rescaled(self, status: str, message: str) -> tuple[str, str]:
+    def _rescaled(self, status: Status, message: str) -> tuple[Status, str]:
         """Re-solve with the cost divided by :attr:`cost_scale`: with weights of 1e9 and
         more (exact-penalty slacks) the multipliers are huge and PIQP/Clarabel mistake them
         for an infeasibility certificate or stall. The minimizer of the scaled problem is
@@ -189,11 +190,11 @@ class CvxpyCompiled:
                                       self.problem.constraints)
         first = self.W.value
         retry, words = _run(self._scaled, self.solver_name, self.solver_options, False)
-        if status == "optimal_inaccurate" and retry != "optimal":
+        if status == Status.OPTIMAL_INACCURATE and retry != Status.OPTIMAL:
             self.W.value = first  # keep the first answer unless the retry converged
             return status, message
-        if retry in ("optimal", "optimal_inaccurate"):
-            return "optimal_inaccurate", (f"{message}; solved with the cost scaled by "
+        if retry in (Status.OPTIMAL, Status.OPTIMAL_INACCURATE):
+            return Status.OPTIMAL_INACCURATE, (f"{message}; solved with the cost scaled by "
                                           f"1/{self.cost_scale:.3g}: {words}")
         return status, f"{message}; with the cost scaled by 1/{self.cost_scale:.3g}: {words}"
 
@@ -209,7 +210,7 @@ class CvxpyCompiled:
 
 
 def _run(problem: cp.Problem, solver: str, options: dict, warm_start: bool
-         ) -> tuple[str, str]:
+         ) -> tuple[Status, str]:
     """Solve ``problem``; ``(status, message)`` with the status one of the six of
     :class:`Solution` and the message cvxpy's status and the solver's own words."""
     try:
@@ -221,7 +222,7 @@ def _run(problem: cp.Problem, solver: str, options: dict, warm_start: bool
         cvx_status, error = cp.SOLVER_ERROR, str(exc)
     words = _solver_words(problem, solver)
     message = cvx_status + (f" ({words})" if words else "") + (f": {error}" if error else "")
-    status = _STATUS.get(cvx_status, "failed")
+    status = _STATUS.get(cvx_status, Status.FAILED)
     if cvx_status == cp.INFEASIBLE_INACCURATE:
         message += "; infeasibility not certified"
     return status, message
@@ -246,12 +247,12 @@ def _solver_words(problem: cp.Problem, solver: str) -> str:
 #: with cvxpy's and the solver's words in ``Solution.message``; iteration and time limits are
 #: "max_iterations".
 _STATUS = {
-    cp.OPTIMAL: "optimal",
-    cp.OPTIMAL_INACCURATE: "optimal_inaccurate",
-    cp.INFEASIBLE: "infeasible",
-    cp.INFEASIBLE_INACCURATE: "failed",
-    cp.UNBOUNDED: "failed",
-    cp.UNBOUNDED_INACCURATE: "failed",
-    cp.USER_LIMIT: "max_iterations",
-    cp.SOLVER_ERROR: "failed",
+    cp.OPTIMAL: Status.OPTIMAL,
+    cp.OPTIMAL_INACCURATE: Status.OPTIMAL_INACCURATE,
+    cp.INFEASIBLE: Status.INFEASIBLE,
+    cp.INFEASIBLE_INACCURATE: Status.FAILED,
+    cp.UNBOUNDED: Status.FAILED,
+    cp.UNBOUNDED_INACCURATE: Status.FAILED,
+    cp.USER_LIMIT: Status.MAX_ITERATIONS,
+    cp.SOLVER_ERROR: Status.FAILED,
 }
