@@ -47,8 +47,9 @@ SUCCESS_STATUSES = (Status.OPTIMAL, Status.OPTIMAL_INACCURATE)
 class Solution:
     """Result of one solve.
 
-    ``status`` is one of ``optimal``, ``optimal_inaccurate``, ``feasible`` (no convergence,
-    but a primal-feasible point), ``infeasible``, ``max_iterations``, ``failed``; ``primal``
+    ``status`` is a :class:`Status` (a string given for it is converted, an unknown one
+    refused): ``optimal``, ``optimal_inaccurate``, ``feasible`` (no convergence, but a
+    primal-feasible point), ``infeasible``, ``max_iterations``, ``failed``; ``primal``
     maps variable names to arrays of their declared shapes; ``dual`` maps constraint-block
     names (and ``bound:<variable>``) to multipliers; ``objective`` is the declared cost
     evaluated at the primal solution; ``p`` is the stacked parameter vector.
