@@ -91,3 +91,15 @@ def test_rows_follow_the_users_blocks_and_chain_inverts():
     primal, objective = invert_chain(inverses, (w_all, p))
     np.testing.assert_array_equal(primal["a"], w_all[:3])
     assert objective == pytest.approx(2 * np.linalg.norm(w_all[:3] - 1) + w_all[:3] @ w_all[:3])
+
+
+def test_chain_refuses_what_a_pass_does_not_accept():
+    from balustrade.backends.passes import CVXPY_CHAIN
+    from balustrade.errors import BalustradeError
+
+    ocp, _ = _ocp("max")
+    smooth, _ = Epigraph().apply(ocp)
+    with pytest.raises(BalustradeError, match="pass 'classify' cannot take SmoothProblem"):
+        run_chain(CVXPY_CHAIN, smooth)
+    with pytest.raises(BalustradeError, match="pass 'epigraph' cannot take SmoothProblem"):
+        run_chain(CASADI_CHAIN, smooth)
