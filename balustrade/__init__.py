@@ -21,12 +21,16 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name: str) -> object:
-    """``balustrade.compile`` and ``balustrade.verify``, imported on first use (they pull in
-    CasADi and cvxpy; ``import balustrade`` stays light)."""
+    """``balustrade.compile``, ``balustrade.verify`` and ``balustrade.Status``, imported on
+    first use (they pull in CasADi and cvxpy; ``import balustrade`` stays light)."""
     if name == "compile":
         from balustrade.backends import compile
 
         return compile
+    if name == "Status":
+        from balustrade.backends.solution import Status
+
+        return Status
     if name == "verify":
         from balustrade.testing import verify
 
@@ -43,6 +47,7 @@ __all__ = [
     "NotPSDError",
     "ShapeError",
     "SolverError",
+    "Status",
     "__version__",
     "compile",
     "verify",

@@ -90,7 +90,7 @@ def _raw_pcbf_step(slack, filt) -> callable:
         out = fs.solve(x, {})
         if out is None:
             return
-        v = slack.ocp.unpack_variables(out[0][: slack.n_user])
+        v = slack.ocp.unpack_variables(out[0][: slack.layout.user_size])
         p = filt.ocp.pack_parameters({"x0": x, "u_p": u_p, "xi": np.maximum(v["xi"], 0.0),
                                       "xi_N": np.maximum(v["xi_N"], 0.0)})
         ff.solve(p, {"x": v["x"], "u": v["u"]})

@@ -104,7 +104,7 @@ def test_single_problem_equals_python_on_1000_states(pcbf_c: dict,
         if sol.success:
             assert abs(value - sol.objective) <= 1e-6
             assert abs(primal["u"][0, 0] - sol["u"][0, 0]) <= 1e-6
-            assert np.abs(w[: slack.n_user] - sol.w).max() <= 1e-6
+            assert np.abs(w[: slack.layout.user_size] - sol.w).max() <= 1e-6
 
 
 def test_plain_functions_equal_casadi_to_1e12(functions_c: dict) -> None:

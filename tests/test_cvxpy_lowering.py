@@ -11,7 +11,7 @@ import pytest
 
 from balustrade.backends import compile
 from balustrade.backends import cvxpy_backend as cb
-from balustrade.backends.structure import joint_quadratic
+from balustrade.backends.passes.classify import joint_quadratic
 from balustrade.dsl.ocp import OCP
 
 # the first 12 states of the disturbed Algorithm 5.2 closed loop of benchmarks/bench_robust.py

@@ -53,7 +53,7 @@ def _in_D_r(d, n, seed):
 
 def _point(ocp, values, params) -> Solution:
     w, p = ocp.pack_variables(values), ocp.pack_parameters(params)
-    return Solution(status="candidate", objective=0.0, primal=ocp.unpack_variables(w), dual={},
+    return Solution(status="feasible", objective=0.0, primal=ocp.unpack_variables(w), dual={},
                     solve_time=0.0, iterations=0, backend="none", solver="none", w=w, p=p)
 
 

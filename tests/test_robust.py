@@ -42,7 +42,7 @@ def _states(n: int, seed: int) -> np.ndarray:
 
 def _point(ocp, values: dict, params: dict) -> Solution:
     w, p = ocp.pack_variables(values), ocp.pack_parameters(params)
-    return Solution(status="candidate", objective=0.0, primal=ocp.unpack_variables(w), dual={},
+    return Solution(status="feasible", objective=0.0, primal=ocp.unpack_variables(w), dual={},
                     solve_time=0.0, iterations=0, backend="none", solver="none", w=w, p=p)
 
 

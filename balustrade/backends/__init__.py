@@ -10,7 +10,7 @@ from __future__ import annotations
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
 from balustrade.backends.set_support import function_set_support
-from balustrade.backends.solution import Solution
+from balustrade.backends.solution import Solution, Status
 from balustrade.backends.targets import PRESETS, Target, companion, sampling_targets
 from balustrade.backends.targets import target as resolve_target
 from balustrade.dsl.ocp import OCP
@@ -65,4 +65,4 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
 
 
 __all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CvxpyCompiled", "Solution",
-           "Target", "companion", "compile", "resolve_target", "sampling_targets"]
+           "Status", "Target", "companion", "compile", "resolve_target", "sampling_targets"]

@@ -1,8 +1,11 @@
 """Lowering of an :class:`~balustrade.dsl.ocp.OCP` to a parametric CasADi NLP.
 
 Compiled once (``nlpsol``), solved many times with new parameter values and primal-dual
-warm starts (DESIGN.md principle 2). Non-smooth cost terms become epigraph variables ``t``
-(cost ``c·t``), every form exact:
+warm starts (DESIGN.md principle 2). The lowering is the chain
+:data:`balustrade.backends.passes.CASADI_CHAIN`: the epigraph pass
+(:mod:`~balustrade.backends.passes.epigraph`) turns non-smooth cost terms into epigraph
+variables ``t`` (cost ``c·t``) added to the one :class:`~balustrade.dsl.layout.Layout`,
+every form exact:
 
 * ``‖a‖₁``: ``Σ a`` when ``a`` are nonnegative variables (the slacks ``ξ >= 0`` of (2.24),
   (5.15)), else ``−t <= a <= t`` with cost ``Σ t``;
@@ -43,12 +46,14 @@ from __future__ import annotations
 import copy
 import re
 import time
-from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
-from balustrade.backends.solution import Solution
+from balustrade.backends.passes import CASADI_CHAIN, run_chain
+from balustrade.backends.passes.casadi_nlp import as_dm
+from balustrade.backends.passes.epigraph import EpigraphInverse
+from balustrade.backends.solution import Solution, Status
 from balustrade.dsl.ocp import OCP
 from balustrade.errors import SolverError
 
@@ -128,73 +133,6 @@ def _build_error(name: str, solver: str, opts: dict, text: str) -> str:
             + (f"; did you mean {', '.join(repr(h) for h in hints[:3])}?" if hints else ""))
 
 
-@dataclass
-class _Epigraph:
-    """Auxiliary epigraph variables and constraints added for non-smooth terms."""
-
-    w: list
-    lb: list
-    ub: list
-    init: list
-    g: list
-    lbg: list
-    ubg: list
-    f: ca.SX
-
-
-#: the perspective form of ``‖a‖₂ <= t`` divides by ``max(t, NORM2_EPS)`` (module docstring)
-NORM2_EPS = 1e-12
-
-
-def _lower_cost(ocp: OCP) -> _Epigraph:
-    """The cost terms of ``ocp`` as a smooth objective plus epigraph variables and rows
-    (module docstring)."""
-    nonneg_syms = set()
-    for v in ocp.variables.values():
-        if np.all(v.lb >= 0):
-            for k in range(v.sym.numel()):
-                nonneg_syms.add(v.sym.nz[k].element_hash())
-    epi = _Epigraph([], [], [], [], [], [], [], ca.SX(0))
-    for idx, term in enumerate(ocp.cost.terms):
-        a, c = term.expr, term.coef
-        nonneg = term.kind in ("norm1", "norminf", "norm2") and _all_nonneg_symbols(
-            a, nonneg_syms)
-        if term.kind == "smooth":
-            epi.f += c * term.expr
-        elif term.kind == "squared2":
-            epi.f += c * ca.sumsqr(a)
-        elif term.kind == "norm1" and nonneg:
-            epi.f += c * ca.sum1(a)
-        elif term.kind in ("norm1", "norminf", "max", "norm2"):
-            size = a.numel() if term.kind == "norm1" else 1
-            t = ca.SX.sym(f"epi{idx}", size)
-            epi.w.append(t)
-            epi.init.append(np.zeros(size))
-            epi.f += c * ca.sum1(t)
-            epi.lb.append(np.full(size, -np.inf if term.kind == "max" else 0.0))
-            epi.ub.append(np.full(size, np.inf))
-            if term.kind == "norm2":
-                _add_rows(epi, ca.sumsqr(a) / ca.fmax(t, NORM2_EPS) - t)
-            _add_rows(epi, a - t)
-            if term.kind != "max" and not nonneg:
-                _add_rows(epi, -a - t)
-        else:  # pragma: no cover - Cost only creates the kinds above
-            raise SolverError(f"{ocp.name}: unknown cost term kind {term.kind!r}")
-    return epi
-
-
-def _add_rows(epi: _Epigraph, rows: ca.SX) -> None:
-    """Append the rows ``rows <= 0``."""
-    epi.g.append(rows)
-    epi.lbg.extend([-np.inf] * int(rows.numel()))
-    epi.ubg.extend([0.0] * int(rows.numel()))
-
-
-def _all_nonneg_symbols(a: ca.SX, nonneg_syms: set) -> bool:
-    return all(a.nz[k].is_symbolic() and a.nz[k].element_hash() in nonneg_syms
-               for k in range(a.numel()))
-
-
 class CasadiCompiled:
     """A compiled CasADi problem: call :meth:`solve` with parameter values."""
 
@@ -207,29 +145,16 @@ class CasadiCompiled:
                               "(try 'ipopt', 'sqpmethod' (with qrqp), 'fatrop')")
         self.ocp, self.solver_name = ocp, solver
         opts = solver_options(solver, options)
-        w_user = ocp.decision_vector()
-        p = ocp.parameter_vector()
-        epi = _lower_cost(ocp)
-        self.n_user = int(w_user.numel())
-        w = ca.vertcat(w_user, *epi.w)
-        g_blocks = [b.expr for b in ocp.blocks]
-        g = ca.vertcat(*g_blocks, *epi.g)
-        lb_user, ub_user = ocp.bounds()
-        self.lbx = np.concatenate([lb_user, *epi.lb]) if epi.lb else lb_user
-        self.ubx = np.concatenate([ub_user, *epi.ub]) if epi.ub else ub_user
-        self.init_epi = np.concatenate(epi.init) if epi.init else np.zeros(0)
-        lbg, ubg = [], []
-        self.block_slices: dict[str, slice] = {}
-        k = 0
-        for b in ocp.blocks:
-            lbg.extend([0.0 if b.kind == "eq" else -np.inf] * b.rows)
-            ubg.extend([0.0] * b.rows)
-            self.block_slices[b.name] = slice(k, k + b.rows)
-            k += b.rows
-        self.lbg = np.array(lbg + list(epi.lbg), dtype=float)
-        self.ubg = np.array(ubg + list(epi.ubg), dtype=float)
-        self.n_g_user = k
-        nlp = {"x": w, "p": p, "f": epi.f, "g": g}
+        data, inverses = run_chain(CASADI_CHAIN, ocp)
+        #: how the epigraph pass maps a solver point back (user variables, declared cost)
+        self.inverse: EpigraphInverse = inverses[0][1]
+        #: the solver's decision vector: the user's variables, then the epigraph blocks
+        self.layout = data.layout
+        self.lbx, self.ubx, self.lbg, self.ubg = data.lbx, data.ubx, data.lbg, data.ubg
+        self._x0 = data.x0
+        self.block_slices: dict[str, slice] = data.block_rows
+        self.n_g_user = data.n_g_user
+        nlp = data.nlp
         self.nlp = nlp
         self.options = opts
         self.solver = _nlpsol(ocp.name, solver, nlp, opts)
@@ -237,10 +162,13 @@ class CasadiCompiled:
         self.retries = default_retries(solver, opts) if retries is None else list(retries)
         self._retry: list[ca.Function] | None = None
         self._g_function: ca.Function | None = None
-        self._dm = {k: ca.DM(getattr(self, k)) for k in ("lbx", "ubx", "lbg", "ubg")}
-        #: the declared cost as a function of the solver's full primal vector, called with the
-        #: solver's own DM outputs (no numpy round trip on the closed-loop hot path)
-        self._objective = ca.Function("objective", [w, p], [ocp.cost.expr()])
+        self._dm = as_dm(data)
+
+    @property
+    def n_user(self) -> int:
+        """Size of the user's part of the solver's decision vector (``layout.user_size``;
+        kept for callers written before :class:`~balustrade.dsl.layout.Layout`)."""
+        return self.layout.user_size
 
     def with_retries(self, retries: list[tuple[str, dict]]) -> CasadiCompiled:
         """A copy of this compiled problem (sharing its built solver) that runs ``retries``
@@ -288,10 +216,10 @@ class CasadiCompiled:
         elif not final.success:
             feasible = [a for a in reversed(attempts) if a.raw.get("x") is not None
                         and self._primal_feasible(a.raw["x"], p)]
-            infeasible = [a for a in attempts if a.status == "infeasible"]
+            infeasible = [a for a in attempts if a.status == Status.INFEASIBLE]
             if feasible:  # no attempt converged; report a primal-feasible point as such
                 final = feasible[0]
-                final.status = "feasible"
+                final.status = Status.FEASIBLE
             elif infeasible:
                 final = infeasible[-1]
         if len(attempts) > 1:
@@ -328,21 +256,24 @@ class CasadiCompiled:
         w_all = np.asarray(res["x"]).reshape(-1)
         lam_g = np.asarray(res["lam_g"]).reshape(-1)
         lam_x = np.asarray(res["lam_x"]).reshape(-1)
-        w = w_all[: self.n_user]
+        layout = self.layout
+        w = w_all[: layout.user_size]
         status = _status(stats)
         dual = {name: lam_g[s] for name, s in self.block_slices.items()}
-        for name, arr in self.ocp.unpack_variables(lam_x[: self.n_user]).items():
+        for name, arr in layout.unpack(lam_x, user_only=True).items():
             dual[f"bound:{name}"] = arr
         # the declared cost at the returned point (exact; the epigraph value may differ by
-        # solver tolerances or, for the 2-norm, by up to NORM2_EPS/4 per term)
-        objective = float(self._objective.call([res["x"], p_dm])[0]) \
-            if np.all(np.isfinite(w)) else np.nan
+        # solver tolerances or, for the 2-norm, by up to NORM2_EPS/4 per term); called with
+        # the solver's own DM outputs (no numpy round trip on the closed-loop hot path)
+        objective = self.inverse.objective(res["x"], p_dm) if np.all(np.isfinite(w)) \
+            else np.nan
         message = str(stats.get("return_status", ""))
         why = _unbounded(message, objective)
         if why is not None:
-            status, message = "failed", f"{message}: the problem appears unbounded ({why})"
+            status, message = Status.FAILED, f"{message}: the problem appears unbounded ({why})"
         return Solution(status=status, objective=objective,
-                        primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
+                        primal=layout.unpack(w, user_only=True), dual=dual,
+                        solve_time=elapsed,
                         iterations=int(stats.get("iter_count", 0)), backend="casadi",
                         solver=_SOLVER_NAMES.get(solver.class_name(), solver.class_name()),
                         p=p,  # w is derived from primal
@@ -377,11 +308,11 @@ class CasadiCompiled:
             w_user = self.ocp.pack_variables(warm)
         else:
             w_user = self.ocp.pack_variables({})
-        return np.concatenate([w_user, self.init_epi]), 0.0, 0.0
+        return np.concatenate([w_user, self._x0[self.layout.user_size:]]), 0.0, 0.0
 
     def _failed(self, p: np.ndarray, elapsed: float, message: str) -> Solution:
-        w = np.full(self.n_user, np.nan)
-        return Solution(status="failed", objective=np.nan,
+        w = np.full(self.layout.user_size, np.nan)
+        return Solution(status=Status.FAILED, objective=np.nan,
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
                         iterations=0, backend="casadi", solver=self.solver_name, p=p,
                         message=message)
@@ -429,25 +360,25 @@ _SOLVER_NAMES = {"Sqpmethod": "sqpmethod", "IpoptInterface": "ipopt"}
 #: e.g. sqpmethod's ``Search_Direction_Becomes_Too_Small`` or IPOPT's
 #: ``Restoration_Failed``, is ``failed``: neither certifies anything)
 _RETURN_STATUS = {
-    "Solve_Succeeded": "optimal",
-    "Solved_To_Acceptable_Level": "optimal_inaccurate",  # CasADi reports success=True
-    "Infeasible_Problem_Detected": "infeasible",         # IPOPT's local infeasibility
-    "Maximum_Iterations_Exceeded": "max_iterations",
-    "Maximum_CpuTime_Exceeded": "max_iterations",
-    "Maximum_WallTime_Exceeded": "max_iterations",
+    "Solve_Succeeded": Status.OPTIMAL,
+    "Solved_To_Acceptable_Level": Status.OPTIMAL_INACCURATE,  # CasADi reports success=True
+    "Infeasible_Problem_Detected": Status.INFEASIBLE,         # IPOPT's local infeasibility
+    "Maximum_Iterations_Exceeded": Status.MAX_ITERATIONS,
+    "Maximum_CpuTime_Exceeded": Status.MAX_ITERATIONS,
+    "Maximum_WallTime_Exceeded": Status.MAX_ITERATIONS,
 }
 
 
-def _status(stats: dict) -> str:
+def _status(stats: dict) -> Status:
     """The :class:`Solution` status of one solver run from its ``stats()``."""
     msg = str(stats.get("return_status", ""))
     if msg in _RETURN_STATUS:
         return _RETURN_STATUS[msg]
     if stats.get("success", False):  # another plugin's success string
-        return "optimal"
+        return Status.OPTIMAL
     low = msg.lower()
     if "infeasible" in low:
-        return "infeasible"
+        return Status.INFEASIBLE
     if "maximum" in low or "max_iter" in low:
-        return "max_iterations"
-    return "failed"
+        return Status.MAX_ITERATIONS
+    return Status.FAILED

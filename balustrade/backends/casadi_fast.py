@@ -61,9 +61,9 @@ class FastNLP:
         self._x0 = self.nlp.args[names.index("x0")]
         self._p = self.nlp.args[names.index("p")]
         self._lam = [self.nlp.args[names.index(n)] for n in ("lam_x0", "lam_g0")]
-        self._w0 = np.concatenate([compiled.ocp.pack_variables({}), compiled.init_epi])
-        self.offsets = _offsets(compiled.ocp.variables.values())
-        self.param_offsets = _offsets(compiled.ocp.parameters.values())
+        self._w0 = compiled.layout.initial()  # the user's init, then the epigraph blocks'
+        self.offsets = compiled.layout.user().slices
+        self.param_offsets = compiled.ocp.parameter_layout.slices
 
     def pack(self, **params: object) -> np.ndarray:
         """The parameter vector (as ``OCP.pack_parameters``; column-major) from values by
@@ -91,12 +91,3 @@ class FastNLP:
             return None
         return self.nlp.res[0], float(self.nlp.res[1][0])
 
-
-def _offsets(items) -> dict[str, slice]:
-    """Slices of named blocks (variables or parameters) stacked column-major in order."""
-    out, k = {}, 0
-    for item in items:
-        n = item.shape[0] * item.shape[1]
-        out[item.name] = slice(k, k + n)
-        k += n
-    return out

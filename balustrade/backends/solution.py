@@ -3,21 +3,53 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
 from balustrade._checks import as_float_array
 from balustrade.errors import BalustradeError, ShapeError
 
-SUCCESS_STATUSES = ("optimal", "optimal_inaccurate")
+
+class Status(StrEnum):
+    """The outcome of one solve, the same for every backend (a ``str`` enum:
+    ``status == "optimal"``, f-strings and JSON see the plain value)."""
+
+    OPTIMAL = "optimal"
+    OPTIMAL_INACCURATE = "optimal_inaccurate"
+    #: no convergence, but a primal-feasible point (CasADi's rescue of a failed solve)
+    FEASIBLE = "feasible"
+    INFEASIBLE = "infeasible"
+    #: kept for solvers that certify it; the backends report an apparently unbounded
+    #: problem as ``FAILED`` with a message saying so (a well-posed filter is never unbounded)
+    UNBOUNDED = "unbounded"
+    MAX_ITERATIONS = "max_iterations"
+    FAILED = "failed"
+
+    @property
+    def success(self) -> bool:
+        return self in SUCCESS_STATUSES
+
+    @classmethod
+    def of(cls, value: object) -> Status:
+        """``Status(value)`` or an error listing the statuses."""
+        try:
+            return cls(value)
+        except ValueError:
+            raise BalustradeError(f"Solution: unknown status {value!r}; use one of "
+                                  f"{[s.value for s in cls]}") from None
+
+
+SUCCESS_STATUSES = (Status.OPTIMAL, Status.OPTIMAL_INACCURATE)
 
 
 @dataclass(init=False)
 class Solution:
     """Result of one solve.
 
-    ``status`` is one of ``optimal``, ``optimal_inaccurate``, ``feasible`` (no convergence,
-    but a primal-feasible point), ``infeasible``, ``max_iterations``, ``failed``; ``primal``
+    ``status`` is a :class:`Status` (a string given for it is converted, an unknown one
+    refused): ``optimal``, ``optimal_inaccurate``, ``feasible`` (no convergence, but a
+    primal-feasible point), ``infeasible``, ``max_iterations``, ``failed``; ``primal``
     maps variable names to arrays of their declared shapes; ``dual`` maps constraint-block
     names (and ``bound:<variable>``) to multipliers; ``objective`` is the declared cost
     evaluated at the primal solution; ``p`` is the stacked parameter vector.
@@ -30,7 +62,7 @@ class Solution:
     point ``w2``); the constructor copies the ``primal`` dict, so solutions never share it.
     """
 
-    status: str
+    status: Status
     objective: float
     primal: dict[str, np.ndarray]
     dual: dict[str, np.ndarray]
@@ -42,7 +74,7 @@ class Solution:
     message: str = ""
     raw: dict = field(default_factory=dict, repr=False)
 
-    def __init__(self, status: str, objective: float, primal: dict[str, np.ndarray],
+    def __init__(self, status: Status | str, objective: float, primal: dict[str, np.ndarray],
                  dual: dict[str, np.ndarray], solve_time: float, iterations: int,
                  backend: str, solver: str, w: np.ndarray | None = None,
                  p: np.ndarray | None = None, message: str = "",
@@ -60,6 +92,11 @@ class Solution:
             given = as_float_array(w, "Solution: w").reshape(-1)
             if not np.array_equal(given, self.w, equal_nan=True):
                 self.w = given  # checks the size against primal's, then writes primal
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if name == "status":  # a str from the caller becomes the enum (or an error)
+            value = value if type(value) is Status else Status.of(value)
+        object.__setattr__(self, name, value)
 
     @property
     def w(self) -> np.ndarray:
@@ -86,7 +123,7 @@ class Solution:
     @property
     def usable(self) -> bool:
         """Converged, or at least primal feasible: safe to apply in a closed loop."""
-        return self.success or self.status == "feasible"
+        return self.success or self.status == Status.FEASIBLE
 
     def __getitem__(self, name: str) -> np.ndarray:
         try:

@@ -175,16 +175,6 @@ def _kkt_function(c: CasadiCompiled, sym: str) -> ca.Function:
                        ["x", "p", "lam_x", "lam_g"], ["pr_inf", "du_inf", "feas"])
 
 
-def _layout(items: dict, start: int = 0) -> dict[str, dict]:
-    """Offsets of named symbols (variables or parameters) in their stacked vector."""
-    out, k = {}, start
-    for nm, item in items.items():
-        n = int(item.sym.numel())
-        out[nm] = {"offset": k, "shape": [int(s) for s in item.shape]}
-        k += n
-    return out
-
-
 def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ...]:
     if not isinstance(c, CasadiCompiled):
         raise CodegenError(f"{what}: C code generation needs a problem compiled on the "
@@ -244,13 +234,10 @@ class _Problem:
             self.retry_labels.append(label)
             self.retry_docs.append(" ".join([plugin, *(f"{o} {v!r}" for o, v in over.items())])
                                    if over else f"{plugin} again")
-        self.vars = _layout(c.ocp.variables)
-        self.params = _layout(c.ocp.parameters)
-        for nm, par in c.ocp.parameters.items():  # declared values: used when not given
-            if getattr(par, "default", None) is not None:
-                self.params[nm]["default"] = [float(v) for v in
-                                              np.reshape(par.default, -1, order="F")]
-        init = np.concatenate([c.ocp.pack_variables({}), c.init_epi])
+        self.layout = c.layout  # the solver's x: the user's variables, then epigraph blocks
+        self.vars = self.layout.to_dict()
+        self.params = c.ocp.parameter_layout.to_dict()  # with declared values as "default"
+        init = self.layout.initial()
         self.init = np.where(np.isfinite(init), init, 0.0)
 
     def functions(self) -> dict[str, ca.Function]:
@@ -297,9 +284,10 @@ class _Problem:
                        for n, v in self.params.items()) or " none"
         vdoc = "".join(f"\n *   {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
                        for n, v in self.vars.items())
-        if self.nw > self.c.n_user:
-            vdoc += (f"\n *   (epigraph variables of non-smooth costs: offset {self.c.n_user}"
-                     f", {self.nw - self.c.n_user} values)")
+        n_user = self.layout.user_size
+        if self.nw > n_user:
+            vdoc += (f"\n *   (epigraph variables of non-smooth costs: offset {n_user}"
+                     f", {self.nw - n_user} values)")
         offsets = "".join(f"#define {self.P}_P_{n} {v['offset']}\n"
                           for n, v in self.params.items())
         offsets += "".join(f"#define {self.P}_W_{n} {v['offset']}\n"
@@ -320,13 +308,13 @@ class _Problem:
             dispatch=code["dispatch"], n_solvers=code["n_solvers"], nw=self.nw,
             ng1=max(self.ng, 1), lbx=_c_array(self.c.lbx),
             ubx=_c_array(self.c.ubx), lbg=_c_array(self.c.lbg), ubg=_c_array(self.c.ubg),
-            init=_c_array(self.init), n_user=int(self.c.n_user),
+            init=_c_array(self.init), n_user=self.layout.user_size,
             tol_pr=_c_double(self.tol_pr),
             tol_du=_c_double(self.tol_du), accept_tol=_c_double(self.accept_tol))
 
     def manifest(self) -> dict:
         return {"prefix": self.P, "title": self.title, "np": self.np, "nw": self.nw,
-                "ng": self.ng, "n_user": int(self.c.n_user), "variables": self.vars,
+                "ng": self.ng, "n_user": self.layout.user_size, "variables": self.vars,
                 "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
                 "accept_tol": self.accept_tol,
                 "retries": list(self.retry_labels),

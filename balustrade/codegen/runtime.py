@@ -25,7 +25,7 @@ from balustrade.backends.emittable import c_retry_chain
 from balustrade.codegen import status as S
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
-from balustrade.dsl.ocp import _flat_value  # the checks of OCP.pack_parameters
+from balustrade.dsl.layout import Layout  # the stacking and checks of OCP.pack_parameters
 from balustrade.errors import BalustradeError, CodegenError, ShapeError
 
 _dbl_p = ctypes.POINTER(ctypes.c_double)
@@ -176,6 +176,7 @@ class _CProblemView:
         self.x = np.ctypeslib.as_array(primal(work_ptr), shape=(info["nw"],))
         self._res_fn = lib.fn(f"{prefix}_residuals", None, [ctypes.c_void_p, _dbl_p])
         self._res = np.zeros(2)
+        self._layout: Layout | None = None
 
     def residuals(self) -> tuple[float, float]:
         """Primal violation and dual residual of the last solve."""
@@ -183,12 +184,11 @@ class _CProblemView:
         return float(self._res[0]), float(self._res[1])
 
     def unpack(self, w: np.ndarray) -> dict[str, np.ndarray]:
-        out = {}
-        for name, lay in self.info["variables"].items():
-            n = int(np.prod(lay["shape"]))
-            arr = np.array(w[lay["offset"]: lay["offset"] + n]).reshape(lay["shape"], order="F")
-            out[name] = arr[:, 0] if lay["shape"][1] == 1 else arr
-        return out
+        """The user's variables (copies) from the solver's ``x`` (epigraph blocks after)."""
+        if self._layout is None:
+            self._layout = Layout.from_dict(self.info["variables"], self.info["prefix"],
+                                            "variable")
+        return {k: np.array(v) for k, v in self._layout.unpack(w[: self._layout.size]).items()}
 
 
 class _OwnsWork:
@@ -229,6 +229,7 @@ class CProblem(_OwnsWork):
         if not self._work:
             raise CodegenError(f"{P}_alloc failed (no CasADi memory left)")
         self.view = _CProblemView(self._lib, P, self.info, self._work)
+        self._params: Layout | None = None  # the manifest's parameter layout, on first pack
         self._p = np.zeros(max(self.info["np"], 1))
         self._p_ptr = _ptr(self._p)
 
@@ -238,25 +239,13 @@ class CProblem(_OwnsWork):
         names raise :class:`~balustrade.errors.BalustradeError`, a wrong shape
         :class:`~balustrade.errors.ShapeError`, NaN or inf
         :class:`~balustrade.errors.NonFiniteError` — before C is called."""
-        P, lays = self.info["prefix"], self.info["parameters"]
         if not isinstance(params, dict):
-            raise BalustradeError(f"{P}: parameters must be a dict name -> value, got "
-                                  f"{type(params).__name__}")
-        unknown = sorted(set(params) - set(lays))
-        if unknown:
-            raise BalustradeError(f"{P}: unknown parameters {unknown}; declared: {list(lays)}")
-        p = np.zeros(self.info["np"])
-        for name, lay in lays.items():
-            if name in params:
-                flat = _flat_value(params[name], tuple(lay["shape"]),
-                                    f"{P}: parameter {name!r}")
-            elif lay.get("default") is not None:
-                flat = np.asarray(lay["default"], dtype=float)
-            else:
-                raise BalustradeError(f"{P}: no value for parameter {name!r} (shape "
-                                      f"{tuple(lay['shape'])})")
-            p[lay["offset"]: lay["offset"] + flat.size] = flat
-        return p
+            raise BalustradeError(f"{self.info['prefix']}: parameters must be a dict name -> "
+                                  f"value, got {type(params).__name__}")
+        if self._params is None:
+            self._params = Layout.from_dict(self.info["parameters"], self.info["prefix"],
+                                            "parameter")
+        return self._params.pack(params)
 
     def solve(self, params: dict[str, object], warm: bool = True
               ) -> tuple[str, float, dict[str, np.ndarray], np.ndarray]:

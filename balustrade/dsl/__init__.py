@@ -1,12 +1,13 @@
 """The balustrade language: systems, sets, the horizon problem builder and cost terms."""
 
-from balustrade.dsl.costs import Cost, max_of, norm, quad, squared_norm, sum_norms
-from balustrade.dsl.ocp import OCP, Block, Parameter, Variable
+from balustrade.dsl.costs import Cost, Term, TermKind, max_of, norm, quad, squared_norm, sum_norms
+from balustrade.dsl.layout import Entry, Layout
+from balustrade.dsl.ocp import OCP, Block, BlockKind, BlockTag, Parameter, Variable, VariableRole
 from balustrade.dsl.sets import Box, Ellipsoid, FunctionSet, Polytope, Set
 from balustrade.dsl.system import LinearSystem, System
 
 __all__ = [
-    "OCP", "Block", "Box", "Cost", "Ellipsoid", "FunctionSet", "LinearSystem", "Parameter",
-    "Polytope", "Set", "System", "Variable", "max_of", "norm", "quad", "squared_norm",
-    "sum_norms",
+    "OCP", "Block", "BlockKind", "BlockTag", "Box", "Cost", "Ellipsoid", "Entry", "FunctionSet",
+    "Layout", "LinearSystem", "Parameter", "Polytope", "Set", "System", "Term", "TermKind",
+    "Variable", "VariableRole", "max_of", "norm", "quad", "squared_norm", "sum_norms",
 ]

@@ -16,6 +16,7 @@ CasADi lowers tagged terms to epigraph variables; cvxpy to ``cp.norm`` / ``cp.ma
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import casadi as ca
 import numpy as np
@@ -23,18 +24,42 @@ import numpy as np
 from balustrade._checks import as_float_array, check_psd, check_symbolic
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
-NORM_KINDS = {1: "norm1", 2: "norm2", np.inf: "norminf", "inf": "norminf"}
+
+class TermKind(StrEnum):
+    """What a cost term is (a ``str`` enum: ``kind == "norm2"`` keeps working)."""
+
+    SMOOTH = "smooth"
+    SQUARED2 = "squared2"  # ‖expr‖₂²: smooth, but kept as a sum of squares
+    NORM1 = "norm1"
+    NORM2 = "norm2"
+    NORMINF = "norminf"
+    MAX = "max"
+
+    @property
+    def nonsmooth(self) -> bool:
+        """A norm or max term (lowered to an epigraph or a cone)."""
+        return self not in (TermKind.SMOOTH, TermKind.SQUARED2)
+
+
+NORM_KINDS = {1: TermKind.NORM1, 2: TermKind.NORM2, np.inf: TermKind.NORMINF,
+              "inf": TermKind.NORMINF}
 
 
 @dataclass(frozen=True)
 class Term:
-    """One cost term ``coef · kind(expr)``; ``kind`` is ``smooth``, ``norm1``, ``norm2``,
-    ``norminf``, ``max`` or ``squared2`` (``‖expr‖₂²``, smooth but kept as a sum of squares)."""
+    """One cost term ``coef · kind(expr)`` (:class:`TermKind`)."""
 
-    kind: str
+    kind: TermKind
     expr: ca.SX
     coef: float = 1.0
     label: str = ""
+
+    def __post_init__(self) -> None:
+        try:
+            object.__setattr__(self, "kind", TermKind(self.kind))
+        except ValueError:
+            raise BalustradeError(f"cost term {self.label!r}: unknown kind {self.kind!r}; use "
+                                  f"one of {[k.value for k in TermKind]}") from None
 
     def scaled(self, factor: float) -> Term:
         return Term(self.kind, self.expr, self.coef * factor, self.label)
@@ -71,12 +96,12 @@ class Cost:
                                                                                        bool):
             if not np.isfinite(value):
                 raise NonFiniteError(f"cost: a constant cost term is {value}")
-            return Cost([Term("smooth", ca.SX(float(value)))])
+            return Cost([Term(TermKind.SMOOTH, ca.SX(float(value)))])
         if isinstance(value, (ca.SX, ca.DM)):
             expr = ca.SX(value)
             if expr.numel() != 1:
                 raise ShapeError("cost", "a scalar expression", expr.shape)
-            return Cost([Term("smooth", check_symbolic(expr, "cost: smooth term"))])
+            return Cost([Term(TermKind.SMOOTH, check_symbolic(expr, "cost: smooth term"))])
         raise BalustradeError(f"cost: cannot use an object of type {type(value).__name__} as "
                               "a cost term (use a CasADi scalar, norm(), max_of(), quad())")
 
@@ -106,7 +131,7 @@ class Cost:
         factor = float(factor)
         if not np.isfinite(factor):
             raise NonFiniteError(f"cost: scale factor is {factor}")
-        if factor < 0 and any(t.kind != "smooth" for t in self.terms):
+        if factor < 0 and any(t.kind != TermKind.SMOOTH for t in self.terms):
             raise BalustradeError("cost: a norm or max term scaled by a negative number is not "
                                   "convex and cannot be lowered to an epigraph")
         return Cost([t.scaled(factor) for t in self.terms])
@@ -148,7 +173,7 @@ def norm(a: object, ord: int | float | str = 2, label: str = "") -> Cost:
 
 def squared_norm(a: object, label: str = "") -> Cost:
     """``‖a‖₂²`` (the squared Euclidean filter cost, SPEC §2.5 [Default])."""
-    return Cost([Term("squared2", _as_sx(a, "squared_norm"), 1.0, label)])
+    return Cost([Term(TermKind.SQUARED2, _as_sx(a, "squared_norm"), 1.0, label)])
 
 
 def sum_norms(M: object, ord: int | float | str = 2, label: str = "") -> Cost:
@@ -164,7 +189,7 @@ def sum_norms(M: object, ord: int | float | str = 2, label: str = "") -> Cost:
 
 def max_of(a: object, label: str = "") -> Cost:
     """``max_j a_j`` (convex; lowered to an epigraph ``a_j <= t``)."""
-    return Cost([Term("max", _as_sx(a, "max_of"), 1.0, label)])
+    return Cost([Term(TermKind.MAX, _as_sx(a, "max_of"), 1.0, label)])
 
 
 def quad(a: object, Q: object | None = None, label: str = "") -> ca.SX:

@@ -19,8 +19,9 @@ Nothing here knows about backends (DESIGN.md); :mod:`balustrade.backends` lowers
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import casadi as ca
 import numpy as np
@@ -35,12 +36,53 @@ from balustrade._checks import (
     check_symbolic,
 )
 from balustrade.dsl.costs import Cost
+from balustrade.dsl.layout import Layout
 from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 SlackSpec = str | ca.SX | None
 Tightening = float | Sequence[float] | np.ndarray | Callable[[int], float] | None
+
+
+class VariableRole(StrEnum):
+    """What a decision variable is (``role == "slack"`` keeps working: a ``str`` enum)."""
+
+    FREE = "free"
+    STATE = "state"
+    INPUT = "input"
+    SLACK = "slack"
+    EPIGRAPH = "epigraph"
+
+
+class BlockKind(StrEnum):
+    """``expr == 0`` (``EQ``) or ``expr <= 0`` (``LE``)."""
+
+    EQ = "eq"
+    LE = "le"
+
+
+class BlockTag(StrEnum):
+    """What a constraint block is, e.g. for :func:`balustrade.verify`'s dynamics residual."""
+
+    GENERIC = "generic"
+    DYNAMICS = "dynamics"
+    INITIAL = "initial"
+    STATE = "state"
+    INPUT = "input"
+    TERMINAL = "terminal"
+    TERMINAL_CBF = "terminal_cbf"
+    DECREASE = "decrease"
+    TUBE = "tube"
+
+
+def _member(enum: type[StrEnum], value: object, where: str) -> StrEnum:
+    """``enum(value)``, or an error naming ``where`` and the allowed values."""
+    try:
+        return enum(value)
+    except ValueError:
+        raise BalustradeError(f"{where}: unknown {enum.__name__} {value!r}; use one of "
+                              f"{[m.value for m in enum]}") from None
 
 
 @dataclass
@@ -52,11 +94,12 @@ class Variable:
     lb: np.ndarray
     ub: np.ndarray
     init: np.ndarray
-    role: str = "free"  # free | state | input | slack | epigraph
+    role: VariableRole = VariableRole.FREE
     shape: tuple[int, int] = (0, 0)  # plain ints, read on every solve
 
     def __post_init__(self) -> None:
         self.shape = (int(self.sym.shape[0]), int(self.sym.shape[1]))
+        self.role = _member(VariableRole, self.role, f"variable {self.name!r}: role")
 
 
 @dataclass
@@ -82,10 +125,14 @@ class Block:
     """
 
     name: str
-    kind: str
+    kind: BlockKind
     expr: ca.SX
-    tag: str = "generic"
+    tag: BlockTag = BlockTag.GENERIC
     info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.kind = _member(BlockKind, self.kind, f"block {self.name!r}: kind")
+        self.tag = _member(BlockTag, self.tag, f"block {self.name!r}: tag")
 
     @property
     def rows(self) -> int:
@@ -113,6 +160,8 @@ class OCP:
         self.variables: dict[str, Variable] = {}
         self.parameters: dict[str, Parameter] = {}
         self.blocks: list[Block] = []
+        self._vlayout: Layout | None = None  # built on first use, see variable_layout
+        self._playout: Layout | None = None
         self.cost = Cost()
         self.x: ca.SX | None = None
         self.u: ca.SX | None = None
@@ -123,13 +172,15 @@ class OCP:
 
     # -- symbols ---------------------------------------------------------------------
     def variable(self, name: str, rows: int, cols: int = 1, lb: object = -np.inf,
-                 ub: object = np.inf, init: object = 0.0, role: str = "free") -> ca.SX:
+                 ub: object = np.inf, init: object = 0.0,
+                 role: VariableRole | str = VariableRole.FREE) -> ca.SX:
         """Add a decision variable of shape ``(rows, cols)`` and return its symbol.
 
         ``lb``/``ub`` may be infinite but not NaN, with ``lb <= ub``; ``init`` is finite."""
         self._check_new_name(name)
         shape = self._shape(name, rows, cols)
         where = f"{self.name}: variable {name!r}"
+        role = _member(VariableRole, role, f"{where}: role")
         lo = _broadcast(lb, shape, f"{where}: lb")
         hi = _broadcast(ub, shape, f"{where}: ub")
         start = _broadcast(init, shape, f"{where}: init")
@@ -172,19 +223,22 @@ class OCP:
                                   "already exists")
 
     # -- generic constraints ---------------------------------------------------------
-    def eq(self, lhs: object, rhs: object = 0.0, name: str = "eq", tag: str = "generic",
+    def eq(self, lhs: object, rhs: object = 0.0, name: str = "eq",
+           tag: BlockTag | str = BlockTag.GENERIC,
            **info: object) -> Block:
         """Add ``lhs == rhs`` (elementwise) as a named block."""
         return self._add(name, "eq", lhs, rhs, tag, info)
 
-    def le(self, lhs: object, rhs: object = 0.0, name: str = "le", tag: str = "generic",
+    def le(self, lhs: object, rhs: object = 0.0, name: str = "le",
+           tag: BlockTag | str = BlockTag.GENERIC,
            **info: object) -> Block:
         """Add ``lhs <= rhs`` (elementwise) as a named block."""
         return self._add(name, "le", lhs, rhs, tag, info)
 
-    def _add(self, name: str, kind: str, lhs: object, rhs: object, tag: str,
-             info: dict) -> Block:
+    def _add(self, name: str, kind: BlockKind | str, lhs: object, rhs: object,
+             tag: BlockTag | str, info: dict) -> Block:
         check_name(name, f"{self.name}: block name")
+        tag = _member(BlockTag, tag, f"{self.name}: block {name!r}: tag")
         lhs_sx = _as_sx(lhs, f"{self.name}: block {name!r}: left side")
         rhs_sx = _as_sx(rhs, f"{self.name}: block {name!r}: right side")
         if rhs_sx.numel() not in (1, lhs_sx.numel()) and lhs_sx.numel() != 1:
@@ -413,69 +467,43 @@ class OCP:
     def constraint_vector(self) -> ca.SX:
         return ca.vertcat(ca.SX(0, 1), *[b.expr for b in self.blocks])
 
+    @property
+    def variable_layout(self) -> Layout:
+        """The stacked decision vector: one :class:`~balustrade.dsl.layout.Layout` block per
+        variable (declaration order, column-major), with bounds and initial values."""
+        if self._vlayout is None or len(self._vlayout) != len(self.variables):
+            self._vlayout = Layout.stack(
+                ((v.name, v.shape, v.init, v.lb, v.ub) for v in self.variables.values()),
+                owner=self.name, noun="variable", value_label="initial guess")
+        return self._vlayout
+
+    @property
+    def parameter_layout(self) -> Layout:
+        """The stacked parameter vector (declaration order, column-major; a parameter's
+        declared value is its ``init``)."""
+        if self._playout is None or len(self._playout) != len(self.parameters):
+            self._playout = Layout.stack(
+                ((p.name, p.shape, p.default, None, None) for p in self.parameters.values()),
+                owner=self.name, noun="parameter")
+        return self._playout
+
     def pack_parameters(self, values: dict[str, object] | None) -> np.ndarray:
         """Stack parameter values (checked for shape and finiteness) in declaration order."""
-        if values is not None and not isinstance(values, Mapping):
-            raise BalustradeError(f"{self.name}: parameter values must be a dict name -> "
-                                  f"value, got {type(values).__name__}; declared: "
-                                  f"{list(self.parameters)}")
-        values = dict(values or {})
-        unknown = set(values) - set(self.parameters)
-        if unknown:
-            names = ", ".join(sorted(map(repr, unknown)))
-            raise BalustradeError(f"{self.name}: unknown parameters {names}; "
-                                  f"declared: {list(self.parameters)}")
-        chunks = []
-        for p in self.parameters.values():
-            if p.name in values:
-                chunks.append(_flat_value(values[p.name], p.shape, f"{self.name}: parameter "
-                                          f"{p.name!r}"))
-            elif p.default is not None:
-                chunks.append(p.default.reshape(-1, order="F"))
-            else:
-                raise BalustradeError(f"{self.name}: no value for parameter {p.name!r} "
-                                      f"(shape {p.shape})")
-        return np.concatenate(chunks) if chunks else np.zeros(0)
+        return self.parameter_layout.pack(values)
 
     def unpack_variables(self, w: np.ndarray) -> dict[str, np.ndarray]:
         """Split a stacked decision vector into named arrays of their declared shapes."""
-        out, k = {}, 0
-        w = as_float_array(w, f"{self.name}: stacked decision vector").reshape(-1)
-        n_total = sum(v.shape[0] * v.shape[1] for v in self.variables.values())
-        if w.size != n_total:
-            raise ShapeError(f"{self.name}: stacked decision vector", (n_total,), w.shape)
-        for v in self.variables.values():
-            n = v.shape[0] * v.shape[1]
-            arr = w[k:k + n].reshape(v.shape, order="F")
-            out[v.name] = arr[:, 0] if v.shape[1] == 1 else arr
-            k += n
-        return out
+        return self.variable_layout.unpack(w)
 
     def pack_variables(self, values: dict[str, object]) -> np.ndarray:
         """Stack named variable values (missing ones take their ``init``)."""
-        if not isinstance(values, Mapping):
-            raise BalustradeError(f"{self.name}: variable values must be a dict name -> value, "
-                                  f"got {type(values).__name__}")
-        unknown = set(values) - set(self.variables)
-        if unknown:
-            names = ", ".join(sorted(map(repr, unknown)))
-            raise BalustradeError(f"{self.name}: unknown variables {names}; "
-                                  f"declared: {list(self.variables)}")
-        chunks = []
-        for v in self.variables.values():
-            if v.name in values:
-                chunks.append(_flat_value(values[v.name], v.shape, f"{self.name}: initial "
-                                          f"guess {v.name!r}"))
-            else:
-                chunks.append(v.init.reshape(-1, order="F"))
-        return np.concatenate(chunks) if chunks else np.zeros(0)
+        if values is None:
+            raise BalustradeError(f"{self.name}: variable values must be a dict name -> "
+                                  "value, got NoneType")
+        return self.variable_layout.pack(values)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        lb = np.concatenate([np.zeros(0)] + [v.lb.reshape(-1, order="F")
-                                             for v in self.variables.values()])
-        ub = np.concatenate([np.zeros(0)] + [v.ub.reshape(-1, order="F")
-                                             for v in self.variables.values()])
-        return lb, ub
+        return self.variable_layout.bounds()
 
     def describe(self) -> str:
         """A human-readable summary of symbols and blocks."""
@@ -520,16 +548,3 @@ def _broadcast(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
     if arr.size == shape[0] * shape[1]:
         return arr.reshape(shape) if arr.ndim == 2 else arr.reshape(shape, order="F")
     raise ShapeError(block, shape, arr.shape)
-
-
-def _flat_value(value: object, shape: tuple[int, int], block: str) -> np.ndarray:
-    arr = as_float_array(value, block)
-    if arr.ndim == 0 and shape == (1, 1):
-        arr = arr.reshape(1, 1)
-    elif arr.ndim == 1 and (arr.size == shape[0] * shape[1]) and 1 in shape:
-        arr = arr.reshape(shape)
-    if tuple(arr.shape) != tuple(shape):
-        raise ShapeError(block, shape, arr.shape)
-    if not np.all(np.isfinite(arr)):
-        raise NonFiniteError(f"{block}: contains NaN or inf (shape {arr.shape})")
-    return arr.reshape(-1, order="F")

@@ -1,0 +1,322 @@
+"""The classify pass: split CasADi expressions into the affine and convex-quadratic
+pieces a conic (cvxpy) backend can hold.
+
+First pass of the cvxpy chain (:mod:`balustrade.backends.passes`): :class:`Classify` turns
+an OCP into a :class:`ClassifiedProblem` — every block as :class:`Piece` objects (rows and
+their form), every cost term with its affine argument or quadratic decomposition — or
+refuses it with an error naming the block; :mod:`~balustrade.backends.passes.to_cvxpy` then
+turns the pieces into DPP-parametrized cvxpy atoms. Parameters must enter affinely and must not
+multiply decision variables inside a constraint; the multiplier of a parameter-affine
+linear cost term is allowed (``(b + M p)ᵀ w`` is DPP).
+
+A row that is a convex quadratic jointly in ``(w, p)`` — the tube's initial constraint
+``(x_k − z_0)ᵀ P (x_k − z_0) <= 1`` ((2.15), (5.15b)) with the state ``x_k`` a parameter —
+is kept about its centre (:func:`joint_quadratic`): ``½‖L_w w + L_p p + l‖² + affine``.
+Expanding it around zero instead (``‖L z_0‖² − 2 (P x_k)ᵀ z_0 + x_kᵀ P x_k <= 1``) makes
+the solver cancel constants of size ``|x_k|²‖P‖`` (1.4·10⁵ on the rendezvous), which it
+cannot do to its tolerances.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+import scipy.sparse as sp
+
+from balustrade.backends.passes.base import Pass
+from balustrade.dsl.costs import Term, TermKind
+from balustrade.dsl.ocp import OCP, Block, BlockKind
+from balustrade.errors import ConvexityError
+
+
+@dataclass
+class Affine:
+    """``A w + B p + c`` (sparse ``A``, ``B``)."""
+
+    A: sp.csr_matrix
+    B: sp.csr_matrix
+    c: np.ndarray
+
+
+@dataclass
+class Quadratic:
+    """``½ ‖L w_I‖² + (a + M p)ᵀ w + φ(p)``: convex quadratic in ``w`` (``LᵀL = H ⪰ 0`` on
+    the indices ``I``), with a parameter-affine linear coefficient (DPP: ``(M p)ᵀ w``) and
+    a parameter-only part ``φ(p) = expr(0, p)``. ``φ`` is affine (``b p + c``) or, when it
+    is not, a CasADi function evaluated before each solve and fed to cvxpy as a derived
+    parameter (e.g. ``−h(x)`` in the CBF decrease (2.20) with the state ``x`` a parameter).
+    """
+
+    index: np.ndarray
+    L: np.ndarray
+    a: np.ndarray
+    M: sp.csr_matrix
+    b: sp.csr_matrix | None
+    c: float
+    phi: ca.Function | None
+
+
+def _dm_to_sparse(m: ca.DM) -> sp.csr_matrix:
+    m = ca.DM(m)
+    if m.nnz() == 0:
+        return sp.csr_matrix(m.shape)
+    col, row = m.sparsity().get_ccs()
+    return sp.csc_matrix((np.asarray(m.nonzeros(), dtype=float), row, col),
+                         shape=m.shape).tocsr()
+
+
+def _constant(expr: ca.SX, w: ca.SX, p: ca.SX) -> bool:
+    return not (ca.depends_on(expr, w) or ca.depends_on(expr, p)) if expr.nnz() else True
+
+
+def _evaluate(expr: ca.SX, w: ca.SX, p: ca.SX) -> ca.DM:
+    f = ca.Function("f", [w, p], [expr])
+    return f(np.zeros(w.numel()), np.zeros(p.numel()))
+
+
+def affine(expr: ca.SX, w: ca.SX, p: ca.SX, block: str) -> Affine | None:
+    """Return the affine decomposition of ``expr`` or ``None`` if it is not affine."""
+    Jw = ca.jacobian(expr, w)
+    Jp = ca.jacobian(expr, p) if p.numel() else ca.SX(expr.numel(), 0)
+    if not (_constant(Jw, w, p) and _constant(Jp, w, p)):
+        return None
+    c = np.asarray(_evaluate(expr, w, p), dtype=float).reshape(-1)
+    return Affine(_dm_to_sparse(_evaluate(Jw, w, p)), _dm_to_sparse(_evaluate(Jp, w, p)), c)
+
+
+def quadratic(expr: ca.SX, w: ca.SX, p: ca.SX, where: str) -> Quadratic:
+    """Decompose a scalar that is a convex quadratic of the decision variables ``w`` whose
+    gradient is affine in the parameters ``p``; refuse anything else naming ``where``."""
+    grad_w = ca.gradient(expr, w)
+    Hw = ca.jacobian(grad_w, w)
+    M = ca.jacobian(grad_w, p) if p.numel() else ca.SX(w.numel(), 0)
+    if not (_constant(Hw, w, p) and _constant(M, w, p)):
+        raise ConvexityError(
+            f"{where}: the expression is neither affine nor a convex quadratic of the decision "
+            "variables (with parameters entering the linear part affinely); the cvxpy "
+            "backend cannot hold it (use backend='casadi')")
+    H = np.asarray(ca.densify(_evaluate(Hw, w, p)), dtype=float)
+    index = np.flatnonzero(np.any(H != 0, axis=0))
+    Hs = H[np.ix_(index, index)]
+    _require_psd(Hs, where)
+    a = np.asarray(_evaluate(grad_w, w, p), dtype=float).reshape(-1)
+    phi_expr = ca.substitute(expr, w, ca.DM.zeros(w.numel()))
+    phi_aff = affine(phi_expr, w, p, where)
+    if phi_aff is not None:
+        b, c, phi = phi_aff.B, float(phi_aff.c[0]), None
+    else:
+        b, c, phi = None, 0.0, ca.Function("phi", [p], [phi_expr])
+    return Quadratic(index, psd_factor(Hs), a, _dm_to_sparse(_evaluate(M, w, p)), b, c, phi)
+
+
+@dataclass
+class JointQuadratic:
+    """``½ ‖L_w w_I + L_p p_J + l‖² + aᵀ w + bᵀ p + c``: a row that is a convex quadratic
+    jointly in the decision variables and the parameters (constant joint Hessian
+    ``[L_w L_p]ᵀ[L_w L_p] ⪰ 0`` on the indices ``I``, ``J``), written about its centre.
+    ``a``, ``b`` hold only the gradient outside the range of the Hessian (often zero), so
+    that ``c`` is the row's value at the centre (``−1`` for an ellipsoid ``(x−z)ᵀP(x−z) − 1``).
+    """
+
+    w_index: np.ndarray
+    p_index: np.ndarray
+    Lw: np.ndarray
+    Lp: np.ndarray
+    l: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    c: float
+
+    @property
+    def linear_free(self) -> bool:
+        """No affine part: the row is ``½‖·‖² + c <= 0``, i.e. the cone ``‖·‖ <= √(−2c)``."""
+        return not (np.any(self.a) or np.any(self.b))
+
+
+def joint_quadratic(expr: ca.SX, w: ca.SX, p: ca.SX) -> JointQuadratic | None:
+    """Decompose a scalar row that is quadratic jointly in ``(w, p)`` with a positive
+    semidefinite joint Hessian ``H`` as ``½‖L z + l‖² + gᵣᵀ z + c'`` (``z = (w, p)``,
+    ``LᵀL = H``, ``Lᵀl`` the part of the gradient at zero ``g`` in the range of ``H``,
+    ``gᵣ = g − Lᵀl``, ``c' = expr(0) − ½‖l‖²``); ``None`` if it is not (its Hessian depends on
+    ``(w, p)``, e.g. a nonlinear ``−h(x_k)``, or is indefinite, e.g. ``−x_kᵀ P x_k``)."""
+    z = ca.vertcat(w, p)
+    grad = ca.gradient(expr, z)
+    Hz = ca.jacobian(grad, z)
+    if not _constant(Hz, w, p):
+        return None
+    H = np.asarray(ca.densify(_evaluate(Hz, w, p)), dtype=float)
+    H = 0.5 * (H + H.T)
+    support = np.flatnonzero(np.any(H != 0, axis=0))
+    Hs = H[np.ix_(support, support)]
+    if _negative_eigenvalue(Hs) is not None:
+        return None
+    L = psd_factor(Hs)
+    g = np.asarray(_evaluate(grad, w, p), dtype=float).reshape(-1)
+    c = float(np.asarray(_evaluate(expr, w, p), dtype=float).reshape(-1)[0])
+    # L has orthogonal rows (eigen-factor): Lᵀl = projection of g onto range(H)
+    row_norms2 = np.einsum("ij,ij->i", L, L)
+    l = (L @ g[support]) / row_norms2 if L.size else np.zeros(0)
+    g_rest = g.copy()
+    g_rest[support] -= L.T @ l
+    g_rest[np.abs(g_rest) <= 1e-12 * max(1.0, float(np.abs(g).max(initial=0.0)))] = 0.0
+    nw = int(w.numel())
+    in_w = support < nw
+    return JointQuadratic(support[in_w], support[~in_w] - nw, L[:, in_w], L[:, ~in_w], l,
+                          g_rest[:nw], g_rest[nw:], c - 0.5 * float(l @ l))
+
+
+def _negative_eigenvalue(H: np.ndarray) -> float | None:
+    """The smallest eigenvalue of ``H`` if it is negative beyond rounding (``H`` is not
+    positive semidefinite), else ``None``."""
+    if H.size == 0:
+        return None
+    lam = np.linalg.eigvalsh(0.5 * (H + H.T))
+    return float(lam.min()) if lam.min() < -1e-9 * max(1.0, float(np.abs(lam).max())) \
+        else None
+
+
+def _require_psd(H: np.ndarray, where: str) -> None:
+    lam_min = _negative_eigenvalue(H)
+    if lam_min is not None:
+        raise ConvexityError(f"{where}: the Hessian has a negative eigenvalue "
+                             f"({lam_min:.3g}); a nonconvex block cannot be sent to cvxpy "
+                             "(use backend='casadi')")
+
+
+def psd_factor(H: np.ndarray) -> np.ndarray:
+    """``L`` with ``LᵀL = H`` for ``H ⪰ 0`` and orthogonal rows; drops null directions.
+
+    A diagonal ``H`` is factored exactly (``√H_ii``); otherwise by eigenvalues, dropping only
+    those at the level of the eigen-solver's rounding (``8 n ε max λ``): a cost
+    ``10¹² u₀² + u₁²`` must keep its ``u₁²``.
+    """
+    H = 0.5 * (H + H.T)
+    n = H.shape[0]
+    if n and not np.any(H - np.diag(np.diagonal(H))):
+        d = np.diagonal(H)
+        keep = np.flatnonzero(d > 0)
+        L = np.zeros((keep.size, n))
+        L[np.arange(keep.size), keep] = np.sqrt(d[keep])
+        return L
+    lam, V = np.linalg.eigh(H)
+    keep = lam > 8 * max(n, 1) * np.finfo(float).eps * max(float(lam.max(initial=0.0)), 1e-300)
+    return (V[:, keep] * np.sqrt(lam[keep])).T
+
+
+# -- the pass ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Piece:
+    """Rows ``rows`` of a block in one form: :class:`Affine` (all of them, ``(<=|==) 0``),
+    :class:`JointQuadratic` (one row, kept about its centre) or :class:`Quadratic` (one
+    row, expanded in the decision variables)."""
+
+    rows: np.ndarray
+    form: Affine | JointQuadratic | Quadratic
+
+
+@dataclass(frozen=True)
+class ClassifiedBlock:
+    """A block and its pieces, in the order the lowering emits them: the non-affine rows
+    one by one, then the affine rows stacked (a wholly affine block is one piece)."""
+
+    block: Block
+    pieces: tuple[Piece, ...]
+
+    @property
+    def conic(self) -> bool:
+        """Whether some row is not affine (needs a cone or a quadratic row)."""
+        return any(not isinstance(pc.form, Affine) for pc in self.pieces)
+
+
+@dataclass(frozen=True)
+class ClassifiedTerm:
+    """A cost term with its label and form: a :class:`Quadratic` (smooth terms) or the
+    :class:`Affine` argument of a norm, max or squared norm."""
+
+    term: Term
+    label: str
+    form: Affine | Quadratic
+
+
+@dataclass(frozen=True)
+class ClassifiedProblem:
+    """An OCP whose blocks and cost terms are classified (symbols ``w``, ``p`` stacked as
+    the OCP's layouts)."""
+
+    ocp: OCP
+    w: ca.SX
+    p: ca.SX
+    blocks: tuple[ClassifiedBlock, ...]
+    terms: tuple[ClassifiedTerm, ...]
+
+    @property
+    def conic(self) -> bool:
+        """Whether a second-order cone (or a quadratic row) is needed."""
+        return any(b.conic for b in self.blocks) or any(
+            t.term.kind == TermKind.NORM2 for t in self.terms)
+
+
+def classify_block(block: Block, w: ca.SX, p: ca.SX) -> ClassifiedBlock:
+    """The pieces of ``block`` (:class:`ClassifiedBlock`); a nonlinear equality or a row that
+    is neither affine nor convex quadratic raises :class:`ConvexityError` naming it."""
+    aff = affine(block.expr, w, p, block.name)
+    if aff is not None:
+        return ClassifiedBlock(block, (Piece(np.arange(block.rows), aff),))
+    if block.kind == BlockKind.EQ:
+        raise ConvexityError(f"block {block.name!r} ({block.tag}, {block.rows} rows): an "
+                             "equality constraint must be affine for the cvxpy backend; "
+                             "this one is nonlinear (use backend='casadi')")
+    pieces, affine_rows, affine_parts = [], [], []
+    for r in range(block.rows):
+        row_expr = block.expr[r]
+        row_aff = affine(row_expr, w, p, block.name)
+        if row_aff is not None:
+            affine_rows.append(r)
+            affine_parts.append(row_aff)
+            continue
+        jq = joint_quadratic(row_expr, w, p)
+        form = jq if jq is not None and jq.w_index.size else \
+            quadratic(row_expr, w, p, f"block {block.name!r}, row {r}")
+        pieces.append(Piece(np.array([r]), form))
+    if affine_rows:
+        pieces.append(Piece(np.array(affine_rows), stack(affine_parts)))
+    return ClassifiedBlock(block, tuple(pieces))
+
+
+def classify_term(k: int, term: Term, w: ca.SX, p: ca.SX) -> ClassifiedTerm:
+    """A smooth term as a :class:`Quadratic`, any other as the :class:`Affine` decomposition
+    of its argument; else :class:`ConvexityError` naming the term."""
+    label = term.label or f"{term.kind}#{k}"
+    if term.kind == TermKind.SMOOTH:
+        return ClassifiedTerm(term, label, quadratic(term.expr, w, p, f"cost term {label!r}"))
+    aff = affine(term.expr, w, p, label)
+    if aff is None:
+        raise ConvexityError(f"cost term {label!r} ({term.kind}): its argument must be "
+                             "affine in the decision variables for the cvxpy backend")
+    return ClassifiedTerm(term, label, aff)
+
+
+def stack(parts: list[Affine]) -> Affine | None:
+    """The rows of ``parts`` as one :class:`Affine` (``None`` for no parts)."""
+    if not parts:
+        return None
+    return Affine(sp.vstack([a.A for a in parts]).tocsr(),
+                  sp.vstack([a.B for a in parts]).tocsr(),
+                  np.concatenate([a.c for a in parts]))
+
+
+class Classify(Pass):
+    """OCP → :class:`ClassifiedProblem` (nothing to invert: the variables are the OCP's)."""
+
+    name = "classify"
+
+    def accepts(self, problem: object) -> bool:
+        return isinstance(problem, OCP)
+
+    def apply(self, ocp: OCP) -> tuple[ClassifiedProblem, None]:
+        w, p = ocp.decision_vector(), ocp.parameter_vector()
+        blocks = tuple(classify_block(b, w, p) for b in ocp.blocks)
+        terms = tuple(classify_term(k, t, w, p) for k, t in enumerate(ocp.cost.terms))
+        return ClassifiedProblem(ocp, w, p, blocks, terms), None
