@@ -116,3 +116,75 @@ def test_rate_errors_name_the_thing():
         ocp.rate_limit(1.0)
     with pytest.raises(BalustradeError, match="needs an OCP built with a system"):
         rate_limit(OCP(name="empty"), 1.0)
+
+
+# -- closed loop: the controller passes the input it applied last as u_prev -------------------
+def closed_loop_problem(rate: float = 0.2):
+    import casadi as ca
+
+    from balustrade.control import ContinuousPlant
+
+    plant = ContinuousPlant(lambda x, u: ca.vertcat(x[1], u[0]), nx=2, nu=1, dt=0.1)
+    ocp = OCP(plant.discretize("rk4"), N=20, name="rate_loop")
+    ocp.initial_state(ocp.parameter("x0", 2))
+    ocp.dynamics()
+    ocp.input_constraint(Box.symmetric([1.0]))
+    ocp.rate_limit(rate)
+    ocp.minimize(ocp.tracking_cost(Q=[10.0, 1.0], R=0.01, P=[100.0, 10.0]) + ocp.rate_cost(1.0))
+    return plant, ocp
+
+
+def test_closed_loop_rate_limit_holds_from_the_applied_inputs():
+    from balustrade.control import MPCController, simulate
+
+    plant, ocp = closed_loop_problem()
+    u_init = np.array([0.5])
+    ctl = MPCController(compile(ocp, "cvxpy"), parameters=lambda k, x: {
+        "x_ref": [1.0 if k < 30 else -0.5, 0.0]}, u_init=u_init)
+    trace = simulate(plant, ctl, [0.0, 0.0], 60)
+    assert trace.stopped is None and trace.n_fallbacks == 0
+    du = np.diff(np.concatenate([u_init, trace.inputs[:, 0]]))
+    assert np.max(np.abs(du)) <= 0.2 + 1e-7
+    assert np.max(np.abs(du)) >= 0.2 - 1e-6  # the limit is active somewhere
+    assert trace.states[30, 0] == pytest.approx(1.0, abs=0.05)  # tracks the first reference
+    assert trace.states[-1, 0] == pytest.approx(-0.5, abs=0.05)  # and the second
+    assert "objective" in trace.values
+    # reset() starts again from u_init: the same run twice
+    ctl.reset()
+    again = simulate(plant, ctl, [0.0, 0.0], 5)
+    np.testing.assert_allclose(again.inputs, trace.inputs[:5], atol=1e-8)
+
+
+def test_mpc_controller_falls_back_on_failed_solves():
+    from balustrade.control import MPCController
+
+    _, ocp = closed_loop_problem()
+    real = compile(ocp, "cvxpy")
+
+    class Flaky:
+        def __init__(self):
+            self.ocp, self.calls, self.seen = ocp, 0, []
+
+        def solve(self, params, warm_start=None):
+            self.calls += 1
+            self.seen.append(np.array(params["u_prev"]))
+            sol = real.solve(params)
+            return sol if self.calls == 1 else type(sol)(**{**sol.__dict__, "status": "failed"})
+
+    flaky = Flaky()
+    ctl = MPCController(flaky, parameters={"x_ref": [1.0, 0.0]})
+    plan = real.solve({"x0": [0.0, 0.0], "u_prev": [0.0], "x_ref": [1.0, 0.0]})["u"][0]
+    applied = []
+    for k in range(23):
+        u, info = ctl.step(np.zeros(2), None)
+        applied.append(u[0])
+        expected = None if k == 0 else ("shifted_plan" if k < 20 else "hold")
+        assert info.fallback == expected, (k, info.fallback)
+        assert k == 0 or info.uncertified == {"mpc": "failed"}
+    np.testing.assert_allclose(applied[:20], plan, atol=1e-9)  # the plan, shifted
+    assert applied[20:] == [applied[19]] * 3  # then the last input, held
+    np.testing.assert_allclose(np.concatenate(flaky.seen[1:4]), applied[:3])  # u_prev
+    u, info = ctl.step(np.array([np.nan, 0.0]), None)
+    assert info.status == "non_finite_state" and info.fallback == "hold"
+    with pytest.raises(BalustradeError, match="no initial-state parameter 'x_0'"):
+        MPCController(real, state="x_0")
