@@ -81,6 +81,26 @@ class Trace:
         """Steps that relied on at least one solve not certified ``optimal``."""
         return sum(bool(u) for u in self.uncertified)
 
+    def plot(self, path: str | None = None, **options: object) -> object:
+        """A matplotlib figure of the run, saved to ``path`` if given (see
+        :func:`balustrade.control.trace.plot_trace` for the options)."""
+        from balustrade.control.trace import plot_trace
+
+        return plot_trace(self, path, **options)
+
+    def save(self, path: str) -> tuple:
+        """Write ``<path>.csv`` (a tidy per-step table) and ``<path>.json`` (metadata)."""
+        from balustrade.control.trace import save_trace
+
+        return save_trace(self, path)
+
+    @classmethod
+    def load(cls, path: str) -> Trace:
+        """Read a run written by :meth:`save`."""
+        from balustrade.control.trace import load_trace
+
+        return load_trace(path)
+
 
 Proposal = np.ndarray | float | Callable[[int, np.ndarray], np.ndarray]
 Disturbance = np.ndarray | Callable[[int, np.ndarray], np.ndarray] | None
