@@ -5,9 +5,10 @@ hand-made one such as the pendulum (7.10)) is tested against the "true" continuo
 the applied input and the disturbance are held over each sample (zero-order hold) and the
 state is integrated over ``[0, dt]`` by
 
-* ``method="RK45"`` (default), ``"DOP853"``, ``"Radau"``, ``"BDF"``, ``"LSODA"``: adaptive
+* ``method="DOP853"`` (default), ``"RK45"``, ``"Radau"``, ``"BDF"``, ``"LSODA"``: adaptive
   :func:`scipy.integrate.solve_ivp` with tight tolerances (``rtol=1e-10``, ``atol=1e-12``;
-  the implicit methods get the exact Jacobian from CasADi);
+  the implicit methods get the exact Jacobian from CasADi). At these tolerances the
+  8th-order DOP853 is ≈ 3× faster than RK45 (pendulum: ≈ 1.3 vs 4 ms a sample);
 * ``method="rk4"``: ``substeps`` classic Runge–Kutta steps of length ``dt/substeps``
   (deterministic cost per sample, 4th order: the error falls 16× per doubling).
 
@@ -24,10 +25,11 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_count, as_scalar, as_vector, check_name
+from balustrade.backends.casadi_fast import Buffered
 from balustrade.dsl.system import Dynamics, System
 from balustrade.errors import BalustradeError
 
-IVP_METHODS = ("RK45", "DOP853", "Radau", "BDF", "LSODA", "RK23")
+IVP_METHODS = ("DOP853", "RK45", "Radau", "BDF", "LSODA", "RK23")
 _IMPLICIT = ("Radau", "BDF", "LSODA")
 
 
@@ -52,7 +54,7 @@ class ContinuousPlant:
     """
 
     def __init__(self, f_ct: Dynamics, nx: int, nu: int, dt: float, nw: int = 0,
-                 ntheta: int = 0, theta: object | None = None, method: str = "RK45",
+                 ntheta: int = 0, theta: object | None = None, method: str = "DOP853",
                  substeps: int = 10, rtol: float = 1e-10, atol: float = 1e-12,
                  name: str = "plant"):
         self.name = check_name(name, "ContinuousPlant: name")
@@ -72,7 +74,10 @@ class ContinuousPlant:
         w, th = ca.SX.sym("w", self.nw), ca.SX.sym("theta", self.rhs.ntheta)
         xdot = self.rhs(x, u, w, th)
         self._f = ca.Function("f", [x, u, w, th], [xdot])
-        self._jac = ca.Function("df_dx", [x, u, w, th], [ca.jacobian(xdot, x)])
+        # through preallocated buffers: ≈ 1 µs a call instead of ≈ 100 µs with conversions
+        self._f_fast = Buffered(self._f)
+        self._jac = Buffered(ca.Function("df_dx", [x, u, w, th],
+                                         [ca.densify(ca.jacobian(xdot, x))]))
 
     def step(self, x: np.ndarray, u: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
         """The state one sample later, from ``x`` with ``u`` (and ``w``) held constant."""
@@ -85,7 +90,7 @@ class ContinuousPlant:
         return self._ivp(x, u, w)
 
     def _rhs(self, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
-        return np.asarray(self._f(x, u, w, self.theta)).reshape(-1)
+        return self._f_fast(x, u, w, self.theta)[0].copy()
 
     def _rk4(self, x: np.ndarray, u: np.ndarray, w: np.ndarray) -> np.ndarray:
         h = self.dt / self.substeps
@@ -102,7 +107,8 @@ class ContinuousPlant:
 
         extra = {}
         if self.method in _IMPLICIT:
-            extra["jac"] = lambda _t, y: np.asarray(self._jac(y, u, w, self.theta))
+            extra["jac"] = lambda _t, y: self._jac(y, u, w, self.theta)[0].reshape(
+                (self.nx, self.nx), order="F").copy()
         out = solve_ivp(lambda _t, y: self._rhs(y, u, w), (0.0, self.dt), x,
                         method=self.method, rtol=self.rtol, atol=self.atol, **extra)
         if not out.success:  # a closed loop reports a non-finite state and stops
