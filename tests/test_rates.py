@@ -188,3 +188,5 @@ def test_mpc_controller_falls_back_on_failed_solves():
     assert info.status == "non_finite_state" and info.fallback == "hold"
     with pytest.raises(BalustradeError, match="no initial-state parameter 'x_0'"):
         MPCController(real, state="x_0")
+    with pytest.raises(BalustradeError, match=r"parameters\(k, x\) failed at step 0"):
+        MPCController(real, parameters=lambda k, x: 1 / 0).step(np.zeros(2))

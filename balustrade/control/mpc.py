@@ -97,7 +97,16 @@ class MPCController:
         return u, info
 
     def _params(self, x: np.ndarray) -> dict[str, object]:
-        extra = self.parameters(self.k, x) if callable(self.parameters) else self.parameters
+        extra = self.parameters
+        if callable(extra):
+            try:
+                extra = extra(self.k, x)
+            except Exception as exc:  # the user's function failed: a programming error
+                raise BalustradeError(f"{self.name}: parameters(k, x) failed at step {self.k}: "
+                                      f"{type(exc).__name__}: {exc}") from exc
+        if not (extra is None or isinstance(extra, Mapping)):
+            raise BalustradeError(f"{self.name}: parameters(k, x) must return a dict, got "
+                                  f"{type(extra).__name__} at step {self.k}")
         params = dict(extra or {})
         params[self.state] = x
         if self.previous_input is not None:
