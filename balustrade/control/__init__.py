@@ -2,6 +2,9 @@
 
 from balustrade.control.base import Controller, StepInfo, Trace, simulate
 from balustrade.control.fallbacks import project
+from balustrade.control.mpc import MPCController
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.control.plant import ContinuousPlant
 
-__all__ = ["Controller", "PCBFSafetyFilter", "StepInfo", "Trace", "project", "simulate"]
+__all__ = ["ContinuousPlant", "Controller", "MPCController", "PCBFSafetyFilter", "StepInfo",
+           "Trace", "project", "simulate"]

@@ -17,6 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from balustrade._checks import as_count, as_float_array, as_vector
+from balustrade.control.plant import Plant, check_plant
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
@@ -80,23 +81,43 @@ class Trace:
         """Steps that relied on at least one solve not certified ``optimal``."""
         return sum(bool(u) for u in self.uncertified)
 
+    def plot(self, path: str | None = None, **options: object) -> object:
+        """A matplotlib figure of the run, saved to ``path`` if given (see
+        :func:`balustrade.control.trace.plot_trace` for the options)."""
+        from balustrade.control.trace import plot_trace
+
+        return plot_trace(self, path, **options)
+
+    def save(self, path: str) -> tuple:
+        """Write ``<path>.csv`` (a tidy per-step table) and ``<path>.json`` (metadata)."""
+        from balustrade.control.trace import save_trace
+
+        return save_trace(self, path)
+
+    @classmethod
+    def load(cls, path: str) -> Trace:
+        """Read a run written by :meth:`save`."""
+        from balustrade.control.trace import load_trace
+
+        return load_trace(path)
+
 
 Proposal = np.ndarray | float | Callable[[int, np.ndarray], np.ndarray]
 Disturbance = np.ndarray | Callable[[int, np.ndarray], np.ndarray] | None
 
 
-def simulate(plant: System, controller: Controller, x0: np.ndarray, steps: int,
+def simulate(plant: System | Plant, controller: Controller, x0: np.ndarray, steps: int,
              proposal: Proposal = 0.0, disturbance: Disturbance = None,
              keep_infos: bool = False) -> Trace:
     """Run ``steps`` closed-loop steps ``x_{k+1} = f(x_k, u_k, w_k)`` from ``x0``.
 
-    ``proposal`` is a constant ``u_p`` or ``u_p(k, x)``; ``disturbance`` is an array
-    ``(steps, nw)`` or ``w(k, x)``. If the state stops being finite (divergence), the run
-    stops and ``Trace.stopped`` says why; it never raises for solver failures.
+    ``plant`` is a discrete :class:`System` or a continuous-time
+    :class:`~balustrade.control.plant.ContinuousPlant` (integrated over each sample with the
+    input held). ``proposal`` is a constant ``u_p`` or ``u_p(k, x)``; ``disturbance`` is an
+    array ``(steps, nw)`` or ``w(k, x)``. If the state stops being finite (divergence), the
+    run stops and ``Trace.stopped`` says why; it never raises for solver failures.
     """
-    if not isinstance(plant, System):
-        raise BalustradeError(f"simulate: plant must be a balustrade System, got "
-                              f"{type(plant).__name__}")
+    plant = check_plant(plant, "simulate")
     if not callable(getattr(controller, "step", None)):
         raise BalustradeError(f"simulate: controller must have a step(x, u_p) method, got "
                               f"{type(controller).__name__}")

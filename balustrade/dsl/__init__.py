@@ -3,11 +3,14 @@
 from balustrade.dsl.costs import Cost, Term, TermKind, max_of, norm, quad, squared_norm, sum_norms
 from balustrade.dsl.layout import Entry, Layout
 from balustrade.dsl.ocp import OCP, Block, BlockKind, BlockTag, Parameter, Variable, VariableRole
+from balustrade.dsl.rates import input_rates, rate_cost, rate_limit
 from balustrade.dsl.sets import Box, Ellipsoid, FunctionSet, Polytope, Set
 from balustrade.dsl.system import LinearSystem, System
+from balustrade.dsl.tracking import tracking_cost
 
 __all__ = [
     "OCP", "Block", "BlockKind", "BlockTag", "Box", "Cost", "Ellipsoid", "Entry", "FunctionSet",
     "Layout", "LinearSystem", "Parameter", "Polytope", "Set", "System", "Term", "TermKind",
-    "Variable", "VariableRole", "max_of", "norm", "quad", "squared_norm", "sum_norms",
+    "Variable", "VariableRole", "input_rates", "max_of", "norm", "quad", "rate_cost",
+    "rate_limit", "squared_norm", "sum_norms", "tracking_cost",
 ]

@@ -202,3 +202,20 @@ def quad(a: object, Q: object | None = None, label: str = "") -> ca.SX:
         raise ShapeError(f"quad{(' ' + label) if label else ''}: Q", (a.numel(), a.numel()),
                          Qm.shape)
     return ca.mtimes([a.T, ca.DM(Qm), a])
+
+
+def weight_matrix(W: object | None, n: int, where: str) -> np.ndarray:
+    """A PSD weight: ``None`` is ``I``, a scalar ``w I``, a vector ``diag(w)``."""
+    if W is None:
+        return np.eye(n)
+    arr = as_float_array(W, where)
+    if arr.ndim == 0:
+        arr = float(arr) * np.eye(n)
+    elif arr.ndim == 1:
+        if arr.size != n:
+            raise ShapeError(where, f"({n},) or ({n}, {n})", arr.shape)
+        arr = np.diag(arr)
+    Wm = check_psd(arr, where)
+    if Wm.shape != (n, n):
+        raise ShapeError(where, (n, n), Wm.shape)
+    return Wm

@@ -74,6 +74,7 @@ class BlockTag(StrEnum):
     TERMINAL_CBF = "terminal_cbf"
     DECREASE = "decrease"
     TUBE = "tube"
+    RATE = "rate"
 
 
 def _member(enum: type[StrEnum], value: object, where: str) -> StrEnum:
@@ -360,6 +361,28 @@ class OCP:
         xi = self._slack(slack, (1, 1), signed, name)
         self.le(value, 0 if xi is None else xi, name=name, tag="terminal_cbf")
         return xi
+
+    # -- engineering blocks (delegates: balustrade.dsl.rates, balustrade.dsl.tracking) ----
+    def rate_limit(self, rate: object, soft: bool = False, u_prev: str | ca.SX = "u_prev",
+                   name: str = "rate") -> ca.SX | None:
+        """``|u_i − u_{i−1}| <= rate`` with ``u_{−1} = u_prev`` (see :mod:`~.rates`)."""
+        from balustrade.dsl.rates import rate_limit
+
+        return rate_limit(self, rate, soft=soft, u_prev=u_prev, name=name)
+
+    def rate_cost(self, R: object | None = None, u_prev: str | ca.SX = "u_prev") -> Cost:
+        """``Σ_i ‖u_i − u_{i−1}‖²_R`` with ``u_{−1} = u_prev`` (see :mod:`~.rates`)."""
+        from balustrade.dsl.rates import rate_cost
+
+        return rate_cost(self, R, u_prev=u_prev)
+
+    def tracking_cost(self, Q: object | None = None, R: object | None = None,
+                      P: object | None = None, **refs: object) -> Cost:
+        """``Σ_i ‖x_i − r_i‖²_Q + ‖u_i − u^ref_i‖²_R + ‖x_N − r_N‖²_P`` (see
+        :func:`balustrade.dsl.tracking.tracking_cost` for ``x_ref``, ``u_ref``, ...)."""
+        from balustrade.dsl.tracking import tracking_cost
+
+        return tracking_cost(self, Q, R, P, **refs)
 
     # -- cost ----------------------------------------------------------------------
     def minimize(self, cost: object) -> None:
