@@ -17,9 +17,12 @@ from balustrade.backends import (
 from balustrade.dsl.synthesis import (
     SynthesisProblem,
     bmat,
+    diag,
     hstack,
     logdet,
+    multiply,
     norm,
+    sum_squares,
     total,
     trace,
     vstack,
@@ -175,3 +178,26 @@ def test_errors_name_the_thing_before_any_solver_runs() -> None:
     with pytest.raises(BalustradeError, match="truth value"):
         if X[0, 0] >= 1:
             pass
+
+
+def test_row_cones_sparse_constants_diag_and_sum_squares() -> None:
+    import scipy.sparse as sp
+
+    rng = np.random.default_rng(1)
+    X0 = rng.standard_normal((4, 3))
+    sdp = SynthesisProblem("row cones")
+    X, s = sdp.matrix("X", (4, 3)), sdp.vector("s", 4)
+    sdp.soc("rows", X - X0, s, axis=1)            # ‖X[i, :] − X0[i, :]‖ <= s_i
+    sdp.subject_to("pin", sp.csr_matrix(np.eye(4)[:1]) @ X == 0)
+    sdp.minimize(total(s) + 0.0 * sum_squares(diag(multiply(np.ones(4), s))))
+    sol = solve_synthesis(sdp)
+    assert sol.ok and np.allclose(sol["X"][0], 0, atol=1e-7)
+    assert np.allclose(sol["X"][1:], X0[1:], atol=1e-6)
+    assert sol["s"][0] == pytest.approx(np.linalg.norm(X0[0]), rel=1e-6)
+    # 1-D items of vstack are rows, as in numpy
+    assert vstack([s, s]).shape == (2, 4) and hstack([s, s]).shape == (8,)
+    # shapes of huge expressions are inferred without allocating them
+    big = SynthesisProblem("big").matrix("Z", (100000, 100000))
+    assert (big[:, :3].T @ np.ones((100000, 2))).shape == (3, 2)
+    with pytest.raises(ShapeError, match="bounds t"):
+        sdp.soc("bad", X, s[:3], axis=1)

@@ -127,6 +127,16 @@ class CompiledSynthesis:
             return cp.trace(sub[0])
         if op == "sum":
             return cp.sum(sub[0])
+        if op == "hstack":
+            return cp.hstack(sub)
+        if op == "vstack":
+            return cp.vstack(sub)
+        if op == "diag":
+            return cp.diag(sub[0])
+        if op == "multiply":
+            return cp.multiply(sub[0], sub[1])
+        if op == "sum_squares":
+            return cp.sum_squares(sub[0])
         if op == "norm":
             return cp.norm(sub[0], e.data)
         if op == "logdet":
@@ -140,6 +150,9 @@ class CompiledSynthesis:
                 return lhs == rhs
             if c.kind == "<=":
                 return lhs <= rhs
+            if c.kind == "soc":
+                return cp.SOC(cp.reshape(rhs, (c.lhs.shape[1 - c.axis],), order="F"), lhs,
+                              axis=c.axis)
             return lhs >> rhs
         except (ValueError, cp.error.DCPError) as exc:
             raise BalustradeError(f"compile_synthesis({self.problem.name}): constraint "
@@ -187,8 +200,8 @@ class CompiledSynthesis:
             sol.objective = float(prob.value)
             sol.values = {n: np.array(v.value, dtype=float).reshape(v.shape)
                           for n, v in self.variables.items() if v.value is not None}
-            sol.duals = {n: np.array(c.dual_value, dtype=float)
-                         for n, c in self.constraints.items() if c.dual_value is not None}
+            sol.duals = {n: _dual(c.dual_value) for n, c in self.constraints.items()
+                         if c.dual_value is not None}
             if len(sol.values) != len(self.variables):
                 sol.status = "failed"
                 sol.message += "; the solver returned no value for some variables"
@@ -207,6 +220,13 @@ class CompiledSynthesis:
         return (f"too large: {self.problem.name}: one dense PSD cone of size {size} needs about "
                 f"{need / 2**30:.1f} GB with Clarabel, {avail / 2**30:.1f} GB available; use "
                 "a target with solver 'scs' (it only needs eigendecompositions of the cone)")
+
+
+def _dual(value: object) -> np.ndarray | list[np.ndarray]:
+    """A multiplier as an array (a list of arrays for a cone with several parts, e.g. SOC)."""
+    if isinstance(value, list | tuple):
+        return [np.array(v, dtype=float) for v in value]
+    return np.array(value, dtype=float)
 
 
 def _variable(d) -> cp.Variable:

@@ -23,15 +23,16 @@ class SynthesisSolution:
     ``status`` is one of :data:`SYNTHESIS_STATUSES`; ``message`` says why in words (cvxpy's
     status, the solver's own status, an exception text, or a refusal such as a PSD cone too
     large for the memory). ``values`` maps variable names to arrays of their declared
-    shapes (empty unless :attr:`ok`), ``duals`` maps constraint names to multipliers,
-    ``objective`` is the optimal value, ``solve_time`` the wall time of the solve (s),
-    ``solver_time`` the solver's own time when it reports one, ``target`` the target used.
+    shapes (empty unless :attr:`ok`), ``duals`` maps constraint names to multipliers (a list
+    of arrays for a second-order cone: those of ``t`` and of ``x``), ``objective`` is the
+    optimal value, ``solve_time`` the wall time of the solve (s), ``solver_time`` the
+    solver's own time when it reports one, ``target`` the target used.
     """
 
     status: str
     message: str = ""
     values: dict[str, np.ndarray] = field(default_factory=dict)
-    duals: dict[str, np.ndarray] = field(default_factory=dict)
+    duals: dict[str, np.ndarray | list[np.ndarray]] = field(default_factory=dict)
     objective: float = float("nan")
     solve_time: float = 0.0
     solver_time: float = float("nan")

@@ -62,9 +62,16 @@ class ParameterDecl:
 
 
 # -- expressions ----------------------------------------------------------------------------
-def _shape_of(fn, *shapes: Shape) -> Shape:
-    """The result shape of ``fn`` on arrays of ``shapes`` (numpy's rules)."""
-    return tuple(np.shape(fn(*(np.zeros(s) for s in shapes))))
+def _ghost(shape: Shape) -> np.ndarray:
+    """A read-only array of ``shape`` that allocates one number (for numpy's shape rules)."""
+    return np.broadcast_to(np.zeros(()), shape)
+
+
+def _matmul_shape(a: Shape, b: Shape) -> Shape:
+    """numpy's ``@`` shape rule for 1-D and 2-D operands (raises ValueError on a mismatch)."""
+    if a[-1] != b[0]:
+        raise ValueError("inner dimensions")
+    return a[:-1] + b[1:]
 
 
 def _join(a: str, b: str) -> str:
@@ -183,7 +190,7 @@ class Expr:
 
     def __getitem__(self, key: object) -> Expr:
         try:
-            shape = np.shape(np.zeros(self.shape)[key])
+            shape = np.shape(_ghost(self.shape)[key])
         except (IndexError, TypeError, ValueError) as exc:
             raise ShapeError(f"synthesis: {self.describe()}[{key!r}]", f"an index into shape "
                              f"{self.shape}", key, what="index") from exc
@@ -219,6 +226,11 @@ def as_expr(value: object) -> Expr:
     if isinstance(value, Constraint):
         raise BalustradeError("synthesis: a constraint is not an expression (did you chain "
                               "two comparisons?)")
+    if _is_sparse(value):
+        if not np.all(np.isfinite(value.data)):
+            raise BalustradeError(f"synthesis: a sparse constant of shape {value.shape} has "
+                                  "non-finite entries")
+        return Expr("constant", (), value.shape, "constant", False, data=value.tocsr())
     try:
         arr = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -228,6 +240,11 @@ def as_expr(value: object) -> Expr:
         raise BalustradeError(f"synthesis: a constant of shape {arr.shape} has non-finite "
                               "entries")
     return Expr("constant", (), arr.shape, "constant", False, data=arr)
+
+
+def _is_sparse(value: object) -> bool:
+    """Whether ``value`` is a scipy sparse matrix (kept sparse as a constant)."""
+    return hasattr(value, "tocsr") and hasattr(value, "nnz")
 
 
 def _scale(a: Expr, b: Expr) -> Expr:
@@ -261,7 +278,7 @@ def _matmul(a: Expr, b: Expr) -> Expr:
         raise ShapeError(f"synthesis: {a.describe()} @ {b.describe()}", "no scalar operand "
                          "(use * for scalars)", (a.shape, b.shape), what="shapes")
     try:
-        shape = _shape_of(np.matmul, a.shape, b.shape)
+        shape = _matmul_shape(a.shape, b.shape)
     except ValueError:
         raise ShapeError(f"synthesis: {a.describe()} @ {b.describe()}", "matching inner "
                          "dimensions", (a.shape, b.shape), what="shapes") from None
@@ -326,14 +343,67 @@ def bmat(blocks: Sequence[Sequence[object]]) -> Expr:
                 "affine" if has_var else "constant", has_var, label="bmat")
 
 
+def _stack(op: str, items: Sequence[object]) -> Expr:
+    exprs = tuple(as_expr(b) for b in items)
+    if not exprs:
+        raise BalustradeError(f"synthesis: {op} needs at least one item")
+    for e in exprs:
+        _affine(e, op)
+    fn = np.hstack if op == "hstack" else np.vstack
+    try:
+        shape = np.shape(fn([_ghost(e.shape) for e in exprs]))
+    except ValueError:
+        raise ShapeError(f"synthesis: {op}", "compatible shapes",
+                         [e.shape for e in exprs], what="shapes") from None
+    has_var = any(e.has_var for e in exprs)
+    return Expr(op, exprs, shape, "affine" if has_var else "constant", has_var)
+
+
 def hstack(items: Sequence[object]) -> Expr:
-    """``[B_1, B_2, …]`` side by side."""
-    return bmat([list(items)])
+    """``[B_1, B_2, …]`` side by side (numpy's ``hstack`` rules)."""
+    return _stack("hstack", items)
 
 
 def vstack(items: Sequence[object]) -> Expr:
-    """``[B_1; B_2; …]`` on top of each other."""
-    return bmat([[b] for b in items])
+    """``[B_1; B_2; …]`` on top of each other (numpy's ``vstack`` rules: 1-D items are
+    rows)."""
+    return _stack("vstack", items)
+
+
+def diag(e: object) -> Expr:
+    """The diagonal matrix of a vector, or the diagonal (vector) of a square matrix."""
+    e = _affine(as_expr(e), "diag")
+    if e.ndim == 1:
+        shape: Shape = (e.shape[0], e.shape[0])
+    elif e.ndim == 2 and e.shape[0] == e.shape[1]:
+        shape = (e.shape[0],)
+    else:
+        raise ShapeError(f"synthesis: diag({e.describe()})", "a vector or a square matrix",
+                         e.shape)
+    return Expr("diag", (e,), shape, e.curvature, e.has_var)
+
+
+def multiply(a: object, b: object) -> Expr:
+    """The elementwise product of ``a`` and ``b`` (at most one with variables)."""
+    a, b = as_expr(a), as_expr(b)
+    try:
+        shape = np.broadcast_shapes(a.shape, b.shape)
+    except ValueError:
+        raise ShapeError(f"synthesis: multiply({a.describe()}, {b.describe()})", "broadcastable "
+                         "shapes", (a.shape, b.shape), what="shapes") from None
+    if a.has_var and b.has_var:
+        raise ConvexityError(f"synthesis: multiply({a.describe()}, {b.describe()}) multiplies "
+                             "two variable expressions: not affine, refused")
+    _affine(a, "multiply")
+    _affine(b, "multiply")
+    has_var = a.has_var or b.has_var
+    return Expr("multiply", (a, b), shape, "affine" if has_var else "constant", has_var)
+
+
+def sum_squares(e: object) -> Expr:
+    """``‖e‖²`` (sum of squared entries): convex."""
+    e = _affine(as_expr(e), "sum_squares")
+    return Expr("sum_squares", (e,), (), "convex", e.has_var)
 
 
 def trace(e: object) -> Expr:
@@ -372,12 +442,13 @@ def logdet(e: object) -> Expr:
 
 # -- constraints ------------------------------------------------------------------------------
 class Constraint:
-    """``lhs == rhs``, ``lhs <= rhs`` (elementwise) or ``lhs ⪰ rhs`` (``">>"``)."""
+    """``lhs == rhs``, ``lhs <= rhs`` (elementwise), ``lhs ⪰ rhs`` (``">>"``), or the cones
+    ``‖slice of lhs‖₂ <= rhs`` along ``axis`` (``"soc"``)."""
 
     __hash__ = object.__hash__
 
-    def __init__(self, kind: str, lhs: Expr, rhs: Expr):
-        self.kind, self.lhs, self.rhs = kind, lhs, rhs
+    def __init__(self, kind: str, lhs: Expr, rhs: Expr, axis: int | None = None):
+        self.kind, self.lhs, self.rhs, self.axis = kind, lhs, rhs, axis
         text = f"{lhs.describe()} {kind} {rhs.describe()}"
         if kind == "==":
             _affine(lhs, f"equality {text}")
@@ -397,11 +468,11 @@ class Constraint:
                     raise ShapeError(f"synthesis: LMI {text}", "square matrices", side.shape)
             if lhs.ndim == 2 and rhs.ndim == 2 and lhs.shape != rhs.shape:
                 raise ShapeError(f"synthesis: LMI {text}", lhs.shape, rhs.shape)
-        else:
+        elif kind != "soc":  # "soc": ‖lhs slices‖₂ <= rhs, checked by SynthesisProblem.soc
             raise BalustradeError(f"synthesis: unknown constraint kind {kind!r}")
         if not (lhs.has_var or rhs.has_var):
             raise BalustradeError(f"synthesis: {text} involves no variable")
-        if kind != ">>":
+        if kind in ("==", "<="):
             try:
                 np.broadcast_shapes(lhs.shape, rhs.shape)
             except ValueError:
@@ -514,9 +585,19 @@ class SynthesisProblem:
             return self.subject_to(name, M)
         return self.subject_to(name, as_expr(M) >> 0)
 
-    def soc(self, name: str, x: object, t: object) -> Constraint:
-        """The second-order cone ``‖x‖₂ <= t``."""
-        return self.subject_to(name, norm(x) <= t)
+    def soc(self, name: str, x: object, t: object, axis: int | None = None) -> Constraint:
+        """The second-order cone ``‖x‖₂ <= t``; with ``axis``, one cone per slice of the matrix
+        ``x`` (``axis=1``: ``‖x[i, :]‖₂ <= t[i]`` for every row ``i``; ``axis=0``: columns)."""
+        if axis is None:
+            return self.subject_to(name, norm(x) <= t)
+        x, t = _affine(as_expr(x), f"soc {name!r}"), _affine(as_expr(t), f"soc {name!r}")
+        if x.ndim != 2 or axis not in (0, 1):
+            raise ShapeError(f"{self.name}: soc {name!r}", "a matrix x and axis 0 or 1",
+                             (x.shape, axis), what="(shape, axis)")
+        count = x.shape[1 - axis]
+        if t.size != count or t.ndim > 1:
+            raise ShapeError(f"{self.name}: soc {name!r} bounds t", (count,), t.shape)
+        return self.subject_to(name, Constraint("soc", x, t, axis=axis))
 
     # -- objective ----------------------------------------------------------------------------
     def minimize(self, expr: object) -> None:
@@ -572,5 +653,5 @@ def check_parameter_value(decl: ParameterDecl, value: object, problem: str) -> n
 
 
 __all__ = ["CURVATURES", "Constraint", "Expr", "ParameterDecl", "SynthesisProblem",
-           "VariableDecl", "as_expr", "bmat", "check_parameter_value", "hstack", "logdet",
-           "norm", "reshape", "total", "trace", "vstack"]
+           "VariableDecl", "as_expr", "bmat", "check_parameter_value", "diag", "hstack",
+           "logdet", "multiply", "norm", "reshape", "sum_squares", "total", "trace", "vstack"]
