@@ -116,3 +116,20 @@ def test_ch5_robust_design_is_input_limited_and_its_note_says_so() -> None:
     assert terminal_note(synthesize_terminal_cbf(
         system.A, system.B, X_E, U_E, delta_N=s.deltas()[-1], min_level=1.0)).startswith(
         "note: terminal CBF level gamma_f = 1")
+
+
+def test_the_sdp_is_a_synthesis_problem_with_named_blocks_and_a_target() -> None:
+    """(7.11) is written in the synthesis language: one LMI block per thesis row, solved
+    through a target (issue #13 §4)."""
+    from balustrade.dsl.synthesis import SynthesisProblem
+    from balustrade.errors import SolverError
+    from balustrade.problems.terminal_cbf import terminal_cbf_sdp
+
+    system, s = pendulum(), pendulum_setup()
+    sdp = terminal_cbf_sdp(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
+    assert isinstance(sdp, SynthesisProblem) and sdp.sense == "minimize"
+    assert list(sdp.constraints) == (["invariance"]
+                                     + [f"state row {i}" for i in range(len(s.X.h))]
+                                     + [f"input row {j}" for j in range(len(s.U.h))])
+    with pytest.raises(SolverError, match="lower to cvxpy"):
+        synthesize_terminal_cbf(system.A, system.B, s.X, s.U, target="exact-ipopt")
