@@ -102,8 +102,8 @@ def test_bad_input_is_refused_before_the_solver(kwargs: dict, error: type,
 def test_ch5_robust_design_is_input_limited_and_its_note_says_so() -> None:
     """§5.6: the terminal CBF of the ch5-robust reproduction (SDP (6.17) on X ⊖ E, U ⊖ κ(E))
     has γ_f ≈ 0 by the thesis' design; the reproduction prints a note instead of warning."""
-    from balustrade.dsl.error_sets import ellipsoidal_rpi
     from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+    from balustrade.problems.rpi import ellipsoidal_rpi
     from balustrade.reproduce.ch5_robust import terminal_note
 
     system, s = unstable2d(), unstable2d_setup(30)

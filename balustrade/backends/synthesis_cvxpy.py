@@ -115,6 +115,8 @@ class CompiledSynthesis:
             return -sub[0]
         if op == "mul":
             return sub[0] * sub[1]
+        if op == "div":
+            return sub[0] / sub[1]
         if op == "matmul":
             return sub[0] @ sub[1]
         if op == "transpose":

@@ -173,7 +173,8 @@ class Expr:
         value = float(np.asarray(other.data).reshape(-1)[0])
         if value == 0:
             raise BalustradeError(f"synthesis: {self.describe()} / 0")
-        return _scale(self, as_expr(1.0 / value))
+        scaled = _scale(self, as_expr(1.0 / value))  # shape and curvature of the quotient
+        return Expr("div", (self, other), scaled.shape, scaled.curvature, self.has_var)
 
     def __matmul__(self, other: object) -> Expr:
         return _matmul(self, as_expr(other))
