@@ -201,3 +201,33 @@ def test_row_cones_sparse_constants_diag_and_sum_squares() -> None:
     assert (big[:, :3].T @ np.ones((100000, 2))).shape == (3, 2)
     with pytest.raises(ShapeError, match="bounds t"):
         sdp.soc("bad", X, s[:3], axis=1)
+
+
+def test_docs_example_lq_terminal_ellipsoid() -> None:
+    """The example of docs/language.md "Synthesis problems (SDPs)", run as written: the
+    solution certifies V(Ax + BKx) − V(x) <= −(xᵀQx + uᵀRu) with V = xᵀ(γE⁻¹)x,
+    V(x0) <= γ and |Kx| <= u_max on the ellipsoid, for each x0 without rebuilding."""
+    import pathlib
+    import re
+
+    text = pathlib.Path(__file__).parents[1].joinpath("docs", "language.md").read_text()
+    section = text.split("## Synthesis problems (SDPs)")[1]
+    code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    scope: dict = {"print": lambda *a: None}
+    exec(compile(code, "docs/language.md", "exec"), scope)
+    compiled = scope["compiled"]
+    A_, B_, Q, R, u_max = (scope[k] for k in ("A", "B", "Q", "R", "u_max"))
+    gammas = []
+    for x in ([1.0, 0.0], [0.5, -1.0]):
+        x0 = np.reshape(x, (2, 1))
+        sol = compiled.solve({"x0": x0})
+        assert sol.status == "optimal"
+        E, g = sol["E"], sol["gamma"].item()
+        P, K = g * np.linalg.inv(E), sol["Y"] @ np.linalg.inv(E)
+        Acl = A_ + B_ @ K
+        gap = Acl.T @ P @ Acl - P + Q + K.T @ R @ K
+        assert np.max(np.linalg.eigvalsh(0.5 * (gap + gap.T))) <= 1e-6 * g
+        assert (x0.T @ P @ x0).item() <= g * (1 + 1e-6)
+        assert np.sqrt((K @ E @ K.T).item()) <= u_max * (1 + 1e-6)
+        gammas.append(g)
+    assert gammas[0] != pytest.approx(gammas[1])   # the parameter reached the solver
