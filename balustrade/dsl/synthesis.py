@@ -319,7 +319,7 @@ def reshape(e: object, shape: Sequence[int]) -> Expr:
 
 
 def _block(value: object, where: str) -> Expr:
-    e = as_expr(value)
+    e = _affine(as_expr(value), where)
     if e.ndim < 2 and e.size == 1:
         return reshape(e, (1, 1))
     if e.ndim != 2:
