@@ -269,7 +269,9 @@ def compile_synthesis(problem: SynthesisProblem, target: Target | str | None = "
                       solver: str | None = None, options: dict | None = None
                       ) -> CompiledSynthesis:
     """Lower ``problem`` once for ``target`` (a :class:`Target`, a preset name — ``"sdp"``
-    by default — or ``"cvxpy"``); ``solver``/``options`` override the target's."""
+    by default — or ``"cvxpy"``); ``solver``/``options`` override the target's. Only the
+    target's own options reach the solver (no backend defaults are added: ``"clarabel"``
+    and ``"sdp"`` both run Clarabel with its own tolerances here)."""
     try:
         tgt = resolve_target(target, default="sdp", solver=solver, options=options)
     except SolverError as exc:
