@@ -26,8 +26,6 @@ KNOWN: dict[str, str] = {
     "problems/approximate.py": "MaximalDecrease moves to control/ and takes a target (§3)",
     "problems/robust.py": "projection and slack polishing move to control/ (§3)",
     "control/fallbacks.py": "its projection becomes Set.project (§3)",
-    "problems/terminal_cbf.py": "the SDP (6.17) is rewritten in the synthesis language (§4)",
-    "dsl/error_sets.py": "the RPI SDP (5.14) is rewritten in the synthesis language (§4)",
     "problems/regret/banded.py": "the regret SDPs move to the synthesis language (§4)",
     "problems/regret/dense.py": "the regret SDPs move to the synthesis language (§4)",
     "problems/regret/lmi.py": "the regret SDPs move to the synthesis language (§4)",

@@ -27,6 +27,9 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
                        along sampling paths.
 ``"cvxpy"``            cvxpy: PIQP for LPs/QPs, Clarabel for conic problems, tight tolerances.
 ``"conic"``            cvxpy + Clarabel, tight tolerances (SOCPs, SDPs).
+``"sdp"``              synthesis problems (:func:`~balustrade.backends.compile_synthesis`):
+                       cvxpy + Clarabel with Clarabel's own tolerances, the options every SDP
+                       of balustrade (terminal CBF, RPI set, regret family) has been solved with.
 =====================  =========================================================================
 
 A target is immutable; ``with_options``/``with_retries``/``with_solver`` return new targets.
@@ -194,6 +197,7 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="sampling-warm"),
     Target("cvxpy", None, name="cvxpy"),
     Target("cvxpy", "clarabel", name="conic"),
+    Target("cvxpy", "clarabel", name="sdp"),
 )}
 
 #: the solver-named spellings of presets (kept so that existing scripts resolve)
