@@ -79,9 +79,15 @@ def test_api_reference_covers_every_public_module() -> None:
         assert f"api/{page.name}" in nav, page.name
 
 
+#: pages kept by another branch, with the table that plays the part of "Where it lives"
+WHERE_ELSEWHERE = {"regret.md": "| module |"}
+
+
 def test_every_guide_page_says_where_things_live() -> None:
-    """Each page outside the API reference names the modules holding what it describes."""
-    missing = [p.name for p in DOCS.glob("*.md") if "Where it lives" not in p.read_text()]
+    """Each page outside the API reference names the modules holding what it describes
+    (as autorefs links where it can, so that ``make docs`` fails when a module moves)."""
+    missing = [p.name for p in DOCS.glob("*.md")
+               if WHERE_ELSEWHERE.get(p.name, "Where it lives") not in p.read_text()]
     assert missing == []
 
 
