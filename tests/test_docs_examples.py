@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ast
 import importlib
+import importlib.util
 import re
 from pathlib import Path
 
@@ -104,3 +105,34 @@ def test_lazy_names_in_the_reference_are_the_real_objects() -> None:
         module, _, attr = real.rpartition(".")
         target = getattr(importlib.import_module(module), attr)
         assert getattr(balustrade, public.rpartition(".")[2]) is target
+
+
+def _extension():
+    """docs/_ext/sphinx_roles.py as a module (its text helpers need no griffe)."""
+    spec = importlib.util.spec_from_file_location("sphinx_roles", DOCS / "_ext" / "sphinx_roles.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_rest_simple_tables_become_markdown() -> None:
+    ext = _extension()
+    text = ("Intro::\n\n    code\n\n"
+            "=========  =====\n"
+            "name       what\n"
+            "=========  =====\n"
+            "``a``      one,\n"
+            "           continued\n"
+            "``longer_name`` overflows\n"
+            "=========  =====\n\nAfter.")
+    out = ext._literal_markers(ext._simple_tables(text))
+    assert out.split("\n") == ["Intro:", "", "    code", "", "| name | what |", "| --- | --- |",
+                               "| ``a`` | one, continued |", "| ``longer_name`` | overflows |",
+                               "", "After."]
+
+
+def test_roles_are_recognized() -> None:
+    ext = _extension()
+    found = [m.group("tilde", "body") for m in ext.ROLE.finditer(
+        "see :class:`~balustrade.dsl.ocp.OCP`, :func:`verify` and :py:mod:`.banded`")]
+    assert found == [("~", "balustrade.dsl.ocp.OCP"), ("", "verify"), ("", ".banded")]

@@ -1,4 +1,4 @@
-"""Griffe extension: render the Sphinx roles of balustrade's docstrings as checked links.
+"""Griffe extension: render the reST of balustrade's docstrings as Markdown, roles as checked links.
 
 balustrade's docstrings cross-reference with Sphinx roles (``:class:`~balustrade.dsl.ocp.OCP```,
 ``:func:`verify```, ``:mod:`.banded```). mkdocstrings reads Markdown, where such a role would show
@@ -10,6 +10,10 @@ that breaks later. A role that spells out a public ``balustrade.`` path always b
 a renamed or moved target fails the build too. A role naming something outside the package
 (numpy, CasADi), a private object or a short name that does not resolve is rendered as code.
 
+Two more reST constructs are translated so that they read well: simple tables (``====  ====``
+borders) become Markdown tables, and a paragraph ending in ``::`` (an indented literal block
+follows, which Markdown also shows as code) loses one colon.
+
 Configured in ``mkdocs.yml`` (``plugins.mkdocstrings.handlers.python.options.extensions``).
 """
 
@@ -18,7 +22,10 @@ from __future__ import annotations
 import re
 from typing import Any
 
-import griffe
+try:
+    import griffe
+except ImportError:  # the docs extra is not installed: the text helpers stay testable
+    griffe = None
 
 ROLE = re.compile(
     r":(?:py:)?(?:class|func|meth|mod|attr|data|exc|obj|const|type):`(?P<tilde>~?)(?P<body>[^`]+)`"
@@ -36,7 +43,7 @@ def _is_private(path: str) -> bool:
     return any(p.startswith("_") and not p.startswith("__") for p in path.split("."))
 
 
-class SphinxRoles(griffe.Extension):
+class SphinxRoles(griffe.Extension if griffe else object):  # type: ignore[misc]
     """Rewrite Sphinx roles in every docstring of the package into autorefs links or code."""
 
     def on_package(self, *, pkg: griffe.Module, loader: griffe.GriffeLoader, **kwargs: Any) -> None:
@@ -50,7 +57,8 @@ class SphinxRoles(griffe.Extension):
             return
         seen.add(obj.path)
         if obj.docstring is not None:
-            obj.docstring.value = ROLE.sub(lambda m: self._render(obj, m), obj.docstring.value)
+            text = ROLE.sub(lambda m: self._render(obj, m), obj.docstring.value)
+            obj.docstring.value = _literal_markers(_simple_tables(text))
         for member in obj.members.values():
             if not member.is_alias:
                 self._walk(member, seen)
@@ -90,3 +98,62 @@ class SphinxRoles(griffe.Extension):
         if _is_private(canonical):
             return None
         return canonical
+
+
+BORDER = re.compile(r"^(?P<indent>\s*)=+(?: +=+)+\s*$")
+
+
+def _cells(line: str, starts: list[int]) -> list[str]:
+    """Split a table row at the column starts; text overflowing a column moves the cut to
+    the next space (as reST allows for the last columns)."""
+    cuts, pos = [], 0
+    for start in starts[1:]:
+        start = max(start, pos)
+        while 0 < start < len(line) and not line[start - 1].isspace():
+            start += 1
+        cuts.append(start)
+        pos = start
+    bounds = [0, *cuts, len(line)]
+    return [line[a:b].strip() for a, b in zip(bounds, bounds[1:])]
+
+
+def _simple_tables(text: str) -> str:
+    """reST simple tables (``====  ====`` borders, optional header) as Markdown tables."""
+    lines, out, i = text.split("\n"), [], 0
+    while i < len(lines):
+        match = BORDER.match(lines[i])
+        if not match:
+            out.append(lines[i])
+            i += 1
+            continue
+        border, indent = lines[i], len(match.group("indent"))
+        starts = [m.start() - indent for m in re.finditer(r"=+", border)]
+        borders, rows, j = [i], [], i + 1
+        while j < len(lines) and len(borders) < 3:
+            if BORDER.match(lines[j]):
+                borders.append(j)
+                if j + 1 >= len(lines) or not lines[j + 1].strip():
+                    break  # a closing border: nothing but a blank line follows
+            elif lines[j].strip():
+                rows.append((j, _cells(lines[j][indent:], starts)))
+            j += 1
+        merged: list[list[str]] = []
+        for _, cells in rows:
+            if merged and not cells[0]:  # continuation line of the previous row
+                merged[-1] = [f"{a} {b}".strip() for a, b in zip(merged[-1], cells)]
+            else:
+                merged.append(cells)
+        header_rows = [c for k, c in rows if k < borders[1]] if len(borders) == 3 else []
+        header = header_rows[0] if header_rows else [" "] * len(starts)
+        body = merged[len(header_rows):]
+        out.append("| " + " | ".join(header) + " |")
+        out.append("|" + " --- |" * len(starts))
+        out.extend("| " + " | ".join(c.replace("|", "\\|") for c in row) + " |" for row in body)
+        i = borders[-1] + 1
+    return "\n".join(out)
+
+
+def _literal_markers(text: str) -> str:
+    """``text::`` before an indented literal block reads ``text:``; a lone ``::`` goes."""
+    text = re.sub(r"(?m)^[ \t]*::[ \t]*$", "", text)
+    return re.sub(r"(?m)(\S)::[ \t]*$", r"\1:", text)
