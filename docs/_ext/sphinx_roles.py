@@ -51,6 +51,7 @@ class SphinxRoles(griffe.Extension if griffe else object):  # type: ignore[misc]
             return
         self.loader = loader
         self._walk(pkg, seen=set())
+        self._hide_reexports(pkg)
 
     def _walk(self, obj: griffe.Object, seen: set[str]) -> None:
         if obj.path in seen:
@@ -62,6 +63,20 @@ class SphinxRoles(griffe.Extension if griffe else object):  # type: ignore[misc]
         for member in obj.members.values():
             if not member.is_alias:
                 self._walk(member, seen)
+
+    def _hide_reexports(self, module: griffe.Module) -> None:
+        """Document each object once, in the module that defines it: a name a package (or a
+        module) re-exports from a public module of balustrade is not rendered again there."""
+        for member in list(module.members.values()):
+            if member.is_alias:
+                try:
+                    canonical = member.final_target.path
+                except Exception:  # noqa: BLE001 - unresolvable: leave it to mkdocstrings
+                    continue
+                if canonical.startswith(PACKAGE + ".") and not _is_private(canonical):
+                    member.public = False
+            elif member.is_module:
+                self._hide_reexports(member)
 
     def _render(self, scope: griffe.Object, match: re.Match[str]) -> str:
         body = match.group("body").strip()
