@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 # PyTorch (optional extra `learn`): the CPU wheel; an unpinned `torch` pulls a multi-GB CUDA build.
 TORCH ?= torch==2.13.0
 
-.PHONY: setup demo test test-slow bench lint clean
+.PHONY: setup demo test test-slow bench lint docs clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -16,6 +16,11 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 setup: $(VENV)/.installed
+
+# the `docs` extra (mkdocs + mkdocstrings), installed on first `make docs`
+$(VENV)/.docs-installed: $(VENV)/.installed
+	$(PY) -m pip install -q -e ".[docs]"
+	touch $@
 
 demo: setup
 	$(VENV)/bin/balustrade demo --out out/demo
@@ -30,7 +35,13 @@ bench: setup
 	$(VENV)/bin/balustrade bench
 
 lint: setup
-	$(VENV)/bin/ruff check balustrade tests benchmarks
+	$(VENV)/bin/ruff check balustrade tests benchmarks docs/_ext
+
+# API reference from the docstrings plus docs/*.md into site/; --strict turns every warning
+# (a broken cross-reference, a page missing from mkdocs.yml) into a failure. Not -q: quiet mode
+# hides the warnings from the strict count.
+docs: $(VENV)/.docs-installed
+	$(VENV)/bin/mkdocs build --strict
 
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) out site .pytest_cache
