@@ -12,8 +12,8 @@ the extra (5.15) solve that records ``h_r`` for the plots under 6.4 is not count
 CasADi + IPOPT for both problems; Algorithm 5.2 with IPOPT's adaptive barrier update
 (``mu_strategy = adaptive``: 0.46 s vs 0.77 s per step at N = 200 on the loaded 2-core machine),
 Algorithm 6.4 with the monotone default (0.95 s vs 1.14 s and no failures); slacks are polished
-afterwards (:func:`~balustrade.problems.robust.polished_slacks`). Full mode runs the robust PCBF
-and ``ρ ∈ {0, 0.5, 0.9}`` with disturbance and the robust PCBF and ``ρ = 0.9`` without.
+afterwards (:func:`~balustrade.control.robust_steps.polished_slacks`). Full mode runs the
+robust PCBF and ``ρ ∈ {0, 0.5, 0.9}`` with disturbance and the robust PCBF and ``ρ = 0.9`` without.
 """
 
 from __future__ import annotations
