@@ -35,6 +35,7 @@ from balustrade.problems._args import (
     nonnegative,
     positive,
 )
+from balustrade.problems._costs import trajectory_cost
 
 Objective = Callable[[OCP, dict], object]
 
@@ -61,7 +62,7 @@ def robust_mpc_problem(system: System, X: Polytope, U: Polytope, Xf: Polytope, N
     ocp.state_constraint(Xs[:N])
     ocp.input_constraint(Us[:N])
     ocp.terminal_constraint(Xf_N)
-    ocp.minimize(_stage_cost(ocp, Q, R, P))
+    ocp.minimize(trajectory_cost(ocp.x, ocp.u, Q, R, P))
     return ocp
 
 
@@ -81,16 +82,8 @@ def tube_mpc_problem(system: System, X: Polytope, U: Polytope, Xf: Polytope, N: 
     ocp.state_constraint(error.tighten_state(X))
     ocp.input_constraint(error.tighten_input(U))
     ocp.terminal_constraint(Xf)
-    ocp.minimize(_stage_cost(ocp, Q, R, P))
+    ocp.minimize(trajectory_cost(ocp.x, ocp.u, Q, R, P))
     return ocp
-
-
-def _stage_cost(ocp: OCP, Q: np.ndarray, R: np.ndarray, P: np.ndarray) -> ca.SX:
-    z, v = ocp.x, ocp.u
-    Qd, Rd, Pd = ca.DM(Q), ca.DM(R), ca.DM(P)
-    cost = sum(ca.mtimes([z[:, i].T, Qd, z[:, i]]) + ca.mtimes([v[:, i].T, Rd, v[:, i]])
-               for i in range(ocp.N))
-    return cost + ca.mtimes([z[:, ocp.N].T, Pd, z[:, ocp.N]])
 
 
 # -- robust PCBF (5.15), (5.16) -----------------------------------------------------------------
