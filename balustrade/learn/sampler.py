@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import importlib
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,7 +69,8 @@ IPOPT_SAMPLING = {"ipopt.compl_inf_tol": 1e-12}
 def compile_pair(ocp: object, solver: str) -> tuple[Compiled, Compiled | None]:
     """Compile ``ocp`` for warm-started solves and a twin for cold starts.
 
-    * ``"sqpmethod"`` (default of :func:`pendulum_problems`): warm solves by
+    * ``"sqpmethod"`` (default of
+      :func:`~balustrade.examples.pendulum.pendulum_problems`): warm solves by
       ``sqpmethod``/``qrqp`` from the previous primal-dual solution, with no retry chain —
       a warm solve that does not converge is redone from scratch by the cold twin, IPOPT
       (:data:`IPOPT_SAMPLING`), which also does every cold start (first point of a path,
@@ -87,29 +87,10 @@ def compile_pair(ocp: object, solver: str) -> tuple[Compiled, Compiled | None]:
     return compile(ocp, "casadi", solver), None
 
 
-def pendulum_problems(solver: str = "sqpmethod", slack_norm: int = 1) -> PCBFProblems:
-    """(2.24) and (7.8) for the pendulum of Section 7.5 (SPEC §3.5), compiled by
-    :func:`compile_pair`.
-
-    ``sqpmethod`` warm-started along lines/snake grids needs ≈ 1 SQP iteration per solve
-    and is 2.5–15× faster than warm-started IPOPT; with the backend's eigenvalue-clipping
-    convexification it agrees with Clarabel (cvxpy backend) to ≈ 3e-8 relative on the
-    Section 7.5 range (tested to 1e-6). Cold starts use IPOPT (``sqpmethod`` from the
-    default initial guess is slower and less reliable on these LP-like problems)."""
-    from balustrade.models.pendulum import pendulum, pendulum_setup
-    from balustrade.problems.pcbf import extended_pcbf_problem, pcbf_slack_problem
-    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
-
-    system, s = pendulum(), pendulum_setup()
-    h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
-    args = (system, s.X, s.U, h_f, s.N, s.deltas)
-    slack, slack_cold = compile_pair(
-        pcbf_slack_problem(*args, alpha_f=s.alpha_f, slack_norm=slack_norm), solver)
-    extended, extended_cold = compile_pair(extended_pcbf_problem(*args), solver)
-    return PCBFProblems(slack, extended, s.X, 1.0, slack_cold, extended_cold)
-
-
-PROBLEMS: dict[str, Callable[..., PCBFProblems]] = {"pendulum": pendulum_problems}
+#: sampling problems by name: ``"package.module:function"`` paths returning
+#: :class:`PCBFProblems` (the examples live outside :mod:`balustrade.learn`, which defines no
+#: model; :func:`balustrade.examples.pendulum.pendulum_problems` is the pendulum of Section 7.5)
+PROBLEMS: dict[str, str] = {"pendulum": "balustrade.examples.pendulum:pendulum_problems"}
 
 
 @dataclass(frozen=True)
@@ -131,10 +112,9 @@ class ProblemSpec:
         """Build (once per process) the compiled problems."""
         key = (self.factory, self.kwargs)
         if key not in _CACHE:
-            if self.factory in PROBLEMS:
-                fn = PROBLEMS[self.factory]
-            elif ":" in self.factory:
-                module, name = self.factory.split(":", 1)
+            path = PROBLEMS.get(self.factory, self.factory)
+            if ":" in path:
+                module, name = path.split(":", 1)
                 fn = getattr(importlib.import_module(module), name)
             else:
                 raise BalustradeError(f"unknown sampling problem {self.factory!r}; use one of "
