@@ -30,8 +30,8 @@ from balustrade.problems.approximate import HHat, as_h_function, max_decrease_pr
 
 def local_target(target: Target | str | None, solver: str | None, options: dict | None,
                  block: str) -> Target:
-    """The CasADi target of the small (7.5)/(7.6) NLPs (default ``"exact-ipopt"``; with
-    ``sqpmethod`` the backend's eigenvalue-clipping convexification applies)."""
+    """The CasADi target of the small (7.5)/(7.6) NLPs (default preset ``"exact-ipopt"``;
+    ``solver``/``options`` override the target's as in :func:`~balustrade.backends.compile`)."""
     tgt = resolve_target(target, default="exact-ipopt", solver=solver, options=options)
     if tgt.backend != "casadi":
         raise BalustradeError(f"{block}: target {tgt.name!r} is a {tgt.backend} target; the "
@@ -93,8 +93,8 @@ class MaximalDecrease:
       and ``ĥ(x)``;
     * a start that is already a first-order KKT point of (7.6) on a box ``U`` — a vertex
       of ``U`` where ``∇_u ĥ(f(x, u))`` points out of ``U`` in every component — is
-      returned without calling the solver: from there ``sqpmethod``'s QP step is zero and
-      it stops at the start (IPOPT stops there to its tolerance); tested against the
+      returned without calling the solver: from there an SQP method's QP step is zero and
+      it stops at the start (an interior-point method to its tolerance); tested against the
       solver;
     * otherwise a :class:`FastNLP` solve, and the compiled problem's ``solve`` (with its
       retries) only when that fails.

@@ -117,8 +117,9 @@ def minimal_slacks(X_E: Polytope, h_f: Callable, deltas: np.ndarray, z: np.ndarr
     ``ξ_i = max(0, c_x^E(z_i) + Δ_i 1)``, ``ξ_N = max(0, h_f(z_N))`` (SPEC §1.4).
 
     Applied to an interior-point optimizer of (5.15)/(6.15) it removes the barrier's slack
-    residue (IPOPT leaves ``α_f ξ_N ≈ 10⁻⁶…10⁻⁵`` on ``S_r``) without changing ``z``, so the
-    polished ``h̃`` is an upper bound on ``h_r`` at least as tight as the solver's value."""
+    residue (an interior-point solver leaves ``α_f ξ_N ≈ 10⁻⁶…10⁻⁵`` on ``S_r``) without
+    changing ``z``, so the polished ``h̃`` is an upper bound on ``h_r`` at least as tight as
+    the solver's value."""
     z = np.asarray(z, dtype=float)
     deltas = np.asarray(deltas, dtype=float).reshape(-1)
     N = deltas.size

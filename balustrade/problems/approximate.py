@@ -63,7 +63,8 @@ def as_h_function(h_hat: HHat, nx: int, name: str = "h_hat") -> ca.Function:
 
 
 def _input_variable(ocp: OCP, U: Set, nu: int) -> ca.SX:
-    """``u ∈ U``: simple bounds for a box (cheapest for IPOPT), rows ``c_U(u) <= 0`` else."""
+    """``u ∈ U``: simple bounds for a box (cheapest for an NLP solver), rows ``c_U(u) <= 0``
+    otherwise."""
     if U.dim != nu:
         raise ShapeError(f"{ocp.name}: input set {U.name}", f"dimension {nu}",
                          f"dimension {U.dim}")
