@@ -184,7 +184,7 @@ class Set(ABC):
 
     def project(self, x: np.ndarray) -> np.ndarray:
         """The Euclidean projection ``argmin_{y ∈ S} ‖y − x‖₂`` of the finite point ``x``
-        (exact: clipping for a box, algorithm LDP for a polytope, bisection on the
+        (exact: clipping for a box, algorithm LDP for a polytope, a root search on the
         multiplier for an ellipsoid; :mod:`balustrade.dsl.sets_project`)."""
         return self._project(as_vector(x, f"{self.name}.project(x)", self.dim))
 

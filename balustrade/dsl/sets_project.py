@@ -7,14 +7,17 @@
   Hanson, *Solving Least Squares Problems*, Ch. 23, algorithm LDP) with
   :func:`scipy.optimize.nnls` (an active-set method), then polished on the active rows;
 * ellipsoid ``{(x − q)ᵀP(x − q) <= 1}``: ``x = q + (I + λP)⁻¹(u − q)`` with the multiplier
-  ``λ >= 0`` of the KKT conditions found by bisection on ``g(λ) = ‖x(λ) − q‖²_P − 1``
-  (monotone in ``λ``), returned on the feasible side of the bracket.
+  ``λ >= 0`` of the KKT conditions, the root of ``g(λ) = ‖x(λ) − q‖²_P − 1`` (convex and
+  decreasing): Newton's method from ``λ = 0`` (monotone, no overshoot), bisection as the
+  safeguard.
 
 These are numerical routines of the language, not solver calls: no solver is named and
 nothing here depends on a backend (DESIGN.md, "Layout").
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import scipy.optimize
@@ -82,7 +85,27 @@ def project_ellipsoid(u: np.ndarray, P: np.ndarray, center: np.ndarray) -> np.nd
         y = a / (1.0 + lam * mu)
         return float(np.sum(mu * y * y) - 1.0)
 
-    lo, hi = 0.0, 1.0 / float(np.min(mu))
+    # g is convex and decreasing on λ >= 0 with g(0) > 0: Newton from the left never
+    # overshoots the root and converges quadratically; bisection is the safeguard
+    lam = 0.0
+    for _ in range(100):
+        y = a / (1.0 + lam * mu)
+        val = float(np.sum(mu * y * y) - 1.0)
+        if val <= 0.0:
+            break
+        slope = -2.0 * float(np.sum(mu * mu * y * y / (1.0 + lam * mu)))
+        step = -val / slope
+        if not np.isfinite(step) or step <= 1e-15 * (1.0 + lam):
+            break
+        lam += step
+    else:
+        lam = _bisect(g, lam)
+    return center + V @ (a / (1.0 + lam * mu))
+
+
+def _bisect(g: Callable[[float], float], lo: float) -> float:
+    """The root of the decreasing ``g`` right of ``lo`` (``g(lo) > 0``), feasible side."""
+    hi = 2.0 * lo + 1.0
     while g(hi) > 0.0:
         lo, hi = hi, 2.0 * hi
     for _ in range(200):
@@ -93,7 +116,7 @@ def project_ellipsoid(u: np.ndarray, P: np.ndarray, center: np.ndarray) -> np.nd
             lo = mid
         else:
             hi = mid
-    return center + V @ (a / (1.0 + hi * mu))
+    return hi
 
 
 __all__ = ["project_box", "project_ellipsoid", "project_polytope"]
