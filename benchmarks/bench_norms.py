@@ -19,7 +19,8 @@ import numpy as np
 
 from balustrade.backends import compile
 from balustrade.dsl.ocp import OCP
-from balustrade.models.bicycle import DEG, bicycle_design
+from balustrade.examples.bicycle import bicycle_design
+from balustrade.models.bicycle import DEG
 from balustrade.problems.pcbf import pcbf_slack_problem
 
 N = 50

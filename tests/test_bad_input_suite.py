@@ -38,6 +38,7 @@ import balustrade
 from balustrade.backends import Solution, compile
 from balustrade.control.base import StepInfo, Trace, simulate
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.control.robust_steps import slack_cost
 from balustrade.dsl import (
     OCP,
     Box,
@@ -83,7 +84,6 @@ from balustrade.problems.robust import (
     robust_mpc_problem,
     robust_pcbf_filter_problem,
     robust_pcbf_slack_problem,
-    slack_cost,
     tube_mpc_problem,
 )
 from balustrade.problems.terminal_cbf import synthesize_terminal_cbf

@@ -12,16 +12,13 @@ from balustrade.control.multiobjective import (
     MultiobjectiveLyapunovController,
     MultiobjectivePCBFController,
 )
+from balustrade.control.robust_steps import robust_candidate, slack_cost
 from balustrade.dsl.error_sets import minimal_rpi_outer
 from balustrade.problems.multiobjective import (
     LinearLyapunovDesign,
     decrease_bound,
     multiobjective_pcbf_problem,
     terminal_weight,
-)
-from balustrade.problems.robust import (
-    robust_candidate,
-    slack_cost,
 )
 from balustrade.testing import verify
 

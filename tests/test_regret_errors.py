@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from balustrade.control.regret import RegretController
 from balustrade.errors import BalustradeError, NotPSDError, ShapeError
 from balustrade.problems.regret import (
     LTVSystem,
@@ -65,7 +66,7 @@ def test_infeasible_synthesis_returns_a_status():
     assert not res.ok and "infeasible" in res.status
     assert res.K is None and res.level is None
     with pytest.raises(BalustradeError, match="no controller"):
-        res.controller()
+        RegretController.from_result(res)
 
 
 def test_trust_region_hard_and_easy_cases():
@@ -97,7 +98,7 @@ def test_dense_cone_too_large_for_clarabel_is_a_status(monkeypatch):
     assert res.status == "too_large" and not res.ok
     assert "size 11" in res.info["message"] and "SCS" in res.info["message"]
     with pytest.raises(BalustradeError, match="too_large"):
-        res.controller()
+        RegretController.from_result(res)
     res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", solver="SCS", lmi="split",
                                solver_opts={"eps_abs": 1e-7, "eps_rel": 1e-7})
     res_banded = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O")

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
+from balustrade.control.regret import RegretController
 from balustrade.problems.regret import (
     LTVSystem,
-    RegretController,
     build_operators,
     controller_from_responses,
     responses_from_controller,
@@ -78,3 +78,26 @@ def test_regret_is_a_sum_of_squares_for_every_achievable_phi(seed):
     # S is lower triangular and squares to the input Hessian
     assert np.allclose(np.triu(ops.S, 1), 0.0)
     assert np.allclose(ops.S.T @ ops.S, ops.H, atol=1e-9)
+
+
+def test_regret_controller_steps_like_every_controller():
+    """``step(x, u_p) -> (u, StepInfo)`` with its own history gives the inputs of the rollout;
+    ``reset`` restarts at k = 0; past the horizon it applies 0 and says so; the rollout's
+    trace is the common :class:`Trace`."""
+    from balustrade.control.base import StepInfo, Trace
+
+    ops, rng = random_ops(4)
+    ctrl = RegretController(ops, random_causal_K(ops, rng))
+    x0, w = rng.standard_normal(ops.n), rng.standard_normal((ops.T, ops.p))
+    run = ctrl.simulate(x0, w)
+    assert isinstance(run.trace, Trace) and run.trace.n_fallbacks == 0
+    assert run.x.shape == (ops.T + 1, ops.n) and run.u.shape == (ops.T + 1, ops.m)
+    ctrl.reset()
+    for k in range(ops.T + 1):
+        u, info = ctrl.step(run.x[k], np.zeros(ops.m))
+        assert isinstance(info, StepInfo) and info.status == "ok"
+        assert np.allclose(u, run.u[k], atol=1e-14)
+    u, info = ctrl.step(run.x[-1], np.zeros(ops.m))
+    assert info.fallback == "zero_input" and not u.any()
+    ctrl.reset()
+    assert np.allclose(ctrl.step(x0, np.zeros(ops.m))[0], run.u[0], atol=1e-14)

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from balustrade.backends.structure import psd_factor
+from balustrade.control.regret import RegretController
 from balustrade.problems.regret import (
     LTVSystem,
     StateInputConstraints,
@@ -54,13 +55,13 @@ def test_dynamic_regret_is_tight_and_controller_causal(seed):
     assert cert.value == pytest.approx(res.level, rel=1e-4)                   # (3.22)
     assert cert.upper == pytest.approx(cert.value, rel=1e-9)
     # the maximizing disturbance attains the bound in closed loop with K (3.15)
-    run = res.controller().simulate(x0, cert.w.reshape(ops.T, ops.p))
+    run = RegretController.from_result(res).simulate(x0, cert.w.reshape(ops.T, ops.p))
     assert run.regret == pytest.approx(res.level, rel=1e-4)
     # random disturbances stay below it (3.20)
     for _ in range(20):
         w = rng.standard_normal(ops.p * ops.T)
         w *= np.sqrt(omega) / np.linalg.norm(w) * rng.uniform(0, 1)
-        assert res.controller().simulate(x0, w).regret <= res.level * (1 + 1e-6)
+        assert RegretController.from_result(res).simulate(x0, w).regret <= res.level * (1 + 1e-6)
     # Corollary 3.6: σ_min(M) ≤ γ*/(ω + ‖x0‖²) ≤ σ_max(M)
     ev = np.linalg.eigvalsh(regret_matrix(ops, res.Phi_u))
     ratio = res.level / (omega + x0 @ x0)
@@ -140,7 +141,7 @@ def test_baselines_and_constraints_hold_on_sampled_disturbances():
                pointwise_dynamic_regret(ops, x0, P, constraints=cons)]
     for res in results:
         assert res.ok, res
-        ctrl = res.controller()
+        ctrl = RegretController.from_result(res)
         for _ in range(30):
             v = rng.standard_normal((ops.T, 2))
             w = v / np.linalg.norm(v, axis=1, keepdims=True) * 0.2
@@ -172,7 +173,7 @@ def test_constraint_reformulation_3_41_is_exact_for_ellipsoids():
             bound = a[:2] @ x0 + sum(np.sqrt(aj @ Pinv @ aj) for aj in blocks)
             w = np.array([Pinv @ aj / np.sqrt(aj @ Pinv @ aj) if np.any(aj) else np.zeros(2)
                           for aj in blocks])
-            run = res.controller().simulate(x0, w)
+            run = RegretController.from_result(res).simulate(x0, w)
             assert cons.Hx[r] @ run.x[t] == pytest.approx(bound, rel=1e-9, abs=1e-12)
             assert bound <= 1 + 1e-6
             best = max(best, bound)
@@ -273,7 +274,7 @@ def test_competitive_ratio_and_energy_constraints_hold_on_samples():
                                                  np.array([[1.0], [-1.0]]), np.full(2, 5.0))
     res = generalized_regret(ops, x0, omega, "O", constraints=cons)
     assert res.ok
-    ctrl = res.controller()
+    ctrl = RegretController.from_result(res)
     for _ in range(50):
         w = rng.standard_normal((ops.T, 2))
         w *= np.sqrt(omega) / np.linalg.norm(w) * rng.uniform(0.2, 1.0)

@@ -8,13 +8,11 @@ import pytest
 
 from balustrade.backends import Solution, compile
 from balustrade.control.robust import RobustPCBFSafetyFilter
+from balustrade.control.robust_steps import polished_slacks, robust_candidate, slack_cost
 from balustrade.dsl.error_sets import minimal_rpi_outer
 from balustrade.problems.robust import (
-    polished_slacks,
-    robust_candidate,
     robust_mpc_problem,
     robust_pcbf_filter_problem,
-    slack_cost,
     tube_mpc_problem,
 )
 from balustrade.testing import verify

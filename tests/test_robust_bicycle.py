@@ -13,7 +13,7 @@ from balustrade.control.base import simulate
 from balustrade.control.multiobjective import MultiobjectivePCBFController
 from balustrade.control.robust import RobustPCBFSafetyFilter
 from balustrade.errors import ConvexityError
-from balustrade.models.bicycle import bicycle_design, nonlinear_rpi_margin
+from balustrade.examples.bicycle import bicycle_design, nonlinear_rpi_margin
 from balustrade.problems.robust import robust_pcbf_slack_problem
 
 

@@ -31,9 +31,10 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_count, as_scalar, as_vector, check_instance
-from balustrade.backends import Compiled, Solution, Target, compile, resolve_target
+from balustrade.backends import Compiled, Solution, Target, compile
 from balustrade.backends.casadi_fast import Buffered, FastNLP
 from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.decrease import DecreaseResult, MaximalDecrease, in_set, local_target
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -45,13 +46,10 @@ from balustrade.dsl.sets import Box, Set
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError
 from balustrade.problems.approximate import (
-    DecreaseResult,
     HHat,
-    MaximalDecrease,
     approximate_filter_problem,
     as_h_function,
     decrease_bound,
-    in_set,
 )
 
 
@@ -64,11 +62,13 @@ class ApproximatePCBFFilter:
     is the minimizer and (7.5) is not solved; ``exact_shortcut=False`` always solves
     (7.5)), ``n_fallbacks``.
 
-    ``fast=True`` (default) runs the same algorithm with buffered CasADi evaluations, the
-    KKT-vertex start of (7.6) and :class:`~balustrade.backends.casadi_fast.FastNLP` first
-    attempts (see :class:`~balustrade.problems.approximate.MaximalDecrease`); a failed
-    attempt goes through ``Compiled.solve`` and its retries, so statuses and fallbacks
-    are those of ``fast=False``. ``StepInfo.solve_time`` is the wall time of (7.6) and
+    The step runs with buffered CasADi evaluations, the KKT-vertex start of (7.6) and
+    :class:`~balustrade.backends.casadi_fast.FastNLP` first attempts (see
+    :class:`~balustrade.control.decrease.MaximalDecrease`); a failed attempt goes through
+    ``Compiled.solve`` and its retries, so statuses and fallbacks are those of a plain
+    implementation (tests/test_approximate.py holds that reference and compares).
+    ``target`` (a CasADi target or preset, default ``"exact"``) compiles (7.5) and
+    (7.6). ``StepInfo.solve_time`` is the wall time of (7.6) and
     (7.5) including screening; ``StepInfo.solutions`` holds the :class:`Solution` objects
     of solves that went through ``Compiled.solve`` (none on the fast path).
 
@@ -77,9 +77,9 @@ class ApproximatePCBFFilter:
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
-                 target: Target | str = "exact", certify: bool = True,
+                 target: Target | str | None = None, certify: bool = True,
                  grid_points: int = 5, n_local: int = 1, eps: float = 1e-6,
-                 exact_shortcut: bool = True, fast: bool = True):
+                 exact_shortcut: bool = True):
         check_instance(system, System, "ApproximatePCBFFilter: system")
         check_instance(U, Set, "ApproximatePCBFFilter: U")
         rho = as_scalar(rho, "ApproximatePCBFFilter: rho", 0.0, 1.0, low_open=True)
@@ -90,20 +90,12 @@ class ApproximatePCBFFilter:
         self.exact_shortcut = bool(exact_shortcut)
         self.nu = system.nu
         self.h = as_h_function(h_hat, system.nx)
-        self.fast = bool(fast)
-        tgt = resolve_target(target)
-        if tgt.backend != "casadi":
-            raise BalustradeError(f"ApproximatePCBFFilter: target {tgt}: Algorithm 7.5 runs on "
-                                  "CasADi targets (its fast path evaluates CasADi functions)")
-        self.target = tgt
-        # MaximalDecrease (problems/) takes the target's solver and options until it takes
-        # the target itself (issue #13 §3 moves it to control/)
-        self.decrease = MaximalDecrease(system, U, self.h, tgt.nlp_solver,
-                                        tgt.solver_options() or None, grid_points, n_local,
-                                        fast=self.fast)
-        self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps), tgt)
+        self.target = local_target(target, "ApproximatePCBFFilter")
+        self.decrease = MaximalDecrease(system, U, self.h, self.target, grid_points, n_local)
+        self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps),
+                                        self.target)
         self._h_next = self.decrease._h_next
-        self._fast_filter = FastNLP(self.filter) if self.fast else None
+        self._fast_filter = FastNLP(self.filter)
         self.reset()
 
     def reset(self) -> None:
@@ -176,16 +168,19 @@ class ApproximatePCBFFilter:
                 info: StepInfo) -> tuple[np.ndarray | None, str]:
         """(7.5) warm-started at the (7.6) minimizer: a :class:`FastNLP` solve (same
         problem and options, cold multipliers), the compiled problem's ``solve`` (with
-        its retries) if that fails or ``fast=False``. Returns the minimizer, or the
-        feasible point of a solve that did not converge (``None`` if not even that), and
-        the solution status."""
-        if self._fast_filter is not None:
-            fast = self._fast_filter
-            out = fast.solve(fast.pack(x0=x, u_p=u_p, dh=dec.dh, rho=self.rho), {"u": dec.u})
-            if out is not None:
-                u = out[0][fast.offsets["u"]].copy()
-                if np.isfinite(u).all():
-                    return u, "optimal"
+        its retries) if that fails. Returns the minimizer, or the feasible point of a
+        solve that did not converge (``None`` if not even that), and the solution status."""
+        fast = self._fast_filter
+        out = fast.solve(fast.pack(x0=x, u_p=u_p, dh=dec.dh, rho=self.rho), {"u": dec.u})
+        if out is not None:
+            u = out[0][fast.offsets["u"]].copy()
+            if np.isfinite(u).all():
+                return u, "optimal"
+        return self._filter_solve(x, u_p, dec, info)
+
+    def _filter_solve(self, x: np.ndarray, u_p: np.ndarray, dec: DecreaseResult,
+                      info: StepInfo) -> tuple[np.ndarray | None, str]:
+        """(7.5) through the compiled problem's ``solve`` (with its retries)."""
         sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},
                                 warm_start={"u": dec.u})
         info.solutions["filter"] = sol

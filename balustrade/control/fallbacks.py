@@ -22,8 +22,8 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.control.base import StepInfo
-from balustrade.dsl.sets import Box, Set
-from balustrade.errors import NonFiniteError
+from balustrade.dsl.sets import Set
+from balustrade.errors import BalustradeError, NonFiniteError
 
 #: StepInfo.status prefix of a step whose proposal had NaN or inf entries
 NON_FINITE_PROPOSAL = "non_finite_proposal"
@@ -66,20 +66,14 @@ def projected_proposal(u_p: np.ndarray, U: Set) -> tuple[np.ndarray, StepInfo]:
 
 
 def project(u: np.ndarray, U: Set) -> np.ndarray:
-    """Euclidean projection onto ``U`` (clipping for boxes, a small QP otherwise); NaN or
-    inf entries of ``u`` are read as 0 (as the C steps do); a ``u`` that is not numbers or
-    not of ``U``'s dimension raises a :class:`~balustrade.errors.BalustradeError`."""
+    """Euclidean projection onto ``U`` (:meth:`Set.project <balustrade.dsl.sets_base.Set.project>`:
+    clipping for boxes, exact for polytopes and ellipsoids); NaN or inf entries of ``u`` are
+    read as 0 (as the C steps do); a ``u`` that is not numbers or not of ``U``'s dimension
+    raises a :class:`~balustrade.errors.BalustradeError`. A set without a projection (a
+    :class:`~balustrade.dsl.sets.FunctionSet`) leaves ``u`` as it is."""
     u = as_vector(u, "project: u", U.dim, finite=False)
     u = np.where(np.isfinite(u), u, 0.0)
-    if isinstance(U, Box):
-        return np.clip(u, U.lb, U.ub)
-    if U.contains(u):
+    try:
+        return U.project(u)
+    except BalustradeError:  # no projection onto this kind of set: never raise in the loop
         return u
-    import cvxpy as cp
-
-    v = cp.Variable(U.dim)
-    H, h = getattr(U, "H", None), getattr(U, "h", None)
-    if H is None:
-        return u
-    cp.Problem(cp.Minimize(cp.sum_squares(v - u)), [H @ v <= h]).solve(solver="CLARABEL")
-    return np.asarray(v.value, dtype=float)

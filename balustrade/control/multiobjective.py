@@ -40,6 +40,12 @@ from balustrade.control.fallbacks import (
     project,
     projected_proposal,
 )
+from balustrade.control.robust_steps import (
+    Candidate,
+    polished_slacks,
+    robust_candidate,
+    slack_cost,
+)
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
@@ -49,15 +55,7 @@ from balustrade.problems.multiobjective import (
     multiobjective_lyapunov_problem,
     multiobjective_pcbf_problem,
 )
-from balustrade.problems.robust import (
-    Candidate,
-    Objective,
-    polished_slacks,
-    robust_candidate,
-    robust_pcbf_slack_problem,
-    robust_sets,
-    slack_cost,
-)
+from balustrade.problems.robust import Objective, robust_pcbf_slack_problem, robust_sets
 
 
 class MultiobjectiveLyapunovController:

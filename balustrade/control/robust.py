@@ -40,18 +40,20 @@ from balustrade.control.fallbacks import (
     project,
     projected_proposal,
 )
+from balustrade.control.robust_steps import (
+    Candidate,
+    polished_slacks,
+    robust_candidate,
+    slack_cost,
+)
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
 from balustrade.problems.robust import (
-    Candidate,
     Objective,
-    polished_slacks,
-    robust_candidate,
     robust_pcbf_filter_problem,
     robust_pcbf_slack_problem,
     robust_sets,
-    slack_cost,
 )
 
 

@@ -44,6 +44,7 @@ import scipy.optimize
 
 from balustrade._checks import as_count, as_matrix, as_vector, check_name, check_psd
 from balustrade.dsl import sets_geometry as geo
+from balustrade.dsl import sets_project
 from balustrade.dsl.sets_base import (
     RngLike,
     Set,
@@ -110,6 +111,9 @@ class Polytope(Set):
         X = self._points(X, "contains_many(X)")
         tol = check_tol(tol, f"{self.name}.contains_many")
         return np.all(X @ self.H.T - self.h <= tol, axis=1)
+
+    def _project(self, x: np.ndarray) -> np.ndarray:
+        return sets_project.project_polytope(x, self.H, self.h, self.name)
 
     def is_empty(self) -> bool:
         """Whether ``{Hx <= h}`` is empty (one LP)."""
@@ -263,6 +267,9 @@ class Box(Polytope):
     def dim(self) -> int:  # type: ignore[override]
         return int(self._n)
 
+    def _project(self, x: np.ndarray) -> np.ndarray:
+        return sets_project.project_box(x, self.lb, self.ub)
+
     def support(self, a: np.ndarray) -> float:
         """``Σ_i max(a_i ub_i, a_i lb_i)``; ``+inf`` where ``a_i`` points to an infinite bound."""
         a = as_vector(a, f"{self.name}.support(a)", self.dim)
@@ -390,6 +397,9 @@ class Ellipsoid(Set):
         D = self._points(X, "contains_many(X)") - self.center
         tol = check_tol(tol, f"{self.name}.contains_many")
         return np.einsum("ij,jk,ik->i", D, self.P, D) - 1.0 <= tol
+
+    def _project(self, x: np.ndarray) -> np.ndarray:
+        return sets_project.project_ellipsoid(x, self.P, self.center)
 
     def support(self, a: np.ndarray) -> float:
         """``h(a) = aᵀq + sqrt(aᵀ P⁻¹ a)`` (SPEC §1.4)."""

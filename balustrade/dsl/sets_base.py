@@ -182,6 +182,16 @@ class Set(ABC):
         """``n`` points drawn uniformly from the set, shape ``(n, dim)``."""
         raise BalustradeError(f"{self.name}.sample: not available for {type(self).__name__}")
 
+    def project(self, x: np.ndarray) -> np.ndarray:
+        """The Euclidean projection ``argmin_{y ∈ S} ‖y − x‖₂`` of the finite point ``x``
+        (exact: clipping for a box, algorithm LDP for a polytope, a root search on the
+        multiplier for an ellipsoid; :mod:`balustrade.dsl.sets_project`)."""
+        return self._project(as_vector(x, f"{self.name}.project(x)", self.dim))
+
+    def _project(self, x: np.ndarray) -> np.ndarray:
+        raise BalustradeError(f"{self.name}.project: no exact projection onto a "
+                              f"{type(self).__name__} (use a Box, Polytope or Ellipsoid)")
+
 
 def linear_map(A: np.ndarray, S: Set, name: str | None = None) -> Set:
     """``A·S`` (SPEC §1.5); same as ``S.linear_map(A)`` and ``A @ S``."""

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import importlib
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,9 +58,10 @@ def compile_pair(ocp: object, target: Target | str) -> tuple[Compiled, Compiled 
     """Compile ``ocp`` for warm-started solves and a twin for cold starts, on the targets
     :func:`~balustrade.backends.sampling_targets` gives for ``target``:
 
-    * ``"fast-sqp"`` (default of :func:`pendulum_problems`): warm solves by the fast SQP from
-      the previous primal-dual solution, with no retry chain (``fast-sqp-noretry``) — a warm
-      solve that does not converge is redone from scratch by the cold twin
+    * ``"fast-sqp"`` (default of :func:`~balustrade.examples.pendulum.pendulum_problems`):
+      warm solves by the fast SQP from the previous primal-dual solution, with no retry
+      chain (``fast-sqp-noretry``) — a warm solve that does not converge is redone from
+      scratch by the cold twin
       (``sampling-cold``: an interior-point target demanding absolute complementarity),
       which also does every cold start (first point of a path, first point after a switch
       between (2.24) and (7.8));
@@ -73,30 +73,10 @@ def compile_pair(ocp: object, target: Target | str) -> tuple[Compiled, Compiled 
     return compile(ocp, warm), None if cold is None else compile(ocp, cold)
 
 
-def pendulum_problems(target: str = "fast-sqp", slack_norm: int = 1) -> PCBFProblems:
-    """(2.24) and (7.8) for the pendulum of Section 7.5 (SPEC §3.5), compiled by
-    :func:`compile_pair`.
-
-    The fast SQP warm-started along lines/snake grids needs ≈ 1 SQP iteration per solve
-    and is 2.5–15× faster than the warm-started interior point (``target="exact"``); with
-    the backend's eigenvalue-clipping convexification it agrees with the cvxpy target to
-    ≈ 3e-8 relative on the Section 7.5 range (tested to 1e-6). Cold starts use the
-    ``sampling-cold`` target (the SQP from the default initial guess is slower and less
-    reliable on these LP-like problems)."""
-    from balustrade.models.pendulum import pendulum, pendulum_setup
-    from balustrade.problems.pcbf import extended_pcbf_problem, pcbf_slack_problem
-    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
-
-    system, s = pendulum(), pendulum_setup()
-    h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
-    args = (system, s.X, s.U, h_f, s.N, s.deltas)
-    slack, slack_cold = compile_pair(
-        pcbf_slack_problem(*args, alpha_f=s.alpha_f, slack_norm=slack_norm), target)
-    extended, extended_cold = compile_pair(extended_pcbf_problem(*args), target)
-    return PCBFProblems(slack, extended, s.X, 1.0, slack_cold, extended_cold)
-
-
-PROBLEMS: dict[str, Callable[..., PCBFProblems]] = {"pendulum": pendulum_problems}
+#: sampling problems by name: ``"package.module:function"`` paths returning
+#: :class:`PCBFProblems` (the examples live outside :mod:`balustrade.learn`, which defines no
+#: model; :func:`balustrade.examples.pendulum.pendulum_problems` is the pendulum of Section 7.5)
+PROBLEMS: dict[str, str] = {"pendulum": "balustrade.examples.pendulum:pendulum_problems"}
 
 
 @dataclass(frozen=True)
@@ -118,10 +98,9 @@ class ProblemSpec:
         """Build (once per process) the compiled problems."""
         key = (self.factory, self.kwargs)
         if key not in _CACHE:
-            if self.factory in PROBLEMS:
-                fn = PROBLEMS[self.factory]
-            elif ":" in self.factory:
-                module, name = self.factory.split(":", 1)
+            path = PROBLEMS.get(self.factory, self.factory)
+            if ":" in path:
+                module, name = path.split(":", 1)
                 fn = getattr(importlib.import_module(module), name)
             else:
                 raise BalustradeError(f"unknown sampling problem {self.factory!r}; use one of "

@@ -10,11 +10,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_scalar, check_callable, check_horizon
-from balustrade.dsl import OCP, Set, System, quad, squared_norm, sum_norms
+from balustrade.dsl import OCP, Set, System, squared_norm, sum_norms
 from balustrade.errors import BalustradeError
 from balustrade.problems._args import (
     check_norm_order,
@@ -22,14 +21,7 @@ from balustrade.problems._args import (
     check_weights,
     positive,
 )
-
-
-def _stage_cost(ocp: OCP, Q: np.ndarray, R: np.ndarray, P: np.ndarray) -> ca.SX:
-    """``Σ_i x_iᵀQx_i + u_iᵀRu_i + x_NᵀPx_N`` (PSD weights checked by :func:`quad`)."""
-    cost = ca.SX(0)
-    for i in range(ocp.N):
-        cost += quad(ocp.x[:, i], Q, "Q") + quad(ocp.u[:, i], R, "R")
-    return cost + quad(ocp.x[:, ocp.N], P, "P")
+from balustrade.problems._costs import trajectory_cost
 
 
 def _check(name: str, system: System, X: Set, U: Set, Xf: Set | None, N: int,
@@ -54,7 +46,7 @@ def mpc_problem(system: System, X: Set, U: Set, Xf: Set | None, N: int, Q: np.nd
     ocp.state_constraint(X)
     if Xf is not None:
         ocp.terminal_constraint(Xf)
-    ocp.minimize(_stage_cost(ocp, Q, R, P))
+    ocp.minimize(trajectory_cost(ocp.x, ocp.u, Q, R, P))
     return ocp
 
 
@@ -72,7 +64,8 @@ def soft_mpc_problem(system: System, X: Set, U: Set, Xf: Set | None, N: int, Q: 
     ocp.dynamics()
     ocp.input_constraint(U)
     xi = ocp.state_constraint(X, slack="variable")
-    cost = _stage_cost(ocp, Q, R, P) + penalty * sum_norms(xi, slack_norm, label="slack")
+    cost = trajectory_cost(ocp.x, ocp.u, Q, R, P) \
+        + penalty * sum_norms(xi, slack_norm, label="slack")
     if Xf is not None:
         xi_N = ocp.terminal_constraint(Xf, slack="variable")
         cost = cost + penalty * sum_norms(xi_N, slack_norm, label="terminal_slack")

@@ -40,6 +40,7 @@ from balustrade.problems._args import (
     check_system_sets,
     positive,
 )
+from balustrade.problems._costs import stage_cost, trajectory_cost
 from balustrade.problems.robust import Objective, _syms, _tube_blocks, robust_sets
 
 
@@ -110,7 +111,7 @@ class LinearLyapunovDesign:
     # costs and V (6.2)
     def stage(self, x: np.ndarray, u: np.ndarray) -> float:
         """``l(x, u) = ½xᵀQx + ½uᵀRu``."""
-        return float(0.5 * x @ self.Q @ x + 0.5 * u @ self.R @ u)
+        return 0.5 * stage_cost(x, u, self.Q, self.R)
 
     def m(self, x: np.ndarray) -> float:
         return float(0.5 * x @ self.P @ x)
@@ -127,8 +128,7 @@ class LinearLyapunovDesign:
     def V(self, x: np.ndarray, u: np.ndarray) -> float:
         """(6.2): ``Σ_i l(φ_i, u_i) + m(φ_N)``."""
         u = np.asarray(u, dtype=float).reshape(self.system.nu, -1)
-        z = self.rollout(x, u)
-        return sum(self.stage(z[:, i], u[:, i]) for i in range(u.shape[1])) + self.m(z[:, -1])
+        return 0.5 * trajectory_cost(self.rollout(x, u), u, self.Q, self.R, self.P)
 
     # warm-start generators
     def xi_c(self, x_next: np.ndarray, v: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -203,15 +203,11 @@ def multiobjective_lyapunov_problem(design: LinearLyapunovDesign, decrease: bool
     z, v = ocp.x, ocp.u
     if decrease:
         bound = ocp.parameter("bound", 1)
-        Q, R, P, K = (ca.DM(M) for M in (d.Q, d.R, d.P, d.K))
         zN = z[:, N]
-        uN = ca.mtimes(K, zN)
-        lhs = sum(0.5 * ca.mtimes([z[:, i].T, Q, z[:, i]]) + 0.5 * ca.mtimes([v[:, i].T, R,
-                                                                              v[:, i]])
-                  for i in range(1, N))
-        lhs = lhs + 0.5 * ca.mtimes([zN.T, Q, zN]) + 0.5 * ca.mtimes([uN.T, R, uN])
-        zN1 = ca.mtimes(ca.DM(d.A_K), zN)
-        lhs = lhs + 0.5 * ca.mtimes([zN1.T, P, zN1])
+        # V((z_1, ξ_c(z_1, v, 0))) = ½ [Σ_{i=1}^{N−1} l(z_i, v_i) + l(z_N, Kz_N)] + m(A_K z_N)
+        states = ca.horzcat(z[:, 1:N + 1], ca.mtimes(ca.DM(d.A_K), zN))
+        inputs = ca.horzcat(v[:, 1:N], ca.mtimes(ca.DM(d.K), zN))
+        lhs = 0.5 * trajectory_cost(states, inputs, d.Q, d.R, d.P)
         ocp.decrease(lhs, bound, name="lyapunov_decrease")                    # (6.3h)
         syms = {"x0": x0, "u_p": u_p, "z": z, "v": v, "u0": v[:, 0]}
         ocp.minimize(objective(ocp, syms) if objective is not None

@@ -11,9 +11,10 @@ inputs. Per-step time is the solver time of the step's problems (two for 5.2, on
 the extra (5.15) solve that records ``h_r`` for the plots under 6.4 is not counted).
 CasADi targets for both problems: Algorithm 5.2 on the ``long-horizon`` target (the adaptive
 barrier update: 0.46 s vs 0.77 s per step at N = 200 on the loaded 2-core machine),
-Algorithm 6.4 on ``exact`` (monotone barrier: 0.95 s vs 1.14 s and no failures); slacks are polished
-afterwards (:func:`~balustrade.problems.robust.polished_slacks`). Full mode runs the robust PCBF
-and ``ρ ∈ {0, 0.5, 0.9}`` with disturbance and the robust PCBF and ``ρ = 0.9`` without.
+Algorithm 6.4 on ``exact`` (monotone barrier: 0.95 s vs 1.14 s and no failures); slacks are
+polished afterwards (:func:`~balustrade.control.robust_steps.polished_slacks`). Full mode runs
+the robust PCBF and ``ρ ∈ {0, 0.5, 0.9}`` with disturbance and the robust PCBF and
+``ρ = 0.9`` without.
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from balustrade.control.regret import RegretController
 from balustrade.models.rocket import RocketRegretSetup
 from balustrade.problems.regret import (
     LTVSystem,
@@ -143,7 +144,7 @@ def evaluate(setup: RocketRegretSetup, synth: dict, draws: int, seed: int = 0) -
     profiles: dict[str, np.ndarray] = random_profiles(T, P, draws, seed)
     profiles.update({k: v[None] for k, v in deterministic_profiles(T, setup.box).items()})
     cons = synth["constraints"]
-    ctrls = {name: res.controller(allow_inaccurate=True)
+    ctrls = {name: RegretController.from_result(res, allow_inaccurate=True)
              for name, res in synth["results"].items() if _usable(res)}
     cost: dict[str, dict[str, float]] = {}
     worst_violation = -np.inf

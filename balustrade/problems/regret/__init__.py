@@ -2,11 +2,11 @@
 
 ``LTVSystem`` + ``build_operators`` give the stacked operators of the system level
 parametrization; the functions of :mod:`.synthesis` solve (3.19), (3.24), (3.28), (3.30),
-(3.32), (3.34) and the SH2/SH∞ baselines; :class:`RegretController` runs the result in closed
-loop; :mod:`.verify` certifies worst-case regret independently of the SDP solver.
+(3.32), (3.34) and the SH2/SH∞ baselines;
+:class:`~balustrade.control.regret.RegretController` runs the result in closed loop;
+:mod:`.verify` certifies worst-case regret independently of the SDP solver.
 """
 
-from balustrade.problems.regret.controller import RegretController, Rollout
 from balustrade.problems.regret.operators import (
     LTVSystem,
     Operators,
@@ -28,7 +28,7 @@ from balustrade.problems.regret.synthesis import (
 )
 
 __all__ = [
-    "LTVSystem", "Operators", "RegretController", "Rollout", "build_operators",
+    "LTVSystem", "Operators", "build_operators",
     "controller_from_responses",
     "responses_from_controller", "StateInputConstraints", "SynthesisResult",
     "adversarial_regret", "dynamic_regret", "generalized_regret", "h2", "hinf",

@@ -119,15 +119,15 @@ class SynthesisResult:
         return (self.status == "optimal" and self.K is not None
                 and self.info.get("certificate", {}).get("consistent", True))
 
-    def controller(self, allow_inaccurate: bool = False):  # -> RegretController
-        from balustrade.problems.regret.controller import RegretController  # (import cycle)
-
+    def gain(self, allow_inaccurate: bool = False) -> np.ndarray:
+        """The causal gain K of (3.15) if usable (see :attr:`ok`); run it in closed loop with
+        :meth:`balustrade.control.regret.RegretController.from_result`."""
         usable = self.ok or (allow_inaccurate and self.status in OK_STATUSES
                              and self.K is not None)
         if not usable:
             raise BalustradeError(f"{self.name}: no controller, synthesis status {self.status!r}"
                                   + ("" if self.K is None else " (not certified, see .ok)"))
-        return RegretController(self.ops, self.K, self.Phi_u, name=self.name)
+        return self.K
 
 
 # ----------------------------------------------------------------------------------------------
