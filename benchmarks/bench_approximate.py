@@ -37,12 +37,12 @@ from balustrade.backends import compile
 from balustrade.backends.casadi_fast import FastNLP
 from balustrade.control.approximate import ApproximatePCBFFilter, GridPCBFFilter
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.learn.export import to_casadi
 from balustrade.learn.sampler import Evaluator, ProblemSpec, Seed
 from balustrade.learn.train import MLPModel
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
 
 def random_network(widths: tuple[int, ...] = (16, 16, 16), nx: int = 2,

@@ -35,9 +35,9 @@ from balustrade.codegen import (
     write_example,
 )
 from balustrade.control import PCBFSafetyFilter, simulate
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
 RATES = (-1.5, -0.75, 0.0, 0.75, 1.5)
 U_P = 2.0

@@ -13,8 +13,8 @@ import cvxpy as cp
 import numpy as np
 
 from balustrade.control import PCBFSafetyFilter, simulate
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.models.pendulum import pendulum, pendulum_setup
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
 RATES = (-1.5, -0.75, 0.0, 0.75, 1.5)
 

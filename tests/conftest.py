@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from balustrade.backends import compile
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import (
     extended_pcbf_problem,
     pcbf_filter_problem,
     pcbf_slack_problem,
 )
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
 warnings.filterwarnings("ignore", message="Solution may be inaccurate")
 
@@ -65,9 +65,10 @@ def unstable2d_tube():
     """The §5.6 system (N = 10) with its ellipsoidal RPI error set, tightened sets, the terminal
     CBF on X ⊖ E and the robust slack problem (5.15) — shared by the robust and the
     multiobjective tests."""
+    from balustrade.design.rpi import ellipsoidal_rpi
+    from balustrade.design.terminal_cbf import terminal_cbf_with_domain
     from balustrade.models.unstable2d import unstable2d, unstable2d_setup
-    from balustrade.problems.robust import robust_pcbf_slack_problem, terminal_cbf_with_domain
-    from balustrade.problems.rpi import ellipsoidal_rpi
+    from balustrade.problems.robust import robust_pcbf_slack_problem
 
     N = 10
     system, s = unstable2d(), unstable2d_setup(N)

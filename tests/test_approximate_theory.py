@@ -26,10 +26,10 @@ import pytest
 from balustrade.backends import compile
 from balustrade.control.approximate import ApproximatePCBFFilter, GridPCBFFilter
 from balustrade.control.base import simulate
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.dsl import OCP, sum_norms
 from balustrade.learn.sampler import ProblemSpec
 from balustrade.models.pendulum import pendulum, pendulum_setup
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
 SYS = pendulum()
 SETUP = pendulum_setup()

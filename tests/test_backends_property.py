@@ -18,6 +18,8 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from balustrade.backends import compile
+from balustrade.design.rpi import ellipsoidal_rpi
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf, terminal_cbf_with_domain
 from balustrade.dsl import Box, LinearSystem
 from balustrade.errors import BalustradeError
 from balustrade.problems.pcbf import (
@@ -25,9 +27,7 @@ from balustrade.problems.pcbf import (
     pcbf_filter_problem,
     pcbf_slack_problem,
 )
-from balustrade.problems.robust import robust_pcbf_slack_problem, terminal_cbf_with_domain
-from balustrade.problems.rpi import ellipsoidal_rpi
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
+from balustrade.problems.robust import robust_pcbf_slack_problem
 from balustrade.testing import verify
 
 N, ALPHA_F = 5, 1e3

@@ -39,6 +39,7 @@ from balustrade.backends import Solution, compile
 from balustrade.control.base import StepInfo, Trace, simulate
 from balustrade.control.pcbf import PCBFSafetyFilter
 from balustrade.control.robust_steps import slack_cost
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.dsl import (
     OCP,
     Box,
@@ -86,7 +87,6 @@ from balustrade.problems.robust import (
     robust_pcbf_slack_problem,
     tube_mpc_problem,
 )
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 from balustrade.testing import verify
 
 # -- a small, fast model ------------------------------------------------------------------------

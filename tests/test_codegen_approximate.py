@@ -70,8 +70,8 @@ def test_approximate_exact_shortcut_rho_half(tmp_path) -> None:
     """With ρ = 1/2 the proposal often meets the decrease of (7.5) after (7.6): the exact
     shortcut applies it in C as in Python."""
     from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.design.terminal_cbf import synthesize_terminal_cbf
     from balustrade.models.pendulum import pendulum_setup
-    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
     system, s = pendulum(), pendulum_setup()
     h = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])

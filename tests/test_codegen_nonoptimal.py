@@ -77,8 +77,8 @@ def test_feasible_slack_decisions_equal_python(truncated: dict) -> None:
 def truncated_approx(tmp_path_factory: pytest.TempPathFactory) -> dict:
     from balustrade.codegen import CApproximatePCBFFilter, emit_approximate
     from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.design.terminal_cbf import synthesize_terminal_cbf
     from balustrade.models.pendulum import pendulum_setup
-    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
     system, s = pendulum(), pendulum_setup()
     h = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])

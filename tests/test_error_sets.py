@@ -8,6 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
+from balustrade.design.rpi import ellipsoidal_rpi
 from balustrade.dsl.error_sets import (
     ErrorSet,
     is_rpi,
@@ -20,7 +21,6 @@ from balustrade.dsl.error_sets import (
 from balustrade.dsl.sets import Box, Ellipsoid
 from balustrade.errors import EmptySetError
 from balustrade.models.unstable2d import unstable2d, unstable2d_setup
-from balustrade.problems.rpi import ellipsoidal_rpi
 
 
 @pytest.fixture(scope="module")

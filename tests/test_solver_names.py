@@ -23,9 +23,6 @@ PATTERN = re.compile(r"ipopt|sqpmethod|qrqp|clarabel|piqp|osqp|scs|fatrop|hpipm|
 #: files other work of issue #13 is rewriting right now, with the reason; the merge empties
 #: this list (an entry without hits fails below, so it cannot go stale)
 KNOWN: dict[str, str] = {
-    "problems/approximate.py": "MaximalDecrease moves to control/ and takes a target (§3)",
-    "problems/robust.py": "projection and slack polishing move to control/ (§3)",
-    "control/fallbacks.py": "its projection becomes Set.project (§3)",
     "problems/regret/banded.py": "the regret SDPs move to the synthesis language (§4)",
     "problems/regret/dense.py": "the regret SDPs move to the synthesis language (§4)",
     "problems/regret/lmi.py": "the regret SDPs move to the synthesis language (§4)",

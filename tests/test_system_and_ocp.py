@@ -10,8 +10,9 @@ import scipy.linalg
 import sympy
 
 from balustrade.backends import compile
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.dsl import OCP, Box, Ellipsoid, LinearSystem, System, norm, sum_norms
-from balustrade.problems.terminal_cbf import largest_level, synthesize_terminal_cbf
+from balustrade.problems.terminal_cbf import largest_level
 from balustrade.testing import compare_backends, verify
 
 

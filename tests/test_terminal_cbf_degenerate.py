@@ -13,6 +13,7 @@ import warnings
 import numpy as np
 import pytest
 
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.dsl.sets import Box
 from balustrade.errors import (
     BalustradeError,
@@ -21,7 +22,7 @@ from balustrade.errors import (
     NonFiniteError,
 )
 from balustrade.models.pendulum import pendulum, pendulum_setup
-from balustrade.problems.terminal_cbf import DEGENERATE_LEVEL, synthesize_terminal_cbf
+from balustrade.problems.terminal_cbf import DEGENERATE_LEVEL
 
 
 def cartpole(u_max: float = 5.0) -> tuple[np.ndarray, np.ndarray, Box, Box]:
@@ -102,8 +103,8 @@ def test_bad_input_is_refused_before_the_solver(kwargs: dict, error: type,
 def test_ch5_robust_design_is_input_limited_and_its_note_says_so() -> None:
     """§5.6: the terminal CBF of the ch5-robust reproduction (SDP (6.17) on X ⊖ E, U ⊖ κ(E))
     has γ_f ≈ 0 by the thesis' design; the reproduction prints a note instead of warning."""
+    from balustrade.design.rpi import ellipsoidal_rpi
     from balustrade.models.unstable2d import unstable2d, unstable2d_setup
-    from balustrade.problems.rpi import ellipsoidal_rpi
     from balustrade.reproduce.ch5_robust import terminal_note
 
     system, s = unstable2d(), unstable2d_setup(30)

@@ -27,8 +27,8 @@ PENDULUM_U_P = 2.0
 def pendulum_pcbf_filter() -> object:
     """The pendulum PCBF safety filter of Section 7.5 on the ``fast-sqp`` target."""
     from balustrade.control.pcbf import PCBFSafetyFilter
+    from balustrade.design.terminal_cbf import synthesize_terminal_cbf
     from balustrade.models.pendulum import pendulum, pendulum_setup
-    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
     system, s = pendulum(), pendulum_setup()
     h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
@@ -38,8 +38,8 @@ def pendulum_pcbf_filter() -> object:
 
 def pendulum_functions() -> dict[str, ca.Function]:
     """Plain functions of the pendulum example: ``f``, ``∂f/∂x``, ``∂f/∂u``, ``h_f``, ``∇h_f``."""
+    from balustrade.design.terminal_cbf import synthesize_terminal_cbf
     from balustrade.models.pendulum import pendulum, pendulum_setup
-    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
     system, s = pendulum(), pendulum_setup()
     h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
@@ -84,8 +84,8 @@ def pendulum_approximate_filter(h_hat: Callable | None = None) -> object:
     """Algorithm 7.5 for the pendulum on the ``fast-sqp`` target; ``ĥ`` defaults to the terminal CBF
     ``h_f`` of (7.11) (replace it by a trained surrogate)."""
     from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.design.terminal_cbf import synthesize_terminal_cbf
     from balustrade.models.pendulum import pendulum, pendulum_setup
-    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
     system, s = pendulum(), pendulum_setup()
     if h_hat is None:

@@ -6,7 +6,7 @@ For ``x⁺ = Ax + Bu + Gw`` with ``w ∈ W`` (a bounded polytope or box) and the
 
 * :func:`bounded_vertices` — the vertices of a bounded disturbance set (the ellipsoidal RPI
   SDP (5.14)/SPEC §1.11 that designs ``E`` and ``K`` is a formulation:
-  :func:`balustrade.problems.rpi.ellipsoidal_rpi`);
+  :func:`balustrade.design.rpi.ellipsoidal_rpi`);
 * :func:`minimal_rpi_outer` — the polytopic outer approximation ``F(α, s) = (1−α)⁻¹ ⊕_{i<s}
   A_K^i W`` of the minimal RPI set (Raković et al., 2005) with the ε guarantee
   ``F(α, s) ⊆ F_∞ ⊕ B_∞(ε)``, computed with support functions only;

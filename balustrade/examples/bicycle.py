@@ -14,12 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from balustrade.design.rpi import ellipsoidal_rpi
+from balustrade.design.terminal_cbf import terminal_cbf_with_domain
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.system import System
 from balustrade.models.bicycle import V_S, ShiftedCBF, bicycle, bicycle_sets
-from balustrade.problems.robust import terminal_cbf_with_domain
-from balustrade.problems.rpi import ellipsoidal_rpi
 
 
 @dataclass

@@ -4,10 +4,10 @@
 
 from __future__ import annotations
 
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.learn.sampler import PCBFProblems, compile_pair
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import extended_pcbf_problem, pcbf_slack_problem
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
 
 def pendulum_problems(target: str = "fast-sqp", slack_norm: int = 1) -> PCBFProblems:

@@ -178,21 +178,3 @@ def _syms(ocp: OCP, x0: ca.SX, u_p: ca.SX | None, error: ErrorSet) -> dict:
 def fuel_objective(ocp: OCP, syms: dict) -> Cost:
     """``J = Σ_i ‖v_i‖₁`` (rendezvous, SPEC §3.4)."""
     return sum_norms(syms["v"], 1, label="fuel")
-
-
-# -- terminal ingredients --------------------------------------------------------------------
-def terminal_cbf_with_domain(A: np.ndarray, B: np.ndarray, X_E: Polytope, U_E: Polytope,
-                             delta_N: float, level: float = 1.0,
-                             decrease_factor: float = 0.99):
-    """The terminal CBF SDP (6.17) with the input LMI imposed on ``U ⊖ κ(E)`` scaled by
-    ``1/sqrt(1 + level)``, so that ``π_f(x) = Kx ∈ U ⊖ κ(E)`` on ``D_f = {h_f <= γ_f}`` with
-    ``γ_f >= level`` (SPEC §2.27 [Gap] on ``γ_f``). The printed SDP (``level = 0``) makes the
-    ellipsoid touch the input constraint, so ``γ_f ≈ 0`` and ``D_r = {h_r <= α_f γ_f}`` of
-    Theorem 5.15 collapses onto ``S_r``; a positive level gives the decrease guarantee a
-    region. The ellipsoid stays inside ``X ⊖ E`` and ``U ⊖ κ(E)`` as the thesis requires."""
-    from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
-
-    level = nonnegative(level, "terminal_cbf_with_domain: level")
-    check_instance(U_E, Polytope, "terminal_cbf_with_domain: U_E")
-    return synthesize_terminal_cbf(A, B, X_E, U_E, delta_N=delta_N,
-                                   decrease_factor=decrease_factor, min_level=level)

@@ -9,19 +9,17 @@ feedback ``κ(e) = K e``, ``Y = K E_P``, is RPI when for a ``λ ∈ (0, 1)`` and
 Among them :func:`rpi_sdp` minimizes the sum of the squared *relative* tightenings of all
 constraint rows, ``Σ_j [A_x]_j E_P [A_x]_jᵀ / [b_x]_j² + Σ_j t_u,j / [b_u]_j²`` with the
 epigraph LMIs ``[[t_u,j, [A_u]_j Y], [Yᵀ[A_u]_jᵀ, E_P]] ⪰ 0`` (``h_{KE}([A_u]_j)² <= t_u,j``).
-``λ`` is a parameter of the compiled SDP; :func:`ellipsoidal_rpi` line-searches it.
+``λ`` is a parameter of the compiled SDP; :func:`~balustrade.design.rpi.ellipsoidal_rpi`
+line-searches it.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Sequence
-
 import numpy as np
 
 from balustrade._checks import as_matrix, check_instance
-from balustrade.dsl.error_sets import ErrorSet, bounded_vertices
-from balustrade.dsl.sets import Ellipsoid, Polytope, Set
+from balustrade.dsl.error_sets import bounded_vertices
+from balustrade.dsl.sets import Polytope, Set
 from balustrade.dsl.synthesis import SynthesisProblem, bmat
 from balustrade.errors import BalustradeError, ShapeError
 
@@ -76,40 +74,4 @@ def _checked(A: object, B: object, W: object, X: object, U: object, G: object
     return A, B, G
 
 
-def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polytope,
-                    G: np.ndarray | None = None, lambdas: Sequence[float] | None = None,
-                    target: object = "sdp", name: str = "E") -> ErrorSet:
-    """Ellipsoidal RPI set and error feedback: :func:`rpi_sdp` compiled once and solved for
-    each ``λ`` of the line search (default 19 values in ``(0, 1)``), keeping the best.
-
-    Returns ``ErrorSet(Ellipsoid(E_P⁻¹), K = Y E_P⁻¹)`` with the objective, the chosen ``λ``
-    and the solve time in ``info``. ``target``: a synthesis target (preset ``"sdp"``)."""
-    from balustrade.backends import compile_synthesis
-
-    lambdas = list(lambdas) if lambdas is not None else list(np.linspace(0.05, 0.95, 19))
-    for lv in lambdas:
-        if not 0 < lv < 1:
-            raise BalustradeError(f"RPI SDP: λ must lie in (0, 1), got {lv}")
-    compiled = compile_synthesis(rpi_sdp(A, B, W, X, U, G), target)
-    best = None
-    start = time.perf_counter()
-    for lv in lambdas:
-        sol = compiled.solve({"lambda": lv})
-        if sol.ok and (best is None or sol.objective < best[0].objective):
-            best = (sol, lv)
-    elapsed = time.perf_counter() - start
-    if best is None:
-        raise BalustradeError("RPI SDP: no λ in the line search admits an ellipsoidal RPI set "
-                              f"(tried {len(lambdas)} values); the system may not be "
-                              "stabilizable against W")
-    sol, lv = best
-    Ev = 0.5 * (sol["E"] + sol["E"].T)
-    P = np.linalg.inv(Ev)
-    P = 0.5 * (P + P.T)
-    K = sol["Y"] @ P
-    return ErrorSet(Ellipsoid(P, name=name), K,
-                    info={"objective": sol.objective, "lambda": lv, "solve_time": elapsed,
-                          "method": "ellipsoidal SDP (SPEC §1.11)"})
-
-
-__all__ = ["ellipsoidal_rpi", "rpi_sdp"]
+__all__ = ["rpi_sdp"]

@@ -10,7 +10,8 @@ for every state row and ``[[b̄_u,j², a_jᵀY], [Yᵀa_j, E]] ⪰ 0`` for every
 **Degenerate level.** The volume-maximal ellipsoid usually touches an input row: its LMI
 is then active, ``a_jᵀKEKᵀa_j = b̄_u,j²``, and ``γ_f = 0`` up to the solver's accuracy —
 ``D_f`` collapses onto ``S_f = {h_f <= 0}`` and ``D_PB = {h_PB <= α_f γ_f}`` onto ``S_PB``
-(Assumption 2.29 needs ``γ_f > 0``). :func:`synthesize_terminal_cbf` then warns
+(Assumption 2.29 needs ``γ_f > 0``).
+:func:`~balustrade.design.terminal_cbf.synthesize_terminal_cbf` then warns
 (:class:`~balustrade.errors.DegenerateResultWarning`) naming the active input rows, and
 records the reason in :attr:`TerminalCBF.degenerate`; ``min_level = γ`` reserves a level
 (the input LMI on ``b̄_u / sqrt(1 + γ)``, so ``γ_f >= γ``).
@@ -18,7 +19,6 @@ records the reason in :attr:`TerminalCBF.degenerate`; ``min_level = γ`` reserve
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import casadi as ca
@@ -29,7 +29,6 @@ from balustrade.dsl.sets import Polytope
 from balustrade.dsl.synthesis import SynthesisProblem, bmat, logdet
 from balustrade.errors import (
     BalustradeError,
-    DegenerateResultWarning,
     ShapeError,
 )
 
@@ -118,32 +117,6 @@ def _checked(A: object, B: object, X: object, U: object, delta_N: object,
         raise BalustradeError("terminal CBF SDP: the origin must lie in the interior of the "
                               f"(tightened) constraints; state bounds {bx}, input bounds {U.h}")
     return A, B, bx, U.h / np.sqrt(1.0 + min_level), decrease_factor
-
-
-def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polytope,
-                            delta_N: float = 0.0, decrease_factor: float = 0.99,
-                            target: object = "sdp", min_level: float = 0.0) -> TerminalCBF:
-    """Solve (7.11)/(6.17) (:func:`terminal_cbf_sdp`) for ``x⁺ = Ax + Bu`` with state rows
-    tightened by ``delta_N`` (``Δ_{N−1}``) and return the terminal CBF. ``X``/``U`` may
-    already be tightened by an RPI set (Chapters 5, 6). ``decrease_factor`` is ``λ`` in the
-    invariance LMI; ``target`` a synthesis target (default: the preset ``"sdp"``).
-
-    ``min_level = γ > 0`` imposes the input LMI on ``b̄_u / sqrt(1 + γ)``, so that
-    ``γ_f >= γ`` (``γ_f`` is computed on ``U`` itself). A degenerate ``γ_f ≈ 0`` is
-    returned with a :class:`~balustrade.errors.DegenerateResultWarning` naming the
-    limiting input rows (see the module docstring)."""
-    from balustrade.backends import solve_synthesis
-
-    sdp = terminal_cbf_sdp(A, B, X, U, delta_N, decrease_factor, min_level)
-    sol = solve_synthesis(sdp, target)
-    if not sol.ok:
-        raise BalustradeError(f"terminal CBF SDP: no solution ({sol.status}: {sol.message}); "
-                              "the constraints may admit no invariant ellipsoid")
-    cbf = terminal_cbf_from(sol.values, U, as_scalar(decrease_factor, "λ"), sol.status,
-                            sol.solve_time)
-    if cbf.degenerate:
-        warnings.warn(cbf.degenerate, DegenerateResultWarning, stacklevel=2)
-    return cbf
 
 
 def terminal_cbf_from(values: dict[str, np.ndarray], U: Polytope, decrease_factor: float,

@@ -17,9 +17,9 @@ import numpy as np
 
 from balustrade.backends import compile
 from balustrade.control import PCBFSafetyFilter, simulate
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import combined_h, extended_pcbf_problem
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 from balustrade.reproduce._plotting import figure, save
 
 NAMES = ("pendulum",)

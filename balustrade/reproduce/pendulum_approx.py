@@ -44,6 +44,7 @@ from balustrade.backends import compile
 from balustrade.control.approximate import ApproximatePCBFFilter
 from balustrade.control.base import simulate
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
 from balustrade.learn.dataset import ShardedDataset, grid_plan, run_sampling
 from balustrade.learn.executors import make_executor
 from balustrade.learn.export import to_casadi
@@ -51,7 +52,6 @@ from balustrade.learn.sampler import Evaluator, ProblemSpec
 from balustrade.learn.train import MLPModel, TrainConfig
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
-from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 
 NAMES = ("table7.1", "pendulum-approx")
 THESIS_TABLE = {"D_PB \\ S_PB": {"PCBF": 1.0, "h_PB rho=1": 1.05, "h rho=1": 1.10,
