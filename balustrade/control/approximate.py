@@ -34,6 +34,7 @@ from balustrade._checks import as_count, as_scalar, as_vector, check_instance
 from balustrade.backends import Compiled, Solution, compile
 from balustrade.backends.casadi_fast import Buffered, FastNLP
 from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.deploy import ApproximateDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -182,6 +183,17 @@ class ApproximatePCBFFilter:
         info.solutions["filter"] = sol
         u = np.asarray(sol["u"], float).reshape(self.nu) if sol.usable else None
         return u, sol.status
+
+    def deployment_spec(self) -> ApproximateDeployment:
+        """What the emitted C step needs (:func:`balustrade.codegen.emit_approximate`):
+        (7.6) and (7.5) compiled, ``U``, the model, ``ĥ``, the screening grid and the
+        constants of Algorithm 7.5."""
+        dec = self.decrease
+        return ApproximateDeployment(
+            decrease=dec.compiled, filter=self.filter, U=self.U, system=self.system,
+            h=self.h, grid=np.atleast_2d(np.asarray(dec.grid, dtype=float)),
+            n_local=int(dec.n_local), rho=float(self.rho), certify=bool(self.certify),
+            exact_shortcut=bool(self.exact_shortcut))
 
 
 class GridPCBFFilter:
