@@ -66,19 +66,21 @@ class ApproximatePCBFFilter:
     is the minimizer and (7.5) is not solved; ``exact_shortcut=False`` always solves
     (7.5)), ``n_fallbacks``.
 
-    ``fast=True`` (default) runs the same algorithm with buffered CasADi evaluations, the
-    KKT-vertex start of (7.6) and :class:`~balustrade.backends.casadi_fast.FastNLP` first
-    attempts (see :class:`~balustrade.problems.approximate.MaximalDecrease`); a failed
-    attempt goes through ``Compiled.solve`` and its retries, so statuses and fallbacks
-    are those of ``fast=False``. ``StepInfo.solve_time`` is the wall time of (7.6) and
-    (7.5) including screening; ``StepInfo.solutions`` holds the :class:`Solution` objects
-    of solves that went through ``Compiled.solve`` (none on the fast path).
+    The algorithm runs with buffered CasADi evaluations, the KKT-vertex start of (7.6) and
+    :class:`~balustrade.backends.casadi_fast.FastNLP` first attempts (see
+    :class:`~balustrade.problems.approximate.MaximalDecrease`); a failed attempt goes
+    through ``Compiled.solve`` and its retries, so statuses and fallbacks are those of
+    solving everything through ``Compiled.solve`` (the reference implementation the tests
+    compare against, ``tests/reference_approximate.py``). ``StepInfo.solve_time`` is the
+    wall time of (7.6) and (7.5) including screening; ``StepInfo.solutions`` holds the
+    :class:`Solution` objects of solves that went through ``Compiled.solve`` (none on the
+    fast path).
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
                  solver: str = "ipopt", options: dict | None = None, certify: bool = True,
                  grid_points: int = 5, n_local: int = 1, eps: float = 1e-6,
-                 exact_shortcut: bool = True, fast: bool = True):
+                 exact_shortcut: bool = True):
         check_instance(system, System, "ApproximatePCBFFilter: system")
         check_instance(U, Set, "ApproximatePCBFFilter: U")
         rho = as_scalar(rho, "ApproximatePCBFFilter: rho", 0.0, 1.0, low_open=True)
@@ -89,13 +91,11 @@ class ApproximatePCBFFilter:
         self.exact_shortcut = bool(exact_shortcut)
         self.nu = system.nu
         self.h = as_h_function(h_hat, system.nx)
-        self.fast = bool(fast)
-        self.decrease = MaximalDecrease(system, U, self.h, solver, options, grid_points, n_local,
-                                        fast=self.fast)
+        self.decrease = MaximalDecrease(system, U, self.h, solver, options, grid_points, n_local)
         self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps),
                                         "casadi", solver, solver_options(solver, options))
         self._h_next = self.decrease._h_next
-        self._fast_filter = FastNLP(self.filter) if self.fast else None
+        self._fast_filter = FastNLP(self.filter)
         self.reset()
 
     def reset(self) -> None:
@@ -168,16 +168,20 @@ class ApproximatePCBFFilter:
                 info: StepInfo) -> tuple[np.ndarray | None, str]:
         """(7.5) warm-started at the (7.6) minimizer: a :class:`FastNLP` solve (same
         problem and options, cold multipliers), the compiled problem's ``solve`` (with
-        its retries) if that fails or ``fast=False``. Returns the minimizer, or the
+        its retries, :meth:`_filter_compiled`) if that fails. Returns the minimizer, or the
         feasible point of a solve that did not converge (``None`` if not even that), and
         the solution status."""
-        if self._fast_filter is not None:
-            fast = self._fast_filter
-            out = fast.solve(fast.pack(x0=x, u_p=u_p, dh=dec.dh, rho=self.rho), {"u": dec.u})
-            if out is not None:
-                u = out[0][fast.offsets["u"]].copy()
-                if np.isfinite(u).all():
-                    return u, "optimal"
+        fast = self._fast_filter
+        out = fast.solve(fast.pack(x0=x, u_p=u_p, dh=dec.dh, rho=self.rho), {"u": dec.u})
+        if out is not None:
+            u = out[0][fast.offsets["u"]].copy()
+            if np.isfinite(u).all():
+                return u, "optimal"
+        return self._filter_compiled(x, u_p, dec, info)
+
+    def _filter_compiled(self, x: np.ndarray, u_p: np.ndarray, dec: DecreaseResult,
+                         info: StepInfo) -> tuple[np.ndarray | None, str]:
+        """(7.5) through ``Compiled.solve`` (its retry chain), warm-started at ``dec.u``."""
         sol = self.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": self.rho},
                                 warm_start={"u": dec.u})
         info.solutions["filter"] = sol
