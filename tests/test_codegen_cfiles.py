@@ -173,3 +173,43 @@ def test_emit_problem_docstring_names_the_generated_entry_points(modules: dict) 
             continue
         assert re.search(rf"\bfilt_p_{entry}\b", text), entry
     assert not re.search(r"<name>_(solve|work|W_)", doc)
+
+
+def test_emit_problems_module_equals_single_problems(modules: dict, tmp_path) -> None:
+    """Several problems in one module (prefix <name>_<key>) solve as emit_problem's."""
+    from balustrade.codegen import CProblem, emit_problems
+
+    ctrl = modules["pcbf_ctrl"]
+    em = emit_problems({"slack": ctrl.slack, "filter": ctrl.filter}, "pair", tmp_path)
+    assert em.kind == "problems" and set(em.manifest["problems"]) == {"slack", "filter"}
+    lib = build(tmp_path, "pair", werror=True)
+    pair = CProblem(lib, problem="filter")
+    single = CProblem(build(modules["out"], werror=True, out=tmp_path / "libsingle.so"),
+                      modules["problem"].manifest)
+    params = {"x0": np.array([0.1, 0.2]), "u_p": np.array([2.0]), "xi": np.zeros((4, 10)),
+              "xi_N": 0.0}
+    a, b = pair.solve(params, warm=False), single.solve(params, warm=False)
+    assert a[0] == b[0] == "ok" and a[1] == b[1] and np.array_equal(a[3], b[3])
+    with pytest.raises(CodegenError, match="no emitted problem 'nope'"):
+        CProblem(lib, problem="nope")
+
+
+def test_robust_controller_problems_emit_through_its_spec(unstable2d_tube, tmp_path) -> None:
+    """Algorithm 5.2 has no emitted step: its ProblemsDeployment ((5.15), (5.16)) emits as
+    one module of two problems that builds with -Werror."""
+    from balustrade.codegen import emit_problems
+    from balustrade.control.deploy import ProblemsDeployment
+    from balustrade.control.robust import RobustPCBFSafetyFilter
+
+    t = unstable2d_tube
+    s = t["s"]
+    ctrl = RobustPCBFSafetyFilter.build(t["system"], s.X, s.U, t["cbf"], t["cbf"].policy,
+                                        t["N"], s.deltas(), t["error"], s.alpha_f,
+                                        slack_solver="sqpmethod")
+    spec = ctrl.deployment_spec()
+    assert isinstance(spec, ProblemsDeployment) and spec.problems["slack"] is ctrl.slack
+    em = emit_problems(ctrl, "robust", tmp_path)
+    header = (tmp_path / "robust.h").read_text()
+    assert "robust_slack_solve" in header and "robust_filter_solve" in header
+    build(tmp_path, "robust", werror=True)
+    assert em.manifest["problems"]["filter"]["prefix"] == "robust_filter"

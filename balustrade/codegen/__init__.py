@@ -26,6 +26,7 @@ from balustrade.codegen.emit import (
     emit_functions,
     emit_pcbf,
     emit_problem,
+    emit_problems,
     write_example,
 )
 from balustrade.codegen.runtime import (
@@ -41,6 +42,7 @@ from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_lib
 __all__ = [
     "SUPPORTED", "CApproximatePCBFFilter", "CFunction", "CPCBFSafetyFilter", "CProblem",
     "Emitted", "build", "build_executable", "check_no_callbacks", "emit_approximate",
-    "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "find_compiler",
+    "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "emit_problems",
+    "find_compiler",
     "load_manifest", "solver_libraries", "mirror_c_retries", "write_example",
 ]

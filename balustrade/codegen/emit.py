@@ -13,6 +13,7 @@ codes):
   the C entry point is CasADi's ``<fn>(arg, res, iw, w, mem)`` with ``<fn>_work``,
   ``<fn>_incref``/``_checkout``/``_release``/``_decref``;
 * :func:`emit_problem` — one compiled problem (e.g. (2.24)): ``<name>_p_solve(work, p)``;
+  :func:`emit_problems` — several, e.g. those of Algorithm 5.2: ``<name>_<key>_solve``;
 * :func:`emit_pcbf` — the PCBF pair (2.24)+(2.23) as one call per control step,
   ``<name>_step(x, u_p, u_out, h_out, status, work)``, with the fallbacks of
   :mod:`balustrade.control.pcbf`;
@@ -39,7 +40,7 @@ from balustrade.backends.casadi_backend import CasadiCompiled, sqp_retry_strateg
 from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
 from balustrade.codegen.support import check_no_callbacks, solver_libraries
-from balustrade.control.deploy import ApproximateDeployment, PCBFDeployment
+from balustrade.control.deploy import ApproximateDeployment, PCBFDeployment, ProblemsDeployment
 from balustrade.dsl.sets import Box
 from balustrade.errors import CodegenError, NonFiniteError, ShapeError
 
@@ -416,6 +417,44 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
     return _write_module(name, out_dir, f"the problem {compiled.ocp.name!r}", cfg,
                          [("problem", prob.P)], files,
                          {"kind": "problem", "problems": {"problem": prob.manifest()}}, libs)
+
+
+def emit_problems(problems: object, name: str, out_dir: str | Path,
+                  allow_external: bool = False, accept_tol: float | None = None) -> Emitted:
+    """Emit several compiled problems into one module: those of a controller whose step has
+    no emitted C (its :class:`~balustrade.control.deploy.ProblemsDeployment`, e.g.
+    Algorithm 5.2's (5.15) and (5.16)), the spec itself, or a dict ``{key: compiled}``.
+    Each problem gets the prefix ``<name>_<key>`` and the entry points of
+    :func:`emit_problem` (``<name>_<key>_solve``, ...); ``CProblem(lib, problem=key)``
+    calls one from Python."""
+    _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
+    if isinstance(problems, dict):
+        spec = ProblemsDeployment(dict(problems), f"the problems of {name}")
+    else:
+        spec = _spec(problems, name, ProblemsDeployment,
+                     "controller with compiled problems (or a dict key -> compiled problem)")
+    if not spec.problems:
+        raise CodegenError(f"{name}: no problems to emit")
+    libs: tuple[str, ...] = ()
+    for key, compiled in spec.problems.items():
+        _check_identifier(key, f"{name}: problem key")
+        libs += _check_compiled(compiled, f"{name}: problem {key!r}", allow_external)
+    out_dir = _out_dir(out_dir, name)
+    probs = {key: _Problem(c, f"{name}_{key}", f"{key} {c.ocp.name!r} of {spec.algorithm}",
+                           name, accept_tol) for key, c in spec.problems.items()}
+    functions: dict[str, ca.Function] = {}
+    for prob in probs.values():
+        functions.update(prob.functions())
+    files = _generate(functions, name, out_dir)
+    cfg = C.Config()
+    for prob in probs.values():
+        prob.config(cfg)
+    return _write_module(name, out_dir, spec.algorithm, cfg,
+                         [("problem", prob.P) for prob in probs.values()], files,
+                         {"kind": "problems",
+                          "problems": {key: prob.manifest() for key, prob in probs.items()}},
+                         tuple(sorted(set(libs))))
 
 
 def emit_pcbf(controller: object, name: str, out_dir: str | Path,
