@@ -203,8 +203,11 @@ def test_makefile_and_sources_written(pcbf_c: dict) -> None:
     for f in ("Makefile", "main.c", "pendulum_pcbf.c", "pendulum_pcbf.h",
               "pendulum_pcbf_casadi.c", "pendulum_pcbf_casadi.h", "pendulum_pcbf.json"):
         assert (out / f).is_file(), f
-    header = (out / "pendulum_pcbf.h").read_text()
-    assert "int pendulum_pcbf_step(const casadi_real* x, const casadi_real* u_p" in header
+    # the header declares the step under its real name (through the static bal/pcbf.h)
+    proc = subprocess.run([find_compiler(), "-E", "-P", str(out / "pendulum_pcbf.h")],
+                          capture_output=True, text=True, check=True)
+    header = " ".join(proc.stdout.split())
+    assert "int pendulum_pcbf_step(const double* x, const double* u_p" in header
     assert "-Werror" in (out / "Makefile").read_text()
 
 
@@ -309,14 +312,15 @@ def test_refuses_missing_compiler(monkeypatch: pytest.MonkeyPatch, tmp_path) -> 
 
 
 def test_refuses_non_box_input_set_and_bad_names(pcbf_c: dict, tmp_path) -> None:
+    from dataclasses import replace
+
     from balustrade.dsl.sets import Polytope
 
-    class Fake:
-        slack, filter = pcbf_c["py"].slack, pcbf_c["py"].filter
-        U = Polytope(np.array([[1.0], [-1.0]]), np.array([3.0, 3.0]))
-
+    # the emitters read the controller's typed deployment spec: one with a polytope U
+    spec = replace(pcbf_c["py"].deployment_spec(),
+                   U=Polytope(np.array([[1.0], [-1.0]]), np.array([3.0, 3.0])))
     with pytest.raises(CodegenError, match="Box"):
-        emit_pcbf(Fake(), "p", tmp_path)
+        emit_pcbf(spec, "p", tmp_path)
     with pytest.raises(CodegenError, match="identifier"):
         emit_pcbf(pcbf_c["py"], "not a name", tmp_path)
 

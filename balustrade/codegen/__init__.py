@@ -10,8 +10,12 @@ Deploy path (see ``docs/deploy_c.md``)::
 
 Modules: :mod:`~balustrade.codegen.support` (which solvers generate C, callback check),
 :mod:`~balustrade.codegen.emit` (the emitters: plain functions, one problem, the PCBF
-pair (2.24)+(2.23), Algorithm 7.5 with (7.5)+(7.6)), :mod:`~balustrade.codegen.build`
-(compiler), :mod:`~balustrade.codegen.runtime` (ctypes), :mod:`~balustrade.codegen.cli`.
+pair (2.24)+(2.23), Algorithm 7.5 with (7.5)+(7.6), reading the controllers' typed
+deployment specs of :mod:`balustrade.control.deploy`), :mod:`~balustrade.codegen.cfiles`
+(the static C shipped in ``codegen/c/`` and the generated config header that instantiates
+it), :mod:`~balustrade.codegen.status` (status codes, defined once),
+:mod:`~balustrade.codegen.build` (compiler), :mod:`~balustrade.codegen.runtime` (ctypes),
+:mod:`~balustrade.codegen.cli`.
 """
 
 from balustrade.codegen.build import build, build_executable, find_compiler
@@ -22,6 +26,7 @@ from balustrade.codegen.emit import (
     emit_functions,
     emit_pcbf,
     emit_problem,
+    emit_problems,
     write_example,
 )
 from balustrade.codegen.runtime import (
@@ -37,6 +42,7 @@ from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_lib
 __all__ = [
     "SUPPORTED", "CApproximatePCBFFilter", "CFunction", "CPCBFSafetyFilter", "CProblem",
     "Emitted", "build", "build_executable", "check_no_callbacks", "emit_approximate",
-    "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "find_compiler",
+    "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "emit_problems",
+    "find_compiler",
     "load_manifest", "solver_libraries", "mirror_c_retries", "write_example",
 ]

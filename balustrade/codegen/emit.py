@@ -1,23 +1,29 @@
 """Emit C sources from compiled CasADi problems, safety filters and plain functions.
 
-Three entry points, each writing ``<name>_casadi.c/.h`` (CasADi's code generation,
-``casadi.CodeGenerator`` with ``with_header``), balustrade's own ``<name>.c/.h`` (documented
-entry points, see :mod:`balustrade.codegen.templates`) and ``<name>.json`` (a manifest the
-Python runtime reads: sizes, offsets, status codes):
+Each entry point writes, into ``out_dir``: ``<name>_casadi.c/.h`` (CasADi's code generation,
+``casadi.CodeGenerator`` with ``with_header``: the solvers and functions), ``bal/`` (balustrade's
+static C, the same files for every module: :mod:`~balustrade.codegen.cfiles`),
+``<name>_config.h`` (the numbers of this module: sizes, offsets, bounds, tolerances, status
+codes), ``<name>.h``/``<name>.c`` (glue instantiating the static C under the module's symbol
+prefixes) and ``<name>.json`` (a manifest the Python runtime reads: sizes, offsets, status
+codes):
 
 * :func:`emit_functions` / :func:`emit_function` — any plain function of the language
   (dynamics ``System.function``, ``h_f``, a value-function surrogate, their gradients):
   the C entry point is CasADi's ``<fn>(arg, res, iw, w, mem)`` with ``<fn>_work``,
   ``<fn>_incref``/``_checkout``/``_release``/``_decref``;
-* :func:`emit_problem` — one compiled problem (e.g. (2.24)): ``<name>_solve(work, p)``;
+* :func:`emit_problem` — one compiled problem (e.g. (2.24)): ``<name>_p_solve(work, p)``;
+  :func:`emit_problems` — several, e.g. those of Algorithm 5.2: ``<name>_<key>_solve``;
 * :func:`emit_pcbf` — the PCBF pair (2.24)+(2.23) as one call per control step,
   ``<name>_step(x, u_p, u_out, h_out, status, work)``, with the fallbacks of
-  :mod:`balustrade.control.pcbf`.
+  :mod:`balustrade.control.pcbf`;
+* :func:`emit_approximate` — Algorithm 7.5 ((7.6) then (7.5)) as one call per control step.
 
-Every compiled problem's target is asked first whether it can be emitted
-(:meth:`~balustrade.backends.Target.emit_reason`, facts in :mod:`balustrade.backends.emittable`) and
-every function graph is searched for Python callbacks
-(:func:`~balustrade.codegen.support.check_no_callbacks`).
+The controllers are read through their typed deployment specs
+(:mod:`balustrade.control.deploy`). Every compiled problem's target is asked first whether it
+can be emitted (:meth:`~balustrade.backends.Target.emit_reason`, facts in
+:mod:`balustrade.backends.emittable`) and every function graph is searched for Python
+callbacks (:func:`~balustrade.codegen.support.check_no_callbacks`).
 """
 
 from __future__ import annotations
@@ -33,10 +39,10 @@ import numpy as np
 from balustrade._checks import as_vector
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.emittable import c_attempts
+from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
-from balustrade.codegen import templates as T
 from balustrade.codegen.support import check_no_callbacks
-from balustrade.control.pcbf import ZERO_TOL
+from balustrade.control.deploy import ApproximateDeployment, PCBFDeployment, ProblemsDeployment
 from balustrade.dsl.sets import Box
 from balustrade.errors import CodegenError, NonFiniteError, ShapeError
 
@@ -57,6 +63,8 @@ class Emitted:
     headers: list[Path]
     manifest: dict = field(repr=False)
     libraries: tuple[str, ...] = ()
+    #: balustrade's static C copied into ``out_dir/bal/`` (included by the sources)
+    static: list[Path] = field(default_factory=list, repr=False)
 
     @property
     def kind(self) -> str:
@@ -104,19 +112,7 @@ def _check_dynamics(name: str, dynamics: object) -> None:
                            f"system.function), got {type(dynamics).__name__}")
 
 
-def _c_array(values: np.ndarray | list[float], min_len: int = 1) -> str:
-    vals = [float(v) for v in np.asarray(values, dtype=float).reshape(-1)]
-    if len(vals) < min_len:
-        vals += [0.0] * (min_len - len(vals))
-    return "{" + ", ".join(_c_double(v) for v in vals) + "}"
-
-
-def _c_double(v: float) -> str:
-    if np.isnan(v):
-        return "NAN"
-    if np.isinf(v):
-        return "INFINITY" if v > 0 else "-INFINITY"
-    return repr(float(v))
+_c_double = C.c_double
 
 
 def _renamed(fn: ca.Function, name: str) -> ca.Function:
@@ -148,7 +144,7 @@ def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> li
     except RuntimeError as exc:  # pragma: no cover - CasADi-internal failures
         raise CodegenError(f"{name}: CasADi code generation failed: {exc}") from exc
     c_path, h_path = out_dir / f"{cg_name}.c", out_dir / f"{cg_name}.h"
-    c_path.write_text(T.PRAGMA + c_path.read_text())
+    c_path.write_text(C.static_text("casadi_prologue.h") + c_path.read_text())
     return [c_path, h_path]
 
 
@@ -188,13 +184,23 @@ def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ..
     return libs
 
 
-def _controller_pair(controller: object, name: str, kind: str, first: object, second: object,
+def _spec(controller: object, name: str, cls: type, kind: str) -> object:
+    """The typed deployment spec (:mod:`balustrade.control.deploy`) of ``controller`` (or
+    ``controller`` itself if it is one), else a CodegenError naming what was expected."""
+    if isinstance(controller, cls):
+        return controller
+    get = getattr(controller, "deployment_spec", None)
+    spec = get() if callable(get) else None
+    if not isinstance(spec, cls):
+        raise CodegenError(f"{name}: expected a {kind} (or its deployment_spec(), a "
+                           f"{cls.__name__}), got {type(controller).__name__}")
+    return spec
+
+
+def _controller_pair(name: str, first: object, second: object, U: object,
                      labels: tuple[str, str], allow_external: bool
                      ) -> tuple[CasadiCompiled, CasadiCompiled, Box, tuple[str, ...]]:
-    """The two compiled problems and the box U of a two-problem controller, checked for C."""
-    U = getattr(controller, "U", None)
-    if first is None or second is None or U is None:
-        raise CodegenError(f"{name}: expected a {kind}, got {type(controller).__name__}")
+    """The two compiled problems and the box U of a two-problem step, checked for C."""
     libs = _check_compiled(first, f"{name}: {labels[0]}", allow_external)
     libs += _check_compiled(second, f"{name}: {labels[1]}", allow_external)
     if not isinstance(U, Box):
@@ -246,71 +252,55 @@ class _Problem:
         out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt")
         return out
 
-    def _solver_code(self) -> dict[str, str]:
-        """C snippets: size macros, memory checkout/release, dispatch of attempts."""
+    def config(self, cfg: C.Config) -> None:
+        """The ``#define``\\ s of this problem for ``<name>_config.h`` (read by
+        ``bal/problem.h`` and ``bal/problem.c`` under the prefix ``P``)."""
         P, syms = self.P, [sym for sym, _, _ in self.solvers]
-        uniq = list(dict.fromkeys(syms))
-        sz = ""
-        for key in ("ARG", "RES", "IW", "W"):
-            expr = f"{uniq[0]}_SZ_{key}"
-            for sym in uniq[1:]:
-                expr = f"{P}_MAX2({expr}, {sym}_SZ_{key})"
-            sz += f"#define {P}_SZ_{key} {expr}\n"
-        init, fini, dispatch = "", "", ""
-        for k, sym in enumerate(syms):
-            first = syms.index(sym)
-            if first < k:  # the same function again: reuse its memory
-                init += f"  wk->mem[{k}] = wk->mem[{first}];\n"
-            else:
-                init += (f"  {sym}_incref();\n  wk->mem[{k}] = {sym}_checkout();\n"
-                         f"  if (wk->mem[{k}] < 0) {{\n    {sym}_decref();\n")
-                for j in range(k - 1, -1, -1):
-                    if syms.index(syms[j]) == j:
-                        init += f"    {syms[j]}_release(wk->mem[{j}]);\n    {syms[j]}_decref();\n"
-                init += "    return -1;\n  }\n"
-        for k in range(len(syms) - 1, -1, -1):
-            if syms.index(syms[k]) == k:
-                fini += f"  {syms[k]}_release(wk->mem[{k}]);\n  {syms[k]}_decref();\n"
-        for k, sym in enumerate(syms):
-            dispatch += (f"    case {k}:\n      flag = {sym}(wk->arg, wk->res, wk->iw, wk->w, "
-                         f"wk->mem[{k}]);\n      break;\n")
-        dispatch += "    default:\n      return BAL_EVAL_ERROR;\n"
-        doc = "; ".join(self.retry_docs)
-        return {"sz_defs": sz, "solver_init": init, "solver_fini": fini,
-                "dispatch": dispatch, "retry_doc": doc, "n_solvers": str(len(syms))}
-
-    def header(self) -> str:
-        pdoc = "".join(f"\n *   {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
+        pdoc = "".join(f"\n  {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
                        for n, v in self.params.items()) or " none"
-        vdoc = "".join(f"\n *   {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
+        vdoc = "".join(f"\n  {n}: offset {v['offset']}, shape {tuple(v['shape'])}"
                        for n, v in self.vars.items())
         n_user = self.layout.user_size
         if self.nw > n_user:
-            vdoc += (f"\n *   (epigraph variables of non-smooth costs: offset {n_user}"
+            vdoc += (f"\n  (epigraph variables of non-smooth costs: offset {n_user}"
                      f", {self.nw - n_user} values)")
-        offsets = "".join(f"#define {self.P}_P_{n} {v['offset']}\n"
-                          for n, v in self.params.items())
-        offsets += "".join(f"#define {self.P}_W_{n} {v['offset']}\n"
-                           for n, v in self.vars.items())
-        code = self._solver_code()
-        return T.PROBLEM_H.substitute(P=self.P, title=self.title, np=self.np, nw=self.nw,
-                                      retry_doc=code["retry_doc"], sz_defs=code["sz_defs"],
-                                      n_solvers=code["n_solvers"],
-                                      ng=self.ng, param_doc=pdoc, var_doc=vdoc,
-                                      tol_pr=f"{self.tol_pr:g}", tol_du=f"{self.tol_du:g}",
-                                      accept_tol=f"{self.accept_tol:g}", offsets=offsets,
-                                      name=self.module)
-
-    def source(self) -> str:
-        code = self._solver_code()
-        return T.PROBLEM_C.substitute(
-            P=self.P, solver_init=code["solver_init"], solver_fini=code["solver_fini"],
-            dispatch=code["dispatch"], n_solvers=code["n_solvers"], nw=self.nw,
-            ng1=max(self.ng, 1), lbx=_c_array(self.c.lbx),
-            ubx=_c_array(self.c.ubx), lbg=_c_array(self.c.lbg), ubg=_c_array(self.c.ubg),
-            init=_c_array(self.init), n_user=self.layout.user_size,
-            tol_pr=_c_double(self.tol_pr),
-            tol_du=_c_double(self.tol_du), accept_tol=_c_double(self.accept_tol))
+        retries = "; ".join(self.retry_docs) or "none"
+        cfg.comment(
+            f"---- problem {P}: {self.title} (bal/problem.h) ----\n"
+            f"Parameters p (stacked, {self.np} values):{pdoc}\n"
+            f"Decision vector x ({self.nw} values):{vdoc}\n"
+            f"Constraint rows: {self.ng}. BAL_OK when max violation < {self.tol_pr:g} and "
+            f"inf-norm of the\nLagrangian gradient < {self.tol_du:g} (the solver's own tests). "
+            "An attempt that did not\nconverge is retried from a cold start with, in order: "
+            f"{retries}.\nIf none converges, BAL_FEASIBLE with the last attempt whose violation "
+            f"scaled by 1 + |g|\nis <= {self.accept_tol:g} (its point, value and multipliers in "
+            "the work struct), as balustrade's backend.")
+        cfg.define(f"{P}_NP", self.np)
+        cfg.define(f"{P}_NW", self.nw)
+        cfg.define(f"{P}_NG", self.ng)
+        cfg.define(f"{P}_NG1", max(self.ng, 1), "rows of the bound arrays")
+        cfg.define(f"{P}_N_USER", self.layout.user_size, "declared variables (no epigraph)")
+        cfg.define(f"{P}_N_SOLVERS", len(syms), "first attempt + retries")
+        cfg.xmacro(f"{P}_SOLVERS", syms)
+        uniq = list(dict.fromkeys(syms))
+        for key in ("ARG", "RES", "IW", "W"):
+            expr = f"{uniq[0]}_SZ_{key}"
+            for sym in uniq[1:]:
+                expr = f"BAL_MAX2({expr}, {sym}_SZ_{key})"
+            cfg.define(f"{P}_SZ_{key}", expr)
+        cfg.define(f"{P}_TOL_PR", _c_double(self.tol_pr))
+        cfg.define(f"{P}_TOL_DU", _c_double(self.tol_du))
+        cfg.define(f"{P}_ACCEPT_TOL", _c_double(self.accept_tol))
+        for n, v in self.params.items():
+            cfg.define(f"{P}_P_{n}", v["offset"])
+        for n, v in self.vars.items():
+            cfg.define(f"{P}_W_{n}", v["offset"])
+        cfg.array(f"{P}_LBX", self.c.lbx, self.nw)
+        cfg.array(f"{P}_UBX", self.c.ubx, self.nw)
+        cfg.array(f"{P}_LBG", self.c.lbg, 1)
+        cfg.array(f"{P}_UBG", self.c.ubg, 1)
+        cfg.array(f"{P}_INIT_X", self.init, self.nw)
+        cfg.blank()
 
     def manifest(self) -> dict:
         return {"prefix": self.P, "title": self.title, "np": self.np, "nw": self.nw,
@@ -321,20 +311,25 @@ class _Problem:
                 "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol")}
 
 
-def _write_module(name: str, out_dir: Path, what: str, header_body: str, source_body: str,
-                  casadi_files: list[Path], manifest: dict, libs: tuple[str, ...]) -> Emitted:
-    NAME = name.upper()
+def _write_module(name: str, out_dir: Path, what: str, config: C.Config,
+                  parts: list[tuple[str, str]], casadi_files: list[Path], manifest: dict,
+                  libs: tuple[str, ...]) -> Emitted:
+    """Write the static C (``bal/``), ``<name>_config.h`` (``config``), the glue
+    ``<name>.h``/``<name>.c`` instantiating ``parts`` (``(kind, prefix)``) and
+    ``<name>.json``."""
+    static = C.copy_static(out_dir)
+    cfg = out_dir / f"{name}_config.h"
     h = out_dir / f"{name}.h"
     c = out_dir / f"{name}.c"
-    h.write_text(T.HEADER_TOP.substitute(name=name, NAME=NAME, what=what,
-                                         solve_status=S.c_defines(S.SOLVE)) + header_body
-                 + T.HEADER_BOTTOM.substitute(NAME=NAME))
-    c.write_text(T.SOURCE_TOP.substitute(name=name) + source_body)
+    cfg.write_text(C.config_header(name, what, config))
+    h.write_text(C.glue_header(name, what, parts))
+    c.write_text(C.glue_source(name, parts))
     manifest = {"version": MANIFEST_VERSION, "name": name, "casadi": ca.__version__,
                 "libraries": list(libs), **manifest,
                 "status_codes": S.manifest(S.SOLVE)}
     (out_dir / f"{name}.json").write_text(json.dumps(manifest, indent=1))
-    return Emitted(name, out_dir, [c, casadi_files[0]], [h, casadi_files[1]], manifest, libs)
+    return Emitted(name, out_dir, [c, casadi_files[0]], [h, cfg, casadi_files[1]], manifest,
+                   libs, static)
 
 
 # -- public API ------------------------------------------------------------------------
@@ -369,11 +364,11 @@ def emit_functions(functions: dict[str, ca.Function] | ca.Function, name: str,
                   "out": [[fn.size1_out(i), fn.size2_out(i)] for i in range(fn.n_out())],
                   "name_in": fn.name_in(), "name_out": fn.name_out()}
             for sym, fn in functions.items()}
-    body = "/* Plain functions: see the CasADi entry points declared in " \
-           f"{name}_casadi.h: {', '.join(functions)} */\n\n"
-    return _write_module(name, out_dir, "plain CasADi functions", body,
-                         "/* nothing beyond the CasADi-generated functions */\n",
-                         files, {"kind": "functions", "functions": info}, ())
+    cfg = C.Config()
+    cfg.comment(f"Plain functions: see the CasADi entry points declared in {name}_casadi.h: "
+                f"{', '.join(functions)}")
+    return _write_module(name, out_dir, "plain CasADi functions", cfg, [], files,
+                         {"kind": "functions", "functions": info}, ())
 
 
 def emit_function(fn: ca.Function, name: str, out_dir: str | Path) -> Emitted:
@@ -383,11 +378,16 @@ def emit_function(fn: ca.Function, name: str, out_dir: str | Path) -> Emitted:
 
 def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
                  allow_external: bool = False, accept_tol: float | None = None) -> Emitted:
-    """Emit one compiled problem (e.g. the slack problem (2.24)) with the entry point
-    ``int <name>_solve(<name>_work* wk, const casadi_real* p)``: parameters ``p`` stacked
-    in declaration order, warm start in ``wk->x0/lam_x0/lam_g0``, outputs ``wk->x``
-    (full primal solution; ``<name>_W_u`` is the offset of ``u``, so ``u_{0|k}`` is
-    ``wk->x[<name>_W_u]``), ``wk->f`` (value), return value = status (``BAL_*``).
+    """Emit one compiled problem (e.g. the slack problem (2.24)) under the C prefix
+    ``<name>_p`` (``bal/problem.h``), with the entry point
+    ``int <name>_p_solve(<name>_p_work* wk, const casadi_real* p)``: parameters ``p``
+    stacked in declaration order (``<name>_p_NP`` values; ``<name>_p_P_x0`` is the offset
+    of ``x0``), warm start in ``wk->x0/lam_x0/lam_g0``, outputs ``wk->x`` (full primal
+    solution; ``<name>_p_W_u`` is the offset of ``u``, so ``u_{0|k}`` is
+    ``wk->x[<name>_p_W_u]``), ``wk->f`` (value), return value = status (``BAL_*``).
+    Also ``<name>_p_init``/``_finalize``/``_alloc``/``_free``, ``<name>_p_cold_start``,
+    ``<name>_p_warm_start``, ``<name>_p_warm_start_primal``, ``<name>_p_primal``,
+    ``<name>_p_value``, ``<name>_p_residuals`` (all listed in ``<name>.h``).
 
     ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``. Attempts that do not
     converge are retried from a cold start with the retries of the target that emitted C
@@ -401,9 +401,49 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
     out_dir = _out_dir(out_dir, name)
     prob = _Problem(compiled, name + "_p", compiled.ocp.name, name, accept_tol)
     files = _generate(prob.functions(), name, out_dir)
-    return _write_module(name, out_dir, f"the problem {compiled.ocp.name!r}", prob.header(),
-                         prob.source(), files,
+    cfg = C.Config()
+    prob.config(cfg)
+    return _write_module(name, out_dir, f"the problem {compiled.ocp.name!r}", cfg,
+                         [("problem", prob.P)], files,
                          {"kind": "problem", "problems": {"problem": prob.manifest()}}, libs)
+
+
+def emit_problems(problems: object, name: str, out_dir: str | Path,
+                  allow_external: bool = False, accept_tol: float | None = None) -> Emitted:
+    """Emit several compiled problems into one module: those of a controller whose step has
+    no emitted C (its :class:`~balustrade.control.deploy.ProblemsDeployment`, e.g.
+    Algorithm 5.2's (5.15) and (5.16)), the spec itself, or a dict ``{key: compiled}``.
+    Each problem gets the prefix ``<name>_<key>`` and the entry points of
+    :func:`emit_problem` (``<name>_<key>_solve``, ...); ``CProblem(lib, problem=key)``
+    calls one from Python."""
+    _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
+    if isinstance(problems, dict):
+        spec = ProblemsDeployment(dict(problems), f"the problems of {name}")
+    else:
+        spec = _spec(problems, name, ProblemsDeployment,
+                     "controller with compiled problems (or a dict key -> compiled problem)")
+    if not spec.problems:
+        raise CodegenError(f"{name}: no problems to emit")
+    libs: tuple[str, ...] = ()
+    for key, compiled in spec.problems.items():
+        _check_identifier(key, f"{name}: problem key")
+        libs += _check_compiled(compiled, f"{name}: problem {key!r}", allow_external)
+    out_dir = _out_dir(out_dir, name)
+    probs = {key: _Problem(c, f"{name}_{key}", f"{key} {c.ocp.name!r} of {spec.algorithm}",
+                           name, accept_tol) for key, c in spec.problems.items()}
+    functions: dict[str, ca.Function] = {}
+    for prob in probs.values():
+        functions.update(prob.functions())
+    files = _generate(functions, name, out_dir)
+    cfg = C.Config()
+    for prob in probs.values():
+        prob.config(cfg)
+    return _write_module(name, out_dir, spec.algorithm, cfg,
+                         [("problem", prob.P) for prob in probs.values()], files,
+                         {"kind": "problems",
+                          "problems": {key: prob.manifest() for key, prob in probs.items()}},
+                         tuple(sorted(set(libs))))
 
 
 def emit_pcbf(controller: object, name: str, out_dir: str | Path,
@@ -425,9 +465,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     _check_accept_tol(name, accept_tol)
     _check_dynamics(name, dynamics)
     out_dir = _out_dir(out_dir, name)
+    spec = _spec(controller, name, PCBFDeployment, "PCBFSafetyFilter")
     slack, filt, U, libs = _controller_pair(
-        controller, name, "PCBFSafetyFilter (attributes slack, filter, U)",
-        getattr(controller, "slack", None), getattr(controller, "filter", None),
+        name, spec.slack, spec.filter, spec.U,
         ("slack problem (2.24)", "filter problem (2.23)"), allow_external)
     s = _Problem(slack, f"{name}_slack", f"slack problem (2.24) {slack.ocp.name!r}", name,
                  accept_tol)
@@ -446,35 +486,37 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     if filt.ocp.N != N or s.vars["u"]["shape"] != [nu, N]:
         raise CodegenError(f"{name}: horizons of (2.24) ({N}) and (2.23) ({filt.ocp.N}) differ")
     # warm start of (2.23) before its first success: variables shared by name with (2.24)
-    copies = []
-    for vn, lay in f.vars.items():
-        if vn in s.vars and s.vars[vn]["shape"] == lay["shape"]:
-            copies.append((s.vars[vn]["offset"], lay["offset"], int(np.prod(lay["shape"]))))
-    copy_shared = "".join(
-        f"    memcpy(wk->filter.x0 + {d}, wk->slack.x + {src}, {n} * sizeof(casadi_real));\n"
-        for src, d, n in copies)
-    Q = name
+    shared = [f"{s.vars[vn]['offset']}, {lay['offset']}, {int(np.prod(lay['shape']))}"
+              for vn, lay in f.vars.items()
+              if vn in s.vars and s.vars[vn]["shape"] == lay["shape"]]
     functions = {**s.functions(), **f.functions()}
     if dynamics is not None:
-        functions[f"{Q}_dynamics"] = dynamics
+        functions[f"{name}_dynamics"] = dynamics
     files = _generate(functions, name, out_dir)
-    header = s.header() + f.header() + T.PCBF_H.substitute(
-        Q=Q, nx=nx, nu=nu, N=N, pcbf_status=S.c_defines(S.PCBF), zero_tol=_c_double(ZERO_TOL))
-    source = s.source() + f.source() + T.PCBF_C.substitute(
-        Q=Q, u_lb=_c_array(U.lb), u_ub=_c_array(U.ub), s_p_x0=s.params["x0"]["offset"],
-        f_p_x0=f.params["x0"]["offset"], f_p_u_p=f.params["u_p"]["offset"],
-        f_p_xi=f.params["xi"]["offset"], f_p_xi_N=f.params["xi_N"]["offset"],
-        n_xi=int(np.prod(s.vars["xi"]["shape"])), s_w_xi=s.vars["xi"]["offset"],
-        s_w_xi_N=s.vars["xi_N"]["offset"], s_w_u=s.vars["u"]["offset"],
-        f_w_u=f.vars["u"]["offset"], copy_shared=copy_shared)
-    manifest = {"kind": "pcbf", "nx": nx, "nu": nu, "N": N,
-                "eps": float(getattr(controller, "eps", 0.0)),
+    cfg = C.Config()
+    s.config(cfg)
+    f.config(cfg)
+    cfg.comment(f"---- the PCBF control step {name}: (2.24) then (2.23) (bal/pcbf.h) ----")
+    cfg.define(f"{name}_NX", nx)
+    cfg.define(f"{name}_NU", nu)
+    cfg.define(f"{name}_N", N)
+    cfg.define(f"{name}_N_XI", int(np.prod(s.vars["xi"]["shape"])), "slacks xi of (2.24)")
+    cfg.define(f"{name}_ZERO_TOL", _c_double(spec.zero_tol),
+               "a feasible (2.24) of cost <= this is optimal")
+    cfg.array(f"{name}_U_LB", U.lb)
+    cfg.array(f"{name}_U_UB", U.ub)
+    cfg.comment("variables of (2.23) shared with (2.24): X(offset in (2.24), offset in (2.23), "
+                "size)")
+    cfg.xmacro(f"{name}_SHARED", shared)
+    cfg.status(S.PCBF, "BAL_PCBF_STATUS_CODES")
+    manifest = {"kind": "pcbf", "nx": nx, "nu": nu, "N": N, "eps": float(spec.eps),
                 "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
                 "problems": {"slack": s.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
                 "pcbf_status": S.manifest(S.PCBF)}
-    return _write_module(name, out_dir, "the PCBF safety filter (2.24)+(2.23)", header,
-                         source, files, manifest, tuple(sorted(set(libs))))
+    return _write_module(name, out_dir, "the PCBF safety filter (2.24)+(2.23)", cfg,
+                         [("problem", s.P), ("problem", f.P), ("pcbf", name)], files,
+                         manifest, tuple(sorted(set(libs))))
 
 
 def write_example(emitted: Emitted, x_init: np.ndarray, u_p: np.ndarray | float,
@@ -500,14 +542,12 @@ def write_example(emitted: Emitted, x_init: np.ndarray, u_p: np.ndarray | float,
                              f"(shape {x_init.shape})")
     if int(steps) != steps or steps < 1:
         raise CodegenError(f"{emitted.name}: steps must be a positive integer, got {steps!r}")
-    rows = ",\n  ".join(_c_array(r) for r in x_init)
-    main = T.MAIN_C.substitute(Q=emitted.name, name=emitted.name, n_init=len(x_init),
-                               steps=int(steps), x_init="{\n  " + rows + "\n}",
-                               u_p=_c_array(u_p))
+    (emitted.out_dir / "example.h").write_text(
+        C.example_header(emitted.name, len(x_init), int(steps), x_init, u_p))
     main_path = emitted.out_dir / "main.c"
-    main_path.write_text(main)
+    main_path.write_text(C.static_text("example_main.c"))
     mk = emitted.out_dir / "Makefile"
-    mk.write_text(T.MAKEFILE.substitute(name=emitted.name))
+    mk.write_text(C.makefile(emitted.name))
     return [main_path, mk]
 
 
@@ -527,12 +567,11 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     _check_accept_tol(name, accept_tol)
     _check_dynamics(name, dynamics)
     out_dir = _out_dir(out_dir, name)
+    spec = _spec(controller, name, ApproximateDeployment, "ApproximatePCBFFilter")
     dec, filt, U, libs = _controller_pair(
-        controller, name, "ApproximatePCBFFilter (attributes decrease, filter, U)",
-        getattr(getattr(controller, "decrease", None), "compiled", None),
-        getattr(controller, "filter", None),
+        name, spec.decrease, spec.filter, spec.U,
         ("maximal decrease problem (7.6)", "filter problem (7.5)"), allow_external)
-    system = controller.system
+    system = spec.system
     d = _Problem(dec, f"{name}_dec", f"maximal decrease (7.6) {dec.ocp.name!r}", name,
                  accept_tol)
     f = _Problem(filt, f"{name}_filter", f"filter (7.5) {filt.ocp.name!r}", name, accept_tol)
@@ -540,9 +579,9 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
                     "(7.5) parameter": (f.params, ["x0", "u_p", "dh", "rho"]),
                     "(7.5) variable": (f.vars, ["u"])},
              "build the problems with balustrade.problems.approximate")
-    grid = np.atleast_2d(np.asarray(controller.decrease.grid, dtype=float))
+    grid = np.atleast_2d(np.asarray(spec.grid, dtype=float))
     x, u = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu)
-    h = controller.h
+    h = spec.h
     functions = {**d.functions(), **f.functions(),
                  f"{name}_h": ca.Function(f"{name}_h", [x], [h(x)], ["x"], ["h"]),
                  f"{name}_h_next": ca.Function(f"{name}_h_next", [x, u], [h(system(x, u))],
@@ -550,28 +589,31 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     if dynamics is not None:
         functions[f"{name}_dynamics"] = dynamics
     files = _generate(functions, name, out_dir)
-    A = name
     nc = len(grid) + 2
-    header = d.header() + f.header() + T.APPROX_H.substitute(
-        A=A, nx=system.nx, nu=system.nu, nc=nc, n_local=int(controller.decrease.n_local),
-        approx_status=S.c_defines(S.APPROX),
-        rho=_c_double(controller.rho),
-        exact_shortcut=int(bool(getattr(controller, "exact_shortcut", False))))
-    rows = ",\n  ".join(_c_array(r) for r in grid)
-    source = d.source() + f.source() + T.APPROX_C.substitute(
-        A=A, u_lb=_c_array(U.lb), u_ub=_c_array(U.ub), grid="{\n  " + rows + "\n}",
-        certify=int(bool(controller.certify)), d_w_u=d.vars["u"]["offset"],
-        d_p_x0=d.params["x0"]["offset"], f_p_x0=f.params["x0"]["offset"],
-        f_p_u_p=f.params["u_p"]["offset"], f_p_dh=f.params["dh"]["offset"],
-        f_p_rho=f.params["rho"]["offset"], f_w_u=f.vars["u"]["offset"])
+    cfg = C.Config()
+    d.config(cfg)
+    f.config(cfg)
+    cfg.comment(f"---- Algorithm 7.5, the approximate PCBF filter {name} (bal/approx.h) ----")
+    cfg.define(f"{name}_NX", system.nx)
+    cfg.define(f"{name}_NU", system.nu)
+    cfg.define(f"{name}_NC", nc, "screened candidates: clip(0), clip(u_p), the grid")
+    cfg.define(f"{name}_N_LOCAL", int(spec.n_local), "local (7.6) solves")
+    cfg.define(f"{name}_RHO", _c_double(spec.rho))
+    cfg.define(f"{name}_CERTIFY", int(bool(spec.certify)), "line 4 (initial value)")
+    cfg.define(f"{name}_EXACT_SHORTCUT", int(bool(spec.exact_shortcut)))
+    cfg.array(f"{name}_U_LB", U.lb)
+    cfg.array(f"{name}_U_UB", U.ub)
+    cfg.matrix(f"{name}_GRID", grid)
+    cfg.status(S.APPROX, "BAL_APPROX_STATUS_CODES")
     manifest = {"kind": "approximate", "nx": system.nx, "nu": system.nu, "n_candidates": nc,
-                "n_local": int(controller.decrease.n_local), "rho": float(controller.rho),
-                "certify": bool(controller.certify),
+                "n_local": int(spec.n_local), "rho": float(spec.rho),
+                "certify": bool(spec.certify),
                 "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
                 "problems": {"dec": d.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
-                "exact_shortcut": bool(getattr(controller, "exact_shortcut", False)),
+                "exact_shortcut": bool(spec.exact_shortcut),
                 "approx_status": S.manifest(S.APPROX)}
     return _write_module(name, out_dir, "Algorithm 7.5, the approximate PCBF filter "
-                         "(7.5)+(7.6)", header, source, files, manifest,
-                         tuple(sorted(set(libs))))
+                         "(7.5)+(7.6)", cfg,
+                         [("problem", d.P), ("problem", f.P), ("approx", name)], files,
+                         manifest, tuple(sorted(set(libs))))

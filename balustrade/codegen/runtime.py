@@ -208,17 +208,24 @@ class _OwnsWork:
 
 
 class CProblem(_OwnsWork):
-    """An emitted problem (:func:`~balustrade.codegen.emit.emit_problem`): ``solve(params)``
-    returns ``(status, value, primal dict, w)`` from the C solver, warm-started from the
-    previous converged solution unless ``warm=False``."""
+    """An emitted problem (:func:`~balustrade.codegen.emit.emit_problem`, or the problem
+    ``problem`` of a module of :func:`~balustrade.codegen.emit.emit_problems`):
+    ``solve(params)`` returns ``(status, value, primal dict, w)`` from the C solver,
+    warm-started from the previous converged solution unless ``warm=False``."""
 
-    def __init__(self, lib_path: str | Path, manifest: dict | None = None):
+    def __init__(self, lib_path: str | Path, manifest: dict | None = None,
+                 problem: str | None = None):
         self._lib = _Library(lib_path, manifest)
         m = self._lib.manifest
-        if m.get("kind") != "problem":
+        kind = m.get("kind")
+        if kind not in ("problem", "problems"):
             raise CodegenError(f"{self._lib.path.name}: not an emitted problem "
-                               f"(kind {m.get('kind')!r})")
-        self.info = m["problems"]["problem"]
+                               f"(kind {kind!r})")
+        key = problem if problem is not None else "problem"
+        if key not in m["problems"]:
+            raise CodegenError(f"{self._lib.path.name}: no emitted problem {key!r} (have "
+                               f"{sorted(m['problems'])}; pass problem=...)")
+        self.info = m["problems"][key]
         P = self.info["prefix"]
         self._alloc = self._lib.fn(f"{P}_alloc", ctypes.c_void_p, [])
         self._free = self._lib.fn(f"{P}_free", None, [ctypes.c_void_p])

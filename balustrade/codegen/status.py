@@ -1,7 +1,7 @@
 """The status codes of the emitted C, defined once: the ``#define`` lines of the generated
-headers (:mod:`~balustrade.codegen.templates`), the manifests written by
-:mod:`~balustrade.codegen.emit` and the Python names read by
-:mod:`~balustrade.codegen.runtime` are all generated from these tables.
+config headers (:mod:`~balustrade.codegen.cfiles`; the static C in ``codegen/c/`` only uses
+the macro names), the manifests written by :mod:`~balustrade.codegen.emit` and the Python
+names read by :mod:`~balustrade.codegen.runtime` are all generated from these tables.
 
 Three families:
 

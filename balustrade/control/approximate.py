@@ -35,6 +35,7 @@ from balustrade.backends import Compiled, Solution, Target, compile
 from balustrade.backends.casadi_fast import Buffered, FastNLP
 from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.decrease import DecreaseResult, MaximalDecrease, in_set, local_target
+from balustrade.control.deploy import ApproximateDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -71,9 +72,6 @@ class ApproximatePCBFFilter:
     (7.6). ``StepInfo.solve_time`` is the wall time of (7.6) and
     (7.5) including screening; ``StepInfo.solutions`` holds the :class:`Solution` objects
     of solves that went through ``Compiled.solve`` (none on the fast path).
-
-    ``target``: the CasADi target (or preset name) (7.6) and (7.5) are compiled for:
-    ``"exact"`` (default) or ``"fast-sqp"`` (the one that emits C).
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
@@ -186,6 +184,17 @@ class ApproximatePCBFFilter:
         info.solutions["filter"] = sol
         u = np.asarray(sol["u"], float).reshape(self.nu) if sol.usable else None
         return u, sol.status
+
+    def deployment_spec(self) -> ApproximateDeployment:
+        """What the emitted C step needs (:func:`balustrade.codegen.emit_approximate`):
+        (7.6) and (7.5) compiled, ``U``, the model, ``ĥ``, the screening grid and the
+        constants of Algorithm 7.5."""
+        dec = self.decrease
+        return ApproximateDeployment(
+            decrease=dec.compiled, filter=self.filter, U=self.U, system=self.system,
+            h=self.h, grid=np.atleast_2d(np.asarray(dec.grid, dtype=float)),
+            n_local=int(dec.n_local), rho=float(self.rho), certify=bool(self.certify),
+            exact_shortcut=bool(self.exact_shortcut))
 
 
 class GridPCBFFilter:

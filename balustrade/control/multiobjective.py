@@ -33,6 +33,7 @@ import numpy as np
 from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, Target, companion, compile
 from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.deploy import ProblemsDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -132,6 +133,12 @@ class MultiobjectiveLyapunovController:
         u = v[:, 0].copy()
         self._prev = (x, u, v)
         return u, info
+
+    def deployment_spec(self) -> ProblemsDeployment:
+        """The compiled problems of Algorithm 6.3, (6.10) and its initialization (6.3), for
+        :func:`balustrade.codegen.emit_problem` (the closed-loop step has no emitted C)."""
+        return ProblemsDeployment({"problem": self.problem, "init": self.init},
+                                  "Algorithm 6.3, the multiobjective Lyapunov controller")
 
 
 class MultiobjectivePCBFController:
@@ -248,3 +255,9 @@ class MultiobjectivePCBFController:
         self.candidate = self._make_candidate(z, v, xi)
         u = v[:, 0] + self.error.kappa(x - z[:, 0])
         return u, info
+
+    def deployment_spec(self) -> ProblemsDeployment:
+        """The compiled problems of Algorithm 6.4, (5.15) and (6.15), for
+        :func:`balustrade.codegen.emit_problem` (the closed-loop step has no emitted C)."""
+        return ProblemsDeployment({"slack": self.slack, "problem": self.problem},
+                                  "Algorithm 6.4, the multiobjective robust PCBF controller")

@@ -45,6 +45,7 @@ import numpy as np
 from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, Target, compile
 from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.deploy import PCBFDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -159,3 +160,9 @@ class PCBFSafetyFilter:
             return self._plan[:, self._plan_age].copy(), info
         info.fallback = "projected_proposal"
         return project(u_p, self.U), info
+
+    def deployment_spec(self) -> PCBFDeployment:
+        """What the emitted C step needs (:func:`balustrade.codegen.emit_pcbf`): both
+        compiled problems, ``U``, ``eps`` and :data:`ZERO_TOL`."""
+        return PCBFDeployment(slack=self.slack, filter=self.filter, U=self.U,
+                              eps=float(self.eps), zero_tol=ZERO_TOL)

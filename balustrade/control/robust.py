@@ -33,6 +33,7 @@ import numpy as np
 from balustrade._checks import as_scalar, as_vector, check_deltas, check_instance, check_norm_order
 from balustrade.backends import Compiled, Solution, Target, companion, compile
 from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.deploy import ProblemsDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -177,4 +178,10 @@ class RobustPCBFSafetyFilter:
             return u, info
         info.fallback = "projected_proposal"
         return project(u_p, self.U), info
+
+    def deployment_spec(self) -> ProblemsDeployment:
+        """The compiled problems of Algorithm 5.2, (5.15) and (5.16), for
+        :func:`balustrade.codegen.emit_problem` (the closed-loop step has no emitted C)."""
+        return ProblemsDeployment({"slack": self.slack, "filter": self.filter},
+                                  "Algorithm 5.2, the robust PCBF filter (5.15)+(5.16)")
 

@@ -1,0 +1,43 @@
+/* bal/common.h: macros shared by balustrade's static C (shipped with the package, copied
+ * next to every emitted module). The generated <name>_config.h holds the numbers (sizes,
+ * offsets, bounds, tolerances, status codes); the files of bal/ hold the algorithms and are
+ * instantiated once per symbol prefix by the generated <name>.c:
+ *
+ *   #define BAL_PROBLEM pendulum_pcbf_slack   (one problem: bal/problem.h, bal/problem.c)
+ *   #define BAL_STEP pendulum_pcbf            (one control step: bal/pcbf.*, bal/approx.*)
+ *
+ * BAL_PX(solve) is then pendulum_pcbf_slack_solve and BAL_QX(step) pendulum_pcbf_step: the
+ * entry points have the real names of the emitted module.
+ */
+#ifndef BAL_COMMON_H
+#define BAL_COMMON_H
+
+#define BAL_CAT_(a, b) a##_##b
+#define BAL_CAT(a, b) BAL_CAT_(a, b)
+/* a symbol of the problem BAL_PROBLEM / of the step BAL_STEP */
+#define BAL_PX(x) BAL_CAT(BAL_PROBLEM, x)
+#define BAL_QX(x) BAL_CAT(BAL_STEP, x)
+
+#define BAL_MAX2(a, b) ((a) > (b) ? (a) : (b))
+
+/* converged and, after all retries, primal-feasible solutions are usable (a feasible point
+   of (2.23)/(7.5) keeps the guarantees of the constraints; a feasible (2.24) of positive
+   cost only bounds h_PB, so the PCBF step treats it as a failed (2.24)), exactly as
+   balustrade.control does with the backend's "feasible" status */
+#define BAL_SOLVED(s) ((s) == BAL_OK || (s) == BAL_FEASIBLE)
+
+/* One CasADi-generated function with its memory management, as written by CasADi's code
+   generator: f(arg, res, iw, w, mem), f_incref, f_checkout, f_release, f_decref. */
+typedef struct bal_casadi_fn {
+  int (*eval)(const casadi_real** arg, casadi_real** res, casadi_int* iw, casadi_real* w,
+              int mem);
+  void (*incref)(void);
+  int (*checkout)(void);
+  void (*release)(int mem);
+  void (*decref)(void);
+} bal_casadi_fn;
+
+/* The table entry of the CasADi function f (an X-macro argument: see <P>_SOLVERS). */
+#define BAL_CASADI_FN(f) {f, f##_incref, f##_checkout, f##_release, f##_decref},
+
+#endif /* BAL_COMMON_H */

@@ -1,0 +1,160 @@
+/* bal/pcbf.c: the PCBF control step Q = BAL_STEP ((2.24) then (2.23), bal/pcbf.h) with the
+ * fallbacks of balustrade.control.pcbf. Included by the generated <name>.c after the
+ * problems Q_slack and Q_filter. From <name>_config.h: Q_NX, Q_NU, Q_N, Q_N_XI (slacks xi),
+ * Q_ZERO_TOL, the box U (Q_U_LB, Q_U_UB), the offsets of the problems (Q_slack_P_x0, ...)
+ * and Q_SHARED(X): the variables (2.23) shares with (2.24) (offset in (2.24), offset in
+ * (2.23), size), its warm start before its first success.
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "step_common.c"
+
+static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
+static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
+
+int BAL_QX(init)(BAL_QX(work)* wk) {
+  wk->ready = 0;
+  if (BAL_QX(slack_init)(&wk->slack)) return -1;
+  if (BAL_QX(filter_init)(&wk->filter)) {
+    BAL_QX(slack_finalize)(&wk->slack);
+    return -1;
+  }
+  BAL_QX(reset)(wk);
+  wk->ready = 1;
+  return 0;
+}
+
+void BAL_QX(finalize)(BAL_QX(work)* wk) {
+  if (!wk->ready) return;
+  BAL_QX(filter_finalize)(&wk->filter);
+  BAL_QX(slack_finalize)(&wk->slack);
+  wk->ready = 0;
+}
+
+BAL_QX(work)* BAL_QX(alloc)(void) {
+  BAL_QX(work)* wk = (BAL_QX(work)*) calloc(1, sizeof(BAL_QX(work)));
+  if (wk && BAL_QX(init)(wk)) {
+    free(wk);
+    return 0;
+  }
+  return wk;
+}
+
+void BAL_QX(free)(BAL_QX(work)* wk) {
+  if (!wk) return;
+  BAL_QX(finalize)(wk);
+  free(wk);
+}
+
+void BAL_QX(reset)(BAL_QX(work)* wk) {
+  BAL_QX(slack_cold_start)(&wk->slack);
+  BAL_QX(filter_cold_start)(&wk->filter);
+  memset(wk->plan, 0, sizeof(wk->plan));
+  wk->plan_age = 0;
+  wk->have_plan = wk->have_slack = wk->have_filter = wk->n_replaced = 0;
+  wk->slack_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_upper = NAN;
+}
+
+/* A failed (2.24): the next input of the last plan, or u_p clipped to U (proposal_fallback
+   of balustrade.control.pcbf). */
+static int BAL_QX(fallback)(BAL_QX(work)* wk, casadi_real* u_out, int* status) {
+  casadi_int i;
+  if (wk->have_plan && wk->plan_age + 1 < BAL_QX(N)) {
+    wk->plan_age++;
+    for (i = 0; i < BAL_QX(NU); ++i) u_out[i] = wk->plan[wk->plan_age * BAL_QX(NU) + i];
+    *status = BAL_PCBF_SHIFTED_PLAN;
+  } else {
+    bal_clip(wk->u_p, BAL_QX(u_lb), BAL_QX(u_ub), u_out, BAL_QX(NU));
+    *status = BAL_PCBF_PROJECTED;
+  }
+  return *status;
+}
+
+/* (2.23) before its first success: warm start from the variables shared with (2.24) */
+#define BAL_PCBF_COPY_SHARED(src, dst, n) \
+  memcpy(wk->filter.x0 + (dst), wk->slack.x + (src), (n) * sizeof(casadi_real));
+
+int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
+                 casadi_real* h_out, int* status, BAL_QX(work)* wk) {
+  casadi_int i;
+  int certified;
+  const casadi_real* plan_src;
+  if (!x || !u_p || !u_out || !h_out || !status || !wk) {
+    if (status) *status = BAL_PCBF_BAD_INPUT;
+    return BAL_PCBF_BAD_INPUT;
+  }
+  wk->slack_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_upper = NAN;
+  *h_out = NAN;
+  wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
+  if (!bal_finite(x, BAL_QX(NX))) {
+    /* nothing is solved with a NaN or inf state (as
+       balustrade.control.fallbacks.projected_proposal); the plan is kept */
+    wk->slack_status = wk->filter_status = BAL_BAD_INPUT;
+    bal_clip(wk->u_p, BAL_QX(u_lb), BAL_QX(u_ub), u_out, BAL_QX(NU));
+    *status = BAL_PCBF_BAD_INPUT;
+    return *status;
+  }
+  /* (2.24): h_PB(x_k) and the slacks xi* */
+  for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
+  wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
+  if (!BAL_SOLVED(wk->slack_status)) return BAL_QX(fallback)(wk, u_out, status);
+  /* only an optimal (2.24) gives h_PB; a feasible point of cost <= ZERO_TOL is optimal
+     (h_PB >= 0 is a lower bound it attains), a costlier one only bounds h_PB above */
+  certified = wk->slack_status == BAL_OK || fmax(wk->slack.f, 0.0) <= BAL_QX(ZERO_TOL);
+  if (certified) {
+    if (wk->slack_status == BAL_OK) {
+      BAL_QX(slack_warm_start)(&wk->slack);
+    } else {
+      BAL_QX(slack_warm_start_primal)(&wk->slack);
+    }
+    wk->have_slack = 1;
+    *h_out = fmax(wk->slack.f, 0.0);
+  } else {
+    /* a failed (2.24) (Theorem 2.30 needs its optimum): the shifted plan if any */
+    wk->h_upper = fmax(wk->slack.f, 0.0);
+    if (wk->have_plan && wk->plan_age + 1 < BAL_QX(N)) return BAL_QX(fallback)(wk, u_out, status);
+  }
+  /* (2.23) with the slacks fixed: clip slightly negative solver slacks to 0 */
+  for (i = 0; i < BAL_QX(NX); ++i) wk->p_filter[BAL_QX(filter_P_x0) + i] = x[i];
+  for (i = 0; i < BAL_QX(NU); ++i) wk->p_filter[BAL_QX(filter_P_u_p) + i] = wk->u_p[i];
+  for (i = 0; i < BAL_QX(N_XI); ++i) {
+    wk->p_filter[BAL_QX(filter_P_xi) + i] = fmax(wk->slack.x[BAL_QX(slack_W_xi) + i], 0.0);
+  }
+  wk->p_filter[BAL_QX(filter_P_xi_N)] = fmax(wk->slack.x[BAL_QX(slack_W_xi_N)], 0.0);
+  if (!wk->have_filter) {
+    BAL_QX(filter_cold_start)(&wk->filter);
+    BAL_QX(SHARED)(BAL_PCBF_COPY_SHARED)
+  }
+  wk->filter_status = BAL_QX(filter_solve)(&wk->filter, wk->p_filter);
+  if (BAL_SOLVED(wk->filter_status)) {
+    if (wk->filter_status == BAL_OK) {
+      BAL_QX(filter_warm_start)(&wk->filter);
+      wk->have_filter = 1;
+    }
+    plan_src = wk->filter.x + BAL_QX(filter_W_u);
+    *status = BAL_PCBF_OK;
+  } else {
+    plan_src = wk->slack.x + BAL_QX(slack_W_u);
+    *status = BAL_PCBF_SLACK_SOLUTION;
+  }
+  if (!certified) *status = BAL_PCBF_FEASIBLE_SLACK;
+  memcpy(wk->plan, plan_src, sizeof(wk->plan));
+  wk->plan_age = 0;
+  wk->have_plan = 1;
+  for (i = 0; i < BAL_QX(NU); ++i) u_out[i] = wk->plan[i];
+  return *status;
+}
+
+#undef BAL_PCBF_COPY_SHARED
+
+BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk) { return &wk->slack; }
+BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk) { return &wk->filter; }
+int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which) {
+  return which == 0 ? wk->slack_status : wk->filter_status;
+}
+casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk) { return wk->h_upper; }
+int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }

@@ -1,0 +1,62 @@
+/* bal/pcbf.h: the PCBF control step Q = BAL_STEP: (2.24) then (2.23), one call per step.
+ * Included by the generated <name>.h after the problems Q_slack (2.24) and Q_filter (2.23).
+ *
+ * Q_step(x, u_p, u_out, h_out, status, work):
+ *   x      measured state x_k              (Q_NX values, read)
+ *   u_p    proposed input u_{p,k}          (Q_NU values, read)
+ *   u_out  input to apply u_k              (Q_NU values, written)
+ *   h_out  h_PB(x_k) = max(optimum of (2.24), 0) (NAN if (2.24) was not solved to
+ *          optimality: see Q_h_upper)
+ *   status BAL_PCBF_* (also returned)
+ * Per step: solve (2.24) warm-started from its last converged solution; clip its slacks
+ * at 0 and fix them (plus eps, built into the problem) as parameters of (2.23); solve
+ * (2.23) warm-started from its last converged solution (the first time: from the states and
+ * inputs of (2.24)); apply u*_{0|k}. Fallbacks, as balustrade.control.pcbf:
+ *   (2.23) fails                 -> u_{0|k} of (2.24)              BAL_PCBF_SLACK_SOLUTION
+ *   (2.24) fails                 -> next input of the last plan    BAL_PCBF_SHIFTED_PLAN
+ *   no plan left                 -> u_p clipped to U               BAL_PCBF_PROJECTED
+ *   (2.24) BAL_FEASIBLE, cost > Q_ZERO_TOL (not converged: its cost only bounds h_PB
+ *          from above; h_out NAN, Q_h_upper the bound) -> a failed (2.24): the shifted
+ *          plan; no plan left -> (2.23) on its slacks          BAL_PCBF_FEASIBLE_SLACK
+ *          (a BAL_FEASIBLE point of cost <= Q_ZERO_TOL is optimal: h_PB >= 0)
+ *   x NaN/inf, NULL args         -> u_p (NaN -> 0) clipped to U    BAL_PCBF_BAD_INPUT
+ *                                   (nothing solved; both solve statuses BAL_BAD_INPUT)
+ *   u_p NaN/inf (x finite)       -> those entries of u_p read as 0, the step runs as usual
+ *                                   (Q_proposal_replaced counts them)
+ * Warm starts as balustrade's backend: from a converged solution (primal and multipliers);
+ * from the primal of a certified BAL_FEASIBLE (2.24) (zero multipliers); never from an
+ * uncertified one; (2.23) only from BAL_OK solutions.
+ * The solutions stay in work->slack / work->filter (x: full primal, f: optimum).
+ */
+#ifndef BAL_STEP
+#error "bal/pcbf.h: define BAL_STEP (the step's symbol prefix) first"
+#endif
+
+typedef struct BAL_QX(work) {
+  BAL_QX(slack_work) slack;
+  BAL_QX(filter_work) filter;
+  casadi_real p_slack[BAL_QX(slack_NP) + 1], p_filter[BAL_QX(filter_NP) + 1];
+  casadi_real plan[BAL_QX(NU) * BAL_QX(N)];
+  casadi_real u_p[BAL_QX(NU)]; /* the proposal used (non-finite entries replaced by 0) */
+  casadi_real h_upper;         /* cost of an uncertified BAL_FEASIBLE (2.24), else NAN */
+  int plan_age, have_plan, have_slack, have_filter, n_replaced;
+  int slack_status, filter_status; /* BAL_* of the last step's solves */
+  int ready;
+} BAL_QX(work);
+
+int BAL_QX(init)(BAL_QX(work)* wk);
+void BAL_QX(finalize)(BAL_QX(work)* wk);
+BAL_QX(work)* BAL_QX(alloc)(void);
+void BAL_QX(free)(BAL_QX(work)* wk);
+/* Forget warm starts and the plan (a new closed loop). */
+void BAL_QX(reset)(BAL_QX(work)* wk);
+int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
+                 casadi_real* h_out, int* status, BAL_QX(work)* wk);
+/* Accessors for foreign-function callers. */
+BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk);
+BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk);
+int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which); /* 0: (2.24), 1: (2.23) */
+/* The last step's upper bound on h_PB from a merely feasible (2.24) (NAN if none). */
+casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk);
+/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
+int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk);

@@ -1,0 +1,220 @@
+/* bal/problem.c: one emitted problem P = BAL_PROBLEM: warm starts, the solve with its
+ * cold-start retries and the BAL_FEASIBLE rule (mirroring balustrade's CasADi backend).
+ * Included once per problem by the generated <name>.c, after <name>.h. The numbers come
+ * from <name>_config.h: bounds P_LBX/P_UBX/P_LBG/P_UBG, initial point P_INIT_X, the
+ * tolerances P_TOL_PR, P_TOL_DU, P_ACCEPT_TOL, and P_SOLVERS(X), the CasADi solvers of the
+ * first attempt and of each retry (the same function twice shares its memory). P_kkt
+ * evaluates the solver's own convergence measures at a point.
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+static const casadi_real BAL_PX(lbx)[BAL_PX(NW)] = BAL_PX(LBX);
+static const casadi_real BAL_PX(ubx)[BAL_PX(NW)] = BAL_PX(UBX);
+static const casadi_real BAL_PX(lbg)[BAL_PX(NG1)] = BAL_PX(LBG);
+static const casadi_real BAL_PX(ubg)[BAL_PX(NG1)] = BAL_PX(UBG);
+static const casadi_real BAL_PX(init_x)[BAL_PX(NW)] = BAL_PX(INIT_X);
+/* solver of attempt k: k = 0 from the warm start, k >= 1 the k-th cold-start retry */
+static const bal_casadi_fn BAL_PX(solvers)[BAL_PX(N_SOLVERS)] = {BAL_PX(SOLVERS)(BAL_CASADI_FN)};
+
+/* the first attempt that uses the solver of attempt k (its memory is shared) */
+static int BAL_PX(first_use)(int k) {
+  int j;
+  for (j = 0; j < k; ++j) {
+    if (BAL_PX(solvers)[j].eval == BAL_PX(solvers)[k].eval) return j;
+  }
+  return k;
+}
+
+/* release the memory of the solvers of attempts n - 1, ..., 0 */
+static void BAL_PX(release_solvers)(BAL_PX(work)* wk, int n) {
+  int k;
+  for (k = n - 1; k >= 0; --k) {
+    if (BAL_PX(first_use)(k) == k) {
+      BAL_PX(solvers)[k].release(wk->mem[k]);
+      BAL_PX(solvers)[k].decref();
+    }
+  }
+}
+
+int BAL_PX(init)(BAL_PX(work)* wk) {
+  int k, j;
+  wk->ready = 0;
+  for (k = 0; k < BAL_PX(N_SOLVERS); ++k) {
+    j = BAL_PX(first_use)(k);
+    if (j < k) { /* the same function again: reuse its memory */
+      wk->mem[k] = wk->mem[j];
+      continue;
+    }
+    BAL_PX(solvers)[k].incref();
+    wk->mem[k] = BAL_PX(solvers)[k].checkout();
+    if (wk->mem[k] < 0) {
+      BAL_PX(solvers)[k].decref();
+      BAL_PX(release_solvers)(wk, k);
+      return -1;
+    }
+  }
+  BAL_PX(kkt_incref)();
+  wk->kmem = BAL_PX(kkt_checkout)();
+  if (wk->kmem < 0) {
+    BAL_PX(kkt_decref)();
+    BAL_PX(release_solvers)(wk, BAL_PX(N_SOLVERS));
+    return -1;
+  }
+  BAL_PX(cold_start)(wk);
+  wk->ready = 1;
+  return 0;
+}
+
+void BAL_PX(finalize)(BAL_PX(work)* wk) {
+  if (!wk->ready) return;
+  BAL_PX(kkt_release)(wk->kmem);
+  BAL_PX(kkt_decref)();
+  BAL_PX(release_solvers)(wk, BAL_PX(N_SOLVERS));
+  wk->ready = 0;
+}
+
+BAL_PX(work)* BAL_PX(alloc)(void) {
+  BAL_PX(work)* wk = (BAL_PX(work)*) calloc(1, sizeof(BAL_PX(work)));
+  if (wk && BAL_PX(init)(wk)) {
+    free(wk);
+    return 0;
+  }
+  return wk;
+}
+
+void BAL_PX(free)(BAL_PX(work)* wk) {
+  if (!wk) return;
+  BAL_PX(finalize)(wk);
+  free(wk);
+}
+
+void BAL_PX(cold_start)(BAL_PX(work)* wk) {
+  memcpy(wk->x0, BAL_PX(init_x), sizeof(wk->x0));
+  memset(wk->lam_x0, 0, sizeof(wk->lam_x0));
+  memset(wk->lam_g0, 0, sizeof(wk->lam_g0));
+}
+
+void BAL_PX(warm_start)(BAL_PX(work)* wk) {
+  memcpy(wk->x0, wk->x, sizeof(wk->x0));
+  memcpy(wk->lam_x0, wk->lam_x, sizeof(wk->lam_x0));
+  memcpy(wk->lam_g0, wk->lam_g, sizeof(wk->lam_g0));
+}
+
+void BAL_PX(warm_start_primal)(BAL_PX(work)* wk) {
+  BAL_PX(cold_start)(wk);
+  memcpy(wk->x0, wk->x, BAL_PX(N_USER) * sizeof(casadi_real));
+}
+
+/* One solver run: which = 0 from the warm start in wk, else retry `which` from a cold start. */
+static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which) {
+  casadi_int i;
+  int flag;
+  wk->arg[0] = which ? BAL_PX(init_x) : wk->x0;
+  wk->arg[1] = p;
+  wk->arg[2] = BAL_PX(lbx);
+  wk->arg[3] = BAL_PX(ubx);
+  wk->arg[4] = BAL_PX(lbg);
+  wk->arg[5] = BAL_PX(ubg);
+  wk->arg[6] = which ? 0 : wk->lam_x0; /* 0: zero multipliers */
+  wk->arg[7] = which ? 0 : wk->lam_g0;
+  wk->res[0] = wk->x;
+  wk->res[1] = &wk->f;
+  wk->res[2] = wk->g;
+  wk->res[3] = wk->lam_x;
+  wk->res[4] = wk->lam_g;
+  wk->res[5] = wk->lam_p;
+  wk->attempts++;
+  if (which < 0 || which >= BAL_PX(N_SOLVERS)) return BAL_EVAL_ERROR;
+  flag = BAL_PX(solvers)[which].eval(wk->arg, wk->res, wk->iw, wk->w, wk->mem[which]);
+  if (flag) return BAL_EVAL_ERROR;
+  wk->karg[0] = wk->x;
+  wk->karg[1] = p;
+  wk->karg[2] = wk->lam_x;
+  wk->karg[3] = wk->lam_g;
+  wk->kres[0] = &wk->pr_inf;
+  wk->kres[1] = &wk->du_inf;
+  wk->kres[2] = &wk->feas;
+  if (BAL_PX(kkt)(wk->karg, wk->kres, wk->kiw, wk->kw, wk->kmem)) return BAL_EVAL_ERROR;
+  if (!isfinite(wk->f) || !isfinite(wk->pr_inf) || !isfinite(wk->du_inf)) return BAL_NONFINITE;
+  for (i = 0; i < BAL_PX(NW); ++i) {
+    if (!isfinite(wk->x[i])) return BAL_NONFINITE;
+  }
+  if (wk->pr_inf < BAL_PX(TOL_PR) && wk->du_inf < BAL_PX(TOL_DU)) return BAL_OK;
+  return wk->feas <= BAL_PX(ACCEPT_TOL) ? BAL_FEASIBLE : BAL_NOT_CONVERGED;
+}
+
+/* 1 if the P_NP parameters are all finite (NaN compares false: a NaN parameter would
+   make the residual tests pass), else 0 */
+static int BAL_PX(finite_params)(const casadi_real* p) {
+  casadi_int i;
+  for (i = 0; i < BAL_PX(NP); ++i) {
+    if (!isfinite(p[i])) return 0;
+  }
+  return 1;
+}
+
+/* keep (save = 1) or restore (save = 0) the point of a BAL_FEASIBLE attempt */
+static void BAL_PX(feasible_copy)(BAL_PX(work)* wk, int save) {
+  if (save) {
+    memcpy(wk->kx, wk->x, sizeof(wk->kx));
+    memcpy(wk->klam_x, wk->lam_x, sizeof(wk->klam_x));
+    memcpy(wk->klam_g, wk->lam_g, sizeof(wk->klam_g));
+    memcpy(wk->kg, wk->g, sizeof(wk->kg));
+    wk->kf = wk->f;
+    wk->kpr_inf = wk->pr_inf;
+    wk->kdu_inf = wk->du_inf;
+    wk->kfeas = wk->feas;
+  } else {
+    memcpy(wk->x, wk->kx, sizeof(wk->kx));
+    memcpy(wk->lam_x, wk->klam_x, sizeof(wk->klam_x));
+    memcpy(wk->lam_g, wk->klam_g, sizeof(wk->klam_g));
+    memcpy(wk->g, wk->kg, sizeof(wk->kg));
+    wk->f = wk->kf;
+    wk->pr_inf = wk->kpr_inf;
+    wk->du_inf = wk->kdu_inf;
+    wk->feas = wk->kfeas;
+  }
+}
+
+int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
+  int first, status, which, have_feasible;
+  casadi_int i;
+  if (!wk || !wk->ready) return BAL_EVAL_ERROR;
+  wk->attempts = 0;
+  if ((BAL_PX(NP) > 0 && !p) || (p && !BAL_PX(finite_params)(p))) {
+    /* refuse before any solver runs; the outputs say "no solution" */
+    for (i = 0; i < BAL_PX(NW); ++i) wk->x[i] = NAN;
+    wk->f = wk->pr_inf = wk->du_inf = wk->feas = NAN;
+    return BAL_BAD_INPUT;
+  }
+  first = BAL_PX(attempt)(wk, p, 0);
+  if (first == BAL_OK) return first;
+  have_feasible = first == BAL_FEASIBLE;
+  if (have_feasible) BAL_PX(feasible_copy)(wk, 1);
+  for (which = 1; which < BAL_PX(N_SOLVERS); ++which) {
+    status = BAL_PX(attempt)(wk, p, which);
+    if (status == BAL_OK) return status;
+    if (status == BAL_FEASIBLE) {
+      BAL_PX(feasible_copy)(wk, 1);
+      have_feasible = 1;
+    }
+  }
+  /* nothing converged: the last primal-feasible attempt is reported as BAL_FEASIBLE (safe
+     to apply, possibly suboptimal), never the point of a later infeasible attempt;
+     otherwise the first attempt's status (wk->x then holds the last attempt) */
+  if (have_feasible) {
+    BAL_PX(feasible_copy)(wk, 0);
+    return BAL_FEASIBLE;
+  }
+  return first;
+}
+
+const casadi_real* BAL_PX(primal)(const BAL_PX(work)* wk) { return wk->x; }
+casadi_real BAL_PX(value)(const BAL_PX(work)* wk) { return wk->f; }
+void BAL_PX(residuals)(const BAL_PX(work)* wk, casadi_real* out) {
+  out[0] = wk->pr_inf;
+  out[1] = wk->du_inf;
+  out[2] = wk->feas;
+}

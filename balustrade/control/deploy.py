@@ -1,0 +1,81 @@
+"""Typed deployment specs: what a controller hands to an emitter of C.
+
+Each closed-loop controller meant to run on a device answers ``deployment_spec()`` with one
+of these frozen dataclasses, holding exactly what the emitted step needs: its compiled
+problems, the box of the projected-proposal fallback, tolerances and the algorithm's
+constants. :mod:`balustrade.codegen` reads nothing else from a controller, so a controller
+can rename or restructure its internals without breaking the C it deploys (and
+:mod:`balustrade.control` never imports :mod:`balustrade.codegen`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from balustrade.backends import Compiled
+from balustrade.dsl.sets import Set
+from balustrade.dsl.system import System
+
+
+@dataclass(frozen=True)
+class PCBFDeployment:
+    """The PCBF safety filter (Section 2.4): per step the slack problem (2.24), then the
+    filter (2.23) with the slacks fixed, with the fallbacks of
+    :class:`~balustrade.control.pcbf.PCBFSafetyFilter`."""
+
+    #: (2.24): ``h_PB(x_k)`` and the slacks ``ξ*`` (parameter ``x0``; variables ``u``,
+    #: ``xi``, ``xi_N``)
+    slack: Compiled
+    #: (2.23) with the slacks fixed (parameters ``x0``, ``u_p``, ``xi``, ``xi_N``;
+    #: variable ``u``)
+    filter: Compiled
+    #: input set: the projected-proposal fallback clips ``u_p`` to it
+    U: Set
+    #: the tightening ``ε`` of (2.23) (built into ``filter``; recorded in the manifest)
+    eps: float
+    #: a merely feasible (2.24) point of cost ``<= zero_tol`` is optimal (``h_PB >= 0``)
+    zero_tol: float
+
+
+@dataclass(frozen=True)
+class ApproximateDeployment:
+    """Algorithm 7.5 (Section 7.3): the certification shortcut (line 4), the maximal
+    decrease (7.6) by screened multi-start, the filter (7.5), with the fallbacks of
+    :class:`~balustrade.control.approximate.ApproximatePCBFFilter`."""
+
+    #: (7.6): the maximal decrease of ``ĥ`` (parameter ``x0``; variable ``u``)
+    decrease: Compiled
+    #: (7.5) (parameters ``x0``, ``u_p``, ``dh``, ``rho``; variable ``u``)
+    filter: Compiled
+    #: input set (a box for C: candidates and the fallback are clipped to it)
+    U: Set
+    #: the model ``x+ = f(x, u)`` (for ``ĥ(f(x, u))``)
+    system: System
+    #: ``ĥ``, a function of ``x`` on CasADi symbols
+    h: Callable
+    #: the screening grid over ``U`` (rows), after the candidates ``clip(0)``, ``clip(u_p)``
+    grid: np.ndarray = field(repr=False)
+    #: local (7.6) solves from the best distinct screened candidates
+    n_local: int
+    #: ``ρ`` of (7.5)
+    rho: float
+    #: line 4 of Algorithm 7.5 enabled
+    certify: bool
+    #: apply ``u_p`` when it meets the decrease of (7.5) (its exact minimizer)
+    exact_shortcut: bool
+
+
+@dataclass(frozen=True)
+class ProblemsDeployment:
+    """A controller whose closed-loop step has no emitted C (yet): its compiled problems by
+    name, each emittable on its own (:func:`balustrade.codegen.emit_problem`), and the
+    algorithm that combines them."""
+
+    problems: dict[str, Compiled]
+    algorithm: str
+
+
+__all__ = ["ApproximateDeployment", "PCBFDeployment", "ProblemsDeployment"]
