@@ -103,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--json", default=None, help="also write the rows to this file")
     bench.set_defaults(func=_cmd_bench)
 
-    for extra in ("balustrade.codegen.cli", "balustrade.learn.cli"):
+    for extra in ("balustrade.examples.codegen_cli", "balustrade.learn.cli"):
         if importlib.util.find_spec(extra) is not None:
             importlib.import_module(extra).register(sub)
     return parser

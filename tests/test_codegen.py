@@ -24,15 +24,15 @@ from balustrade.codegen import (
     emit_problem,
     find_compiler,
 )
-from balustrade.codegen.examples import (
+from balustrade.codegen.runtime import mirror_c_retries
+from balustrade.control.base import simulate
+from balustrade.errors import BalustradeError, CodegenError, ShapeError
+from balustrade.examples.codegen import (
     PENDULUM_X0,
     emit_pendulum_pcbf,
     pendulum_functions,
     pendulum_pcbf_filter,
 )
-from balustrade.codegen.runtime import mirror_c_retries
-from balustrade.control.base import simulate
-from balustrade.errors import BalustradeError, CodegenError, ShapeError
 from balustrade.models.pendulum import pendulum
 
 N_STATES = 1000

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from balustrade.codegen import CApproximatePCBFFilter, build, emit_approximate
-from balustrade.codegen.examples import pendulum_approximate_filter
 from balustrade.codegen.runtime import mirror_c_retries
 from balustrade.control.base import simulate
 from balustrade.errors import CodegenError, ShapeError
+from balustrade.examples.codegen import pendulum_approximate_filter
 from balustrade.models.pendulum import pendulum
 
 

@@ -35,8 +35,8 @@ from balustrade.codegen import (
     write_example,
 )
 from balustrade.codegen import status as S
-from balustrade.codegen.examples import emit_pendulum_pcbf, pendulum_pcbf_filter
 from balustrade.errors import BalustradeError, CodegenError, NonFiniteError, ShapeError
+from balustrade.examples.codegen import emit_pendulum_pcbf, pendulum_pcbf_filter
 from balustrade.models.pendulum import pendulum
 
 DRIVER = r"""
@@ -244,7 +244,7 @@ def test_emitters_refuse_unwritable_folder_before_casadi(pcbf: dict, tmp_path,
 
 
 def test_emitters_refuse_wrong_objects(pcbf: dict, tmp_path) -> None:
-    from balustrade.codegen.examples import pendulum_approximate_filter
+    from balustrade.examples.codegen import pendulum_approximate_filter
 
     with pytest.raises(CodegenError, match="expected a PCBFSafetyFilter"):
         emit_pcbf(object(), "p", tmp_path)

@@ -14,9 +14,9 @@ import pytest
 from balustrade.codegen import build, emit_approximate, emit_pcbf, emit_problem, find_compiler
 from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
-from balustrade.codegen.examples import pendulum_approximate_filter, pendulum_pcbf_filter
 from balustrade.control.deploy import ApproximateDeployment, PCBFDeployment
 from balustrade.errors import CodegenError
+from balustrade.examples.codegen import pendulum_approximate_filter, pendulum_pcbf_filter
 
 PACKAGED = (*C.STATIC, "example_main.c", "casadi_prologue.h", "Makefile.in")
 
@@ -205,7 +205,7 @@ def test_robust_controller_problems_emit_through_its_spec(unstable2d_tube, tmp_p
     s = t["s"]
     ctrl = RobustPCBFSafetyFilter.build(t["system"], s.X, s.U, t["cbf"], t["cbf"].policy,
                                         t["N"], s.deltas(), t["error"], s.alpha_f,
-                                        slack_solver="sqpmethod")
+                                        slack_target="robust-sqp")
     spec = ctrl.deployment_spec()
     assert isinstance(spec, ProblemsDeployment) and spec.problems["slack"] is ctrl.slack
     em = emit_problems(ctrl, "robust", tmp_path)

@@ -15,8 +15,8 @@ import pytest
 
 from balustrade.backends import compile, resolve_target
 from balustrade.codegen import CPCBFSafetyFilter, build, emit_pcbf
-from balustrade.codegen.examples import pendulum_pcbf_filter
 from balustrade.codegen.runtime import mirror_c_retries
+from balustrade.examples.codegen import pendulum_pcbf_filter
 from balustrade.models.pendulum import pendulum
 
 #: (2.24) never converges: its dual residual cannot get below 1e-30

@@ -70,11 +70,6 @@ KNOWN: dict[tuple[str, str], str] = {
         "regret SDPs in hand-written cvxpy ('regret-sdp')",
     ("problems/regret/synthesis.py", "cvxpy"):
         "regret SDPs in hand-written cvxpy ('regret-sdp')",
-    ("codegen/examples.py", "models"):
-        "the codegen CLI builds the pendulum example controllers itself; belongs in "
-        "balustrade/examples ('cfiles' owns codegen/)",
-    ("codegen/examples.py", "design"):
-        "the codegen CLI synthesizes the pendulum's terminal CBF itself ('cfiles')",
 }
 
 

@@ -15,7 +15,7 @@ deployment specs of :mod:`balustrade.control.deploy`), :mod:`~balustrade.codegen
 (the static C shipped in ``codegen/c/`` and the generated config header that instantiates
 it), :mod:`~balustrade.codegen.status` (status codes, defined once),
 :mod:`~balustrade.codegen.build` (compiler), :mod:`~balustrade.codegen.runtime` (ctypes),
-:mod:`~balustrade.codegen.cli`.
+:mod:`~balustrade.examples.codegen_cli`.
 """
 
 from balustrade.codegen.build import build, build_executable, find_compiler

@@ -1,6 +1,6 @@
 """``balustrade codegen NAME --out DIR``: write C sources, a Makefile and a main.c example.
 
-``NAME`` is one of :data:`balustrade.codegen.examples.TARGETS` (``list`` lists them).
+``NAME`` is one of :data:`balustrade.examples.codegen.TARGETS` (``list`` lists them).
 ``--build`` also compiles the shared library and ``main`` (``-Wall -Wextra -Werror``) and
 ``--run`` runs ``main`` (the closed loop in C, with timings).
 """
@@ -16,7 +16,7 @@ from balustrade.errors import CodegenError
 
 def _cmd_codegen(args: argparse.Namespace) -> int:
     from balustrade.codegen.build import build, build_executable
-    from balustrade.codegen.examples import TARGETS
+    from balustrade.examples.codegen import TARGETS
 
     if args.name == "list":
         print("\n".join(sorted(TARGETS)))
