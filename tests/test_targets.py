@@ -216,7 +216,7 @@ def test_approximate_filter_takes_casadi_targets(pend):
     p = pend
     f = ApproximatePCBFFilter(p.system, p.U, p.h_f, target="fast-sqp")
     assert f.filter.target is PRESETS["fast-sqp"] and f.decrease.compiled.solver_name == "sqpmethod"
-    with pytest.raises(BalustradeError, match="CasADi targets"):
+    with pytest.raises(BalustradeError, match="need a CasADi target"):
         ApproximatePCBFFilter(p.system, p.U, p.h_f, target="cvxpy")
 
 
