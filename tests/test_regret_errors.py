@@ -3,15 +3,14 @@
 import numpy as np
 import pytest
 
-from balustrade.errors import BalustradeError, NotPSDError, ShapeError
-from balustrade.problems.regret import (
-    LTVSystem,
-    StateInputConstraints,
-    build_operators,
+from balustrade.backends import resolve_target
+from balustrade.control.regret_synthesis import (
     dynamic_regret,
     generalized_regret,
     pointwise_regret,
 )
+from balustrade.errors import BalustradeError, NotPSDError, ShapeError
+from balustrade.problems.regret import LTVSystem, StateInputConstraints, build_operators
 from balustrade.problems.regret.verify import maximize_quadratic_on_ball
 
 A = np.array([[1.0, 0.1], [0.0, 1.0]])
@@ -89,7 +88,7 @@ def test_dense_cone_too_large_for_clarabel_is_a_status(monkeypatch):
     """SCRW (W = 𝒪 with pointwise bounds) outside banded coordinates is one dense cone; when
     Clarabel's KKT block would not fit in memory the synthesis returns a status naming the size
     and SCS. In banded coordinates (the default) it is decomposable and solved."""
-    import balustrade.problems.regret.synthesis as syn
+    import balustrade.backends.synthesis_structured as syn
 
     ops = build_operators(LTVSystem.create(A, B, 3))
     monkeypatch.setattr(syn, "_mem_available_bytes", lambda: 1e3)
@@ -98,8 +97,8 @@ def test_dense_cone_too_large_for_clarabel_is_a_status(monkeypatch):
     assert "size 11" in res.info["message"] and "SCS" in res.info["message"]
     with pytest.raises(BalustradeError, match="too_large"):
         res.controller()
-    res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", solver="SCS", lmi="split",
-                               solver_opts={"eps_abs": 1e-7, "eps_rel": 1e-7})
+    scs = resolve_target("cvxpy", solver="scs", options={"eps_abs": 1e-7, "eps_rel": 1e-7})
+    res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", target=scs, lmi="split")
     res_banded = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O")
     assert res_banded.ok and res_banded.info["lmi"] == "banded"
     monkeypatch.undo()

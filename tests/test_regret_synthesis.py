@@ -4,27 +4,39 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
+from balustrade.backends import resolve_target
+from balustrade.backends.regret_dense import dense_generalized_regret
 from balustrade.backends.structure import psd_factor
-from balustrade.problems.regret import (
-    LTVSystem,
-    StateInputConstraints,
-    adversarial_regret,
-    build_operators,
+from balustrade.control.regret_synthesis import (
     dynamic_regret,
     generalized_regret,
     h2,
     hinf,
     pointwise_dynamic_regret,
     pointwise_regret,
+    solve_once,
     zero_x0_regret,
 )
-from balustrade.problems.regret.dense import dense_generalized_regret
+from balustrade.problems.regret import (
+    LTVSystem,
+    StateInputConstraints,
+    adversarial_regret_problem,
+    build_operators,
+    dynamic_regret_problem,
+    generalized_regret_problem,
+    hinf_problem,
+    pointwise_dynamic_problem,
+    pointwise_regret_problem,
+    zero_x0_regret_problem,
+)
 from balustrade.problems.regret.parametrization import parallel_rows
 from balustrade.problems.regret.verify import (
     pointwise_regret_lower_bound,
     regret_matrix,
     worst_case_regret_energy,
 )
+
+FORMS = ("banded", "split", "single")
 
 
 def random_ops(seed: int, n: int = 3, m: int = 2, T: int = 5):
@@ -193,7 +205,8 @@ def test_shared_robust_terms_equal_a_naive_transcription_of_3_41():
     kx = cons.Hx.shape[0]
     assert list(rep[:kx]) == [0, 1, 0, 1, 4, 4] and alpha[2] == pytest.approx(-1.1 / 1.1)
     assert alpha[5] == pytest.approx((2 / 2.2) / (1 / 1.5))
-    res = h2(ops, x0, constraints=cons, constraint_P=P, solver_opts=TIGHT)
+    res = h2(ops, x0, constraints=cons, constraint_P=P,
+             target=resolve_target("clarabel", options=TIGHT))
     assert res.ok
     assert res.level > 1.1 * h2(ops, x0).level          # the constraints bind
 
@@ -224,26 +237,28 @@ TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}
 
 @pytest.mark.parametrize("seed", [11, 3])
 def test_lmi_forms_are_exact_reformulations(seed):
-    """Banded coordinates (banded.py), the chordal split and one cone (lmi.py) are exact
+    """Banded coordinates (lmi_banded.py), the chordal split and one cone are exact
     reformulations of the same LMI: the same optimum for every problem, including the ones
     with a dense weight (𝒪: competitive ratio, SH∞, SCRW) and pointwise multipliers."""
     ops, rng = random_ops(seed, T=6)
     x0 = rng.standard_normal(ops.n)
     P = np.diag([2.0, 3.0, 4.0])
-    kw = {"solver_opts": TIGHT}
-    makers = [  # (synthesis, arguments after ops, keywords)
-        (adversarial_regret, (), {}), (hinf, (), {}),
-        (zero_x0_regret, ("O",), {"adversarial_x0": True}), (zero_x0_regret, ("O",), {}),
-        (pointwise_regret, (x0, P, "I"), {}), (pointwise_regret, (x0, P, "O"), {}),
-        (pointwise_dynamic_regret, (x0, P), {}), (dynamic_regret, (x0, 1.3), {}),
-        (generalized_regret, (x0, 1.3, "O"), {}),
+    tight = resolve_target("clarabel", options=TIGHT)
+    makers = [  # (problem, arguments after ops, keywords)
+        (adversarial_regret_problem, (), {}), (hinf_problem, (), {}),
+        (zero_x0_regret_problem, ("O",), {"adversarial_x0": True}),
+        (zero_x0_regret_problem, ("O",), {}),
+        (pointwise_regret_problem, (x0, P, "I"), {}),
+        (pointwise_regret_problem, (x0, P, "O"), {}),
+        (pointwise_dynamic_problem, (x0, P), {}), (dynamic_regret_problem, (x0, 1.3), {}),
+        (generalized_regret_problem, (x0, 1.3, "O"), {}),
     ]
-    for fn, args, kwa in makers:
+    for make, args, kwa in makers:
         # the banded form itself (without the re-solve of a result that is not ok): at these
         # tight tolerances Clarabel may end it "optimal_inaccurate" (the 𝒪-weighted LMIs are
-        # ill-conditioned in banded coordinates, banded.py), but at the same optimum
-        banded = fn.__wrapped__(ops, *args, lmi="banded", **kwa, **kw)
-        split, single = (fn(ops, *args, lmi=f, **kwa, **kw) for f in ("split", "single"))
+        # ill-conditioned in banded coordinates, lmi_banded.py), but at the same optimum
+        problem = make(ops, *args, **kwa)
+        banded, split, single = (solve_once(problem, f, tight) for f in FORMS)
         assert banded.status in ("optimal", "optimal_inaccurate") and split.ok and single.ok
         assert banded.info["lmi"] == "banded", banded.info["banded_fallback"]
         assert banded.level == pytest.approx(single.level, rel=1e-7)
