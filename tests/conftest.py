@@ -61,9 +61,9 @@ def unstable2d_tube():
     """The §5.6 system (N = 10) with its ellipsoidal RPI error set, tightened sets, the terminal
     CBF on X ⊖ E and the robust slack problem (5.15) — shared by the robust and the
     multiobjective tests."""
-    from balustrade.dsl.error_sets import ellipsoidal_rpi
     from balustrade.models.unstable2d import unstable2d, unstable2d_setup
     from balustrade.problems.robust import robust_pcbf_slack_problem, terminal_cbf_with_domain
+    from balustrade.problems.rpi import ellipsoidal_rpi
 
     N = 10
     system, s = unstable2d(), unstable2d_setup(N)

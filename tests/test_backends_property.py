@@ -19,7 +19,6 @@ from hypothesis import strategies as st
 
 from balustrade.backends import compile
 from balustrade.dsl import Box, LinearSystem
-from balustrade.dsl.error_sets import ellipsoidal_rpi
 from balustrade.errors import BalustradeError
 from balustrade.problems.pcbf import (
     extended_pcbf_problem,
@@ -27,6 +26,7 @@ from balustrade.problems.pcbf import (
     pcbf_slack_problem,
 )
 from balustrade.problems.robust import robust_pcbf_slack_problem, terminal_cbf_with_domain
+from balustrade.problems.rpi import ellipsoidal_rpi
 from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 from balustrade.testing import verify
 

@@ -10,7 +10,6 @@ import pytest
 
 from balustrade.dsl.error_sets import (
     ErrorSet,
-    ellipsoidal_rpi,
     is_rpi,
     minimal_rpi_outer,
     reachable_support,
@@ -21,6 +20,7 @@ from balustrade.dsl.error_sets import (
 from balustrade.dsl.sets import Box, Ellipsoid
 from balustrade.errors import EmptySetError
 from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+from balustrade.problems.rpi import ellipsoidal_rpi
 
 
 @pytest.fixture(scope="module")
@@ -139,3 +139,23 @@ def test_user_given_error_set_for_nonlinear_systems():
     assert es.tighten_state(Box.symmetric([1.0, 1.0])).h == pytest.approx(0.9 * np.ones(4))
     with pytest.raises(Exception, match="linear"):
         es.tighten_input(Box.symmetric([1.0]))
+
+
+def test_rpi_sdp_is_a_synthesis_problem_with_lambda_as_a_parameter():
+    """(5.14)/SPEC §1.11 is written in the synthesis language: one vertex LMI per vertex of
+    W, λ a parameter of the compiled SDP (the line search re-solves without rebuilding)."""
+    from balustrade.backends import compile_synthesis
+    from balustrade.problems.rpi import rpi_sdp
+
+    system, s = unstable2d(), unstable2d_setup(10)
+    sdp = rpi_sdp(system.A, system.B, s.W, s.X, s.U)
+    assert list(sdp.parameters) == ["lambda"]
+    assert [k for k in sdp.constraints if k.startswith("vertex")] == \
+        [f"vertex {v}" for v in range(len(s.W.vertices()))]
+    compiled = compile_synthesis(sdp)
+    assert compiled.cvxpy_problem.is_dpp()
+    best = ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U)
+    sol = compiled.solve({"lambda": best.info["lambda"]})
+    assert sol.ok and sol.objective == pytest.approx(best.info["objective"], rel=1e-9)
+    with pytest.raises(Exception, match=r"λ must lie in \(0, 1\)"):
+        ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U, lambdas=[0.5, 1.0])

@@ -102,8 +102,8 @@ def test_bad_input_is_refused_before_the_solver(kwargs: dict, error: type,
 def test_ch5_robust_design_is_input_limited_and_its_note_says_so() -> None:
     """§5.6: the terminal CBF of the ch5-robust reproduction (SDP (6.17) on X ⊖ E, U ⊖ κ(E))
     has γ_f ≈ 0 by the thesis' design; the reproduction prints a note instead of warning."""
-    from balustrade.dsl.error_sets import ellipsoidal_rpi
     from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+    from balustrade.problems.rpi import ellipsoidal_rpi
     from balustrade.reproduce.ch5_robust import terminal_note
 
     system, s = unstable2d(), unstable2d_setup(30)
@@ -116,3 +116,20 @@ def test_ch5_robust_design_is_input_limited_and_its_note_says_so() -> None:
     assert terminal_note(synthesize_terminal_cbf(
         system.A, system.B, X_E, U_E, delta_N=s.deltas()[-1], min_level=1.0)).startswith(
         "note: terminal CBF level gamma_f = 1")
+
+
+def test_the_sdp_is_a_synthesis_problem_with_named_blocks_and_a_target() -> None:
+    """(7.11) is written in the synthesis language: one LMI block per thesis row, solved
+    through a target (issue #13 §4)."""
+    from balustrade.dsl.synthesis import SynthesisProblem
+    from balustrade.errors import SolverError
+    from balustrade.problems.terminal_cbf import terminal_cbf_sdp
+
+    system, s = pendulum(), pendulum_setup()
+    sdp = terminal_cbf_sdp(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
+    assert isinstance(sdp, SynthesisProblem) and sdp.sense == "minimize"
+    assert list(sdp.constraints) == (["invariance"]
+                                     + [f"state row {i}" for i in range(len(s.X.h))]
+                                     + [f"input row {j}" for j in range(len(s.U.h))])
+    with pytest.raises(SolverError, match="lower to cvxpy"):
+        synthesize_terminal_cbf(system.A, system.B, s.X, s.U, target="exact-ipopt")

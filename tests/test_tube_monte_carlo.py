@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from balustrade.control.robust import RobustPCBFSafetyFilter
-from balustrade.dsl.error_sets import ellipsoidal_rpi
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import LinearSystem
 from balustrade.problems.robust import terminal_cbf_with_domain
+from balustrade.problems.rpi import ellipsoidal_rpi
 
 SCALE = 50.0
 DT = 0.1

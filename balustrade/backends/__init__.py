@@ -2,7 +2,8 @@
 
 ``compile(ocp, target)`` returns an object with ``solve(params, warm_start=None) ->
 Solution``; a target (:mod:`balustrade.backends.targets`) says which backend, solver,
-options and retry chain.
+options and retry chain. Synthesis problems (SDPs, :mod:`balustrade.dsl.synthesis`) are
+lowered by ``compile_synthesis(problem, target="sdp")`` and solved to a ``SynthesisSolution``.
 """
 
 from __future__ import annotations
@@ -10,6 +11,12 @@ from __future__ import annotations
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
 from balustrade.backends.solution import Solution
+from balustrade.backends.synthesis_cvxpy import (
+    CompiledSynthesis,
+    compile_synthesis,
+    solve_synthesis,
+)
+from balustrade.backends.synthesis_solution import SynthesisSolution
 from balustrade.backends.targets import PRESETS, Target
 from balustrade.backends.targets import target as resolve_target
 from balustrade.dsl.ocp import OCP
@@ -59,5 +66,6 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
     return compiled
 
 
-__all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CvxpyCompiled", "Solution",
-           "Target", "compile", "resolve_target"]
+__all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CompiledSynthesis",
+           "CvxpyCompiled", "Solution", "SynthesisSolution", "Target", "compile",
+           "compile_synthesis", "resolve_target", "solve_synthesis"]

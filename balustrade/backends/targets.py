@@ -25,6 +25,9 @@ Presets (see :data:`PRESETS`; ``docs/language.md`` explains when to use which):
                        along sampling paths.
 ``"cvxpy"``            cvxpy: PIQP for LPs/QPs, Clarabel for conic problems, tight tolerances.
 ``"clarabel"``         cvxpy + Clarabel, tight tolerances (SOCPs, SDPs).
+``"sdp"``              synthesis problems (:func:`~balustrade.backends.compile_synthesis`):
+                       cvxpy + Clarabel with Clarabel's own tolerances, the options every SDP
+                       of balustrade (terminal CBF, RPI set, regret family) has been solved with.
 =====================  =========================================================================
 
 A target is immutable; ``with_options``/``with_retries``/``with_solver`` return new targets.
@@ -169,6 +172,7 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="ipopt-warm"),
     Target("cvxpy", None, name="cvxpy"),
     Target("cvxpy", "clarabel", name="clarabel"),
+    Target("cvxpy", "clarabel", name="sdp"),
 )}
 
 #: what a bare backend name means where a target is expected

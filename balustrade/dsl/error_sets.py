@@ -4,13 +4,9 @@ For ``x⁺ = Ax + Bu + Gw`` with ``w ∈ W`` (a bounded polytope or box) and the
 ``κ(e) = K e`` the error ``e = x − z`` between the true and the nominal state evolves as
 ``e⁺ = (A + BK) e + G w``. This module provides
 
-* :func:`ellipsoidal_rpi` — an ellipsoidal RPI set ``E = {eᵀ E_P⁻¹ e <= 1}`` together with ``K``
-  by an SDP (SPEC §1.11 [Default]): for fixed ``λ ∈ (0, 1)`` the S-procedure LMI
-  ``[[λE_P, 0, (AE_P+BY)ᵀ], [0, 1−λ, (Gw^v)ᵀ], [AE_P+BY, Gw^v, E_P]] ⪰ 0`` at every vertex
-  ``w^v`` of ``W`` (``Y = K E_P``), a line search over ``λ``, and the objective
-  ``Σ_j h_E([A_x]_j)²/[b_x]_j² + Σ_j h_{KE}([A_u]_j)²/[b_u]_j²``, i.e. the sum of the squared
-  *relative* tightenings of the state and input constraint rows (``h_E(a)² = aᵀE_P a`` and
-  ``h_{KE}(a)² = aᵀ Y E_P⁻¹ Yᵀ a``, both through epigraph variables and Schur complements);
+* :func:`bounded_vertices` — the vertices of a bounded disturbance set (the ellipsoidal RPI
+  SDP (5.14)/SPEC §1.11 that designs ``E`` and ``K`` is a formulation:
+  :func:`balustrade.problems.rpi.ellipsoidal_rpi`);
 * :func:`minimal_rpi_outer` — the polytopic outer approximation ``F(α, s) = (1−α)⁻¹ ⊕_{i<s}
   A_K^i W`` of the minimal RPI set (Raković et al., 2005) with the ε guarantee
   ``F(α, s) ⊆ F_∞ ⊕ B_∞(ε)``, computed with support functions only;
@@ -27,12 +23,9 @@ For ``x⁺ = Ax + Bu + Gw`` with ``w ∈ W`` (a bounded polytope or box) and the
 
 from __future__ import annotations
 
-import time
-import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import cvxpy as cp
 import numpy as np
 
 from balustrade._checks import as_count, as_matrix, check_instance
@@ -180,98 +173,15 @@ def reachable_tightened_sets(S: Polytope, A_K: np.ndarray, W: Set, N: int,
             for i in range(N + 1)]
 
 
-# -- ellipsoidal RPI set by SDP -----------------------------------------------------------------
-def _vertices(W: Set) -> np.ndarray:
+# -- vertices of a bounded disturbance set -------------------------------------------------------
+def bounded_vertices(W: Set) -> np.ndarray:
+    """The vertices of a bounded ``Box`` or ``Polytope`` ``W`` (vertex LMIs, hulls)."""
     if isinstance(W, Box):
         return W.vertices()
     if isinstance(W, Polytope):
         return W.vertices()
     raise BalustradeError(f"RPI design: W must be a bounded Box or Polytope, got "
                           f"{type(W).__name__} {W.name!r}")
-
-
-def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polytope,
-                    G: np.ndarray | None = None, lambdas: Sequence[float] | None = None,
-                    solver: str = "CLARABEL", name: str = "E") -> ErrorSet:
-    """Ellipsoidal RPI set and error feedback by the SDP of SPEC §1.11 [Default].
-
-    For each ``λ`` of the line search (default 19 values in ``(0, 1)``) solve
-    ``min Σ_j t_x,j / b_x,j² + Σ_j t_u,j / b_u,j²`` over ``E_P ≻ 0``, ``Y`` s.t. the vertex
-    LMIs ``[[λE_P, 0, (AE_P+BY)ᵀ], [0, 1−λ, (Gw^v)ᵀ], [AE_P+BY, Gw^v, E_P]] ⪰ 0``,
-    ``[A_x]_j E_P [A_x]_jᵀ <= t_x,j`` and ``[[t_u,j, [A_u]_j Y], [Yᵀ[A_u]_jᵀ, E_P]] ⪰ 0``;
-    keep the best. Returns ``ErrorSet(Ellipsoid(E_P⁻¹), K = Y E_P⁻¹)`` with the objective, the
-    chosen ``λ`` and the solve time in ``info``. The objective is the sum of the squared relative
-    tightenings ``(h_E(a_j)/b_j)²`` of all constraint rows.
-    """
-    A = as_matrix(A, "RPI SDP: A")
-    n = A.shape[0]
-    if A.shape != (n, n):
-        raise ShapeError("RPI SDP: A", "a square matrix", A.shape)
-    B = as_matrix(B, "RPI SDP: B", (n, None))
-    m = B.shape[1]
-    check_instance(W, Set, "RPI SDP: W")
-    check_instance(X, Polytope, "RPI SDP: X")
-    check_instance(U, Polytope, "RPI SDP: U")
-    G = np.eye(n) if G is None else as_matrix(G, "RPI SDP: G", (n, W.dim))
-    if G.shape[1] != W.dim:
-        raise ShapeError(f"RPI SDP: W ({W.name})", f"dimension {G.shape[1]}",
-                         f"dimension {W.dim}")
-    if X.dim != n or U.dim != m:
-        raise ShapeError("RPI SDP: sets", f"X of dim {n}, U of dim {m}",
-                         f"X of dim {X.dim}, U of dim {U.dim}", what="")
-    Wv = _vertices(W) @ G.T
-    lambdas = list(lambdas) if lambdas is not None else list(np.linspace(0.05, 0.95, 19))
-    E = cp.Variable((n, n), symmetric=True)
-    Y = cp.Variable((m, n))
-    lam = cp.Parameter(nonneg=True)
-    AEBY = A @ E + B @ Y
-    cons = [E >> 1e-9 * np.eye(n)]
-    for w in Wv:
-        wc = w.reshape(n, 1)
-        cons.append(cp.bmat([[lam * E, np.zeros((n, 1)), AEBY.T],
-                             [np.zeros((1, n)), cp.reshape(1 - lam, (1, 1), order="F"), wc.T],
-                             [AEBY, wc, E]]) >> 0)
-    obj = 0
-    for a, b in zip(X.H, X.h):
-        if b <= 0:
-            raise BalustradeError(f"RPI SDP: the origin must be inside {X.name} (row bound {b})")
-        obj = obj + (a @ E @ a) / b ** 2
-    t_u = cp.Variable(U.H.shape[0])
-    for j, (a, b) in enumerate(zip(U.H, U.h)):
-        if b <= 0:
-            raise BalustradeError(f"RPI SDP: the origin must be inside {U.name} (row bound {b})")
-        row = cp.reshape(a @ Y, (1, n), order="F")
-        cons.append(cp.bmat([[cp.reshape(t_u[j], (1, 1), order="F"), row], [row.T, E]]) >> 0)
-        obj = obj + t_u[j] / b ** 2
-    prob = cp.Problem(cp.Minimize(obj), cons)
-    best: tuple[float, float, np.ndarray, np.ndarray] | None = None
-    start = time.perf_counter()
-    for lv in lambdas:
-        if not 0 < lv < 1:
-            raise BalustradeError(f"RPI SDP: λ must lie in (0, 1), got {lv}")
-        lam.value = lv
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                prob.solve(solver=solver)
-        except cp.error.SolverError:
-            continue
-        if prob.status in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) and E.value is not None:
-            if best is None or prob.value < best[0]:
-                best = (float(prob.value), lv, E.value.copy(), Y.value.copy())
-    elapsed = time.perf_counter() - start
-    if best is None:
-        raise BalustradeError("RPI SDP: no λ in the line search admits an ellipsoidal RPI set "
-                              f"(tried {len(lambdas)} values); the system may not be "
-                              "stabilizable against W")
-    value, lv, Ev, Yv = best
-    Ev = 0.5 * (Ev + Ev.T)
-    P = np.linalg.inv(Ev)
-    P = 0.5 * (P + P.T)
-    K = Yv @ P
-    return ErrorSet(Ellipsoid(P, name=name), K,
-                    info={"objective": value, "lambda": lv, "solve_time": elapsed,
-                          "method": "ellipsoidal SDP (SPEC §1.11)"})
 
 
 # -- minimal RPI outer approximation -------------------------------------------------------------
@@ -304,7 +214,7 @@ class MinimalRPI:
         from balustrade.dsl import sets_geometry as geo
 
         n = self.A_K.shape[0]
-        Wv = _vertices(self.W) @ self.G.T
+        Wv = bounded_vertices(self.W) @ self.G.T
         V, M = np.zeros((1, n)), np.eye(n)
         for _ in range(self.s):
             term = Wv @ M.T

@@ -22,10 +22,11 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from balustrade.dsl.error_sets import ErrorSet, ellipsoidal_rpi
+from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.system import System
 from balustrade.problems.robust import terminal_cbf_with_domain
+from balustrade.problems.rpi import ellipsoidal_rpi
 
 TS, WHEELBASE, V_S = 0.05, 0.09, 1.1
 DEG = np.pi / 180.0

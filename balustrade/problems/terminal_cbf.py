@@ -18,16 +18,15 @@ records the reason in :attr:`TerminalCBF.degenerate`; ``min_level = γ`` reserve
 
 from __future__ import annotations
 
-import time
 import warnings
 from dataclasses import dataclass
 
 import casadi as ca
-import cvxpy as cp
 import numpy as np
 
 from balustrade._checks import as_matrix, as_scalar, check_instance, check_psd
 from balustrade.dsl.sets import Polytope
+from balustrade.dsl.synthesis import SynthesisProblem, bmat, logdet
 from balustrade.errors import (
     BalustradeError,
     DegenerateResultWarning,
@@ -70,17 +69,35 @@ class TerminalCBF:
         return np.linalg.inv(self.P)
 
 
-def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polytope,
-                            delta_N: float = 0.0, decrease_factor: float = 0.99,
-                            solver: str = "CLARABEL", min_level: float = 0.0) -> TerminalCBF:
-    """Solve (7.11)/(6.17) for ``x⁺ = Ax + Bu`` with state rows tightened by ``delta_N``
-    (``Δ_{N−1}``) and return the terminal CBF. ``X``/``U`` may already be tightened by an
-    RPI set (Chapters 5, 6). ``decrease_factor`` is ``λ`` in the invariance LMI.
+def terminal_cbf_sdp(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polytope,
+                     delta_N: float = 0.0, decrease_factor: float = 0.99,
+                     min_level: float = 0.0) -> SynthesisProblem:
+    """SDP (7.11)/(6.17) for ``x⁺ = Ax + Bu``, written in the synthesis language:
 
-    ``min_level = γ > 0`` imposes the input LMI on ``b̄_u / sqrt(1 + γ)``, so that
-    ``γ_f >= γ`` (``γ_f`` is computed on ``U`` itself). A degenerate ``γ_f ≈ 0`` is
-    returned with a :class:`~balustrade.errors.DegenerateResultWarning` naming the
-    limiting input rows (see the module docstring)."""
+    ``min −log det E`` over ``E = Eᵀ``, ``Y`` s.t. ``[[λE, (AE+BY)ᵀ], [AE+BY, E]] ⪰ 0``,
+    ``[[b̄_x,i², a_iᵀE], [Ea_i, E]] ⪰ 0`` (state rows, ``b̄_x = b_x − Δ_{N−1}``) and
+    ``[[b̄_u,j², a_jᵀY], [Yᵀa_j, E]] ⪰ 0`` (input rows, ``b̄_u = b_u / sqrt(1 + min_level)``).
+    The blocks are named ``invariance``, ``state row i``, ``input row j``."""
+    A, B, bx, bu, decrease_factor = _checked(A, B, X, U, delta_N, decrease_factor, min_level)
+    n, m = B.shape
+    sdp = SynthesisProblem("terminal CBF SDP (7.11)")
+    E = sdp.matrix("E", (n, n), symmetric=True)
+    Y = sdp.matrix("Y", (m, n))
+    AEBY = A @ E + B @ Y
+    sdp.lmi("invariance", bmat([[decrease_factor * E, AEBY.T], [AEBY, E]]))
+    for i, (a, b) in enumerate(zip(X.H, bx)):
+        sdp.lmi(f"state row {i}", bmat([[b ** 2, a[None] @ E], [(a[None] @ E).T, E]]))
+    for j, (a, b) in enumerate(zip(U.H, bu)):
+        sdp.lmi(f"input row {j}", bmat([[b ** 2, a[None] @ Y], [(a[None] @ Y).T, E]]))
+    sdp.minimize(-logdet(E))
+    return sdp
+
+
+def _checked(A: object, B: object, X: object, U: object, delta_N: object,
+             decrease_factor: object, min_level: object
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """The checked data of (7.11): ``A``, ``B``, state bounds ``b_x − Δ``, input bounds
+    ``b_u / sqrt(1 + γ)`` and ``λ``; errors name the argument."""
     check_instance(X, Polytope, "terminal CBF SDP: X")
     check_instance(U, Polytope, "terminal CBF SDP: U")
     delta_N = as_scalar(delta_N, "terminal CBF SDP: delta_N (Δ_{N−1})", low=0.0)
@@ -93,9 +110,6 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
         raise ShapeError("terminal CBF SDP: A", (n, n), A.shape)
     B = as_matrix(B, "terminal CBF SDP: B", (n, None))
     m = B.shape[1]
-    if not isinstance(solver, str):
-        raise BalustradeError(f"terminal CBF SDP: solver must be a cvxpy solver name, got "
-                              f"{type(solver).__name__}")
     if X.dim != n or U.dim != m:
         raise ShapeError("terminal CBF SDP: sets", f"X of dim {n}, U of dim {m}",
                          f"X of dim {X.dim}, U of dim {U.dim}", what="")
@@ -103,42 +117,53 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
     if np.any(bx <= 0) or np.any(U.h <= 0):
         raise BalustradeError("terminal CBF SDP: the origin must lie in the interior of the "
                               f"(tightened) constraints; state bounds {bx}, input bounds {U.h}")
-    E = cp.Variable((n, n), symmetric=True)
-    Y = cp.Variable((m, n))
-    AEBY = A @ E + B @ Y
-    cons = [cp.bmat([[decrease_factor * E, AEBY.T], [AEBY, E]]) >> 0]
-    for a, b in zip(X.H, bx):
-        row = cp.reshape(a @ E, (1, n), order="F")
-        cons.append(cp.bmat([[np.array([[b ** 2]]), row], [row.T, E]]) >> 0)
-    for a, b in zip(U.H, U.h / np.sqrt(1.0 + min_level)):
-        row = cp.reshape(a @ Y, (1, n), order="F")
-        cons.append(cp.bmat([[np.array([[b ** 2]]), row], [row.T, E]]) >> 0)
-    prob = cp.Problem(cp.Minimize(-cp.log_det(E)), cons)
-    start = time.perf_counter()
-    try:
-        prob.solve(solver=solver)
-    except cp.error.SolverError as exc:
-        raise BalustradeError(f"terminal CBF SDP: solver {solver} failed: {exc}") from exc
-    elapsed = time.perf_counter() - start
-    if prob.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
-        raise BalustradeError(f"terminal CBF SDP: no solution ({prob.status}); the constraints "
-                              "may admit no invariant ellipsoid")
-    Ev = 0.5 * (E.value + E.value.T)
+    return A, B, bx, U.h / np.sqrt(1.0 + min_level), decrease_factor
+
+
+def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polytope,
+                            delta_N: float = 0.0, decrease_factor: float = 0.99,
+                            target: object = "sdp", min_level: float = 0.0) -> TerminalCBF:
+    """Solve (7.11)/(6.17) (:func:`terminal_cbf_sdp`) for ``x⁺ = Ax + Bu`` with state rows
+    tightened by ``delta_N`` (``Δ_{N−1}``) and return the terminal CBF. ``X``/``U`` may
+    already be tightened by an RPI set (Chapters 5, 6). ``decrease_factor`` is ``λ`` in the
+    invariance LMI; ``target`` a synthesis target (preset ``"sdp"``: Clarabel).
+
+    ``min_level = γ > 0`` imposes the input LMI on ``b̄_u / sqrt(1 + γ)``, so that
+    ``γ_f >= γ`` (``γ_f`` is computed on ``U`` itself). A degenerate ``γ_f ≈ 0`` is
+    returned with a :class:`~balustrade.errors.DegenerateResultWarning` naming the
+    limiting input rows (see the module docstring)."""
+    from balustrade.backends import solve_synthesis
+
+    sdp = terminal_cbf_sdp(A, B, X, U, delta_N, decrease_factor, min_level)
+    sol = solve_synthesis(sdp, target)
+    if not sol.ok:
+        raise BalustradeError(f"terminal CBF SDP: no solution ({sol.status}: {sol.message}); "
+                              "the constraints may admit no invariant ellipsoid")
+    cbf = terminal_cbf_from(sol.values, U, as_scalar(decrease_factor, "λ"), sol.status,
+                            sol.solve_time)
+    if cbf.degenerate:
+        warnings.warn(cbf.degenerate, DegenerateResultWarning, stacklevel=2)
+    return cbf
+
+
+def terminal_cbf_from(values: dict[str, np.ndarray], U: Polytope, decrease_factor: float,
+                      status: str = "optimal", solve_time: float = 0.0) -> TerminalCBF:
+    """The terminal CBF of a solution ``{"E", "Y"}`` of (7.11): ``P = E⁻¹``, ``K = YP`` and
+    ``γ_f`` on ``U`` with its limiting rows (degenerate reason, no warning)."""
+    Ev = 0.5 * (values["E"] + values["E"].T)
     if not np.all(np.isfinite(Ev)) or np.min(np.linalg.eigvalsh(Ev)) <= 0:
-        raise BalustradeError(f"terminal CBF SDP: {solver} returned a singular ellipsoid "
+        raise BalustradeError(f"terminal CBF SDP: the solver returned a singular ellipsoid "
                               f"(eigenvalues of E {np.linalg.eigvalsh(Ev)}); the constraints "
                               "may admit no invariant ellipsoid with nonempty interior")
     P = np.linalg.inv(Ev)
     P = 0.5 * (P + P.T)
-    K = Y.value @ P
+    K = values["Y"] @ P
     levels = input_levels(P, K, U)
     gamma_f = float(np.min(levels)) if levels.size else float("inf")
     limiting = tuple(int(j) for j in np.flatnonzero(levels <= gamma_f + DEGENERATE_LEVEL))
     reason = _degenerate_reason(gamma_f, limiting, U) if gamma_f < DEGENERATE_LEVEL else ""
-    if reason:
-        warnings.warn(reason, DegenerateResultWarning, stacklevel=2)
     return TerminalCBF(P=P, K=K, gamma_f=gamma_f, decrease_factor=decrease_factor,
-                       status=prob.status, solve_time=elapsed, limiting_rows=limiting,
+                       status=status, solve_time=solve_time, limiting_rows=limiting,
                        degenerate=reason)
 
 

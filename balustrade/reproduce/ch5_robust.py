@@ -9,7 +9,7 @@ pattern (nominal converging for ``c_w <= 0.85``, diverging from 0.89) could not 
 ``w_k = 0.03 · c_w · 1`` (SPEC §3.3 [Default]); ``c_w = 1`` is a vertex of ``W``.
 
 Both methods share the terminal CBF from the SDP (6.17) with the constraints tightened by the
-ellipsoidal RPI set (:func:`~balustrade.dsl.error_sets.ellipsoidal_rpi`). Costs: nominal
+ellipsoidal RPI set (:func:`~balustrade.problems.rpi.ellipsoidal_rpi`). Costs: nominal
 ``‖u_0 − 2.5‖²``, robust ``‖v_0 + K(x_k − z_0) − 2.5‖²`` (squared: same minimizer as the
 absolute value of the thesis for scalar inputs). Slack norm ``ℓ1`` (any norm preserves the
 theory, SPEC §1.12; keeps the problems LP/QP-like for CasADi's sqpmethod). A run is declared
@@ -35,9 +35,10 @@ import numpy as np
 
 from balustrade.control.pcbf import PCBFSafetyFilter
 from balustrade.control.robust import RobustPCBFSafetyFilter
-from balustrade.dsl.error_sets import ellipsoidal_rpi, is_rpi
+from balustrade.dsl.error_sets import is_rpi
 from balustrade.errors import DegenerateResultWarning
 from balustrade.models.unstable2d import W_BOUND, unstable2d, unstable2d_setup
+from balustrade.problems.rpi import ellipsoidal_rpi
 from balustrade.problems.terminal_cbf import synthesize_terminal_cbf
 from balustrade.reproduce._plotting import figure, save
 

@@ -26,9 +26,10 @@ import numpy as np
 
 from balustrade.control.multiobjective import MultiobjectivePCBFController
 from balustrade.control.robust import RobustPCBFSafetyFilter
-from balustrade.dsl.error_sets import ellipsoidal_rpi, is_rpi
+from balustrade.dsl.error_sets import is_rpi
 from balustrade.models.rendezvous import MEAN_MOTION, TS, rendezvous, rendezvous_setup
 from balustrade.problems.robust import fuel_objective, terminal_cbf_with_domain
+from balustrade.problems.rpi import ellipsoidal_rpi
 from balustrade.reproduce._plotting import figure, save
 
 NAMES = ("rendezvous",)
