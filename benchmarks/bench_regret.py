@@ -44,7 +44,7 @@ s = RocketRegretSetup(T=T)
 ops = build_operators(LTVSystem.create(s.A, s.B, T))
 x0, om = s.x0, s.omega
 # both sides solved to the same tight tolerances, so that the levels can agree to 1e-6
-TOL = resolve_target("clarabel", options={"tol_gap_rel": 1e-10, "tol_gap_abs": 1e-10,
+TOL = resolve_target("sdp", options={"tol_gap_rel": 1e-10, "tol_gap_abs": 1e-10,
                                            "tol_feas": 1e-10})
 t0 = time.perf_counter()
 if kind.startswith("table:"):

@@ -86,16 +86,17 @@ def test_trust_region_hard_and_easy_cases():
 
 def test_dense_cone_too_large_for_clarabel_is_a_status(monkeypatch):
     """SCRW (W = 𝒪 with pointwise bounds) outside banded coordinates is one dense cone; when
-    Clarabel's KKT block would not fit in memory the synthesis returns a status naming the size
-    and SCS. In banded coordinates (the default) it is decomposable and solved."""
-    import balustrade.backends.synthesis_structured as syn
+    Clarabel's KKT block would not fit in memory the synthesis returns the common status
+    "failed" with a message naming the size and SCS. In banded coordinates (the default) it is
+    decomposable and solved."""
+    import balustrade.backends.synthesis_cvxpy as syn
 
     ops = build_operators(LTVSystem.create(A, B, 3))
     monkeypatch.setattr(syn, "_mem_available_bytes", lambda: 1e3)
     res = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", lmi="split")
-    assert res.status == "too_large" and not res.ok
-    assert "size 11" in res.info["message"] and "SCS" in res.info["message"]
-    with pytest.raises(BalustradeError, match="too_large"):
+    assert res.status == "failed" and not res.ok and res.message.startswith("too large")
+    assert "size 11" in res.message and "scs" in res.message
+    with pytest.raises(BalustradeError, match="failed.*too large"):
         res.controller()
     scs = resolve_target("cvxpy", solver="scs", options={"eps_abs": 1e-7, "eps_rel": 1e-7})
     res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", target=scs, lmi="split")

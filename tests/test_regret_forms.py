@@ -96,7 +96,7 @@ def weight(ops, W):
 
 # (label, synthesis(ops, x0, ω, P, W, cons, lmi), certificate kind, uses W)
 def _syntheses():
-    kw = {"target": resolve_target("clarabel", options=TIGHT)}
+    kw = {"target": resolve_target("sdp", options=TIGHT)}
 
     def gen(ops, x0, om, P, W, c, f):
         return generalized_regret(ops, x0, om, W, constraints=c, lmi=f, **kw)

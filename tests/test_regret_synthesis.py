@@ -206,7 +206,7 @@ def test_shared_robust_terms_equal_a_naive_transcription_of_3_41():
     assert list(rep[:kx]) == [0, 1, 0, 1, 4, 4] and alpha[2] == pytest.approx(-1.1 / 1.1)
     assert alpha[5] == pytest.approx((2 / 2.2) / (1 / 1.5))
     res = h2(ops, x0, constraints=cons, constraint_P=P,
-             target=resolve_target("clarabel", options=TIGHT))
+             target=resolve_target("sdp", options=TIGHT))
     assert res.ok
     assert res.level > 1.1 * h2(ops, x0).level          # the constraints bind
 
@@ -243,7 +243,7 @@ def test_lmi_forms_are_exact_reformulations(seed):
     ops, rng = random_ops(seed, T=6)
     x0 = rng.standard_normal(ops.n)
     P = np.diag([2.0, 3.0, 4.0])
-    tight = resolve_target("clarabel", options=TIGHT)
+    tight = resolve_target("sdp", options=TIGHT)
     makers = [  # (problem, arguments after ops, keywords)
         (adversarial_regret_problem, (), {}), (hinf_problem, (), {}),
         (zero_x0_regret_problem, ("O",), {"adversarial_x0": True}),

@@ -31,7 +31,7 @@ cliques have at most 2–4 disturbance blocks plus the future rows of Y. Clarabe
 decomposition then splits the single cone into small cones joined in a chain (rocket, T = 25,
 dynamic regret: 20 s and 1.0 GB against 67 s and 2.1 GB for the same LMI in the original
 coordinates; docs/regret.md). This is a lowering pass of
-:class:`~balustrade.dsl.structured_sdp.ArrowLMI` (``lmi="banded"`` in
+:class:`~balustrade.dsl.synthesis_arrow.ArrowLMI` (``lmi="banded"`` in
 :mod:`.synthesis_structured`); it needs nothing of the regret problems but the block's data.
 
 **Conditioning (issue #12).** The congruence is exact but not well conditioned when a dense
@@ -56,7 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from balustrade.dsl.structured_sdp import AffineMap
+from balustrade.dsl.synthesis_arrow import AffineMap
 
 # Relative size below which a computed entry is taken as an exact zero of the banded structure.
 ZERO_TOL = 1e-11

@@ -1,11 +1,15 @@
 """Regret-optimal synthesis (thesis Chapter 3): build the SDP, solve it, certify the controller.
 
-The problems are stated in :mod:`balustrade.problems.regret.synthesis` (structured SDPs that
-read like (3.19)–(3.41)); :func:`synthesize` lowers one through a target
-(:mod:`balustrade.backends.synthesis_structured`, Clarabel by default) and packs a
-:class:`SynthesisResult`: status, level, Φ_x, Φ_u, the causal controller K = Φ_uΦ_x⁻¹ (3.15).
-Infeasible or failed solves return a status, never raise. The functions named after the thesis
-problems (``dynamic_regret``, ``generalized_regret``, …) build and synthesize in one call.
+The problems are stated in :mod:`balustrade.problems.regret.synthesis` (synthesis-language
+SDPs that read like (3.19)–(3.41)); :func:`synthesize` lowers one through a target with the
+structured pass of :mod:`balustrade.backends.synthesis_structured` (preset ``"sdp"``: Clarabel,
+by default) and packs a :class:`SynthesisResult`: the
+:class:`~balustrade.backends.synthesis_solution.SynthesisSolution` of the solve (its status is
+one of the common statuses, its message says why), level, Φ_x, Φ_u, the causal controller
+K = Φ_uΦ_x⁻¹ (3.15). Infeasible or failed solves — including a dense cone refused for memory
+(status ``failed``, message "too large …") — return a status, never raise. The functions named
+after the thesis problems (``dynamic_regret``, ``generalized_regret``, …) build and synthesize
+in one call.
 
 Every result carries a solver-independent certificate (:mod:`balustrade.problems.regret.verify`)
 in ``info["certificate"]``: for the energy-bound and adversarial problems the exact worst-case
@@ -24,7 +28,7 @@ False).
 
 ``lmi`` chooses how the arrow LMIs reach the solver: ``"banded"`` (default), ``"split"``,
 ``"single"`` (see :mod:`balustrade.backends.synthesis_structured`); ``target`` the solver
-(a :class:`~balustrade.backends.targets.Target` or preset name, default ``"clarabel"``).
+(a :class:`~balustrade.backends.targets.Target` or preset name, default ``"sdp"``).
 """
 
 from __future__ import annotations
@@ -34,9 +38,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from balustrade.backends.synthesis_structured import OK_STATUSES, solve_structured
+from balustrade.backends.synthesis_solution import SUCCESS_STATUSES, SynthesisSolution
+from balustrade.backends.synthesis_structured import compile_structured
 from balustrade.backends.targets import Target
-from balustrade.dsl.structured_sdp import Scalar
 from balustrade.errors import BalustradeError
 from balustrade.problems.regret.operators import Operators, controller_from_responses
 from balustrade.problems.regret.synthesis import (
@@ -60,12 +64,18 @@ CERT_RTOL = 1e-6
 
 @dataclass
 class SynthesisResult:
-    """Outcome of one synthesis: status, optimal level, responses Φ and controller K (3.15)."""
+    """Outcome of one synthesis: status, optimal level, responses Φ and controller K (3.15).
+
+    ``status``/``message`` are those of ``solution`` (the common synthesis statuses);
+    ``solve_time`` is the solver's own time, ``total_time`` building, solving and certifying.
+    """
 
     name: str
     status: str
     level: float | None
     ops: Operators = field(repr=False)
+    message: str = ""
+    solution: SynthesisSolution | None = field(default=None, repr=False)
     Phi_x: np.ndarray | None = field(default=None, repr=False)
     Phi_u: np.ndarray | None = field(default=None, repr=False)
     K: np.ndarray | None = field(default=None, repr=False)
@@ -89,10 +99,11 @@ class SynthesisResult:
     def controller(self, allow_inaccurate: bool = False):  # -> RegretController
         from balustrade.problems.regret.controller import RegretController
 
-        usable = self.ok or (allow_inaccurate and self.status in OK_STATUSES
+        usable = self.ok or (allow_inaccurate and self.status in SUCCESS_STATUSES
                              and self.K is not None)
         if not usable:
             raise BalustradeError(f"{self.name}: no controller, synthesis status {self.status!r}"
+                                  + (f" ({self.message})" if self.message else "")
                                   + ("" if self.K is None else " (not certified, see .ok)"))
         return RegretController(self.ops, self.K, self.Phi_u, name=self.name)
 
@@ -113,33 +124,30 @@ def _attach_certificate(res: SynthesisResult, kind: str, value: float) -> None:
 
 def solve_once(problem: RegretProblem, lmi: str = "banded", target: TargetSpec = None
                ) -> SynthesisResult:
-    """Solve ``problem`` in the form ``lmi`` (no re-solve) and certify the result."""
+    """Solve ``problem`` with its LMI in the form ``lmi`` (no re-solve) and certify the result."""
     t0 = time.perf_counter()
-    sol = solve_structured(problem.sdp, target, lmi)
+    sol = compile_structured(problem.sdp, target, lmi).solve()
     ops = problem.ops
-    info = {k: v for k, v in sol.info.items() if k not in ("total_time", "solver")}
-    res = SynthesisResult(problem.name, sol.status, None, ops, solve_time=sol.solve_time,
+    info = {"n_theta": problem.par.n_theta, **sol.info}
+    res = SynthesisResult(problem.name, sol.status, None, ops, message=sol.message,
+                          solution=sol, solve_time=_solver_time(sol),
                           total_time=time.perf_counter() - t0, info=info)
-    if sol.has_values:
-        assert sol.theta is not None and sol.scalars is not None
-        s = sol.scalars
-        Phi_u = problem.par.phi_u_value(sol.theta)
+    if sol.ok:
+        v = sol.values
+        Phi_u = problem.par.phi_u_value(v["theta"])
         Phi_x = ops.phi_x(Phi_u)
         res.Phi_u, res.Phi_x = Phi_u, Phi_x
         res.K = controller_from_responses(ops, Phi_x, Phi_u)
-        res.level = sol.objective
-        res.multipliers = {name: _squeeze(problem.sdp.scalar_values(s, name))
-                           for name in problem.multipliers}
+        res.level = problem.level(v)
+        res.multipliers = {name: v[name] for name in problem.multipliers}
         if problem.certify is not None:
-            def value(form: Scalar) -> float:
-                return problem.sdp.pad(form).value(s)
-            _attach_certificate(res, *problem.certify(Phi_u, value))
+            _attach_certificate(res, *problem.certify(Phi_u, v))
         res.total_time = time.perf_counter() - t0
     return res
 
 
-def _squeeze(v: np.ndarray) -> np.ndarray:
-    return v.reshape(()) if v.size == 1 else v
+def _solver_time(sol: SynthesisSolution) -> float:
+    return sol.solver_time if np.isfinite(sol.solver_time) else sol.solve_time
 
 
 def synthesize(problem: RegretProblem, lmi: str = "banded", target: TargetSpec = None

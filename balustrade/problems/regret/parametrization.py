@@ -12,14 +12,27 @@ The last input u_T is fixed to zero (it cannot affect the states of the horizon,
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
 from balustrade._checks import as_matrix
-from balustrade.dsl.structured_sdp import AffineMap, NormRows
+from balustrade.dsl.synthesis_arrow import AffineMap
 from balustrade.errors import BalustradeError, ShapeError
 from balustrade.problems.regret.operators import Operators
+
+
+@dataclass(frozen=True)
+class RobustRows:
+    """(3.41) as data: G s + fixed + Fθ + g ≤ 1 with s_k ≥ ‖row k of the stacked pieces‖."""
+
+    pieces: tuple[AffineMap, ...]     # (rows_k, p) each; their rows, stacked, are the norms s
+    G: sp.csr_matrix                  # inequality rows × Σ rows_k
+    fixed: np.ndarray                 # norm terms that do not depend on θ
+    F: sp.csr_matrix | None = None    # the x₀ column, when x₀ is given
+    g: np.ndarray | None = None
 
 
 class Parametrization:
@@ -70,7 +83,7 @@ class Parametrization:
         return H_phi, H_c, times
 
     def robust_constraints(self, Hx: np.ndarray, Hu: np.ndarray, x0: np.ndarray | None,
-                           P_half_inv: np.ndarray) -> NormRows:
+                           P_half_inv: np.ndarray) -> RobustRows:
         """SOC form of (3.41): [H_z]_iΦ⁰x₀ + Σ_j ‖[H_z]_i[[Φ^w]]_j P^{-1/2}‖ ≤ 1 for every row i.
 
         Rows and blocks that are structurally zero (w_{j−1} cannot affect time t < j) are
@@ -122,7 +135,7 @@ class Parametrization:
             P0 = self.P[cols0.start * M: cols0.stop * M]
             A0 = sp.kron(sp.csr_matrix(x0.reshape(1, -1)), sp.csr_matrix(H_phi), format="csr")
             F, g = (A0 @ P0).tocsr(), H_c[:, cols0] @ x0
-        return NormRows(tuple(pieces), G, expand @ fixed, F, g)
+        return RobustRows(tuple(pieces), G, expand @ fixed, F, g)
 
 
 def parallel_rows(R: np.ndarray, groups: np.ndarray, rtol: float = 1e-12

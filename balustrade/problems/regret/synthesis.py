@@ -1,12 +1,14 @@
 """Regret-optimal synthesis problems of Chapter 3, stated as structured SDPs (SPEC 2.10–2.17).
 
-Each builder states one thesis SDP in the structured synthesis language
-(:mod:`balustrade.dsl.structured_sdp`): the decision variable θ = the causal entries of
-Ψ = SΦ_u (:class:`.Parametrization`), the regret written as ``δᵀYᵀYδ`` with Y affine in θ
-(:mod:`.operators`), a few scalars, and one arrow LMI ``[[a, bᵀ, yᵀ], [b, D, Lᵀ], [y, L, I]] ⪰ 0``
-with ``L = Y[:, cols]`` — the Schur complement form of the thesis LMI after the compression
-ΦᵀCΦ − 𝒪 = YᵀY. How that LMI reaches a solver (banded coordinates, chordal split, one cone) is
-a lowering choice (:mod:`balustrade.backends.synthesis_structured`), not part of the problem.
+Each builder states one thesis SDP in the synthesis language (:mod:`balustrade.dsl.synthesis`):
+the decision variable θ = the causal entries of Ψ = SΦ_u (:class:`.Parametrization`), the
+regret written as ``δᵀYᵀYδ`` with Y affine in θ (:mod:`.operators`), a few scalars, and one
+arrow LMI ``[[a, bᵀ, yᵀ], [b, D, Lᵀ], [y, L, I]] ⪰ 0`` with ``L = Y[:, cols]``
+(:func:`~balustrade.dsl.synthesis_arrow.arrow_lmi`) — the Schur complement form of the thesis
+LMI after the compression ΦᵀCΦ − 𝒪 = YᵀY. The problem is an ordinary
+:class:`~balustrade.dsl.synthesis.SynthesisProblem` (``compile_synthesis`` solves it with the LMI
+as one cone); how the LMI reaches a solver — banded coordinates, chordal split, one cone — is a
+lowering choice (:mod:`balustrade.backends.synthesis_structured`), not part of the problem.
 Solving, certifying and the re-solve outside banded coordinates are in
 :mod:`balustrade.control.regret_synthesis`, which also exports the thesis-named functions
 (``dynamic_regret`` …) that build and solve in one call.
@@ -38,7 +40,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from balustrade._checks import as_matrix, as_vector, check_psd
-from balustrade.dsl.structured_sdp import ArrowLMI, Scalar, StructuredSDP, total
+from balustrade.dsl.synthesis import (
+    Expr,
+    SynthesisProblem,
+    as_expr,
+    sum_squares,
+    total,
+    vstack,
+)
+from balustrade.dsl.synthesis_arrow import arrow_lmi
 from balustrade.errors import BalustradeError, ShapeError
 from balustrade.problems.regret.operators import Operators
 from balustrade.problems.regret.parametrization import Parametrization, normalize_halfspaces
@@ -51,8 +61,8 @@ from balustrade.problems.regret.verify import (
     zero_x0_level,
 )
 
-#: Φ_u and the value of a scalar form at the solution → ("exact" | "lower_bound", value)
-Certificate = Callable[[np.ndarray, Callable[[Scalar], float]], tuple[str, float]]
+#: Φ_u and the variable values of a solution → ("exact" | "lower_bound", value)
+Certificate = Callable[[np.ndarray, dict[str, np.ndarray]], tuple[str, float]]
 
 
 @dataclass(frozen=True)
@@ -120,10 +130,14 @@ def _inv_sqrt(P: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 @dataclass
 class RegretProblem:
-    """A regret synthesis: the structured SDP, the map θ → Φ_u, and how to certify a solution."""
+    """A regret synthesis: the SDP, the map θ → Φ_u, its level and how to certify a solution.
 
-    sdp: StructuredSDP
+    ``level`` maps the variable values of a solution to the level the thesis reports (γ, μ,
+    Σλ̄_i, the SH2 cost); ``multipliers`` names the S-procedure variables a result reports."""
+
+    sdp: SynthesisProblem
     par: Parametrization
+    level: Callable[[dict[str, np.ndarray]], float]
     certify: Certificate | None = None
     multipliers: tuple[str, ...] = ()
 
@@ -136,36 +150,37 @@ class RegretProblem:
         return self.par.ops
 
 
+def _value(name: str) -> Callable[[dict[str, np.ndarray]], float]:
+    return lambda v: float(np.sum(v[name]))
+
+
 class _Statement:
-    """Helpers that let each builder read like its SDP: scalars, the arrow LMI, (3.41)."""
+    """Helpers that let each builder read like its SDP: θ, the arrow LMI, (3.41)."""
 
     def __init__(self, ops: Operators, name: str):
         self.ops = ops
         self.par = Parametrization(ops)
-        self.sdp = StructuredSDP(name, self.par.n_theta)
+        self.sdp = SynthesisProblem(name)
+        self.theta = self.sdp.vector("theta", self.par.n_theta)
 
-    def scalar(self, name: str, nonneg: bool = False) -> Scalar:
-        return self.sdp.scalar(name, nonneg)
-
-    def scalars(self, name: str, k: int, nonneg: bool = False) -> list[Scalar]:
-        return self.sdp.scalars(name, k, nonneg)
-
-    def arrow(self, on: str, D: Sequence[tuple[Scalar | float, np.ndarray]],
-              a: Scalar | None = None, b: Sequence[tuple[Scalar | float, np.ndarray]] = (),
-              x0: np.ndarray | None = None) -> None:
+    def arrow(self, on: str, D: Sequence[tuple[object, np.ndarray]], a: object | None = None,
+              b: Sequence[tuple[object, np.ndarray]] = (), x0: np.ndarray | None = None,
+              name: str = "regret LMI") -> None:
         """[[a, bᵀ, yᵀ], [b, D, Lᵀ], [y, L, I]] ⪰ 0 with L = Y[:, cols] and y = Y[:, x₀]x₀;
         ``on`` = "w" (cols = the disturbances w) or "delta" (cols = all of δ = (x₀, w))."""
         ops = self.ops
         cols = slice(ops.n, ops.nd) if on == "w" else slice(0, ops.nd)
-        blocks = _p_blocks(ops, 1 if on == "w" else 0)
-        b = tuple((beta, vec) for beta, vec in b if np.any(vec != 0))
+        b = [(beta, vec) for beta, vec in b if np.any(vec != 0)]
         y = None if x0 is None else self.par.Y_x0(x0)
-        self.sdp.add(ArrowLMI(self.par.Y(cols), tuple(D), tuple(blocks), ops.p, ops.m,
-                              a=a, b=b, y=y))
+        self.sdp.lmi(name, arrow_lmi(self.theta, self.par.Y(cols), D, a=a, b=b, y=y,
+                                     col_blocks=_p_blocks(ops, 1 if on == "w" else 0),
+                                     block=ops.p, row_block=ops.m))
 
     def constrain(self, constraints: StateInputConstraints | None, x0: np.ndarray | None,
                   P: np.ndarray | None = None, omega: float | None = None) -> None:
-        """(3.41) for the pointwise set {wᵀPw ≤ 1}; per-step energy ‖w_k‖² ≤ ω (Remark 3.16)."""
+        """(3.41) for the pointwise set {wᵀPw ≤ 1}; per-step energy ‖w_k‖² ≤ ω (Remark 3.16):
+        [H_z]_iΦ⁰x₀ + Σ_j ‖[H_z]_i[[Φ^w]]_j P^{-1/2}‖ ≤ 1, one norm per (row, block) shared by
+        parallel rows (:meth:`.Parametrization.robust_constraints`)."""
         if constraints is None:
             return
         constraints.check(self.ops.n, self.ops.m)
@@ -176,12 +191,22 @@ class _Statement:
         else:
             raise BalustradeError(f"{self.sdp.name}: constraints need a disturbance set "
                                   "(P or omega)")
-        self.sdp.add(self.par.robust_constraints(constraints.Hx, constraints.Hu, x0, Pmh))
+        rows = self.par.robust_constraints(constraints.Hx, constraints.Hu, x0, Pmh)
+        lhs = as_expr(rows.fixed)
+        if rows.pieces:
+            norms = self.sdp.vector("norms (3.41)", rows.G.shape[1], nonneg=True)
+            self.sdp.soc("norms (3.41)", vstack([m.of(self.theta) for m in rows.pieces]),
+                         norms, axis=1)
+            lhs = as_expr(rows.G) @ norms + lhs
+        if rows.F is not None:
+            lhs = lhs + as_expr(rows.F) @ self.theta + rows.g
+        self.sdp.subject_to("constraints (3.41)", lhs <= 1)
 
-    def minimize(self, objective: Scalar, certify: Certificate | None = None,
-                 multipliers: tuple[str, ...] = ()) -> RegretProblem:
+    def minimize(self, objective: Expr, level: Callable[[dict[str, np.ndarray]], float],
+                 certify: Certificate | None = None, multipliers: tuple[str, ...] = ()
+                 ) -> RegretProblem:
         self.sdp.minimize(objective)
-        return RegretProblem(self.sdp, self.par, certify, multipliers)
+        return RegretProblem(self.sdp, self.par, level, certify, multipliers)
 
 
 def _block_term(P: np.ndarray, sl: slice, d: int) -> np.ndarray:
@@ -216,13 +241,13 @@ def dynamic_regret_problem(ops: Operators, x0: object, omega: float, *,
                            constraints: StateInputConstraints | None = None,
                            constraint_P: object | None = None) -> RegretProblem:
     """Theorem 3.5, SDP (3.19): min γ s.t. the worst-case regret over ‖w‖² ≤ ω is ≤ γ, i.e.
-    [[γ − λω, ·, (Y⁰x₀)ᵀ], [·, λI, Y^wᵀ], [Y⁰x₀, Y^w, I]] ⪰ 0, λ ≥ 0."""
+    [[γ − λω, 0, (Y⁰x₀)ᵀ], [0, λI, Y^wᵀ], [Y⁰x₀, Y^w, I]] ⪰ 0, λ ≥ 0."""
     x0v, om = _x0(ops, x0), _omega(omega)
     st = _Statement(ops, "dynamic regret (3.19)")
-    gamma, lam = st.scalar("gamma"), st.scalar("lambda", nonneg=True)
+    gamma, lam = st.sdp.scalar("gamma"), st.sdp.scalar("lambda", nonneg=True)
     st.arrow("w", D=[(lam, np.eye(ops.p * ops.T))], a=gamma - om * lam, x0=x0v)
     st.constrain(constraints, x0v, _opt_P(ops, constraint_P), om)
-    return st.minimize(gamma, lambda Pu, v: (
+    return st.minimize(gamma, _value("gamma"), lambda Pu, v: (
         "exact", worst_case_regret_energy(ops, Pu, x0v, om).upper), ("lambda",))
 
 
@@ -233,13 +258,15 @@ def adversarial_regret_problem(ops: Operators, *,
                                constraints: StateInputConstraints | None = None,
                                x0: object | None = None, constraint_P: object | None = None,
                                omega: float | None = None) -> RegretProblem:
-    """(3.24): min ‖ΦᵀCΦ − 𝒪‖₂ = min γ s.t. γI − YᵀY ⪰ 0 (worst-case regret ωγ* on ‖δ‖² ≤ ω)."""
+    """(3.24): min ‖ΦᵀCΦ − 𝒪‖₂ = min γ s.t. γI − YᵀY ⪰ 0, i.e. [[γI, Yᵀ], [Y, I]] ⪰ 0
+    (worst-case regret ωγ* on ‖δ‖² ≤ ω)."""
     st = _Statement(ops, "adversarial regret (3.24)")
-    gamma = st.scalar("gamma")
+    gamma = st.sdp.scalar("gamma")
     st.arrow("delta", D=[(gamma, np.eye(ops.nd))])
     st.constrain(constraints, None if x0 is None else _x0(ops, x0), _opt_P(ops, constraint_P),
                  _opt_omega(omega))
-    return st.minimize(gamma, lambda Pu, v: ("exact", adversarial_level(ops, Pu)))
+    return st.minimize(gamma, _value("gamma"),
+                       lambda Pu, v: ("exact", adversarial_level(ops, Pu)))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -258,12 +285,12 @@ def generalized_regret_problem(ops: Operators, x0: object, omega: float, W: obje
     Wm = _weight(ops, W)
     W1, W2, W3 = ops.partition(Wm)
     st = _Statement(ops, f"generalized regret (3.28), W={_label(W)}")
-    mu, lam = st.scalar("mu"), st.scalar("lambda", nonneg=True)
+    mu, lam = st.sdp.scalar("mu"), st.sdp.scalar("lambda", nonneg=True)
     st.arrow("w", D=[(mu, W3), (lam, np.eye(W3.shape[0]))],
              a=float(x0v @ W1 @ x0v) * mu - om * lam, b=[(mu, W2 @ x0v)], x0=x0v)
     st.constrain(constraints, x0v, _opt_P(ops, constraint_P), om)
-    return st.minimize(mu, lambda Pu, v: ("exact", generalized_level_energy(
-        ops, Pu, x0v, om, Wm, guess=v(mu))), ("lambda",))
+    return st.minimize(mu, _value("mu"), lambda Pu, v: ("exact", generalized_level_energy(
+        ops, Pu, x0v, om, Wm, guess=float(v["mu"]))), ("lambda",))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -273,21 +300,23 @@ def zero_x0_regret_problem(ops: Operators, W: object = "I", *, adversarial_x0: b
                            constraints: StateInputConstraints | None = None,
                            constraint_P: object | None = None, omega: float | None = None
                            ) -> RegretProblem:
-    """(3.30): min μ s.t. μW₃ − Φ^wᵀCΦ^w + 𝒪₃ ⪰ 0 (x₀ = 0; no ω needed). The tight level (3.29).
+    """(3.30): min μ s.t. μW₃ − Φ^wᵀCΦ^w + 𝒪₃ ⪰ 0, i.e. [[μW₃, Y^wᵀ], [Y^w, I]] ⪰ 0
+    (x₀ = 0; no ω needed). The tight level (3.29).
 
     ``adversarial_x0=True``: the same on the whole δ with W_w and 𝒪 (SPEC 2.13).
     """
     Wm = _weight(ops, W)
     name = "adversarial-x0 regret (3.30)" if adversarial_x0 else "zero-x0 regret (3.30)"
     st = _Statement(ops, name)
-    mu = st.scalar("mu")
+    mu = st.sdp.scalar("mu")
     if adversarial_x0:
         st.arrow("delta", D=[(mu, Wm)])
     else:
         st.arrow("w", D=[(mu, ops.partition(Wm)[2])])
     st.constrain(constraints, None if adversarial_x0 else np.zeros(ops.n),
                  _opt_P(ops, constraint_P), _opt_omega(omega))
-    return st.minimize(mu, lambda Pu, v: ("exact", zero_x0_level(ops, Pu, Wm, adversarial_x0)))
+    return st.minimize(mu, _value("mu"),
+                       lambda Pu, v: ("exact", zero_x0_level(ops, Pu, Wm, adversarial_x0)))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -296,34 +325,35 @@ def zero_x0_regret_problem(ops: Operators, W: object = "I", *, adversarial_x0: b
 def pointwise_regret_problem(ops: Operators, x0: object, P: object, W: object = "I", *,
                              constraints: StateInputConstraints | None = None) -> RegretProblem:
     """SDP (3.32): min μ̄ s.t. J − J* ≤ μ̄ δᵀW_wδ for all w_kᵀPw_k ≤ 1 (S-procedure, λ̄_i ≥ 0):
-    [[μ̄x₀ᵀW₁x₀ − Σλ̄_i, ·, ·], [μ̄W₂x₀, μ̄W₃ + Σλ̄_i P_i, Y^wᵀ], [Y⁰x₀, Y^w, I]] ⪰ 0."""
+    [[μ̄x₀ᵀW₁x₀ − Σλ̄_i, μ̄(W₂x₀)ᵀ, (Y⁰x₀)ᵀ], [μ̄W₂x₀, μ̄W₃ + Σλ̄_iP_i, Y^wᵀ], [Y⁰x₀, Y^w, I]] ⪰ 0
+    with P_i = P on the block of w_{i−1}."""
     x0v, Pm = _x0(ops, x0), _pointwise_P(ops, P)
     Wm = _weight(ops, W)
     W1, W2, W3 = ops.partition(Wm)
     st = _Statement(ops, f"pointwise regret (3.32), W={_label(W)}")
-    mu, lams = st.scalar("mu"), st.scalars("lambda", ops.T, nonneg=True)
+    mu, lams = st.sdp.scalar("mu"), st.sdp.vector("lambda", ops.T, nonneg=True)
     d = W3.shape[0]
-    S_terms = [(lam, _block_term(Pm, sl, d)) for lam, sl in zip(lams, _p_blocks(ops))]
+    S_terms = [(lams[i], _block_term(Pm, sl, d)) for i, sl in enumerate(_p_blocks(ops))]
     st.arrow("w", D=[(mu, W3), *S_terms], a=float(x0v @ W1 @ x0v) * mu - total(lams),
              b=[(mu, W2 @ x0v)], x0=x0v)
     st.constrain(constraints, x0v, Pm)
-    return st.minimize(mu, lambda Pu, v: ("lower_bound", _pointwise_lb(ops, Pu, x0v, Pm, Wm)),
-                       ("lambda",))
+    return st.minimize(mu, _value("mu"), lambda Pu, v: (
+        "lower_bound", _pointwise_lb(ops, Pu, x0v, Pm, Wm)), ("lambda",))
 
 
 def pointwise_dynamic_problem(ops: Operators, x0: object, P: object, *,
                               constraints: StateInputConstraints | None = None
                               ) -> RegretProblem:
     """Theorem 3.12, SDP (3.34): γ̄* = min Σ_{i=0}^T λ̄_i, with (2/π)γ̄* ≤ R⁰_PWB ≤ γ̄* (3.36):
-    [[λ̄_0, ·, (Y⁰x₀)ᵀ], [·, Σ_{i≥1} λ̄_i P_i, Y^wᵀ], [Y⁰x₀, Y^w, I]] ⪰ 0."""
+    [[λ̄_0, 0, (Y⁰x₀)ᵀ], [0, Σ_{i≥1} λ̄_iP_i, Y^wᵀ], [Y⁰x₀, Y^w, I]] ⪰ 0."""
     x0v, Pm = _x0(ops, x0), _pointwise_P(ops, P)
     st = _Statement(ops, "pointwise dynamic regret (3.34)")
-    lams = st.scalars("lambda", ops.T + 1, nonneg=True)
+    lams = st.sdp.vector("lambda", ops.T + 1, nonneg=True)
     d = ops.p * ops.T
-    st.arrow("w", D=[(lam, _block_term(Pm, sl, d)) for lam, sl in zip(lams[1:], _p_blocks(ops))],
+    st.arrow("w", D=[(lams[i + 1], _block_term(Pm, sl, d)) for i, sl in enumerate(_p_blocks(ops))],
              a=lams[0], x0=x0v)
     st.constrain(constraints, x0v, Pm)
-    return st.minimize(total(lams), lambda Pu, v: (
+    return st.minimize(total(lams), _value("lambda"), lambda Pu, v: (
         "lower_bound", _pointwise_lb(ops, Pu, x0v, Pm, None)), ("lambda",))
 
 
@@ -346,20 +376,26 @@ def h2_problem(ops: Operators, x0: object, *, constraints: StateInputConstraints
     x0v = _x0(ops, x0)
     st = _Statement(ops, "SH2")
     O1, _, O3 = ops.O_parts
+    const = float(x0v @ O1 @ x0v + np.trace(O3))
+    y0, Yw = st.par.Y_x0(x0v), st.par.Y(slice(ops.n, ops.nd))
     st.constrain(constraints, x0v, _opt_P(ops, constraint_P), _opt_omega(omega))
-    st.sdp.minimize([st.par.Y_x0(x0v), st.par.Y(slice(ops.n, ops.nd))],
-                    float(x0v @ O1 @ x0v + np.trace(O3)))
-    return RegretProblem(st.sdp, st.par)
+
+    def level(v: dict[str, np.ndarray]) -> float:
+        return float(np.sum(y0.value(v["theta"]) ** 2) + np.sum(Yw.value(v["theta"]) ** 2)
+                     + const)
+
+    return st.minimize(sum_squares(y0.flat(st.theta)) + sum_squares(Yw.flat(st.theta)), level)
 
 
 def hinf_problem(ops: Operators, *, x0: object | None = None,
                  constraints: StateInputConstraints | None = None,
                  constraint_P: object | None = None, omega: float | None = None
                  ) -> RegretProblem:
-    """SH∞: min γ s.t. γI − ΦᵀCΦ ⪰ 0 on the whole δ (SLP H∞); here γI − 𝒪 − YᵀY ⪰ 0."""
+    """SH∞: min γ s.t. γI − ΦᵀCΦ ⪰ 0 on the whole δ (SLP H∞); here γI − 𝒪 − YᵀY ⪰ 0, i.e.
+    [[γI − 𝒪, Yᵀ], [Y, I]] ⪰ 0."""
     st = _Statement(ops, "SH-inf")
-    gamma = st.scalar("gamma")
+    gamma = st.sdp.scalar("gamma")
     st.arrow("delta", D=[(gamma, np.eye(ops.nd)), (-1.0, ops.O)])
     st.constrain(constraints, None if x0 is None else _x0(ops, x0), _opt_P(ops, constraint_P),
                  _opt_omega(omega))
-    return st.minimize(gamma, lambda Pu, v: ("exact", hinf_level(ops, Pu)))
+    return st.minimize(gamma, _value("gamma"), lambda Pu, v: ("exact", hinf_level(ops, Pu)))
