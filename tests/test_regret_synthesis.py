@@ -298,3 +298,27 @@ def test_competitive_ratio_and_energy_constraints_hold_on_samples():
     worst = worst_case_regret_energy(ops, res.Phi_u, x0, omega)
     run = ctrl.simulate(x0, worst.w.reshape(ops.T, 2), constraints=cons)
     assert run.satisfied and run.ratio <= 1 + res.level * (1 + 1e-6)
+
+
+def test_problem_is_a_plain_synthesis_problem_and_the_lowerings_agree():
+    """The regret problems are ordinary SynthesisProblems: the generic lowering
+    (compile_synthesis, the arrow LMI as the one cone it is written as) and the structured pass
+    in each form reach the same level; the arrow matrix carries its structure as data."""
+    from balustrade.backends import solve_synthesis
+    from balustrade.dsl.synthesis_arrow import ArrowLMI
+
+    ops, rng = random_ops(4, T=4)
+    x0 = rng.standard_normal(ops.n)
+    problem = generalized_regret_problem(ops, x0, 1.2, "O")
+    (lmi,) = [c for c in problem.sdp.constraints.values() if c.kind == ">>"]
+    assert isinstance(lmi.lhs.data, ArrowLMI)
+    assert lmi.lhs.shape == (lmi.lhs.data.size,) * 2 == (1 + ops.m * (ops.T + 1)
+                                                         + ops.p * ops.T,) * 2
+    tight = resolve_target("sdp", options=TIGHT)
+    generic = solve_synthesis(problem.sdp, tight)
+    assert generic.ok
+    for form in FORMS:
+        res = solve_once(problem, form, tight)
+        assert res.status == "optimal" and res.info["lmi"] == form
+        assert res.info["sdp_level"] == pytest.approx(float(generic["mu"]), rel=1e-7)
+    assert solve_once(problem, "split", tight).info["psd_cone_sizes"][0] < lmi.lhs.shape[0]

@@ -76,7 +76,9 @@ class StructuredSynthesis(CompiledSynthesis):
             self.cvxpy_problem = cp.Problem(self.cvxpy_problem.objective,
                                             self.cvxpy_problem.constraints + self._extra)
         self.psd_sizes = sorted({int(c.args[0].shape[0]) for c in self.cvxpy_problem.constraints
-                                 if isinstance(c, cp.PSD)}, reverse=True)
+                                 if isinstance(c, cp.PSD)}
+                                | {d.shape[0] for d in problem.variables.values() if d.psd},
+                                reverse=True)
         if self.solver == "CLARABEL" and self.form == "split":
             # the split is already the chordal decomposition; Clarabel's own merging of the
             # cones only enlarges them again (measured 2.5x slower)

@@ -155,10 +155,10 @@ def synthesize(problem: RegretProblem, lmi: str = "banded", target: TargetSpec =
     """Solve and certify; a banded solve that is not ok (not "optimal", or its level below what
     its own controller attains: both measured with the 𝒪 weight, lmi_banded.py) is re-solved in
     the form used when banded coordinates do not apply (``lmi="split"``: the chordal split, or
-    one dense cone where no split exists, refused with "too_large" when it would not fit in
-    memory). The retry is returned when it is ok, with the banded attempt in
-    info["banded_fallback"]; otherwise the banded result is returned with the retry's outcome
-    in info["banded_retry"]."""
+    one dense cone where no split exists, refused — status "failed", message "too large …" —
+    when it would not fit in memory). The retry is returned when it is ok, with the banded
+    attempt in info["banded_fallback"]; otherwise the banded result is returned with the
+    retry's outcome in info["banded_retry"]."""
     res = solve_once(problem, lmi, target)
     if res.info.get("lmi") != "banded" or res.ok:
         return res
@@ -174,7 +174,7 @@ def synthesize(problem: RegretProblem, lmi: str = "banded", target: TargetSpec =
         retry.total_time += res.total_time
         return retry
     res.info["banded_retry"] = {"status": retry.status, "level": retry.level,
-                                "message": retry.info.get("message")}
+                                "message": retry.message}
     res.total_time += retry.total_time
     return res
 
