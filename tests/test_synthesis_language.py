@@ -231,3 +231,40 @@ def test_docs_example_lq_terminal_ellipsoid() -> None:
         assert np.sqrt((K @ E @ K.T).item()) <= u_max * (1 + 1e-6)
         gammas.append(g)
     assert gammas[0] != pytest.approx(gammas[1])   # the parameter reached the solver
+
+
+def test_a_solution_is_checkable_without_the_solver() -> None:
+    """Principle 3: violations() evaluates every block with numpy alone."""
+    sdp = ellipsoid_sdp()
+    sol = solve_synthesis(sdp)
+    v = sdp.violations(sol.values)
+    assert set(v) >= {"invariance", "state 0", "state 1", "input", "symmetry of E"}
+    assert max(v.values()) <= 1e-7
+    assert sdp.value(sdp.objective, sol.values) == pytest.approx(sol.objective, rel=1e-8)
+    bigger = {**sol.values, "E": 1.1 * sol["E"]}          # leaves the constraint set
+    assert sdp.violations(bigger)["state 0"] > 1e-3 or sdp.violations(bigger)["state 1"] > 1e-3
+    # a faster decrease λ = 0.5 is violated by the λ = 0.99 solution
+    assert sdp.violations(sol.values, {"lambda": 0.5})["invariance"] > 1e-3
+
+
+def test_a_nonsymmetric_lmi_is_refused_naming_the_block() -> None:
+    sdp = SynthesisProblem("typo")
+    E = sdp.matrix("E", (2, 2), symmetric=True)
+    Y = sdp.matrix("Y", (1, 2))
+    with pytest.raises(BalustradeError, match=r"lmi 'typo block': the matrix is not symmetric"):
+        sdp.lmi("typo block", bmat([[E, Y.T], [2 * Y, np.eye(1)]]))
+    sdp.lmi("symmetrized", bmat([[E, Y.T], [2 * Y, np.eye(1)]]), symmetrize=True)
+    sdp.subject_to("trace", trace(E) <= 1)
+    sdp.maximize(logdet(E))
+    sol = solve_synthesis(sdp)
+    assert sol.ok and sdp.violations(sol.values)["symmetrized"] <= 1e-7
+
+
+def test_long_sums_lower_without_recursion_limits() -> None:
+    sdp = SynthesisProblem("long sum")
+    x = sdp.vector("x", 3000, nonneg=True)
+    sdp.subject_to("floor", x >= 1)
+    sdp.minimize(sum(x[i] for i in range(3000)))
+    sol = solve_synthesis(sdp)
+    assert sol.ok and sol.objective == pytest.approx(3000.0, rel=1e-7)
+    assert sdp.violations(sol.values)["floor"] <= 1e-7

@@ -24,7 +24,12 @@ from balustrade.backends.cvxpy_backend import _solver_words
 from balustrade.backends.synthesis_solution import SynthesisSolution
 from balustrade.backends.targets import Target
 from balustrade.backends.targets import target as resolve_target
-from balustrade.dsl.synthesis import Expr, SynthesisProblem, check_parameter_value
+from balustrade.dsl.synthesis import (
+    Expr,
+    SynthesisProblem,
+    add_terms,
+    check_parameter_value,
+)
 from balustrade.errors import BalustradeError, SolverError
 
 #: the solver used when a cvxpy target names none (every SDP of balustrade is solved with it)
@@ -108,9 +113,13 @@ class CompiledSynthesis:
             return float(e.data) if e.data.ndim == 0 else e.data
         if op == "bmat":
             return cp.bmat([[self.lower(b) for b in row] for row in args])
+        if op == "add":  # left to right, without recursing down long sums
+            terms = add_terms(e)
+            out = self.lower(terms[0])
+            for t in terms[1:]:
+                out = out + self.lower(t)
+            return out
         sub = [self.lower(a) for a in args]
-        if op == "add":
-            return sub[0] + sub[1]
         if op == "neg":
             return -sub[0]
         if op == "mul":

@@ -22,7 +22,7 @@ solves it many times.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -113,16 +113,20 @@ class Expr:
     def __repr__(self) -> str:
         return f"Expr({self.describe()}, shape={self.shape}, {self.curvature})"
 
-    def describe(self) -> str:
-        """A short text of the expression for error messages."""
+    def describe(self, depth: int = 3) -> str:
+        """A short text of the expression for error messages (``depth`` levels, at most
+        three arguments each)."""
         if self.op in ("variable", "parameter"):
             return self.data.name
         if self.op == "constant":
             return f"constant{self.shape}"
         if self.label:
             return self.label
-        inner = ", ".join(a.describe() for a in self.args if isinstance(a, Expr))
-        return f"{self.op}({inner})"
+        if depth <= 0:
+            return f"{self.op}(…)"
+        args = [a for a in self.args if isinstance(a, Expr)]
+        inner = ", ".join(a.describe(depth - 1) for a in args[:3])
+        return f"{self.op}({inner}{', …' if len(args) > 3 else ''})"
 
     @property
     def size(self) -> int:
@@ -315,7 +319,7 @@ def reshape(e: object, shape: Sequence[int]) -> Expr:
 
 
 def _block(value: object, where: str) -> Expr:
-    e = as_expr(value)
+    e = _affine(as_expr(value), where)
     if e.ndim < 2 and e.size == 1:
         return reshape(e, (1, 1))
     if e.ndim != 2:
@@ -576,15 +580,25 @@ class SynthesisProblem:
         self.constraints[name] = constraint
         return constraint
 
-    def lmi(self, name: str, M: Expr | Constraint) -> Constraint:
+    def lmi(self, name: str, M: Expr | Constraint, symmetrize: bool = False) -> Constraint:
         """The LMI block ``M ⪰ 0`` (``M`` square, affine; or a constraint ``M >> N`` /
-        ``M << N``)."""
+        ``M << N``). ``M`` must be symmetric for every value of the variables and
+        parameters — checked at a random point, since a solver would silently constrain the
+        symmetric part of a mistyped block; ``symmetrize=True`` imposes ``(M + Mᵀ)/2 ⪰ 0``
+        instead (for a block symmetric only up to rounding)."""
         if isinstance(M, Constraint):
             if M.kind != ">>":
                 raise BalustradeError(f"{self.name}: lmi {name!r} needs a matrix or a >> / << "
                                       f"constraint, got {M.kind}")
-            return self.subject_to(name, M)
-        return self.subject_to(name, as_expr(M) >> 0)
+            c = M
+        else:
+            c = as_expr(M) >> 0
+        if symmetrize:
+            D = c.lhs - c.rhs
+            c = Constraint(">>", 0.5 * (D + D.T), as_expr(0.0))
+        else:
+            _check_symmetric(f"{self.name}: lmi {name!r}", c)
+        return self.subject_to(name, c)
 
     def soc(self, name: str, x: object, t: object, axis: int | None = None) -> Constraint:
         """The second-order cone ``‖x‖₂ <= t``; with ``axis``, one cone per slice of the matrix
@@ -616,6 +630,53 @@ class SynthesisProblem:
             raise ConvexityError(f"{self.name}: cannot {sense} {expr.describe()} "
                                  f"({expr.curvature})")
         self.sense, self.objective = sense, expr
+
+    # -- checking a point without the solver (Principle 3) -------------------------------
+    def violations(self, values: Mapping[str, object],
+                   params: Mapping[str, object] | None = None) -> dict[str, float]:
+        """How much each constraint block is violated at ``values`` (variables by name;
+        ``params`` by name, declared defaults otherwise), evaluated with numpy alone:
+        ``max(lhs − rhs)`` for ``<=``, ``max |lhs − rhs|`` for ``==``, ``−λ_min`` of the
+        symmetric part for an LMI, ``max(‖x_i‖ − t_i)`` for a cone; ``<= 0`` means
+        satisfied (the declared attributes nonneg/PSD of the variables are blocks
+        ``"attribute of NAME"``)."""
+        env = self._environment(values, params)
+        out: dict[str, float] = {}
+        for name, d in self.variables.items():
+            v = env[name]
+            if d.nonneg:
+                out[f"attribute of {name}"] = float(np.max(-v, initial=-np.inf))
+            if d.psd:
+                out[f"attribute of {name}"] = -float(np.min(np.linalg.eigvalsh(
+                    0.5 * (v + v.T))))
+            if d.symmetric:
+                out[f"symmetry of {name}"] = float(np.max(np.abs(v - v.T)))
+        for name, c in self.constraints.items():
+            out[name] = _violation(c, env)
+        return out
+
+    def value(self, expr: Expr, values: Mapping[str, object],
+              params: Mapping[str, object] | None = None) -> np.ndarray:
+        """``expr`` evaluated with numpy at ``values`` (and ``params``)."""
+        return evaluate(expr, self._environment(values, params))
+
+    def _environment(self, values: Mapping[str, object],
+                     params: Mapping[str, object] | None) -> dict[str, np.ndarray]:
+        env: dict[str, np.ndarray] = {}
+        for name, d in self.variables.items():
+            if name not in values:
+                raise BalustradeError(f"{self.name}: no value for variable {name!r}")
+            v = np.asarray(values[name], dtype=float)
+            if v.shape != d.shape:
+                raise ShapeError(f"{self.name}: value of {name!r}", d.shape, v.shape)
+            env[name] = v
+        params = dict(params or {})
+        for name, d in self.parameters.items():
+            value = params.get(name, d.value)
+            if value is None:
+                raise BalustradeError(f"{self.name}: parameter {name!r} has no value")
+            env[name] = check_parameter_value(d, value, self.name)
+        return env
 
 
 def _check_shape(shape: object, block: str) -> Shape:
@@ -653,6 +714,143 @@ def check_parameter_value(decl: ParameterDecl, value: object, problem: str) -> n
     return arr
 
 
+# -- numeric evaluation (no solver) --------------------------------------------------------------
+def add_terms(e: Expr) -> list[Expr]:
+    """The terms of a (left-nested) sum, in order, without recursion (``sum(...)`` of many
+    terms nests deeply)."""
+    terms: list[Expr] = []
+    stack = [e]
+    while stack:
+        node = stack.pop()
+        if node.op == "add":
+            stack.extend(reversed(node.args))
+        else:
+            terms.append(node)
+    return terms
+
+
+def leaves(e: Expr) -> Iterator[Expr]:
+    """The variables and parameters of ``e`` (each node visited once)."""
+    seen: set[int] = set()
+    stack = [e]
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if node.op in ("variable", "parameter"):
+            yield node
+        elif node.op == "bmat":
+            stack.extend(b for row in node.args for b in row)
+        else:
+            stack.extend(a for a in node.args if isinstance(a, Expr))
+
+
+def _dense(x: object) -> np.ndarray:
+    if _is_sparse(x):
+        return np.asarray(x.toarray())
+    return np.asarray(x, dtype=float)
+
+
+def evaluate(e: Expr, env: Mapping[str, np.ndarray]) -> np.ndarray:
+    """``e`` as a numpy array, with variables and parameters taken from ``env`` by name."""
+    memo: dict[int, np.ndarray] = {}
+
+    def ev(node: Expr) -> np.ndarray:
+        key = id(node)
+        if key not in memo:
+            memo[key] = _dense(_eval_node(node, ev, env))
+        return memo[key]
+
+    return ev(e)
+
+
+def _eval_node(e: Expr, ev, env: Mapping[str, np.ndarray]) -> object:
+    op = e.op
+    if op in ("variable", "parameter"):
+        return env[e.data.name]
+    if op == "constant":
+        return e.data
+    if op == "add":
+        first, *rest = add_terms(e)
+        out = ev(first)
+        for t in rest:
+            out = out + ev(t)
+        return out
+    if op == "bmat":
+        return np.block([[ev(b) for b in row] for row in e.args])
+    if op == "matmul":
+        a, b = e.args
+        return (a.data if a.op == "constant" else ev(a)) @ (
+            b.data if b.op == "constant" else ev(b))
+    x = [ev(a) for a in e.args]
+    simple = {
+        "neg": lambda: -x[0], "mul": lambda: x[0] * x[1], "div": lambda: x[0] / x[1],
+        "transpose": lambda: x[0].T, "index": lambda: x[0][e.data],
+        "reshape": lambda: np.reshape(x[0], e.data, order="F"),
+        "trace": lambda: np.trace(x[0]), "sum": lambda: np.sum(x[0]),
+        "hstack": lambda: np.hstack(x), "vstack": lambda: np.vstack(x),
+        "diag": lambda: np.diag(x[0]), "multiply": lambda: x[0] * x[1],
+        "sum_squares": lambda: np.sum(x[0] ** 2),
+        "norm": lambda: np.linalg.norm(np.ravel(x[0])),
+        "logdet": lambda: _logdet(x[0]),
+    }
+    if op not in simple:
+        raise BalustradeError(f"synthesis: no numeric evaluation for {op!r}")
+    return simple[op]()
+
+
+def _logdet(M: np.ndarray) -> float:
+    sign, value = np.linalg.slogdet(0.5 * (M + M.T))
+    return float(value) if sign > 0 else -np.inf
+
+
+def _violation(c: Constraint, env: Mapping[str, np.ndarray]) -> float:
+    lhs, rhs = evaluate(c.lhs, env), evaluate(c.rhs, env)
+    if c.kind == "<=":
+        return float(np.max(lhs - rhs))
+    if c.kind == "==":
+        return float(np.max(np.abs(lhs - rhs)))
+    if c.kind == ">>":
+        D = lhs - rhs
+        return -float(np.min(np.linalg.eigvalsh(0.5 * (D + D.T))))
+    norms = np.linalg.norm(lhs, axis=c.axis)   # "soc"
+    return float(np.max(norms - np.ravel(rhs)))
+
+
+def _random_value(shape: Shape, symmetric: bool, psd: bool, nonneg: bool,
+                  rng: np.random.Generator) -> np.ndarray:
+    v = rng.standard_normal(shape)
+    if psd:
+        return v @ v.T
+    if symmetric:
+        v = v + v.T
+    return np.abs(v) if nonneg else v
+
+
+def _check_symmetric(block: str, c: Constraint, tol: float = 1e-9) -> None:
+    """Refuse an LMI whose matrix ``lhs − rhs`` is not symmetric at a random point of its
+    variables and parameters (the matrix is affine in both, so one generic point tells)."""
+    rng = np.random.default_rng(0)
+    env = {}
+    for side in (c.lhs, c.rhs):
+        for leaf in leaves(side):
+            d = leaf.data
+            env[d.name] = _random_value(d.shape, d.symmetric, d.psd, d.nonneg, rng)
+    D = evaluate(c.lhs, env) - evaluate(c.rhs, env)
+    if D.ndim < 2:
+        return
+    gap = np.abs(D - D.T)
+    worst = float(np.max(gap))
+    if worst > tol * max(1.0, float(np.max(np.abs(D)))):
+        i, j = np.unravel_index(int(np.argmax(gap)), gap.shape)
+        raise BalustradeError(f"{block}: the matrix is not symmetric (entries ({i}, {j}) and "
+                              f"({j}, {i}) differ at a random point of the variables); check "
+                              "its off-diagonal blocks (a solver would silently constrain the "
+                              "symmetric part), or pass symmetrize=True")
+
+
 __all__ = ["CURVATURES", "Constraint", "Expr", "ParameterDecl", "SynthesisProblem",
-           "VariableDecl", "as_expr", "bmat", "check_parameter_value", "diag", "hstack",
-           "logdet", "multiply", "norm", "reshape", "sum_squares", "total", "trace", "vstack"]
+           "VariableDecl", "add_terms", "as_expr", "bmat", "check_parameter_value", "diag",
+           "evaluate", "hstack", "leaves", "logdet", "multiply", "norm", "reshape",
+           "sum_squares", "total", "trace", "vstack"]
