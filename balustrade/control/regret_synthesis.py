@@ -2,8 +2,8 @@
 
 The problems are stated in :mod:`balustrade.problems.regret.synthesis` (synthesis-language
 SDPs that read like (3.19)–(3.41)); :func:`synthesize` lowers one through a target with the
-structured pass of :mod:`balustrade.backends.synthesis_structured` (preset ``"sdp"``: Clarabel,
-by default) and packs a :class:`SynthesisResult`: the
+structured pass of :mod:`balustrade.backends.synthesis_structured` (preset ``"sdp"`` by
+default) and packs a :class:`SynthesisResult`: the
 :class:`~balustrade.backends.synthesis_solution.SynthesisSolution` of the solve (its status is
 one of the common statuses, its message says why), level, Φ_x, Φ_u, the causal controller
 K = Φ_uΦ_x⁻¹ (3.15). Infeasible or failed solves — including a dense cone refused for memory
@@ -18,7 +18,7 @@ level of the returned controller, which is then the reported ``level`` (the SDP'
 level is never reported below what its controller attains); for the pointwise problems
 (3.32)/(3.34) a certified lower bound on the controller's worst case, which must not exceed the
 level. ``res.ok`` means: the solver reports ``optimal`` (full accuracy) and the certificate
-agrees. ``optimal_inaccurate`` is never ``ok`` — Clarabel's reduced tolerances were measured
+agrees. ``optimal_inaccurate`` is never ``ok`` — the solver's reduced tolerances were measured
 to hide a level 33 % above the optimum in banded coordinates
 (:mod:`balustrade.backends.lmi_banded`), and an "optimal" banded SCRW level 1.5e-5 below what
 its controller attains — so a banded solve that is not ok is re-solved outside banded

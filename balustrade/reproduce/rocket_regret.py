@@ -102,7 +102,7 @@ def synthesis_makers(setup: RocketRegretSetup, target: Target | str | None = Non
                      lmi: str = "banded") -> tuple[dict, Operators, StateInputConstraints]:
     """(name → zero-argument synthesis of the six controllers of Table 3.1 (SPEC 2.17), all
     with the constraints (3.41); ops; constraints). ``lmi``: how the LMIs reach the solver of
-    ``target`` (default Clarabel)."""
+    ``target`` (default preset ``"sdp"``)."""
     ops = build_operators(LTVSystem.create(setup.A, setup.B, setup.T))
     cons = StateInputConstraints.from_halfspaces(*setup.state_halfspaces(),
                                                  *setup.input_halfspaces())
@@ -117,7 +117,7 @@ def synthesis_makers(setup: RocketRegretSetup, target: Target | str | None = Non
                                           lmi=lmi, **kw),
         "SDRW": lambda: pointwise_regret(ops, x0, P, "I", constraints=cons, lmi=lmi, **kw),
         # Σλ_iP_i + μ𝒪 has no block-diagonal split; in banded coordinates (𝒪⁻¹ is block
-        # tridiagonal, backends/lmi_banded.py) Clarabel decomposes it like the others.
+        # tridiagonal, backends/lmi_banded.py) the solver decomposes it like the others.
         "SCRW": lambda: pointwise_regret(ops, x0, P, "O", constraints=cons, lmi=lmi, **kw),
     }, ops, cons
 
@@ -221,7 +221,7 @@ def _fmt_table(norm: dict, levels: dict, setup: RocketRegretSetup, synth: dict,
         lines.append(f"  {a:>4} -> {b:<5} {la:9.3f} -> {lb:8.3f} ({-red:+.1f} %)"
                      f"   {THESIS_LEVELS[a]:.2f} -> {THESIS_LEVELS[b]:.2f} ({-tred:+.1f} %)")
     lines.append("")
-    lines.append("synthesis (Clarabel, LMIs in banded coordinates): " + ", ".join(
+    lines.append("synthesis (target 'sdp', LMIs in banded coordinates): " + ", ".join(
         f"{k} {r.status} {r.info.get('wall_s', 0):.1f}s"
         + (f" [{r.info['lmi']}: banded attempt re-solved]" if r.info.get("banded_fallback")
            else "") + ("" if r.ok else " [NOT ok: not certified optimal]")
