@@ -3,9 +3,10 @@
 Each case runs in a fresh subprocess so that its peak resident memory can be reported
 (``peak_mem_mb`` = the child's max RSS, Python and imports included, about 100 MB).
 
-* banded (ours, the default): :func:`balustrade.problems.regret.generalized_regret` — causal
+* banded (ours, the default): :func:`balustrade.control.regret_synthesis.generalized_regret`
+  (the problem :func:`balustrade.problems.regret.generalized_regret_problem`) — causal
   variables only, Φ_x eliminated, cost compressed by the square-root factor, the LMI in banded
-  coordinates (problems/regret/banded.py) decomposed by Clarabel;
+  coordinates (backends/lmi_banded.py) decomposed by Clarabel;
 * split / single: the same compressed LMI with our chordal split, or as one cone in the
   original coordinates (``lmi="split"`` / ``lmi="single"``), reported in their own rows;
 * dense: a direct transcription of (3.28) — dense Φ with (3.14) and causality as equality
@@ -33,15 +34,18 @@ _CHILD = r"""
 import json, resource, sys, time
 import numpy as np
 from balustrade.models.rocket import RocketRegretSetup
-from balustrade.problems.regret import LTVSystem, build_operators, generalized_regret
-from balustrade.problems.regret.dense import dense_generalized_regret
+from balustrade.backends import resolve_target
+from balustrade.backends.regret_dense import dense_generalized_regret
+from balustrade.control.regret_synthesis import generalized_regret
+from balustrade.problems.regret import LTVSystem, build_operators
 
 T, W, kind = int(sys.argv[1]), sys.argv[2], sys.argv[3]
 s = RocketRegretSetup(T=T)
 ops = build_operators(LTVSystem.create(s.A, s.B, T))
 x0, om = s.x0, s.omega
 # both sides solved to the same tight tolerances, so that the levels can agree to 1e-6
-TOL = {"tol_gap_rel": 1e-10, "tol_gap_abs": 1e-10, "tol_feas": 1e-10}
+TOL = resolve_target("sdp", options={"tol_gap_rel": 1e-10, "tol_gap_abs": 1e-10,
+                                           "tol_feas": 1e-10})
 t0 = time.perf_counter()
 if kind.startswith("table:"):
     from balustrade.reproduce.rocket_regret import synthesis_makers
@@ -49,11 +53,11 @@ if kind.startswith("table:"):
     res = synthesis_makers(s, lmi=form)[0][kind.split(":")[1]]()
     level, status, ok, used = res.level, res.status, res.ok, res.info.get("lmi")
 elif kind in ("banded", "split", "single"):
-    res = generalized_regret(ops, x0, om, W, lmi=kind, solver_opts=TOL)
+    res = generalized_regret(ops, x0, om, W, lmi=kind, target=TOL)
     level, status, ok, used = res.level, res.status, res.ok, res.info.get("lmi")
 else:
     Wm = np.eye(ops.nd) if W == "I" else ops.O
-    status, level = dense_generalized_regret(ops, x0, om, Wm, solver_opts=TOL)
+    status, level = dense_generalized_regret(ops, x0, om, Wm, target=TOL)
     ok, used = status == "optimal", "dense"
 elapsed = time.perf_counter() - t0
 rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

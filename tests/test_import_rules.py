@@ -63,14 +63,7 @@ RULES: dict[str, tuple[set[str], set[str]]] = {
 }
 
 #: (module, imported layer or package) -> why it is still there; the merge empties this
-KNOWN: dict[tuple[str, str], str] = {
-    ("problems/regret/dense.py", "cvxpy"): "regret SDPs in hand-written cvxpy ('regret-sdp')",
-    ("problems/regret/lmi.py", "cvxpy"): "regret SDPs in hand-written cvxpy ('regret-sdp')",
-    ("problems/regret/parametrization.py", "cvxpy"):
-        "regret SDPs in hand-written cvxpy ('regret-sdp')",
-    ("problems/regret/synthesis.py", "cvxpy"):
-        "regret SDPs in hand-written cvxpy ('regret-sdp')",
-}
+KNOWN: dict[tuple[str, str], str] = {}
 
 
 def layer_of(rel: Path) -> str:

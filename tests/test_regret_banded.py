@@ -1,4 +1,4 @@
-"""Banded coordinates of the regret LMIs (problems/regret/banded.py).
+"""Banded coordinates of the regret LMIs (backends/lmi_banded.py).
 
 The two structural facts the construction rests on are checked on random LTV systems, and the
 congruence is checked against its definition: for random decision values, the transformed LMI
@@ -11,14 +11,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from balustrade.problems.regret import LTVSystem, build_operators
-from balustrade.problems.regret.banded import (
+from balustrade.backends.lmi_banded import (
     BandedCongruence,
     NotBanded,
     banded_congruence,
+    banded_pieces,
     block_bandwidth,
 )
-from balustrade.problems.regret.lmi import banded_pieces
+from balustrade.problems.regret import LTVSystem, build_operators
 from balustrade.problems.regret.parametrization import Parametrization, parallel_rows
 
 
@@ -85,11 +85,11 @@ def test_banded_lmi_is_a_congruence_of_the_original(weight, case):
     W3 = np.eye(d) if weight == "I" else ops.partition(ops.O)[2]
     b0 = rng.standard_normal(d)
     y0 = rng.standard_normal(par.M)
-    pieces = banded_pieces(par, cols, [np.eye(d), W3], [b0])
+    pieces = banded_pieces(par.Y(cols), ops.m, ops.p, [np.eye(d), W3], [b0])
     assert not isinstance(pieces, NotBanded)
     Yrows = slice(cols.start * par.M, cols.stop * par.M)
     for definite in (False, False, True):     # indefinite draws, then a positive definite one
-        theta = rng.standard_normal(par.theta.size)
+        theta = rng.standard_normal(par.n_theta)
         L = (par.AY[Yrows] @ theta + par.cY[Yrows]).reshape((par.M, d), order="F")
         lam, mu, a = rng.uniform(0.1, 3.0), rng.uniform(0.1, 3.0), 0.5
         if definite:

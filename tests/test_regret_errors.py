@@ -3,16 +3,14 @@
 import numpy as np
 import pytest
 
-from balustrade.control.regret import RegretController
-from balustrade.errors import BalustradeError, NotPSDError, ShapeError
-from balustrade.problems.regret import (
-    LTVSystem,
-    StateInputConstraints,
-    build_operators,
+from balustrade.backends import resolve_target
+from balustrade.control.regret_synthesis import (
     dynamic_regret,
     generalized_regret,
     pointwise_regret,
 )
+from balustrade.errors import BalustradeError, NotPSDError, ShapeError
+from balustrade.problems.regret import LTVSystem, StateInputConstraints, build_operators
 from balustrade.problems.regret.verify import maximize_quadratic_on_ball
 
 A = np.array([[1.0, 0.1], [0.0, 1.0]])
@@ -66,7 +64,7 @@ def test_infeasible_synthesis_returns_a_status():
     assert not res.ok and "infeasible" in res.status
     assert res.K is None and res.level is None
     with pytest.raises(BalustradeError, match="no controller"):
-        RegretController.from_result(res)
+        res.controller()
 
 
 def test_trust_region_hard_and_easy_cases():
@@ -88,19 +86,20 @@ def test_trust_region_hard_and_easy_cases():
 
 def test_dense_cone_too_large_for_clarabel_is_a_status(monkeypatch):
     """SCRW (W = 𝒪 with pointwise bounds) outside banded coordinates is one dense cone; when
-    Clarabel's KKT block would not fit in memory the synthesis returns a status naming the size
-    and SCS. In banded coordinates (the default) it is decomposable and solved."""
-    import balustrade.problems.regret.synthesis as syn
+    Clarabel's KKT block would not fit in memory the synthesis returns the common status
+    "failed" with a message naming the size and SCS. In banded coordinates (the default) it is
+    decomposable and solved."""
+    import balustrade.backends.synthesis_cvxpy as syn
 
     ops = build_operators(LTVSystem.create(A, B, 3))
     monkeypatch.setattr(syn, "_mem_available_bytes", lambda: 1e3)
     res = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", lmi="split")
-    assert res.status == "too_large" and not res.ok
-    assert "size 11" in res.info["message"] and "SCS" in res.info["message"]
-    with pytest.raises(BalustradeError, match="too_large"):
-        RegretController.from_result(res)
-    res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", solver="SCS", lmi="split",
-                               solver_opts={"eps_abs": 1e-7, "eps_rel": 1e-7})
+    assert res.status == "failed" and not res.ok and res.message.startswith("too large")
+    assert "size 11" in res.message and "scs" in res.message
+    with pytest.raises(BalustradeError, match="failed.*too large"):
+        res.controller()
+    scs = resolve_target("cvxpy", solver="scs", options={"eps_abs": 1e-7, "eps_rel": 1e-7})
+    res_scs = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O", target=scs, lmi="split")
     res_banded = pointwise_regret(ops, [1.0, 0.0], np.eye(2), "O")
     assert res_banded.ok and res_banded.info["lmi"] == "banded"
     monkeypatch.undo()

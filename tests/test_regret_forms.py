@@ -20,11 +20,9 @@ T = 10), where the banded (3.32) with W = 𝒪 ended "optimal_inaccurate" at 0.2
 import numpy as np
 import pytest
 
-from balustrade.problems.regret import (
-    LTVSystem,
-    StateInputConstraints,
+from balustrade.backends import resolve_target
+from balustrade.control.regret_synthesis import (
     adversarial_regret,
-    build_operators,
     dynamic_regret,
     generalized_regret,
     hinf,
@@ -32,6 +30,7 @@ from balustrade.problems.regret import (
     pointwise_regret,
     zero_x0_regret,
 )
+from balustrade.problems.regret import LTVSystem, StateInputConstraints, build_operators
 from balustrade.problems.regret.verify import (
     adversarial_level,
     generalized_level_energy,
@@ -97,7 +96,7 @@ def weight(ops, W):
 
 # (label, synthesis(ops, x0, ω, P, W, cons, lmi), certificate kind, uses W)
 def _syntheses():
-    kw = {"solver_opts": TIGHT}
+    kw = {"target": resolve_target("sdp", options=TIGHT)}
 
     def gen(ops, x0, om, P, W, c, f):
         return generalized_regret(ops, x0, om, W, constraints=c, lmi=f, **kw)

@@ -48,7 +48,9 @@ def _check_metrics(m: dict) -> None:
     # re-solved outside banded coordinates (SCRW at T = 25: its dense cone is too large), and
     # that must be said in the metrics
     for name, ok in m["ok"].items():
-        assert ok or m["banded_fallback"][name]["status"] == "too_large", (name, m["status"])
+        retry = m["banded_fallback"][name] or {}
+        assert ok or (retry.get("status") == "failed"
+                      and retry.get("message", "").startswith("too large")), (name, m["status"])
     cert = m["certificates"]
     assert set(cert) == {"SDR", "SCR", "SDRW", "SCRW"}
     for name in ("SDR", "SCR"):       # energy bounds: the S-procedure is lossless, level exact

@@ -4,28 +4,39 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
+from balustrade.backends import resolve_target
+from balustrade.backends.regret_dense import dense_generalized_regret
 from balustrade.backends.structure import psd_factor
-from balustrade.control.regret import RegretController
-from balustrade.problems.regret import (
-    LTVSystem,
-    StateInputConstraints,
-    adversarial_regret,
-    build_operators,
+from balustrade.control.regret_synthesis import (
     dynamic_regret,
     generalized_regret,
     h2,
     hinf,
     pointwise_dynamic_regret,
     pointwise_regret,
+    solve_once,
     zero_x0_regret,
 )
-from balustrade.problems.regret.dense import dense_generalized_regret
+from balustrade.problems.regret import (
+    LTVSystem,
+    StateInputConstraints,
+    adversarial_regret_problem,
+    build_operators,
+    dynamic_regret_problem,
+    generalized_regret_problem,
+    hinf_problem,
+    pointwise_dynamic_problem,
+    pointwise_regret_problem,
+    zero_x0_regret_problem,
+)
 from balustrade.problems.regret.parametrization import parallel_rows
 from balustrade.problems.regret.verify import (
     pointwise_regret_lower_bound,
     regret_matrix,
     worst_case_regret_energy,
 )
+
+FORMS = ("banded", "split", "single")
 
 
 def random_ops(seed: int, n: int = 3, m: int = 2, T: int = 5):
@@ -55,13 +66,13 @@ def test_dynamic_regret_is_tight_and_controller_causal(seed):
     assert cert.value == pytest.approx(res.level, rel=1e-4)                   # (3.22)
     assert cert.upper == pytest.approx(cert.value, rel=1e-9)
     # the maximizing disturbance attains the bound in closed loop with K (3.15)
-    run = RegretController.from_result(res).simulate(x0, cert.w.reshape(ops.T, ops.p))
+    run = res.controller().simulate(x0, cert.w.reshape(ops.T, ops.p))
     assert run.regret == pytest.approx(res.level, rel=1e-4)
     # random disturbances stay below it (3.20)
     for _ in range(20):
         w = rng.standard_normal(ops.p * ops.T)
         w *= np.sqrt(omega) / np.linalg.norm(w) * rng.uniform(0, 1)
-        assert RegretController.from_result(res).simulate(x0, w).regret <= res.level * (1 + 1e-6)
+        assert res.controller().simulate(x0, w).regret <= res.level * (1 + 1e-6)
     # Corollary 3.6: σ_min(M) ≤ γ*/(ω + ‖x0‖²) ≤ σ_max(M)
     ev = np.linalg.eigvalsh(regret_matrix(ops, res.Phi_u))
     ratio = res.level / (omega + x0 @ x0)
@@ -141,7 +152,7 @@ def test_baselines_and_constraints_hold_on_sampled_disturbances():
                pointwise_dynamic_regret(ops, x0, P, constraints=cons)]
     for res in results:
         assert res.ok, res
-        ctrl = RegretController.from_result(res)
+        ctrl = res.controller()
         for _ in range(30):
             v = rng.standard_normal((ops.T, 2))
             w = v / np.linalg.norm(v, axis=1, keepdims=True) * 0.2
@@ -173,7 +184,7 @@ def test_constraint_reformulation_3_41_is_exact_for_ellipsoids():
             bound = a[:2] @ x0 + sum(np.sqrt(aj @ Pinv @ aj) for aj in blocks)
             w = np.array([Pinv @ aj / np.sqrt(aj @ Pinv @ aj) if np.any(aj) else np.zeros(2)
                           for aj in blocks])
-            run = RegretController.from_result(res).simulate(x0, w)
+            run = res.controller().simulate(x0, w)
             assert cons.Hx[r] @ run.x[t] == pytest.approx(bound, rel=1e-9, abs=1e-12)
             assert bound <= 1 + 1e-6
             best = max(best, bound)
@@ -194,7 +205,8 @@ def test_shared_robust_terms_equal_a_naive_transcription_of_3_41():
     kx = cons.Hx.shape[0]
     assert list(rep[:kx]) == [0, 1, 0, 1, 4, 4] and alpha[2] == pytest.approx(-1.1 / 1.1)
     assert alpha[5] == pytest.approx((2 / 2.2) / (1 / 1.5))
-    res = h2(ops, x0, constraints=cons, constraint_P=P, solver_opts=TIGHT)
+    res = h2(ops, x0, constraints=cons, constraint_P=P,
+             target=resolve_target("sdp", options=TIGHT))
     assert res.ok
     assert res.level > 1.1 * h2(ops, x0).level          # the constraints bind
 
@@ -225,26 +237,28 @@ TIGHT = {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10}
 
 @pytest.mark.parametrize("seed", [11, 3])
 def test_lmi_forms_are_exact_reformulations(seed):
-    """Banded coordinates (banded.py), the chordal split and one cone (lmi.py) are exact
+    """Banded coordinates (lmi_banded.py), the chordal split and one cone are exact
     reformulations of the same LMI: the same optimum for every problem, including the ones
     with a dense weight (𝒪: competitive ratio, SH∞, SCRW) and pointwise multipliers."""
     ops, rng = random_ops(seed, T=6)
     x0 = rng.standard_normal(ops.n)
     P = np.diag([2.0, 3.0, 4.0])
-    kw = {"solver_opts": TIGHT}
-    makers = [  # (synthesis, arguments after ops, keywords)
-        (adversarial_regret, (), {}), (hinf, (), {}),
-        (zero_x0_regret, ("O",), {"adversarial_x0": True}), (zero_x0_regret, ("O",), {}),
-        (pointwise_regret, (x0, P, "I"), {}), (pointwise_regret, (x0, P, "O"), {}),
-        (pointwise_dynamic_regret, (x0, P), {}), (dynamic_regret, (x0, 1.3), {}),
-        (generalized_regret, (x0, 1.3, "O"), {}),
+    tight = resolve_target("sdp", options=TIGHT)
+    makers = [  # (problem, arguments after ops, keywords)
+        (adversarial_regret_problem, (), {}), (hinf_problem, (), {}),
+        (zero_x0_regret_problem, ("O",), {"adversarial_x0": True}),
+        (zero_x0_regret_problem, ("O",), {}),
+        (pointwise_regret_problem, (x0, P, "I"), {}),
+        (pointwise_regret_problem, (x0, P, "O"), {}),
+        (pointwise_dynamic_problem, (x0, P), {}), (dynamic_regret_problem, (x0, 1.3), {}),
+        (generalized_regret_problem, (x0, 1.3, "O"), {}),
     ]
-    for fn, args, kwa in makers:
+    for make, args, kwa in makers:
         # the banded form itself (without the re-solve of a result that is not ok): at these
         # tight tolerances Clarabel may end it "optimal_inaccurate" (the 𝒪-weighted LMIs are
-        # ill-conditioned in banded coordinates, banded.py), but at the same optimum
-        banded = fn.__wrapped__(ops, *args, lmi="banded", **kwa, **kw)
-        split, single = (fn(ops, *args, lmi=f, **kwa, **kw) for f in ("split", "single"))
+        # ill-conditioned in banded coordinates, lmi_banded.py), but at the same optimum
+        problem = make(ops, *args, **kwa)
+        banded, split, single = (solve_once(problem, f, tight) for f in FORMS)
         assert banded.status in ("optimal", "optimal_inaccurate") and split.ok and single.ok
         assert banded.info["lmi"] == "banded", banded.info["banded_fallback"]
         assert banded.level == pytest.approx(single.level, rel=1e-7)
@@ -274,7 +288,7 @@ def test_competitive_ratio_and_energy_constraints_hold_on_samples():
                                                  np.array([[1.0], [-1.0]]), np.full(2, 5.0))
     res = generalized_regret(ops, x0, omega, "O", constraints=cons)
     assert res.ok
-    ctrl = RegretController.from_result(res)
+    ctrl = res.controller()
     for _ in range(50):
         w = rng.standard_normal((ops.T, 2))
         w *= np.sqrt(omega) / np.linalg.norm(w) * rng.uniform(0.2, 1.0)
@@ -284,3 +298,27 @@ def test_competitive_ratio_and_energy_constraints_hold_on_samples():
     worst = worst_case_regret_energy(ops, res.Phi_u, x0, omega)
     run = ctrl.simulate(x0, worst.w.reshape(ops.T, 2), constraints=cons)
     assert run.satisfied and run.ratio <= 1 + res.level * (1 + 1e-6)
+
+
+def test_problem_is_a_plain_synthesis_problem_and_the_lowerings_agree():
+    """The regret problems are ordinary SynthesisProblems: the generic lowering
+    (compile_synthesis, the arrow LMI as the one cone it is written as) and the structured pass
+    in each form reach the same level; the arrow matrix carries its structure as data."""
+    from balustrade.backends import solve_synthesis
+    from balustrade.dsl.synthesis_arrow import ArrowLMI
+
+    ops, rng = random_ops(4, T=4)
+    x0 = rng.standard_normal(ops.n)
+    problem = generalized_regret_problem(ops, x0, 1.2, "O")
+    (lmi,) = [c for c in problem.sdp.constraints.values() if c.kind == ">>"]
+    assert isinstance(lmi.lhs.data, ArrowLMI)
+    assert lmi.lhs.shape == (lmi.lhs.data.size,) * 2 == (1 + ops.m * (ops.T + 1)
+                                                         + ops.p * ops.T,) * 2
+    tight = resolve_target("sdp", options=TIGHT)
+    generic = solve_synthesis(problem.sdp, tight)
+    assert generic.ok
+    for form in FORMS:
+        res = solve_once(problem, form, tight)
+        assert res.status == "optimal" and res.info["lmi"] == form
+        assert res.info["sdp_level"] == pytest.approx(float(generic["mu"]), rel=1e-7)
+    assert solve_once(problem, "split", tight).info["psd_cone_sizes"][0] < lmi.lhs.shape[0]

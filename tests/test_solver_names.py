@@ -22,12 +22,7 @@ PATTERN = re.compile(r"ipopt|sqpmethod|qrqp|clarabel|piqp|osqp|scs|fatrop|hpipm|
 
 #: files other work of issue #13 is rewriting right now, with the reason; the merge empties
 #: this list (an entry without hits fails below, so it cannot go stale)
-KNOWN: dict[str, str] = {
-    "problems/regret/banded.py": "the regret SDPs move to the synthesis language (§4)",
-    "problems/regret/dense.py": "the regret SDPs move to the synthesis language (§4)",
-    "problems/regret/lmi.py": "the regret SDPs move to the synthesis language (§4)",
-    "problems/regret/synthesis.py": "the regret SDPs move to the synthesis language (§4)",
-}
+KNOWN: dict[str, str] = {}
 
 
 def violations(root: Path = ROOT) -> dict[str, list[str]]:

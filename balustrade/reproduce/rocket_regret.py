@@ -20,17 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from balustrade.control.regret import RegretController
+from balustrade.backends.targets import Target
+from balustrade.control.regret_synthesis import generalized_regret, h2, hinf, pointwise_regret
 from balustrade.models.rocket import RocketRegretSetup
 from balustrade.problems.regret import (
     LTVSystem,
     Operators,
     StateInputConstraints,
     build_operators,
-    generalized_regret,
-    h2,
-    hinf,
-    pointwise_regret,
 )
 
 NAMES = ("rocket-regret",)
@@ -101,15 +98,16 @@ def random_profiles(T: int, P: np.ndarray, draws: int, seed: int) -> dict[str, n
 # ---------------------------------------------------------------------------------------------
 # synthesis and evaluation
 # ---------------------------------------------------------------------------------------------
-def synthesis_makers(setup: RocketRegretSetup, solver_opts: dict | None = None,
+def synthesis_makers(setup: RocketRegretSetup, target: Target | str | None = None,
                      lmi: str = "banded") -> tuple[dict, Operators, StateInputConstraints]:
     """(name → zero-argument synthesis of the six controllers of Table 3.1 (SPEC 2.17), all
-    with the constraints (3.41); ops; constraints). ``lmi``: how the LMIs reach the conic solver."""
+    with the constraints (3.41); ops; constraints). ``lmi``: how the LMIs reach the solver of
+    ``target`` (default preset ``"sdp"``)."""
     ops = build_operators(LTVSystem.create(setup.A, setup.B, setup.T))
     cons = StateInputConstraints.from_halfspaces(*setup.state_halfspaces(),
                                                  *setup.input_halfspaces())
     x0, P, om = setup.x0, setup.P, setup.omega
-    kw = {"solver_opts": solver_opts}
+    kw = {"target": target}
     return {
         "SH2": lambda: h2(ops, x0, constraints=cons, constraint_P=P, **kw),
         "SH∞": lambda: hinf(ops, x0=x0, constraints=cons, constraint_P=P, lmi=lmi, **kw),
@@ -119,14 +117,14 @@ def synthesis_makers(setup: RocketRegretSetup, solver_opts: dict | None = None,
                                           lmi=lmi, **kw),
         "SDRW": lambda: pointwise_regret(ops, x0, P, "I", constraints=cons, lmi=lmi, **kw),
         # Σλ_iP_i + μ𝒪 has no block-diagonal split; in banded coordinates (𝒪⁻¹ is block
-        # tridiagonal, banded.py) the conic solver decomposes it like the others.
+        # tridiagonal, backends/lmi_banded.py) the solver decomposes it like the others.
         "SCRW": lambda: pointwise_regret(ops, x0, P, "O", constraints=cons, lmi=lmi, **kw),
     }, ops, cons
 
 
-def synthesize_all(setup: RocketRegretSetup, solver_opts: dict | None = None) -> dict:
+def synthesize_all(setup: RocketRegretSetup, target: Target | str | None = None) -> dict:
     """The six controllers of Table 3.1, synthesized one after the other (timed)."""
-    makers, ops, cons = synthesis_makers(setup, solver_opts)
+    makers, ops, cons = synthesis_makers(setup, target)
     results = {}
     for name, make in makers.items():
         t0 = time.perf_counter()
@@ -144,7 +142,7 @@ def evaluate(setup: RocketRegretSetup, synth: dict, draws: int, seed: int = 0) -
     profiles: dict[str, np.ndarray] = random_profiles(T, P, draws, seed)
     profiles.update({k: v[None] for k, v in deterministic_profiles(T, setup.box).items()})
     cons = synth["constraints"]
-    ctrls = {name: RegretController.from_result(res, allow_inaccurate=True)
+    ctrls = {name: res.controller(allow_inaccurate=True)
              for name, res in synth["results"].items() if _usable(res)}
     cost: dict[str, dict[str, float]] = {}
     worst_violation = -np.inf
@@ -223,7 +221,7 @@ def _fmt_table(norm: dict, levels: dict, setup: RocketRegretSetup, synth: dict,
         lines.append(f"  {a:>4} -> {b:<5} {la:9.3f} -> {lb:8.3f} ({-red:+.1f} %)"
                      f"   {THESIS_LEVELS[a]:.2f} -> {THESIS_LEVELS[b]:.2f} ({-tred:+.1f} %)")
     lines.append("")
-    lines.append("synthesis (conic solver, LMIs in banded coordinates): " + ", ".join(
+    lines.append("synthesis (target 'sdp', LMIs in banded coordinates): " + ", ".join(
         f"{k} {r.status} {r.info.get('wall_s', 0):.1f}s"
         + (f" [{r.info['lmi']}: banded attempt re-solved]" if r.info.get("banded_fallback")
            else "") + ("" if r.ok else " [NOT ok: not certified optimal]")

@@ -1,8 +1,9 @@
 """Regret-optimal control synthesized by semidefinite programs (thesis Chapter 3).
 
 ``LTVSystem`` + ``build_operators`` give the stacked operators of the system level
-parametrization; the functions of :mod:`.synthesis` solve (3.19), (3.24), (3.28), (3.30),
-(3.32), (3.34) and the SH2/SH∞ baselines;
+parametrization; the builders of :mod:`.synthesis` state (3.19), (3.24), (3.28), (3.30),
+(3.32), (3.34) and the SH2/SH∞ baselines as structured SDPs (data, no solver);
+:mod:`balustrade.control.regret_synthesis` solves and certifies them (``dynamic_regret`` …);
 :class:`~balustrade.control.regret.RegretController` runs the result in closed loop;
 :mod:`.verify` certifies worst-case regret independently of the SDP solver.
 """
@@ -15,22 +16,22 @@ from balustrade.problems.regret.operators import (
     responses_from_controller,
 )
 from balustrade.problems.regret.synthesis import (
+    RegretProblem,
     StateInputConstraints,
-    SynthesisResult,
-    adversarial_regret,
-    dynamic_regret,
-    generalized_regret,
-    h2,
-    hinf,
-    pointwise_dynamic_regret,
-    pointwise_regret,
-    zero_x0_regret,
+    adversarial_regret_problem,
+    dynamic_regret_problem,
+    generalized_regret_problem,
+    h2_problem,
+    hinf_problem,
+    pointwise_dynamic_problem,
+    pointwise_regret_problem,
+    zero_x0_regret_problem,
 )
 
 __all__ = [
-    "LTVSystem", "Operators", "build_operators",
-    "controller_from_responses",
-    "responses_from_controller", "StateInputConstraints", "SynthesisResult",
-    "adversarial_regret", "dynamic_regret", "generalized_regret", "h2", "hinf",
-    "pointwise_dynamic_regret", "pointwise_regret", "zero_x0_regret",
+    "LTVSystem", "Operators", "RegretProblem", "build_operators",
+    "controller_from_responses", "responses_from_controller", "StateInputConstraints",
+    "adversarial_regret_problem", "dynamic_regret_problem", "generalized_regret_problem",
+    "h2_problem", "hinf_problem", "pointwise_dynamic_problem", "pointwise_regret_problem",
+    "zero_x0_regret_problem",
 ]

@@ -12,56 +12,60 @@ The last input u_T is fixed to zero (it cannot affect the states of the horizon,
 
 from __future__ import annotations
 
-import cvxpy as cp
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
 from balustrade._checks import as_matrix
+from balustrade.dsl.synthesis_arrow import AffineMap
 from balustrade.errors import BalustradeError, ShapeError
 from balustrade.problems.regret.operators import Operators
 
 
+@dataclass(frozen=True)
+class RobustRows:
+    """(3.41) as data: G s + fixed + Fθ + g ≤ 1 with s_k ≥ ‖row k of the stacked pieces‖."""
+
+    pieces: tuple[AffineMap, ...]     # (rows_k, p) each; their rows, stacked, are the norms s
+    G: sp.csr_matrix                  # inequality rows × Σ rows_k
+    fixed: np.ndarray                 # norm terms that do not depend on θ
+    F: sp.csr_matrix | None = None    # the x₀ column, when x₀ is given
+    g: np.ndarray | None = None
+
+
 class Parametrization:
-    """θ = causal entries of Ψ = SΦ_u, with sparse maps to Y(θ) and Φ(θ)."""
+    """θ = causal entries of Ψ = SΦ_u, with sparse maps to Y(θ) and Φ(θ) (data, no solver)."""
 
     def __init__(self, ops: Operators):
         self.ops = ops
         self.P = ops.causal_selector(last_input=False)
-        self.theta = cp.Variable(self.P.shape[1], name="S_Phi_u_causal")
+        self.n_theta = self.P.shape[1]
         self.M = ops.m * (ops.T + 1)
         self.S_inv = sla.solve_triangular(ops.S, np.eye(self.M), lower=True)
         self.AY = self.P.tocsr()
         self.cY = -(ops.S @ ops.Phi_u_nc).ravel(order="F")
+        self._Y = AffineMap(self.AY, self.cY, (self.M, ops.nd))
 
     # --- regret factor -----------------------------------------------------------------------
-    def Y(self, cols: slice) -> cp.Expression:
-        """Y[:, cols] (M × |cols|) as a cvxpy expression."""
-        rows = slice(cols.start * self.M, cols.stop * self.M)
-        k = cols.stop - cols.start
-        return cp.reshape(self.AY[rows] @ self.theta + self.cY[rows], (self.M, k), order="F")
+    def Y(self, cols: slice) -> AffineMap:
+        """Y[:, cols] (M × |cols|) as an affine map of θ."""
+        return self._Y.columns(cols)
 
     def Y_map(self, cols: slice, U: np.ndarray | None = None) -> tuple[sp.csr_matrix, np.ndarray]:
         """(A, c) with vec_F(Y[:, cols] U) = Aθ + c (U = I when omitted)."""
-        rows = slice(cols.start * self.M, cols.stop * self.M)
-        if U is None:
-            return self.AY[rows], self.cY[rows]
-        kronU = sp.kron(sp.csr_matrix(U.T), sp.identity(self.M, format="csr"), format="csr")
-        return (kronU @ self.AY[rows]).tocsr(), kronU @ self.cY[rows]
+        m = self.Y(cols) if U is None else self.Y(cols).times(U)
+        return m.A, m.c
 
-    def Y_times(self, cols: slice, U: np.ndarray) -> cp.Expression:
-        """Y[:, cols] @ U (M × U.shape[1]) as an explicit sparse affine map of θ."""
-        A, c = self.Y_map(cols, U)
-        return cp.reshape(A @ self.theta + c, (self.M, U.shape[1]), order="F")
-
-    def Y_x0(self, x0: np.ndarray) -> cp.Expression:
+    def Y_x0(self, x0: np.ndarray) -> AffineMap:
         """Y[:, x₀-block] @ x₀, an M-vector (the C^{1/2}Φ⁰x₀ of (3.19) after compression)."""
-        return self.Y_times(self.ops.d_blocks[0], x0.reshape(-1, 1))[:, 0]
+        return self.Y(self.ops.d_blocks[0]).times(x0.reshape(-1, 1))
 
     # --- values --------------------------------------------------------------------------------
-    def phi_u_value(self) -> np.ndarray:
+    def phi_u_value(self, theta: np.ndarray) -> np.ndarray:
         ops = self.ops
-        Psi = (self.P @ self.theta.value).reshape((self.M, ops.nd), order="F")
+        Psi = (self.P @ theta).reshape((self.M, ops.nd), order="F")
         return self.S_inv @ Psi
 
     # --- constraint rows (3.40)/(3.41) --------------------------------------------------------
@@ -79,7 +83,7 @@ class Parametrization:
         return H_phi, H_c, times
 
     def robust_constraints(self, Hx: np.ndarray, Hu: np.ndarray, x0: np.ndarray | None,
-                           P_half_inv: np.ndarray) -> list[cp.Constraint]:
+                           P_half_inv: np.ndarray) -> RobustRows:
         """SOC form of (3.41): [H_z]_iΦ⁰x₀ + Σ_j ‖[H_z]_i[[Φ^w]]_j P^{-1/2}‖ ≤ 1 for every row i.
 
         Rows and blocks that are structurally zero (w_{j−1} cannot affect time t < j) are
@@ -113,29 +117,25 @@ class Parametrization:
             fixed[rows[~free]] += np.linalg.norm(c.reshape(p, k)[:, ~free], axis=0)
             if free.any():
                 keep = (np.flatnonzero(free)[None, :] + k * np.arange(p)[:, None]).ravel()
-                pieces.append(cp.reshape(A[keep] @ self.theta + c[keep],
-                                         (int(free.sum()), p), order="F"))
+                pieces.append(AffineMap(A[keep].tocsr(), c[keep], (int(free.sum()), p)))
                 pair_rows.append(rows[free])
         # row i of (3.41) is |α_i| times the terms of its representative rep_i
         expand = sp.csr_matrix((np.abs(scale), (np.arange(nr), rep_of)), shape=(nr, nr))
-        per_rep: cp.Expression = cp.Constant(fixed)
         if pieces:
             pair_rep = np.concatenate(pair_rows)
             npairs = pair_rep.size
-            s = cp.Variable(npairs, nonneg=True)
             to_rep = sp.csr_matrix((np.ones(npairs), (pair_rep, np.arange(npairs))),
                                    shape=(nr, npairs))
-            cons: list[cp.Constraint] = [cp.SOC(s, cp.vstack(pieces), axis=1)]
-            per_rep = per_rep + to_rep @ s
+            G = (expand @ to_rep).tocsr()
         else:
-            cons = []
-        lhs = expand @ per_rep
+            G = sp.csr_matrix((nr, 0))
+        F = g = None
         if x0 is not None:
             cols0 = ops.d_blocks[0]
             P0 = self.P[cols0.start * M: cols0.stop * M]
             A0 = sp.kron(sp.csr_matrix(x0.reshape(1, -1)), sp.csr_matrix(H_phi), format="csr")
-            lhs = lhs + (A0 @ P0) @ self.theta + H_c[:, cols0] @ x0
-        return cons + [lhs <= 1]
+            F, g = (A0 @ P0).tocsr(), H_c[:, cols0] @ x0
+        return RobustRows(tuple(pieces), G, expand @ fixed, F, g)
 
 
 def parallel_rows(R: np.ndarray, groups: np.ndarray, rtol: float = 1e-12

@@ -230,7 +230,7 @@ def pointwise_regret_lower_bound(ops: Operators, Phi_u: np.ndarray, x0: object, 
 
 # ---------------------------------------------------------------------------------------------
 # exact levels of a controller for the energy-bound and adversarial problems (certificates of
-# the syntheses, see synthesis.SynthesisResult.info["certificate"])
+# the syntheses, see control.regret_synthesis.SynthesisResult.info["certificate"])
 # ---------------------------------------------------------------------------------------------
 def adversarial_level(ops: Operators, Phi_u: np.ndarray) -> float:
     """(3.24): ‖ΦᵀCΦ − 𝒪‖₂ of the responses Φ_u (M ⪰ 0, so its largest eigenvalue)."""

@@ -30,7 +30,9 @@ up to ≤ 2 blocks, constant part the same), so the LMI's pattern is a "staircas
 cliques have at most 2–4 disturbance blocks plus the future rows of Y. Clarabel's chordal
 decomposition then splits the single cone into small cones joined in a chain (rocket, T = 25,
 dynamic regret: 20 s and 1.0 GB against 67 s and 2.1 GB for the same LMI in the original
-coordinates; docs/regret.md).
+coordinates; docs/regret.md). This is a lowering pass of
+:class:`~balustrade.dsl.synthesis_arrow.ArrowLMI` (``lmi="banded"`` in
+:mod:`.synthesis_structured`); it needs nothing of the regret problems but the block's data.
 
 **Conditioning (issue #12).** The congruence is exact but not well conditioned when a dense
 weight is whitened: cond C ≈ cond B · cond G (rocket, T = 10, W = 𝒪: 44 · 25 → 834), and the
@@ -38,19 +40,23 @@ LMI's coefficient map carries cond(C)². The optimal D block of (3.32) with W = 
 55 in the original coordinates and 8.6·10⁵ in these; Clarabel then stalls (AlmostSolved 33 %
 above the optimum) or ends "optimal" slightly off. No rescaling of C fixed it reliably, so
 the syntheses certify every result independently and re-solve a banded result that is not ok
-outside banded coordinates (``synthesis._retry_outside_banded``; docs/regret.md).
+outside banded coordinates (:mod:`balustrade.control.regret_synthesis`; docs/regret.md).
 
 :func:`banded_congruence` builds C, or returns :class:`NotBanded` with the reason when a
 condition fails (a dense weight whose inverse is not banded, a Hankel rank above the block
-size, a singular first block) — callers then fall back to the chordal split of :mod:`.lmi`.
+size, a singular first block) — callers then fall back to the chordal split
+(:mod:`.synthesis_structured`). :func:`banded_pieces` applies C to an arrow LMI's data.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+
+from balustrade.dsl.synthesis_arrow import AffineMap
 
 # Relative size below which a computed entry is taken as an exact zero of the banded structure.
 ZERO_TOL = 1e-11
@@ -198,3 +204,31 @@ def drop_tiny(M: np.ndarray | sp.csr_matrix, tol: float = ZERO_TOL
         return out
     scale = float(np.max(np.abs(M), initial=0.0))
     return np.where(np.abs(M) > tol * scale, M, 0.0)
+
+
+@dataclass(frozen=True)
+class BandedPieces:
+    """The arrow LMI's data in banded coordinates cols = Cη (numeric, sparse where banded)."""
+
+    C: np.ndarray
+    A: sp.csr_matrix               # vec_F(LC) = Aθ + c
+    c: np.ndarray
+    D: list[sp.csr_matrix]         # CᵀD_iC
+    b: list[np.ndarray]            # Cᵀb_i
+
+
+def banded_pieces(L: AffineMap, m: int, p: int, D_mats: Sequence[np.ndarray],
+                  b_vecs: Sequence[np.ndarray] = ()) -> BandedPieces | NotBanded:
+    """Transform L (rows in blocks of m, columns in blocks of p), the D_i and the b_i by the
+    congruence above."""
+    M, d = L.shape
+    free_mask = (np.diff(L.A.indptr) > 0).reshape((M, d), order="F")
+    L0 = L.c.reshape((M, d), order="F")
+    cong = banded_congruence(L0, free_mask, list(D_mats), m, p)
+    if isinstance(cong, NotBanded):
+        return cong
+    C = cong.C
+    kronC = sp.kron(sp.csr_matrix(C.T), sp.identity(M, format="csr"), format="csr")
+    return BandedPieces(C, drop_tiny(kronC @ L.A), drop_tiny(L0 @ C).ravel(order="F"),
+                        [sp.csr_matrix(drop_tiny(C.T @ Di @ C)) for Di in D_mats],
+                        [C.T @ bi for bi in b_vecs])

@@ -1,24 +1,29 @@
-"""Reference transcription of (3.28)/(3.30) with no structure exploited.
+"""Reference lowering of (3.28)/(3.30) with no structure exploited (the naive baseline).
 
 Dense Φ = [Φ_x; Φ_u] as the decision variable, the achievability constraint (3.14) and
 causality as explicit equality constraints, and the LMI exactly as printed in the thesis
 (C^{1/2}Φ and 𝒪 blocks, size 1 + pT + (n+m)(T+1)). It is what a user would write first; the
-structured problems of :mod:`.synthesis` must reach the same optimal level. Used by the tests
-(independent check of the levels) and by ``benchmarks/bench_regret.py`` (the naive baseline).
+structured problems of :mod:`balustrade.problems.regret.synthesis` must reach the same optimal
+level. Used by the tests (independent check of the levels) and by
+``benchmarks/bench_regret.py`` (the naive baseline). ``ops`` is the
+:class:`~balustrade.problems.regret.operators.Operators` of the system (read by attribute:
+backends do not import problems).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import cvxpy as cp
 import numpy as np
 
-from balustrade.problems.regret.operators import Operators
+from balustrade.backends.targets import Target
+from balustrade.backends.targets import target as resolve_target
 
 
-def dense_generalized_regret(ops: Operators, x0: np.ndarray | None, omega: float | None,
+def dense_generalized_regret(ops: Any, x0: np.ndarray | None, omega: float | None,
                              W: np.ndarray, *, zero_x0: bool = False,
-                             solver: str = "CLARABEL", solver_opts: dict | None = None
-                             ) -> tuple[str, float | None]:
+                             target: Target | str | None = None) -> tuple[str, float | None]:
     """(status, μ*) of (3.28) (known x₀, ‖w‖² ≤ ω), or of (3.30) with ``zero_x0=True``."""
     n, nd = ops.n, ops.nd
     Nx, Nu = ops.n * (ops.T + 1), ops.m * (ops.T + 1)
@@ -49,8 +54,9 @@ def dense_generalized_regret(ops: Operators, x0: np.ndarray | None, omega: float
                        [c0, Cw, np.eye(Nx + Nu)]])
     cons.append(0.5 * (lmi + lmi.T) >> 0)
     prob = cp.Problem(cp.Minimize(mu), cons)
+    tgt = resolve_target(target, default="clarabel")
     try:
-        prob.solve(solver=solver, **dict(solver_opts or {}))
+        prob.solve(solver=(tgt.solver or "CLARABEL").upper(), **tgt.solver_options())
     except cp.error.SolverError as exc:
         return f"solver_error: {exc}", None
     return str(prob.status), None if mu.value is None else float(mu.value)
