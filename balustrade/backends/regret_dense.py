@@ -54,7 +54,7 @@ def dense_generalized_regret(ops: Any, x0: np.ndarray | None, omega: float | Non
                        [c0, Cw, np.eye(Nx + Nu)]])
     cons.append(0.5 * (lmi + lmi.T) >> 0)
     prob = cp.Problem(cp.Minimize(mu), cons)
-    tgt = resolve_target(target, default="clarabel")
+    tgt = resolve_target(target, default="sdp")
     try:
         prob.solve(solver=(tgt.solver or "CLARABEL").upper(), **tgt.solver_options())
     except cp.error.SolverError as exc:

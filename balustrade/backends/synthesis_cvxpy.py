@@ -90,10 +90,7 @@ class CompiledSynthesis:
                 expr = cp.reshape(expr, (), order="F")
             objective = cp.Minimize(expr) if problem.sense == "minimize" else cp.Maximize(expr)
         self.cvxpy_problem = cp.Problem(objective, list(self.constraints.values()))
-        self.psd_sizes = sorted({int(c.args[0].shape[0]) for c in
-                                 self.cvxpy_problem.constraints if isinstance(c, cp.PSD)}
-                                | {d.shape[0] for d in problem.variables.values() if d.psd},
-                                reverse=True)
+        self.psd_sizes = psd_cone_sizes(self.cvxpy_problem, problem)
 
     # -- lowering ---------------------------------------------------------------------------
     def lower(self, e: Expr) -> object:
@@ -222,15 +219,28 @@ class CompiledSynthesis:
         """Why the solve is refused for memory (Clarabel's dense PSD cones), or ``""``."""
         if self.solver != "CLARABEL" or not self.psd_sizes:
             return ""
-        size = self.psd_sizes[0]
-        svec = size * (size + 1) // 2
-        need = CLARABEL_DENSE_CONE_BYTES * float(svec) ** 2
-        avail = _mem_available_bytes()
-        if need <= MEMORY_SHARE * avail:
-            return ""
-        return (f"too large: {self.problem.name}: one dense PSD cone of size {size} needs about "
-                f"{need / 2**30:.1f} GB with Clarabel, {avail / 2**30:.1f} GB available; use "
-                "a target with solver 'scs' (it only needs eigendecompositions of the cone)")
+        return dense_cone_refusal(self.problem.name, self.psd_sizes[0])
+
+
+def psd_cone_sizes(cvxpy_problem: cp.Problem, problem: SynthesisProblem) -> list[int]:
+    """The sizes of the PSD cones of ``cvxpy_problem`` and of the PSD variables of
+    ``problem``, largest first."""
+    return sorted({int(c.args[0].shape[0]) for c in cvxpy_problem.constraints
+                   if isinstance(c, cp.PSD)}
+                  | {d.shape[0] for d in problem.variables.values() if d.psd}, reverse=True)
+
+
+def dense_cone_refusal(name: str, size: int) -> str:
+    """Why a solve of problem ``name`` with a dense PSD cone of ``size`` is refused for
+    memory under Clarabel, or ``""`` when it fits."""
+    svec = size * (size + 1) // 2
+    need = CLARABEL_DENSE_CONE_BYTES * float(svec) ** 2
+    avail = _mem_available_bytes()
+    if need <= MEMORY_SHARE * avail:
+        return ""
+    return (f"too large: {name}: one dense PSD cone of size {size} needs about "
+            f"{need / 2**30:.1f} GB with Clarabel, {avail / 2**30:.1f} GB available; use "
+            "a target with solver 'scs' (it only needs eigendecompositions of the cone)")
 
 
 def _dual(value: object) -> np.ndarray | list[np.ndarray]:
@@ -270,7 +280,7 @@ def compile_synthesis(problem: SynthesisProblem, target: Target | str | None = "
                       ) -> CompiledSynthesis:
     """Lower ``problem`` once for ``target`` (a :class:`Target`, a preset name — ``"sdp"``
     by default — or ``"cvxpy"``); ``solver``/``options`` override the target's. Only the
-    target's own options reach the solver (no backend defaults are added: ``"clarabel"``
+    target's own options reach the solver (no backend defaults are added: ``"conic"``
     and ``"sdp"`` both run Clarabel with its own tolerances here)."""
     try:
         tgt = resolve_target(target, default="sdp", solver=solver, options=options)

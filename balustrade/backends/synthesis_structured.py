@@ -75,10 +75,7 @@ class StructuredSynthesis(CompiledSynthesis):
         if self._extra:
             self.cvxpy_problem = cp.Problem(self.cvxpy_problem.objective,
                                             self.cvxpy_problem.constraints + self._extra)
-        self.psd_sizes = sorted({int(c.args[0].shape[0]) for c in self.cvxpy_problem.constraints
-                                 if isinstance(c, cp.PSD)}
-                                | {d.shape[0] for d in problem.variables.values() if d.psd},
-                                reverse=True)
+        self.psd_sizes = synthesis_cvxpy.psd_cone_sizes(self.cvxpy_problem, problem)
         if self.solver == "CLARABEL" and self.form == "split":
             # the split is already the chordal decomposition; Clarabel's own merging of the
             # cones only enlarges them again (measured 2.5x slower)
@@ -140,16 +137,7 @@ class StructuredSynthesis(CompiledSynthesis):
         banded cone is decomposed by Clarabel and the split cones are small."""
         if self.solver != "CLARABEL" or not self._dense:
             return ""
-        size = max(self._dense)
-        svec = size * (size + 1) // 2
-        need = synthesis_cvxpy.CLARABEL_DENSE_CONE_BYTES * float(svec) ** 2
-        avail = synthesis_cvxpy._mem_available_bytes()
-        if need <= synthesis_cvxpy.MEMORY_SHARE * avail:
-            return ""
-        return (f"too large: {self.problem.name}: one dense PSD cone of size {size} needs "
-                f"about {need / 2**30:.1f} GB with Clarabel, {avail / 2**30:.1f} GB available; "
-                "use a target with solver 'scs' (it only needs eigendecompositions of the "
-                "cone)")
+        return synthesis_cvxpy.dense_cone_refusal(self.problem.name, max(self._dense))
 
     def solve(self, params=None) -> SynthesisSolution:   # type: ignore[override]
         sol = super().solve(params)
