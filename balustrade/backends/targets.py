@@ -125,7 +125,8 @@ class Target:
     @property
     def nlp_solver(self) -> str | None:
         """The CasADi NLP solver this target runs (the backend's default when ``solver`` is
-        ``None``); ``None`` for cvxpy targets (cvxpy picks per problem class)."""
+        ``None``); for a cvxpy target its ``solver`` as given (``None``: cvxpy picks per
+        problem class)."""
         if self.backend != "casadi":
             return self.solver
         return self.solver or _CASADI_DEFAULT_SOLVER

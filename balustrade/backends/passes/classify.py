@@ -96,7 +96,7 @@ def quadratic(expr: ca.SX, w: ca.SX, p: ca.SX, where: str) -> Quadratic:
         raise ConvexityError(
             f"{where}: the expression is neither affine nor a convex quadratic of the decision "
             "variables (with parameters entering the linear part affinely); the cvxpy "
-            "backend cannot hold it (use backend='casadi')")
+            "backend cannot hold it (use a CasADi target, e.g. target='exact')")
     H = np.asarray(ca.densify(_evaluate(Hw, w, p)), dtype=float)
     index = np.flatnonzero(np.any(H != 0, axis=0))
     Hs = H[np.ix_(index, index)]
@@ -182,7 +182,7 @@ def _require_psd(H: np.ndarray, where: str) -> None:
     if lam_min is not None:
         raise ConvexityError(f"{where}: the Hessian has a negative eigenvalue "
                              f"({lam_min:.3g}); a nonconvex block cannot be sent to cvxpy "
-                             "(use backend='casadi')")
+                             "(use a CasADi target, e.g. target='exact')")
 
 
 def psd_factor(H: np.ndarray) -> np.ndarray:
@@ -267,7 +267,7 @@ def classify_block(block: Block, w: ca.SX, p: ca.SX) -> ClassifiedBlock:
     if block.kind == BlockKind.EQ:
         raise ConvexityError(f"block {block.name!r} ({block.tag}, {block.rows} rows): an "
                              "equality constraint must be affine for the cvxpy backend; "
-                             "this one is nonlinear (use backend='casadi')")
+                             "this one is nonlinear (use a CasADi target, e.g. target='exact')")
     pieces, affine_rows, affine_parts = [], [], []
     for r in range(block.rows):
         row_expr = block.expr[r]
