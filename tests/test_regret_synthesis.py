@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from balustrade.backends import resolve_target
+from balustrade.backends.passes.classify import psd_factor
 from balustrade.backends.regret_dense import dense_generalized_regret
-from balustrade.backends.structure import psd_factor
 from balustrade.control.regret_synthesis import (
     dynamic_regret,
     generalized_regret,
