@@ -211,6 +211,23 @@ class OCP:
         self.parameters[name] = Parameter(name, sym, default)
         return sym
 
+    def _shared_parameter(self, name: str, shapes: Sequence[tuple[int, int]],
+                          what: str) -> ca.SX:
+        """The parameter ``name`` if declared with one of ``shapes``, else a new one of
+        ``shapes[0]`` (blocks that share a parameter: the previous input of the rate
+        blocks, the references of tracking costs); errors say ``what`` it is."""
+        if name in self.parameters:
+            par = self.parameters[name]
+            if par.shape not in shapes:
+                unique = list(dict.fromkeys(shapes))
+                raise ShapeError(f"{self.name}: {what} {name!r}", unique[0] if len(unique) == 1
+                                 else " or ".join(map(str, unique)), par.shape)
+            return par.sym
+        if name in self.variables:
+            raise BalustradeError(f"{self.name}: {what} {name!r} is a decision variable; it "
+                                  "must be a parameter")
+        return self.parameter(name, *shapes[0])
+
     def _shape(self, name: str, rows: object, cols: object) -> tuple[int, int]:
         return (as_count(rows, f"{self.name}: {name!r}: rows"),
                 as_count(cols, f"{self.name}: {name!r}: cols"))

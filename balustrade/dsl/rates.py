@@ -38,15 +38,7 @@ def previous_input(ocp: OCP, name: str = U_PREV) -> ca.SX:
     """The parameter ``u_{−1|k}`` (the input applied at the previous sample), shape
     ``(nu, 1)``; declared on first use, the existing one afterwards."""
     sys = ocp._need_system("previous_input")
-    if name in ocp.parameters:
-        par = ocp.parameters[name]
-        if par.shape != (sys.nu, 1):
-            raise ShapeError(f"{ocp.name}: previous input {name!r}", (sys.nu, 1), par.shape)
-        return par.sym
-    if name in ocp.variables:
-        raise BalustradeError(f"{ocp.name}: previous input {name!r} is a decision variable; "
-                              "it must be a parameter (the input applied last)")
-    return ocp.parameter(name, sys.nu)
+    return ocp._shared_parameter(name, [(sys.nu, 1)], "previous input")
 
 
 def input_rates(ocp: OCP, u_prev: str | ca.SX = U_PREV) -> ca.SX:

@@ -36,16 +36,7 @@ Reference = str | ca.SX | np.ndarray | float | None
 def reference(ocp: OCP, name: str, rows: int, cols: int) -> ca.SX:
     """A reference parameter of shape ``(rows, 1)`` (constant) or ``(rows, cols)``
     (trajectory); the existing parameter if ``name`` is declared with one of these shapes."""
-    if name in ocp.parameters:
-        par = ocp.parameters[name]
-        if par.shape not in ((rows, 1), (rows, cols)):
-            raise ShapeError(f"{ocp.name}: reference {name!r}", f"({rows}, 1) or ({rows}, "
-                             f"{cols})", par.shape)
-        return par.sym
-    if name in ocp.variables:
-        raise BalustradeError(f"{ocp.name}: reference {name!r} is a decision variable; a "
-                              "reference must be a parameter")
-    return ocp.parameter(name, rows, cols)
+    return ocp._shared_parameter(name, [(rows, cols), (rows, 1)], "reference")
 
 
 def tracking_cost(ocp: OCP, Q: object | None = None, R: object | None = None,
