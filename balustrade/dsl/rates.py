@@ -24,7 +24,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_float_array
-from balustrade.dsl.costs import Cost, Term, weight_matrix
+from balustrade.dsl.costs import Cost, Term, TermKind, weight_matrix
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 if TYPE_CHECKING:  # no import cycle: ocp.py imports this module lazily
@@ -82,7 +82,7 @@ def rate_cost(ocp: OCP, R: object | None = None, u_prev: str | ca.SX = U_PREV,
     total = ca.SX(0)
     for i in range(ocp.N):
         total = total + ca.mtimes([du[:, i].T, ca.DM(Rm), du[:, i]])
-    return Cost([Term("smooth", total, 1.0, label)])
+    return Cost([Term(TermKind.SMOOTH, total, 1.0, label)])
 
 
 def _rate_bound(rate: object, nu: int, where: str) -> np.ndarray:

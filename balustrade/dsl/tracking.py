@@ -24,7 +24,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_float_array
-from balustrade.dsl.costs import Cost, Term, weight_matrix
+from balustrade.dsl.costs import Cost, Term, TermKind, weight_matrix
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 if TYPE_CHECKING:  # no import cycle: ocp.py imports this module lazily
@@ -70,7 +70,7 @@ def tracking_cost(ocp: OCP, Q: object | None = None, R: object | None = None,
         for i in range(ocp.N):
             e = ocp.u[:, i] - _column(v, i)
             total = total + ca.mtimes([e.T, ca.DM(Rm), e])
-    return Cost([Term("smooth", total, 1.0, label)])
+    return Cost([Term(TermKind.SMOOTH, total, 1.0, label)])
 
 
 def _column(ref: ca.SX, i: int) -> ca.SX:
