@@ -1,8 +1,9 @@
 """Banded coordinates for the regret LMIs: a congruence that gives them small chordal cliques.
 
-Every synthesis LMI of Chapter 3 is, after the compression of :mod:`.operators`, of the form
-(Schur complement form of (3.21), rows: scalar a, disturbance coordinates, the M = m(T+1)
-rows of the regret factor Y = S(Φ_u − Φ_u^nc))::
+Every synthesis LMI of Chapter 3 is, after the compression of
+:mod:`balustrade.problems.regret.operators`, of the form (Schur complement form of (3.21),
+rows: scalar a, disturbance coordinates, the M = m(T+1) rows of the regret factor
+Y = S(Φ_u − Φ_u^nc))::
 
     ⎡ a   bᵀ  yᵀ ⎤
     ⎢ b   D   Lᵀ ⎥ ⪰ 0,      L = Y[:, cols] = X + L₀,   X causal (free),  L₀ constant.
