@@ -209,19 +209,29 @@ class CvxpyCompiled:
         return out
 
 
-def _run(problem: cp.Problem, solver: str, options: dict, warm_start: bool
-         ) -> tuple[Status, str]:
-    """Solve ``problem``; ``(status, message)`` with the status one of the six of
-    :class:`Solution` and the message cvxpy's status and the solver's own words."""
+def solve_cvxpy(problem: cp.Problem, solver: str, options: dict, **solve_args: object
+                ) -> tuple[str, str]:
+    """Solve ``problem`` with ``solver``; ``(cvxpy status, message)``, the message being
+    cvxpy's status, the solver's own words and the text of a solver exception (which becomes
+    the status ``solver_error``, never an exception). Shared by the OCP and the synthesis
+    lowerings, which map the status each to their own vocabulary."""
     try:
         with warnings.catch_warnings():  # "Solution may be inaccurate": the status says so
             warnings.simplefilter("ignore", UserWarning)
-            problem.solve(solver=solver, warm_start=warm_start, **options)
+            problem.solve(solver=solver, **solve_args, **options)
         cvx_status, error = problem.status, ""
     except cp.error.SolverError as exc:
         cvx_status, error = cp.SOLVER_ERROR, str(exc)
     words = _solver_words(problem, solver)
-    message = cvx_status + (f" ({words})" if words else "") + (f": {error}" if error else "")
+    return cvx_status, (cvx_status + (f" ({words})" if words else "")
+                        + (f": {error}" if error else ""))
+
+
+def _run(problem: cp.Problem, solver: str, options: dict, warm_start: bool
+         ) -> tuple[Status, str]:
+    """Solve ``problem``; ``(status, message)`` with the status one of the six of
+    :class:`Solution` and the message cvxpy's status and the solver's own words."""
+    cvx_status, message = solve_cvxpy(problem, solver, options, warm_start=warm_start)
     status = _STATUS.get(cvx_status, Status.FAILED)
     if cvx_status == cp.INFEASIBLE_INACCURATE:
         message += "; infeasibility not certified"

@@ -14,13 +14,12 @@ the available memory) are statuses with a message, never exceptions.
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Mapping
 
 import cvxpy as cp
 import numpy as np
 
-from balustrade.backends.cvxpy_backend import _solver_words
+from balustrade.backends.cvxpy_backend import solve_cvxpy
 from balustrade.backends.synthesis_solution import SynthesisSolution
 from balustrade.backends.targets import Target
 from balustrade.backends.targets import target as resolve_target
@@ -186,16 +185,8 @@ class CompiledSynthesis:
                                      info={"psd_cone_sizes": self.psd_sizes})
         prob = self.cvxpy_problem
         start = time.perf_counter()
-        try:
-            with warnings.catch_warnings():  # "Solution may be inaccurate": the status says so
-                warnings.simplefilter("ignore", UserWarning)
-                prob.solve(solver=self.solver, **self.options)
-            cvx_status, error = prob.status, ""
-        except cp.error.SolverError as exc:
-            cvx_status, error = cp.SOLVER_ERROR, str(exc)
+        cvx_status, message = solve_cvxpy(prob, self.solver, self.options)
         elapsed = time.perf_counter() - start
-        words = _solver_words(prob, self.solver)
-        message = cvx_status + (f" ({words})" if words else "") + (f": {error}" if error else "")
         status = _STATUS.get(cvx_status, "failed")
         stats = getattr(prob, "solver_stats", None)
         solver_time = float(stats.solve_time) if stats is not None and stats.solve_time \
