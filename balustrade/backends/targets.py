@@ -227,9 +227,11 @@ def target(spec: Target | str | None = None, *, default: Target | str = "exact",
     ``spec`` is a target, a preset name (:data:`PRESETS`, or one of its :data:`ALIASES`), a
     backend name (``"casadi"`` → ``"exact"``, ``"cvxpy"`` → ``"cvxpy"``), or ``None`` for
     ``default``.
-    ``solver``/``options``/``retries``, when given, override the resolved target's (options
-    are added to its own), so ``target("casadi", solver="sqpmethod")`` is a CasADi
-    sqpmethod target with the backend's defaults."""
+    ``solver``/``options``/``retries``, when given, override the resolved target's: options
+    are added to its own, except that another ``solver`` starts from the backend's defaults
+    (the resolved options and retries belong to its solver), so
+    ``target("exact", solver="sqpmethod")`` is a CasADi sqpmethod target with the backend's
+    defaults and no IPOPT options."""
     if spec is None:
         spec = default
     if isinstance(spec, str):
