@@ -21,7 +21,7 @@ from enum import StrEnum
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_float_array, check_psd, check_symbolic
+from balustrade._checks import as_float_array, check_psd, check_symbolic, check_weight
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 
@@ -215,7 +215,4 @@ def weight_matrix(W: object | None, n: int, where: str) -> np.ndarray:
         if arr.size != n:
             raise ShapeError(where, f"({n},) or ({n}, {n})", arr.shape)
         arr = np.diag(arr)
-    Wm = check_psd(arr, where)
-    if Wm.shape != (n, n):
-        raise ShapeError(where, (n, n), Wm.shape)
-    return Wm
+    return check_weight(arr, n, where)
