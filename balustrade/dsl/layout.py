@@ -131,11 +131,11 @@ class Layout:
         return np.concatenate(chunks) if chunks else np.zeros(0)
 
     # -- pack / unpack -----------------------------------------------------------------
-    def pack(self, values: Mapping[str, object] | None, defaults: bool = True) -> np.ndarray:
+    def pack(self, values: Mapping[str, object] | None) -> np.ndarray:
         """Stack named values (checked for shape and finiteness) in order; an entry not
-        given takes its ``init`` when ``defaults`` (a variable's initial value, a
-        parameter's declared value), else is an error. Only user blocks may be given;
-        added blocks always take their ``init``."""
+        given takes its ``init`` (a variable's initial value, a parameter's declared value)
+        and is an error without one. Only user blocks may be given; added blocks always
+        take their ``init`` (zeros without one)."""
         if values is not None and not isinstance(values, Mapping):
             declared = f"; declared: {list(self.by_name)}" if self.noun == "parameter" else ""
             raise BalustradeError(f"{self.owner}: {self.noun} values must be a dict name -> "
@@ -152,7 +152,7 @@ class Layout:
             if e.name in values:
                 chunks.append(flat_value(values[e.name], e.shape, f"{self.owner}: "
                                          f"{self.value_label} {e.name!r}"))
-            elif e.init is not None and (defaults or e.origin != USER):
+            elif e.init is not None:
                 chunks.append(e.init)
             elif e.init is None and e.origin != USER:
                 chunks.append(np.zeros(e.size))
