@@ -173,10 +173,16 @@ def compare_backends(problem: OCP, params: dict[str, object] | None = None,
                      compiled: dict | None = None) -> BackendComparison:
     """Compile ``problem`` for two targets (or presets, :mod:`balustrade.backends.targets`;
     or reuse ``compiled``, a dict label → compiled problem) and solve both; results are
-    keyed by target name."""
+    keyed by target name (``name#2`` for a second target of the same name, e.g. two
+    unnamed :class:`~balustrade.backends.Target` objects, so neither hides the other)."""
     if compiled is None:
-        resolved = [resolve_target(t) for t in targets]
-        compiled = {t.name: compile(problem, t) for t in resolved}
+        compiled = {}
+        for t in (resolve_target(t) for t in targets):
+            key, k = t.name, 1
+            while key in compiled:
+                k += 1
+                key = f"{t.name}#{k}"
+            compiled[key] = compile(problem, t)
     sols = {key: c.solve(params) for key, c in compiled.items()}
     return BackendComparison({k: s.objective for k, s in sols.items()},
                              {k: s.status for k, s in sols.items()}, sols)

@@ -177,3 +177,22 @@ def test_algorithm_6_4_monte_carlo(d):
                 assert s.X.contains(x, tol=1e-5), (r, k, x)
         entered += in_sr
     assert entered >= runs // 4 and positive > 0
+
+
+def test_lyapunov_decrease_6_3h_is_V_of_the_shifted_candidate(d):
+    """The (6.3h) row of (6.10) is ``V((z_1, ξ_c(z_1, v, 0))) − bound`` on any trajectory."""
+    import casadi as ca
+
+    from balustrade.problems.multiobjective import multiobjective_lyapunov_problem
+
+    des, rng = d["design"], np.random.default_rng(2)
+    ocp = multiobjective_lyapunov_problem(des)
+    block = next(b for b in ocp.blocks if b.name == "lyapunov_decrease")
+    row = ca.Function("row", [ocp.x, ocp.u, ocp.parameters["bound"].sym], [block.expr])
+    for _ in range(5):
+        x = rng.uniform([-0.8, -1.0], [0.8, 1.0])
+        v = rng.uniform(-1.0, 1.0, size=(1, N))
+        z = des.rollout(x, v)
+        z1 = z[:, 1]
+        expected = des.V(z1, des.xi_c(z1, v, np.zeros(2)))
+        assert float(row(z, v, 0.0)) == pytest.approx(expected, rel=1e-12)

@@ -44,4 +44,7 @@ def test_mpc_and_the_lyapunov_design_use_it():
     d = LinearLyapunovDesign(sysm, X, U, X, Box.symmetric([0.01, 0.01]),
                              np.array([[-1.0, -1.5]]), Q, R, 3)
     x0 = np.array([0.3, -0.2])
-    assert d.V(x0, v) == pytest.approx(0.5 * trajectory_cost(d.rollout(x0, v), v, Q, R, d.P))
+    z = d.rollout(x0, v)  # (6.2) written out: ½ Σ_i (z_iᵀQz_i + v_iᵀRv_i) + ½ z_NᵀPz_N
+    expected = 0.5 * sum(z[:, i] @ Q @ z[:, i] + v[:, i] @ R @ v[:, i] for i in range(3)) \
+        + 0.5 * z[:, 3] @ d.P @ z[:, 3]
+    assert d.V(x0, v) == pytest.approx(expected, rel=1e-13)

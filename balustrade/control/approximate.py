@@ -142,7 +142,7 @@ class ApproximatePCBFFilter:
             info.solve_time = time.perf_counter() - start
             return dec.u.copy(), info
         if self.exact_shortcut and in_set(u_p, self.U):
-            # ĥ(f(x, u_p)): u_p is the screening candidate clip_U(u_p) unless it lies
+            # ĥ(f(x, u_p)): u_p is the screening candidate Π_U(u_p) unless it lies
             # within the 1e-9 tolerance outside U
             h_up = dec.h_proposal if (dec.u_proposal == u_p).all() \
                 else self.decrease.h_next(x, u_p)

@@ -9,7 +9,9 @@ proposal is not used — the law is a feedback, not a filter) and ``reset()``.
 (3.3), the non-causal optimum ``J*`` (3.6) and the constraint violation.
 ``RegretController.simulate(x0, w)`` is the short form.
 
-The synthesis (3.19)–(3.41) itself is in :mod:`balustrade.problems.regret`.
+The synthesis problems (3.19)–(3.41) are stated in :mod:`balustrade.problems.regret` and
+solved and certified by :mod:`balustrade.control.regret_synthesis`, whose results give the
+gain (:meth:`RegretController.from_result`).
 """
 
 from __future__ import annotations
@@ -83,8 +85,9 @@ class RegretController:
 
     @classmethod
     def from_result(cls, result: object, allow_inaccurate: bool = False) -> RegretController:
-        """The controller of a synthesis result (:class:`~balustrade.problems.regret.
-        synthesis.SynthesisResult`): its gain if the result is certified (``ok``), or, with
+        """The controller of a synthesis result
+        (:class:`~balustrade.control.regret_synthesis.SynthesisResult`): its gain if the
+        result is certified (``ok``), or, with
         ``allow_inaccurate``, if it ended ``optimal_inaccurate`` with a gain."""
         K = result.gain(allow_inaccurate)
         return cls(result.ops, K, result.Phi_u, name=result.name)
@@ -133,10 +136,10 @@ def rollout(controller: RegretController, x0: object, w: object,
                               f"{type(controller).__name__}")
     ops, sysm = controller.ops, controller.ops.system
     T, n = ops.T, ops.n
-    x0v = as_vector(x0, "x0", n)
+    x0v = as_vector(x0, "rollout: x0", n)
     wm = np.asarray(w, dtype=float).reshape(T, -1) if np.size(w) == T * ops.p else None
     if wm is None:
-        raise ShapeError("w", (T, ops.p), np.shape(w))
+        raise ShapeError("rollout: w", (T, ops.p), np.shape(w))
     controller.reset()
     x = np.zeros((T + 1, n))
     u = np.zeros((T + 1, ops.m))

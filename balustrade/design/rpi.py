@@ -29,7 +29,8 @@ def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polyto
     lambdas = list(lambdas) if lambdas is not None else list(np.linspace(0.05, 0.95, 19))
     for lv in lambdas:
         if not 0 < lv < 1:
-            raise BalustradeError(f"RPI SDP: λ must lie in (0, 1), got {lv}")
+            raise BalustradeError(f"ellipsoidal_rpi: lambdas: every λ must lie in (0, 1), "
+                                  f"got {lv}")
     compiled = compile_synthesis(rpi_sdp(A, B, W, X, U, G), target)
     best = None
     start = time.perf_counter()

@@ -38,8 +38,9 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
     if not sol.ok:
         raise BalustradeError(f"terminal CBF SDP: no solution ({sol.status}: {sol.message}); "
                               "the constraints may admit no invariant ellipsoid")
-    cbf = terminal_cbf_from(sol.values, U, as_scalar(decrease_factor, "λ"), sol.status,
-                            sol.solve_time)
+    cbf = terminal_cbf_from(sol.values, U,
+                            as_scalar(decrease_factor, "synthesize_terminal_cbf: decrease_factor"),
+                            sol.status, sol.solve_time)
     if cbf.degenerate:
         warnings.warn(cbf.degenerate, DegenerateResultWarning, stacklevel=2)
     return cbf
@@ -47,7 +48,7 @@ def synthesize_terminal_cbf(A: np.ndarray, B: np.ndarray, X: Polytope, U: Polyto
 
 def terminal_cbf_with_domain(A: np.ndarray, B: np.ndarray, X_E: Polytope, U_E: Polytope,
                              delta_N: float, level: float = 1.0,
-                             decrease_factor: float = 0.99):
+                             decrease_factor: float = 0.99) -> TerminalCBF:
     """The terminal CBF SDP (6.17) with the input LMI imposed on ``U ⊖ κ(E)`` scaled by
     ``1/sqrt(1 + level)``, so that ``π_f(x) = Kx ∈ U ⊖ κ(E)`` on ``D_f = {h_f <= γ_f}`` with
     ``γ_f >= level`` (SPEC §2.27 [Gap] on ``γ_f``). The printed SDP (``level = 0``) makes the

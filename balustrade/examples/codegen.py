@@ -27,23 +27,21 @@ PENDULUM_U_P = 2.0
 def pendulum_pcbf_filter() -> object:
     """The pendulum PCBF safety filter of Section 7.5 on the ``fast-sqp`` target."""
     from balustrade.control.pcbf import PCBFSafetyFilter
-    from balustrade.design.terminal_cbf import synthesize_terminal_cbf
+    from balustrade.examples.pendulum import pendulum_terminal_cbf
     from balustrade.models.pendulum import pendulum, pendulum_setup
 
     system, s = pendulum(), pendulum_setup()
-    h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
+    h_f = pendulum_terminal_cbf()
     return PCBFSafetyFilter.build(system, s.X, s.U, h_f, s.N, s.deltas, s.alpha_f,
                                   slack_norm=1, target="fast-sqp")
 
 
 def pendulum_functions() -> dict[str, ca.Function]:
     """Plain functions of the pendulum example: ``f``, ``∂f/∂x``, ``∂f/∂u``, ``h_f``, ``∇h_f``."""
-    from balustrade.design.terminal_cbf import synthesize_terminal_cbf
-    from balustrade.models.pendulum import pendulum, pendulum_setup
+    from balustrade.examples.pendulum import pendulum_terminal_cbf
+    from balustrade.models.pendulum import pendulum
 
-    system, s = pendulum(), pendulum_setup()
-    h_f = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
-    return language_functions(system, h_f)
+    return language_functions(pendulum(), pendulum_terminal_cbf())
 
 
 def language_functions(system: object, h_f: Callable | None = None,
@@ -61,8 +59,7 @@ def language_functions(system: object, h_f: Callable | None = None,
     for key, fn in (("h_f", h_f), ("value", value)):
         if fn is None:
             continue
-        v = fn(x) if not isinstance(fn, ca.Function) else fn(x)
-        v = ca.SX(v)
+        v = ca.SX(fn(x))
         out[key] = ca.Function(key, [x], [v], ["x"], ["h"])
         out[f"{key}_grad"] = ca.Function(f"{key}_grad", [x], [ca.gradient(v, x)], ["x"],
                                          ["grad"])
@@ -84,13 +81,11 @@ def pendulum_approximate_filter(h_hat: Callable | None = None) -> object:
     """Algorithm 7.5 for the pendulum on the ``fast-sqp`` target; ``ĥ`` defaults to the terminal CBF
     ``h_f`` of (7.11) (replace it by a trained surrogate)."""
     from balustrade.control.approximate import ApproximatePCBFFilter
-    from balustrade.design.terminal_cbf import synthesize_terminal_cbf
+    from balustrade.examples.pendulum import pendulum_terminal_cbf
     from balustrade.models.pendulum import pendulum, pendulum_setup
 
-    system, s = pendulum(), pendulum_setup()
-    if h_hat is None:
-        h_hat = synthesize_terminal_cbf(system.A, system.B, s.X, s.U, delta_N=s.deltas[-1])
-    return ApproximatePCBFFilter(system, s.U, h_hat, target="fast-sqp")
+    h_hat = pendulum_terminal_cbf() if h_hat is None else h_hat
+    return ApproximatePCBFFilter(pendulum(), pendulum_setup().U, h_hat, target="fast-sqp")
 
 
 def emit_pendulum_approximate(out_dir: str | Path,

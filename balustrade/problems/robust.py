@@ -6,7 +6,10 @@
   ``X ⊖ E``, ``U ⊖ K E``, ``z_N ∈ X_f``; apply ``v*_0 + K(x_k − z*_0)``;
 * :func:`robust_pcbf_slack_problem` — (5.15): ``h_r(x_k)``;
 * :func:`robust_pcbf_filter_problem` — (5.16): the filter with the slacks of (5.15) fixed;
-* :func:`terminal_cbf_with_domain` — the terminal CBF SDP (6.17) with a domain level.
+* :func:`fuel_objective` — ``J = Σ_i ‖v_i‖₁``, the rendezvous objective of (5.16)/(6.15).
+
+The terminal CBF SDP (6.17) with a domain level is solved by
+:func:`~balustrade.design.terminal_cbf.terminal_cbf_with_domain`.
 
 The numerical steps between solves — the candidate (5.17), the terminal input, the slack
 polishing and ``h̃(ξ)`` — are in :mod:`balustrade.control.robust_steps`.

@@ -12,10 +12,10 @@ Both methods share the terminal CBF from the SDP (6.17) with the constraints tig
 ellipsoidal RPI set (:func:`~balustrade.design.rpi.ellipsoidal_rpi`). Costs: nominal
 ``‖u_0 − 2.5‖²``, robust ``‖v_0 + K(x_k − z_0) − 2.5‖²`` (squared: same minimizer as the
 absolute value of the thesis for scalar inputs). Slack norm ``ℓ1`` (any norm preserves the
-theory, SPEC §1.12; keeps the problems LP/QP-like for the SQP of the
-robust-sqp target). A run is declared
-*diverged* when ``‖x‖∞ > 50``, and stopped as *failed* after 3 consecutive solver failures (the
-thesis' crosses: "numerical issues"); both are reported, never raised.
+theory, SPEC §1.12; keeps the problems LP/QP-like for the SQP targets: ``fast-sqp`` for
+the nominal PCBF, ``robust-sqp`` for the robust filter (5.16)). A run is declared
+*diverged* when ``‖x‖∞ > 50``, and stopped as *failed* after 3 consecutive solver failures
+(the thesis' crosses: "numerical issues"); both are reported, never raised.
 
 **Degenerate terminal level.** The SDP (6.17) of the thesis' design makes the terminal
 ellipse input-limited: the LMIs of the input rows of ``U ⊖ κ(E)`` are active, so
