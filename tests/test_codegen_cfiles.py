@@ -190,6 +190,14 @@ def test_emit_problems_module_equals_single_problems(modules: dict, tmp_path) ->
               "xi_N": 0.0}
     a, b = pair.solve(params, warm=False), single.solve(params, warm=False)
     assert a[0] == b[0] == "ok" and a[1] == b[1] and np.array_equal(a[3], b[3])
+    # <P>_residuals writes three values (primal, dual, scaled violation): the runtime's
+    # buffer must hold all three, and residuals() returns the first two
+    out = np.full(4, np.nan)
+    fn = ctypes.CDLL(str(lib))["pair_filter_residuals"]
+    fn.argtypes, fn.restype = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_double)], None
+    fn(pair.view.work, out.ctypes.data_as(ctypes.POINTER(ctypes.c_double)))
+    assert np.all(np.isfinite(out[:3])) and np.isnan(out[3])
+    assert pair.view.residuals() == (out[0], out[1]) and pair.view._res.size == 3
     with pytest.raises(CodegenError, match="no emitted problem 'nope'"):
         CProblem(lib, problem="nope")
 

@@ -56,12 +56,17 @@ def test_marked_page_runs(page: Path, tmp_path: Path, monkeypatch: pytest.Monkey
         exec(compile("\n" * (line - 1) + code, str(page), "exec"), namespace)  # noqa: S102
 
 
-def _hook():
-    """docs/_ext/api_pages.py (the mkdocs hook that generates missing API pages)."""
-    spec = importlib.util.spec_from_file_location("api_pages", DOCS / "_ext" / "api_pages.py")
+def _ext_module(name: str):
+    """docs/_ext/<name>.py loaded as a module (it is not on the import path)."""
+    spec = importlib.util.spec_from_file_location(name, DOCS / "_ext" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _hook():
+    """docs/_ext/api_pages.py (the mkdocs hook that generates missing API pages)."""
+    return _ext_module("api_pages")
 
 
 def test_api_reference_pages_are_in_the_nav() -> None:
@@ -121,10 +126,7 @@ def test_lazy_names_in_the_reference_are_the_real_objects() -> None:
 
 def _extension():
     """docs/_ext/sphinx_roles.py as a module (its text helpers need no griffe)."""
-    spec = importlib.util.spec_from_file_location("sphinx_roles", DOCS / "_ext" / "sphinx_roles.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return _ext_module("sphinx_roles")
 
 
 def test_rest_simple_tables_become_markdown() -> None:

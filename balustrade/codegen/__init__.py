@@ -14,8 +14,10 @@ pair (2.24)+(2.23), Algorithm 7.5 with (7.5)+(7.6), reading the controllers' typ
 deployment specs of :mod:`balustrade.control.deploy`), :mod:`~balustrade.codegen.cfiles`
 (the static C shipped in ``codegen/c/`` and the generated config header that instantiates
 it), :mod:`~balustrade.codegen.status` (status codes, defined once),
-:mod:`~balustrade.codegen.build` (compiler), :mod:`~balustrade.codegen.runtime` (ctypes),
-:mod:`~balustrade.examples.codegen_cli`.
+:mod:`~balustrade.codegen.build` (compiler), :mod:`~balustrade.codegen.runtime` (ctypes).
+The example targets and the ``balustrade codegen`` command live outside the package, in
+:mod:`balustrade.examples.codegen` and :mod:`balustrade.examples.codegen_cli` (codegen imports
+no models or designs).
 """
 
 from balustrade.codegen.build import build, build_executable, find_compiler

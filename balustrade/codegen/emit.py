@@ -112,9 +112,6 @@ def _check_dynamics(name: str, dynamics: object) -> None:
                            f"system.function), got {type(dynamics).__name__}")
 
 
-_c_double = C.c_double
-
-
 def _renamed(fn: ca.Function, name: str) -> ca.Function:
     """``fn`` under the C symbol ``name``, with dense inputs and outputs (the C entry point
     then reads and writes plain column-major arrays; structural zeros are written as 0).
@@ -288,9 +285,9 @@ class _Problem:
             for sym in uniq[1:]:
                 expr = f"BAL_MAX2({expr}, {sym}_SZ_{key})"
             cfg.define(f"{P}_SZ_{key}", expr)
-        cfg.define(f"{P}_TOL_PR", _c_double(self.tol_pr))
-        cfg.define(f"{P}_TOL_DU", _c_double(self.tol_du))
-        cfg.define(f"{P}_ACCEPT_TOL", _c_double(self.accept_tol))
+        cfg.define(f"{P}_TOL_PR", C.c_double(self.tol_pr))
+        cfg.define(f"{P}_TOL_DU", C.c_double(self.tol_du))
+        cfg.define(f"{P}_ACCEPT_TOL", C.c_double(self.accept_tol))
         for n, v in self.params.items():
             cfg.define(f"{P}_P_{n}", v["offset"])
         for n, v in self.vars.items():
@@ -501,7 +498,7 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     cfg.define(f"{name}_NU", nu)
     cfg.define(f"{name}_N", N)
     cfg.define(f"{name}_N_XI", int(np.prod(s.vars["xi"]["shape"])), "slacks xi of (2.24)")
-    cfg.define(f"{name}_ZERO_TOL", _c_double(spec.zero_tol),
+    cfg.define(f"{name}_ZERO_TOL", C.c_double(spec.zero_tol),
                "a feasible (2.24) of cost <= this is optimal")
     cfg.array(f"{name}_U_LB", U.lb)
     cfg.array(f"{name}_U_UB", U.ub)
@@ -598,7 +595,7 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     cfg.define(f"{name}_NU", system.nu)
     cfg.define(f"{name}_NC", nc, "screened candidates: clip(0), clip(u_p), the grid")
     cfg.define(f"{name}_N_LOCAL", int(spec.n_local), "local (7.6) solves")
-    cfg.define(f"{name}_RHO", _c_double(spec.rho))
+    cfg.define(f"{name}_RHO", C.c_double(spec.rho))
     cfg.define(f"{name}_CERTIFY", int(bool(spec.certify)), "line 4 (initial value)")
     cfg.define(f"{name}_EXACT_SHORTCUT", int(bool(spec.exact_shortcut)))
     cfg.array(f"{name}_U_LB", U.lb)

@@ -175,7 +175,7 @@ class _CProblemView:
         self.work = work_ptr
         self.x = np.ctypeslib.as_array(primal(work_ptr), shape=(info["nw"],))
         self._res_fn = lib.fn(f"{prefix}_residuals", None, [ctypes.c_void_p, _dbl_p])
-        self._res = np.zeros(2)
+        self._res = np.zeros(3)  # <P>_residuals writes 3 values (bal/problem.h)
         self._layout: Layout | None = None
 
     def residuals(self) -> tuple[float, float]:

@@ -77,20 +77,7 @@ void BAL_QX(finalize)(BAL_QX(work)* wk) {
   wk->ready = 0;
 }
 
-BAL_QX(work)* BAL_QX(alloc)(void) {
-  BAL_QX(work)* wk = (BAL_QX(work)*) calloc(1, sizeof(BAL_QX(work)));
-  if (wk && BAL_QX(init)(wk)) {
-    free(wk);
-    return 0;
-  }
-  return wk;
-}
-
-void BAL_QX(free)(BAL_QX(work)* wk) {
-  if (!wk) return;
-  BAL_QX(finalize)(wk);
-  free(wk);
-}
+BAL_DEFINE_ALLOC_FREE(BAL_QX)
 
 void BAL_QX(reset)(BAL_QX(work)* wk) {
   wk->n_steps = wk->n_certified = wk->n_solved = wk->n_fallbacks = 0;

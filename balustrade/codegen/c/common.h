@@ -26,6 +26,23 @@
    balustrade.control does with the backend's "feasible" status */
 #define BAL_SOLVED(s) ((s) == BAL_OK || (s) == BAL_FEASIBLE)
 
+/* X(alloc) and X(free) of a work struct that has X(init) and X(finalize), for X = BAL_PX or
+   BAL_QX: alloc returns 0 when calloc or init fails; free accepts 0. */
+#define BAL_DEFINE_ALLOC_FREE(X)                                   \
+  X(work)* X(alloc)(void) {                                        \
+    X(work)* wk = (X(work)*) calloc(1, sizeof(X(work)));           \
+    if (wk && X(init)(wk)) {                                       \
+      free(wk);                                                    \
+      return 0;                                                    \
+    }                                                              \
+    return wk;                                                     \
+  }                                                                \
+  void X(free)(X(work)* wk) {                                      \
+    if (!wk) return;                                               \
+    X(finalize)(wk);                                               \
+    free(wk);                                                      \
+  }
+
 /* One CasADi-generated function with its memory management, as written by CasADi's code
    generator: f(arg, res, iw, w, mem), f_incref, f_checkout, f_release, f_decref. */
 typedef struct bal_casadi_fn {

@@ -75,20 +75,7 @@ void BAL_PX(finalize)(BAL_PX(work)* wk) {
   wk->ready = 0;
 }
 
-BAL_PX(work)* BAL_PX(alloc)(void) {
-  BAL_PX(work)* wk = (BAL_PX(work)*) calloc(1, sizeof(BAL_PX(work)));
-  if (wk && BAL_PX(init)(wk)) {
-    free(wk);
-    return 0;
-  }
-  return wk;
-}
-
-void BAL_PX(free)(BAL_PX(work)* wk) {
-  if (!wk) return;
-  BAL_PX(finalize)(wk);
-  free(wk);
-}
+BAL_DEFINE_ALLOC_FREE(BAL_PX)
 
 void BAL_PX(cold_start)(BAL_PX(work)* wk) {
   memcpy(wk->x0, BAL_PX(init_x), sizeof(wk->x0));
