@@ -228,3 +228,14 @@ def test_cli_geometric_mode_from_a_config_file(tmp_path):
     assert np.array_equal(cols["in_s"], cols["h"] <= 0)
     cfg.write_text(json.dumps({"no_such_option": 1}))
     assert main(["sample", "--config", str(cfg), "--out", str(out)]) == 2
+
+
+def test_cli_config_with_the_old_solver_key_says_it_was_renamed(tmp_path, capsys):
+    """A sample config written before targets ("solver": "sqpmethod") is refused with the new
+    key's name, not only "unknown keys"."""
+    from balustrade.cli import main
+
+    cfg = tmp_path / "old.json"
+    cfg.write_text(json.dumps({"solver": "sqpmethod"}))
+    assert main(["sample", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
+    assert "'solver' is now 'target'" in capsys.readouterr().err

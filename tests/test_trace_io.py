@@ -93,6 +93,25 @@ def test_load_errors(tmp_path):
         Trace.load(tmp_path / "other")
 
 
+def test_load_of_edited_files_is_a_clear_error(tmp_path):
+    """A metadata file without a key, or a table without a column, is a BalustradeError
+    naming what is missing (it was a raw KeyError)."""
+    run().save(tmp_path / "run")
+    meta = json.loads((tmp_path / "run.json").read_text())
+    del meta["nx"]
+    (tmp_path / "run.json").write_text(json.dumps(meta))
+    with pytest.raises(BalustradeError, match=r"lacks the keys \['nx'\]"):
+        Trace.load(tmp_path / "run")
+    run().save(tmp_path / "run2")
+    with (tmp_path / "run2.csv").open() as fh:
+        rows = list(csv.reader(fh))
+    keep = [j for j, c in enumerate(rows[0]) if c != "x[0]"]
+    with (tmp_path / "run2.csv").open("w", newline="") as fh:
+        csv.writer(fh).writerows([[r[j] for j in keep] for r in rows])
+    with pytest.raises(BalustradeError, match="does not match its metadata.*x\\[0\\]"):
+        Trace.load(tmp_path / "run2")
+
+
 def test_plot_draws_every_panel_and_saves(tmp_path):
     trace = run()
     fig = trace.plot(tmp_path / "loop.png", dt=0.1, state_names=["p", "v"], title="scripted")

@@ -94,7 +94,6 @@ def save_trace(trace: Trace, path: str | Path) -> tuple[Path, Path]:
 
 def load_trace(path: str | Path) -> Trace:
     """Read a run written by :func:`save_trace` (``path`` with or without a suffix)."""
-    from balustrade.control.base import Trace
 
     csv_path, json_path = _paths(path)
     try:
@@ -107,9 +106,24 @@ def load_trace(path: str | Path) -> Trace:
     if meta.get("format") != FORMAT:
         raise BalustradeError(f"Trace.load({path}): {json_path.name} is not a saved trace "
                               f"(format {meta.get('format')!r}, expected {FORMAT!r})")
+    missing = [k for k in ("n_states", "n_steps", "nx", "nu", "nw", "values", "stopped")
+               if k not in meta]
+    if missing:
+        raise BalustradeError(f"Trace.load({path}): {json_path.name} lacks the keys {missing}")
+    try:
+        return _trace_from(meta, rows, path, csv_path.name)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise BalustradeError(f"Trace.load({path}): {csv_path.name} does not match its "
+                              f"metadata ({type(exc).__name__}: {exc})") from exc
+
+
+def _trace_from(meta: dict, rows: list[dict], path: str | Path, csv_name: str) -> Trace:
+    """The :class:`Trace` of a saved run's metadata and per-step rows."""
+    from balustrade.control.base import Trace
+
     n_states, n_steps = int(meta["n_states"]), int(meta["n_steps"])
     if len(rows) != max(n_states, n_steps):
-        raise BalustradeError(f"Trace.load({path}): {csv_path.name} has {len(rows)} rows, the "
+        raise BalustradeError(f"Trace.load({path}): {csv_name} has {len(rows)} rows, the "
                               f"metadata says {max(n_states, n_steps)}")
 
     def table(names: list[str], n: int) -> np.ndarray:

@@ -42,7 +42,10 @@ def _merge(args: argparse.Namespace, defaults: dict[str, Any]) -> dict[str, Any]
         if unknown:
             from balustrade.errors import BalustradeError
 
-            raise BalustradeError(f"{args.config}: unknown keys {sorted(unknown)}")
+            renamed = {"solver": "target"}  # keys renamed when solvers became targets
+            hints = [f"{k!r} is now {renamed[k]!r}" for k in sorted(unknown) if k in renamed]
+            raise BalustradeError(f"{args.config}: unknown keys {sorted(unknown)}"
+                                  + (f" ({'; '.join(hints)})" if hints else ""))
         cfg.update(from_file)
     for key, value in vars(args).items():
         if value is not None and key not in ("func", "config", "command"):
