@@ -8,13 +8,14 @@ one produces what the solver takes (:mod:`balustrade.backends.passes`).
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from typing import Any
 
 from balustrade.errors import BalustradeError
 
 
-class Pass:
+class Pass(ABC):
     """One lowering step. Subclasses set :attr:`name` and implement :meth:`apply`."""
 
     name = "pass"
@@ -23,9 +24,9 @@ class Pass:
         """Whether :meth:`apply` can take ``problem`` (the chain refuses it otherwise)."""
         return True
 
+    @abstractmethod
     def apply(self, problem: Any) -> tuple[Any, Any]:
         """``(lowered problem, inverse data)``."""
-        raise NotImplementedError
 
     def invert(self, solution: Any, inverse: Any) -> Any:
         """Map a solution of the lowered problem back (the identity by default)."""
