@@ -56,3 +56,24 @@ class BalustradeWarning(UserWarning):
 class DegenerateResultWarning(BalustradeWarning):
     """A synthesis succeeded but its result is degenerate (e.g. a terminal CBF level
     ``γ_f ≈ 0``); the result names the reason."""
+
+
+class MovedError(BalustradeError, ImportError):
+    """A name that moved to another module in the restructuring of issue #13 (solvers and
+    algorithms out of ``problems/``): the message names the new home."""
+
+
+def moved_names(module: str, moved: dict[str, str]):
+    """A module ``__getattr__`` (PEP 562) that refuses the names in ``moved`` (name → new
+    module) with a :class:`MovedError` saying where each one lives now, instead of Python's
+    bare "cannot import name". It imports nothing, so the layering is kept."""
+
+    def __getattr__(name: str) -> object:
+        if name in moved:
+            raise MovedError(f"{module}.{name} moved to {moved[name]}.{name} (issue #13: "
+                             f"{module.split('.')[1]}/ no longer holds it); import it from "
+                             f"{moved[name]}")
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+
+    __getattr__.moved = dict(moved)  # type: ignore[attr-defined]  # for tests and tools
+    return __getattr__

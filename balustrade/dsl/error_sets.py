@@ -30,7 +30,7 @@ import numpy as np
 
 from balustrade._checks import as_count, as_matrix, check_instance
 from balustrade.dsl.sets import Box, Ellipsoid, Polytope, Set
-from balustrade.errors import BalustradeError, EmptySetError, ShapeError
+from balustrade.errors import BalustradeError, EmptySetError, ShapeError, moved_names
 
 
 # -- error sets with their feedback ------------------------------------------------------------
@@ -344,3 +344,8 @@ def is_rpi(E: Set, A_cl: np.ndarray, W: Set, G: np.ndarray | None = None, tol: f
         margin, worst = float(vals[k]), {"e": pts[k], "w": Ws[k], "method": "sampling"}
     methods += ["support directions", "sampling"]
     return RPICheck(bool(margin <= tol), float(margin), ", ".join(methods), worst)
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "ellipsoidal_rpi": "balustrade.design.rpi",
+})

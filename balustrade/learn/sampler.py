@@ -28,7 +28,7 @@ import numpy as np
 
 from balustrade.backends import Compiled, Solution, Target, compile, sampling_targets
 from balustrade.dsl.sets import Box
-from balustrade.errors import BalustradeError
+from balustrade.errors import BalustradeError, moved_names
 
 TOL = 1e-6
 COLUMNS = ("h", "h_pb", "h_bar", "in_s", "ok", "iterations")
@@ -345,3 +345,8 @@ def sobol_goals(X: Box, n: int, seed: int = 0, scale: float = 1.5) -> np.ndarray
     m = max(0, int(math.ceil(math.log2(max(n, 1)))))
     pts = qmc.Sobol(d=X.dim, scramble=True, seed=seed).random_base2(m)[:n]
     return centre - half + 2 * half * pts
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "pendulum_problems": "balustrade.examples.pendulum",
+})

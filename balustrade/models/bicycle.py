@@ -21,6 +21,7 @@ import numpy as np
 
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import System
+from balustrade.errors import moved_names
 
 TS, WHEELBASE, V_S = 0.05, 0.09, 1.1
 DEG = np.pi / 180.0
@@ -61,3 +62,8 @@ class ShiftedCBF:
 
     def policy(self, x: np.ndarray) -> np.ndarray:
         return self.K @ (np.asarray(x, dtype=float).reshape(-1) - self.x_s)
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "bicycle_design": "balustrade.examples.bicycle",
+})

@@ -28,7 +28,7 @@ import numpy as np
 from balustrade._checks import as_count, check_name, check_symbolic
 from balustrade.dsl import OCP, Set, System, squared_norm
 from balustrade.dsl.sets import Box
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade.errors import BalustradeError, ShapeError, moved_names
 from balustrade.problems._args import check_system_sets, nonnegative
 
 HHat = ca.Function | Callable[[ca.SX], object]
@@ -128,3 +128,11 @@ def decrease_bound(dh: object, rho: object) -> object:
     """
     fmax = ca.fmax if isinstance(dh, (ca.SX, ca.MX, ca.DM)) else np.maximum
     return fmax(-rho * dh, -dh)
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "DecreaseResult": "balustrade.control.decrease",
+    "MaximalDecrease": "balustrade.control.decrease",
+    "coarse_grid": "balustrade.control.decrease",
+    "in_set": "balustrade.control.decrease",
+})

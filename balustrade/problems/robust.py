@@ -30,6 +30,7 @@ from balustrade._checks import as_matrix, check_callable, check_horizon, check_i
 from balustrade.dsl import OCP, Polytope, System, squared_norm, sum_norms
 from balustrade.dsl.costs import Cost
 from balustrade.dsl.error_sets import ErrorSet, reachable_tightened_sets, tighten
+from balustrade.errors import moved_names
 from balustrade.problems._args import (
     check_norm_order,
     check_pcbf_args,
@@ -181,3 +182,14 @@ def _syms(ocp: OCP, x0: ca.SX, u_p: ca.SX | None, error: ErrorSet) -> dict:
 def fuel_objective(ocp: OCP, syms: dict) -> Cost:
     """``J = Σ_i ‖v_i‖₁`` (rendezvous, SPEC §3.4)."""
     return sum_norms(syms["v"], 1, label="fuel")
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "terminal_cbf_with_domain": "balustrade.design.terminal_cbf",
+    "Candidate": "balustrade.control.robust_steps",
+    "minimal_slacks": "balustrade.control.robust_steps",
+    "polished_slacks": "balustrade.control.robust_steps",
+    "robust_candidate": "balustrade.control.robust_steps",
+    "slack_cost": "balustrade.control.robust_steps",
+    "terminal_input": "balustrade.control.robust_steps",
+})

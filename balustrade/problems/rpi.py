@@ -21,7 +21,7 @@ from balustrade._checks import as_matrix, check_instance
 from balustrade.dsl.error_sets import bounded_vertices
 from balustrade.dsl.sets import Polytope, Set
 from balustrade.dsl.synthesis import SynthesisProblem, bmat
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade.errors import BalustradeError, ShapeError, moved_names
 
 
 def rpi_sdp(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polytope,
@@ -75,3 +75,8 @@ def _checked(A: object, B: object, W: object, X: object, U: object, G: object
 
 
 __all__ = ["rpi_sdp"]
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "ellipsoidal_rpi": "balustrade.design.rpi",
+})

@@ -30,6 +30,7 @@ from balustrade.dsl.synthesis import SynthesisProblem, bmat, logdet
 from balustrade.errors import (
     BalustradeError,
     ShapeError,
+    moved_names,
 )
 
 #: ``γ_f`` below this is reported as degenerate (it is ``b²/(aᵀKEKᵀa) − 1`` of an active
@@ -184,3 +185,8 @@ def largest_level(P: np.ndarray, K: np.ndarray, U: Polytope) -> float:
     on ``{xᵀPx − 1 <= γ}`` (SPEC §2.27 [Default])."""
     levels = input_levels(P, K, U)
     return float(np.min(levels)) if levels.size else float("inf")
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "synthesize_terminal_cbf": "balustrade.design.terminal_cbf",
+})

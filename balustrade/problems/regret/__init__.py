@@ -8,6 +8,7 @@ parametrization; the builders of :mod:`.synthesis` state (3.19), (3.24), (3.28),
 :mod:`.verify` certifies worst-case regret independently of the SDP solver.
 """
 
+from balustrade.errors import moved_names
 from balustrade.problems.regret.operators import (
     LTVSystem,
     Operators,
@@ -35,3 +36,18 @@ __all__ = [
     "h2_problem", "hinf_problem", "pointwise_dynamic_problem", "pointwise_regret_problem",
     "zero_x0_regret_problem",
 ]
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "SynthesisResult": "balustrade.control.regret_synthesis",
+    "adversarial_regret": "balustrade.control.regret_synthesis",
+    "dynamic_regret": "balustrade.control.regret_synthesis",
+    "generalized_regret": "balustrade.control.regret_synthesis",
+    "h2": "balustrade.control.regret_synthesis",
+    "hinf": "balustrade.control.regret_synthesis",
+    "pointwise_dynamic_regret": "balustrade.control.regret_synthesis",
+    "pointwise_regret": "balustrade.control.regret_synthesis",
+    "zero_x0_regret": "balustrade.control.regret_synthesis",
+    "RegretController": "balustrade.control.regret",
+    "Rollout": "balustrade.control.regret",
+})

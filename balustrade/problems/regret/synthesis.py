@@ -49,7 +49,7 @@ from balustrade.dsl.synthesis import (
     vstack,
 )
 from balustrade.dsl.synthesis_arrow import arrow_lmi
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade.errors import BalustradeError, ShapeError, moved_names
 from balustrade.problems.regret.operators import Operators
 from balustrade.problems.regret.parametrization import Parametrization, normalize_halfspaces
 from balustrade.problems.regret.verify import (
@@ -399,3 +399,16 @@ def hinf_problem(ops: Operators, *, x0: object | None = None,
     st.constrain(constraints, None if x0 is None else _x0(ops, x0), _opt_P(ops, constraint_P),
                  _opt_omega(omega))
     return st.minimize(gamma, _value("gamma"), lambda Pu, v: ("exact", hinf_level(ops, Pu)))
+
+#: names that moved out of this module (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {
+    "SynthesisResult": "balustrade.control.regret_synthesis",
+    "adversarial_regret": "balustrade.control.regret_synthesis",
+    "dynamic_regret": "balustrade.control.regret_synthesis",
+    "generalized_regret": "balustrade.control.regret_synthesis",
+    "h2": "balustrade.control.regret_synthesis",
+    "hinf": "balustrade.control.regret_synthesis",
+    "pointwise_dynamic_regret": "balustrade.control.regret_synthesis",
+    "pointwise_regret": "balustrade.control.regret_synthesis",
+    "zero_x0_regret": "balustrade.control.regret_synthesis",
+})
