@@ -17,6 +17,7 @@ from balustrade.problems.regret.operators import (
     responses_from_controller,
 )
 from balustrade.problems.regret.synthesis import (
+    MOVED_SOLVERS,
     RegretProblem,
     StateInputConstraints,
     adversarial_regret_problem,
@@ -37,17 +38,7 @@ __all__ = [
     "zero_x0_regret_problem",
 ]
 
-#: names that moved out of this module (issue #13); importing one says where it is now
-__getattr__ = moved_names(__name__, {
-    "SynthesisResult": "balustrade.control.regret_synthesis",
-    "adversarial_regret": "balustrade.control.regret_synthesis",
-    "dynamic_regret": "balustrade.control.regret_synthesis",
-    "generalized_regret": "balustrade.control.regret_synthesis",
-    "h2": "balustrade.control.regret_synthesis",
-    "hinf": "balustrade.control.regret_synthesis",
-    "pointwise_dynamic_regret": "balustrade.control.regret_synthesis",
-    "pointwise_regret": "balustrade.control.regret_synthesis",
-    "zero_x0_regret": "balustrade.control.regret_synthesis",
-    "RegretController": "balustrade.control.regret",
-    "Rollout": "balustrade.control.regret",
-})
+#: names that moved out of this package (issue #13); importing one says where it is now
+__getattr__ = moved_names(__name__, {**MOVED_SOLVERS,
+                                     "RegretController": "balustrade.control.regret",
+                                     "Rollout": "balustrade.control.regret"})
