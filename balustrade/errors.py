@@ -58,22 +58,23 @@ class DegenerateResultWarning(BalustradeWarning):
     ``γ_f ≈ 0``); the result names the reason."""
 
 
-class MovedError(BalustradeError, ImportError):
-    """A name that moved to another module in the restructuring of issue #13 (solvers and
-    algorithms out of ``problems/``): the message names the new home."""
-
-
 def moved_names(module: str, moved: dict[str, str]):
-    """A module ``__getattr__`` (PEP 562) that refuses the names in ``moved`` (name → new
-    module) with a :class:`MovedError` saying where each one lives now, instead of Python's
-    bare "cannot import name". It imports nothing, so the layering is kept."""
+    """A module ``__getattr__`` (PEP 562) for names that moved in the restructuring of issue
+    #13 (solvers and algorithms out of ``problems/``, examples out of ``models/``/``learn/``):
+    ``moved`` maps each name to its new module. Importing one from the old module still works
+    for scripts written against the old layout, with a :class:`DeprecationWarning` naming the
+    new home. The new module is imported only when such a name is asked for, so the module
+    itself keeps its layer's imports (``tests/test_import_rules.py``)."""
 
     def __getattr__(name: str) -> object:
-        if name in moved:
-            raise MovedError(f"{module}.{name} moved to {moved[name]}.{name} (issue #13: "
-                             f"{module.split('.')[1]}/ no longer holds it); import it from "
-                             f"{moved[name]}")
-        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        if name not in moved:
+            raise AttributeError(f"module {module!r} has no attribute {name!r}")
+        import importlib
+        import warnings
+
+        warnings.warn(f"{module}.{name} moved to {moved[name]}.{name} (issue #13); import it "
+                      f"from {moved[name]}", DeprecationWarning, stacklevel=2)
+        return getattr(importlib.import_module(moved[name]), name)
 
     __getattr__.moved = dict(moved)  # type: ignore[attr-defined]  # for tests and tools
     return __getattr__

@@ -345,7 +345,7 @@ def is_rpi(E: Set, A_cl: np.ndarray, W: Set, G: np.ndarray | None = None, tol: f
     methods += ["support directions", "sampling"]
     return RPICheck(bool(margin <= tol), float(margin), ", ".join(methods), worst)
 
-#: names that moved out of this module (issue #13); importing one says where it is now
+#: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {
     "ellipsoidal_rpi": "balustrade.design.rpi",
 })

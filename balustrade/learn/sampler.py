@@ -346,7 +346,7 @@ def sobol_goals(X: Box, n: int, seed: int = 0, scale: float = 1.5) -> np.ndarray
     pts = qmc.Sobol(d=X.dim, scramble=True, seed=seed).random_base2(m)[:n]
     return centre - half + 2 * half * pts
 
-#: names that moved out of this module (issue #13); importing one says where it is now
+#: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {
     "pendulum_problems": "balustrade.examples.pendulum",
 })

@@ -63,7 +63,7 @@ class ShiftedCBF:
     def policy(self, x: np.ndarray) -> np.ndarray:
         return self.K @ (np.asarray(x, dtype=float).reshape(-1) - self.x_s)
 
-#: names that moved out of this module (issue #13); importing one says where it is now
+#: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {
     "bicycle_design": "balustrade.examples.bicycle",
 })

@@ -129,7 +129,7 @@ def decrease_bound(dh: object, rho: object) -> object:
     fmax = ca.fmax if isinstance(dh, (ca.SX, ca.MX, ca.DM)) else np.maximum
     return fmax(-rho * dh, -dh)
 
-#: names that moved out of this module (issue #13); importing one says where it is now
+#: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {
     "DecreaseResult": "balustrade.control.decrease",
     "MaximalDecrease": "balustrade.control.decrease",

@@ -183,7 +183,7 @@ def fuel_objective(ocp: OCP, syms: dict) -> Cost:
     """``J = Σ_i ‖v_i‖₁`` (rendezvous, SPEC §3.4)."""
     return sum_norms(syms["v"], 1, label="fuel")
 
-#: names that moved out of this module (issue #13); importing one says where it is now
+#: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {
     "terminal_cbf_with_domain": "balustrade.design.terminal_cbf",
     "Candidate": "balustrade.control.robust_steps",

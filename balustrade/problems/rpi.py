@@ -76,7 +76,7 @@ def _checked(A: object, B: object, W: object, X: object, U: object, G: object
 
 __all__ = ["rpi_sdp"]
 
-#: names that moved out of this module (issue #13); importing one says where it is now
+#: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {
     "ellipsoidal_rpi": "balustrade.design.rpi",
 })

@@ -186,7 +186,7 @@ def largest_level(P: np.ndarray, K: np.ndarray, U: Polytope) -> float:
     levels = input_levels(P, K, U)
     return float(np.min(levels)) if levels.size else float("inf")
 
-#: names that moved out of this module (issue #13); importing one says where it is now
+#: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {
     "synthesize_terminal_cbf": "balustrade.design.terminal_cbf",
 })

@@ -38,7 +38,7 @@ __all__ = [
     "zero_x0_regret_problem",
 ]
 
-#: names that moved out of this package (issue #13); importing one says where it is now
+#: names that moved out of this package (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {**MOVED_SOLVERS,
                                      "RegretController": "balustrade.control.regret",
                                      "Rollout": "balustrade.control.regret"})

@@ -401,7 +401,7 @@ def hinf_problem(ops: Operators, *, x0: object | None = None,
     return st.minimize(gamma, _value("gamma"), lambda Pu, v: ("exact", hinf_level(ops, Pu)))
 
 #: the solve-and-certify functions that moved out of problems/regret (issue #13), for the
-#: MovedError of this module and of the package (problems/regret/__init__.py)
+#: deprecated aliases of this module and of the package (problems/regret/__init__.py)
 MOVED_SOLVERS: dict[str, str] = {name: "balustrade.control.regret_synthesis" for name in (
     "SynthesisResult", "adversarial_regret", "dynamic_regret", "generalized_regret", "h2",
     "hinf", "pointwise_dynamic_regret", "pointwise_regret", "zero_x0_regret")}
