@@ -29,7 +29,7 @@ from balustrade.codegen import status as S
 SUBDIR = "bal"
 #: the static files copied into ``<out_dir>/bal/`` (``#include``\\ d by the glue)
 STATIC = ("common.h", "problem.h", "problem.c", "step_common.c", "pcbf.h", "pcbf.c",
-          "approx.h", "approx.c")
+          "approx.h", "approx.c", "grid.h", "grid.c")
 #: the entry points each static header declares (``<prefix>_<entry>``), listed by their real
 #: names in the generated ``<name>.h`` (checked against the built library by the tests)
 ENTRY_POINTS: dict[str, tuple[str, ...]] = {
@@ -39,6 +39,8 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
              "filter_problem", "solve_status", "h_upper", "proposal_replaced"),
     "approx": ("init", "finalize", "alloc", "free", "reset", "step", "set_certify", "dh",
                "proposal_replaced", "counter"),
+    "grid": ("init", "finalize", "alloc", "free", "reset", "step", "n_candidates",
+             "proposal_replaced", "counter", "u_prev"),
 }
 #: values per line of an array macro
 _PER_LINE = 6

@@ -7,7 +7,8 @@ Three families:
 
 * :data:`SOLVE` — return value of ``<problem>_solve`` (one problem, e.g. (2.24));
 * :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
-* :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6).
+* :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6);
+* :data:`GRID` — return value of the Algorithm 8.7 step (grid filter, no solver).
 
 Each family has a *bad input* code: a parameter or state that is NaN or inf is refused
 before any solver runs (NaN compares false, so a residual test would pass it as
@@ -88,6 +89,17 @@ APPROX: tuple[Status, ...] = (
     Status("BAL_APPROX_FILTER_FEASIBLE", 6, "filter_feasible", None,
            "(7.5) only feasible (not converged): a safe input in U meeting the decrease, "
            "possibly not the closest to u_p"),
+)
+
+#: The Algorithm 8.7 step: ``name`` and ``fallback`` are the StepInfo status and fallback of
+#: :class:`~balustrade.control.approximate.GridPCBFFilter`.
+GRID: tuple[Status, ...] = (
+    Status("BAL_GRID_OK", 0, "ok", None,
+           "the admissible candidate closest to u_p (input-range-scaled norm)"),
+    Status("BAL_GRID_NO_DECREASE", 1, "no_decreasing_candidate", "grid_minimizer",
+           "no candidate meets h^(f(x, u)) <= rho h^(x): the grid minimizer"),
+    Status("BAL_GRID_BAD_INPUT", 2, "non_finite_state", "previous_input",
+           "x is NaN or inf (or a pointer is NULL): the last applied input, unchanged"),
 )
 
 

@@ -35,7 +35,7 @@ from balustrade.backends import Compiled, Solution, Target, compile
 from balustrade.backends.casadi_fast import Buffered, FastNLP
 from balustrade.control.base import StepInfo, note_solve
 from balustrade.control.decrease import DecreaseResult, MaximalDecrease, in_set, local_target
-from balustrade.control.deploy import ApproximateDeployment
+from balustrade.control.deploy import ApproximateDeployment, GridDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -281,6 +281,13 @@ class GridPCBFFilter:
         info.solve_time = time.perf_counter() - start
         self.u_prev = u.copy()
         return u.copy(), info
+
+    def deployment_spec(self) -> GridDeployment:
+        """What the emitted C step needs (:func:`balustrade.codegen.emit_grid`): the model,
+        ``U``, ``ĥ``, the offsets, the distance scale, ``ρ`` and ``u_init``."""
+        return GridDeployment(system=self.system, U=self.U, h=self.h,
+                              offsets=self.offsets.copy(), scale=self.scale.copy(),
+                              rho=float(self.rho), u_init=self.u_init.copy())
 
 
 __all__ = ["ApproximatePCBFFilter", "GridPCBFFilter", "Solution"]

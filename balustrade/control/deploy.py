@@ -69,6 +69,28 @@ class ApproximateDeployment:
 
 
 @dataclass(frozen=True)
+class GridDeployment:
+    """Algorithm 8.7 (SPEC §2.34): ``ĥ(f(x, u_i))`` on the rate-limited input grid around
+    ``u_{k−1}``, no solver, with the fallbacks of
+    :class:`~balustrade.control.approximate.GridPCBFFilter`."""
+
+    #: the model ``x+ = f(x, u)`` (for ``ĥ(f(x, u))``)
+    system: System
+    #: input set (a box for C: candidates are clipped to it)
+    U: Set
+    #: ``ĥ``, a CasADi Function of ``x``
+    h: Callable
+    #: the offsets ``j·Δu`` (rows, ``itertools.product`` order) added to ``u_{k−1}``
+    offsets: np.ndarray = field(repr=False)
+    #: the input ranges dividing ``u_i − u_p`` in the distance to the proposal
+    scale: np.ndarray = field(repr=False)
+    #: ``ρ`` of the decrease ``ĥ(f(x, u_i)) <= ρ ĥ(x)``
+    rho: float
+    #: ``u_{−1}`` before projection onto ``U`` (``reset()`` restores ``Π_U(u_init)``)
+    u_init: np.ndarray = field(repr=False)
+
+
+@dataclass(frozen=True)
 class ProblemsDeployment:
     """A controller whose closed-loop step has no emitted C (yet): its compiled problems by
     name, each emittable on its own (:func:`balustrade.codegen.emit_problem`), and the
