@@ -31,6 +31,7 @@ from balustrade.codegen.emit import (
     emit_problems,
     write_example,
 )
+from balustrade.codegen.emit_grid import emit_grid
 from balustrade.codegen.runtime import (
     CApproximatePCBFFilter,
     CFunction,
@@ -39,6 +40,7 @@ from balustrade.codegen.runtime import (
     load_manifest,
     mirror_c_retries,
 )
+from balustrade.codegen.runtime_grid import CGridPCBFFilter
 from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_libraries
 
 __all__ = [
@@ -47,4 +49,5 @@ __all__ = [
     "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "emit_problems",
     "find_compiler",
     "load_manifest", "solver_libraries", "mirror_c_retries", "write_example",
+    "CGridPCBFFilter", "emit_grid",
 ]
