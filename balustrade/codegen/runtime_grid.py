@@ -11,9 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from balustrade._checks import as_vector
 from balustrade.codegen import status as S
-from balustrade.codegen.runtime import _dbl_p, _Library, _OwnsWork, _proposal, _ptr
+from balustrade.codegen.runtime import _dbl_p, _Library, _load, _OwnsWork, _ptr
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
 from balustrade.errors import CodegenError
@@ -77,8 +76,8 @@ class CGridPCBFFilter(_OwnsWork):
         reports it. Wrong shapes raise :class:`~balustrade.errors.ShapeError`; NaN or inf
         never raise (a non-finite ``x`` keeps ``u_{k−1}``, non-finite entries of ``u_p``
         are read as 0: ``"non_finite_proposal[_<status>]"``)."""
-        self._u_p[:] = _proposal(u_p, self.nu, "CGridPCBFFilter.step: u_p")
-        self._x[:] = as_vector(x, "CGridPCBFFilter.step: x", self.nx, finite=False)
+        _load(self._u_p, u_p, "CGridPCBFFilter.step: u_p", proposal=True)
+        _load(self._x, x, "CGridPCBFFilter.step: x")
         start = time.perf_counter()
         code = self._step(*self._args)
         elapsed = time.perf_counter() - start
