@@ -20,6 +20,7 @@ The example targets and the ``balustrade codegen`` command live outside the pack
 no models or designs).
 """
 
+from balustrade.codegen.accelerate import accelerate
 from balustrade.codegen.build import build, build_executable, find_compiler
 from balustrade.codegen.emit import (
     Emitted,
@@ -49,5 +50,5 @@ __all__ = [
     "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "emit_problems",
     "find_compiler",
     "load_manifest", "solver_libraries", "mirror_c_retries", "write_example",
-    "CGridPCBFFilter", "emit_grid",
+    "CGridPCBFFilter", "emit_grid", "accelerate",
 ]

@@ -1,0 +1,171 @@
+"""Python closed loops at C speed: :func:`accelerate` turns a controller into its emitted C.
+
+``accelerate(controller)`` emits the controller's step (one C call per control step), builds
+it into a shared library, loads it and returns the ctypes controller of
+:mod:`~balustrade.codegen.runtime` with the same ``step(x, u_p) -> (u, StepInfo)`` and
+``reset()``: a closed loop (:func:`~balustrade.control.simulate`) keeps its Python code and
+runs the deployed C. Warm primal–dual starts stay in the C work struct across steps;
+``reset()`` clears them.
+
+Which controllers: a registry keyed by controller type (:func:`register`; the most derived
+registered class of the controller's MRO wins). Built in:
+:class:`~balustrade.control.pcbf.PCBFSafetyFilter` (:func:`~balustrade.codegen.emit.emit_pcbf`),
+:class:`~balustrade.control.approximate.ApproximatePCBFFilter` (Algorithm 7.5,
+:func:`~balustrade.codegen.emit.emit_approximate`) and
+:class:`~balustrade.control.approximate.GridPCBFFilter` (Algorithm 8.7,
+:func:`~balustrade.codegen.emit_grid.emit_grid`). Emitters of further controllers (e.g. the
+robust filter of Algorithm 5.2) plug in with ``register(cls, emit, load)``.
+
+Cache: the generated sources are hashed (with the compiler flags); the library is built once
+per hash into ``build_dir/<name>-<hash>/`` (default: ``$BALUSTRADE_CACHE`` or
+``<tmp>/balustrade-<uid>/accelerate``), so a second call with the same controller only
+re-emits (CasADi code generation, no compiler) and loads.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS, build
+from balustrade.codegen.emit import Emitted, emit_approximate, emit_pcbf
+from balustrade.codegen.emit_grid import emit_grid
+from balustrade.codegen.runtime import CApproximatePCBFFilter, CPCBFSafetyFilter
+from balustrade.codegen.runtime_grid import CGridPCBFFilter
+from balustrade.control.approximate import ApproximatePCBFFilter, GridPCBFFilter
+from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.errors import CodegenError
+
+#: ``emit(controller, name, out_dir) -> Emitted``
+EmitFn = Callable[[object, str, Path], Emitted]
+#: ``load(lib_path, manifest) -> controller`` with ``step`` and ``reset``
+LoadFn = Callable[[Path, dict], object]
+
+
+@dataclass(frozen=True)
+class Accelerator:
+    """How one controller type becomes C: its emitter, its loader, the default C name."""
+
+    emit: EmitFn
+    load: LoadFn
+    name: str
+
+
+_REGISTRY: dict[type, Accelerator] = {}
+
+
+def register(controller_type: type, emit: EmitFn, load: LoadFn, name: str) -> None:
+    """Make :func:`accelerate` handle ``controller_type`` (and its subclasses without an
+    entry of their own): ``emit(controller, name, out_dir)`` writes the C module,
+    ``load(lib_path, manifest)`` returns the ctypes controller; ``name`` is the default C
+    symbol prefix."""
+    if not isinstance(controller_type, type):
+        raise CodegenError(f"register: controller_type must be a class, got "
+                           f"{type(controller_type).__name__}")
+    if not (callable(emit) and callable(load)):
+        raise CodegenError("register: emit and load must be callables")
+    if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
+        raise CodegenError(f"register: name {name!r} must be an ASCII C identifier")
+    _REGISTRY[controller_type] = Accelerator(emit, load, name)
+
+
+def registered() -> tuple[type, ...]:
+    """The controller types :func:`accelerate` handles."""
+    return tuple(_REGISTRY)
+
+
+def _accelerator(controller: object) -> Accelerator:
+    for cls in type(controller).__mro__:
+        if cls in _REGISTRY:
+            return _REGISTRY[cls]
+    have = ", ".join(sorted(c.__name__ for c in _REGISTRY))
+    hint = ""
+    if callable(getattr(controller, "deployment_spec", None)):
+        hint = (" (its compiled problems can still be emitted one by one: "
+                "balustrade.codegen.emit_problems(controller, ...))")
+    raise CodegenError(f"accelerate: no C emitter for a {type(controller).__name__}: its "
+                       f"closed-loop step has no emitted C{hint}; emitters exist for {have}")
+
+
+def default_build_dir() -> Path:
+    """``$BALUSTRADE_CACHE/accelerate``, else ``<tmp>/balustrade-<uid>/accelerate``."""
+    root = os.environ.get("BALUSTRADE_CACHE")
+    if root:
+        return Path(root) / "accelerate"
+    uid = os.getuid() if hasattr(os, "getuid") else "user"
+    return Path(tempfile.gettempdir()) / f"balustrade-{uid}" / "accelerate"
+
+
+def source_hash(src_dir: Path, flags: tuple[str, ...]) -> str:
+    """SHA-256 of every generated file of ``src_dir`` (relative path and bytes, sorted; the
+    ``bal/`` static C included) and of the compiler flags."""
+    h = hashlib.sha256("\0".join(flags).encode())
+    for path in sorted(p for p in src_dir.rglob("*") if p.is_file()):
+        h.update(str(path.relative_to(src_dir)).encode() + b"\0")
+        h.update(path.read_bytes())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def accelerate(controller: object, build_dir: str | Path | None = None,
+               name: str | None = None, werror: bool = False,
+               extra_flags: tuple[str, ...] = ()) -> object:
+    """The controller's step as emitted C, loaded through ctypes (module docstring).
+
+    Returns the runtime controller (e.g. :class:`~balustrade.codegen.CPCBFSafetyFilter`)
+    in its reset state, with ``accelerated``, a dict: ``dir`` (sources and library),
+    ``hash``, ``cached`` (the library was already built), ``emit_s``, ``build_s``.
+    A controller without a registered emitter, or whose problems cannot be emitted (e.g.
+    compiled for cvxpy or an external solver), raises
+    :class:`~balustrade.errors.CodegenError` saying why."""
+    acc = _accelerator(controller)
+    name = acc.name if name is None else name
+    root = default_build_dir() if build_dir is None else Path(build_dir)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CodegenError(f"accelerate: cannot create the build folder {str(root)!r}: "
+                           f"{exc.strerror or exc}") from exc
+    flags = (*BASE_FLAGS, *THREAD_FLAGS, *(["-Werror"] if werror else []), *extra_flags)
+    start = time.perf_counter()
+    staging = Path(tempfile.mkdtemp(prefix=".staging-", dir=root))
+    try:
+        emitted = acc.emit(controller, name, staging)
+        emit_s = time.perf_counter() - start
+        digest = source_hash(staging, flags)
+        final = root / f"{name}-{digest[:20]}"
+        lib = final / f"lib{name}.so"
+        cached = lib.is_file()
+        if not cached:
+            if final.exists():  # an interrupted earlier build: start over
+                shutil.rmtree(final, ignore_errors=True)
+            try:
+                staging.rename(final)
+            except OSError:  # another process got there first
+                pass
+            tmp = final / f".lib{name}.{os.getpid()}.so"
+            build(final, name, werror=werror, extra_flags=extra_flags, out=tmp)
+            os.replace(tmp, lib)  # atomic: a concurrent reader sees all or nothing
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    build_s = time.perf_counter() - start - emit_s
+    loaded = acc.load(lib, emitted.manifest)
+    loaded.reset()
+    loaded.accelerated = {"dir": final, "hash": digest, "cached": cached,
+                          "emit_s": emit_s, "build_s": build_s}
+    return loaded
+
+
+register(PCBFSafetyFilter, lambda c, n, d: emit_pcbf(c, n, d), CPCBFSafetyFilter, "bal_pcbf")
+register(ApproximatePCBFFilter, lambda c, n, d: emit_approximate(c, n, d),
+         CApproximatePCBFFilter, "bal_approx")
+register(GridPCBFFilter, lambda c, n, d: emit_grid(c, n, d), CGridPCBFFilter, "bal_grid")
+
+__all__ = ["Accelerator", "accelerate", "default_build_dir", "register", "registered",
+           "source_hash"]
