@@ -180,3 +180,28 @@ def test_grid_c_ties_go_to_the_first_candidate(tmp_path) -> None:
         u1, _ = py.step(np.array([0.1, 0.2]), u_p)
         u2, _ = c.step(np.array([0.1, 0.2]), u_p)
         assert u1[0] == u2[0] == expect
+
+
+def test_grid_c_two_inputs_matches_python(tmp_path) -> None:
+    """Two inputs (the bicycle): candidates clipped on both axes reorder and merge, so the
+    lexicographic sort and deduplication of the C are exercised."""
+    from balustrade.models.bicycle import bicycle, bicycle_sets
+
+    system = bicycle()
+    _, U2, _ = bicycle_sets()
+    Q = np.diag([25.0, 2.0, 1.0, 2.0])
+    x_ref = np.array([0.0, 0.0, 0.9, 0.0])
+
+    def h(x):
+        d = x - x_ref
+        return ca.mtimes([d.T, Q, d]) - 1 + 0.2 * ca.sin(4 * x[1])
+
+    py = GridPCBFFilter(system, U2, h, half_width=[0.2, 1.0], spacing=[0.05, 0.25], rho=0.9,
+                        u_init=[0.28, 1.9])
+    em = emit_grid(py, "gb", tmp_path)
+    c = CGridPCBFFilter(build(em.out_dir, em.name, werror=True))
+    rng = np.random.default_rng(3)
+    lo, hi = np.array([-0.3, -0.7, 0.3, -0.7]), np.array([0.3, 0.7, 1.5, 0.7])
+    for x in rng.uniform(lo, hi, (300, 4)):
+        _compare(py, c, x, rng.uniform([-0.5, -3.0], [0.5, 3.0]))
+    assert 0 < c.n_decrease_infeasible < 300
