@@ -10,6 +10,12 @@ One pendulum PCBF control step ((2.24) then (2.23)) on the states of closed loop
 * baseline: both problems compiled to cvxpy from scratch and solved at every step
   (``balustrade.backends.compile(ocp, "cvxpy")`` + ``solve``).
 
+Interleaved in blocks of 10 states (ratios of the same run under the same load): the
+pendulum PCBF step in pure Python (CasADi), from Python on the C library
+(:func:`~balustrade.codegen.accelerate`, ``step`` with its StepInfo; goal <= 15 µs) and the
+bare ctypes call; Algorithm 8.7 (a 4 × 32 softplus network, 101 grid inputs) in Python and
+from Python on its emitted C (:func:`~balustrade.codegen.emit_grid`; goal <= 0.5 ms).
+
 A plain function (the dynamics ``f(x, u)``): CasADi ``Function`` call from Python, the
 emitted C through ctypes (:class:`~balustrade.codegen.runtime.CFunction`), pure C (main.c).
 Goals (reported, not asserted): PCBF step < 50 µs in pure C, plain function < 1 µs.
@@ -22,12 +28,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import casadi as ca
 import numpy as np
 
 from balustrade.backends import compile
 from balustrade.codegen import (
     CFunction,
     CPCBFSafetyFilter,
+    accelerate,
     build,
     build_executable,
     emit_functions,
@@ -35,7 +43,10 @@ from balustrade.codegen import (
     write_example,
 )
 from balustrade.control import PCBFSafetyFilter, simulate
+from balustrade.control.approximate import GridPCBFFilter
 from balustrade.design.terminal_cbf import synthesize_terminal_cbf
+from balustrade.learn.export import to_casadi
+from balustrade.learn.train import MLPModel
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
 
@@ -60,6 +71,52 @@ def _median_time(fn, reps: int) -> float:
         fn()
         times.append(time.perf_counter() - t0)
     return float(np.median(times))
+
+
+def _interleaved(fns: dict, items, repeat: int = 1, block: int = 10) -> dict[str, float]:
+    """Median time per call of each function, taking turns on blocks of ``block`` items."""
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    items = list(items)
+    for _ in range(repeat):
+        for i in range(0, len(items), block):
+            for k, fn in fns.items():
+                for item in items[i:i + block]:
+                    t0 = time.perf_counter()
+                    fn(item)
+                    times[k].append(time.perf_counter() - t0)
+    return {k: float(np.median(v)) for k, v in times.items()}
+
+
+def _network(widths: tuple[int, ...] = (32, 32, 32, 32), seed: int = 0) -> ca.Function:
+    """A softplus MLP ``ĥ`` with random (Glorot-scaled) weights on the pendulum state."""
+    rng = np.random.default_rng(seed)
+    sizes = (2, *widths, 1)
+    W = [rng.normal(0, np.sqrt(2 / (a + b)), (b, a)) for a, b in zip(sizes[:-1], sizes[1:])]
+    b = [rng.normal(0, 0.1, n) for n in sizes[1:]]
+    return to_casadi(MLPModel(W, b, np.zeros(2), np.array([0.5, 1.5])))
+
+
+def _grid_rows(quick: bool, build_dir: Path) -> list[dict]:
+    """Algorithm 8.7, Python vs its emitted C from Python, interleaved."""
+    system, s = pendulum(), pendulum_setup()
+    py = GridPCBFFilter(system, s.U, _network(), half_width=0.5, spacing=0.01)
+    c = accelerate(py, build_dir=build_dir)
+    states = np.random.default_rng(0).uniform([-1.0, -3.0], [1.0, 3.0],
+                                              (40 if quick else 200, 2))
+    u_p = np.array([U_P])
+
+    def raw(x: np.ndarray) -> None:
+        c._x[:] = x
+        c._step(*c._args)
+
+    t = _interleaved({"python": lambda x: py.step(x, u_p), "c": lambda x: c.step(x, u_p),
+                      "raw": raw}, states, repeat=1 if quick else 3)
+    label = f"Alg. 8.7 grid step (4x32 network, {len(py.offsets)} inputs)"
+    return [{"name": f"{label}: Python (CasADi map)", "median_s": t["python"]},
+            {"name": f"{label}: Python on the C library (step)", "median_s": t["c"],
+             "baseline": "Python", "ratio": t["python"] / t["c"], "goal_s": 0.5e-3},
+            {"name": f"{label}: C via ctypes (bare call)", "median_s": t["raw"],
+             "baseline": "Python", "ratio": t["python"] / t["raw"]}]
 
 
 def run(quick: bool = False) -> list[dict]:
@@ -103,6 +160,20 @@ def run(quick: bool = False) -> list[dict]:
             c_ctl.step_raw(x, np.array([U_P]))
             raw.append(time.perf_counter() - t0)
         medians["c_raw"] = float(np.median(raw))
+        # the same step from Python on the C library (accelerate), interleaved with the
+        # pure Python step and the bare ctypes call on the same states
+        c_acc = accelerate(ctl["casadi"], build_dir=out / "accelerate")
+        ctl["casadi"].reset()
+        args_acc = c_acc._hot_step
+
+        def bare(x: np.ndarray) -> None:
+            c_acc._x[:] = x
+            args_acc[0](*args_acc[1])
+
+        inter = _interleaved({"python": lambda x: ctl["casadi"].step(x, U_P),
+                              "c_lib": lambda x: c_acc.step(x, U_P), "bare": bare},
+                             states, repeat=1 if quick else 5)
+        grid_rows = _grid_rows(quick, out / "accelerate")
         medians["c_pure"] = bench["pcbf_step_median_us"] * 1e-6
         n_base = 5 if quick else 20
         idx = np.linspace(0, len(states) - 1, n_base).astype(int)
@@ -131,6 +202,19 @@ def run(quick: bool = False) -> list[dict]:
         rows.append({"name": f"{label}: {names[key]}", "median_s": medians[key],
                      "baseline": "cvxpy rebuild", "ratio": baseline / medians[key],
                      "vs_casadi_python": round(medians["casadi"] / medians[key], 3)})
+    acc = f"{label}, interleaved"
+    rows.append({"name": f"{acc}: pure Python (CasADi sqpmethod)",
+                 "median_s": inter["python"]})
+    rows.append({"name": f"{acc}: Python on the C library (accelerate, step)",
+                 "median_s": inter["c_lib"], "baseline": "pure Python",
+                 "ratio": inter["python"] / inter["c_lib"], "goal_s": 15e-6,
+                 "vs_pure_c": round(inter["c_lib"] / medians["c_pure"], 2)})
+    rows.append({"name": f"{acc}: bare ctypes call (inputs preloaded)",
+                 "median_s": inter["bare"], "baseline": "pure Python",
+                 "ratio": inter["python"] / inter["bare"]})
+    rows.append({"name": f"{acc}: pure C (main.c, same run)", "median_s": medians["c_pure"],
+                 "baseline": "pure Python", "ratio": inter["python"] / medians["c_pure"]})
+    rows += grid_rows
     rows.append({"name": "dynamics f(x,u): CasADi Function (Python)", "median_s": f_py})
     rows.append({"name": "dynamics f(x,u): C via ctypes", "median_s": f_c,
                  "baseline": "CasADi Function", "ratio": f_py / f_c})
