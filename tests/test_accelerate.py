@@ -126,3 +126,23 @@ def test_controller_that_cannot_be_emitted_raises(tmp_path) -> None:
     with pytest.raises(CodegenError, match="C identifier"):
         register(Mine, lambda c, n, d: None, lambda p, m: None, "not an identifier")
     assert Mine not in registered()
+
+
+def test_accelerated_approximate_filter_matches_python(tmp_path) -> None:
+    """Algorithm 7.5 through accelerate: the same closed loops as the Python filter."""
+    from balustrade.codegen import CApproximatePCBFFilter
+    from balustrade.codegen.runtime import mirror_c_retries
+    from balustrade.examples.codegen import pendulum_approximate_filter
+
+    py = pendulum_approximate_filter()
+    py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
+    py.filter = mirror_c_retries(py.filter)
+    c = accelerate(py, build_dir=tmp_path)
+    assert isinstance(c, CApproximatePCBFFilter)
+    for x0 in ([0.3, 0.5], [0.45, -1.2]):
+        py.reset()
+        c.reset()
+        t1 = simulate(SYS, py, x0, 30, proposal=lambda k, x: 3.5 * np.sin(0.4 * k))
+        t2 = simulate(SYS, c, x0, 30, proposal=lambda k, x: 3.5 * np.sin(0.4 * k))
+        assert np.abs(t1.states - t2.states).max() <= 1e-6
+        assert t1.statuses == t2.statuses and t1.fallbacks == t2.fallbacks
