@@ -391,7 +391,8 @@ class CPCBFSafetyFilter(_OwnsWork):
         returned ``u`` is a view of the output buffer (copy it to keep it)."""
         self._x[:] = x
         self._u_p[:] = u_p
-        code = self._step(*self._args)
+        fn, args = self._hot_step
+        code = fn(*args)
         return self._u, float(self._h[0]), code
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
