@@ -64,7 +64,7 @@ def _load(buf: np.ndarray, value: object, block: str, proposal: bool = False) ->
     kind = type(value)
     if kind is np.ndarray and value.dtype == _F64 and value.shape == buf.shape:
         buf[:] = value
-        return buf.size <= 4 and all(map(math.isfinite, buf.tolist()))
+        return proposal and buf.size <= 4 and all(map(math.isfinite, buf.tolist()))
     if (kind is float or kind is int) and (proposal or buf.size == 1):
         buf.fill(value)
         return math.isfinite(value)
