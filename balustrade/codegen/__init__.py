@@ -15,6 +15,10 @@ deployment specs of :mod:`balustrade.control.deploy`), :mod:`~balustrade.codegen
 (the static C shipped in ``codegen/c/`` and the generated config header that instantiates
 it), :mod:`~balustrade.codegen.status` (status codes, defined once),
 :mod:`~balustrade.codegen.build` (compiler), :mod:`~balustrade.codegen.runtime` (ctypes).
+Algorithm 8.7 (grid filter): :mod:`~balustrade.codegen.emit_grid` and
+:mod:`~balustrade.codegen.runtime_grid`. :mod:`~balustrade.codegen.accelerate`: a
+controller's step emitted, built (cached) and loaded in one call, for Python closed loops
+at C speed.
 The example targets and the ``balustrade codegen`` command live outside the package, in
 :mod:`balustrade.examples.codegen` and :mod:`balustrade.examples.codegen_cli` (codegen imports
 no models or designs).
