@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -20,6 +20,9 @@ from balustrade._checks import as_count, as_float_array, as_vector
 from balustrade.control.plant import Plant, check_plant
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
+
+if TYPE_CHECKING:
+    from balustrade.backends.solution import Solution
 
 
 @dataclass
@@ -36,6 +39,26 @@ class StepInfo:
     solve_time: float = 0.0
     solutions: dict = field(default_factory=dict, repr=False)
     uncertified: dict[str, str] = field(default_factory=dict)
+
+
+#: the status word of a solve stopped by its target's budget (real-time mode, issue #14 §5,
+#: :meth:`balustrade.backends.Target.with_budget`): used in ``StepInfo.status`` and as the
+#: reason in ``StepInfo.uncertified`` in place of the solver status ``max_iterations``
+TRUNCATED = "truncated"
+
+
+def outcome(sol: Solution) -> str:
+    """How a solve ended, as a controller records it: :data:`TRUNCATED` for a solve stopped
+    by its budget, else its status."""
+    return TRUNCATED if getattr(sol, "truncated", False) else str(sol.status)
+
+
+def feasible_truncation(sol: Solution) -> bool:
+    """A solve stopped by its budget whose iterate meets every constraint row and bound
+    within :data:`~balustrade.backends.solution.FEASIBILITY_TOL`
+    (:meth:`~balustrade.backends.Solution.feasible_within`): not optimal, but a feasible
+    point of the problem."""
+    return bool(getattr(sol, "truncated", False)) and sol.feasible_within()
 
 
 def note_solve(info: StepInfo, name: str, status: str) -> bool:
@@ -80,6 +103,13 @@ class Trace:
     def n_uncertified(self) -> int:
         """Steps that relied on at least one solve not certified ``optimal``."""
         return sum(bool(u) for u in self.uncertified)
+
+    @property
+    def n_truncated(self) -> int:
+        """Steps with at least one solve stopped by its budget (real-time mode): the status
+        word :data:`TRUNCATED` in the step's status or its uncertified solves."""
+        return sum(TRUNCATED in s or TRUNCATED in u.values()
+                   for s, u in zip(self.statuses, self.uncertified + [{}] * len(self.statuses)))
 
     def plot(self, path: str | None = None, **options: object) -> object:
         """A matplotlib figure of the run, saved to ``path`` if given (see
