@@ -43,7 +43,7 @@ class StepInfo:
 
 #: the status word of a solve stopped by its target's budget (real-time mode, issue #14 §5,
 #: :meth:`balustrade.backends.Target.with_budget`): used in ``StepInfo.status`` and as the
-#: reason in ``StepInfo.uncertified`` in place of the solver status ``max_iterations``
+#: reason in ``StepInfo.uncertified`` in place of the status of the iteration limit
 TRUNCATED = "truncated"
 
 
