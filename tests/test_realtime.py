@@ -13,7 +13,7 @@ import pytest
 from balustrade.backends import Solution, Status, compile
 from balustrade.backends.targets import REALTIME_ITERATIONS, Budget, target
 from balustrade.control import PCBFSafetyFilter, simulate
-from balustrade.control.base import TRUNCATED, outcome
+from balustrade.control.base import TRUNCATED, Trace, outcome
 from balustrade.errors import BalustradeError, SolverError
 
 #: a state of the pendulum where (2.24) needs 4 SQP iterations from a cold start
@@ -209,7 +209,7 @@ class _CPUTimed:
         self.inner.reset()
 
 
-def test_realtime_closed_loop_keeps_the_state_constraints(pend):
+def test_realtime_closed_loop_keeps_the_state_constraints(pend, tmp_path):
     """The pendulum PCBF on the real-time preset (at most 3 SQP iterations per solve): the
     seeded runs keep ψ <= 0.5, |ω| <= 1.5, |u| <= 3, record their truncations, and a
     truncated solve is only ever applied when feasible. Prints the worst-case step time
@@ -238,6 +238,9 @@ def test_realtime_closed_loop_keeps_the_state_constraints(pend):
             if f is not None and f.truncated and info.fallback is None:
                 assert f.feasible_within() and info.uncertified["filter"] == TRUNCATED
         truncated += trace.n_truncated
+        if trace.n_truncated:  # the record survives a saved run
+            trace.save(tmp_path / f"run{omega0}")
+            assert Trace.load(tmp_path / f"run{omega0}").n_truncated == trace.n_truncated
         worst.append(trace.step_times[1:])
         cpu.append(timed.times[1:])
     assert truncated >= 1  # the cap is reached and recorded on these runs
