@@ -241,6 +241,10 @@ def test_realtime_closed_loop_keeps_the_state_constraints(pend, tmp_path):
         if trace.n_truncated:  # the record survives a saved run
             trace.save(tmp_path / f"run{omega0}")
             assert Trace.load(tmp_path / f"run{omega0}").n_truncated == trace.n_truncated
+            fig = trace.plot()
+            events = fig.get_axes()[-1]
+            assert [t.get_text() for t in events.get_yticklabels()][-1] == TRUNCATED
+            assert f"{trace.n_truncated} truncated" in fig._suptitle.get_text()
         worst.append(trace.step_times[1:])
         cpu.append(timed.times[1:])
     assert truncated >= 1  # the cap is reached and recorded on these runs

@@ -31,7 +31,8 @@ class StepInfo:
 
     ``uncertified`` maps each solve the step relied on that did not end ``optimal`` to its
     status (e.g. ``{"slack": "optimal_inaccurate"}``): values computed from it are not
-    certified optima (see :func:`note_solve`)."""
+    certified optima (see :func:`note_solve`); a solve stopped by its target's budget is
+    recorded with the word :data:`TRUNCATED` (real-time mode), also in ``status``."""
 
     status: str = "ok"
     fallback: str | None = None
@@ -105,11 +106,17 @@ class Trace:
         return sum(bool(u) for u in self.uncertified)
 
     @property
+    def truncated_steps(self) -> list[int]:
+        """The steps with at least one solve stopped by its budget (real-time mode): the
+        status word :data:`TRUNCATED` in the step's status or its uncertified solves."""
+        unc = self.uncertified + [{}] * (len(self.statuses) - len(self.uncertified))
+        return [k for k, (s, u) in enumerate(zip(self.statuses, unc))
+                if TRUNCATED in s or TRUNCATED in u.values()]
+
+    @property
     def n_truncated(self) -> int:
-        """Steps with at least one solve stopped by its budget (real-time mode): the status
-        word :data:`TRUNCATED` in the step's status or its uncertified solves."""
-        return sum(TRUNCATED in s or TRUNCATED in u.values()
-                   for s, u in zip(self.statuses, self.uncertified + [{}] * len(self.statuses)))
+        """How many steps had a solve stopped by its budget (:attr:`truncated_steps`)."""
+        return len(self.truncated_steps)
 
     def plot(self, path: str | None = None, **options: object) -> object:
         """A matplotlib figure of the run, saved to ``path`` if given (see
