@@ -39,6 +39,12 @@ def test_realtime_preset_and_budgets_map_to_solver_options():
     ip = target("exact").with_budget(iterations=7, seconds=0.05)
     assert ip.options["ipopt.max_iter"] == 7 and ip.options["ipopt.max_wall_time"] == 0.05
     assert ip.retries == () and pickle.loads(pickle.dumps(ip)).budget == ip.budget
+    # another solver keeps the budget in its own option names
+    moved = target("real-time").with_solver("ipopt")
+    assert moved.options["ipopt.max_iter"] == REALTIME_ITERATIONS
+    assert "max_iter" not in moved.options and moved.budget == t.budget
+    with pytest.raises(SolverError, match="no seconds budget"):
+        ip.with_solver("sqpmethod")
 
 
 @pytest.mark.parametrize("call, words", [

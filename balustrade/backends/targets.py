@@ -197,8 +197,14 @@ class Target:
                        retries=(), budget=budget, name=f"{self.name}+budget")
 
     def with_solver(self, solver: str | None) -> Target:
-        """A copy that uses ``solver`` on the same backend (options are kept)."""
-        return replace(self, solver=solver, name=f"{self.backend}:{solver}")
+        """A copy that uses ``solver`` on the same backend (options are kept; a budget is
+        carried over in the new solver's option names, or refused if it has none)."""
+        other = replace(self, solver=solver, name=f"{self.backend}:{solver}")
+        if self.budget is None:
+            return other
+        stale = set(BUDGET_OPTIONS.get(self.nlp_solver, {}).values())
+        options = {k: v for k, v in self.options.items() if k not in stale}
+        return replace(other, options={**options, **self.budget.options(other.nlp_solver)})
 
     # -- what the backends read ---------------------------------------------------------
     @property
