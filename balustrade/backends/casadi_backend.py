@@ -54,6 +54,7 @@ from balustrade.backends.passes import CASADI_CHAIN, run_chain
 from balustrade.backends.passes.casadi_nlp import as_dm
 from balustrade.backends.passes.epigraph import EpigraphInverse
 from balustrade.backends.solution import Solution, Status
+from balustrade.backends.targets import Budget
 from balustrade.dsl.ocp import OCP
 from balustrade.errors import SolverError
 
@@ -196,6 +197,13 @@ class CasadiCompiled:
         with IPOPT), the status is ``"infeasible"``; else the first attempt's status
         (``failed``, ``max_iterations``).
 
+        Real-time mode (issue #14 §5): when the target has a budget
+        (:meth:`~balustrade.backends.targets.Target.with_budget`, the ``"real-time"``
+        preset), a first attempt stopped by it (iteration cap, IPOPT's wall-time limit) is
+        returned at once as *truncated* (:meth:`_truncated`): status ``max_iterations``,
+        ``Solution.truncated`` and the primal residual at the iterate; no retry runs after
+        it (that would break the time bound) and it is never rescued as ``"feasible"``.
+
         An attempt whose iterates diverged (IPOPT's ``Diverging_Iterates``) or whose
         objective is below :data:`UNBOUNDED_OBJECTIVE` or not finite is ``failed`` with a
         message saying the problem appears unbounded (:func:`_unbounded`); when no attempt
@@ -204,6 +212,8 @@ class CasadiCompiled:
         """
         p = self.ocp.pack_parameters(params)
         sol = self._solve_with(self.solver, p, self._initial_guess(warm_start))
+        if self.budget is not None and sol.status == Status.MAX_ITERATIONS:
+            return self._truncated(sol, p)  # no retry, no rescue: the time bound holds
         attempts = [sol]
         for solver in self._retry_solvers():
             if attempts[-1].success:
@@ -228,6 +238,40 @@ class CasadiCompiled:
             final.message += " (after retries: " + ", ".join(
                 f"{a.solver}: {a.message}" for a in attempts if a is not final) + ")"
         return final
+
+    @property
+    def budget(self) -> Budget | None:
+        """The :class:`~balustrade.backends.targets.Budget` of the target this problem was
+        compiled for (``None``: no budget, or built without a target)."""
+        target = getattr(self, "target", None)
+        return None if target is None else target.budget
+
+    def _truncated(self, sol: Solution, p: np.ndarray) -> Solution:
+        """A solve stopped by the budget: flagged truncated, with the largest violation of a
+        constraint row or bound at its iterate (so callers can tell a feasible from an
+        infeasible stop); its status stays ``max_iterations``."""
+        sol.truncated = True
+        x = sol.raw.get("x")
+        sol.primal_residual = np.nan if x is None else self._primal_residual(x, p)
+        sol.message += (f" (truncated by the budget {self.budget}: primal residual "
+                        f"{sol.primal_residual:.3g})")
+        return sol
+
+    def _primal_residual(self, w_all: np.ndarray, p: np.ndarray) -> float:
+        """The largest violation (absolute) of a constraint row or a variable bound at
+        ``w_all`` (``nan`` if the point is not finite)."""
+        if not np.all(np.isfinite(w_all)):
+            return float("nan")
+        g = self._g(w_all, p)
+        parts = [g - self.ubg, self.lbg - g, w_all - self.ubx, self.lbx - w_all]
+        return float(max(0.0, *(np.max(v, initial=0.0) for v in parts)))
+
+    def _g(self, w_all: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The constraint rows of the solver's NLP at ``w_all``."""
+        if self._g_function is None:
+            self._g_function = ca.Function("g", [self.nlp["x"], self.nlp["p"]],
+                                           [self.nlp["g"]])
+        return np.asarray(self._g_function(w_all, p)).reshape(-1)
 
     def _retry_solvers(self) -> list[ca.Function]:
         """The solvers of :attr:`retries`, built on first use."""
@@ -287,18 +331,18 @@ class CasadiCompiled:
         """Bounds and constraint rows hold up to ``tol`` (rows scaled by ``1 + |g|``)."""
         if not np.all(np.isfinite(w_all)):
             return False
-        if self._g_function is None:
-            self._g_function = ca.Function("g", [self.nlp["x"], self.nlp["p"]],
-                                           [self.nlp["g"]])
-        g = np.asarray(self._g_function(w_all, p)).reshape(-1)
+        g = self._g(w_all, p)
         scale = 1.0 + np.abs(g)
         return bool(np.all(g - self.ubg <= tol * scale) and np.all(self.lbg - g <= tol * scale)
                     and np.all(w_all - self.ubx <= tol) and np.all(self.lbx - w_all <= tol))
 
     def _initial_guess(self, warm: Solution | dict | None
                        ) -> tuple[np.ndarray, np.ndarray | float, np.ndarray | float]:
+        # a truncated iterate is continued primal-dual (real-time iterations: the SQP picks
+        # up where the budget stopped it at the previous step)
         if isinstance(warm, Solution) and warm.backend == "casadi" and "dm" in warm.raw \
-                and warm.success and warm.raw["x"].size == self.lbx.size:
+                and warm.raw["x"].size == self.lbx.size and (
+                    warm.success or (warm.truncated and np.all(np.isfinite(warm.raw["x"])))):
             return warm.raw["dm"]
         if isinstance(warm, Solution):
             w_user = warm.w  # derived from warm.primal on each access: once here

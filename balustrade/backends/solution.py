@@ -42,6 +42,11 @@ class Status(StrEnum):
 
 SUCCESS_STATUSES = (Status.OPTIMAL, Status.OPTIMAL_INACCURATE)
 
+#: the largest violation (absolute) of a constraint row or variable bound at which a
+#: truncated solve's iterate counts as feasible (:meth:`Solution.feasible_within`); the
+#: CasADi backend's rescue of a failed solve uses the same 1e-8
+FEASIBILITY_TOL = 1e-8
+
 
 @dataclass(init=False)
 class Solution:
@@ -53,6 +58,13 @@ class Solution:
     maps variable names to arrays of their declared shapes; ``dual`` maps constraint-block
     names (and ``bound:<variable>``) to multipliers; ``objective`` is the declared cost
     evaluated at the primal solution; ``p`` is the stacked parameter vector.
+
+    ``truncated`` (real-time mode, issue #14 §5): the solve was stopped by the target's
+    budget (:meth:`~balustrade.backends.targets.Target.with_budget`) before converging; its
+    status is then ``max_iterations`` (never ``optimal``) and ``primal_residual`` is the
+    largest violation of a constraint row or variable bound at the returned iterate (``nan``
+    when not computed), so :meth:`feasible_within` tells "stopped early at a feasible point"
+    from "stopped infeasible".
 
     ``primal`` is the one source of truth for the point: ``w``, the stacked decision vector
     (declaration order, column-major per variable), is derived from it on every access, so
@@ -73,12 +85,15 @@ class Solution:
     p: np.ndarray
     message: str = ""
     raw: dict = field(default_factory=dict, repr=False)
+    truncated: bool = False
+    primal_residual: float = float("nan")
 
     def __init__(self, status: Status | str, objective: float, primal: dict[str, np.ndarray],
                  dual: dict[str, np.ndarray], solve_time: float, iterations: int,
                  backend: str, solver: str, w: np.ndarray | None = None,
                  p: np.ndarray | None = None, message: str = "",
-                 raw: dict | None = None):
+                 raw: dict | None = None, truncated: bool = False,
+                 primal_residual: float = float("nan")):
         if not isinstance(primal, dict):
             raise BalustradeError(f"Solution: primal must be a dict name -> array, got "
                                   f"{type(primal).__name__}")
@@ -88,6 +103,10 @@ class Solution:
         self.backend, self.solver, self.message = backend, solver, message
         self.p = np.zeros(0) if p is None else as_float_array(p, "Solution: p").reshape(-1)
         self.raw = {} if raw is None else raw
+        self.truncated, self.primal_residual = bool(truncated), float(primal_residual)
+        if self.truncated and self.status in SUCCESS_STATUSES:
+            raise BalustradeError(f"Solution: a truncated solve cannot be {self.status!r} "
+                                  f"(it stopped before converging)")
         if w is not None:
             given = as_float_array(w, "Solution: w").reshape(-1)
             if not np.array_equal(given, self.w, equal_nan=True):
@@ -125,6 +144,11 @@ class Solution:
         """Converged, or at least primal feasible: safe to apply in a closed loop."""
         return self.success or self.status == Status.FEASIBLE
 
+    def feasible_within(self, tol: float = FEASIBILITY_TOL) -> bool:
+        """The returned point meets every constraint row and bound up to ``tol`` (absolute),
+        as measured by :attr:`primal_residual` (``False`` when it was not computed)."""
+        return bool(self.primal_residual <= tol)
+
     def __getitem__(self, name: str) -> np.ndarray:
         try:
             return self.primal[name]
@@ -133,6 +157,7 @@ class Solution:
                                   f"{list(self.primal)}") from None
 
     def summary(self) -> str:
-        return (f"{self.backend}/{self.solver}: {self.status}, objective {self.objective:.6g}, "
+        status = f"{self.status} (truncated)" if self.truncated else str(self.status)
+        return (f"{self.backend}/{self.solver}: {status}, objective {self.objective:.6g}, "
                 f"{self.iterations} iterations, {self.solve_time * 1e3:.2f} ms"
                 + (f" ({self.message})" if self.message else ""))

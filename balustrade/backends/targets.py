@@ -30,7 +30,15 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
 ``"sdp"``              synthesis problems (:func:`~balustrade.backends.compile_synthesis`):
                        cvxpy + Clarabel with Clarabel's own tolerances, the options every SDP
                        of balustrade (terminal CBF, RPI set, regret family) has been solved with.
+``"real-time"``        a bounded-iteration mode (issue #14 §5): ``sqpmethod`` + ``qrqp`` capped
+                       at :data:`REALTIME_ITERATIONS` SQP iterations, no retries, meant to be
+                       warm-started from the previous step's iterate. A solve stopped by the
+                       cap is reported *truncated* (``max_iterations``, never optimal).
 =====================  =========================================================================
+
+Budgets: :meth:`Target.with_budget` caps any CasADi target's iterations and/or (IPOPT only)
+wall-clock seconds, mapped to the solver's own option names by :data:`BUDGET_OPTIONS`; the
+backend then reports a stop by the budget as truncated and runs no retry after it.
 
 A target is immutable; ``with_options``/``with_retries``/``with_solver`` return new targets.
 """
@@ -62,6 +70,57 @@ def _plain(value: Any) -> Any:
 _CASADI_DEFAULT_SOLVER = "ipopt"
 
 
+# -- real-time mode (issue #14 §5): budgets and the "real-time" preset ----------------------
+#: the SQP iteration cap of the ``"real-time"`` preset: one SQP iteration of the pendulum
+#: PCBF problems costs ~0.6 ms (qrqp), so the worst case is a few ms per solve
+REALTIME_ITERATIONS = 3
+
+#: per CasADi NLP solver, the solver's own option for each budget kind (``iterations``,
+#: ``seconds``); a kind a solver lacks (sqpmethod has no clock) is refused by
+#: :meth:`Target.with_budget`
+BUDGET_OPTIONS: dict[str, dict[str, str]] = {
+    "sqpmethod": {"iterations": "max_iter"},
+    "ipopt": {"iterations": "ipopt.max_iter", "seconds": "ipopt.max_wall_time"},
+}
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A bound on one solve: at most ``iterations`` solver iterations and/or ``seconds`` of
+    wall-clock time (``None``: no bound of that kind). A solve stopped by it is *truncated*
+    (:attr:`balustrade.backends.Solution.truncated`)."""
+
+    iterations: int | None = None
+    seconds: float | None = None
+
+    def __post_init__(self) -> None:
+        it, sec = self.iterations, self.seconds
+        if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 1):
+            raise SolverError(f"Budget: iterations must be a positive int or None, got {it!r}")
+        if sec is not None and (isinstance(sec, bool) or not isinstance(sec, int | float)
+                                or not sec > 0 or sec == float("inf")):
+            raise SolverError(f"Budget: seconds must be a positive finite number or None, "
+                              f"got {sec!r}")
+        if it is None and sec is None:
+            raise SolverError("Budget: give iterations, seconds or both")
+
+    def options(self, solver: str) -> dict[str, Any]:
+        """The options of CasADi solver ``solver`` that impose this budget."""
+        names = BUDGET_OPTIONS.get(solver)
+        if names is None:
+            raise SolverError(f"Budget: no budget options known for solver {solver!r}; "
+                              f"budgets work with {', '.join(BUDGET_OPTIONS)}")
+        out: dict[str, Any] = {}
+        for kind, value in (("iterations", self.iterations), ("seconds", self.seconds)):
+            if value is None:
+                continue
+            if kind not in names:
+                raise SolverError(f"Budget: solver {solver!r} has no {kind} budget (it takes "
+                                  f"{', '.join(names)}); use another solver or that kind")
+            out[names[kind]] = float(value) if kind == "seconds" else int(value)
+        return out
+
+
 @dataclass(frozen=True)
 class Target:
     """Where an :class:`~balustrade.dsl.ocp.OCP` is compiled to.
@@ -71,7 +130,8 @@ class Target:
     ``"piqp"``, …), ``None`` for the backend's default; ``options``: solver options
     (added to the backend's defaults); ``retries`` (CasADi only): the cold-start chain run
     after a failed solve as ``(solver, option overrides)`` pairs, ``None`` for the backend's
-    default chain and ``()`` for none; ``name``: a label shown in errors and traces.
+    default chain and ``()`` for none; ``name``: a label shown in errors and traces;
+    ``budget``: a :class:`Budget` set by :meth:`with_budget` (its options are in ``options``).
     """
 
     backend: str = "casadi"
@@ -80,6 +140,8 @@ class Target:
     retries: tuple[tuple[str, Mapping[str, Any]], ...] | None = field(default=None,
                                                                       compare=False)
     name: str = "custom"
+    #: a bound on each solve (:meth:`with_budget`), ``None`` for none
+    budget: Budget | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.backend, str) or self.backend not in BACKEND_NAMES:
@@ -105,6 +167,9 @@ class Target:
                                   f"the {self.backend} backend has its own status checks")
             object.__setattr__(self, "retries",
                                tuple((s, _frozen(o)) for s, o in self.retries))
+        if self.budget is not None and not isinstance(self.budget, Budget):
+            raise SolverError(f"Target({self.name}): budget must be a Budget or None, got "
+                              f"{type(self.budget).__name__}")
 
     # -- derived targets ------------------------------------------------------------
     def with_options(self, options: Mapping[str, Any] | None = None, /,
@@ -117,9 +182,29 @@ class Target:
         """A copy with another retry chain (``()`` for none, ``None`` for the default)."""
         return replace(self, retries=None if retries is None else tuple(retries))
 
+    def with_budget(self, iterations: int | None = None,
+                    seconds: float | None = None) -> Target:
+        """A copy whose solves stop after ``iterations`` solver iterations and/or ``seconds``
+        of wall-clock time (IPOPT only), reported as truncated (status ``max_iterations``,
+        ``Solution.truncated``), never as optimal. The copy has no retry chain: a retry
+        would break the time bound (add one back with :meth:`with_retries`; the backend
+        still runs none after a stop by the budget). CasADi targets only."""
+        if self.backend != "casadi":
+            raise SolverError(f"Target({self.name}).with_budget: budgets are for the CasADi "
+                              f"NLP solvers, not the {self.backend} backend")
+        budget = Budget(iterations, seconds)
+        return replace(self, options={**self.options, **budget.options(self.nlp_solver)},
+                       retries=(), budget=budget, name=f"{self.name}+budget")
+
     def with_solver(self, solver: str | None) -> Target:
-        """A copy that uses ``solver`` on the same backend (options are kept)."""
-        return replace(self, solver=solver, name=f"{self.backend}:{solver}")
+        """A copy that uses ``solver`` on the same backend (options are kept; a budget is
+        carried over in the new solver's option names, or refused if it has none)."""
+        other = replace(self, solver=solver, name=f"{self.backend}:{solver}")
+        if self.budget is None:
+            return other
+        stale = set(BUDGET_OPTIONS.get(self.nlp_solver, {}).values())
+        options = {k: v for k, v in self.options.items() if k not in stale}
+        return replace(other, options={**options, **self.budget.options(other.nlp_solver)})
 
     # -- what the backends read ---------------------------------------------------------
     @property
@@ -174,7 +259,8 @@ class Target:
         to sampling workers (:mod:`balustrade.learn.executors`)."""
         retries = None if self.retries is None else tuple(
             (s, _plain(o)) for s, o in self.retries)
-        return (Target, (self.backend, self.solver, _plain(self.options), retries, self.name))
+        return (Target, (self.backend, self.solver, _plain(self.options), retries, self.name,
+                         self.budget))
 
     def __str__(self) -> str:
         return f"{self.name} ({self.backend}{':' + self.solver if self.solver else ''})"
@@ -199,6 +285,9 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("cvxpy", None, name="cvxpy"),
     Target("cvxpy", "clarabel", name="conic"),
     Target("cvxpy", "clarabel", name="sdp"),
+    # -- real-time mode (issue #14 §5) --
+    replace(Target("casadi", "sqpmethod").with_budget(iterations=REALTIME_ITERATIONS),
+            name="real-time"),
 )}
 
 #: the solver-named spellings of presets (kept so that existing scripts resolve)
@@ -282,5 +371,5 @@ def sampling_targets(spec: Target | str) -> tuple[Target, Target | None]:
     return target(spec), None
 
 
-__all__ = ["ALIASES", "BACKEND_NAMES", "PRESETS", "SAMPLING_PAIRS", "Target", "companion",
-           "sampling_targets", "target"]
+__all__ = ["ALIASES", "BACKEND_NAMES", "BUDGET_OPTIONS", "PRESETS", "REALTIME_ITERATIONS",
+           "SAMPLING_PAIRS", "Budget", "Target", "companion", "sampling_targets", "target"]

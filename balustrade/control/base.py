@@ -12,7 +12,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -21,6 +21,9 @@ from balustrade.control.plant import Plant, check_plant
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
+if TYPE_CHECKING:
+    from balustrade.backends.solution import Solution
+
 
 @dataclass
 class StepInfo:
@@ -28,7 +31,8 @@ class StepInfo:
 
     ``uncertified`` maps each solve the step relied on that did not end ``optimal`` to its
     status (e.g. ``{"slack": "optimal_inaccurate"}``): values computed from it are not
-    certified optima (see :func:`note_solve`)."""
+    certified optima (see :func:`note_solve`); a solve stopped by its target's budget is
+    recorded with the word :data:`TRUNCATED` (real-time mode), also in ``status``."""
 
     status: str = "ok"
     fallback: str | None = None
@@ -36,6 +40,26 @@ class StepInfo:
     solve_time: float = 0.0
     solutions: dict = field(default_factory=dict, repr=False)
     uncertified: dict[str, str] = field(default_factory=dict)
+
+
+#: the status word of a solve stopped by its target's budget (real-time mode, issue #14 §5,
+#: :meth:`balustrade.backends.Target.with_budget`): used in ``StepInfo.status`` and as the
+#: reason in ``StepInfo.uncertified`` in place of the status of the iteration limit
+TRUNCATED = "truncated"
+
+
+def outcome(sol: Solution) -> str:
+    """How a solve ended, as a controller records it: :data:`TRUNCATED` for a solve stopped
+    by its budget, else its status."""
+    return TRUNCATED if getattr(sol, "truncated", False) else str(sol.status)
+
+
+def feasible_truncation(sol: Solution) -> bool:
+    """A solve stopped by its budget whose iterate meets every constraint row and bound
+    within :data:`~balustrade.backends.solution.FEASIBILITY_TOL`
+    (:meth:`~balustrade.backends.Solution.feasible_within`): not optimal, but a feasible
+    point of the problem."""
+    return bool(getattr(sol, "truncated", False)) and sol.feasible_within()
 
 
 def note_solve(info: StepInfo, name: str, status: str) -> bool:
@@ -80,6 +104,19 @@ class Trace:
     def n_uncertified(self) -> int:
         """Steps that relied on at least one solve not certified ``optimal``."""
         return sum(bool(u) for u in self.uncertified)
+
+    @property
+    def truncated_steps(self) -> list[int]:
+        """The steps with at least one solve stopped by its budget (real-time mode): the
+        status word :data:`TRUNCATED` in the step's status or its uncertified solves."""
+        unc = self.uncertified + [{}] * (len(self.statuses) - len(self.uncertified))
+        return [k for k, (s, u) in enumerate(zip(self.statuses, unc))
+                if TRUNCATED in s or TRUNCATED in u.values()]
+
+    @property
+    def n_truncated(self) -> int:
+        """How many steps had a solve stopped by its budget (:attr:`truncated_steps`)."""
+        return len(self.truncated_steps)
 
     def plot(self, path: str | None = None, **options: object) -> object:
         """A matplotlib figure of the run, saved to ``path`` if given (see

@@ -17,6 +17,30 @@ CBF decrease behind the guarantee) is about (SPEC §2.7). So (issue #12):
   only when there is no plan left are its slacks used in (2.23) (they relax the
   constraints by at least ``ξ*``; ``fallback = "feasible_slack"``).
 
+Truncated solves (real-time mode, issue #14 §5: a target with a budget, e.g.
+``target="real-time"``; :attr:`~balustrade.backends.Solution.truncated`). A solve stopped by
+its budget is never read as optimal; ``StepInfo.status`` carries the word ``"truncated"``
+in place of its status (``Trace.n_truncated`` counts such steps) and:
+
+* a truncated filter (2.23) whose iterate meets the declared constraints within
+  :data:`~balustrade.backends.solution.FEASIBILITY_TOL` is applied — its safety
+  constraints (the CBF decrease on the fixed slacks) hold, only its closeness to ``u_p`` is
+  not certified — and recorded as ``StepInfo.uncertified["filter"] = "truncated"``; one that
+  stopped infeasible is a failed (2.23): fallback 1;
+* a truncated slack problem (2.24) at a feasible iterate is treated like a ``feasible``
+  one: its cost is only an upper bound on ``h_PB`` (``values["h_PB_upper"]``, ``h_PB`` is
+  ``nan``), never the optimal ``h_PB`` — the step takes fallback 2, and only without a plan
+  are its slacks used as the slack bound of (2.23) (``"feasible_slack"``, flagged
+  ``uncertified["slack"] = "truncated"``); at cost ``<= ZERO_TOL`` it is optimal by the
+  lower bound ``h_PB >= 0`` (as for ``feasible``; the status still says ``truncated``).
+  Stopped infeasible, it is a failed (2.24): fallback 2;
+* the next step's solve is warm-started from a truncated iterate that is feasible (primal
+  and dual), so the SQP continues where the budget stopped it (real-time iterations); after
+  a filter (2.23) stopped infeasible, the next one starts from the primal of that step's
+  (2.24), which is feasible for (2.23) by construction (measured on the pendulum with a 1–3
+  iteration cap: continuing infeasible iterates drifts into repeated SQP failures, and
+  keeping an older converged point as the warm start never catches up).
+
 Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
 
 1. (2.23) fails but (2.24) succeeded → apply ``u_{0|k}`` of the (2.24) optimizer, which
@@ -44,7 +68,7 @@ import numpy as np
 
 from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, Target, compile
-from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.base import StepInfo, feasible_truncation, note_solve, outcome
 from balustrade.control.deploy import PCBFDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
@@ -106,19 +130,22 @@ class PCBFSafetyFilter:
     def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         s1 = self.slack.solve({"x0": x}, warm_start=self._last_slack)
         info = StepInfo(solve_time=s1.solve_time, solutions={"slack": s1})
-        if not s1.usable:
-            info.status = f"slack_{s1.status}"
+        if feasible_truncation(s1):  # real-time iterations: the next solve continues it
+            self._last_slack = s1
+        if not (s1.usable or feasible_truncation(s1)):
+            info.status = f"slack_{outcome(s1)}"
             return self._fallback(u_p, info, "shifted_plan")
         value = max(float(s1.objective), 0.0)
         # h_PB >= 0 (nonnegative slacks and norms): a feasible point of cost <= ZERO_TOL is
         # optimal by that lower bound, converged or not (e.g. the fast-sqp target's zero step
         # at x = 0)
-        certified = s1.status == "optimal" or (s1.status == "feasible" and value <= ZERO_TOL)
+        certified = s1.status == "optimal" or (
+            (s1.status == "feasible" or s1.truncated) and value <= ZERO_TOL)
         if not certified:
-            note_solve(info, "slack", s1.status)
+            note_solve(info, "slack", outcome(s1))
         upper_only = not s1.success and not certified  # feasible, not converged
         if upper_only:
-            info.status = f"slack_{s1.status}"
+            info.status = f"slack_{outcome(s1)}"
             info.values.update(h_PB=float("nan"), h_PB_upper=value)
             if self._has_shifted_plan():
                 return self._fallback(u_p, info, "shifted_plan")
@@ -132,15 +159,18 @@ class PCBFSafetyFilter:
         s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
-        if s2.usable:
-            note_solve(info, "filter", s2.status)
-            self._last_filter = s2 if s2.success else self._last_filter
+        if s2.success or feasible_truncation(s2):  # a feasible iterate is continued
+            self._last_filter = s2
+        elif s2.truncated:  # stopped infeasible: restart from the (2.24) point next step
+            self._last_filter = None
+        if s2.usable or feasible_truncation(s2):
+            note_solve(info, "filter", outcome(s2))
             plan = np.asarray(s2["u"]).reshape(self.nu, -1)
-            info.status = "ok" if certified and s2.status == "optimal" else (
-                f"slack_{s1.status}_filter_{s2.status}")
+            info.status = "ok" if certified and not s1.truncated and s2.status == "optimal" \
+                else f"slack_{outcome(s1)}_filter_{outcome(s2)}"
         else:
-            info.status = ("" if certified else f"slack_{s1.status}_") + \
-                f"filter_{s2.status}"
+            info.status = ("" if certified and not s1.truncated else
+                           f"slack_{outcome(s1)}_") + f"filter_{outcome(s2)}"
             info.fallback = "slack_solution"
             plan = np.asarray(s1["u"]).reshape(self.nu, -1)
         if upper_only:

@@ -20,6 +20,22 @@ A (5.15) solve that did not converge (``feasible``, the iteration limit, …) is
 (5.15) (fallback 2); one that converged to the solver's acceptable tolerances
 (``optimal_inaccurate``) is used and flagged in ``StepInfo.uncertified`` and ``status``.
 
+Truncated solves (real-time mode, issue #14 §5: a target with a budget, e.g.
+``target="real-time"``; :attr:`~balustrade.backends.Solution.truncated`) are never read as
+optimal; ``StepInfo.status`` carries the word ``"truncated"`` in place of their status:
+
+* a truncated (5.16) whose iterate meets the declared constraints within
+  :data:`~balustrade.backends.solution.FEASIBILITY_TOL` is applied (its tube and decrease
+  constraints hold; only its cost is not certified) and recorded as
+  ``StepInfo.uncertified["filter"] = "truncated"``; stopped infeasible, it is a failed
+  (5.16): fallback 1;
+* a truncated (5.15) is a failed (5.15) (fallback 2, the candidate (5.17)): its cost at a
+  feasible iterate only bounds ``h_r`` from above and is recorded as
+  ``values["h_r_upper"]``, never as ``h_r`` — the thesis' fallback for a (5.15) without
+  its optimum is the candidate, itself such an upper bound (``h_cand``);
+* the next solve is warm-started from a feasible truncated iterate (real-time iterations;
+  an infeasible one is dropped, as in :mod:`balustrade.control.pcbf`).
+
 Recorded values: ``h_r`` (the optimal value of (5.15)) and ``h_cand`` (``h̃`` of the candidate
 (5.17) built at the previous step, an upper bound on ``h_r`` by Theorem 5.15).
 """
@@ -32,7 +48,7 @@ import numpy as np
 
 from balustrade._checks import as_scalar, as_vector, check_deltas, check_instance, check_norm_order
 from balustrade.backends import Compiled, Solution, Target, companion, compile
-from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.base import StepInfo, feasible_truncation, note_solve, outcome
 from balustrade.control.deploy import ProblemsDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
@@ -144,7 +160,10 @@ class RobustPCBFSafetyFilter:
         h_r, s1 = self.h_r(x)
         info.solve_time, info.solutions["slack"] = s1.solve_time, s1
         if not s1.success:
-            info.status = f"slack_{s1.status}"
+            info.status = f"slack_{outcome(s1)}"
+            if feasible_truncation(s1):  # continued next step; its cost bounds h_r only
+                self._last_slack = s1
+                info.values["h_r_upper"] = max(float(s1.objective), 0.0)
             return self._fallback(x, u_p, info)
         self._last_slack = s1
         note_solve(info, "slack", s1.status)   # optimal_inaccurate: h_r flagged, not certified
@@ -155,14 +174,14 @@ class RobustPCBFSafetyFilter:
         s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
-        if s2.success:
+        if s2.success or feasible_truncation(s2):
             self._last_filter = s2
-            note_solve(info, "filter", s2.status)
+            note_solve(info, "filter", outcome(s2))
             chosen = s2
             info.status = "ok" if not info.uncertified else "_".join(
                 f"{k}_{v}" for k, v in info.uncertified.items())
         else:
-            chosen, info.status, info.fallback = s1, f"filter_{s2.status}", "slack_solution"
+            chosen, info.status, info.fallback = s1, f"filter_{outcome(s2)}", "slack_solution"
         z = np.asarray(chosen["z"], dtype=float)
         v = np.asarray(chosen["v"], dtype=float).reshape(self.system.nu, -1)
         self.candidate = self._make_candidate(z, v, xi)

@@ -192,9 +192,10 @@ def plot_trace(trace: Trace, path: str | Path | None = None, dt: float | None = 
         axes[name].legend(loc="best", fontsize="small")
         axes[name].grid(alpha=0.3)
     axes["events"].set_xlabel("step k" if dt is None else "time [s]")
-    n_fb, n_unc = trace.n_fallbacks, trace.n_uncertified
+    n_fb, n_unc, n_tr = trace.n_fallbacks, trace.n_uncertified, trace.n_truncated
     fig.suptitle((title + ": " if title else "") + f"{trace.inputs.shape[0]} steps, "
                  f"{n_fb} fallbacks, {n_unc} uncertified"
+                 + (f", {n_tr} truncated" if n_tr else "")
                  + (f", stopped: {trace.stopped}" if trace.stopped else ""))
     if path is not None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -203,14 +204,19 @@ def plot_trace(trace: Trace, path: str | Path | None = None, dt: float | None = 
 
 
 def _events(ax: object, trace: Trace, t: np.ndarray) -> None:
-    """One row per fallback kind (red) and one for uncertified solves (orange)."""
+    """One row per fallback kind (red), one for uncertified solves (orange) and, when a
+    solve was stopped by its budget (real-time mode), one for truncated steps (purple)."""
     kinds = sorted({f for f in trace.fallbacks if f is not None})
-    rows = kinds + ["uncertified"]
+    truncated = trace.truncated_steps
+    rows = kinds + ["uncertified"] + (["truncated"] if truncated else [])
     for y, kind in enumerate(kinds):
         ks = [k for k, f in enumerate(trace.fallbacks) if f == kind]
         ax.scatter(t[ks], [y] * len(ks), marker="|", s=120, color="tab:red")
     unc = [k for k, u in enumerate(trace.uncertified) if u]
     ax.scatter(t[unc], [len(kinds)] * len(unc), marker="|", s=120, color="tab:orange")
+    if truncated:
+        ax.scatter(t[truncated], [len(kinds) + 1] * len(truncated), marker="|", s=120,
+                   color="tab:purple")
     ax.set_yticks(range(len(rows)), rows, fontsize="small")
     ax.set_ylim(-0.7, len(rows) - 0.3)
     statuses = sorted(set(trace.statuses))
