@@ -7,7 +7,8 @@ Three families:
 
 * :data:`SOLVE` — return value of ``<problem>_solve`` (one problem, e.g. (2.24));
 * :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
-* :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6).
+* :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6);
+* :data:`ROBUST` — return value of the Algorithm 5.2 step (5.15)+(5.16).
 
 Each family has a *bad input* code: a parameter or state that is NaN or inf is refused
 before any solver runs (NaN compares false, so a residual test would pass it as
@@ -88,6 +89,23 @@ APPROX: tuple[Status, ...] = (
     Status("BAL_APPROX_FILTER_FEASIBLE", 6, "filter_feasible", None,
            "(7.5) only feasible (not converged): a safe input in U meeting the decrease, "
            "possibly not the closest to u_p"),
+)
+
+
+#: The Algorithm 5.2 step (5.15)+(5.16): ``fallback`` as in
+#: :class:`~balustrade.control.robust.RobustPCBFSafetyFilter` (a solve counts as a success
+#: only when it converged, ``BAL_OK``: the backend's ``feasible`` is a failure there).
+ROBUST: tuple[Status, ...] = (
+    Status("BAL_ROBUST_OK", 0, "ok", None, "v*_0 + K(x - z*_0) of the filter (5.16)"),
+    Status("BAL_ROBUST_SLACK_SOLUTION", 1, "slack_solution", "slack_solution",
+           "(5.16) failed: v_0 + K(x - z_0) of the (5.15) optimizer"),
+    Status("BAL_ROBUST_CANDIDATE", 2, "candidate", "candidate",
+           "(5.15) failed: v~_0 + K(x - z~_0) of the last candidate (5.17), shifted again"),
+    Status("BAL_ROBUST_PROJECTED", 3, "projected_proposal", "projected_proposal",
+           "(5.15) failed and no candidate: u_p clipped to U"),
+    Status("BAL_ROBUST_BAD_INPUT", 4, "bad_input", "projected_proposal",
+           "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
+           "clipped to U"),
 )
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from balustrade.backends import Compiled
-from balustrade.dsl.sets import Set
+from balustrade.dsl.sets import Polytope, Set
 from balustrade.dsl.system import System
 
 
@@ -78,4 +78,34 @@ class ProblemsDeployment:
     algorithm: str
 
 
-__all__ = ["ApproximateDeployment", "PCBFDeployment", "ProblemsDeployment"]
+@dataclass(frozen=True)
+class RobustDeployment(ProblemsDeployment):
+    """Algorithm 5.2 (Section 5.5): (5.15) then (5.16) with the polished slacks fixed, the
+    applied ``u = v₀ + K(x − z₀)``, the candidate (5.17) and the fallbacks of
+    :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`. ``problems`` holds
+    ``"slack"`` (5.15) (parameter ``x0``; variables ``z``, ``v``, ``xi``, ``xi_N``) and
+    ``"filter"`` (5.16) (parameters ``x0``, ``u_p``, ``xi``, ``xi_N``; variables ``z``,
+    ``v``), so :func:`balustrade.codegen.emit_problems` still emits them one by one."""
+
+    #: the model ``x+ = f(x, u, w)`` (the candidate's last state, ``w = 0``)
+    system: System
+    #: ``X ⊖ E`` (its rows give the minimal slacks and the candidate's last slack)
+    X_E: Polytope
+    #: input set of the projected-proposal fallback (a box for C)
+    U: Set
+    #: ``U ⊖ κ(E)``: where the candidate's terminal input must lie (5.17)
+    U_E: Polytope
+    #: ``h_f`` (callable on CasADi symbols) and ``π_f``
+    h_f: Callable
+    pi_f: Callable
+    #: the linear error feedback ``κ(e) = K e`` (``None``: a user's nonlinear κ)
+    K: np.ndarray | None = field(repr=False)
+    #: the tightenings ``Δ_i`` (one per step)
+    deltas: np.ndarray = field(repr=False)
+    #: ``α_f`` and the slack norm of ``h̃`` (SPEC §1.12)
+    alpha_f: float
+    slack_norm: int | float
+
+
+__all__ = ["ApproximateDeployment", "PCBFDeployment", "ProblemsDeployment",
+           "RobustDeployment"]

@@ -1,0 +1,133 @@
+"""Load the emitted Algorithm 5.2 step (:func:`~balustrade.codegen.emit_robust.emit_robust`)
+with ctypes: :class:`CRobustPCBFSafetyFilter`, the same ``step(x, u_p) -> (u, StepInfo)``,
+``reset()``, status words and fallbacks as
+:class:`~balustrade.control.robust.RobustPCBFSafetyFilter`, one foreign call per step."""
+
+from __future__ import annotations
+
+import ctypes
+import time
+from pathlib import Path
+
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.codegen import status as S
+from balustrade.codegen.runtime import (
+    _PY_STATUS,
+    _CProblemView,
+    _dbl_p,
+    _Library,
+    _OwnsWork,
+    _proposal,
+    _ptr,
+)
+from balustrade.control.base import StepInfo
+from balustrade.control.fallbacks import note_proposal
+from balustrade.errors import CodegenError
+
+_ROBUST_CODES = S.by_code(S.ROBUST)
+
+
+def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float
+                ) -> StepInfo:
+    """The :class:`StepInfo` :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`
+    records for the same decisions: ``status`` (``"ok"``, ``"slack_<s>"``,
+    ``"filter_<f>"``, ``"non_finite_state"``; a converged C solve is named ``optimal``),
+    ``fallback``, ``values["h_r"]`` (after a converged (5.15)) and ``values["h_cand"]``
+    (when a candidate existed)."""
+    known = _ROBUST_CODES.get(code)
+    if known is None:
+        return StepInfo(status=str(code), fallback="unknown")
+    info = StepInfo(fallback=known.fallback)
+    if known.name == "bad_input":
+        info.status = "non_finite_state"
+        return info
+    if np.isfinite(h_cand):
+        info.values["h_cand"] = h_cand
+    if known.name in ("candidate", "projected_proposal"):
+        info.status = f"slack_{_PY_STATUS.get(s_code, str(s_code))}"
+        return info
+    info.values["h_r"] = h_r
+    info.status = "ok" if known.name == "ok" else \
+        f"filter_{_PY_STATUS.get(f_code, str(f_code))}"
+    return info
+
+
+class CRobustPCBFSafetyFilter(_OwnsWork):
+    """The emitted Algorithm 5.2 step (5.15)+(5.16) as a closed-loop controller (the
+    fallbacks computed in C). ``info.values["candidate_exact"] = 0`` marks a step whose
+    new candidate the C had to drop (:mod:`~balustrade.codegen.emit_robust`)."""
+
+    def __init__(self, lib_path: str | Path, manifest: dict | None = None,
+                 keep_solutions: bool = False):
+        self._lib = _Library(lib_path, manifest)
+        m = self._lib.manifest
+        if m.get("kind") != "robust":
+            raise CodegenError(f"{self._lib.path.name}: not an emitted robust PCBF filter "
+                               f"(kind {m.get('kind')!r})")
+        Q = m["name"]
+        self.nx, self.nu, self.N = m["nx"], m["nu"], m["N"]
+        self.keep_solutions = keep_solutions
+        vp, ci = ctypes.c_void_p, ctypes.c_int
+        self._alloc = self._lib.fn(f"{Q}_alloc", vp, [])
+        self._free = self._lib.fn(f"{Q}_free", None, [vp])
+        self._reset = self._lib.fn(f"{Q}_reset", None, [vp])
+        self._step = self._lib.fn(f"{Q}_step", ci,
+                                  [_dbl_p, _dbl_p, _dbl_p, _dbl_p, ctypes.POINTER(ci), vp])
+        self._status_fn = self._lib.fn(f"{Q}_solve_status", ci, [vp, ci])
+        self._h_cand = self._lib.fn(f"{Q}_h_cand", ctypes.c_double, [vp])
+        self._replaced = self._lib.fn(f"{Q}_proposal_replaced", ci, [vp])
+        self._exact = self._lib.fn(f"{Q}_candidate_exact", ci, [vp])
+        self._work = self._alloc()
+        if not self._work:
+            raise CodegenError(f"{Q}_alloc failed (no CasADi memory left)")
+        self.slack = _CProblemView(self._lib, f"{Q}_slack", m["problems"]["slack"],
+                                   self._lib.fn(f"{Q}_slack_problem", vp, [vp])(self._work))
+        self.filter = _CProblemView(self._lib, f"{Q}_filter", m["problems"]["filter"],
+                                    self._lib.fn(f"{Q}_filter_problem", vp, [vp])(self._work))
+        self._x, self._u_p = np.zeros(self.nx), np.zeros(self.nu)
+        self._u, self._h = np.zeros(self.nu), np.zeros(1)
+        self._status = ci(0)
+        self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u), _ptr(self._h),
+                      ctypes.byref(self._status), self._work)
+
+    def reset(self) -> None:
+        self._reset(self._work)
+
+    _BAD = S.code_of(S.ROBUST, "bad_input")
+
+    def step_raw(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, float, int]:
+        """One C step without a StepInfo: ``(u, h_r, status code)`` (``u`` is a view of
+        the output buffer)."""
+        self._x[:] = x
+        self._u_p[:] = u_p
+        code = self._step(*self._args)
+        return self._u, float(self._h[0]), code
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        """One C step, reported as :class:`~balustrade.control.robust.
+        RobustPCBFSafetyFilter` reports it (:func:`robust_info`). Wrong shapes raise
+        :class:`~balustrade.errors.ShapeError`; a NaN or inf ``x`` gives the projected
+        proposal (``"non_finite_state"``); NaN or inf entries of ``u_p`` are read as 0
+        (``"non_finite_proposal[_<status>]"``)."""
+        u_p = _proposal(u_p, self.nu, "CRobustPCBFSafetyFilter.step: u_p")
+        x = as_vector(x, "CRobustPCBFSafetyFilter.step: x", self.nx, finite=False)
+        start = time.perf_counter()
+        u, h_r, code = self.step_raw(x, u_p)
+        elapsed = time.perf_counter() - start
+        info = robust_info(code, self._status_fn(self._work, 0),
+                           self._status_fn(self._work, 1), h_r,
+                           float(self._h_cand(self._work)))
+        info.solve_time = elapsed
+        if code != self._BAD:
+            note_proposal(info, int(self._replaced(self._work)))
+            if not self._exact(self._work):
+                info.values["candidate_exact"] = 0.0
+        if self.keep_solutions:
+            info.solutions = {"slack": self.slack.unpack(self.slack.x.copy()),
+                              "filter": self.filter.unpack(self.filter.x.copy())}
+        return u.copy(), info
+
+
+__all__ = ["CRobustPCBFSafetyFilter", "robust_info"]
