@@ -1,0 +1,204 @@
+"""Algorithm 5.2 emitted as C (:func:`balustrade.codegen.emit_robust`) decides exactly as
+:class:`~balustrade.control.robust.RobustPCBFSafetyFilter`: same applied input, ``h_r``,
+``h_cand``, fallback and status on random states, along a closed loop, on forced
+failures of (5.15) (the candidate (5.17), then the projected proposal) and on NaN input.
+
+The system is the unstable 2-D system of Section 5.6 (reproduce/ch5_robust.py) with
+N = 10, both problems on the emittable ``robust-sqp`` target; the Python side runs the
+part of the retry chain the C has (:func:`~balustrade.codegen.mirror_c_retries`)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import warnings
+
+import numpy as np
+import pytest
+
+from balustrade.codegen import CRobustPCBFSafetyFilter, build, emit_problems, emit_robust
+from balustrade.codegen.build import build_executable
+from balustrade.codegen.emit_robust import EMITTABLE_TARGET
+from balustrade.codegen.runtime import mirror_c_retries
+from balustrade.control.robust import RobustPCBFSafetyFilter
+from balustrade.design.rpi import ellipsoidal_rpi
+from balustrade.design.terminal_cbf import synthesize_terminal_cbf
+from balustrade.errors import CodegenError, DegenerateResultWarning
+from balustrade.models.unstable2d import W_BOUND, unstable2d, unstable2d_setup
+
+N = 10
+TOL = 1e-6
+#: random states: a box around X = [-1, 1] x [-10, 10]
+LOW, HIGH = np.array([-1.5, -12.0]), np.array([1.5, 12.0])
+
+
+def _design(target: str = EMITTABLE_TARGET) -> tuple[RobustPCBFSafetyFilter, object]:
+    system, s = unstable2d(), unstable2d_setup(N)
+    error = ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U)
+    X_E, U_E = error.tighten_state(s.X), error.tighten_input(s.U)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DegenerateResultWarning)
+        cbf = synthesize_terminal_cbf(system.A, system.B, X_E, U_E, delta_N=s.deltas()[-1])
+    ctrl = RobustPCBFSafetyFilter.build(system, s.X, s.U, cbf, cbf.policy, N, s.deltas(),
+                                        error, s.alpha_f, slack_norm=1, target=target,
+                                        slack_target=target)
+    return ctrl, system
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    py, system = _design()
+    py.slack, py.filter = mirror_c_retries(py.slack), mirror_c_retries(py.filter)
+    out = tmp_path_factory.mktemp("robust_c")
+    emitted = emit_robust(py, "rob", out)
+    lib = build(out, emitted.name, werror=True)
+    return {"py": py, "c": CRobustPCBFSafetyFilter(lib), "system": system,
+            "emitted": emitted}
+
+
+def _kind(status: str) -> str:
+    """The C cannot tell why a solve did not converge (``not_converged``); the backend can
+    (``failed``, ``max_iterations``, ``feasible``: not a success for Algorithm 5.2)."""
+    for why in ("max_iterations", "failed", "infeasible", "feasible"):
+        status = status.replace(why, "not_converged")
+    return status
+
+
+def _same(py_out: tuple, c_out: tuple, where: str) -> None:
+    (u1, i1), (u2, i2) = py_out, c_out
+    assert np.max(np.abs(u1 - u2)) <= TOL, (where, u1, u2, i1.status, i2.status)
+    assert i1.fallback == i2.fallback, (where, i1.fallback, i2.fallback)
+    assert _kind(i1.status) == _kind(i2.status), (where, i1.status, i2.status)
+    for key in ("h_r", "h_cand"):
+        assert (key in i1.values) == (key in i2.values), (where, key, i1.values, i2.values)
+        if key in i1.values:
+            a, b = i1.values[key], i2.values[key]
+            assert abs(a - b) <= TOL * max(1.0, abs(a)), (where, key, a, b)
+    assert "candidate_exact" not in i2.values  # one input, quadratic h_f: always exact
+
+
+def _random_states(pair: dict, n: int, seed: int) -> dict[str, int]:
+    py, c = pair["py"], pair["c"]
+    rng = np.random.default_rng(seed)
+    seen: dict[str, int] = {}
+    for k in range(n):
+        x, u_p = rng.uniform(LOW, HIGH), rng.uniform(-4, 4, 1)
+        py.reset()
+        c.reset()
+        out_py = py.step(x, u_p)
+        _same(out_py, c.step(x, u_p), f"state {k}: {x}")
+        seen[str(out_py[1].fallback)] = seen.get(str(out_py[1].fallback), 0) + 1
+    return seen
+
+
+def test_c_equals_python_on_random_states(pair: dict) -> None:
+    seen = _random_states(pair, 50, 0)
+    assert seen.get("None", 0) >= 10, seen
+
+
+@pytest.mark.slow
+def test_c_equals_python_on_1000_random_states(pair: dict) -> None:
+    seen = _random_states(pair, 1000, 1)
+    assert seen.get("None", 0) >= 100, seen
+
+
+def test_closed_loop_same_trace(pair: dict) -> None:
+    """Warm starts and the candidate carried across steps: the same trajectory under the
+    constant disturbance of Figure 5.2 (c_w = 1)."""
+    py, c, system = pair["py"], pair["c"], pair["system"]
+    py.reset()
+    c.reset()
+    x_py = x_c = unstable2d_setup(N).x0
+    w = W_BOUND * np.ones(2)
+    for k in range(25):
+        out_py, out_c = py.step(x_py, np.array([2.5])), c.step(x_c, np.array([2.5]))
+        _same(out_py, out_c, f"step {k}")
+        x_py, x_c = system.step(x_py, out_py[0], w), system.step(x_c, out_c[0], w)
+        assert np.max(np.abs(x_py - x_c)) <= 1e-5
+
+
+def _failing_state(pair: dict) -> np.ndarray:
+    """A state where (5.15) does not converge on this target (the SQP stops on a vanishing
+    search direction), found among a few random ones."""
+    py = pair["py"]
+    rng = np.random.default_rng(7)
+    for _ in range(60):
+        x = rng.uniform(LOW, HIGH)
+        if not py.slack.solve({"x0": x}).success:
+            return x
+    pytest.skip("no state found where (5.15) fails")
+
+
+def test_fallbacks_candidate_then_projected(pair: dict) -> None:
+    """A failed (5.15) after a success applies the candidate (5.17) (and keeps shifting it);
+    without a candidate, the projected proposal; a NaN state, the projected proposal with
+    nothing solved; a NaN proposal, read as 0."""
+    py, c = pair["py"], pair["c"]
+    bad = _failing_state(pair)
+    good = np.array([0.2, 0.5])
+    for ctrl in (py, c):
+        ctrl.reset()
+    _same(py.step(good, [1.0]), c.step(good, [1.0]), "good")
+    for k in range(3):
+        out_py, out_c = py.step(bad, [1.0]), c.step(bad, [1.0])
+        _same(out_py, out_c, f"failure {k}")
+        assert out_c[1].fallback == "candidate"
+        assert out_c[1].status.startswith("slack_")
+    for ctrl in (py, c):
+        ctrl.reset()
+    out_py, out_c = py.step(bad, [9.0]), c.step(bad, [9.0])
+    _same(out_py, out_c, "no candidate")
+    assert out_c[1].fallback == "projected_proposal"
+    assert out_c[0][0] == pytest.approx(2.5)  # 9 clipped to U = [-2.5, 2.5]
+    out_py, out_c = py.step([np.nan, 0.0], [-7.0]), c.step([np.nan, 0.0], [-7.0])
+    _same(out_py, out_c, "NaN state")
+    assert out_c[1].status == "non_finite_state" and out_c[0][0] == -2.5
+    py.reset()
+    c.reset()
+    out_py, out_c = py.step(good, [np.inf]), c.step(good, [np.inf])
+    _same(out_py, out_c, "inf proposal")
+    assert out_c[1].status.startswith("non_finite_proposal")
+
+
+def test_non_emittable_target_names_the_one_to_use(tmp_path) -> None:
+    ctrl, _ = _design("exact")  # IPOPT for both problems
+    with pytest.raises(CodegenError, match=f"target='{EMITTABLE_TARGET}'.*slack_target"):
+        emit_robust(ctrl, "rob", tmp_path)
+    assert emit_problems  # the spec is still a ProblemsDeployment
+    assert set(ctrl.deployment_spec().problems) == {"slack", "filter"}
+
+
+VALGRIND_MAIN = r"""
+#include <math.h>
+#include <stdio.h>
+#include "rob.h"
+int main(void) {
+  double x[2], u[1], h, up[1] = {2.5};
+  int k, st, bad = 0;
+  rob_work* wk = rob_alloc();
+  if (!wk) return 2;
+  for (k = 0; k < 12; ++k) {
+    x[0] = -1.2 + 0.2 * k; x[1] = 11.0 - 2.0 * k;
+    rob_step(x, up, u, &h, &st, wk);
+    bad += !isfinite(u[0]);
+  }
+  x[0] = NAN;
+  rob_step(x, up, u, &h, &st, wk);
+  bad += st != BAL_ROBUST_BAD_INPUT;
+  rob_free(wk);
+  printf("%d\n", bad);
+  return bad;
+}
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("valgrind") is None, reason="valgrind not installed")
+def test_valgrind_clean(pair: dict) -> None:
+    out = pair["emitted"].out_dir
+    (out / "vg_main.c").write_text(VALGRIND_MAIN)
+    exe = build_executable(out, "vg_main.c", extra_flags=["-g", "-O1"])
+    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
+                          "--errors-for-leak-kinds=definite", str(exe)],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
