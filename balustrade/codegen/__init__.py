@@ -11,7 +11,7 @@ Deploy path (see ``docs/deploy_c.md``)::
 Modules: :mod:`~balustrade.codegen.support` (which solvers generate C, callback check),
 :mod:`~balustrade.codegen.emit` (the emitters: plain functions, one problem, the PCBF
 pair (2.24)+(2.23), Algorithm 7.5 with (7.5)+(7.6); :mod:`~balustrade.codegen.emit_robust`:
-Algorithm 5.2 with (5.15)+(5.16), loaded by :mod:`~balustrade.codegen.runtime_robust`;
+Algorithms 5.2 and 6.4, loaded by :mod:`~balustrade.codegen.runtime_robust`;
 reading the controllers' typed deployment specs of :mod:`balustrade.control.deploy`),
 :mod:`~balustrade.codegen.cfiles`
 (the static C shipped in ``codegen/c/`` and the generated config header that instantiates
@@ -33,7 +33,7 @@ from balustrade.codegen.emit import (
     emit_problems,
     write_example,
 )
-from balustrade.codegen.emit_robust import emit_robust
+from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
 from balustrade.codegen.runtime import (
     CApproximatePCBFFilter,
     CFunction,
@@ -42,15 +42,15 @@ from balustrade.codegen.runtime import (
     load_manifest,
     mirror_c_retries,
 )
-from balustrade.codegen.runtime_robust import CRobustPCBFSafetyFilter
+from balustrade.codegen.runtime_robust import CMultiobjectivePCBFFilter, CRobustPCBFSafetyFilter
 from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_libraries
 
 __all__ = [
     "SUPPORTED", "CApproximatePCBFFilter", "CFunction", "CPCBFSafetyFilter", "CProblem",
-    "CRobustPCBFSafetyFilter",
+    "CMultiobjectivePCBFFilter", "CRobustPCBFSafetyFilter",
     "Emitted", "build", "build_executable", "check_no_callbacks", "emit_approximate",
     "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "emit_problems",
-    "emit_robust",
+    "emit_multiobjective", "emit_robust",
     "find_compiler",
     "load_manifest", "solver_libraries", "mirror_c_retries", "write_example",
 ]

@@ -50,13 +50,13 @@ from balustrade.codegen.emit import (
     _spec,
     _write_module,
 )
-from balustrade.control.deploy import RobustDeployment
+from balustrade.control.deploy import MultiobjectiveDeployment, RobustDeployment
 from balustrade.errors import CodegenError
 
 #: the target to build both problems of Algorithm 5.2 with for C (module docstring)
 EMITTABLE_TARGET = "robust-sqp"
 _HINT = (f"build the controller with target={EMITTABLE_TARGET!r}, "
-         f"slack_target={EMITTABLE_TARGET!r} (RobustPCBFSafetyFilter.build)")
+         f"slack_target={EMITTABLE_TARGET!r} ({{}}.build)")
 #: tolerance of ``U_E.contains`` in :func:`~balustrade.control.robust_steps.terminal_input`
 _CONTAINS_TOL = 1e-12
 
@@ -138,29 +138,39 @@ def _terminal_input(name: str, spec: RobustDeployment, zN: ca.SX) -> tuple[ca.SX
     return ca.if_else(inside, u_f, v_min), ca.SX(1)
 
 
-def _functions(name: str, spec: RobustDeployment, s: _Problem) -> dict[str, ca.Function]:
-    """``<name>_post`` and ``<name>_cand`` (module docstring) on CasADi symbols."""
+def _post(sym: str, spec: RobustDeployment, prob: _Problem) -> ca.Function:
+    """``sym(w, f) -> (ξ, ξ_N, h_r, h̃)`` on the stacked vector ``w`` of ``prob`` ((5.15)
+    or (6.15)): the polished slacks (:func:`~balustrade.control.robust_steps.
+    polished_slacks`), ``h_r = min(max(f, 0), h̃)`` and ``h̃`` of the polished slacks."""
+    X_E, N = spec.X_E, len(spec.deltas)
+    Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
+    deltas = np.asarray(spec.deltas, dtype=float).reshape(-1)
+    nr = X_E.H.shape[0]
+    w, f = ca.SX.sym("w", prob.nw), ca.SX.sym("f", 1)
+    z = _columns(w, prob.vars["z"])
+    xi = ca.fmax(_columns(w, prob.vars["xi"]), 0)
+    xi_N = ca.fmax(w[int(prob.vars["xi_N"]["offset"])], 0)
+    need = ca.fmax(ca.mtimes(Hx, z[:, :N]) - ca.repmat(hx, 1, N)
+                   + ca.repmat(ca.DM(deltas).T, nr, 1), 0)
+    xi_p = ca.fmin(xi, need)
+    xi_N_p = ca.fmin(xi_N, ca.fmax(spec.h_f(z[:, N]), 0))
+    h_tilde = _slack_cost(xi_p, xi_N_p, spec)
+    return ca.Function(sym, [w, f], [ca.vec(xi_p), xi_N_p, ca.fmin(ca.fmax(f, 0), h_tilde),
+                                     h_tilde],
+                       ["w", "f"], ["xi", "xi_N", "h_r", "h_tilde"])
+
+
+def _cand(sym: str, spec: RobustDeployment) -> ca.Function:
+    """``sym(z, v, ξ) -> (z̃, ṽ, ξ̃, ξ̃_N, h̃(ξ̃), exact)``: the candidate (5.17)/(6.14)
+    (:func:`~balustrade.control.robust_steps.robust_candidate`)."""
     system, X_E = spec.system, spec.X_E
     nx, nu, N = system.nx, system.nu, len(spec.deltas)
     Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
     deltas = np.asarray(spec.deltas, dtype=float).reshape(-1)
     nr = X_E.H.shape[0]
-    # post: polished slacks (polished_slacks, minimal_slacks) and h_r
-    w, f = ca.SX.sym("w", s.nw), ca.SX.sym("f", 1)
-    z = _columns(w, s.vars["z"])
-    xi = ca.fmax(_columns(w, s.vars["xi"]), 0)
-    xi_N = ca.fmax(w[int(s.vars["xi_N"]["offset"])], 0)
-    need = ca.fmax(ca.mtimes(Hx, z[:, :N]) - ca.repmat(hx, 1, N)
-                   + ca.repmat(ca.DM(deltas).T, nr, 1), 0)
-    xi_p = ca.fmin(xi, need)
-    xi_N_p = ca.fmin(xi_N, ca.fmax(spec.h_f(z[:, N]), 0))
-    h_r = ca.fmin(ca.fmax(f, 0), _slack_cost(xi_p, xi_N_p, spec))
-    post = ca.Function(f"{name}_post", [w, f], [ca.vec(xi_p), xi_N_p, h_r],
-                       ["w", "f"], ["xi", "xi_N", "h_r"])
-    # cand: the candidate (5.17) (robust_candidate)
     zc, vc, xic = ca.SX.sym("z", nx, N + 1), ca.SX.sym("v", nu, N), ca.SX.sym("xi", nr, N)
     zN = zc[:, N]
-    u_f, exact = _terminal_input(name, spec, zN)
+    u_f, exact = _terminal_input(sym, spec, zN)
     w0 = ca.DM.zeros(system.nw) if system.nw else None
     z_next = system(zN, u_f, w0) if w0 is not None else system(zN, u_f)
     z_t = ca.horzcat(zc[:, 1:], z_next)
@@ -169,12 +179,51 @@ def _functions(name: str, spec: RobustDeployment, s: _Problem) -> dict[str, ca.F
     cols.append(ca.fmax(ca.mtimes(Hx, zN) - hx + deltas[N - 1], 0))
     xi_t = ca.horzcat(*cols)
     xi_N_t = ca.fmax(spec.h_f(z_next), 0)
-    cand = ca.Function(f"{name}_cand", [zc, vc, xic],
+    return ca.Function(sym, [zc, vc, xic],
                        [z_t, v_t, ca.vec(xi_t), xi_N_t, _slack_cost(xi_t, xi_N_t, spec),
                         exact],
-                       ["z", "v", "xi"], ["z_next", "v_next", "xi_next", "xi_N_next", "h_cand",
-                        "exact"])
-    return {post.name(): post, cand.name(): cand}
+                       ["z", "v", "xi"], ["z_next", "v_next", "xi_next", "xi_N_next",
+                                          "h_cand", "exact"])
+
+
+def _check_tube(name: str, spec: RobustDeployment, probs: dict[str, _Problem]) -> None:
+    """z, v, xi of the problems have the shapes of the horizon ``len(deltas)``."""
+    nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
+    if spec.K is None:
+        raise CodegenError(f"{name}: the C applies u = v0 + K(x - z0): the error set needs "
+                           "a linear feedback K (not a kappa_fn)")
+    for label, prob in probs.items():
+        if list(prob.vars["z"]["shape"]) != [nx, N + 1] or \
+                int(np.prod(prob.vars["v"]["shape"])) != nu * N:
+            raise CodegenError(f"{name}: z, v of {label} have shapes {prob.vars['z']['shape']}"
+                               f", {prob.vars['v']['shape']}; expected ({nx}, {N + 1}), "
+                               f"({nu}, {N})")
+        xi = prob.vars.get("xi")
+        if xi is not None and int(np.prod(xi["shape"])) != spec.X_E.H.shape[0] * N:
+            raise CodegenError(f"{name}: xi of {label} has shape {xi['shape']}, expected "
+                               f"({spec.X_E.H.shape[0]}, {N})")
+
+
+def _tube_config(cfg: C.Config, name: str, spec: RobustDeployment, U: object) -> None:
+    """The ``#define``\\ s shared by bal/robust.c and bal/multiobj.c."""
+    nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
+    cfg.define(f"{name}_NX", nx)
+    cfg.define(f"{name}_NU", nu)
+    cfg.define(f"{name}_N", N)
+    cfg.define(f"{name}_N_XI", spec.X_E.H.shape[0] * N, "slacks xi")
+    cfg.array(f"{name}_U_LB", U.lb)
+    cfg.array(f"{name}_U_UB", U.ub)
+    cfg.array(f"{name}_K", np.asarray(spec.K, dtype=float).reshape(nu, nx).T.reshape(-1),
+              nu * nx)
+
+
+def _work_sizes(cfg: C.Config, name: str, syms: list[str]) -> None:
+    cfg.comment(f"the work vectors of {', '.join(syms)}")
+    for key in ("ARG", "RES", "IW", "W"):
+        expr = f"{syms[0]}_SZ_{key}"
+        for sym in syms[1:]:
+            expr = f"BAL_MAX2({expr}, {sym}_SZ_{key})"
+        cfg.define(f"{name}_SZ_{key}", expr)
 
 
 def emit_robust(controller: object, name: str, out_dir: str | Path,
@@ -195,10 +244,8 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
             name, spec.problems.get("slack"), spec.problems.get("filter"), spec.U,
             ("robust slack problem (5.15)", "robust filter problem (5.16)"), allow_external)
     except CodegenError as exc:
-        raise CodegenError(f"{exc}; for Algorithm 5.2: {_HINT}") from exc
-    if spec.K is None:
-        raise CodegenError(f"{name}: the C applies u = v0 + K(x - z0): the error set needs "
-                           "a linear feedback K (not a kappa_fn)")
+        raise CodegenError(f"{exc}; for Algorithm 5.2: "
+                           f"{_HINT.format('RobustPCBFSafetyFilter')}") from exc
     out_dir = _out_dir(out_dir, name)
     s = _Problem(slack, f"{name}_slack", f"robust slack problem (5.15) {slack.ocp.name!r}",
                  name, accept_tol)
@@ -209,37 +256,20 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
                     "(5.16) parameter": (f.params, ["x0", "u_p", "xi", "xi_N"]),
                     "(5.16) variable": (f.vars, ["z", "v"])},
              "build the problems with balustrade.problems.robust")
+    _check_tube(name, spec, {"(5.15)": s, "(5.16)": f})
     system = spec.system
-    nx, nu, N = system.nx, system.nu, len(np.asarray(spec.deltas).reshape(-1))
+    nx, nu, N = system.nx, system.nu, len(spec.deltas)
     n_xi = spec.X_E.H.shape[0] * N
-    for prob, label in ((s, "(5.15)"), (f, "(5.16)")):
-        if list(prob.vars["z"]["shape"]) != [nx, N + 1] or \
-                int(np.prod(prob.vars["v"]["shape"])) != nu * N:
-            raise CodegenError(f"{name}: z, v of {label} have shapes {prob.vars['z']['shape']}"
-                               f", {prob.vars['v']['shape']}; expected ({nx}, {N + 1}), "
-                               f"({nu}, {N})")
-    if int(np.prod(s.vars["xi"]["shape"])) != n_xi:
-        raise CodegenError(f"{name}: xi of (5.15) has shape {s.vars['xi']['shape']}, "
-                           f"expected ({spec.X_E.H.shape[0]}, {N})")
-    steps = _functions(name, spec, s)
+    steps = {f"{name}_post": _post(f"{name}_post", spec, s),
+             f"{name}_cand": _cand(f"{name}_cand", spec)}
     files = _generate({**s.functions(), **f.functions(), **steps}, name, out_dir)
     cfg = C.Config()
     s.config(cfg)
     f.config(cfg)
     cfg.comment(f"---- Algorithm 5.2, the robust PCBF step {name}: (5.15) then (5.16) "
                 "(bal/robust.h) ----")
-    cfg.define(f"{name}_NX", nx)
-    cfg.define(f"{name}_NU", nu)
-    cfg.define(f"{name}_N", N)
-    cfg.define(f"{name}_N_XI", n_xi, "slacks xi of (5.15)")
-    cfg.array(f"{name}_U_LB", U.lb)
-    cfg.array(f"{name}_U_UB", U.ub)
-    cfg.array(f"{name}_K", np.asarray(spec.K, dtype=float).reshape(nu, nx).T.reshape(-1),
-              nu * nx)
-    cfg.comment(f"the work vectors of {name}_post and {name}_cand")
-    for key in ("ARG", "RES", "IW", "W"):
-        cfg.define(f"{name}_SZ_{key}",
-                   f"BAL_MAX2({name}_post_SZ_{key}, {name}_cand_SZ_{key})")
+    _tube_config(cfg, name, spec, U)
+    _work_sizes(cfg, name, list(steps))
     cfg.status(S.ROBUST, "BAL_ROBUST_STATUS_CODES")
     manifest = {"kind": "robust", "nx": nx, "nu": nu, "N": N, "n_xi": n_xi,
                 "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
@@ -251,4 +281,75 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
                          manifest, tuple(sorted(set(libs))))
 
 
-__all__ = ["EMITTABLE_TARGET", "emit_robust"]
+
+
+
+def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
+                        allow_external: bool = False, accept_tol: float | None = None
+                        ) -> Emitted:
+    """Emit Algorithm 6.4 of a
+    :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` built with
+    ``target="robust-sqp", slack_target="robust-sqp"`` as one C call per control step:
+    ``<name>_step(x, u_p, u_out, status, work)`` (``bal/multiobj.h``); ``<name>_values``
+    gives ``h_cand``, ``bound``, ``h_tilde`` of the last step. ``record_h_r`` (an extra
+    (5.15) solve per step, for plots) is not emitted.
+
+    Algorithm 6.3 (:class:`~balustrade.control.multiobjective.
+    MultiobjectiveLyapunovController`) has no C step: its warm start ``ũ_{k+1}`` comes
+    from the switching rule (6.6)/(6.7) of a
+    :class:`~balustrade.problems.multiobjective.LinearLyapunovDesign` (a Python method,
+    not part of its deployment spec); its two problems are emitted by
+    :func:`~balustrade.codegen.emit_problems`."""
+    _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
+    spec = _spec(controller, name, MultiobjectiveDeployment, "MultiobjectivePCBFController")
+    try:
+        slack, prob, U, libs = _controller_pair(
+            name, spec.problems.get("slack"), spec.problems.get("problem"), spec.U,
+            ("robust slack problem (5.15)", "multiobjective problem (6.15)"),
+            allow_external)
+    except CodegenError as exc:
+        raise CodegenError(f"{exc}; for Algorithm 6.4: "
+                           f"{_HINT.format('MultiobjectivePCBFController')}") from exc
+    if spec.record_h_r:
+        raise CodegenError(f"{name}: record_h_r=True (an extra (5.15) solve per step for "
+                           "plots) is not emitted; build the controller without it")
+    out_dir = _out_dir(out_dir, name)
+    s = _Problem(slack, f"{name}_slack", f"robust slack problem (5.15) {slack.ocp.name!r}",
+                 name, accept_tol)
+    p = _Problem(prob, f"{name}_problem", f"multiobjective (6.15) {prob.ocp.name!r}", name,
+                 accept_tol)
+    _require(name, {"(5.15) parameter": (s.params, ["x0"]),
+                    "(5.15) variable": (s.vars, ["z", "v", "xi", "xi_N"]),
+                    "(6.15) parameter": (p.params, ["x0", "u_p", "bound"]),
+                    "(6.15) variable": (p.vars, ["z", "v", "xi", "xi_N"])},
+             "build the problems with balustrade.problems.multiobjective")
+    _check_tube(name, spec, {"(5.15)": s, "(6.15)": p})
+    system = spec.system
+    nx, nu, N = system.nx, system.nu, len(spec.deltas)
+    steps = {f"{name}_post_slack": _post(f"{name}_post_slack", spec, s),
+             f"{name}_post_problem": _post(f"{name}_post_problem", spec, p),
+             f"{name}_cand": _cand(f"{name}_cand", spec)}
+    files = _generate({**s.functions(), **p.functions(), **steps}, name, out_dir)
+    cfg = C.Config()
+    s.config(cfg)
+    p.config(cfg)
+    cfg.comment(f"---- Algorithm 6.4, the multiobjective robust PCBF step {name} "
+                "(bal/multiobj.h) ----")
+    _tube_config(cfg, name, spec, U)
+    cfg.define(f"{name}_RHO", C.c_double(spec.rho), "rho of (6.15g)")
+    cfg.define(f"{name}_BOUND_TOL", C.c_double(spec.bound_tol))
+    _work_sizes(cfg, name, list(steps))
+    cfg.status(S.MULTIOBJ, "BAL_MULTIOBJ_STATUS_CODES")
+    manifest = {"kind": "multiobjective", "nx": nx, "nu": nu, "N": N,
+                "rho": float(spec.rho), "bound_tol": float(spec.bound_tol),
+                "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
+                "problems": {"slack": s.manifest(), "problem": p.manifest()},
+                "multiobj_status": S.manifest(S.MULTIOBJ)}
+    return _write_module(name, out_dir, "Algorithm 6.4, the multiobjective robust PCBF "
+                         "controller (5.15)+(6.15)", cfg,
+                         [("problem", s.P), ("problem", p.P), ("multiobj", name)], files,
+                         manifest, tuple(sorted(set(libs))))
+
+
+__all__ = ["EMITTABLE_TARGET", "emit_multiobjective", "emit_robust"]

@@ -8,7 +8,8 @@ Three families:
 * :data:`SOLVE` — return value of ``<problem>_solve`` (one problem, e.g. (2.24));
 * :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
 * :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6);
-* :data:`ROBUST` — return value of the Algorithm 5.2 step (5.15)+(5.16).
+* :data:`ROBUST` — return value of the Algorithm 5.2 step (5.15)+(5.16);
+* :data:`MULTIOBJ` — return value of the Algorithm 6.4 step ((5.15) once, then (6.15)).
 
 Each family has a *bad input* code: a parameter or state that is NaN or inf is refused
 before any solver runs (NaN compares false, so a residual test would pass it as
@@ -104,6 +105,21 @@ ROBUST: tuple[Status, ...] = (
     Status("BAL_ROBUST_PROJECTED", 3, "projected_proposal", "projected_proposal",
            "(5.15) failed and no candidate: u_p clipped to U"),
     Status("BAL_ROBUST_BAD_INPUT", 4, "bad_input", "projected_proposal",
+           "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
+           "clipped to U"),
+)
+
+
+#: The Algorithm 6.4 step: ``fallback`` as in
+#: :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` (only
+#: ``BAL_OK`` is a success, as only ``optimal`` is in Python).
+MULTIOBJ: tuple[Status, ...] = (
+    Status("BAL_MULTIOBJ_OK", 0, "ok", None, "v*_0 + K(x - z*_0) of (6.15)"),
+    Status("BAL_MULTIOBJ_WARM_START", 1, "warm_start", "warm_start",
+           "(6.15) failed: v~_0 + K(x - z~_0) of the candidate (6.14)"),
+    Status("BAL_MULTIOBJ_INIT_FAILED", 2, "init_failed", "projected_proposal",
+           "no candidate and (5.15) failed: u_p clipped to U"),
+    Status("BAL_MULTIOBJ_BAD_INPUT", 3, "bad_input", "projected_proposal",
            "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
            "clipped to U"),
 )

@@ -107,5 +107,33 @@ class RobustDeployment(ProblemsDeployment):
     slack_norm: int | float
 
 
-__all__ = ["ApproximateDeployment", "PCBFDeployment", "ProblemsDeployment",
-           "RobustDeployment"]
+@dataclass(frozen=True)
+class MultiobjectiveDeployment(ProblemsDeployment):
+    """Algorithm 6.4 (Section 6.4): (5.15) once for the first candidate, then per step
+    (6.15) with the decrease bound (6.15g), the applied ``u = v₀ + K(x − z₀)``, the
+    candidate (6.14) and the fallbacks of
+    :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController`.
+    ``problems`` holds ``"slack"`` (5.15) (parameter ``x0``; variables ``z``, ``v``,
+    ``xi``, ``xi_N``) and ``"problem"`` (6.15) (parameters ``x0``, ``u_p``, ``bound``;
+    the same variables). The other fields are those of :class:`RobustDeployment`."""
+
+    system: System
+    X_E: Polytope
+    U: Set
+    U_E: Polytope
+    h_f: Callable
+    pi_f: Callable
+    K: np.ndarray | None = field(repr=False)
+    deltas: np.ndarray = field(repr=False)
+    alpha_f: float
+    #: ``ρ`` of (6.15g) and the margin ``bound_tol · max(1, |bound|)`` added to the bound
+    rho: float
+    bound_tol: float
+    #: an extra (5.15) solve per step for ``h_r`` (not emitted)
+    record_h_r: bool
+    #: the slack norm of ``h̃`` (ℓ1 in Algorithm 6.4)
+    slack_norm: int | float = 1
+
+
+__all__ = ["ApproximateDeployment", "MultiobjectiveDeployment", "PCBFDeployment",
+           "ProblemsDeployment", "RobustDeployment"]

@@ -128,6 +128,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   wk->res[0] = wk->xi;
   wk->res[1] = &wk->xi_N;
   wk->res[2] = &wk->h_r;
+  wk->res[3] = 0; /* h~ of the polished slacks: not needed here */
   if (BAL_QX(post)(wk->arg, wk->res, wk->iw, wk->w, 0)) {
     wk->slack_status = BAL_EVAL_ERROR;
     wk->h_r = NAN;
