@@ -1,4 +1,5 @@
-"""Emit Algorithm 5.2, the robust PCBF safety filter (5.15)+(5.16), as one C call per step.
+"""Emit Algorithm 5.2, the robust PCBF safety filter (5.15)+(5.16), and Algorithm 6.4, the
+multiobjective robust PCBF controller ((5.15) once, then (6.15)), as one C call per step.
 
 :func:`emit_robust` writes the module of :mod:`~balustrade.codegen.emit` (``bal/``,
 ``<name>_config.h``, ``<name>.h/.c``, ``<name>_casadi.c/.h``, ``<name>.json``) with the
@@ -20,6 +21,11 @@ interval ``U ⊖ κ(E)``); for other systems it drops the candidate at such a st
 (``<name>_candidate_exact`` returns 0, :class:`~balustrade.codegen.CRobustPCBFSafetyFilter`
 records ``values["candidate_exact"] = 0``) — a later (5.15) failure then falls back to the
 projected proposal where Python would apply its candidate.
+
+:func:`emit_multiobjective` does the same for Algorithm 6.4 (``bal/multiobj.c``): the
+polished slacks of (5.15) and of (6.15) (``<name>_post_slack``, ``<name>_post_problem``),
+the candidate (6.14) (``<name>_cand``, the same function as (5.17)). Algorithm 6.3 has no
+C step (see :func:`emit_multiobjective`).
 
 Both problems must be compiled for an emittable target. Build the controller with
 :data:`EMITTABLE_TARGET` for both: ``RobustPCBFSafetyFilter.build(..., target="robust-sqp",
