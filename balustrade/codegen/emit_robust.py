@@ -29,10 +29,11 @@ C step (see :func:`emit_multiobjective`).
 
 Both problems must be compiled for an emittable target. Build the controller with
 :data:`EMITTABLE_TARGET` for both: ``RobustPCBFSafetyFilter.build(..., target="robust-sqp",
-slack_target="robust-sqp")`` — CasADi's SQP with the ``qrqp`` active-set QP solver and up
-to 500 iterations: (5.15) and (5.16) are QPs with convex quadratic rows (tube and terminal
-set), on which it converges in a few iterations (its default limit of ``fast-sqp`` also
-works on small horizons; ``robust-sqp`` leaves room for ``h_r > 0``).
+slack_target="robust-sqp")`` (the preset of :mod:`balustrade.backends.targets` whose C is
+self-contained, with room for the many iterations (5.15) needs when ``h_r > 0``). Its
+emittable retry chain does not always converge on these problems (docs/deploy_c.md,
+"Convergence on these problems"); the C then takes the fallbacks Python takes with the same
+chain (:func:`~balustrade.codegen.mirror_c_retries`).
 """
 
 from __future__ import annotations

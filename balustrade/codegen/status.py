@@ -125,6 +125,10 @@ MULTIOBJ: tuple[Status, ...] = (
 )
 
 
+#: every family (the static C may use the macros of any of them)
+FAMILIES: tuple[tuple[Status, ...], ...] = (SOLVE, PCBF, APPROX, ROBUST, MULTIOBJ)
+
+
 def by_code(family: tuple[Status, ...]) -> dict[int, Status]:
     """``{code: Status}`` of a family."""
     return {s.code: s for s in family}
