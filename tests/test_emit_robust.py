@@ -27,6 +27,7 @@ from balustrade.codegen import (
     emit_problems,
     emit_robust,
 )
+from balustrade.codegen import cfiles as C
 from balustrade.codegen.build import build_executable
 from balustrade.codegen.emit_robust import EMITTABLE_TARGET
 from balustrade.codegen.runtime import mirror_c_retries
@@ -292,3 +293,14 @@ def test_multiobjective_bad_input_and_refusals(mo_pair: dict, tmp_path) -> None:
         emit_multiobjective(dataclasses.replace(spec, record_h_r=True), "mo", tmp_path)
     with pytest.raises(CodegenError, match="expected a MultiobjectivePCBFController"):
         emit_multiobjective(object(), "mo", tmp_path)
+
+
+def test_entry_points_listed_and_exported(pair: dict, mo_pair: dict) -> None:
+    """Every entry point of bal/robust.h and bal/multiobj.h (``cfiles.ENTRY_POINTS``) is
+    named in the generated header and exported by the built library."""
+    for ctrl, kind, name in ((pair["c"], "robust", "rob"), (mo_pair["c"], "multiobj", "mo")):
+        lib = ctrl._lib
+        header = (lib.path.parent / f"{name}.h").read_text()
+        for entry in C.ENTRY_POINTS[kind]:
+            sym = f"{name}_{entry}"
+            assert sym in header and hasattr(lib.lib, sym), sym
