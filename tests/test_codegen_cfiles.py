@@ -90,7 +90,7 @@ def test_status_codes_defined_once() -> None:
     """The static C only uses status macros: every BAL_* name it uses is a status of
     :mod:`balustrade.codegen.status` or a macro of bal/common.h, and no static file defines
     a status (the generated config does, from the tables)."""
-    statuses = {st.macro for fam in (S.SOLVE, S.PCBF, S.APPROX, S.GRID) for st in fam}
+    statuses = {st.macro for fam in S.FAMILIES for st in fam}
     common = C.static_text("common.h")
     own = set(re.findall(r"#define (BAL_[A-Z0-9_]+)", common))
     for fname in PACKAGED:
@@ -102,7 +102,7 @@ def test_status_codes_defined_once() -> None:
         used = set(re.findall(r"\bBAL_[A-Z0-9_]*[A-Z0-9]\b", C.static_text(fname)))
         used -= {"BAL_PROBLEM", "BAL_STEP"}  # the prefixes the glue defines
         assert used <= statuses | own, (fname, used - statuses - own)
-    for fam in (S.SOLVE, S.PCBF, S.APPROX, S.GRID):
+    for fam in S.FAMILIES:
         assert len({st.code for st in fam}) == len(fam)
         assert len({st.name for st in fam}) == len(fam)
 

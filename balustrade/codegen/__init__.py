@@ -10,8 +10,10 @@ Deploy path (see ``docs/deploy_c.md``)::
 
 Modules: :mod:`~balustrade.codegen.support` (which solvers generate C, callback check),
 :mod:`~balustrade.codegen.emit` (the emitters: plain functions, one problem, the PCBF
-pair (2.24)+(2.23), Algorithm 7.5 with (7.5)+(7.6), reading the controllers' typed
-deployment specs of :mod:`balustrade.control.deploy`), :mod:`~balustrade.codegen.cfiles`
+pair (2.24)+(2.23), Algorithm 7.5 with (7.5)+(7.6); :mod:`~balustrade.codegen.emit_robust`:
+Algorithms 5.2 and 6.4, loaded by :mod:`~balustrade.codegen.runtime_robust`;
+reading the controllers' typed deployment specs of :mod:`balustrade.control.deploy`),
+:mod:`~balustrade.codegen.cfiles`
 (the static C shipped in ``codegen/c/`` and the generated config header that instantiates
 it), :mod:`~balustrade.codegen.status` (status codes, defined once),
 :mod:`~balustrade.codegen.build` (compiler), :mod:`~balustrade.codegen.runtime` (ctypes).
@@ -37,6 +39,7 @@ from balustrade.codegen.emit import (
     write_example,
 )
 from balustrade.codegen.emit_grid import emit_grid
+from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
 from balustrade.codegen.runtime import (
     CApproximatePCBFFilter,
     CFunction,
@@ -46,12 +49,15 @@ from balustrade.codegen.runtime import (
     mirror_c_retries,
 )
 from balustrade.codegen.runtime_grid import CGridPCBFFilter
+from balustrade.codegen.runtime_robust import CMultiobjectivePCBFFilter, CRobustPCBFSafetyFilter
 from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_libraries
 
 __all__ = [
     "SUPPORTED", "CApproximatePCBFFilter", "CFunction", "CPCBFSafetyFilter", "CProblem",
+    "CMultiobjectivePCBFFilter", "CRobustPCBFSafetyFilter",
     "Emitted", "build", "build_executable", "check_no_callbacks", "emit_approximate",
     "emit_function", "emit_functions", "emit_pcbf", "emit_problem", "emit_problems",
+    "emit_multiobjective", "emit_robust",
     "find_compiler",
     "load_manifest", "solver_libraries", "mirror_c_retries", "write_example",
     "CGridPCBFFilter", "emit_grid", "accelerate",

@@ -29,7 +29,8 @@ from balustrade.codegen import status as S
 SUBDIR = "bal"
 #: the static files copied into ``<out_dir>/bal/`` (``#include``\\ d by the glue)
 STATIC = ("common.h", "problem.h", "problem.c", "step_common.c", "pcbf.h", "pcbf.c",
-          "approx.h", "approx.c", "grid.h", "grid.c")
+          "approx.h", "approx.c", "grid.h", "grid.c",
+          "robust.h", "robust.c", "multiobj.h", "multiobj.c")
 #: the entry points each static header declares (``<prefix>_<entry>``), listed by their real
 #: names in the generated ``<name>.h`` (checked against the built library by the tests)
 ENTRY_POINTS: dict[str, tuple[str, ...]] = {
@@ -41,6 +42,12 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
                "proposal_replaced", "counter"),
     "grid": ("init", "finalize", "alloc", "free", "reset", "step", "n_candidates",
              "proposal_replaced", "counter", "u_prev"),
+    "robust": ("init", "finalize", "alloc", "free", "reset", "step", "slack_problem",
+               "filter_problem", "solve_status", "h_cand", "proposal_replaced",
+               "candidate_exact"),
+    "multiobj": ("init", "finalize", "alloc", "free", "reset", "step", "slack_problem",
+                 "main_problem", "solve_status", "values", "proposal_replaced",
+                 "candidate_exact"),
 }
 #: values per line of an array macro
 _PER_LINE = 6

@@ -8,7 +8,9 @@ Three families:
 * :data:`SOLVE` — return value of ``<problem>_solve`` (one problem, e.g. (2.24));
 * :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
 * :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6);
-* :data:`GRID` — return value of the Algorithm 8.7 step (grid filter, no solver).
+* :data:`GRID` — return value of the Algorithm 8.7 step (grid filter, no solver);
+* :data:`ROBUST` — return value of the Algorithm 5.2 step (5.15)+(5.16);
+* :data:`MULTIOBJ` — return value of the Algorithm 6.4 step ((5.15) once, then (6.15)).
 
 Each family has a *bad input* code: a parameter or state that is NaN or inf is refused
 before any solver runs (NaN compares false, so a residual test would pass it as
@@ -101,6 +103,42 @@ GRID: tuple[Status, ...] = (
     Status("BAL_GRID_BAD_INPUT", 2, "non_finite_state", "previous_input",
            "x is NaN or inf (or a pointer is NULL): the last applied input, unchanged"),
 )
+
+
+#: The Algorithm 5.2 step (5.15)+(5.16): ``fallback`` as in
+#: :class:`~balustrade.control.robust.RobustPCBFSafetyFilter` (a solve counts as a success
+#: only when it converged, ``BAL_OK``: the backend's ``feasible`` is a failure there).
+ROBUST: tuple[Status, ...] = (
+    Status("BAL_ROBUST_OK", 0, "ok", None, "v*_0 + K(x - z*_0) of the filter (5.16)"),
+    Status("BAL_ROBUST_SLACK_SOLUTION", 1, "slack_solution", "slack_solution",
+           "(5.16) failed: v_0 + K(x - z_0) of the (5.15) optimizer"),
+    Status("BAL_ROBUST_CANDIDATE", 2, "candidate", "candidate",
+           "(5.15) failed: v~_0 + K(x - z~_0) of the last candidate (5.17), shifted again"),
+    Status("BAL_ROBUST_PROJECTED", 3, "projected_proposal", "projected_proposal",
+           "(5.15) failed and no candidate: u_p clipped to U"),
+    Status("BAL_ROBUST_BAD_INPUT", 4, "bad_input", "projected_proposal",
+           "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
+           "clipped to U"),
+)
+
+
+#: The Algorithm 6.4 step: ``fallback`` as in
+#: :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` (only
+#: ``BAL_OK`` is a success, as only ``optimal`` is in Python).
+MULTIOBJ: tuple[Status, ...] = (
+    Status("BAL_MULTIOBJ_OK", 0, "ok", None, "v*_0 + K(x - z*_0) of (6.15)"),
+    Status("BAL_MULTIOBJ_WARM_START", 1, "warm_start", "warm_start",
+           "(6.15) failed: v~_0 + K(x - z~_0) of the candidate (6.14)"),
+    Status("BAL_MULTIOBJ_INIT_FAILED", 2, "init_failed", "projected_proposal",
+           "no candidate and (5.15) failed: u_p clipped to U"),
+    Status("BAL_MULTIOBJ_BAD_INPUT", 3, "bad_input", "projected_proposal",
+           "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
+           "clipped to U"),
+)
+
+
+#: every family (the static C may use the macros of any of them)
+FAMILIES: tuple[tuple[Status, ...], ...] = (SOLVE, PCBF, APPROX, GRID, ROBUST, MULTIOBJ)
 
 
 def by_code(family: tuple[Status, ...]) -> dict[int, Status]:

@@ -33,7 +33,7 @@ import numpy as np
 from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, Target, companion, compile
 from balustrade.control.base import StepInfo, note_solve
-from balustrade.control.deploy import ProblemsDeployment
+from balustrade.control.deploy import MultiobjectiveDeployment, ProblemsDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -256,8 +256,14 @@ class MultiobjectivePCBFController:
         u = v[:, 0] + self.error.kappa(x - z[:, 0])
         return u, info
 
-    def deployment_spec(self) -> ProblemsDeployment:
-        """The compiled problems of Algorithm 6.4, (5.15) and (6.15), for
-        :func:`balustrade.codegen.emit_problem` (the closed-loop step has no emitted C)."""
-        return ProblemsDeployment({"slack": self.slack, "problem": self.problem},
-                                  "Algorithm 6.4, the multiobjective robust PCBF controller")
+    def deployment_spec(self) -> MultiobjectiveDeployment:
+        """Algorithm 6.4 for :func:`balustrade.codegen.emit_multiobjective` (one C call per
+        step), also a :class:`~balustrade.control.deploy.ProblemsDeployment` of (5.15) and
+        (6.15) for :func:`balustrade.codegen.emit_problems`."""
+        return MultiobjectiveDeployment(
+            {"slack": self.slack, "problem": self.problem},
+            "Algorithm 6.4, the multiobjective robust PCBF controller",
+            system=self.system, X_E=self.X_E, U=self.U, U_E=self.U_E, h_f=self.h_f,
+            pi_f=self.pi_f, K=self.error.K if self.error.kappa_fn is None else None,
+            deltas=self.deltas, alpha_f=self.alpha_f, rho=self.rho,
+            bound_tol=self.bound_tol, record_h_r=self.record_h_r)

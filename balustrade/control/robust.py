@@ -49,7 +49,7 @@ import numpy as np
 from balustrade._checks import as_scalar, as_vector, check_deltas, check_instance, check_norm_order
 from balustrade.backends import Compiled, Solution, Target, companion, compile
 from balustrade.control.base import StepInfo, feasible_truncation, note_solve, outcome
-from balustrade.control.deploy import ProblemsDeployment
+from balustrade.control.deploy import RobustDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -198,9 +198,15 @@ class RobustPCBFSafetyFilter:
         info.fallback = "projected_proposal"
         return project(u_p, self.U), info
 
-    def deployment_spec(self) -> ProblemsDeployment:
-        """The compiled problems of Algorithm 5.2, (5.15) and (5.16), for
-        :func:`balustrade.codegen.emit_problem` (the closed-loop step has no emitted C)."""
-        return ProblemsDeployment({"slack": self.slack, "filter": self.filter},
-                                  "Algorithm 5.2, the robust PCBF filter (5.15)+(5.16)")
+    def deployment_spec(self) -> RobustDeployment:
+        """Algorithm 5.2 for :func:`balustrade.codegen.emit_robust` (one C call per step),
+        also a :class:`~balustrade.control.deploy.ProblemsDeployment` of (5.15) and (5.16)
+        for :func:`balustrade.codegen.emit_problems`."""
+        return RobustDeployment({"slack": self.slack, "filter": self.filter},
+                                "Algorithm 5.2, the robust PCBF filter (5.15)+(5.16)",
+                                system=self.system, X_E=self.X_E, U=self.U, U_E=self.U_E,
+                                h_f=self.h_f, pi_f=self.pi_f, K=self.error.K
+                                if self.error.kappa_fn is None else None,
+                                deltas=self.deltas, alpha_f=self.alpha_f,
+                                slack_norm=self.slack_norm)
 

@@ -1,0 +1,194 @@
+/* bal/multiobj.c: the Algorithm 6.4 control step Q = BAL_STEP (bal/multiobj.h) with the
+ * fallbacks of balustrade.control.multiobjective. Included by the generated <name>.c after
+ * the problems Q_slack (5.15) and Q_problem (6.15). From <name>_config.h: Q_NX, Q_NU, Q_N,
+ * Q_N_XI, the box U, the feedback Q_K (NU x NX, column-major), Q_RHO, Q_BOUND_TOL, and the
+ * emitted functions Q_post_slack / Q_post_problem (polished slacks, h~) and Q_cand (the
+ * candidate (6.14)).
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "step_common.c"
+
+static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
+static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
+static const casadi_real BAL_QX(kappa)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
+
+int BAL_QX(init)(BAL_QX(work)* wk) {
+  wk->ready = 0;
+  if (BAL_QX(slack_init)(&wk->slack)) return -1;
+  if (BAL_QX(problem_init)(&wk->problem)) {
+    BAL_QX(slack_finalize)(&wk->slack);
+    return -1;
+  }
+  BAL_QX(reset)(wk);
+  wk->ready = 1;
+  return 0;
+}
+
+void BAL_QX(finalize)(BAL_QX(work)* wk) {
+  if (!wk->ready) return;
+  BAL_QX(problem_finalize)(&wk->problem);
+  BAL_QX(slack_finalize)(&wk->slack);
+  wk->ready = 0;
+}
+
+BAL_DEFINE_ALLOC_FREE(BAL_QX)
+
+void BAL_QX(reset)(BAL_QX(work)* wk) {
+  BAL_QX(slack_cold_start)(&wk->slack);
+  BAL_QX(problem_cold_start)(&wk->problem);
+  wk->have_cand = wk->have_problem = wk->n_replaced = 0;
+  wk->cand_exact = 1;
+  wk->slack_status = wk->problem_status = BAL_NOT_RUN;
+  wk->h_prev = NAN;
+  wk->values[0] = wk->values[1] = wk->values[2] = NAN;
+}
+
+static void BAL_QX(applied)(const casadi_real* x, const casadi_real* z0,
+                            const casadi_real* v0, casadi_real* u) {
+  casadi_int i, j;
+  for (i = 0; i < BAL_QX(NU); ++i) {
+    u[i] = v0[i];
+    for (j = 0; j < BAL_QX(NX); ++j) u[i] += BAL_QX(kappa)[i + j * BAL_QX(NU)] * (x[j] - z0[j]);
+  }
+}
+
+/* polished slacks and h~ of a solution w with value f (Q_post_slack / Q_post_problem);
+   0 on success */
+typedef int (*BAL_QX(post_fn))(const casadi_real**, casadi_real**, casadi_int*, casadi_real*,
+                               int);
+static int BAL_QX(polish)(BAL_QX(work)* wk, BAL_QX(post_fn) post, const casadi_real* w,
+                          const casadi_real* f) {
+  wk->arg[0] = w;
+  wk->arg[1] = f;
+  wk->res[0] = wk->xi;
+  wk->res[1] = &wk->xi_N;
+  wk->res[2] = &wk->h_r;
+  wk->res[3] = &wk->h_tilde;
+  return post(wk->arg, wk->res, wk->iw, wk->w, 0);
+}
+
+static void BAL_QX(make_candidate)(BAL_QX(work)* wk, const casadi_real* z,
+                                   const casadi_real* v, const casadi_real* xi) {
+  wk->arg[0] = z;
+  wk->arg[1] = v;
+  wk->arg[2] = xi;
+  wk->res[0] = wk->nz;
+  wk->res[1] = wk->nv;
+  wk->res[2] = wk->nxi;
+  wk->res[3] = &wk->nxi_N;
+  wk->res[4] = &wk->nh;
+  wk->res[5] = &wk->nok;
+  if (BAL_QX(cand)(wk->arg, wk->res, wk->iw, wk->w, 0) || !(wk->nok > 0.5)) {
+    wk->have_cand = 0;
+    wk->cand_exact = 0;
+    return;
+  }
+  memcpy(wk->cz, wk->nz, sizeof(wk->cz));
+  memcpy(wk->cv, wk->nv, sizeof(wk->cv));
+  memcpy(wk->cxi, wk->nxi, sizeof(wk->cxi));
+  wk->cxi_N = wk->nxi_N;
+  wk->ch = wk->nh;
+  wk->have_cand = 1;
+  wk->cand_exact = 1;
+}
+
+#define BAL_MO_COPY(var, src, n)                                              \
+  memcpy(wk->problem.x0 + BAL_QX(problem_W_##var), (src), (n) * sizeof(casadi_real));
+
+int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
+                 int* status, BAL_QX(work)* wk) {
+  casadi_int i;
+  casadi_real bound;
+  const casadi_real *z, *v;
+  if (!x || !u_p || !u_out || !status || !wk) {
+    if (status) *status = BAL_MULTIOBJ_BAD_INPUT;
+    return BAL_MULTIOBJ_BAD_INPUT;
+  }
+  wk->slack_status = wk->problem_status = BAL_NOT_RUN;
+  wk->values[0] = wk->values[1] = wk->values[2] = NAN;
+  wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
+  if (!bal_finite(x, BAL_QX(NX))) {
+    wk->slack_status = wk->problem_status = BAL_BAD_INPUT;
+    bal_clip(wk->u_p, BAL_QX(u_lb), BAL_QX(u_ub), u_out, BAL_QX(NU));
+    *status = BAL_MULTIOBJ_BAD_INPUT;
+    return *status;
+  }
+  if (!wk->have_cand) {
+    /* initialization from (5.15) */
+    for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
+    wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
+    if (wk->slack_status == BAL_OK &&
+        BAL_QX(polish)(wk, BAL_QX(post_slack), wk->slack.x, &wk->slack.f)) {
+      wk->slack_status = BAL_EVAL_ERROR;
+    }
+    if (wk->slack_status != BAL_OK) {
+      bal_clip(wk->u_p, BAL_QX(u_lb), BAL_QX(u_ub), u_out, BAL_QX(NU));
+      *status = BAL_MULTIOBJ_INIT_FAILED;
+      return *status;
+    }
+    BAL_QX(slack_warm_start)(&wk->slack);
+    memcpy(wk->cz, wk->slack.x + BAL_QX(slack_W_z), sizeof(wk->cz));
+    memcpy(wk->cv, wk->slack.x + BAL_QX(slack_W_v), sizeof(wk->cv));
+    memcpy(wk->cxi, wk->xi, sizeof(wk->cxi));
+    wk->cxi_N = wk->xi_N;
+    wk->ch = wk->h_prev = wk->h_tilde;
+    wk->have_cand = 1;
+  }
+  /* (6.15) with the decrease bound (6.15g) */
+  bound = (1.0 - BAL_QX(RHO)) * wk->ch + BAL_QX(RHO) * wk->h_prev;
+  bound += BAL_QX(BOUND_TOL) * fmax(1.0, fabs(bound));
+  wk->values[0] = wk->ch;
+  wk->values[1] = bound;
+  for (i = 0; i < BAL_QX(NX); ++i) wk->p_problem[BAL_QX(problem_P_x0) + i] = x[i];
+  for (i = 0; i < BAL_QX(NU); ++i) wk->p_problem[BAL_QX(problem_P_u_p) + i] = wk->u_p[i];
+  wk->p_problem[BAL_QX(problem_P_bound)] = bound;
+  if (!wk->have_problem) {
+    /* before its first success: from the candidate, the rest cold */
+    BAL_QX(problem_cold_start)(&wk->problem);
+    BAL_MO_COPY(z, wk->cz, BAL_QX(NX) * (BAL_QX(N) + 1))
+    BAL_MO_COPY(v, wk->cv, BAL_QX(NU) * BAL_QX(N))
+    BAL_MO_COPY(xi, wk->cxi, BAL_QX(N_XI))
+    BAL_MO_COPY(xi_N, &wk->cxi_N, 1)
+  }
+  wk->problem_status = BAL_QX(problem_solve)(&wk->problem, wk->p_problem);
+  if (wk->problem_status == BAL_OK &&
+      BAL_QX(polish)(wk, BAL_QX(post_problem), wk->problem.x, &wk->problem.f)) {
+    wk->problem_status = BAL_EVAL_ERROR;
+  }
+  if (wk->problem_status == BAL_OK) {
+    BAL_QX(problem_warm_start)(&wk->problem);
+    wk->have_problem = 1;
+    z = wk->problem.x + BAL_QX(problem_W_z);
+    v = wk->problem.x + BAL_QX(problem_W_v);
+    wk->h_prev = wk->h_tilde;
+    *status = BAL_MULTIOBJ_OK;
+  } else {
+    z = wk->cz;
+    v = wk->cv;
+    memcpy(wk->xi, wk->cxi, sizeof(wk->xi));
+    wk->h_prev = wk->ch;
+    *status = BAL_MULTIOBJ_WARM_START;
+  }
+  wk->values[2] = wk->h_prev;
+  BAL_QX(applied)(x, z, v, u_out);
+  BAL_QX(make_candidate)(wk, z, v, wk->xi);
+  return *status;
+}
+
+#undef BAL_MO_COPY
+
+BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk) { return &wk->slack; }
+BAL_QX(problem_work)* BAL_QX(main_problem)(BAL_QX(work)* wk) { return &wk->problem; }
+int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which) {
+  return which == 0 ? wk->slack_status : wk->problem_status;
+}
+void BAL_QX(values)(const BAL_QX(work)* wk, casadi_real* out) {
+  out[0] = wk->values[0];
+  out[1] = wk->values[1];
+  out[2] = wk->values[2];
+}
+int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }
+int BAL_QX(candidate_exact)(const BAL_QX(work)* wk) { return wk->cand_exact; }

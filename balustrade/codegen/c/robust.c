@@ -1,0 +1,175 @@
+/* bal/robust.c: the Algorithm 5.2 control step Q = BAL_STEP ((5.15) then (5.16),
+ * bal/robust.h) with the fallbacks of balustrade.control.robust. Included by the generated
+ * <name>.c after the problems Q_slack and Q_filter. From <name>_config.h: Q_NX, Q_NU, Q_N,
+ * Q_N_XI, the box U (Q_U_LB, Q_U_UB), the feedback Q_K (NU x NX, column-major), the sizes
+ * Q_SZ_* of the emitted functions Q_post (polished slacks and h_r) and Q_cand (the
+ * candidate (5.17)), and the offsets of the problems (Q_slack_W_z, ...).
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "step_common.c"
+
+static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
+static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
+static const casadi_real BAL_QX(kappa)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
+
+int BAL_QX(init)(BAL_QX(work)* wk) {
+  wk->ready = 0;
+  if (BAL_QX(slack_init)(&wk->slack)) return -1;
+  if (BAL_QX(filter_init)(&wk->filter)) {
+    BAL_QX(slack_finalize)(&wk->slack);
+    return -1;
+  }
+  BAL_QX(reset)(wk);
+  wk->ready = 1;
+  return 0;
+}
+
+void BAL_QX(finalize)(BAL_QX(work)* wk) {
+  if (!wk->ready) return;
+  BAL_QX(filter_finalize)(&wk->filter);
+  BAL_QX(slack_finalize)(&wk->slack);
+  wk->ready = 0;
+}
+
+BAL_DEFINE_ALLOC_FREE(BAL_QX)
+
+void BAL_QX(reset)(BAL_QX(work)* wk) {
+  BAL_QX(slack_cold_start)(&wk->slack);
+  BAL_QX(filter_cold_start)(&wk->filter);
+  wk->have_cand = wk->have_slack = wk->have_filter = wk->n_replaced = 0;
+  wk->cand_exact = 1;
+  wk->slack_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_cand = wk->h_r = NAN;
+}
+
+/* u := v0 + K (x - z0) */
+static void BAL_QX(applied)(const casadi_real* x, const casadi_real* z0,
+                            const casadi_real* v0, casadi_real* u) {
+  casadi_int i, j;
+  for (i = 0; i < BAL_QX(NU); ++i) {
+    u[i] = v0[i];
+    for (j = 0; j < BAL_QX(NX); ++j) u[i] += BAL_QX(kappa)[i + j * BAL_QX(NU)] * (x[j] - z0[j]);
+  }
+}
+
+/* The next candidate (5.17) from (z, v, xi) (Q_cand); kept only if its terminal input was
+   computed exactly. z, v, xi may point into the current candidate. */
+static void BAL_QX(make_candidate)(BAL_QX(work)* wk, const casadi_real* z,
+                                   const casadi_real* v, const casadi_real* xi) {
+  wk->arg[0] = z;
+  wk->arg[1] = v;
+  wk->arg[2] = xi;
+  wk->res[0] = wk->nz;
+  wk->res[1] = wk->nv;
+  wk->res[2] = wk->nxi;
+  wk->res[3] = &wk->nxi_N;
+  wk->res[4] = &wk->nh;
+  wk->res[5] = &wk->nok;
+  if (BAL_QX(cand)(wk->arg, wk->res, wk->iw, wk->w, 0) || !(wk->nok > 0.5)) {
+    wk->have_cand = 0;
+    wk->cand_exact = 0;
+    return;
+  }
+  memcpy(wk->cz, wk->nz, sizeof(wk->cz));
+  memcpy(wk->cv, wk->nv, sizeof(wk->cv));
+  memcpy(wk->cxi, wk->nxi, sizeof(wk->cxi));
+  wk->cxi_N = wk->nxi_N;
+  wk->ch = wk->nh;
+  wk->have_cand = 1;
+  wk->cand_exact = 1;
+}
+
+/* A failed (5.15): the last candidate (then shifted again), or u_p clipped to U. */
+static int BAL_QX(fallback)(BAL_QX(work)* wk, const casadi_real* x, casadi_real* u_out,
+                            int* status) {
+  if (wk->have_cand) {
+    BAL_QX(applied)(x, wk->cz, wk->cv, u_out);
+    BAL_QX(make_candidate)(wk, wk->cz, wk->cv, wk->cxi);
+    *status = BAL_ROBUST_CANDIDATE;
+  } else {
+    bal_clip(wk->u_p, BAL_QX(u_lb), BAL_QX(u_ub), u_out, BAL_QX(NU));
+    *status = BAL_ROBUST_PROJECTED;
+  }
+  return *status;
+}
+
+int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
+                 casadi_real* h_out, int* status, BAL_QX(work)* wk) {
+  casadi_int i;
+  const casadi_real *z, *v;
+  if (!x || !u_p || !u_out || !h_out || !status || !wk) {
+    if (status) *status = BAL_ROBUST_BAD_INPUT;
+    return BAL_ROBUST_BAD_INPUT;
+  }
+  wk->slack_status = wk->filter_status = BAL_NOT_RUN;
+  wk->h_r = *h_out = NAN;
+  wk->h_cand = NAN;
+  wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
+  if (!bal_finite(x, BAL_QX(NX))) {
+    /* nothing solved (balustrade.control.fallbacks.projected_proposal); candidate kept */
+    wk->slack_status = wk->filter_status = BAL_BAD_INPUT;
+    bal_clip(wk->u_p, BAL_QX(u_lb), BAL_QX(u_ub), u_out, BAL_QX(NU));
+    *status = BAL_ROBUST_BAD_INPUT;
+    return *status;
+  }
+  if (wk->have_cand) wk->h_cand = wk->ch;
+  /* (5.15): h_r(x_k) and the slacks */
+  for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
+  wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
+  if (wk->slack_status != BAL_OK) return BAL_QX(fallback)(wk, x, u_out, status);
+  BAL_QX(slack_warm_start)(&wk->slack);
+  wk->have_slack = 1;
+  /* polished slacks and h_r (Q_post) */
+  wk->arg[0] = wk->slack.x;
+  wk->arg[1] = &wk->slack.f;
+  wk->res[0] = wk->xi;
+  wk->res[1] = &wk->xi_N;
+  wk->res[2] = &wk->h_r;
+  wk->res[3] = 0; /* h~ of the polished slacks: not needed here */
+  if (BAL_QX(post)(wk->arg, wk->res, wk->iw, wk->w, 0)) {
+    wk->slack_status = BAL_EVAL_ERROR;
+    wk->h_r = NAN;
+    return BAL_QX(fallback)(wk, x, u_out, status);
+  }
+  *h_out = wk->h_r;
+  /* (5.16) with the polished slacks fixed */
+  for (i = 0; i < BAL_QX(NX); ++i) wk->p_filter[BAL_QX(filter_P_x0) + i] = x[i];
+  for (i = 0; i < BAL_QX(NU); ++i) wk->p_filter[BAL_QX(filter_P_u_p) + i] = wk->u_p[i];
+  for (i = 0; i < BAL_QX(N_XI); ++i) wk->p_filter[BAL_QX(filter_P_xi) + i] = wk->xi[i];
+  wk->p_filter[BAL_QX(filter_P_xi_N)] = wk->xi_N;
+  if (!wk->have_filter) {
+    /* before its first success: z, v of (5.15), the rest cold */
+    BAL_QX(filter_cold_start)(&wk->filter);
+    memcpy(wk->filter.x0 + BAL_QX(filter_W_z), wk->slack.x + BAL_QX(slack_W_z),
+           BAL_QX(NX) * (BAL_QX(N) + 1) * sizeof(casadi_real));
+    memcpy(wk->filter.x0 + BAL_QX(filter_W_v), wk->slack.x + BAL_QX(slack_W_v),
+           BAL_QX(NU) * BAL_QX(N) * sizeof(casadi_real));
+  }
+  wk->filter_status = BAL_QX(filter_solve)(&wk->filter, wk->p_filter);
+  if (wk->filter_status == BAL_OK) {
+    BAL_QX(filter_warm_start)(&wk->filter);
+    wk->have_filter = 1;
+    z = wk->filter.x + BAL_QX(filter_W_z);
+    v = wk->filter.x + BAL_QX(filter_W_v);
+    *status = BAL_ROBUST_OK;
+  } else {
+    z = wk->slack.x + BAL_QX(slack_W_z);
+    v = wk->slack.x + BAL_QX(slack_W_v);
+    *status = BAL_ROBUST_SLACK_SOLUTION;
+  }
+  BAL_QX(applied)(x, z, v, u_out);
+  BAL_QX(make_candidate)(wk, z, v, wk->xi);
+  return *status;
+}
+
+BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk) { return &wk->slack; }
+BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk) { return &wk->filter; }
+int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which) {
+  return which == 0 ? wk->slack_status : wk->filter_status;
+}
+casadi_real BAL_QX(h_cand)(const BAL_QX(work)* wk) { return wk->h_cand; }
+int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }
+int BAL_QX(candidate_exact)(const BAL_QX(work)* wk) { return wk->cand_exact; }

@@ -1,0 +1,362 @@
+"""Emit Algorithm 5.2, the robust PCBF safety filter (5.15)+(5.16), and Algorithm 6.4, the
+multiobjective robust PCBF controller ((5.15) once, then (6.15)), as one C call per step.
+
+:func:`emit_robust` writes the module of :mod:`~balustrade.codegen.emit` (``bal/``,
+``<name>_config.h``, ``<name>.h/.c``, ``<name>_casadi.c/.h``, ``<name>.json``) with the
+step ``<name>_step(x, u_p, u_out, h_out, status, work)`` of ``bal/robust.c``: the decisions
+and fallbacks of :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`, the numbers
+between the solves as two emitted CasADi functions:
+
+* ``<name>_post(w, f)`` — the polished slacks of (5.15) (:func:`~balustrade.control.
+  robust_steps.polished_slacks`: elementwise minimum of the solver's slacks, clipped at 0,
+  and the slacks its ``z`` needs) and ``h_r = min(max(f, 0), h̃(ξ))`` (SPEC §1.12);
+* ``<name>_cand(z, v, ξ)`` — the shifted candidate (5.17)
+  (:func:`~balustrade.control.robust_steps.robust_candidate`) with ``h̃`` of it.
+
+The candidate's terminal input is ``π_f(z_N)`` when it lies in ``U ⊖ κ(E)``; otherwise
+Python minimizes ``h_f(f(z_N, v, 0))`` over ``U ⊖ κ(E)`` with SLSQP. The C computes that
+minimizer in closed form when there is one input and the function is a quadratic in ``v``
+(a linear system with a quadratic ``h_f``: the unconstrained minimizer clipped to the
+interval ``U ⊖ κ(E)``); for other systems it drops the candidate at such a step
+(``<name>_candidate_exact`` returns 0, :class:`~balustrade.codegen.CRobustPCBFSafetyFilter`
+records ``values["candidate_exact"] = 0``) — a later (5.15) failure then falls back to the
+projected proposal where Python would apply its candidate.
+
+:func:`emit_multiobjective` does the same for Algorithm 6.4 (``bal/multiobj.c``): the
+polished slacks of (5.15) and of (6.15) (``<name>_post_slack``, ``<name>_post_problem``),
+the candidate (6.14) (``<name>_cand``, the same function as (5.17)). Algorithm 6.3 has no
+C step (see :func:`emit_multiobjective`).
+
+Both problems must be compiled for an emittable target. Build the controller with
+:data:`EMITTABLE_TARGET` for both: ``RobustPCBFSafetyFilter.build(..., target="robust-sqp",
+slack_target="robust-sqp")`` (the preset of :mod:`balustrade.backends.targets` whose C is
+self-contained, with room for the many iterations (5.15) needs when ``h_r > 0``). Its
+emittable retry chain does not always converge on these problems (docs/deploy_c.md,
+"Convergence on these problems"); the C then takes the fallbacks Python takes with the same
+chain (:func:`~balustrade.codegen.mirror_c_retries`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from balustrade.codegen import cfiles as C
+from balustrade.codegen import status as S
+from balustrade.codegen.emit import (
+    Emitted,
+    _check_accept_tol,
+    _check_identifier,
+    _controller_pair,
+    _generate,
+    _out_dir,
+    _Problem,
+    _require,
+    _spec,
+    _write_module,
+)
+from balustrade.control.deploy import MultiobjectiveDeployment, RobustDeployment
+from balustrade.errors import CodegenError
+
+#: the target to build both problems of Algorithm 5.2 with for C (module docstring)
+EMITTABLE_TARGET = "robust-sqp"
+_HINT = (f"build the controller with target={EMITTABLE_TARGET!r}, "
+         f"slack_target={EMITTABLE_TARGET!r} ({{}}.build)")
+#: tolerance of ``U_E.contains`` in :func:`~balustrade.control.robust_steps.terminal_input`
+_CONTAINS_TOL = 1e-12
+
+
+def _columns(w: ca.SX, var: dict) -> ca.SX:
+    """The variable ``var`` (layout entry: offset, shape) of the stacked vector ``w`` as a
+    matrix (column-major, as the layout stacks it)."""
+    rows, cols = (list(var["shape"]) + [1, 1])[:2]
+    off = int(var["offset"])
+    return ca.reshape(w[off: off + rows * cols], rows, cols)
+
+
+def _norm(col: ca.SX, order: float) -> ca.SX:
+    if order == 1:
+        return ca.norm_1(col)
+    if order == 2:
+        return ca.norm_2(col)
+    if np.isinf(order):
+        return ca.norm_inf(col)
+    raise CodegenError(f"slack norm {order!r}: the C supports 1, 2 and inf")
+
+
+def _slack_cost(xi: ca.SX, xi_N: ca.SX, spec: RobustDeployment) -> ca.SX:
+    """``h̃(ξ) = α_f ξ_N + Σ_i ‖ξ_i‖`` (SPEC §1.12)."""
+    total = spec.alpha_f * xi_N
+    for i in range(xi.shape[1]):
+        total += _norm(xi[:, i], spec.slack_norm)
+    return total
+
+
+def _policy(name: str, spec: RobustDeployment, z: ca.SX) -> ca.SX:
+    """``π_f(z)`` on CasADi symbols: ``π_f`` itself if it accepts them, else the linear map
+    it is checked to be (``π_f(x) = K_f x + c`` at random points), else a CodegenError."""
+    nx, nu = spec.system.nx, spec.system.nu
+    try:
+        out = spec.pi_f(z)
+        if isinstance(out, (ca.SX, ca.MX, ca.DM)) and out.numel() == nu:
+            return ca.reshape(ca.SX(out) if isinstance(out, ca.DM) else out, nu, 1)
+    except Exception:  # noqa: BLE001 - a numpy-only policy: identified below
+        pass
+    pi = spec.pi_f
+    try:
+        c = np.asarray(pi(np.zeros(nx)), dtype=float).reshape(nu)
+        K = np.column_stack([np.asarray(pi(e), dtype=float).reshape(nu) - c
+                             for e in np.eye(nx)])
+        rng = np.random.default_rng(0)
+        for x in rng.standard_normal((3, nx)) * 3:
+            y = np.asarray(pi(x), dtype=float).reshape(nu)
+            if not np.allclose(y, K @ x + c, rtol=1e-9, atol=1e-9):
+                raise ValueError("not linear")
+    except Exception as exc:  # noqa: BLE001
+        raise CodegenError(f"{name}: the terminal policy pi_f must accept CasADi symbols or "
+                           "be affine (checked at random points) to be emitted as C") from exc
+    return ca.mtimes(ca.DM(K), z) + ca.DM(c)
+
+
+def _terminal_input(name: str, spec: RobustDeployment, zN: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """``(v_f, exact)``: the terminal input of (5.17)
+    (:func:`~balustrade.control.robust_steps.terminal_input`) and whether the C computed
+    it as Python does (module docstring)."""
+    system, U_E = spec.system, spec.U_E
+    H, h = np.asarray(U_E.H, dtype=float), np.asarray(U_E.h, dtype=float)
+    u_f = _policy(name, spec, zN)
+    inside = ca.mmin(ca.DM(h) + _CONTAINS_TOL - ca.mtimes(ca.DM(H), u_f)) >= 0
+    if system.nu != 1:
+        return u_f, inside
+    v = ca.SX.sym("v_f", 1)
+    w0 = ca.DM.zeros(system.nw) if system.nw else None
+    q = spec.h_f(system(zN, v, w0) if w0 is not None else system(zN, v))
+    hess = ca.hessian(q, v)[0]
+    if ca.depends_on(hess, ca.vertcat(zN, v)) or float(ca.DM(hess)) <= 0:
+        return u_f, inside
+    a = float(ca.DM(hess))
+    b = ca.substitute(ca.jacobian(q, v), v, 0)
+    col = H[:, 0]
+    lo = max((h[i] / col[i] for i in range(len(h)) if col[i] < 0), default=-np.inf)
+    hi = min((h[i] / col[i] for i in range(len(h)) if col[i] > 0), default=np.inf)
+    v_min = ca.fmin(ca.fmax(-b / a, lo), hi)
+    return ca.if_else(inside, u_f, v_min), ca.SX(1)
+
+
+def _post(sym: str, spec: RobustDeployment, prob: _Problem) -> ca.Function:
+    """``sym(w, f) -> (ξ, ξ_N, h_r, h̃)`` on the stacked vector ``w`` of ``prob`` ((5.15)
+    or (6.15)): the polished slacks (:func:`~balustrade.control.robust_steps.
+    polished_slacks`), ``h_r = min(max(f, 0), h̃)`` and ``h̃`` of the polished slacks."""
+    X_E, N = spec.X_E, len(spec.deltas)
+    Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
+    deltas = np.asarray(spec.deltas, dtype=float).reshape(-1)
+    nr = X_E.H.shape[0]
+    w, f = ca.SX.sym("w", prob.nw), ca.SX.sym("f", 1)
+    z = _columns(w, prob.vars["z"])
+    xi = ca.fmax(_columns(w, prob.vars["xi"]), 0)
+    xi_N = ca.fmax(w[int(prob.vars["xi_N"]["offset"])], 0)
+    need = ca.fmax(ca.mtimes(Hx, z[:, :N]) - ca.repmat(hx, 1, N)
+                   + ca.repmat(ca.DM(deltas).T, nr, 1), 0)
+    xi_p = ca.fmin(xi, need)
+    xi_N_p = ca.fmin(xi_N, ca.fmax(spec.h_f(z[:, N]), 0))
+    h_tilde = _slack_cost(xi_p, xi_N_p, spec)
+    return ca.Function(sym, [w, f], [ca.vec(xi_p), xi_N_p, ca.fmin(ca.fmax(f, 0), h_tilde),
+                                     h_tilde],
+                       ["w", "f"], ["xi", "xi_N", "h_r", "h_tilde"])
+
+
+def _cand(sym: str, spec: RobustDeployment) -> ca.Function:
+    """``sym(z, v, ξ) -> (z̃, ṽ, ξ̃, ξ̃_N, h̃(ξ̃), exact)``: the candidate (5.17)/(6.14)
+    (:func:`~balustrade.control.robust_steps.robust_candidate`)."""
+    system, X_E = spec.system, spec.X_E
+    nx, nu, N = system.nx, system.nu, len(spec.deltas)
+    Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
+    deltas = np.asarray(spec.deltas, dtype=float).reshape(-1)
+    nr = X_E.H.shape[0]
+    zc, vc, xic = ca.SX.sym("z", nx, N + 1), ca.SX.sym("v", nu, N), ca.SX.sym("xi", nr, N)
+    zN = zc[:, N]
+    u_f, exact = _terminal_input(sym, spec, zN)
+    w0 = ca.DM.zeros(system.nw) if system.nw else None
+    z_next = system(zN, u_f, w0) if w0 is not None else system(zN, u_f)
+    z_t = ca.horzcat(zc[:, 1:], z_next)
+    v_t = ca.horzcat(vc[:, 1:], u_f) if N > 1 else u_f
+    cols = [ca.fmax(xic[:, i + 1] + (deltas[i] - deltas[i + 1]), 0) for i in range(N - 1)]
+    cols.append(ca.fmax(ca.mtimes(Hx, zN) - hx + deltas[N - 1], 0))
+    xi_t = ca.horzcat(*cols)
+    xi_N_t = ca.fmax(spec.h_f(z_next), 0)
+    return ca.Function(sym, [zc, vc, xic],
+                       [z_t, v_t, ca.vec(xi_t), xi_N_t, _slack_cost(xi_t, xi_N_t, spec),
+                        exact],
+                       ["z", "v", "xi"], ["z_next", "v_next", "xi_next", "xi_N_next",
+                                          "h_cand", "exact"])
+
+
+def _check_tube(name: str, spec: RobustDeployment, probs: dict[str, _Problem]) -> None:
+    """z, v, xi of the problems have the shapes of the horizon ``len(deltas)``."""
+    nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
+    if spec.K is None:
+        raise CodegenError(f"{name}: the C applies u = v0 + K(x - z0): the error set needs "
+                           "a linear feedback K (not a kappa_fn)")
+    for label, prob in probs.items():
+        if list(prob.vars["z"]["shape"]) != [nx, N + 1] or \
+                int(np.prod(prob.vars["v"]["shape"])) != nu * N:
+            raise CodegenError(f"{name}: z, v of {label} have shapes {prob.vars['z']['shape']}"
+                               f", {prob.vars['v']['shape']}; expected ({nx}, {N + 1}), "
+                               f"({nu}, {N})")
+        xi = prob.vars.get("xi")
+        if xi is not None and int(np.prod(xi["shape"])) != spec.X_E.H.shape[0] * N:
+            raise CodegenError(f"{name}: xi of {label} has shape {xi['shape']}, expected "
+                               f"({spec.X_E.H.shape[0]}, {N})")
+
+
+def _tube_config(cfg: C.Config, name: str, spec: RobustDeployment, U: object) -> None:
+    """The ``#define``\\ s shared by bal/robust.c and bal/multiobj.c."""
+    nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
+    cfg.define(f"{name}_NX", nx)
+    cfg.define(f"{name}_NU", nu)
+    cfg.define(f"{name}_N", N)
+    cfg.define(f"{name}_N_XI", spec.X_E.H.shape[0] * N, "slacks xi")
+    cfg.array(f"{name}_U_LB", U.lb)
+    cfg.array(f"{name}_U_UB", U.ub)
+    cfg.array(f"{name}_K", np.asarray(spec.K, dtype=float).reshape(nu, nx).T.reshape(-1),
+              nu * nx)
+
+
+def _work_sizes(cfg: C.Config, name: str, syms: list[str]) -> None:
+    cfg.comment(f"the work vectors of {', '.join(syms)}")
+    for key in ("ARG", "RES", "IW", "W"):
+        expr = f"{syms[0]}_SZ_{key}"
+        for sym in syms[1:]:
+            expr = f"BAL_MAX2({expr}, {sym}_SZ_{key})"
+        cfg.define(f"{name}_SZ_{key}", expr)
+
+
+def emit_robust(controller: object, name: str, out_dir: str | Path,
+                allow_external: bool = False, accept_tol: float | None = None) -> Emitted:
+    """Emit Algorithm 5.2 of a :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`
+    built with ``target="robust-sqp", slack_target="robust-sqp"`` (:data:`EMITTABLE_TARGET`)
+    as one C call per control step: ``<name>_step(x, u_p, u_out, h_out, status, work)``
+    (``bal/robust.h``), ``h_out`` = ``h_r(x_k)``; ``<name>_h_cand`` the ``h̃`` of the
+    candidate (5.17). ``U`` must be a Box (the projected proposal clips), ``κ`` linear
+    (``E.K``). Solves are accepted and retried as in
+    :func:`~balustrade.codegen.emit_problem`; only ``BAL_OK`` counts as a success, as
+    only ``optimal`` does in Python."""
+    _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
+    spec = _spec(controller, name, RobustDeployment, "RobustPCBFSafetyFilter")
+    try:
+        slack, filt, U, libs = _controller_pair(
+            name, spec.problems.get("slack"), spec.problems.get("filter"), spec.U,
+            ("robust slack problem (5.15)", "robust filter problem (5.16)"), allow_external)
+    except CodegenError as exc:
+        raise CodegenError(f"{exc}; for Algorithm 5.2: "
+                           f"{_HINT.format('RobustPCBFSafetyFilter')}") from exc
+    out_dir = _out_dir(out_dir, name)
+    s = _Problem(slack, f"{name}_slack", f"robust slack problem (5.15) {slack.ocp.name!r}",
+                 name, accept_tol)
+    f = _Problem(filt, f"{name}_filter", f"robust filter (5.16) {filt.ocp.name!r}", name,
+                 accept_tol)
+    _require(name, {"(5.15) parameter": (s.params, ["x0"]),
+                    "(5.15) variable": (s.vars, ["z", "v", "xi", "xi_N"]),
+                    "(5.16) parameter": (f.params, ["x0", "u_p", "xi", "xi_N"]),
+                    "(5.16) variable": (f.vars, ["z", "v"])},
+             "build the problems with balustrade.problems.robust")
+    _check_tube(name, spec, {"(5.15)": s, "(5.16)": f})
+    system = spec.system
+    nx, nu, N = system.nx, system.nu, len(spec.deltas)
+    n_xi = spec.X_E.H.shape[0] * N
+    steps = {f"{name}_post": _post(f"{name}_post", spec, s),
+             f"{name}_cand": _cand(f"{name}_cand", spec)}
+    files = _generate({**s.functions(), **f.functions(), **steps}, name, out_dir)
+    cfg = C.Config()
+    s.config(cfg)
+    f.config(cfg)
+    cfg.comment(f"---- Algorithm 5.2, the robust PCBF step {name}: (5.15) then (5.16) "
+                "(bal/robust.h) ----")
+    _tube_config(cfg, name, spec, U)
+    _work_sizes(cfg, name, list(steps))
+    cfg.status(S.ROBUST, "BAL_ROBUST_STATUS_CODES")
+    manifest = {"kind": "robust", "nx": nx, "nu": nu, "N": N, "n_xi": n_xi,
+                "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
+                "problems": {"slack": s.manifest(), "filter": f.manifest()},
+                "robust_status": S.manifest(S.ROBUST)}
+    return _write_module(name, out_dir, "Algorithm 5.2, the robust PCBF filter "
+                         "(5.15)+(5.16)", cfg,
+                         [("problem", s.P), ("problem", f.P), ("robust", name)], files,
+                         manifest, tuple(sorted(set(libs))))
+
+
+
+
+
+def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
+                        allow_external: bool = False, accept_tol: float | None = None
+                        ) -> Emitted:
+    """Emit Algorithm 6.4 of a
+    :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` built with
+    ``target="robust-sqp", slack_target="robust-sqp"`` as one C call per control step:
+    ``<name>_step(x, u_p, u_out, status, work)`` (``bal/multiobj.h``); ``<name>_values``
+    gives ``h_cand``, ``bound``, ``h_tilde`` of the last step. ``record_h_r`` (an extra
+    (5.15) solve per step, for plots) is not emitted.
+
+    Algorithm 6.3 (:class:`~balustrade.control.multiobjective.
+    MultiobjectiveLyapunovController`) has no C step: its warm start ``ũ_{k+1}`` comes
+    from the switching rule (6.6)/(6.7) of a
+    :class:`~balustrade.problems.multiobjective.LinearLyapunovDesign` (a Python method,
+    not part of its deployment spec); its two problems are emitted by
+    :func:`~balustrade.codegen.emit_problems`."""
+    _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
+    spec = _spec(controller, name, MultiobjectiveDeployment, "MultiobjectivePCBFController")
+    try:
+        slack, prob, U, libs = _controller_pair(
+            name, spec.problems.get("slack"), spec.problems.get("problem"), spec.U,
+            ("robust slack problem (5.15)", "multiobjective problem (6.15)"),
+            allow_external)
+    except CodegenError as exc:
+        raise CodegenError(f"{exc}; for Algorithm 6.4: "
+                           f"{_HINT.format('MultiobjectivePCBFController')}") from exc
+    if spec.record_h_r:
+        raise CodegenError(f"{name}: record_h_r=True (an extra (5.15) solve per step for "
+                           "plots) is not emitted; build the controller without it")
+    out_dir = _out_dir(out_dir, name)
+    s = _Problem(slack, f"{name}_slack", f"robust slack problem (5.15) {slack.ocp.name!r}",
+                 name, accept_tol)
+    p = _Problem(prob, f"{name}_problem", f"multiobjective (6.15) {prob.ocp.name!r}", name,
+                 accept_tol)
+    _require(name, {"(5.15) parameter": (s.params, ["x0"]),
+                    "(5.15) variable": (s.vars, ["z", "v", "xi", "xi_N"]),
+                    "(6.15) parameter": (p.params, ["x0", "u_p", "bound"]),
+                    "(6.15) variable": (p.vars, ["z", "v", "xi", "xi_N"])},
+             "build the problems with balustrade.problems.multiobjective")
+    _check_tube(name, spec, {"(5.15)": s, "(6.15)": p})
+    system = spec.system
+    nx, nu, N = system.nx, system.nu, len(spec.deltas)
+    steps = {f"{name}_post_slack": _post(f"{name}_post_slack", spec, s),
+             f"{name}_post_problem": _post(f"{name}_post_problem", spec, p),
+             f"{name}_cand": _cand(f"{name}_cand", spec)}
+    files = _generate({**s.functions(), **p.functions(), **steps}, name, out_dir)
+    cfg = C.Config()
+    s.config(cfg)
+    p.config(cfg)
+    cfg.comment(f"---- Algorithm 6.4, the multiobjective robust PCBF step {name} "
+                "(bal/multiobj.h) ----")
+    _tube_config(cfg, name, spec, U)
+    cfg.define(f"{name}_RHO", C.c_double(spec.rho), "rho of (6.15g)")
+    cfg.define(f"{name}_BOUND_TOL", C.c_double(spec.bound_tol))
+    _work_sizes(cfg, name, list(steps))
+    cfg.status(S.MULTIOBJ, "BAL_MULTIOBJ_STATUS_CODES")
+    manifest = {"kind": "multiobjective", "nx": nx, "nu": nu, "N": N,
+                "rho": float(spec.rho), "bound_tol": float(spec.bound_tol),
+                "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
+                "problems": {"slack": s.manifest(), "problem": p.manifest()},
+                "multiobj_status": S.manifest(S.MULTIOBJ)}
+    return _write_module(name, out_dir, "Algorithm 6.4, the multiobjective robust PCBF "
+                         "controller (5.15)+(6.15)", cfg,
+                         [("problem", s.P), ("problem", p.P), ("multiobj", name)], files,
+                         manifest, tuple(sorted(set(libs))))
+
+
+__all__ = ["EMITTABLE_TARGET", "emit_multiobjective", "emit_robust"]
