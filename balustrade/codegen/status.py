@@ -3,7 +3,7 @@ config headers (:mod:`~balustrade.codegen.cfiles`; the static C in ``codegen/c/`
 the macro names), the manifests written by :mod:`~balustrade.codegen.emit` and the Python
 names read by :mod:`~balustrade.codegen.runtime` are all generated from these tables.
 
-Three families:
+Six families:
 
 * :data:`SOLVE` — return value of ``<problem>_solve`` (one problem, e.g. (2.24));
 * :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
