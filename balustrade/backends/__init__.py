@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
+from balustrade.backends.direct_backend import DirectCompiled
 from balustrade.backends.set_support import function_set_support
 from balustrade.backends.solution import Solution, Status
 from balustrade.backends.synthesis_cvxpy import (
@@ -27,9 +28,9 @@ from balustrade.errors import BalustradeError, SolverError
 # FunctionSet.support needs an NLP; the language names no solver, the backends give it one
 register_support_solver(function_set_support)
 
-Compiled = CasadiCompiled | CvxpyCompiled
+Compiled = CasadiCompiled | CvxpyCompiled | DirectCompiled
 
-BACKENDS = {"casadi": CasadiCompiled, "cvxpy": CvxpyCompiled}
+BACKENDS = {"casadi": CasadiCompiled, "cvxpy": CvxpyCompiled, "direct": DirectCompiled}
 
 
 def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = None,
@@ -37,7 +38,8 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
             retries: list[tuple[str, dict]] | None = None) -> Compiled:
     """Compile ``ocp`` for ``target``: a :class:`~balustrade.backends.targets.Target`, a
     preset name (:data:`~balustrade.backends.targets.PRESETS`) or a backend name
-    (``"casadi"``: IPOPT; ``"cvxpy"``: PIQP for LPs/QPs, Clarabel for conic problems);
+    (``"casadi"``: IPOPT; ``"cvxpy"``: PIQP for LPs/QPs, Clarabel for conic problems;
+    ``"direct"``: the same solvers through their own interfaces, :mod:`.direct_backend`);
     ``None`` is ``"exact"``. ``solver``/``options``/``retries`` override the target's
     (see :func:`~balustrade.backends.targets.target`); ``retries`` (CasADi only) replaces
     the default retry chain after a failed solve (``[]`` turns retries off, e.g. for closed
@@ -65,6 +67,8 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
     if tgt.backend == "casadi":
         compiled: Compiled = CasadiCompiled(ocp, tgt.nlp_solver, tgt.solver_options(),
                                             tgt.retry_chain())
+    elif tgt.backend == "direct":
+        compiled = DirectCompiled(ocp, tgt.solver, tgt.solver_options())
     else:
         compiled = CvxpyCompiled(ocp, tgt.solver, tgt.solver_options())
     compiled.target = tgt
@@ -72,6 +76,7 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
 
 
 __all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CompiledSynthesis",
-           "CvxpyCompiled", "Solution", "Status", "SynthesisSolution", "Target", "companion",
+           "CvxpyCompiled", "DirectCompiled", "Solution", "Status", "SynthesisSolution", "Target",
+           "companion",
            "compile", "compile_synthesis", "resolve_target", "sampling_targets",
            "solve_synthesis"]
