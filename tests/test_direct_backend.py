@@ -243,3 +243,21 @@ def test_lowering_is_built_once():
         assert sol.status == "optimal", sol.summary()
         np.testing.assert_allclose(sol["z"].ravel(), xv * (1 - 1 / np.linalg.norm(xv)),
                                    rtol=1e-7, atol=1e-7)
+
+
+def test_auto_target_picks_direct_for_convex_and_exact_otherwise():
+    convex = OCP(name="convex")
+    u = convex.variable("u", 2, lb=-1.0, ub=1.0)
+    convex.minimize(u[0] ** 2 + (u[1] - 3.0) ** 2)
+    c = compile(convex, "auto")
+    assert c.backend == "direct" and c.target is PRESETS["fast-convex"]
+    assert c.solve().objective == pytest.approx(4.0, rel=1e-8)
+    nonconvex = OCP(name="nonconvex")
+    v = nonconvex.variable("v", 2, lb=-2.0, ub=2.0)
+    nonconvex.le(1.0 - v[0] ** 2 - v[1] ** 2, 0, name="outside_disc")
+    nonconvex.minimize((v[0] - 0.1) ** 2 + v[1] ** 2)
+    n = compile(nonconvex, "auto")
+    assert n.backend == "casadi" and n.target is PRESETS["exact"]
+    assert n.solve().objective == pytest.approx(0.81, rel=1e-6)
+    with pytest.raises(SolverError, match="auto target"):
+        compile(convex, "auto", options={"max_iter": 3})

@@ -23,7 +23,7 @@ from balustrade.backends.targets import PRESETS, Target, companion, sampling_tar
 from balustrade.backends.targets import target as resolve_target
 from balustrade.dsl.ocp import OCP
 from balustrade.dsl.sets_function import register_support_solver
-from balustrade.errors import BalustradeError, SolverError
+from balustrade.errors import BalustradeError, ConvexityError, SolverError
 
 # FunctionSet.support needs an NLP; the language names no solver, the backends give it one
 register_support_solver(function_set_support)
@@ -64,6 +64,8 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
         tgt = resolve_target(target, solver=solver, options=options, retries=retries)
     except SolverError as exc:
         raise SolverError(f"{ocp.name}: {exc}") from None
+    if tgt.backend == "auto":
+        return _compile_auto(ocp, tgt)
     if tgt.backend == "casadi":
         compiled: Compiled = CasadiCompiled(ocp, tgt.nlp_solver, tgt.solver_options(),
                                             tgt.retry_chain())
@@ -72,6 +74,22 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
     else:
         compiled = CvxpyCompiled(ocp, tgt.solver, tgt.solver_options())
     compiled.target = tgt
+    return compiled
+
+
+def _compile_auto(ocp: OCP, tgt: Target) -> Compiled:
+    """The ``"auto"`` preset: the direct backend (``"fast-convex"``) when every block and
+    cost term of ``ocp`` classifies as convex, else CasADi + IPOPT (``"exact"``); the
+    target used is recorded as ``.target``."""
+    if tgt.solver is not None or tgt.options:
+        raise SolverError(f"{ocp.name}: the auto target picks its solver and takes no solver "
+                          "or options; name a target ('fast-convex', 'exact') to tune one")
+    try:
+        compiled: Compiled = DirectCompiled(ocp)
+        compiled.target = PRESETS["fast-convex"]
+    except ConvexityError:
+        compiled = CasadiCompiled(ocp, PRESETS["exact"].nlp_solver, {}, None)
+        compiled.target = PRESETS["exact"]
     return compiled
 
 

@@ -32,6 +32,9 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
                        updated per solve; tight tolerances. Refuses nonconvex OCPs.
 ``"fast-convex-conic"`` ``fast-convex`` with Clarabel also for LPs/QPs.
 ``"fast-convex-qp"``   ``fast-convex`` with PIQP (LPs/QPs only).
+``"auto"``             ``fast-convex`` when the OCP classifies as convex, else ``exact``
+                       (decided by :func:`~balustrade.backends.compile`, which records the
+                       target it used as ``compiled.target``). Takes no solver or options.
 ``"sdp"``              synthesis problems (:func:`~balustrade.backends.compile_synthesis`):
                        cvxpy + Clarabel with Clarabel's own tolerances, the options every SDP
                        of balustrade (terminal CBF, RPI set, regret family) has been solved with.
@@ -50,7 +53,7 @@ from typing import Any
 from balustrade.errors import SolverError
 
 #: backends a target can name
-BACKEND_NAMES = ("casadi", "cvxpy", "direct")
+BACKEND_NAMES = ("casadi", "cvxpy", "direct", "auto")
 
 def _frozen(options: Mapping[str, Any] | None) -> Mapping[str, Any]:
     return MappingProxyType(dict(options or {}))
@@ -106,6 +109,9 @@ class Target:
                 raise SolverError(f"Target({self.name}): retries must be a list of (solver "
                                   f"name, options dict) pairs or None, got "
                                   f"{self.retries!r:.60}")
+            if self.backend == "auto" and self.retries is not None:
+                raise SolverError(f"Target({self.name}): the auto target picks its backend; "
+                                  "name one ('exact', 'fast-convex') to pass retries")
             if self.backend != "casadi" and self.retries:
                 raise SolverError(f"Target({self.name}): retry chains are a CasADi feature; "
                                   f"the {self.backend} backend has its own status checks")
@@ -208,6 +214,7 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("direct", None, name="fast-convex"),
     Target("direct", "clarabel", name="fast-convex-conic"),
     Target("direct", "piqp", name="fast-convex-qp"),
+    Target("auto", None, name="auto"),
 )}
 
 #: the solver-named spellings of presets (kept so that existing scripts resolve)
