@@ -9,9 +9,9 @@ objective ``J = Σ_i ‖v_i‖₁`` (SPEC §3.4), slack norm ``ℓ1``, disturban
 (seed 0), proposal ignored (``J`` does not use ``u_p``). Fuel is ``Σ_k ‖u_k‖₁`` of the applied
 inputs. Per-step time is the solver time of the step's problems (two for 5.2, one for 6.4;
 the extra (5.15) solve that records ``h_r`` for the plots under 6.4 is not counted).
-Targets: every problem on ``fast-convex`` (the direct backend, Clarabel through its own
+Targets: every problem on ``fast-convex`` (the direct conic backend, the solver's own
 interface, issue #14): per step at N = 200, median of 12 interleaved steps on the loaded
-2-core machine, 0.22 s (5.2) and 0.20 s (6.4) vs cvxpy 0.34 s / 0.27 s and CasADi + IPOPT
+2-core machine, 0.22 s (5.2) and 0.20 s (6.4) vs cvxpy 0.34 s / 0.27 s and CasADi
 (``long-horizon`` for 5.2, ``exact`` for 6.4, the earlier defaults) 1.20 s / 2.81 s; pass
 ``target="long-horizon"`` etc. for the CasADi runs. Slacks are polished afterwards
 (:func:`~balustrade.control.robust_steps.polished_slacks`). Full mode runs the robust PCBF
