@@ -76,13 +76,33 @@ def _evaluate(expr: ca.SX, w: ca.SX, p: ca.SX) -> ca.DM:
     return f(np.zeros(w.numel()), np.zeros(p.numel()))
 
 
+def _vector(m: ca.DM) -> np.ndarray:
+    """A (sparse) CasADi column as a dense float vector, through its nonzeros: converting a
+    DM with ``np.asarray`` goes element by element (seconds for the ~5000-entry gradients of
+    the rendezvous at N = 200)."""
+    return _dm_to_sparse(m).toarray().reshape(-1)
+
+
+def _hessian_support(Hz: ca.SX, w: ca.SX, p: ca.SX, symmetrize: bool = False
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The indices where the constant Hessian ``Hz`` has nonzero columns and the dense
+    Hessian on them, built from the sparse value (never densifying the whole ``n × n``
+    matrix: 23·10⁶ entries for one tube row of the rendezvous at N = 200)."""
+    H = _dm_to_sparse(_evaluate(Hz, w, p)).tocsc()
+    if symmetrize:
+        H = (0.5 * (H + H.T)).tocsc()
+    H.eliminate_zeros()
+    support = np.flatnonzero(np.diff(H.indptr))
+    return support, H[support][:, support].toarray()
+
+
 def affine(expr: ca.SX, w: ca.SX, p: ca.SX, block: str) -> Affine | None:
     """Return the affine decomposition of ``expr`` or ``None`` if it is not affine."""
     Jw = ca.jacobian(expr, w)
     Jp = ca.jacobian(expr, p) if p.numel() else ca.SX(expr.numel(), 0)
     if not (_constant(Jw, w, p) and _constant(Jp, w, p)):
         return None
-    c = np.asarray(_evaluate(expr, w, p), dtype=float).reshape(-1)
+    c = _vector(_evaluate(expr, w, p))
     return Affine(_dm_to_sparse(_evaluate(Jw, w, p)), _dm_to_sparse(_evaluate(Jp, w, p)), c)
 
 
@@ -97,11 +117,9 @@ def quadratic(expr: ca.SX, w: ca.SX, p: ca.SX, where: str) -> Quadratic:
             f"{where}: the expression is neither affine nor a convex quadratic of the decision "
             "variables (with parameters entering the linear part affinely); the cvxpy "
             "backend cannot hold it (use a CasADi target, e.g. target='exact')")
-    H = np.asarray(ca.densify(_evaluate(Hw, w, p)), dtype=float)
-    index = np.flatnonzero(np.any(H != 0, axis=0))
-    Hs = H[np.ix_(index, index)]
+    index, Hs = _hessian_support(Hw, w, p)
     _require_psd(Hs, where)
-    a = np.asarray(_evaluate(grad_w, w, p), dtype=float).reshape(-1)
+    a = _vector(_evaluate(grad_w, w, p))
     phi_expr = ca.substitute(expr, w, ca.DM.zeros(w.numel()))
     phi_aff = affine(phi_expr, w, p, where)
     if phi_aff is not None:
@@ -146,15 +164,12 @@ def joint_quadratic(expr: ca.SX, w: ca.SX, p: ca.SX) -> JointQuadratic | None:
     Hz = ca.jacobian(grad, z)
     if not _constant(Hz, w, p):
         return None
-    H = np.asarray(ca.densify(_evaluate(Hz, w, p)), dtype=float)
-    H = 0.5 * (H + H.T)
-    support = np.flatnonzero(np.any(H != 0, axis=0))
-    Hs = H[np.ix_(support, support)]
+    support, Hs = _hessian_support(Hz, w, p, symmetrize=True)
     if _negative_eigenvalue(Hs) is not None:
         return None
     L = psd_factor(Hs)
-    g = np.asarray(_evaluate(grad, w, p), dtype=float).reshape(-1)
-    c = float(np.asarray(_evaluate(expr, w, p), dtype=float).reshape(-1)[0])
+    g = _vector(_evaluate(grad, w, p))
+    c = float(_vector(_evaluate(expr, w, p))[0])
     # L has orthogonal rows (eigen-factor): Lᵀl = projection of g onto range(H)
     row_norms2 = np.einsum("ij,ij->i", L, L)
     l = (L @ g[support]) / row_norms2 if L.size else np.zeros(0)
