@@ -267,3 +267,33 @@ def test_auto_target_picks_direct_for_convex_and_exact_otherwise():
     assert n.solve().objective == pytest.approx(0.81, rel=1e-6)
     with pytest.raises(SolverError, match="auto target"):
         compile(convex, "auto", options={"max_iter": 3})
+
+
+@pytest.mark.parametrize("kind", [1, np.inf])
+def test_norms_of_sign_definite_rows_need_no_two_sided_epigraph(kind):
+    """‖ξ‖₁ and ‖ξ‖∞ of slacks ξ >= 0 (and of −ξ): ℓ1 is linear (no epigraph variable or
+    row), ℓ∞ needs one side only; a row of unknown sign (ξ − c) keeps both sides. The answer
+    agrees with cvxpy and with IPOPT."""
+    ocp = OCP(name="definite")
+    xi = ocp.variable("xi", 3, lb=0.0)
+    z = ocp.variable("z", 2)
+    c = ocp.parameter("c", 3)
+    ocp.le(c[0:2], xi[0:2] + z, name="cover")
+    ocp.le(c[2], xi[2] - z[0] - z[1], name="cover2")
+    ocp.minimize(norm(xi, kind) + 0.5 * norm(-xi[1:3], kind) + norm(z, 1)
+                 + 0.1 * norm(xi - c, kind))
+    prog, _ = ToConic().apply(Classify().apply(ocp)[0])
+    n_w = int(ocp.decision_vector().numel())
+    # ℓ1: only ‖z‖₁ (2) and ‖ξ − c‖₁ (3) need epigraph variables, 2 rows each; ℓ∞: one
+    # variable per ℓ∞ term, one row per entry of ξ and of −ξ[1:3], two per entry of ξ − c
+    assert prog.P.shape[0] - n_w == 5
+    assert prog.A.shape[0] == 6 + (4 + 6 if kind == 1 else 3 + 2 + 4 + 6)
+    for cv in (np.array([1.0, -0.5, 0.7]), np.array([-1.0, 2.0, 3.0])):
+        params = {"c": cv}
+        a = compile(ocp, "fast-convex").solve(params)
+        b = compile(ocp, "cvxpy").solve(params)
+        e = compile(ocp, "exact").solve(params)
+        assert a.status == "optimal", a.summary()
+        assert a.objective == pytest.approx(b.objective, rel=1e-7, abs=1e-8)
+        assert a.objective == pytest.approx(e.objective, rel=1e-6, abs=1e-6)
+        assert verify(ocp, a).ok
