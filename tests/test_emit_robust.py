@@ -22,6 +22,7 @@ import pytest
 from balustrade.codegen import (
     CMultiobjectivePCBFFilter,
     CRobustPCBFSafetyFilter,
+    accelerate,
     build,
     emit_multiobjective,
     emit_problems,
@@ -304,3 +305,13 @@ def test_entry_points_listed_and_exported(pair: dict, mo_pair: dict) -> None:
         for entry in C.ENTRY_POINTS[kind]:
             sym = f"{name}_{entry}"
             assert sym in header and hasattr(lib.lib, sym), sym
+
+
+def test_accelerate_runs_the_robust_filter_on_its_c(pair: dict, tmp_path) -> None:
+    """``accelerate`` knows Algorithm 5.2: the returned controller is the C filter and steps
+    as the one emitted by hand."""
+    acc = accelerate(pair["py"], build_dir=tmp_path)
+    assert isinstance(acc, CRobustPCBFSafetyFilter)
+    pair["c"].reset()
+    for x in np.random.default_rng(3).uniform(LOW, HIGH, size=(5, 2)):
+        _same(acc.step(x, np.array([0.5])), pair["c"].step(x, np.array([0.5])), f"x = {x}")

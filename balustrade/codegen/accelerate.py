@@ -13,8 +13,10 @@ registered class of the controller's MRO wins). Built in:
 :class:`~balustrade.control.approximate.ApproximatePCBFFilter` (Algorithm 7.5,
 :func:`~balustrade.codegen.emit.emit_approximate`) and
 :class:`~balustrade.control.approximate.GridPCBFFilter` (Algorithm 8.7,
-:func:`~balustrade.codegen.emit_grid.emit_grid`). Emitters of further controllers (e.g. the
-robust filter of Algorithm 5.2) plug in with ``register(cls, emit, load)``.
+:func:`~balustrade.codegen.emit_grid.emit_grid`), the robust filter of Algorithm 5.2
+(:func:`~balustrade.codegen.emit_robust.emit_robust`) and Algorithm 6.4
+(:func:`~balustrade.codegen.emit_robust.emit_multiobjective`), the last two when built on
+an emittable target. Emitters of further controllers plug in with ``register(cls, emit, load)``.
 
 Cache: the generated sources are hashed (with the compiler flags); the library is built once
 per hash into ``build_dir/<name>-<hash>/`` (default: ``$BALUSTRADE_CACHE`` or
@@ -36,10 +38,14 @@ from pathlib import Path
 from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS, build
 from balustrade.codegen.emit import Emitted, emit_approximate, emit_pcbf
 from balustrade.codegen.emit_grid import emit_grid
+from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
 from balustrade.codegen.runtime import CApproximatePCBFFilter, CPCBFSafetyFilter
 from balustrade.codegen.runtime_grid import CGridPCBFFilter
+from balustrade.codegen.runtime_robust import CMultiobjectivePCBFFilter, CRobustPCBFSafetyFilter
 from balustrade.control.approximate import ApproximatePCBFFilter, GridPCBFFilter
+from balustrade.control.multiobjective import MultiobjectivePCBFController
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.control.robust import RobustPCBFSafetyFilter
 from balustrade.errors import CodegenError
 
 #: ``emit(controller, name, out_dir) -> Emitted``
@@ -166,6 +172,10 @@ register(PCBFSafetyFilter, lambda c, n, d: emit_pcbf(c, n, d), CPCBFSafetyFilter
 register(ApproximatePCBFFilter, lambda c, n, d: emit_approximate(c, n, d),
          CApproximatePCBFFilter, "bal_approx")
 register(GridPCBFFilter, lambda c, n, d: emit_grid(c, n, d), CGridPCBFFilter, "bal_grid")
+register(RobustPCBFSafetyFilter, lambda c, n, d: emit_robust(c, n, d),
+         CRobustPCBFSafetyFilter, "bal_robust")
+register(MultiobjectivePCBFController, lambda c, n, d: emit_multiobjective(c, n, d),
+         CMultiobjectivePCBFFilter, "bal_multiobj")
 
 __all__ = ["Accelerator", "accelerate", "default_build_dir", "register", "registered",
            "source_hash"]
