@@ -238,12 +238,12 @@ class CasadiCompiled:
             self._retry = [
                 self.solver if (name == self.solver_name and not overrides) else
                 _nlpsol(f"{self.ocp.name}_retry{k + 1}", name, self.nlp,
-                        self._with_derivatives({**self.options, **overrides})
+                        self.with_derivatives({**self.options, **overrides})
                         if name == self.solver_name else solver_options(name, overrides))
                 for k, (name, overrides) in enumerate(self.retries)]
         return self._retry
 
-    def _with_derivatives(self, opts: dict) -> dict:
+    def with_derivatives(self, opts: dict) -> dict:
         """``opts`` plus the shared derivative functions when they apply to ``opts``."""
         if not self.derivatives or opts.get("hessian_approximation", "exact") != "exact":
             return opts

@@ -251,12 +251,12 @@ class _Problem:
         self.init = np.where(np.isfinite(init), init, 0.0)
 
     def functions(self) -> dict[str, ca.Function]:
-        # every sqpmethod of this problem shares the compiled problem's derivative
+        # every attempt on the compiled problem's own plugin shares its derivative
         # functions, so their C is generated once (backends.casadi_backend.
         # shared_derivatives: most of the C of a nonlinear horizon problem)
         c = self.c
         out = {sym: ca.nlpsol(sym, plugin, c.nlp,
-                              c._with_derivatives(opts) if plugin == c.solver_name else opts)
+                              c.with_derivatives(opts) if plugin == c.solver_name else opts)
                for sym, plugin, opts in self.solvers}
         out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt")
         return out
