@@ -77,8 +77,14 @@ DEFAULT_OPTIONS: dict[str, dict] = {
 #: its own options: qrqp's ``print_header`` makes OSQP refuse to build); other plugins get
 #: only the user's ``qpsol_options``
 QPSOL_DEFAULTS: dict[str, dict] = {
+    # max_iter 100 (qrqp's default: 1000): on degenerate active sets qrqp cycles, adding
+    # and dropping the same row ("Enforced ubz to reduce |du|" / "Dropped ubz for
+    # regularity") until max_iter, 30-60 ms per QP on the cart-pole PCBF (N = 20); the
+    # QPs that converge need < 60 iterations there and on the pendulum. Measured on the
+    # cart-pole closed loop (40 steps, interleaved, CPU time, under load): median step
+    # 1455 -> 273 ms, worst 3335 -> 562 ms, failures 0 -> 0, inputs equal to 2.5e-10.
     "qrqp": {"print_iter": False, "print_header": False, "print_info": False,
-             "error_on_fail": False},
+             "error_on_fail": False, "max_iter": 100},
     "osqp": {"osqp": {"verbose": False, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 20000,
                       "polish": True}, "error_on_fail": False},
 }
