@@ -52,7 +52,8 @@ class FastNLP:
 
     def __init__(self, compiled: CasadiCompiled):
         self.compiled = compiled
-        opts = {**compiled.options, "error_on_fail": True}
+        opts = {**compiled.options, **getattr(compiled, "derivatives", {}),
+                "error_on_fail": True}
         self.nlp = Buffered(ca.nlpsol(f"{compiled.ocp.name}_fast", compiled.solver_name,
                                       compiled.nlp, opts))
         names = self.nlp.function.name_in()

@@ -151,11 +151,18 @@ def _kkt_function(c: CasadiCompiled, sym: str) -> ca.Function:
     ``feas`` = largest violation with constraint rows scaled by ``1 + |g|`` (the test for
     ``BAL_FEASIBLE`` after all retries)."""
     w, p, f, g = c.nlp["x"], c.nlp["p"], c.nlp["f"], c.nlp["g"]
+    jac_fg = getattr(c, "derivatives", {}).get("jac_fg")
+    if jac_fg is not None:  # reuse the solvers' Jacobian (its C exists once already)
+        w, p = ca.MX.sym("x", w.numel()), ca.MX.sym("p", p.numel())
+        f, grad_f, g, jac_g = jac_fg(w, p)
     cls = type(w)
     lam_x = cls.sym("lam_x", w.numel())
     lam_g = cls.sym("lam_g", g.numel())
-    lag = f + ca.dot(lam_g, g) if g.numel() else f
-    du = ca.norm_inf(ca.gradient(lag, w) + lam_x)
+    if jac_fg is not None:
+        grad_lag = grad_f + (ca.mtimes(jac_g.T, lam_g) if g.numel() else 0)
+    else:
+        grad_lag = ca.gradient(f + ca.dot(lam_g, g) if g.numel() else f, w)
+    du = ca.norm_inf(grad_lag + lam_x)
     viol = [ca.fmax(w - ca.DM(c.ubx), 0), ca.fmax(ca.DM(c.lbx) - w, 0)]
     if g.numel():
         viol += [ca.fmax(g - ca.DM(c.ubg), 0), ca.fmax(ca.DM(c.lbg) - g, 0)]
@@ -244,7 +251,12 @@ class _Problem:
         self.init = np.where(np.isfinite(init), init, 0.0)
 
     def functions(self) -> dict[str, ca.Function]:
-        out = {sym: ca.nlpsol(sym, plugin, self.c.nlp, opts)
+        # every attempt on the compiled problem's own plugin shares its derivative
+        # functions, so their C is generated once (backends.casadi_backend.
+        # shared_derivatives: most of the C of a nonlinear horizon problem)
+        c = self.c
+        out = {sym: ca.nlpsol(sym, plugin, c.nlp,
+                              c.with_derivatives(opts) if plugin == c.solver_name else opts)
                for sym, plugin, opts in self.solvers}
         out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt")
         return out
