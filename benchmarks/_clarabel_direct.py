@@ -313,18 +313,18 @@ class DirectRendezvous:
         r = p.solve(p.b)
         return r, self._z(self.L3, r.w), self._v(self.L3, r.w)
 
-    def alg52(self, x: np.ndarray) -> tuple[bool, np.ndarray | None, float]:
+    def alg52(self, x: np.ndarray) -> tuple[bool, np.ndarray | None, float, float]:
         """One Algorithm 5.2 step: (5.15), the minimal slacks of its ``z`` (the polishing of
-        balustrade), (5.16); returns (both solved, applied input, ``h_r``)."""
+        balustrade), (5.16); returns (both solved, applied input, ``h_r``, fuel of (5.16))."""
         r1, z1, _ = self.solve_slack(x)
         if not r1.ok:
-            return False, None, float("nan")
+            return False, None, float("nan"), float("nan")
         xi, xi_N = self.minimal_slacks(z1)
         h_r = min(max(r1.objective, 0.0), float(xi.sum()) + self.d.alpha_f * xi_N)
         r2, z2, v2 = self.solve_filter(x, xi, xi_N)
         if not r2.ok:
-            return False, None, h_r
-        return True, self.applied(x, z2, v2), h_r
+            return False, None, h_r, float("nan")
+        return True, self.applied(x, z2, v2), h_r, r2.objective
 
     def alg64(self, x: np.ndarray, bound: float) -> tuple[bool, np.ndarray | None, float]:
         """One (6.15) solve; returns (solved, applied input, fuel objective)."""
