@@ -43,7 +43,7 @@ def _small_ocp() -> OCP:
 def test_every_preset_resolves_to_itself(name):
     t = resolve_target(name)
     assert t is PRESETS[name] and t.name == name
-    assert t.backend in ("casadi", "cvxpy")
+    assert t.backend in ("casadi", "cvxpy", "direct", "auto")
 
 
 def test_aliases_and_backend_names_resolve():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
+from balustrade.backends.direct_backend import DirectCompiled
 from balustrade.backends.set_support import function_set_support
 from balustrade.backends.solution import Solution, Status
 from balustrade.backends.synthesis_cvxpy import (
@@ -22,14 +23,14 @@ from balustrade.backends.targets import PRESETS, Target, companion, sampling_tar
 from balustrade.backends.targets import target as resolve_target
 from balustrade.dsl.ocp import OCP
 from balustrade.dsl.sets_function import register_support_solver
-from balustrade.errors import BalustradeError, SolverError
+from balustrade.errors import BalustradeError, ConvexityError, SolverError
 
 # FunctionSet.support needs an NLP; the language names no solver, the backends give it one
 register_support_solver(function_set_support)
 
-Compiled = CasadiCompiled | CvxpyCompiled
+Compiled = CasadiCompiled | CvxpyCompiled | DirectCompiled
 
-BACKENDS = {"casadi": CasadiCompiled, "cvxpy": CvxpyCompiled}
+BACKENDS = {"casadi": CasadiCompiled, "cvxpy": CvxpyCompiled, "direct": DirectCompiled}
 
 
 def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = None,
@@ -37,7 +38,8 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
             retries: list[tuple[str, dict]] | None = None) -> Compiled:
     """Compile ``ocp`` for ``target``: a :class:`~balustrade.backends.targets.Target`, a
     preset name (:data:`~balustrade.backends.targets.PRESETS`) or a backend name
-    (``"casadi"``: IPOPT; ``"cvxpy"``: PIQP for LPs/QPs, Clarabel for conic problems);
+    (``"casadi"``: IPOPT; ``"cvxpy"``: PIQP for LPs/QPs, Clarabel for conic problems;
+    ``"direct"``: the same solvers through their own interfaces, :mod:`.direct_backend`);
     ``None`` is ``"exact"``. ``solver``/``options``/``retries`` override the target's
     (see :func:`~balustrade.backends.targets.target`); ``retries`` (CasADi only) replaces
     the default retry chain after a failed solve (``[]`` turns retries off, e.g. for closed
@@ -62,16 +64,37 @@ def compile(ocp: OCP, target: Target | str | None = None, solver: str | None = N
         tgt = resolve_target(target, solver=solver, options=options, retries=retries)
     except SolverError as exc:
         raise SolverError(f"{ocp.name}: {exc}") from None
+    if tgt.backend == "auto":
+        return _compile_auto(ocp, tgt)
     if tgt.backend == "casadi":
         compiled: Compiled = CasadiCompiled(ocp, tgt.nlp_solver, tgt.solver_options(),
                                             tgt.retry_chain())
+    elif tgt.backend == "direct":
+        compiled = DirectCompiled(ocp, tgt.solver, tgt.solver_options())
     else:
         compiled = CvxpyCompiled(ocp, tgt.solver, tgt.solver_options())
     compiled.target = tgt
     return compiled
 
 
+def _compile_auto(ocp: OCP, tgt: Target) -> Compiled:
+    """The ``"auto"`` preset: the direct backend (``"fast-convex"``) when every block and
+    cost term of ``ocp`` classifies as convex, else CasADi + IPOPT (``"exact"``); the
+    target used is recorded as ``.target``."""
+    if tgt.solver is not None or tgt.options:
+        raise SolverError(f"{ocp.name}: the auto target picks its solver and takes no solver "
+                          "or options; name a target ('fast-convex', 'exact') to tune one")
+    try:
+        compiled: Compiled = DirectCompiled(ocp)
+        compiled.target = PRESETS["fast-convex"]
+    except ConvexityError:
+        compiled = CasadiCompiled(ocp, PRESETS["exact"].nlp_solver, {}, None)
+        compiled.target = PRESETS["exact"]
+    return compiled
+
+
 __all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CompiledSynthesis",
-           "CvxpyCompiled", "Solution", "Status", "SynthesisSolution", "Target", "companion",
+           "CvxpyCompiled", "DirectCompiled", "Solution", "Status", "SynthesisSolution", "Target",
+           "companion",
            "compile", "compile_synthesis", "resolve_target", "sampling_targets",
            "solve_synthesis"]

@@ -27,6 +27,14 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
                        along sampling paths.
 ``"cvxpy"``            cvxpy: PIQP for LPs/QPs, Clarabel for conic problems, tight tolerances.
 ``"conic"``            cvxpy + Clarabel, tight tolerances (SOCPs, SDPs).
+``"fast-convex"``      the direct backend: the convex OCP lowered once to PIQP (LPs/QPs) or
+                       Clarabel (cones) through their own interfaces, only ``q``, ``b``
+                       updated per solve; tight tolerances. Refuses nonconvex OCPs.
+``"fast-convex-conic"`` ``fast-convex`` with Clarabel also for LPs/QPs.
+``"fast-convex-qp"``   ``fast-convex`` with PIQP (LPs/QPs only).
+``"auto"``             ``fast-convex`` when the OCP classifies as convex, else ``exact``
+                       (decided by :func:`~balustrade.backends.compile`, which records the
+                       target it used as ``compiled.target``). Takes no solver or options.
 ``"sdp"``              synthesis problems (:func:`~balustrade.backends.compile_synthesis`):
                        cvxpy + Clarabel with Clarabel's own tolerances, the options every SDP
                        of balustrade (terminal CBF, RPI set, regret family) has been solved with.
@@ -45,7 +53,7 @@ from typing import Any
 from balustrade.errors import SolverError
 
 #: backends a target can name
-BACKEND_NAMES = ("casadi", "cvxpy")
+BACKEND_NAMES = ("casadi", "cvxpy", "direct", "auto")
 
 def _frozen(options: Mapping[str, Any] | None) -> Mapping[str, Any]:
     return MappingProxyType(dict(options or {}))
@@ -66,9 +74,10 @@ _CASADI_DEFAULT_SOLVER = "ipopt"
 class Target:
     """Where an :class:`~balustrade.dsl.ocp.OCP` is compiled to.
 
-    ``backend``: ``"casadi"`` or ``"cvxpy"``; ``solver``: a CasADi ``nlpsol`` plugin
-    (``"ipopt"``, ``"sqpmethod"``, ``"fatrop"``, …) or a cvxpy solver name (``"clarabel"``,
-    ``"piqp"``, …), ``None`` for the backend's default; ``options``: solver options
+    ``backend``: ``"casadi"``, ``"cvxpy"`` or ``"direct"``; ``solver``: a CasADi ``nlpsol``
+    plugin (``"ipopt"``, ``"sqpmethod"``, ``"fatrop"``, …), a cvxpy solver name
+    (``"clarabel"``, ``"piqp"``, …) or a direct solver (``"clarabel"``, ``"piqp"``), ``None``
+    for the backend's default; ``options``: solver options
     (added to the backend's defaults); ``retries`` (CasADi only): the cold-start chain run
     after a failed solve as ``(solver, option overrides)`` pairs, ``None`` for the backend's
     default chain and ``()`` for none; ``name``: a label shown in errors and traces.
@@ -100,6 +109,9 @@ class Target:
                 raise SolverError(f"Target({self.name}): retries must be a list of (solver "
                                   f"name, options dict) pairs or None, got "
                                   f"{self.retries!r:.60}")
+            if self.backend == "auto" and self.retries is not None:
+                raise SolverError(f"Target({self.name}): the auto target picks its backend; "
+                                  "name one ('exact', 'fast-convex') to pass retries")
             if self.backend != "casadi" and self.retries:
                 raise SolverError(f"Target({self.name}): retry chains are a CasADi feature; "
                                   f"the {self.backend} backend has its own status checks")
@@ -199,6 +211,10 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("cvxpy", None, name="cvxpy"),
     Target("cvxpy", "clarabel", name="conic"),
     Target("cvxpy", "clarabel", name="sdp"),
+    Target("direct", None, name="fast-convex"),
+    Target("direct", "clarabel", name="fast-convex-conic"),
+    Target("direct", "piqp", name="fast-convex-qp"),
+    Target("auto", None, name="auto"),
 )}
 
 #: the solver-named spellings of presets (kept so that existing scripts resolve)
@@ -216,7 +232,7 @@ SAMPLING_PAIRS: dict[str, tuple[str, str]] = {
 }
 
 #: what a bare backend name means where a target is expected
-_BACKEND_DEFAULTS = {"casadi": "exact", "cvxpy": "cvxpy", **ALIASES}
+_BACKEND_DEFAULTS = {"casadi": "exact", "cvxpy": "cvxpy", "direct": "fast-convex", **ALIASES}
 
 
 def target(spec: Target | str | None = None, *, default: Target | str = "exact",

@@ -1,0 +1,185 @@
+"""The direct conic backend: a convex OCP lowered once to the solvers' own parametric
+interfaces (issue #14 §1).
+
+The chain :data:`balustrade.backends.passes.DIRECT_CHAIN` classifies the OCP
+(:mod:`~balustrade.backends.passes.classify`, refusing a nonconvex block by name) and builds
+the conic data ``P, A, K`` once (:mod:`~balustrade.backends.passes.to_conic`); a solve only
+computes ``q = q0 + Q p`` and ``b = b0 + B p + D φ(p)`` and hands them to a solver set up at
+compile time (:mod:`~balustrade.backends.direct_engines`): PIQP for LPs/QPs, Clarabel when a
+cone is needed. No cvxpy canonicalization is run per solve.
+
+Statuses follow :mod:`~balustrade.backends.cvxpy_backend`: an "infeasible" verdict is
+confirmed by the feasibility problem (same constraints, no cost); rows with large bounds are
+imposed by a second solve only when violated; a failed solve of a problem with weights above
+:data:`~balustrade.backends.cvxpy_backend.BIG_WEIGHT` is retried with the cost rescaled (then
+at best ``optimal_inaccurate``). Multipliers per block have the sign convention of the other
+backends (``≥ 0`` for ``g <= 0`` rows, ``∇f + Σ λ ∇g = 0``).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+
+from balustrade.backends.cvxpy_backend import BIG_WEIGHT, LARGE_BOUND
+from balustrade.backends.direct_engines import DIRECT_SOLVERS, RawResult, make_engine
+from balustrade.backends.passes import DIRECT_CHAIN, run_chain
+from balustrade.backends.passes.classify import Classify
+from balustrade.backends.passes.to_conic import (
+    CONE_HEAD,
+    LINEAR,
+    ConicProgram,
+    ToConic,
+)
+from balustrade.backends.solution import Solution, Status
+from balustrade.dsl.ocp import OCP
+from balustrade.errors import SolverError
+
+#: statuses after which a solve is retried (unequilibrated, then with the cost rescaled)
+_RETRY = (Status.FAILED, Status.MAX_ITERATIONS, Status.OPTIMAL_INACCURATE)
+
+
+class DirectCompiled:
+    """A convex OCP compiled to Clarabel/PIQP: call :meth:`solve` with parameter values."""
+
+    backend = "direct"
+
+    def __init__(self, ocp: OCP, solver: str | None = None, options: dict | None = None):
+        self.ocp = ocp
+        program, _ = run_chain(DIRECT_CHAIN, ocp)
+        self.program: ConicProgram = program
+        self.conic = program.conic
+        if solver is not None and (not isinstance(solver, str)
+                                   or solver.lower() not in DIRECT_SOLVERS):
+            raise SolverError(f"{ocp.name}: the direct backend has no solver {solver!r}; use "
+                              f"one of {', '.join(DIRECT_SOLVERS)} (or None: PIQP for LPs/QPs, "
+                              "Clarabel for cones)")
+        self.solver_name = solver.lower() if solver else ("clarabel" if self.conic else "piqp")
+        self.options = dict(options or {})
+        self.engine = make_engine(self.solver_name, program, self.options)
+        self.cost_scale = program.cost_scale
+        self._full: tuple[ConicProgram, object] | None = None  # with the large rows
+        self._feasibility = None  # built on the first "infeasible"
+        self._scaled = None  # built on the first failure with big weights
+        # Clarabel without equilibration, built on the first inexact solve (False: none)
+        self._second = None if self.solver_name == "clarabel" and \
+            "equilibrate_enable" not in self.options else False
+
+    # -- solve -------------------------------------------------------------------------
+    def solve(self, params: dict[str, object] | None = None,
+              warm_start: Solution | dict[str, object] | None = None) -> Solution:
+        """Solve with the given parameter values. ``warm_start`` is accepted for the common
+        interface and ignored: neither interior-point solver takes a starting point through
+        its Python interface, so every solve is cold and depends on ``params`` only."""
+        p = self.ocp.pack_parameters(params)
+        prog = self.program
+        start = time.perf_counter()
+        q, b = prog.q(p), prog.b(p)
+        raw = self.engine.run(q, b)
+        message = raw.words
+        if raw.status == Status.INFEASIBLE:
+            raw, message = self._check_infeasible(raw, b)
+        if prog.large is not None and raw.status != Status.INFEASIBLE \
+                and not self._within_large(raw, p):
+            first = "violated them" if raw.status.success else raw.status
+            full, engine = self._full_problem()
+            prog = full
+            raw = engine.run(full.q(p), full.b(p))
+            message = (f"{raw.words} (with the {self.program.large.c.size} large bounds/rows "
+                       f"|b| >= {LARGE_BOUND:g}; the solve without them: {first})")
+        if raw.status in _RETRY and prog is self.program and self._second is not False:
+            raw, message = self._unequilibrated(raw, message, q, b)
+        if raw.status in _RETRY and self.cost_scale > BIG_WEIGHT and prog is self.program:
+            raw, message = self._rescaled(raw, message, p)
+        elapsed = time.perf_counter() - start
+        n = prog.n_w
+        usable = raw.status.success and raw.y is not None and np.all(np.isfinite(raw.y))
+        w = raw.y[:n].copy() if usable else np.full(n, np.nan)
+        objective = float(prog.objective(w, p)) if usable else np.nan
+        dual = self._duals(prog, raw.z) if usable else {}
+        return Solution(status=raw.status, objective=objective,
+                        primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
+                        iterations=raw.iterations, backend="direct", solver=self.solver_name,
+                        p=p, message=message)
+
+    def _check_infeasible(self, raw: RawResult, b: np.ndarray) -> tuple[RawResult, str]:
+        """Confirm "infeasible" with the feasibility problem (no cost): badly scaled weights
+        can make a solver declare a feasible problem infeasible."""
+        prog = self.program
+        if self._feasibility is None:
+            self._feasibility = make_engine(self.solver_name, prog, self.options,
+                                            P=sp.csc_matrix(prog.P.shape), q=np.zeros(prog.n_y))
+        check = self._feasibility.run(np.zeros(prog.n_y), b)
+        if check.status.success:
+            failed = RawResult(Status.FAILED, raw.words, None, None, raw.iterations)
+            return failed, (f"{raw.words}; but the constraints alone are feasible "
+                            f"(feasibility solve: {check.words}): the verdict is numerical, "
+                            "e.g. from badly scaled cost weights")
+        return raw, raw.words
+
+    def _within_large(self, raw: RawResult, p: np.ndarray) -> bool:
+        """The solution exists and satisfies the large rows left out of the problem."""
+        if not raw.status.success or raw.y is None:
+            return False
+        large = self.program.large
+        residual = large.A @ raw.y[:self.program.n_w] + large.c
+        if large.B.shape[1]:
+            residual = residual + large.B @ p
+        return bool(np.all(residual <= 1e-12 * np.abs(large.c)))
+
+    def _full_problem(self) -> tuple[ConicProgram, object]:
+        if self._full is None:
+            classified, _ = Classify().apply(self.ocp)
+            full, _ = ToConic(with_large=True).apply(classified)
+            self._full = (full, make_engine(self.solver_name, full, self.options))
+        return self._full
+
+    def _unequilibrated(self, raw: RawResult, message: str, q: np.ndarray, b: np.ndarray
+                        ) -> tuple[RawResult, str]:
+        """Re-solve with Clarabel's equilibration off: on the robust filter (5.16) of the
+        rendezvous far from the origin the equilibrated solve stops "AlmostSolved" where the
+        unequilibrated one converges to the tolerances. Kept only if it converges."""
+        if self._second is None:
+            self._second = make_engine(self.solver_name, self.program,
+                                       {**self.options, "equilibrate_enable": False})
+        retry = self._second.run(q, b)
+        if retry.status == Status.OPTIMAL:
+            retry.iterations += raw.iterations
+            return retry, f"{retry.words} (without equilibration; first: {raw.words})"
+        return raw, f"{message}; without equilibration: {retry.words}"
+
+    def _rescaled(self, raw: RawResult, message: str, p: np.ndarray
+                  ) -> tuple[RawResult, str]:
+        """Re-solve with the cost divided by :attr:`cost_scale` (weights of 1e9 and more make
+        the multipliers huge); the minimizer is the same but accurate only relative to the
+        largest weight, hence at best ``optimal_inaccurate``."""
+        prog, scale = self.program, self.cost_scale
+        if self._scaled is None:
+            self._scaled = make_engine(self.solver_name, prog, self.options,
+                                       P=(prog.P / scale).tocsc(), q=prog.q0 / scale)
+        retry = self._scaled.run(prog.q(p) / scale, prog.b(p))
+        if raw.status == Status.OPTIMAL_INACCURATE and retry.status != Status.OPTIMAL:
+            return raw, message
+        if retry.status.success:
+            retry.z = None if retry.z is None else retry.z * scale
+            retry.status = Status.OPTIMAL_INACCURATE
+            return retry, (f"{message}; solved with the cost scaled by 1/{scale:.3g}: "
+                           f"{retry.words}")
+        return raw, f"{message}; with the cost scaled by 1/{scale:.3g}: {retry.words}"
+
+    def _duals(self, prog: ConicProgram, z: np.ndarray | None) -> dict[str, np.ndarray]:
+        out = {}
+        for block in self.ocp.blocks:
+            values = np.zeros(block.rows)
+            if z is not None:
+                for dm in prog.duals.get(block.name, []):
+                    if dm.mode == LINEAR:
+                        values[dm.rows] = dm.factor * z[dm.at]
+                    elif dm.mode == CONE_HEAD:
+                        values[dm.rows] = dm.factor * z[dm.at[0]]
+                    else:
+                        values[dm.rows] = dm.factor * (z[dm.at[0]] + z[dm.at[1]]) / np.sqrt(2.0)
+            out[block.name] = values
+        return out

@@ -1,0 +1,161 @@
+"""The solver objects of the direct backend: Clarabel and PIQP through their own interfaces,
+set up once from a :class:`~balustrade.backends.passes.to_conic.ConicProgram` (``P``, ``A``
+and the cones), then only the vectors ``q``, ``b`` are updated per solve.
+
+Each solve starts from the solver's own initial point: Clarabel (presolve and structural-zero
+dropping off, so that data updates are allowed) keeps nothing but the equilibration of the
+data it was set up with; PIQP re-equilibrates on each update
+(``preconditioner_reuse_on_update`` off). Neither exposes a warm start through its Python
+interface, so the answer of a solve depends on its parameters only (history independence,
+issue #12 item 3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from balustrade.backends.passes.to_conic import ConicProgram
+from balustrade.backends.solution import Status
+from balustrade.errors import SolverError
+
+#: the solvers of the direct backend
+DIRECT_SOLVERS = ("clarabel", "piqp")
+
+#: tight tolerances as :data:`balustrade.backends.cvxpy_backend.SOLVER_OPTIONS`
+DEFAULT_OPTIONS: dict[str, dict] = {
+    "clarabel": {"tol_gap_abs": 1e-10, "tol_gap_rel": 1e-10, "tol_feas": 1e-10,
+                 "tol_ktratio": 1e-8, "max_iter": 300},
+    "piqp": {"eps_abs": 1e-10, "eps_rel": 1e-11, "max_iter": 500},
+}
+
+
+@dataclass
+class RawResult:
+    """One solver run: status, the solver's own words, ``y``, the cone duals ``z`` (the
+    multipliers of ``A y + s = b`` with ``P y + q + Aᵀz = 0``), iterations."""
+
+    status: Status
+    words: str
+    y: np.ndarray | None
+    z: np.ndarray | None
+    iterations: int
+
+
+_CLARABEL_STATUS = {
+    "Solved": Status.OPTIMAL, "AlmostSolved": Status.OPTIMAL_INACCURATE,
+    "PrimalInfeasible": Status.INFEASIBLE, "MaxIterations": Status.MAX_ITERATIONS,
+    "MaxTime": Status.MAX_ITERATIONS,
+}
+_PIQP_STATUS = {
+    "PIQP_SOLVED": Status.OPTIMAL, "PIQP_PRIMAL_INFEASIBLE": Status.INFEASIBLE,
+    "PIQP_MAX_ITER_REACHED": Status.MAX_ITERATIONS,
+}
+
+
+class ClarabelEngine:
+    """``clarabel.DefaultSolver`` set up once; :meth:`run` updates ``q``, ``b`` and solves."""
+
+    name = "clarabel"
+
+    def __init__(self, prog: ConicProgram, options: dict, P: sp.csc_matrix | None = None,
+                 q: np.ndarray | None = None):
+        import clarabel
+
+        settings = clarabel.DefaultSettings()
+        settings.verbose = False
+        settings.presolve_enable = False  # else data updates are refused
+        settings.input_sparse_dropzeros = False
+        for key, value in {**DEFAULT_OPTIONS["clarabel"], **options}.items():
+            if not hasattr(settings, key):
+                raise SolverError(f"direct backend: unknown Clarabel option {key!r}")
+            setattr(settings, key, value)
+        cones = [{"zero": clarabel.ZeroConeT, "nonneg": clarabel.NonnegativeConeT,
+                  "soc": clarabel.SecondOrderConeT}[kind](m) for kind, m in prog.cones]
+        A = prog.A if prog.A.shape[0] else sp.csc_matrix((0, prog.n_y))
+        self.solver = clarabel.DefaultSolver(prog.P if P is None else P,
+                                             prog.q0 if q is None else q, A, prog.b0,
+                                             cones, settings)
+        if not self.solver.is_data_update_allowed():
+            raise SolverError("direct backend: Clarabel refuses data updates with these "
+                              "settings (presolve or dropped structural zeros)")
+
+    def run(self, q: np.ndarray, b: np.ndarray) -> RawResult:
+        self.solver.update(q=q, b=b)
+        sol = self.solver.solve()
+        words = str(sol.status)
+        status = _CLARABEL_STATUS.get(words, Status.FAILED)
+        if words == "AlmostPrimalInfeasible":
+            words += "; infeasibility not certified"
+        elif words in ("DualInfeasible", "AlmostDualInfeasible"):
+            words += "; the problem looks unbounded"
+        y = np.asarray(sol.x, dtype=float)
+        z = np.asarray(sol.z, dtype=float)
+        return RawResult(status, f"Clarabel: {words}", y, z, int(sol.iterations))
+
+
+class PiqpEngine:
+    """``piqp.SparseSolver`` set up once for an LP/QP (zero rows → ``A y = b``, nonnegative
+    rows → ``G y <= h``); :meth:`run` updates ``c``, ``b``, ``h_u`` and solves."""
+
+    name = "piqp"
+
+    def __init__(self, prog: ConicProgram, options: dict, P: sp.csc_matrix | None = None,
+                 q: np.ndarray | None = None):
+        import piqp
+
+        if prog.conic:
+            raise SolverError("direct backend: PIQP takes LPs and QPs only; this problem "
+                              "needs a second-order cone (use solver 'clarabel')")
+        self.m0 = sum(m for kind, m in prog.cones if kind == "zero")
+        A = prog.A.tocsr()
+        self.solver = piqp.SparseSolver()
+        self.solver.settings.verbose = False
+        self.solver.settings.preconditioner_reuse_on_update = False
+        for key, value in {**DEFAULT_OPTIONS["piqp"], **options}.items():
+            if not hasattr(self.solver.settings, key):
+                raise SolverError(f"direct backend: unknown PIQP option {key!r}")
+            setattr(self.solver.settings, key, value)
+        Pfull = prog.P if P is None else P
+        Pfull = sp.triu(Pfull).tocsc()  # PIQP reads the upper triangle
+        q0 = prog.q0 if q is None else q
+        self.has_eq = self.m0 > 0
+        self.has_ineq = A.shape[0] > self.m0
+        b = prog.b0
+        self.solver.setup(Pfull, q0,
+                          A[:self.m0].tocsc() if self.has_eq else None,
+                          b[:self.m0] if self.has_eq else None,
+                          A[self.m0:].tocsc() if self.has_ineq else None,
+                          None,
+                          b[self.m0:] if self.has_ineq else None)
+
+    def run(self, q: np.ndarray, b: np.ndarray) -> RawResult:
+        self.solver.update(c=q, b=b[:self.m0] if self.has_eq else None,
+                           h_u=b[self.m0:] if self.has_ineq else None)
+        status_obj = self.solver.solve()
+        words = str(status_obj.name)
+        if words == "PIQP_DUAL_INFEASIBLE":
+            words += "; the problem looks unbounded"
+        res = self.solver.result
+        parts = []
+        if self.has_eq:
+            parts.append(np.asarray(res.y, dtype=float))
+        if self.has_ineq:
+            parts.append(np.asarray(res.z_u, dtype=float) - np.asarray(res.z_l, dtype=float))
+        z = np.concatenate(parts) if parts else np.zeros(0)
+        return RawResult(_PIQP_STATUS.get(words, Status.FAILED), f"PIQP: {words}",
+                         np.asarray(res.x, dtype=float), z, int(res.info.iter))
+
+
+def make_engine(solver: str, prog: ConicProgram, options: dict, **data) -> ClarabelEngine | \
+        PiqpEngine:
+    """The engine named ``solver`` for ``prog`` (``data``: ``P``/``q`` replacing the
+    program's, for the feasibility and rescaled re-solves)."""
+    if solver == "clarabel":
+        return ClarabelEngine(prog, options, **data)
+    if solver == "piqp":
+        return PiqpEngine(prog, options, **data)
+    raise SolverError(f"direct backend: unknown solver {solver!r}; use one of "
+                      f"{', '.join(DIRECT_SOLVERS)}")
