@@ -210,6 +210,8 @@ class _Builder:
         return first
 
     def problem(self, q: np.ndarray) -> tuple[_Problem, dict]:
+        """The Clarabel problem (zero, nonnegative, then the second-order cones) and the first
+        row of each cone."""
         Az, bz = self.zero.stacked()
         An, bn = self.nonneg.stacked()
         blocks, rhs, cones, offsets = [Az, An], [bz, bn], [], {}
@@ -236,6 +238,7 @@ class DirectRendezvous:
 
     def __init__(self, d: RendezvousData):
         self.d = d
+        self.last_iterations = 0   # interior-point iterations of the last alg52/alg64 call
         # (5.15): min α_f ξ_N + Σ 1ᵀξ_i
         b1 = _Builder(d, epigraph=False, slacks=True)
         b1.slack_rows()
@@ -317,11 +320,13 @@ class DirectRendezvous:
         """One Algorithm 5.2 step: (5.15), the minimal slacks of its ``z`` (the polishing of
         balustrade), (5.16); returns (both solved, applied input, ``h_r``, fuel of (5.16))."""
         r1, z1, _ = self.solve_slack(x)
+        self.last_iterations = r1.iterations
         if not r1.ok:
             return False, None, float("nan"), float("nan")
         xi, xi_N = self.minimal_slacks(z1)
         h_r = min(max(r1.objective, 0.0), float(xi.sum()) + self.d.alpha_f * xi_N)
         r2, z2, v2 = self.solve_filter(x, xi, xi_N)
+        self.last_iterations += r2.iterations
         if not r2.ok:
             return False, None, h_r, float("nan")
         return True, self.applied(x, z2, v2), h_r, r2.objective
@@ -329,6 +334,7 @@ class DirectRendezvous:
     def alg64(self, x: np.ndarray, bound: float) -> tuple[bool, np.ndarray | None, float]:
         """One (6.15) solve; returns (solved, applied input, fuel objective)."""
         r, z, v = self.solve_mo(x, bound)
+        self.last_iterations = r.iterations
         if not r.ok:
             return False, None, float("nan")
         return True, self.applied(x, z, v), r.objective

@@ -140,16 +140,20 @@ class PathTimes:
 
     def __init__(self) -> None:
         self.times: list[float] = []
+        self.iterations: list[int] = []
         self.failed = 0
 
-    def add(self, elapsed: float, ok: bool) -> None:
+    def add(self, elapsed: float, ok: bool, iterations: int = 0) -> None:
         self.times.append(elapsed)
+        self.iterations.append(iterations)
         self.failed += 0 if ok else 1
 
     def stats(self, skip: int = 1) -> dict:
         t = np.asarray(self.times[skip:] or self.times)
+        its = self.iterations[skip:] or self.iterations
         return {"median_s": float(np.median(t)), "worst_ms": round(1e3 * float(np.max(t)), 2),
-                "failed": self.failed, "samples": int(t.size)}
+                "failed": self.failed, "samples": int(t.size),
+                "iterations": float(np.median(its)) if its else 0.0}
 
 
 class Check:
@@ -187,17 +191,20 @@ def measure(d: dict, states: np.ndarray, paths: dict, direct: DirectRendezvous,
             for alg, key in (("5.2", "robust"), ("6.4", "mo")):
                 start = time.perf_counter()
                 u, info = ctls[key].step(x, np.zeros(3))
+                its = sum(s.iterations for s in info.solutions.values())
                 times.setdefault((alg, label), PathTimes()).add(time.perf_counter() - start,
-                                                                _ok(info))
+                                                                _ok(info), its)
                 results[(alg, label)] = (u, info)
             bounds[label] = results[("6.4", label)][1].values.get("bound", np.nan)
         bound = bounds.get(reference, next(iter(bounds.values()), np.nan))
         start = time.perf_counter()
         ok52, u52, h_r, fuel52 = direct.alg52(x)
-        times.setdefault(("5.2", BASELINE), PathTimes()).add(time.perf_counter() - start, ok52)
+        times.setdefault(("5.2", BASELINE), PathTimes()).add(time.perf_counter() - start, ok52,
+                                                             direct.last_iterations)
         start = time.perf_counter()
         ok64, u64, fuel64 = direct.alg64(x, bound) if np.isfinite(bound) else (False, None, 0.)
-        times.setdefault(("6.4", BASELINE), PathTimes()).add(time.perf_counter() - start, ok64)
+        times.setdefault(("6.4", BASELINE), PathTimes()).add(time.perf_counter() - start, ok64,
+                                                             direct.last_iterations)
         for (alg, label), (u, info) in results.items():
             c = checks.setdefault((alg, label), Check())
             if not _ok(info):

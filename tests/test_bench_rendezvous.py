@@ -37,6 +37,8 @@ def test_baseline_agrees_with_balustrade_cvxpy(setup):
     assert checks[("5.2", "cvxpy")].compared >= 4
     assert checks[("6.4", "cvxpy")].compared >= 4
     assert times[("5.2", "hand-written Clarabel")].failed == 0
+    for key in (("5.2", "hand-written Clarabel"), ("6.4", "cvxpy")):   # iterations recorded
+        assert times[key].stats()["iterations"] > 0
     if "fast-convex" in missing:
         assert "not available" in missing["fast-convex"]
 
