@@ -213,7 +213,7 @@ def test_robust_controller_problems_emit_through_its_spec(unstable2d_tube, tmp_p
     s = t["s"]
     ctrl = RobustPCBFSafetyFilter.build(t["system"], s.X, s.U, t["cbf"], t["cbf"].policy,
                                         t["N"], s.deltas(), t["error"], s.alpha_f,
-                                        slack_target="robust-sqp")
+                                        target="robust-sqp", slack_target="robust-sqp")
     spec = ctrl.deployment_spec()
     assert isinstance(spec, ProblemsDeployment) and spec.problems["slack"] is ctrl.slack
     em = emit_problems(ctrl, "robust", tmp_path)

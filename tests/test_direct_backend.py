@@ -201,6 +201,12 @@ def test_solver_choice_and_targets():
         np.testing.assert_allclose(s["u"].ravel(), [1.0, -1.0], atol=1e-7)
         assert s.dual["sum"][0] == pytest.approx(0.0, abs=1e-7)
     assert resolve_target("direct") is PRESETS["fast-convex"]
+    # PIQP is history independent too (re-equilibrated on each update, cold start)
+    used = compile(qp, "fast-convex-qp")
+    for y in np.random.default_rng(2).normal(size=(100, 2)) * 3:
+        used.solve({"x": y})
+    again = used.solve({"x": np.array([3.0, -2.0])})
+    np.testing.assert_array_equal(again.w, a.w)
     tube = OCP(name="tube")
     z = tube.variable("z", 2)
     tube.le(z.T @ z, 1.0)

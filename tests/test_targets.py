@@ -188,13 +188,17 @@ def test_robust_and_multiobjective_builders_take_targets(unstable2d_tube):
     args = (system, s.X, s.U, cbf, cbf.policy, N, s.deltas(), error, s.alpha_f)
     r = RobustPCBFSafetyFilter.build(*args, target="cvxpy")
     assert _backends(r.slack, r.filter) == {"cvxpy"}
-    r = RobustPCBFSafetyFilter.build(*args)
+    r = RobustPCBFSafetyFilter.build(*args)  # "auto": a convex problem goes direct
+    assert r.filter.target is r.slack.target is PRESETS["fast-convex"]
+    r = RobustPCBFSafetyFilter.build(*args, target="robust-sqp")
     assert r.filter.target is PRESETS["robust-sqp"] and r.slack.target is PRESETS["exact"]
     r = RobustPCBFSafetyFilter.build(*args, target="long-horizon", slack_target="long-horizon")
     assert r.slack.target is r.filter.target is PRESETS["long-horizon"]
     m = MultiobjectivePCBFController.build(*args, target="cvxpy")
     assert _backends(m.slack, m.problem) == {"cvxpy"}
     m = MultiobjectivePCBFController.build(*args)
+    assert m.slack.target is m.problem.target is PRESETS["fast-convex"]
+    m = MultiobjectivePCBFController.build(*args, target="exact")
     assert m.slack.target is m.problem.target is PRESETS["exact"]
 
 

@@ -165,11 +165,12 @@ class MultiobjectivePCBFController:
     def build(cls, system: System, X: Polytope, U: Polytope, h_f: Callable, pi_f: Callable,
               N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
               rho: float = 0.9, objective: Objective | None = None,
-              target: Target | str = "exact", slack_target: Target | str | None = None,
+              target: Target | str = "auto", slack_target: Target | str | None = None,
               U_tight: Polytope | None = None, record_h_r: bool = False
               ) -> MultiobjectivePCBFController:
         """Build and compile (5.15) (ℓ1 slack norm) for ``slack_target`` and (6.15) for
-        ``target`` (targets or preset names; ``slack_target=None``: ``"exact"`` on
+        ``target`` (targets or preset names; default ``"auto"``: the direct conic backend
+        for convex problems, else ``exact``; ``slack_target=None``: ``"exact"`` on
         CasADi, ``target`` on any other backend, see
         :func:`~balustrade.backends.companion`)."""
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,

@@ -84,17 +84,20 @@ class RobustPCBFSafetyFilter:
     def build(cls, system: System, X: Polytope, U: Polytope, h_f: Callable, pi_f: Callable,
               N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
               slack_norm: int | float = 1, objective: Objective | None = None,
-              target: Target | str = "robust-sqp", slack_target: Target | str | None = None,
+              target: Target | str = "auto", slack_target: Target | str | None = None,
               eps: float = 1e-6, U_tight: Polytope | None = None) -> RobustPCBFSafetyFilter:
         """Build and compile (5.15) for ``slack_target`` and (5.16) for ``target`` (targets
         or preset names, e.g. ``target="cvxpy"``).
 
-        Defaults: the ``robust-sqp`` target for the QP-like filter (5.16) (the fast SQP with
-        more iterations: the default limit stops early on tube problems) and, on CasADi,
-        ``exact`` for (5.15) (``slack_target=None``, :func:`~balustrade.backends.companion`:
-        the SQP needs hundreds of iterations when ``h_r > 0``, the LP-like slack problem with
-        quadratic tube/terminal rows is degenerate for it); on any other backend (5.15) uses
-        ``target``. Tune a target with :meth:`~balustrade.backends.Target.with_options`.
+        Default: ``"auto"`` for both problems: the direct conic backend (``fast-convex``)
+        when the problem is convex (a linear system with convex sets and terminal CBF), else
+        ``exact``. On CasADi targets, ``slack_target=None`` means ``exact`` for (5.15)
+        (:func:`~balustrade.backends.companion`: the SQP needs hundreds of iterations when
+        ``h_r > 0``, the LP-like slack problem with quadratic tube/terminal rows is
+        degenerate for it); ``robust-sqp`` is the SQP target for (5.16) (more iterations: the
+        default limit stops early on tube problems), the one whose C can be emitted; on any
+        other backend (5.15) uses ``target``. Tune a target with
+        :meth:`~balustrade.backends.Target.with_options`.
         """
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                   slack_norm, U_tight),
