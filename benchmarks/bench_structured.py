@@ -21,6 +21,7 @@ problem takes more than :data:`SLOW_S` seconds is skipped for the rest of that p
 
 from __future__ import annotations
 
+import sys
 import time
 import warnings
 
@@ -112,13 +113,15 @@ def _measure(name: str, ocp: object, params: list[dict]) -> list[dict]:
     return rows
 
 
-def run(quick: bool = False) -> list[dict]:
+def run(quick: bool = False, progress: bool = False) -> list[dict]:
     warnings.filterwarnings("ignore")
     n = 3 if quick else 8
     rng = np.random.default_rng(0)
     rows = []
     for name, ocp, params in _bicycle_cases(n, rng) + _rendezvous_cases(n, rng):
         rows += _measure(name, ocp, params)
+        if progress:
+            print(markdown(rows), file=sys.stderr, flush=True)
     return rows
 
 
@@ -138,6 +141,4 @@ def markdown(rows: list[dict]) -> str:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    import sys
-
-    print(markdown(run(quick="--quick" in sys.argv)))
+    print(markdown(run(quick="--quick" in sys.argv, progress=True)))
