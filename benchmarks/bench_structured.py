@@ -77,9 +77,18 @@ def _bicycle_cases(n: int, rng: np.random.Generator) -> list[tuple]:
     return cases
 
 
-def _measure(name: str, ocp: object, params: list[dict]) -> list[dict]:
+#: targets not run on a problem, and why (measured; docs/engines-nlp.md)
+EXCLUDED = {"structured-ip": ("nonlinear", "fatrop did not return within 60 s on the nonlinear "
+                              "bicycle (5.15), N = 8 (CasADi 3.8.2, fatrop 1.1.8)")}
+
+
+def _measure(name: str, ocp: object, params: list[dict], nonlinear: bool = False
+             ) -> list[dict]:
     compiled, rows = {}, []
     for tgt in TARGETS:
+        if nonlinear and EXCLUDED.get(tgt, ("",))[0] == "nonlinear":
+            rows.append({"name": name, "target": tgt, "refused": "not run: " + EXCLUDED[tgt][1]})
+            continue
         try:
             compiled[tgt] = compile(ocp, tgt)
         except StructureError as exc:
@@ -113,13 +122,16 @@ def _measure(name: str, ocp: object, params: list[dict]) -> list[dict]:
     return rows
 
 
-def run(quick: bool = False, progress: bool = False) -> list[dict]:
+def run(quick: bool = False, progress: bool = False, part: str | None = None) -> list[dict]:
     warnings.filterwarnings("ignore")
     n = 3 if quick else 8
     rng = np.random.default_rng(0)
     rows = []
-    for name, ocp, params in _bicycle_cases(n, rng) + _rendezvous_cases(n, rng):
-        rows += _measure(name, ocp, params)
+    cases = ([(c, True) for c in _bicycle_cases(n, rng)] if part in (None, "nonlinear") else []) \
+        + ([(c, False) for c in _rendezvous_cases(n, rng)] if part in (None, "rendezvous")
+           else [])
+    for (name, ocp, params), nonlinear in cases:
+        rows += _measure(name, ocp, params, nonlinear)
         if progress:
             print(markdown(rows), file=sys.stderr, flush=True)
     return rows
@@ -141,4 +153,6 @@ def markdown(rows: list[dict]) -> str:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    print(markdown(run(quick="--quick" in sys.argv, progress=True)))
+    parts = [a for a in sys.argv[1:] if a in ("nonlinear", "rendezvous")]
+    print(markdown(run(quick="--quick" in sys.argv, progress=True,
+                       part=parts[0] if parts else None)))

@@ -111,7 +111,9 @@ def test_bicycle_515_agrees():
     ocp = robust_pcbf_slack_problem(d.system, d.X, d.U, d.cbf, d.N, d.deltas, d.error,
                                     d.alpha_f)
     states = [{"x0": np.array(x)} for x in ([0.1, 0.1, 1.0, 0.0], [0.25, -0.4, 0.8, 0.3])]
-    assert _agree(ocp, states, rtol=1e-4, atol=1e-5) >= 2
+    # structured-ip (fatrop) is not run here: on this nonlinear problem it did not return
+    # within 60 s (CasADi 3.8.2; docs/engines-nlp.md)
+    assert _agree(ocp, states, rtol=1e-4, atol=1e-5, targets=("structured-sqp",)) >= 2
 
 
 # -- the pass itself ------------------------------------------------------------------------
@@ -125,6 +127,8 @@ def _random_ocp(nx: int, nu: int, N: int, extras: int, norm: float) -> OCP:
     ocp.dynamics()
     ocp.input_constraint(Box([-1.0] * nu, [1.0] * nu))
     xi = ocp.state_constraint(Box([-2.0] * nx, [2.0] * nx), slack="variable")
+    # a separable row over all stages with a constant part, like (6.15g)
+    ocp.decrease(ca.sum1(ca.sum2(xi)) + ca.sumsqr(ocp.x), ocp.parameter("bound", 1) + 3.0)
     cost = sum_norms(xi, norm) + squared_norm(ocp.u)
     for k in range(extras):
         t = ocp.variable(f"t{k}", 1, lb=-5.0, ub=5.0)

@@ -74,7 +74,7 @@ DEFAULT_OPTIONS: dict[str, dict] = {
                   "convexify_strategy": "eigen-clip", "error_on_fail": False},
     # fatrop: the problem is compiled in stage order with manual structure options
     # (stage_order.py, casadi_backend.with_structure)
-    "fatrop": {"print_time": False, "fatrop": {"print_level": 0}},
+    "fatrop": {"print_time": False, "fatrop": {"print_level": 0, "max_iter": 300}},
 }
 
 #: ``qpsol_options`` added for sqpmethod's QP solver, per plugin (each plugin accepts only
