@@ -210,3 +210,14 @@ def test_structured_c_compiles_and_links(tmp_path: Path, name):
            f"-Wl,-rpath,{cdir}", *[f"-l{lib}" for lib in libs], "-lm"]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
+
+
+def test_balustrade_emitter_refuses_a_staged_problem(tmp_path: Path):
+    """codegen.emit_problem unpacks the layout order; a staged problem is refused, not
+    emitted with wrong offsets."""
+    from balustrade.codegen.emit import emit_problem
+    from balustrade.errors import CodegenError
+
+    c = compile(_random_ocp(2, 1, 3, 0, 1), "structured-sqp")
+    with pytest.raises(CodegenError, match="stage order"):
+        emit_problem(c, "staged", tmp_path, allow_external=True)
