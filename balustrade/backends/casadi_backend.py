@@ -53,6 +53,7 @@ import numpy as np
 from balustrade.backends.passes import CASADI_CHAIN, run_chain
 from balustrade.backends.passes.casadi_nlp import as_dm
 from balustrade.backends.passes.epigraph import EpigraphInverse
+from balustrade.backends.passes.stage_order import StagedNLP, StageInverse, stage_order
 from balustrade.backends.solution import Solution, Status
 from balustrade.backends.targets import Budget
 from balustrade.dsl.ocp import OCP
@@ -72,6 +73,9 @@ DEFAULT_OPTIONS: dict[str, dict] = {
                   # clipping, not "regularize"/"none": with those, CasADi 3.8's qrqp
                   # corrupts the heap on small problems (docs/design-notes.md).
                   "convexify_strategy": "eigen-clip", "error_on_fail": False},
+    # fatrop: the problem is compiled in stage order with manual structure options
+    # (stage_order.py, casadi_backend.with_structure)
+    "fatrop": {"print_time": False, "fatrop": {"print_level": 0, "max_iter": 300}},
 }
 
 #: ``qpsol_options`` added for sqpmethod's QP solver, per plugin (each plugin accepts only
@@ -86,6 +90,9 @@ QPSOL_DEFAULTS: dict[str, dict] = {
     # 1455 -> 273 ms, worst 3335 -> 562 ms, failures 0 -> 0, inputs equal to 2.5e-10.
     "qrqp": {"print_iter": False, "print_header": False, "print_info": False,
              "error_on_fail": False, "max_iter": 100},
+    "hpipm": {"hpipm": {"iter_max": 200, "res_g_max": 1e-10, "res_b_max": 1e-10,
+                        "res_d_max": 1e-10, "res_m_max": 1e-10},
+              "error_on_fail": False},
     "osqp": {"osqp": {"verbose": False, "eps_abs": 1e-9, "eps_rel": 1e-9, "max_iter": 20000,
                       "polish": True}, "error_on_fail": False},
 }
@@ -108,6 +115,22 @@ def solver_options(solver: str, options: dict | None = None) -> dict:
                 else v
         opts["qpsol_options"] = qp
     return opts
+
+
+def needs_stage_order(solver: str, opts: dict) -> bool:
+    """Whether ``solver`` with ``opts`` exploits stage structure, so the problem is compiled
+    in stage order (:mod:`~balustrade.backends.passes.stage_order`): ``fatrop``, and
+    ``sqpmethod`` with ``qpsol`` ``hpipm``."""
+    return solver == "fatrop" or (solver == "sqpmethod" and opts.get("qpsol") == "hpipm")
+
+
+def with_structure(solver: str, opts: dict, staged: StagedNLP) -> dict:
+    """``opts`` with the per-stage sizes of ``staged``: fatrop's own options, or HPIPM's in
+    sqpmethod's ``qpsol_options``."""
+    if solver == "fatrop":
+        return {**opts, **staged.structure("fatrop")}
+    qp = dict(opts.get("qpsol_options", {}))
+    return {**opts, "qpsol_options": {**qp, **staged.structure("hpipm")}}
 
 
 def _nlpsol(name: str, solver: str, nlp: dict, opts: dict) -> ca.Function:
@@ -158,9 +181,20 @@ class CasadiCompiled:
         #: the solver's decision vector: the user's variables, then the epigraph blocks
         self.layout = data.layout
         self.lbx, self.ubx, self.lbg, self.ubg = data.lbx, data.ubx, data.lbg, data.ubg
-        self._x0 = data.x0
+        self._x0 = self._x0_layout = data.x0
         self.block_slices: dict[str, slice] = data.block_rows
         self.n_g_user = data.n_g_user
+        #: the stage-order inverse when the solver exploits stage structure (fatrop,
+        #: sqpmethod + hpipm): the solver's vector is then the staged one (stage_order.py)
+        self.stages: StageInverse | None = None
+        if needs_stage_order(solver, opts):
+            self._layout_bounds = (data.lbx, data.ubx)
+            staged, self.stages = stage_order(ocp, data, last_controls=solver == "fatrop")
+            opts = with_structure(solver, opts, staged)
+            self.lbx, self.ubx, self.lbg, self.ubg = (staged.lbx, staged.ubx, staged.lbg,
+                                                      staged.ubg)
+            self._x0 = staged.x0
+            data = staged
         nlp = data.nlp
         self.nlp = nlp
         self.options = opts
@@ -220,14 +254,14 @@ class CasadiCompiled:
         of an unbounded problem is no answer to use in a closed loop).
         """
         p = self.ocp.pack_parameters(params)
-        sol = self._solve_with(self.solver, p, self._initial_guess(warm_start))
+        sol = self._solve_with(self.solver, p, self._initial_guess(warm_start, p))
         if self.budget is not None and sol.status == Status.MAX_ITERATIONS:
             return self._truncated(sol, p)  # no retry, no rescue: the time bound holds
         attempts = [sol]
         for solver in self._retry_solvers():
             if attempts[-1].success:
                 break
-            attempts.append(self._solve_with(solver, p, self._initial_guess(None)))
+            attempts.append(self._solve_with(solver, p, self._initial_guess(None, p)))
         final = attempts[-1] if attempts[-1].success else attempts[0]
         unbounded = [a for a in attempts if a.raw.get("unbounded")]
         if unbounded and not final.success:  # evidence of unboundedness beats any rescue
@@ -315,8 +349,15 @@ class CasadiCompiled:
         w_all = np.asarray(res["x"]).reshape(-1)
         lam_g = np.asarray(res["lam_g"]).reshape(-1)
         lam_x = np.asarray(res["lam_x"]).reshape(-1)
+        x_orig = res["x"]
+        if self.stages is not None:  # back from stage order to the layout's order
+            lam_g, lam_x = self.stages.row_dual(lam_g), self.stages.primal(lam_x)
+            # fatrop relaxes every bound by ~1e-8 relative (no option turns this off): a
+            # slack xi >= 0 weighted by alpha_f = 1e6 would read -1e-2; project onto the
+            # bounds (rows stay satisfied to the same 1e-8)
+            x_orig = np.clip(self.stages.primal(w_all), *self._layout_bounds)
         layout = self.layout
-        w = w_all[: layout.user_size]
+        w = np.asarray(x_orig).reshape(-1)[: layout.user_size]
         status = _status(stats)
         dual = {name: lam_g[s] for name, s in self.block_slices.items()}
         for name, arr in layout.unpack(lam_x, user_only=True).items():
@@ -324,7 +365,7 @@ class CasadiCompiled:
         # the declared cost at the returned point (exact; the epigraph value may differ by
         # solver tolerances or, for the 2-norm, by up to NORM2_EPS/4 per term); called with
         # the solver's own DM outputs (no numpy round trip on the closed-loop hot path)
-        objective = self.inverse.objective(res["x"], p_dm) if np.all(np.isfinite(w)) \
+        objective = self.inverse.objective(x_orig, p_dm) if np.all(np.isfinite(w)) \
             else np.nan
         message = str(stats.get("return_status", ""))
         why = _unbounded(message, objective)
@@ -351,7 +392,7 @@ class CasadiCompiled:
         return bool(np.all(g - self.ubg <= tol * scale) and np.all(self.lbg - g <= tol * scale)
                     and np.all(w_all - self.ubx <= tol) and np.all(self.lbx - w_all <= tol))
 
-    def _initial_guess(self, warm: Solution | dict | None
+    def _initial_guess(self, warm: Solution | dict | None, p: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray | float, np.ndarray | float]:
         # a truncated iterate is continued primal-dual (real-time iterations: the SQP picks
         # up where the budget stopped it at the previous step)
@@ -367,6 +408,9 @@ class CasadiCompiled:
             w_user = self.ocp.pack_variables(warm)
         else:
             w_user = self.ocp.pack_variables({})
+        if self.stages is not None:  # the layout's order → stage order (copies, sums)
+            w_all = np.concatenate([w_user, self._x0_layout[self.layout.user_size:]])
+            return self.stages.staged(w_all, np.zeros(0) if p is None else p), 0.0, 0.0
         return np.concatenate([w_user, self._x0[self.layout.user_size:]]), 0.0, 0.0
 
     def _failed(self, p: np.ndarray, elapsed: float, message: str) -> Solution:
@@ -444,7 +488,8 @@ def default_retries(solver: str, options: dict) -> list[tuple[str, dict]]:
     return [(solver, {})]
 
 
-_SOLVER_NAMES = {"Sqpmethod": "sqpmethod", "IpoptInterface": "ipopt"}
+_SOLVER_NAMES = {"Sqpmethod": "sqpmethod", "IpoptInterface": "ipopt",
+                 "FatropInterface": "fatrop"}
 
 #: ``return_status`` strings of IPOPT and sqpmethod → Solution statuses (anything else,
 #: e.g. sqpmethod's ``Search_Direction_Becomes_Too_Small`` or IPOPT's

@@ -25,6 +25,12 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
                        α_f = 1e6), for sampling value functions cold.
 ``"sampling-warm"``    ``sampling-cold`` with IPOPT's warm-start options, for warm solves
                        along sampling paths.
+``"structured-ip"``    CasADi ``fatrop`` (interior point, O(N) per iteration) on the stage-ordered
+                       NLP (:mod:`~balustrade.backends.passes.stage_order`), one cold retry,
+                       then IPOPT. Its C links libfatrop and libblasfeo (shipped in the casadi
+                       wheel). For horizon OCPs only (refused otherwise, naming the block).
+``"structured-sqp"``   ``sqpmethod`` with HPIPM (Riccati-based QP, O(N)) as QP solver on the
+                       stage-ordered NLP; retries as ``fast-sqp``. C links libhpipm, libblasfeo.
 ``"cvxpy"``            cvxpy: PIQP for LPs/QPs, Clarabel for conic problems, tight tolerances.
 ``"conic"``            cvxpy + Clarabel, tight tolerances (SOCPs, SDPs).
 ``"fast-convex"``      the direct backend: the convex OCP lowered once to PIQP (LPs/QPs) or
@@ -294,6 +300,8 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", {"ipopt.mu_strategy": "adaptive"}, name="long-horizon"),
     Target("casadi", "ipopt", _IPOPT_SAMPLING, name="sampling-cold"),
     Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="sampling-warm"),
+    Target("casadi", "fatrop", retries=(("fatrop", {}), ("ipopt", {})), name="structured-ip"),
+    Target("casadi", "sqpmethod", {"qpsol": "hpipm"}, name="structured-sqp"),
     Target("cvxpy", None, name="cvxpy"),
     Target("cvxpy", "clarabel", name="conic"),
     Target("cvxpy", "clarabel", name="sdp"),
