@@ -221,3 +221,18 @@ def test_balustrade_emitter_refuses_a_staged_problem(tmp_path: Path):
     c = compile(_random_ocp(2, 1, 3, 0, 1), "structured-sqp")
     with pytest.raises(CodegenError, match="stage order"):
         emit_problem(c, "staged", tmp_path, allow_external=True)
+
+
+def test_fatrop_refuses_nonlinear_dynamics_instead_of_hanging():
+    """structured-ip on the nonlinear bicycle: a StructureError naming the dynamics block and
+    the targets to use, at compile time (a fatrop solve there did not return in 60 s)."""
+    from balustrade.backends import compile as compile_
+    from balustrade.backends.passes.stage_order import StructureError
+    from balustrade.examples.bicycle import bicycle_design
+    from balustrade.problems.robust import robust_pcbf_slack_problem
+
+    d = bicycle_design(N=5)
+    ocp = robust_pcbf_slack_problem(d.system, d.X, d.U, d.cbf, d.N, d.deltas, d.error,
+                                    d.alpha_f)
+    with pytest.raises(StructureError, match="nonlinear dynamics.*long-horizon"):
+        compile_(ocp, "structured-ip")

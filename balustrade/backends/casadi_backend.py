@@ -53,10 +53,15 @@ import numpy as np
 from balustrade.backends.passes import CASADI_CHAIN, run_chain
 from balustrade.backends.passes.casadi_nlp import as_dm
 from balustrade.backends.passes.epigraph import EpigraphInverse
-from balustrade.backends.passes.stage_order import StagedNLP, StageInverse, stage_order
+from balustrade.backends.passes.stage_order import (
+    StagedNLP,
+    StageInverse,
+    StructureError,
+    stage_order,
+)
 from balustrade.backends.solution import Solution, Status
 from balustrade.backends.targets import Budget
-from balustrade.dsl.ocp import OCP
+from balustrade.dsl.ocp import OCP, BlockTag
 from balustrade.errors import SolverError
 
 DEFAULT_OPTIONS: dict[str, dict] = {
@@ -115,6 +120,23 @@ def solver_options(solver: str, options: dict | None = None) -> dict:
                 else v
         opts["qpsol_options"] = qp
     return opts
+
+
+def _refuse_nonlinear_dynamics(ocp: OCP) -> None:
+    """fatrop is refused on nonlinear dynamics: on the kinematic bicycle (5.15) (N = 8)
+    a fatrop solve did not return within 60 s, even with ``max_iter`` 300 (CasADi 3.8.2,
+    fatrop 1.1.8; docs/engines.md), and it has no wall-time limit — a closed loop must
+    never hang. Linear dynamics (the rendezvous (5.15)) are where it was measured fast."""
+    w, p = ocp.decision_vector(), ocp.parameter_vector()
+    z = ca.vertcat(w, p)
+    for block in ocp.blocks:
+        if block.tag == BlockTag.DYNAMICS and ca.depends_on(
+                ca.jacobian(block.expr, z), z):
+            raise StructureError(
+                f"{ocp.name}: block {block.name!r} has nonlinear dynamics; the fatrop target "
+                "('structured-ip') is refused there (a solve on the nonlinear bicycle did "
+                "not return within 60 s and fatrop has no time limit); use 'long-horizon' "
+                "or 'exact'")
 
 
 def needs_stage_order(solver: str, opts: dict) -> bool:
@@ -188,6 +210,8 @@ class CasadiCompiled:
         #: sqpmethod + hpipm): the solver's vector is then the staged one (stage_order.py)
         self.stages: StageInverse | None = None
         if needs_stage_order(solver, opts):
+            if solver == "fatrop":
+                _refuse_nonlinear_dynamics(ocp)
             self._layout_bounds = (data.lbx, data.ubx)
             staged, self.stages = stage_order(ocp, data, last_controls=solver == "fatrop")
             opts = with_structure(solver, opts, staged)
