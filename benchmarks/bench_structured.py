@@ -77,7 +77,7 @@ def _bicycle_cases(n: int, rng: np.random.Generator) -> list[tuple]:
     return cases
 
 
-#: targets not run on a problem, and why (measured; docs/engines-nlp.md)
+#: targets not run on a problem, and why (measured; docs/engines.md)
 EXCLUDED = {"structured-ip": ("nonlinear", "fatrop did not return within 60 s on the nonlinear "
                               "bicycle (5.15), N = 8 (CasADi 3.8.2, fatrop 1.1.8)")}
 
@@ -138,7 +138,7 @@ def run(quick: bool = False, progress: bool = False, part: str | None = None) ->
 
 
 def markdown(rows: list[dict]) -> str:
-    """The rows as the table of ``docs/engines-nlp.md``."""
+    """The rows as the table of ``docs/engines.md``."""
     out = ["| problem | target | median ms | max ms | × exact | failed | off |",
            "|---|---|---:|---:|---:|---:|---:|"]
     for r in rows:

@@ -112,7 +112,7 @@ def test_bicycle_515_agrees():
                                     d.alpha_f)
     states = [{"x0": np.array(x)} for x in ([0.1, 0.1, 1.0, 0.0], [0.25, -0.4, 0.8, 0.3])]
     # structured-ip (fatrop) is not run here: on this nonlinear problem it did not return
-    # within 60 s (CasADi 3.8.2; docs/engines-nlp.md)
+    # within 60 s (CasADi 3.8.2; docs/engines.md)
     assert _agree(ocp, states, rtol=1e-4, atol=1e-5, targets=("structured-sqp",)) >= 2
 
 
