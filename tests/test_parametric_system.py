@@ -71,3 +71,41 @@ def test_bad_input_names_the_argument_and_shapes(kwargs, match):
 def test_bad_theta_shape():
     with pytest.raises(ShapeError, match=r"p.step: theta"):
         make().step(np.zeros(3), np.zeros(2), np.zeros(3))
+
+
+# -- the mass-spring-damper chain of Section 4.7 (SPEC §3.2) ---------------------------------
+def test_msd_chain_matches_the_printed_equations():
+    from balustrade.models.msd import msd_chain
+
+    n, Ts, d = 3, 0.2, 0.1
+    s = msd_chain(n)
+    assert (s.nx, s.nu, s.q) == (6, 3, 2)
+    rng = np.random.default_rng(3)
+    x, u, th = rng.normal(size=6), rng.normal(size=3), rng.uniform(0.05, 0.25, size=2)
+    p, v = x[:n], x[n:]
+    c = np.concatenate([[0.0], th, [0.0]])        # c_{0,1}, c_{1,2}, c_{2,3}, c_{3,4}
+    dd = np.array([0.0, d, d, 0.0])
+    pe, ve = np.concatenate([[0.0], p, [0.0]]), np.concatenate([[0.0], v, [0.0]])
+    want = np.empty(6)
+    for i in range(1, n + 1):
+        want[i - 1] = p[i - 1] + Ts * v[i - 1]
+        want[n + i - 1] = (v[i - 1] - Ts * c[i - 1] * (pe[i] - pe[i - 1])
+                           - Ts * dd[i - 1] * (ve[i] - ve[i - 1])
+                           + Ts * c[i] * (pe[i + 1] - pe[i])
+                           + Ts * dd[i] * (ve[i + 1] - ve[i]) + u[i - 1])
+    # free ends: the terms with c_{0,1}, c_{n,n+1} vanish whatever pe[0], pe[n+1] are
+    np.testing.assert_allclose(s.step(x, u, th), want, atol=1e-14)
+
+
+def test_msd_setup_and_performance_controller():
+    from balustrade.models.msd import msd_performance, msd_setup
+
+    st = msd_setup(3)
+    assert st.constraint_volume() == pytest.approx(9474.3, abs=0.05)
+    assert msd_setup(8).constraint_volume() == pytest.approx(4.019e10, rel=1e-3)
+    np.testing.assert_allclose(st.Theta0.lb, [0.05, 0.05])
+    np.testing.assert_allclose(st.W.ub, 1e-3 * np.ones(6))
+    # r_5 = 2.5 > X's 2.3: the proposal saturates at U's bound on mass 1 only
+    np.testing.assert_allclose(msd_performance(5, np.zeros(6), 3), [3.5, 0.0, 0.0])
+    np.testing.assert_allclose(msd_performance(30, np.r_[0.0, 0, 0, 0.5, 0, 0], 3),
+                               [-3.5, 0.0, 0.0])
