@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from balustrade.backends.lp import solve_lp
+from balustrade.backends.lp import solve_lp, solve_lps
 from balustrade.backends.solution import Status
 from balustrade.dsl.sets import Box, Polytope
 
@@ -66,14 +66,11 @@ def bounding_box(P: Polytope) -> tuple[np.ndarray, np.ndarray, int, bool]:
     if isinstance(P, Box):
         return P.lb.copy(), P.ub.copy(), 0, True
     q = P.dim
-    lb, ub = np.empty(q), np.empty(q)
-    for j in range(q):
-        e = np.eye(q)[j]
-        hi, lo = solve_lp(e, P.H, P.h), solve_lp(e, P.H, P.h, maximize=False)
-        if hi.status is not Status.OPTIMAL or lo.status is not Status.OPTIMAL:
-            return np.full(q, np.nan), np.full(q, np.nan), 2 * j + 2, False
-        lb[j], ub[j] = lo.value, hi.value
-    return lb, ub, 2 * q, True
+    results = solve_lps(np.vstack([np.eye(q), -np.eye(q)]), P.H, P.h)
+    if len(results) < 2 * q or results[-1].status is not Status.OPTIMAL:
+        return np.full(q, np.nan), np.full(q, np.nan), len(results), False
+    values = np.array([r.value for r in results])
+    return -values[q:], values[:q], 2 * q, True
 
 
 __all__ = ["Containment", "bounding_box", "contained_in"]

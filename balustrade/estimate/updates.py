@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from balustrade._checks import as_scalar
-from balustrade.backends.lp import is_feasible, solve_lp
+from balustrade.backends.lp import is_feasible, solve_lp, solve_lps
 from balustrade.backends.solution import Status
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.system_parametric import ParametricLinearSystem
@@ -94,16 +94,13 @@ class FixedShapeUpdate(SetEstimator):
                         data: Transition) -> tuple[np.ndarray | None, Proposal | None]:
         """``max H_θ[r] θ`` over ``Θ_{k−1} ∩ Δ_k`` for every row of Θ₀ (or a refusal)."""
         both = data.delta.intersect(Theta_prev)
-        rows = self.Theta0.H
-        out = np.empty(rows.shape[0])
-        for r, a in enumerate(rows):
-            res = solve_lp(a, both.H, both.h)
-            if res.status is Status.INFEASIBLE:
-                return None, _falsified(r + 1)
-            if res.status is not Status.OPTIMAL:
-                return None, _failed(r + 1, res.status, f"the LP of row {r}")
-            out[r] = res.value
-        return out, None
+        results = solve_lps(self.Theta0.H, both.H, both.h)
+        last = results[-1]
+        if last.status is Status.INFEASIBLE:
+            return None, _falsified(len(results))
+        if last.status is not Status.OPTIMAL:
+            return None, _failed(len(results), last.status, f"the LP of row {len(results) - 1}")
+        return np.array([r.value for r in results]), None
 
     def _previous_h(self, Theta_prev: Polytope) -> np.ndarray:
         """``h_{θ,k−1}`` in the row order of Θ₀ (Θ_{k−1} has the same rows)."""
@@ -186,18 +183,14 @@ class HypercubeUpdate(SetEstimator):
         prev = require_box(Theta_prev, self.name)
         both = data.delta.intersect(prev)
         q = self.system.q
-        lo, hi = np.empty(q), np.empty(q)
-        lps = 0
-        for j in range(q):
-            e = np.eye(q)[j]
-            for maximize, out in ((True, hi), (False, lo)):
-                res = solve_lp(e, both.H, both.h, maximize=maximize)
-                lps += 1
-                if res.status is Status.INFEASIBLE:
-                    return _falsified(lps)
-                if res.status is not Status.OPTIMAL:
-                    return _failed(lps, res.status, f"the bound LP of θ_{j + 1}")
-                out[j] = res.value
+        results = solve_lps(np.vstack([np.eye(q), -np.eye(q)]), both.H, both.h)
+        lps, last = len(results), results[-1]
+        if last.status is Status.INFEASIBLE:
+            return _falsified(lps)
+        if last.status is not Status.OPTIMAL:
+            return _failed(lps, last.status, "a bound LP")
+        values = np.array([r.value for r in results])
+        hi, lo = values[:q], -values[q:]
         lo = np.maximum(lo - self.margin, prev.lb)
         hi = np.minimum(hi + self.margin, prev.ub)
         centre_prev = 0.5 * (prev.lb + prev.ub)
