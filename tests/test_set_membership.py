@@ -213,3 +213,38 @@ def test_bad_input_names_the_argument():
         est.update(np.zeros(6), np.zeros(3), np.zeros(5))
     with pytest.raises(BalustradeError, match="NestedEstimator|inner"):
         NestedEstimator(object(), SYS, SETUP.W, SETUP.Theta0)
+
+
+def test_solve_lps_agrees_with_single_lps_and_reports_statuses():
+    from balustrade.backends.lp import solve_lp, solve_lps
+    from balustrade.backends.solution import Status
+
+    rng = np.random.default_rng(5)
+    H, h = rng.normal(size=(16, 3)), rng.uniform(1.0, 2.0, 16)
+    C = np.vstack([np.eye(3), -np.eye(3)])
+    for maximize in (True, False):
+        many = solve_lps(C, H, h, maximize=maximize)
+        assert [r.status for r in many] == [Status.OPTIMAL] * 6
+        np.testing.assert_allclose([r.value for r in many],
+                                   [solve_lp(c, H, h, maximize).value for c in C], atol=1e-9)
+    empty = solve_lps(C, np.vstack([np.eye(3), -np.eye(3)]), np.array([1, 1, 1, -2, 0, 0.0]))
+    assert len(empty) == 1 and empty[0].status is Status.INFEASIBLE and empty[0].x is None
+    half = solve_lps(C, np.eye(3)[:1], np.ones(1))
+    assert [r.status for r in half] == [Status.OPTIMAL, Status.UNBOUNDED]
+
+
+def test_fixed_shape_update_of_a_polytope_keeps_its_rows():
+    Theta0 = Polytope(np.vstack([np.eye(2), -np.eye(2), [[1.0, 1.0], [-1.0, 1.0]]]),
+                      [0.25, 0.25, -0.05, -0.05, 0.4, 0.1], name="Theta0")
+    est = FixedShapeUpdate(SYS, SETUP.W, Theta0)
+    rng = np.random.default_rng(11)
+    theta, x = np.array([0.15, 0.2]), np.zeros(6)
+    for _ in range(20):
+        u = rng.uniform(-3.5, 3.5, 3)
+        x_next = SYS.step(x, u, theta, rng.uniform(-1e-3, 1e-3, 6))
+        est.update(x, u, x_next, check_true=theta)
+        x = np.clip(x_next, -2.3, 2.3)
+        assert np.array_equal(est.Theta.H, Theta0.H)  # fixed shape: only h moves
+        assert est.history[-1].lps >= 6  # one LP per row, plus the nesting/box LPs
+    assert est.assumption_4_2_held()
+    assert np.all(est.Theta.h <= Theta0.h) and np.any(est.Theta.h < Theta0.h - 1e-3)
