@@ -72,7 +72,7 @@ def test_box_and_exact_updates_keep_assumption_4_2_and_shrink(seed, theta_vertex
         assert np.all(est.history[-1].width < width0)
         assert est.history[-1].volume < 1e-3 * np.prod(width0)
         widths = np.array([r.width for r in est.history])
-        assert np.all(np.diff(widths, axis=0) <= 1e-12)  # monotone (nested boxes)
+        assert np.all(np.diff(widths, axis=0) <= 1e-9)  # monotone up to LP rounding
 
 
 @settings(max_examples=4, deadline=None)

@@ -148,7 +148,7 @@ def _quiet_stdout() -> Iterator[None]:
 def is_feasible(H: np.ndarray, h: np.ndarray) -> Status:
     """``OPTIMAL`` if ``{θ : Hθ <= h}`` is non-empty, ``INFEASIBLE`` if empty (one LP with a
     zero objective); ``FAILED``/``MAX_ITERATIONS`` if the LP could not decide."""
-    return solve_lp(np.zeros(H.shape[1]), H, h).status
+    return solve_lps(np.zeros((1, H.shape[1])), H, h)[0].status
 
 
 __all__ = ["LPResult", "is_feasible", "solve_lp", "solve_lps"]
