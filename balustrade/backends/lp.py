@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import os
 import sys
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -113,18 +114,20 @@ def solve_lps(C: np.ndarray, H: np.ndarray, h: np.ndarray,
 _HIGHS_STATUS = {"kOptimal": Status.OPTIMAL, "kInfeasible": Status.INFEASIBLE,
                  "kUnbounded": Status.UNBOUNDED, "kIterationLimit": Status.MAX_ITERATIONS}
 
-_SOLVER: list = []
+_LOCAL = threading.local()
+_BANNER_LOCK = threading.Lock()
 
 
 def _highs(highspy: object) -> object:
-    """One silent ``highspy.Highs`` per process, reused (constructing one costs more than an
-    LP of a few variables)."""
-    if not _SOLVER:
-        with _quiet_stdout():  # the first Highs() of a process prints a banner from C++
+    """One silent ``highspy.Highs`` per thread, reused (constructing one costs more than an
+    LP of a few variables; a model is not shared between threads)."""
+    solver = getattr(_LOCAL, "solver", None)
+    if solver is None:
+        with _BANNER_LOCK, _quiet_stdout():  # the first Highs() prints a banner from C++
             solver = highspy.Highs()  # type: ignore[attr-defined]
         solver.setOptionValue("output_flag", False)
-        _SOLVER.append(solver)
-    return _SOLVER[0]
+        _LOCAL.solver = solver
+    return solver
 
 
 @contextlib.contextmanager
