@@ -248,3 +248,19 @@ def test_fixed_shape_update_of_a_polytope_keeps_its_rows():
         assert est.history[-1].lps >= 6  # one LP per row, plus the nesting/box LPs
     assert est.assumption_4_2_held()
     assert np.all(est.Theta.h <= Theta0.h) and np.any(est.Theta.h < Theta0.h - 1e-3)
+
+
+def test_a_violated_assumption_4_2_is_recorded_not_hidden():
+    """Disturbances 3x larger than W: θ* is cut off before the data become inconsistent;
+    the records say so (θ* ∉ Θ_k) and the loop goes on."""
+    est = BoxUpdate(SYS, SETUP.W, SETUP.Theta0)
+    rng = np.random.default_rng(2)
+    theta, x = np.array([0.1, 0.2]), np.zeros(6)
+    for _ in range(40):
+        u = rng.uniform(-3.5, 3.5, 3)
+        x_next = SYS.step(x, u, theta, 3 * rng.uniform(SETUP.W.lb, SETUP.W.ub))
+        est.update(x, u, x_next, check_true=theta)
+        x = np.clip(x_next, -2.3, 2.3)
+    assert any(r.contains_true is False for r in est.history)
+    assert not est.assumption_4_2_held()
+    assert all(r.nested for r in est.history)  # nesting itself still holds
