@@ -264,3 +264,15 @@ def test_a_violated_assumption_4_2_is_recorded_not_hidden():
     assert any(r.contains_true is False for r in est.history)
     assert not est.assumption_4_2_held()
     assert all(r.nested for r in est.history)  # nesting itself still holds
+
+
+def test_vertex_disturbances_on_rows_without_theta_are_not_falsified():
+    """The position rows of the chain carry no θ; with w at a vertex of W their bound is
+    met with equality up to rounding, which must not count as falsifying data."""
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        x, u = rng.uniform(-2.3, 2.3, 6), rng.uniform(-3.5, 3.5, 3)
+        w = np.where(rng.random(6) < 0.5, SETUP.W.lb, SETUP.W.ub)
+        delta = nonfalsified_set(SYS, SETUP.W, x, u, SYS.step(x, u, [0.1, 0.2], w))
+        assert np.all(np.abs(delta.H).max(axis=1) > 0)  # only rows that involve θ
+        assert delta.contains(np.array([0.1, 0.2]), tol=1e-12)

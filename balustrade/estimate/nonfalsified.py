@@ -25,6 +25,8 @@ from balustrade.errors import BalustradeError, ShapeError
 #: a row of Δ_k whose θ-coefficients are below this (relative to the data) carries no
 #: information on θ: it is dropped if satisfied, kept (and makes Δ_k empty) if violated
 _ZERO_ROW = 1e-13
+#: relative size of the rounding of ``h_w − H_w E⁻¹ r₀`` on rows without θ
+_ROUNDING = 1e-12
 
 
 @dataclass(frozen=True)
@@ -77,7 +79,10 @@ def nonfalsified_set(system: ParametricLinearSystem, W: Polytope, x_prev: object
     h = W.h - Hw @ r0
     scale = max(1.0, float(np.abs(Hw).max()) * max(1.0, float(np.abs(D).max())))
     informative = np.abs(H).max(axis=1) > _ZERO_ROW * scale
-    keep = informative | (h < 0)
+    # an uninformative row only matters if the data violate W there beyond rounding (a
+    # vertex disturbance leaves h = ±1e-19 on the rows θ does not enter)
+    rounding = _ROUNDING * max(1.0, float(np.abs(W.h).max()), float(np.abs(Hw @ r0).max()))
+    keep = informative | (h < -rounding)
     return HalfSpaces(H[keep], h[keep])
 
 
