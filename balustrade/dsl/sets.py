@@ -290,6 +290,10 @@ class Box(Polytope):
     def bounding_box(self) -> Box:
         return self
 
+    def is_empty(self) -> bool:
+        """Never: the constructor refuses ``lb > ub`` (no LP, unlike a general polytope)."""
+        return False
+
     def is_bounded(self) -> bool:
         return bool(np.all(np.isfinite(self.lb)) and np.all(np.isfinite(self.ub)))
 

@@ -1,0 +1,157 @@
+"""Small dense LPs ``max/min cᵀθ s.t. Hθ <= h`` for the set-membership estimators (SPEC §2.19).
+
+The estimators of :mod:`balustrade.estimate` solve a few LPs per step in ``q`` (the parameter
+dimension) variables; they name no solver (issue #13 §1), so the solver lives here: HiGHS.
+:func:`solve_lp` goes through :func:`scipy.optimize.linprog`; :func:`solve_lps` solves several
+objectives over one feasible set with one ``highspy`` model (set up once, only the cost
+changes, the simplex warm-starts from the previous basis), about 5x faster than as many
+``linprog`` calls for the ``2q`` LPs of a box update (falls back to ``linprog`` without
+``highspy``). Statuses are the backends' one :class:`~balustrade.backends.solution.Status`; a
+solve that is not optimal is never given a value.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.optimize
+
+from balustrade.backends.solution import Status
+
+#: SciPy's linprog status -> Status (0 optimal, 1 iteration limit, 2 infeasible, 3 unbounded)
+_STATUS = {0: Status.OPTIMAL, 1: Status.MAX_ITERATIONS, 2: Status.INFEASIBLE,
+           3: Status.UNBOUNDED}
+
+
+@dataclass(frozen=True)
+class LPResult:
+    """``status``; ``value`` the optimal objective and ``x`` a maximiser/minimiser (``nan``
+    and ``None`` unless ``status`` is optimal)."""
+
+    status: Status
+    value: float
+    x: np.ndarray | None
+
+
+def solve_lp(c: np.ndarray, H: np.ndarray, h: np.ndarray, maximize: bool = True) -> LPResult:
+    """``max`` (or ``min``) ``cᵀθ`` over ``{θ : Hθ <= h}``, θ free. Inputs are trusted arrays
+    (the callers check shapes); ``H`` may have zero rows."""
+    c = np.asarray(c, dtype=float)
+    sign = -1.0 if maximize else 1.0
+    res = scipy.optimize.linprog(sign * c, A_ub=H if H.shape[0] else None,
+                                 b_ub=h if H.shape[0] else None,
+                                 bounds=[(None, None)] * c.size, method="highs")
+    status = _STATUS.get(res.status, Status.FAILED)
+    if status is not Status.OPTIMAL:
+        return LPResult(status, float("nan"), None)
+    return LPResult(status, float(sign * res.fun), np.asarray(res.x, dtype=float))
+
+
+def solve_lps(C: np.ndarray, H: np.ndarray, h: np.ndarray,
+              maximize: bool = True) -> list[LPResult]:
+    """``max`` (or ``min``) ``C[i]ᵀθ`` over ``{θ : Hθ <= h}`` for every row ``C[i]``, in order;
+    stops after the first result that is not optimal (the set is then empty, or the solver
+    could not decide), so the list may be shorter than ``C``."""
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    try:
+        import highspy
+    except ImportError:  # pragma: no cover - highspy ships with the test environment
+        highspy = None
+    if highspy is None or H.shape[0] == 0:
+        out = []
+        for c in C:
+            out.append(solve_lp(c, H, h, maximize))
+            if out[-1].status is not Status.OPTIMAL:
+                break
+        return out
+    solver = _highs(highspy)
+    m, n = H.shape
+    lp = highspy.HighsLp()
+    lp.num_col_, lp.num_row_ = n, m
+    lp.col_cost_ = np.zeros(n)
+    lp.col_lower_ = np.full(n, -highspy.kHighsInf)
+    lp.col_upper_ = np.full(n, highspy.kHighsInf)
+    lp.row_lower_ = np.full(m, -highspy.kHighsInf)
+    lp.row_upper_ = np.asarray(h, dtype=float)
+    lp.sense_ = highspy.ObjSense.kMaximize if maximize else highspy.ObjSense.kMinimize
+    A = lp.a_matrix_
+    A.format_ = highspy.MatrixFormat.kRowwise
+    A.start_ = np.arange(0, m * n + 1, n, dtype=np.int32)
+    A.index_ = np.tile(np.arange(n, dtype=np.int32), m)
+    A.value_ = np.ascontiguousarray(H, dtype=float).ravel()
+    lp.a_matrix_ = A
+    solver.clearModel()
+    solver.passModel(lp)
+    cols = np.arange(n, dtype=np.int32)
+    out: list[LPResult] = []
+    for c in C:
+        solver.changeColsCost(n, cols, c)
+        solver.run()
+        status = _HIGHS_STATUS.get(str(solver.getModelStatus()).rsplit(".", 1)[-1],
+                                   Status.FAILED)
+        if status is Status.FAILED and "UnboundedOrInfeasible" in str(solver.getModelStatus()):
+            # presolve could not tell: decide with linprog (no presolve shortcut there)
+            res = solve_lp(c, H, h, maximize)
+            out.append(res)
+            if res.status is not Status.OPTIMAL:
+                break
+            continue
+        if status is not Status.OPTIMAL:
+            out.append(LPResult(status, float("nan"), None))
+            break
+        x = np.asarray(solver.getSolution().col_value, dtype=float)
+        out.append(LPResult(status, float(c @ x), x))
+    return out
+
+
+#: HiGHS model statuses (by name) -> Status; everything else is FAILED
+_HIGHS_STATUS = {"kOptimal": Status.OPTIMAL, "kInfeasible": Status.INFEASIBLE,
+                 "kUnbounded": Status.UNBOUNDED, "kIterationLimit": Status.MAX_ITERATIONS}
+
+_LOCAL = threading.local()
+_BANNER_LOCK = threading.Lock()
+
+
+def _highs(highspy: object) -> object:
+    """One silent ``highspy.Highs`` per thread, reused (constructing one costs more than an
+    LP of a few variables; a model is not shared between threads)."""
+    solver = getattr(_LOCAL, "solver", None)
+    if solver is None:
+        with _BANNER_LOCK, _quiet_stdout():  # the first Highs() prints a banner from C++
+            solver = highspy.Highs()  # type: ignore[attr-defined]
+        solver.setOptionValue("output_flag", False)
+        _LOCAL.solver = solver
+    return solver
+
+
+@contextlib.contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    """File descriptor 1 to ``/dev/null`` for the duration (C-level prints included)."""
+    sys.stdout.flush()
+    try:
+        saved = os.dup(1)
+    except OSError:  # no file descriptor 1 (embedded interpreters): print the banner
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 1)
+            yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def is_feasible(H: np.ndarray, h: np.ndarray) -> Status:
+    """``OPTIMAL`` if ``{θ : Hθ <= h}`` is non-empty, ``INFEASIBLE`` if empty (one LP with a
+    zero objective); ``FAILED``/``MAX_ITERATIONS`` if the LP could not decide."""
+    return solve_lps(np.zeros((1, H.shape[1])), H, h)[0].status
+
+
+__all__ = ["LPResult", "is_feasible", "solve_lp", "solve_lps"]
