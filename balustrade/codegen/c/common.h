@@ -43,6 +43,29 @@
     free(wk);                                                      \
   }
 
+/* X(init) and X(finalize) of a control step that owns two emitted problems, the members A
+   and B of its work struct (e.g. slack and filter): init sets up A, then B (releasing A if B
+   fails), cold-starts both through X(reset) and marks the work ready; finalize releases B,
+   then A. */
+#define BAL_DEFINE_PAIR_INIT_FINALIZE(X, A, B)                     \
+  int X(init)(X(work)* wk) {                                       \
+    wk->ready = 0;                                                 \
+    if (X(A##_init)(&wk->A)) return -1;                            \
+    if (X(B##_init)(&wk->B)) {                                     \
+      X(A##_finalize)(&wk->A);                                     \
+      return -1;                                                   \
+    }                                                              \
+    X(reset)(wk);                                                  \
+    wk->ready = 1;                                                 \
+    return 0;                                                      \
+  }                                                                \
+  void X(finalize)(X(work)* wk) {                                  \
+    if (!wk->ready) return;                                        \
+    X(B##_finalize)(&wk->B);                                       \
+    X(A##_finalize)(&wk->A);                                       \
+    wk->ready = 0;                                                 \
+  }
+
 /* One CasADi-generated function with its memory management, as written by CasADi's code
    generator: f(arg, res, iw, w, mem), f_incref, f_checkout, f_release, f_decref. */
 typedef struct bal_casadi_fn {

@@ -15,24 +15,7 @@ static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
 static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
 static const casadi_real BAL_QX(kappa)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
 
-int BAL_QX(init)(BAL_QX(work)* wk) {
-  wk->ready = 0;
-  if (BAL_QX(slack_init)(&wk->slack)) return -1;
-  if (BAL_QX(filter_init)(&wk->filter)) {
-    BAL_QX(slack_finalize)(&wk->slack);
-    return -1;
-  }
-  BAL_QX(reset)(wk);
-  wk->ready = 1;
-  return 0;
-}
-
-void BAL_QX(finalize)(BAL_QX(work)* wk) {
-  if (!wk->ready) return;
-  BAL_QX(filter_finalize)(&wk->filter);
-  BAL_QX(slack_finalize)(&wk->slack);
-  wk->ready = 0;
-}
+BAL_DEFINE_PAIR_INIT_FINALIZE(BAL_QX, slack, filter)
 
 BAL_DEFINE_ALLOC_FREE(BAL_QX)
 
