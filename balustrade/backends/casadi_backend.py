@@ -51,7 +51,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade.backends.passes import CASADI_CHAIN, run_chain
-from balustrade.backends.passes.casadi_nlp import as_dm
+from balustrade.backends.passes.casadi_nlp import as_dm, compact_nlp
 from balustrade.backends.passes.epigraph import EpigraphInverse
 from balustrade.backends.solution import Solution, Status
 from balustrade.backends.targets import Budget
@@ -152,7 +152,11 @@ class CasadiCompiled:
                               "(try 'ipopt', 'sqpmethod' (with qrqp), 'fatrop')")
         self.ocp, self.solver_name = ocp, solver
         opts = solver_options(solver, options)
+        #: which NLP the solver is built on (:data:`LOWERINGS`): a balustrade option,
+        #: taken out of the solver's options
+        self.lowering = _lowering(ocp.name, opts.pop(LOWERING_OPTION, "expanded"))
         data, inverses = run_chain(CASADI_CHAIN, ocp)
+        self._data = data
         #: how the epigraph pass maps a solver point back (user variables, declared cost)
         self.inverse: EpigraphInverse = inverses[0][1]
         #: the solver's decision vector: the user's variables, then the epigraph blocks
@@ -161,7 +165,7 @@ class CasadiCompiled:
         self._x0 = data.x0
         self.block_slices: dict[str, slice] = data.block_rows
         self.n_g_user = data.n_g_user
-        nlp = data.nlp
+        nlp = data.nlp if self.lowering == "expanded" else compact_nlp(data, ocp)
         self.nlp = nlp
         self.options = opts
         #: derivative functions shared by every sqpmethod built on this NLP (first attempt,
@@ -173,6 +177,20 @@ class CasadiCompiled:
         self._retry: list[ca.Function] | None = None
         self._g_function: ca.Function | None = None
         self._dm = as_dm(data)
+        self._lowered: dict[str, tuple[dict, dict]] = {
+            self.lowering: (self.nlp, self.derivatives)}
+
+    def lowered(self, lowering: str) -> tuple[dict, dict[str, ca.Function]]:
+        """``(nlp, shared derivatives)`` of this problem in ``lowering`` (:data:`LOWERINGS`):
+        the solver's own for :attr:`lowering`, else built once on first use (same
+        variables, rows and values; the C emitters ask for ``"compact"``)."""
+        if lowering not in self._lowered:
+            _lowering(self.ocp.name, lowering)
+            nlp = self._data.nlp if lowering == "expanded" else compact_nlp(self._data,
+                                                                            self.ocp)
+            self._lowered[lowering] = (nlp, shared_derivatives(nlp, self.solver_name,
+                                                               self.options))
+        return self._lowered[lowering]
 
     @property
     def n_user(self) -> int:
@@ -293,11 +311,13 @@ class CasadiCompiled:
                 for k, (name, overrides) in enumerate(self.retries)]
         return self._retry
 
-    def with_derivatives(self, opts: dict) -> dict:
-        """``opts`` plus the shared derivative functions when they apply to ``opts``."""
-        if not self.derivatives or opts.get("hessian_approximation", "exact") != "exact":
+    def with_derivatives(self, opts: dict, derivatives: dict | None = None) -> dict:
+        """``opts`` plus the shared derivative functions (``derivatives``, default this
+        problem's own) when they apply to ``opts``."""
+        derivatives = self.derivatives if derivatives is None else derivatives
+        if not derivatives or opts.get("hessian_approximation", "exact") != "exact":
             return opts
-        return {**opts, **self.derivatives}
+        return {**opts, **derivatives}
 
     def _solve_with(self, solver: ca.Function, p: np.ndarray, guess: tuple) -> Solution:
         x0, lam_x0, lam_g0 = guess
@@ -375,6 +395,24 @@ class CasadiCompiled:
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
                         iterations=0, backend="casadi", solver=self.solver_name, p=p,
                         message=message)
+
+
+#: the balustrade option (in a target's options, never passed to ``nlpsol``) choosing the
+#: NLP the solver is built on
+LOWERING_OPTION = "lowering"
+#: the lowerings of :data:`LOWERING_OPTION`: ``"expanded"`` (default) — one SX graph of
+#: ``f`` and ``g``, derivatives written out for every stage (fastest from Python);
+#: ``"compact"`` — MX with each dynamics block one stage function mapped over the horizon
+#: (:func:`~balustrade.backends.passes.casadi_nlp.compact_nlp`): its derivatives appear once
+#: in generated C (the default of the C emitters, :mod:`balustrade.codegen.emit`)
+LOWERINGS = ("expanded", "compact")
+
+
+def _lowering(name: str, value: object) -> str:
+    if value not in LOWERINGS:
+        raise SolverError(f"{name}: option {LOWERING_OPTION!r} must be one of "
+                          f"{', '.join(map(repr, LOWERINGS))}, got {value!r}")
+    return str(value)
 
 
 #: an objective below this (IPOPT's default ``diverging_iterates_tol`` is 1e20) is taken as
