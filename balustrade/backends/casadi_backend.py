@@ -165,12 +165,12 @@ class CasadiCompiled:
         self._x0 = data.x0
         self.block_slices: dict[str, slice] = data.block_rows
         self.n_g_user = data.n_g_user
-        nlp = data.nlp if self.lowering == "expanded" else compact_nlp(data, ocp)
-        self.nlp = nlp
         self.options = opts
+        nlp, derivatives = self._lower(self.lowering)
+        self.nlp = nlp
         #: derivative functions shared by every sqpmethod built on this NLP (first attempt,
         #: retries, the C of :mod:`balustrade.codegen`): see :func:`shared_derivatives`
-        self.derivatives = shared_derivatives(nlp, solver, opts)
+        self.derivatives = derivatives
         self.solver = _nlpsol(ocp.name, solver, nlp, {**opts, **self.derivatives})
         #: cold-start attempts after a failed solve: (solver plugin, option overrides)
         self.retries = default_retries(solver, opts) if retries is None else list(retries)
@@ -185,12 +185,16 @@ class CasadiCompiled:
         the solver's own for :attr:`lowering`, else built once on first use (same
         variables, rows and values; the C emitters ask for ``"compact"``)."""
         if lowering not in self._lowered:
-            _lowering(self.ocp.name, lowering)
-            nlp = self._data.nlp if lowering == "expanded" else compact_nlp(self._data,
-                                                                            self.ocp)
-            self._lowered[lowering] = (nlp, shared_derivatives(nlp, self.solver_name,
-                                                               self.options))
+            self._lowered[lowering] = self._lower(_lowering(self.ocp.name, lowering))
         return self._lowered[lowering]
+
+    def _lower(self, lowering: str) -> tuple[dict, dict[str, ca.Function]]:
+        if lowering == "expanded":
+            nlp = self._data.nlp
+            return nlp, shared_derivatives(nlp, self.solver_name, self.options)
+        compact = compact_nlp(self._data, self.ocp)
+        return compact.nlp, (compact.derivatives() if _shares_derivatives(
+            self.solver_name, self.options) else {})
 
     @property
     def n_user(self) -> int:
@@ -446,7 +450,7 @@ def shared_derivatives(nlp: dict, solver: str, options: dict) -> dict[str, ca.Fu
     the first attempt and to each ``sqpmethod`` retry are generated once (CasADi's code
     generator emits a Function object once), and built once in Python. The math is that
     of ``sqpmethod``'s own functions."""
-    if solver != "sqpmethod" or options.get("hessian_approximation", "exact") != "exact":
+    if not _shares_derivatives(solver, options):
         return {}
     x, p, f, g = nlp["x"], nlp["p"], nlp["f"], nlp["g"]
     sym = type(x).sym
@@ -462,6 +466,11 @@ def shared_derivatives(nlp: dict, solver: str, options: dict) -> dict[str, ca.Fu
                        [f, g, ca.gradient(lag, x), ca.gradient(lag, p)],
                        ["x", "p", "lam_f", "lam_g"], ["f", "g", "grad_gamma_x", "grad_gamma_p"])
     return {"jac_fg": jac_fg, "hess_lag": hess, "cache": {"nlp_fg": fg, "nlp_grad": grad}}
+
+
+def _shares_derivatives(solver: str, options: dict) -> bool:
+    """Whether :func:`shared_derivatives` applies: an exact-Hessian ``sqpmethod``."""
+    return solver == "sqpmethod" and options.get("hessian_approximation", "exact") == "exact"
 
 
 def sqp_retry_strategies(options: dict) -> list[str]:

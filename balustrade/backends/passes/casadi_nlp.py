@@ -108,34 +108,115 @@ def dynamics_stage_map(data: NLPData, ocp: OCP, block: Block) -> StageMap | None
     return StageMap(block.name, rows, stage0, np.array(index, dtype=np.int64).T)
 
 
-def compact_nlp(data: NLPData, ocp: OCP) -> dict:
-    """``data.nlp`` in the compact lowering: the same ``{x, p, f, g}`` (same variables,
-    rows and values) built in MX, with each dynamics block one SX stage function
-    ``Function.map``-ped over the horizon (:func:`dynamics_stage_map`) and every other row
-    and the cost one SX function of ``(w, p)``.
+def compact_nlp(data: NLPData, ocp: OCP) -> CompactNLP:
+    """``data.nlp`` in the compact lowering (:class:`CompactNLP`): the same ``{x, p, f,
+    g}`` (same variables, rows and values) built in MX, with each dynamics block one SX
+    stage function ``Function.map``-ped over the horizon (:func:`dynamics_stage_map`) and
+    every other row and the cost one SX function of ``(w, p)``.
 
     Why (issue #14 §3): in the expanded SX lowering the derivatives of ``g`` are written
-    out for every stage (the cart-pole PCBF problem, RK4, N = 20: 2.1 MB of C). In MX the
-    Jacobian of a map is a map of the stage's directional derivatives and the Hessian of
-    the Lagrangian a map of its forward-over-reverse derivative, so each appears once in
-    the generated code. Blocks that are not a clean stage map stay in the SX function."""
+    out for every stage (the cart-pole PCBF problem, RK4, N = 20: 2.1 MB of C for the
+    pair). Here the Jacobian of a map is a map of the stage's directional derivatives and
+    the Hessian of its Lagrangian a map of a forward-over-reverse derivative, so each
+    appears once in the generated code; blocks that are not a clean stage map stay in the
+    SX function, whose derivatives :meth:`CompactNLP.derivatives` writes out exactly (in
+    MX its Jacobian would be one forward sweep per colour of the whole function)."""
     w, p, f, g = (data.nlp[k] for k in ("x", "p", "f", "g"))
     maps = [m for b in ocp.blocks if b.tag == BlockTag.DYNAMICS
             for m in [dynamics_stage_map(data, ocp, b)] if m is not None]
     maps.sort(key=lambda m: m.rows.start)
     W, P = ca.MX.sym("w", w.numel()), ca.MX.sym("p", p.numel())
     cuts = [0, *[k for m in maps for k in (m.rows.start, m.rows.stop)], g.numel()]
-    rest_rows = [g[cuts[2 * j]: cuts[2 * j + 1]] for j in range(len(maps) + 1)]
-    rest = ca.Function("rows", [w, p], [f, *rest_rows])
-    f_mx, *pieces = rest(W, P)
-    g_parts = [pieces[0]]
-    for m, after in zip(maps, pieces[1:]):
+    rest = [g[cuts[2 * j]: cuts[2 * j + 1]] for j in range(len(maps) + 1)]
+    mapped = []
+    for m in maps:
         n = m.index.shape[1]
-        mapped = m.function.map(f"{m.block}_map", "serial", n, [3], [])
-        stage_vars = ca.reshape(W[ca.DM(m.index.reshape(-1, order="F"))],
-                                m.index.shape[0], n)
-        nx = m.function.size1_in(0)
-        nu = m.function.size1_in(1)
-        r = mapped(stage_vars[:nx, :], stage_vars[nx:nx + nu, :], stage_vars[nx + nu:, :], P)
-        g_parts += [ca.vec(r), after]
-    return {"x": W, "p": P, "f": f_mx, "g": ca.vertcat(*g_parts)}
+        fmap = m.function.map(f"{m.block}_map", "serial", n, [3], [])
+        v = ca.reshape(W[ca.DM(m.index.reshape(-1, order="F"))], m.index.shape[0], n)
+        nx, nu = m.function.size1_in(0), m.function.size1_in(1)
+        mapped.append(ca.vec(fmap(v[:nx, :], v[nx:nx + nu, :], v[nx + nu:, :], P)))
+    return CompactNLP(w, p, f, ca.vertcat(*rest), [r.numel() for r in rest], W, P, mapped)
+
+
+@dataclass(frozen=True)
+class CompactNLP:
+    """The compact lowering of :func:`compact_nlp`: ``g`` is ``rest_0, mapped_0, rest_1,
+    mapped_1, …`` where the ``rest`` rows (sizes :attr:`rest_sizes`) and the cost ``f``
+    are SX expressions of ``(w, p)`` and each ``mapped`` piece an MX expression of
+    ``(W, P)``, the MX symbols of the same vectors."""
+
+    w: ca.SX
+    p: ca.SX
+    f: ca.SX
+    rest: ca.SX
+    rest_sizes: list[int]
+    W: ca.MX
+    P: ca.MX
+    mapped: list[ca.MX]
+
+    def _rows(self, *out: ca.MX) -> list[ca.MX]:
+        """Interleave the pieces of the rest rows ``out`` (split by :attr:`rest_sizes`)
+        with the mapped pieces, in the order of ``g``."""
+        parts, k = [], 0
+        for j, size in enumerate(self.rest_sizes):
+            parts.append(out[0][k:k + size, :] if size else ca.MX(0, out[0].size2()))
+            k += size
+            if j < len(self.mapped):
+                parts.append(out[1][j])
+        return parts
+
+    @property
+    def nlp(self) -> dict:
+        """The ``{x, p, f, g}`` dictionary ``nlpsol`` takes (MX)."""
+        f, rest = ca.Function("rows", [self.w, self.p], [self.f, self.rest])(self.W, self.P)
+        return {"x": self.W, "p": self.P, "f": f,
+                "g": ca.vertcat(*self._rows(rest, self.mapped))}
+
+    def derivatives(self) -> dict[str, ca.Function]:
+        """``sqpmethod``'s derivative functions as ``nlpsol`` options (``jac_fg``,
+        ``hess_lag``, ``cache`` of ``nlp_fg``/``nlp_grad``: the contract of
+        :func:`~balustrade.backends.casadi_backend.shared_derivatives`), with the rest rows
+        and the cost differentiated in SX (exact sparse expressions, once) and the mapped
+        pieces in MX (maps of the stage's derivatives)."""
+        w, p, W, P = self.w, self.p, self.W, self.P
+        ng = self.rest.numel() + sum(m.numel() for m in self.mapped)
+        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", ng)
+        # the multipliers of the rest rows and of the mapped rows
+        lam_parts, k = [], 0
+        for j, size in enumerate(self.rest_sizes):
+            lam_parts.append(("rest", lam_g[k:k + size]))
+            k += size
+            if j < len(self.mapped):
+                n = self.mapped[j].numel()
+                lam_parts.append(("map", lam_g[k:k + n]))
+                k += n
+        lam_rest = ca.vertcat(ca.MX(0, 1), *[v for t, v in lam_parts if t == "rest"])
+        lam_map = [v for t, v in lam_parts if t == "map"]
+        sf, sl = ca.SX.sym("lam_f"), ca.SX.sym("lam_rest", self.rest.numel())
+        lag = sf * self.f + (ca.dot(sl, self.rest) if self.rest.numel() else 0)
+        rest_jac = ca.Function("rest_jac", [w, p], [
+            self.f, ca.gradient(self.f, w), self.rest, ca.jacobian(self.rest, w)])
+        rest_grad = ca.Function("rest_grad", [w, p, sf, sl], [
+            self.f, self.rest, ca.gradient(lag, w), ca.gradient(lag, p)])
+        rest_hess = ca.Function("rest_hess", [w, p, sf, sl], [ca.hessian(lag, w)[0]])
+        f, grad_f, rest, jac_rest = rest_jac(W, P)
+        g = ca.vertcat(*self._rows(rest, self.mapped))
+        jac_g = ca.vertcat(*self._rows(jac_rest, [ca.jacobian(m, W) for m in self.mapped]))
+        lag_map = sum((ca.dot(lm, m) for lm, m in zip(lam_map, self.mapped)), ca.MX(0))
+        hess = rest_hess(W, P, lam_f, lam_rest)[0]
+        if self.mapped:
+            hess = hess + ca.hessian(lag_map, W)[0]
+        _, _, grad_x, grad_p = rest_grad(W, P, lam_f, lam_rest)
+        if self.mapped:
+            grad_x = grad_x + ca.gradient(lag_map, W)
+            grad_p = grad_p + ca.gradient(lag_map, P)
+        jac_fg = ca.Function("nlp_jac_fg", [W, P], [f, grad_f, g, jac_g], ["x", "p"],
+                             ["f", "grad_f_x", "g", "jac_g_x"])
+        hess_lag = ca.Function("nlp_hess_l", [W, P, lam_f, lam_g], [hess],
+                               ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        fg = ca.Function("nlp_fg", [W, P], [f, g], ["x", "p"], ["f", "g"])
+        grad = ca.Function("nlp_grad", [W, P, lam_f, lam_g], [f, g, grad_x, grad_p],
+                           ["x", "p", "lam_f", "lam_g"],
+                           ["f", "g", "grad_gamma_x", "grad_gamma_p"])
+        return {"jac_fg": jac_fg, "hess_lag": hess_lag,
+                "cache": {"nlp_fg": fg, "nlp_grad": grad}}
