@@ -128,14 +128,82 @@ def compact_nlp(data: NLPData, ocp: OCP) -> CompactNLP:
     W, P = ca.MX.sym("w", w.numel()), ca.MX.sym("p", p.numel())
     cuts = [0, *[k for m in maps for k in (m.rows.start, m.rows.stop)], g.numel()]
     rest = [g[cuts[2 * j]: cuts[2 * j + 1]] for j in range(len(maps) + 1)]
-    mapped = []
-    for m in maps:
-        n = m.index.shape[1]
-        fmap = m.function.map(f"{m.block}_map", "serial", n, [3], [])
-        v = ca.reshape(W[ca.DM(m.index.reshape(-1, order="F"))], m.index.shape[0], n)
-        nx, nu = m.function.size1_in(0), m.function.size1_in(1)
-        mapped.append(ca.vec(fmap(v[:nx, :], v[nx:nx + nu, :], v[nx + nu:, :], P)))
+    mapped = [MappedStages(m, W, P) for m in maps]
     return CompactNLP(w, p, f, ca.vertcat(*rest), [r.numel() for r in rest], W, P, mapped)
+
+
+def _scatter(stage: ca.Sparsity, index: np.ndarray, shape: tuple[int, int], row_index:
+             np.ndarray | None) -> tuple[ca.Sparsity, ca.DM]:
+    """Where the nonzeros of ``N`` stage blocks (sparsity ``stage``, the blocks side by side
+    as a map returns them) go in a ``shape`` matrix: block ``i``'s entry ``(a, b)`` goes to
+    row ``row_index[a, i]`` (``i·rows + a`` when ``None``) and column ``index[b, i]``.
+    Returns the matrix's sparsity and the constant 0/1 matrix ``S`` with ``nz = S ·
+    nz_blocks`` (entries that land on the same place are summed: a Hessian's overlap)."""
+    rows_s, cols_s = stage.get_triplet()
+    n = index.shape[1]
+    rows, cols = [], []
+    for i in range(n):
+        for a, b in zip(rows_s, cols_s):
+            rows.append(int(row_index[a, i]) if row_index is not None
+                        else i * stage.size1() + a)
+            cols.append(int(index[b, i]))
+    sp, mapping = ca.Sparsity.triplet(shape[0], shape[1], rows, cols, True)
+    # mapping[k]: the nonzero of sp that triplet k lands on
+    ones = [1.0] * len(mapping)
+    S = ca.DM(ca.Sparsity.triplet(sp.nnz(), len(mapping), list(mapping),
+                                  list(range(len(mapping)))), ones)
+    return sp, S
+
+
+class MappedStages:
+    """A :class:`StageMap` in the MX NLP: the rows ``vec([F(v_0), …])`` of the stage
+    function mapped over the horizon, and their first and second derivatives from the
+    stage's own SX Jacobian and Hessian (exact sparse expressions, written once and
+    mapped), scattered into the NLP's matrices by constant sparse maps."""
+
+    def __init__(self, m: StageMap, W: ca.MX, P: ca.MX):
+        self.stage, self.W, self.P = m, W, P
+        fn, n = m.function, m.index.shape[1]
+        self.n = n
+        v_all = ca.reshape(W[ca.DM(m.index.reshape(-1, order="F"))], m.index.shape[0], n)
+        nx, nu = fn.size1_in(0), fn.size1_in(1)
+        self.args = [v_all[:nx, :], v_all[nx:nx + nu, :], v_all[nx + nu:, :]]
+        self.rows = ca.vec(fn.map(f"{m.block}_map", "serial", n, [3], [])(*self.args, P))
+        x, u, xn, p = (ca.SX.sym(fn.name_in(k), fn.sparsity_in(k)) for k in range(4))
+        v = ca.vertcat(x, u, xn)
+        r = fn(x, u, xn, p)
+        lam = ca.SX.sym("lam", r.numel())
+        self._jac = ca.Function(f"{m.block}_stage_jac", [x, u, xn, p], [ca.jacobian(r, v)])
+        hess = ca.hessian(ca.dot(lam, r), v)[0]
+        self._hess = ca.Function(f"{m.block}_stage_hess", [x, u, xn, p, lam], [hess])
+        self._grad_p = ca.Function(f"{m.block}_stage_grad_p", [x, u, xn, p, lam],
+                                   [ca.gradient(ca.dot(lam, r), p)])
+        self.p_enters = ca.jacobian(r, p).nnz() > 0
+
+    def jacobian(self) -> ca.MX:
+        """``∂ rows / ∂ W`` (sparse: each stage's block at its variables' columns)."""
+        m, nw = self.stage, self.W.numel()
+        blocks = self._jac.map(f"{m.block}_jac_map", "serial", self.n, [3], [])(
+            *self.args, self.P)
+        sp, S = _scatter(self._jac.sparsity_out(0), m.index, (self.rows.numel(), nw), None)
+        return ca.MX(sp, ca.mtimes(S, blocks.nz[:]))
+
+    def hessian(self, lam: ca.MX) -> ca.MX:
+        """``∇²_W (λᵀ rows)`` (each stage's block at its variables, overlaps summed)."""
+        m, nw = self.stage, self.W.numel()
+        lam_s = ca.reshape(lam, self.rows.numel() // self.n, self.n)
+        blocks = self._hess.map(f"{m.block}_hess_map", "serial", self.n, [3], [])(
+            *self.args, self.P, lam_s)
+        sp, S = _scatter(self._hess.sparsity_out(0), m.index, (nw, nw), m.index)
+        return ca.MX(sp, ca.mtimes(S, blocks.nz[:]))
+
+    def gradient_p(self, lam: ca.MX) -> ca.MX:
+        """``∇_P (λᵀ rows)`` (zero when the stages do not read the parameters)."""
+        if not self.p_enters:
+            return ca.MX(self.P.numel(), 1)
+        lam_s = ca.reshape(lam, self.rows.numel() // self.n, self.n)
+        return self._grad_p.map(f"{self.stage.block}_grad_p_map", "serial", self.n, [3],
+                                [0])(*self.args, self.P, lam_s)
 
 
 @dataclass(frozen=True)
@@ -152,7 +220,12 @@ class CompactNLP:
     rest_sizes: list[int]
     W: ca.MX
     P: ca.MX
-    mapped: list[ca.MX]
+    stages: list[MappedStages]
+
+    @property
+    def mapped(self) -> list[ca.MX]:
+        """The rows of each stage map (MX)."""
+        return [s.rows for s in self.stages]
 
     def _rows(self, *out: ca.MX) -> list[ca.MX]:
         """Interleave the pieces of the rest rows ``out`` (split by :attr:`rest_sizes`)
@@ -194,22 +267,26 @@ class CompactNLP:
         lam_map = [v for t, v in lam_parts if t == "map"]
         sf, sl = ca.SX.sym("lam_f"), ca.SX.sym("lam_rest", self.rest.numel())
         lag = sf * self.f + (ca.dot(sl, self.rest) if self.rest.numel() else 0)
+        # one SX function for values and first derivatives (in x and p) of the rest: the
+        # Lagrangian's gradient is assembled from it (no second copy of the rows in C)
         rest_jac = ca.Function("rest_jac", [w, p], [
-            self.f, ca.gradient(self.f, w), self.rest, ca.jacobian(self.rest, w)])
-        rest_grad = ca.Function("rest_grad", [w, p, sf, sl], [
-            self.f, self.rest, ca.gradient(lag, w), ca.gradient(lag, p)])
+            self.f, ca.gradient(self.f, w), self.rest, ca.jacobian(self.rest, w),
+            ca.gradient(self.f, p), ca.jacobian(self.rest, p)])
         rest_hess = ca.Function("rest_hess", [w, p, sf, sl], [ca.hessian(lag, w)[0]])
-        f, grad_f, rest, jac_rest = rest_jac(W, P)
+        f, grad_f, rest, jac_rest, grad_f_p, jac_rest_p = rest_jac(W, P)
         g = ca.vertcat(*self._rows(rest, self.mapped))
-        jac_g = ca.vertcat(*self._rows(jac_rest, [ca.jacobian(m, W) for m in self.mapped]))
-        lag_map = sum((ca.dot(lm, m) for lm, m in zip(lam_map, self.mapped)), ca.MX(0))
-        hess = rest_hess(W, P, lam_f, lam_rest)[0]
-        if self.mapped:
-            hess = hess + ca.hessian(lag_map, W)[0]
-        _, _, grad_x, grad_p = rest_grad(W, P, lam_f, lam_rest)
-        if self.mapped:
-            grad_x = grad_x + ca.gradient(lag_map, W)
-            grad_p = grad_p + ca.gradient(lag_map, P)
+        jac_map = [s.jacobian() for s in self.stages]
+        jac_g = ca.vertcat(*self._rows(jac_rest, jac_map))
+        hess = rest_hess(W, P, lam_f, lam_rest)
+        for s, lm in zip(self.stages, lam_map):
+            hess = hess + s.hessian(lm)
+        grad_x, grad_p = lam_f * grad_f, lam_f * grad_f_p
+        if self.rest.numel():
+            grad_x = grad_x + ca.mtimes(jac_rest.T, lam_rest)
+            grad_p = grad_p + ca.mtimes(jac_rest_p.T, lam_rest)
+        for s, jm, lm in zip(self.stages, jac_map, lam_map):
+            grad_x = grad_x + ca.mtimes(jm.T, lm)
+            grad_p = grad_p + s.gradient_p(lm)
         jac_fg = ca.Function("nlp_jac_fg", [W, P], [f, grad_f, g, jac_g], ["x", "p"],
                              ["f", "grad_f_x", "g", "jac_g_x"])
         hess_lag = ca.Function("nlp_hess_l", [W, P, lam_f, lam_g], [hess],
