@@ -222,3 +222,23 @@ def test_compact_cartpole_pair_builds_with_werror_and_steps_as_python(cartpole, 
             compared += 1
             np.testing.assert_allclose(u_c, u_py, atol=1e-6)
     assert compared >= 3
+
+
+def test_parameters_in_the_dynamics_are_differentiated():
+    """θ a parameter of the stage function (shared by every stage, not mapped): its part of
+    the Lagrangian's gradient in ``p`` is the map's sum."""
+    system = System(lambda x, u, w, th: ca.vertcat(x[0] + th[0] * ca.sin(x[1]),
+                                                   x[1] + 0.1 * u[0] + w[0]),
+                    2, 1, nw=1, ntheta=1, name="toy_theta")
+    ocp = OCP(system, N=4, name="theta")
+    ocp.initial_state(ocp.parameter("x0", 2))
+    ocp.dynamics(theta=ocp.parameter("th", 1))
+    ocp.minimize(ca.sumsqr(ocp.x) + ca.sumsqr(ocp.u))
+    data, _ = run_chain(CASADI_CHAIN, ocp)
+    compact = compact_nlp(data, ocp)
+    assert len(compact.stages) == 1 and compact.stages[0].p_enters
+    _same_functions(ocp)
+    par = {"x0": [0.5, 0.2], "th": [0.3]}
+    a, b = compile(ocp, "fast-sqp").solve(par), compile(ocp, COMPACT).solve(par)
+    assert a.success and b.success
+    np.testing.assert_allclose(b.primal["u"], a.primal["u"], atol=1e-8)
