@@ -1,6 +1,10 @@
 """The last pass of the CasADi chain: a :class:`~balustrade.backends.passes.epigraph.
 SmoothProblem` becomes the data ``nlpsol`` takes (:class:`NLPData`): the ``{x, p, f, g}``
-dictionary and the numeric bounds and initial point, all read from the one layout."""
+dictionary and the numeric bounds and initial point, all read from the one layout.
+
+:func:`compact_nlp` gives the same NLP in the compact lowering (issue #14 §3): MX, with each
+dynamics block one SX stage function mapped over the horizon, so that generated C holds each
+stage derivative once (``backends.casadi_backend.LOWERINGS``; the C emitters' default)."""
 
 from __future__ import annotations
 
