@@ -51,7 +51,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade.backends.passes import CASADI_CHAIN, run_chain
-from balustrade.backends.passes.casadi_nlp import as_dm
+from balustrade.backends.passes.casadi_nlp import as_dm, compact_nlp
 from balustrade.backends.passes.epigraph import EpigraphInverse
 from balustrade.backends.passes.stage_order import (
     StagedNLP,
@@ -197,7 +197,11 @@ class CasadiCompiled:
                               "(try 'ipopt', 'sqpmethod' (with qrqp), 'fatrop')")
         self.ocp, self.solver_name = ocp, solver
         opts = solver_options(solver, options)
+        #: which NLP the solver is built on (:data:`LOWERINGS`): a balustrade option,
+        #: taken out of the solver's options
+        self.lowering = _lowering(ocp.name, opts.pop(LOWERING_OPTION, "expanded"))
         data, inverses = run_chain(CASADI_CHAIN, ocp)
+        self._data = data
         #: how the epigraph pass maps a solver point back (user variables, declared cost)
         self.inverse: EpigraphInverse = inverses[0][1]
         #: the solver's decision vector: the user's variables, then the epigraph blocks
@@ -212,6 +216,9 @@ class CasadiCompiled:
         if needs_stage_order(solver, opts):
             if solver == "fatrop":
                 _refuse_nonlinear_dynamics(ocp)
+            if self.lowering != "expanded":
+                raise SolverError(f"{ocp.name}: the {self.lowering!r} lowering is not "
+                                  f"available for the stage-ordered solver {solver!r}")
             self._layout_bounds = (data.lbx, data.ubx)
             staged, self.stages = stage_order(ocp, data, last_controls=solver == "fatrop")
             opts = with_structure(solver, opts, staged)
@@ -219,18 +226,41 @@ class CasadiCompiled:
                                                       staged.ubg)
             self._x0 = staged.x0
             data = staged
-        nlp = data.nlp
-        self.nlp = nlp
+            self._data = data
         self.options = opts
+        nlp, derivatives = self._lower(self.lowering)
+        self.nlp = nlp
         #: derivative functions shared by every sqpmethod built on this NLP (first attempt,
         #: retries, the C of :mod:`balustrade.codegen`): see :func:`shared_derivatives`
-        self.derivatives = shared_derivatives(nlp, solver, opts)
+        self.derivatives = derivatives
         self.solver = _nlpsol(ocp.name, solver, nlp, {**opts, **self.derivatives})
         #: cold-start attempts after a failed solve: (solver plugin, option overrides)
         self.retries = default_retries(solver, opts) if retries is None else list(retries)
         self._retry: list[ca.Function] | None = None
         self._g_function: ca.Function | None = None
         self._dm = as_dm(data)
+        self._lowered: dict[str, tuple[dict, dict]] = {
+            self.lowering: (self.nlp, self.derivatives)}
+
+    def lowered(self, lowering: str) -> tuple[dict, dict[str, ca.Function]]:
+        """``(nlp, shared derivatives)`` of this problem in ``lowering`` (:data:`LOWERINGS`):
+        the solver's own for :attr:`lowering`, else built once on first use (same
+        variables, rows and values; the C emitters ask for ``"compact"``)."""
+        if lowering not in self._lowered:
+            if self.stages is not None:
+                raise SolverError(f"{self.ocp.name}: the {lowering!r} lowering is not "
+                                  f"available for the stage-ordered solver "
+                                  f"{self.solver_name!r}")
+            self._lowered[lowering] = self._lower(_lowering(self.ocp.name, lowering))
+        return self._lowered[lowering]
+
+    def _lower(self, lowering: str) -> tuple[dict, dict[str, ca.Function]]:
+        if lowering == "expanded":
+            nlp = self._data.nlp
+            return nlp, shared_derivatives(nlp, self.solver_name, self.options)
+        compact = compact_nlp(self._data, self.ocp)
+        return compact.nlp, (compact.derivatives() if _shares_derivatives(
+            self.solver_name, self.options) else {})
 
     @property
     def n_user(self) -> int:
@@ -351,11 +381,13 @@ class CasadiCompiled:
                 for k, (name, overrides) in enumerate(self.retries)]
         return self._retry
 
-    def with_derivatives(self, opts: dict) -> dict:
-        """``opts`` plus the shared derivative functions when they apply to ``opts``."""
-        if not self.derivatives or opts.get("hessian_approximation", "exact") != "exact":
+    def with_derivatives(self, opts: dict, derivatives: dict | None = None) -> dict:
+        """``opts`` plus the shared derivative functions (``derivatives``, default this
+        problem's own) when they apply to ``opts``."""
+        derivatives = self.derivatives if derivatives is None else derivatives
+        if not derivatives or opts.get("hessian_approximation", "exact") != "exact":
             return opts
-        return {**opts, **self.derivatives}
+        return {**opts, **derivatives}
 
     def _solve_with(self, solver: ca.Function, p: np.ndarray, guess: tuple) -> Solution:
         x0, lam_x0, lam_g0 = guess
@@ -445,6 +477,24 @@ class CasadiCompiled:
                         message=message)
 
 
+#: the balustrade option (in a target's options, never passed to ``nlpsol``) choosing the
+#: NLP the solver is built on
+LOWERING_OPTION = "lowering"
+#: the lowerings of :data:`LOWERING_OPTION`: ``"expanded"`` (default) — one SX graph of
+#: ``f`` and ``g``, derivatives written out for every stage (fastest from Python);
+#: ``"compact"`` — MX with each dynamics block one stage function mapped over the horizon
+#: (:func:`~balustrade.backends.passes.casadi_nlp.compact_nlp`): its derivatives appear once
+#: in generated C (the default of the C emitters, :mod:`balustrade.codegen.emit`)
+LOWERINGS = ("expanded", "compact")
+
+
+def _lowering(name: str, value: object) -> str:
+    if value not in LOWERINGS:
+        raise SolverError(f"{name}: option {LOWERING_OPTION!r} must be one of "
+                          f"{', '.join(map(repr, LOWERINGS))}, got {value!r}")
+    return str(value)
+
+
 #: an objective below this (IPOPT's default ``diverging_iterates_tol`` is 1e20) is taken as
 #: evidence that the problem is unbounded below
 UNBOUNDED_OBJECTIVE = -1e19
@@ -476,7 +526,7 @@ def shared_derivatives(nlp: dict, solver: str, options: dict) -> dict[str, ca.Fu
     the first attempt and to each ``sqpmethod`` retry are generated once (CasADi's code
     generator emits a Function object once), and built once in Python. The math is that
     of ``sqpmethod``'s own functions."""
-    if solver != "sqpmethod" or options.get("hessian_approximation", "exact") != "exact":
+    if not _shares_derivatives(solver, options):
         return {}
     x, p, f, g = nlp["x"], nlp["p"], nlp["f"], nlp["g"]
     sym = type(x).sym
@@ -492,6 +542,11 @@ def shared_derivatives(nlp: dict, solver: str, options: dict) -> dict[str, ca.Fu
                        [f, g, ca.gradient(lag, x), ca.gradient(lag, p)],
                        ["x", "p", "lam_f", "lam_g"], ["f", "g", "grad_gamma_x", "grad_gamma_p"])
     return {"jac_fg": jac_fg, "hess_lag": hess, "cache": {"nlp_fg": fg, "nlp_grad": grad}}
+
+
+def _shares_derivatives(solver: str, options: dict) -> bool:
+    """Whether :func:`shared_derivatives` applies: an exact-Hessian ``sqpmethod``."""
+    return solver == "sqpmethod" and options.get("hessian_approximation", "exact") == "exact"
 
 
 def sqp_retry_strategies(options: dict) -> list[str]:

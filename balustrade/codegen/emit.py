@@ -145,13 +145,23 @@ def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> li
     return [c_path, h_path]
 
 
-def _kkt_function(c: CasadiCompiled, sym: str) -> ca.Function:
+#: the NLP lowering the C is generated from (:data:`~balustrade.backends.casadi_backend.
+#: LOWERINGS`): ``"compact"`` maps one stage function of the dynamics over the horizon, so
+#: its derivatives appear once in the C (cart-pole PCBF pair: ~10× less C, builds in
+#: seconds instead of a minute; docs/deploy_c.md)
+EMIT_LOWERING = "compact"
+
+
+def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None) -> ca.Function:
     """The solver's own convergence measures at a point, as a C-emittable function:
     ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``,
     ``feas`` = largest violation with constraint rows scaled by ``1 + |g|`` (the test for
-    ``BAL_FEASIBLE`` after all retries)."""
-    w, p, f, g = c.nlp["x"], c.nlp["p"], c.nlp["f"], c.nlp["g"]
-    jac_fg = getattr(c, "derivatives", {}).get("jac_fg")
+    ``BAL_FEASIBLE`` after all retries); on the NLP of ``lowering`` (default: the
+    solver's own)."""
+    nlp, derivatives = (c.nlp, getattr(c, "derivatives", {})) if lowering is None \
+        else c.lowered(lowering)
+    w, p, f, g = nlp["x"], nlp["p"], nlp["f"], nlp["g"]
+    jac_fg = derivatives.get("jac_fg")
     if jac_fg is not None:  # reuse the solvers' Jacobian (its C exists once already)
         w, p = ca.MX.sym("x", w.numel()), ca.MX.sym("p", p.numel())
         f, grad_f, g, jac_g = jac_fg(w, p)
@@ -256,12 +266,14 @@ class _Problem:
     def functions(self) -> dict[str, ca.Function]:
         # every attempt on the compiled problem's own plugin shares its derivative
         # functions, so their C is generated once (backends.casadi_backend.
-        # shared_derivatives: most of the C of a nonlinear horizon problem)
+        # shared_derivatives: most of the C of a nonlinear horizon problem), built on the
+        # compact lowering (EMIT_LOWERING: the dynamics' derivatives once, not per stage)
         c = self.c
-        out = {sym: ca.nlpsol(sym, plugin, c.nlp,
-                              c.with_derivatives(opts) if plugin == c.solver_name else opts)
+        nlp, derivatives = c.lowered(EMIT_LOWERING)
+        out = {sym: ca.nlpsol(sym, plugin, nlp, c.with_derivatives(opts, derivatives)
+                              if plugin == c.solver_name else opts)
                for sym, plugin, opts in self.solvers}
-        out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt")
+        out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt", EMIT_LOWERING)
         return out
 
     def config(self, cfg: C.Config) -> None:
