@@ -1,0 +1,287 @@
+"""The homothetic-tube RAPSF (thesis Chapter 4, SPEC §2.18, §2.20, §2.21) on a 2-state toy
+with two uncertain parameters (spring and damping of a discretized mass), Θ₀ a box.
+
+The parametric model is a local stand-in with the attributes of
+``balustrade.dsl.system_parametric.ParametricLinearSystem`` (``A0, A_list, B0, B_list``)."""
+
+from __future__ import annotations
+
+import itertools
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import scipy.optimize
+
+from balustrade.backends import compile
+from balustrade.control.rapsf import RAPSF
+from balustrade.design.rapsf import (
+    check_assumption_4_11,
+    check_constraints,
+    check_rpi,
+    contraction_factor,
+    contractive_polytope,
+    robust_gain,
+)
+from balustrade.dsl.sets import Box, Polytope
+from balustrade.errors import BalustradeError, ShapeError
+from balustrade.problems.rapsf import (
+    TerminalSet,
+    joint_constraints,
+    model_matrices,
+    rapsf_problem,
+    s_constants,
+    tube_constants,
+)
+
+N = 8
+
+
+def _system() -> SimpleNamespace:
+    return SimpleNamespace(A0=np.array([[1.0, 0.1], [0.0, 1.0]]),
+                           A_list=[np.array([[0.0, 0.0], [-0.1, 0.0]]),
+                                   np.array([[0.0, 0.0], [0.0, -0.1]])],
+                           B0=np.array([[0.0], [0.1]]), B_list=[np.zeros((2, 1))] * 2,
+                           nx=2, nu=1, q=2)
+
+
+@pytest.fixture(scope="module")
+def toy() -> SimpleNamespace:
+    sys_ = _system()
+    Theta0 = Box([0.5, 0.0], [1.5, 0.5], name="Theta0")
+    V = Theta0.vertices()
+    W = Box.symmetric(0.004, 2, name="W")
+    F, G = joint_constraints(Box.symmetric(2.0, 2), Box.symmetric(3.0, 1))
+    K = robust_gain(sys_, V, contraction=0.95)
+    X0 = contractive_polytope(sys_, K, V, W, F, G)
+    return SimpleNamespace(sys=sys_, Theta0=Theta0, V=V, W=W, F=F, G=G, K=K, X0=X0)
+
+
+# -- the QP (4.5) ------------------------------------------------------------------------------
+def test_backends_agree_and_parametric_equals_constant(toy):
+    ocp = rapsf_problem(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, vertices=toy.V)
+    par = rapsf_problem(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N)
+    s = s_constants(toy.X0, toy.sys, toy.K, toy.V)
+    for x, u_p in [(np.array([1.5, 1.0]), np.array([3.0])), (np.array([-0.3, 0.4]),
+                                                             np.array([-5.0]))]:
+        v0 = []
+        for tg in ("exact", "cvxpy", "fast-convex"):
+            sol = compile(ocp, tg).solve({"x0": x, "u_p": u_p})
+            assert sol.status == "optimal", tg
+            v0.append(sol["v"][:, 0])
+        sol = compile(par, "exact").solve({"x0": x, "u_p": u_p, "theta": toy.V.T, "s": s})
+        assert sol.status == "optimal"
+        v0.append(sol["v"][:, 0])
+        assert np.ptp(np.array(v0)) < 1e-4 * max(1.0, float(np.abs(v0[0]).max())), v0
+        assert v0[0][0] + (toy.K @ x)[0] != pytest.approx(u_p[0])   # the filter is active
+
+
+def _worst_tube_violation(t: SimpleNamespace, sol, Theta: Polytope, rng) -> tuple[float, float]:
+    """Brute force: sampled and extreme x ∈ z_i ⊕ α_i 𝕏₀, θ ∈ Θ, w ∈ W propagated with
+    u = Kx + v_i; the largest violation of x⁺ ∈ z_{i+1} ⊕ α_{i+1}𝕏₀ and of (x, u) ∈ 𝒵."""
+    z, a, v = sol["z"], sol["alpha"].ravel(), sol["v"]
+    HX = t.X0.H / t.X0.h[:, None]
+    xv = t.X0.vertices()
+    lam = rng.dirichlet(np.ones(len(xv)), 40)
+    ys = np.vstack([xv, lam @ xv])                      # points of 𝕏₀: vertices and inside
+    thetas = np.vstack([Theta.vertices(), rng.uniform(Theta.lb, Theta.ub, (10, Theta.dim))])
+    ws = np.vstack([t.W.vertices(), rng.uniform(t.W.lb, t.W.ub, (10, 2))])
+    worst_tube, worst_z = -np.inf, -np.inf
+    for i in range(v.shape[1]):
+        X = z[:, i] + a[i] * ys
+        U = X @ t.K.T + v[:, i]
+        worst_z = max(worst_z, float(np.max(X @ t.F.T + U @ t.G.T - 1)))
+        for th in thetas:
+            A, B = model_matrices(t.sys, th)
+            Xn = X @ A.T + U @ B.T
+            for w in ws:
+                lhs = (Xn + w - z[:, i + 1]) @ HX.T
+                worst_tube = max(worst_tube, float(np.max(lhs - a[i + 1])))
+    return worst_tube, worst_z
+
+
+def test_solution_meets_vertex_conditions_by_brute_force(toy):
+    rng = np.random.default_rng(3)
+    Theta = Box([0.7, 0.1], [1.1, 0.3])                 # a learned Θ_k ⊂ Θ₀
+    V = Theta.vertices()
+    par = rapsf_problem(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N)
+    s = s_constants(toy.X0, toy.sys, toy.K, V)
+    solver = compile(par, "exact")
+    for x, u_p in [(np.array([0.8, 0.3]), np.array([3.0])), (np.array([-0.5, 0.1]),
+                                                             np.array([-3.0]))]:
+        sol = solver.solve({"x0": x, "u_p": u_p, "theta": V.T, "s": s})
+        assert sol.status == "optimal"
+        tube, cons = _worst_tube_violation(toy, sol, Theta, rng)
+        assert tube <= 1e-6 and cons <= 1e-6, (tube, cons)
+    # negative control: a support constant too small by 40 % breaks containment
+    bad = solver.solve({"x0": np.array([0.8, 0.3]), "u_p": np.array([3.0]),
+                        "theta": V.T, "s": 0.6 * s})
+    assert bad.status == "optimal"
+    tube, _ = _worst_tube_violation(toy, bad, Theta, rng)
+    assert tube > 1e-3
+
+
+def test_constants_are_support_functions(toy):
+    c = tube_constants(toy.X0, toy.W, toy.sys, toy.K, toy.V, toy.F, toy.G)
+    xv = toy.X0.vertices()
+    for j, th in enumerate(toy.V):
+        A, B = model_matrices(toy.sys, th)
+        assert np.allclose(c.s[:, j], np.max(c.HX @ (A + B @ toy.K) @ xv.T, axis=1), atol=1e-7)
+    assert np.allclose(c.t, np.max((toy.F + toy.G @ toy.K) @ xv.T, axis=1), atol=1e-7)
+    assert np.allclose(c.w_bar, np.max(c.HX @ toy.W.vertices().T, axis=1))
+
+
+# -- offline design and Assumption 4.11 -------------------------------------------------------
+def test_design_satisfies_assumption_4_11(toy):
+    assert contraction_factor(toy.X0, toy.sys, toy.K, toy.V) < 1
+    assert check_rpi(toy.X0, toy.sys, toy.K, toy.V, toy.W)
+    assert check_constraints(toy.X0, toy.F, toy.G, toy.K)
+    assert check_assumption_4_11(toy.sys, toy.X0, toy.W, toy.K, toy.V, toy.F, toy.G)
+    small = TerminalSet(np.vstack([np.eye(2), -np.eye(2)]) / 0.05, np.full(4, 1.0))
+    assert check_assumption_4_11(toy.sys, toy.X0, toy.W, toy.K, toy.V, toy.F, toy.G, small)
+
+
+def test_checks_reject_bad_designs(toy):
+    tiny = Box.symmetric(1e-3, 2)                        # W does not fit: not RPI
+    assert not check_rpi(tiny, toy.sys, toy.K, toy.V, toy.W)
+    big = Box.symmetric(10.0, 2)                          # leaves 𝒵
+    assert not check_constraints(big, toy.F, toy.G, toy.K)
+    with pytest.raises(BalustradeError, match="W is too large"):
+        contractive_polytope(toy.sys, toy.K, toy.V, Box.symmetric(0.5, 2), toy.F, toy.G)
+
+
+def test_bad_input_names_argument(toy):
+    bad = _system()
+    bad.A_list = [np.eye(3), np.eye(2)]
+    with pytest.raises(ShapeError, match="A_list"):
+        rapsf_problem(bad, toy.X0, toy.F, toy.G, toy.W, toy.K, N)
+    with pytest.raises(BalustradeError, match="Theta0"):
+        RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, Box([0.0], [1.0]))
+    with pytest.raises(BalustradeError, match="affine in θ"):
+        rapsf_problem(object(), toy.X0, toy.F, toy.G, toy.W, toy.K, N)
+
+
+# -- Algorithm 4.1 ------------------------------------------------------------------------------
+class BoxEstimator:
+    """Fixed-shape box update (SPEC §2.19), 2q LPs: a test stand-in for balustrade.estimate."""
+
+    def __init__(self, sys_: SimpleNamespace, W: Box, Theta: Box):
+        self.sys, self.W, self.T = sys_, W, Theta
+
+    def update(self, xp, up, x):
+        D = np.column_stack([A @ xp + B @ up for A, B in zip(self.sys.A_list, self.sys.B_list)])
+        r = x - self.sys.A0 @ xp - self.sys.B0 @ up
+        A_ub = np.vstack([-self.W.H @ D, self.T.H])
+        b_ub = np.concatenate([self.W.h - self.W.H @ r, self.T.h])
+        q = D.shape[1]
+        lo, hi = [], []
+        for i in range(q):
+            c = np.eye(q)[i]
+            a = scipy.optimize.linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * q)
+            b = scipy.optimize.linprog(-c, A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * q)
+            if a.status != 0 or b.status != 0:
+                return None
+            lo.append(a.fun)
+            hi.append(-b.fun)
+        self.T = Box(np.minimum(lo, hi), np.maximum(lo, hi))
+        return self.T
+
+
+def _run(t, theta_star, seed, steps=25, target="exact", vertex_w=False, shrinking=False):
+    rng = np.random.default_rng(seed)
+    ctrl = RAPSF(t.sys, t.X0, t.F, t.G, t.W, t.K, N, t.Theta0,
+                 estimator=BoxEstimator(t.sys, t.W, t.Theta0), target=target,
+                 shrinking=shrinking)
+    A, B = model_matrices(t.sys, theta_star)
+    x = np.array([0.9, 0.2])
+    thetas, worst = [t.Theta0], -np.inf
+    for k in range(steps):
+        u_p = np.array([3.0 * np.sin(0.4 * k) + 1.5])   # aggressive: often unsafe
+        u, info = ctrl.step(x, u_p)
+        worst = max(worst, float(np.max(t.F @ x + t.G @ u - 1)))
+        T = ctrl.Theta
+        assert T.contains(theta_star, tol=1e-7)                        # θ* ∈ Θ_k
+        assert np.all(thetas[-1].contains_many(T.vertices(), tol=1e-9))  # Θ_k ⊆ Θ_{k−1}
+        thetas.append(T)
+        w = rng.choice([-1.0, 1.0], 2) if vertex_w else rng.uniform(-1, 1, 2)
+        x = A @ x + B @ u + 0.004 * w
+    return ctrl, worst, thetas
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_closed_loop_constraints_and_nesting(toy, seed):
+    rng = np.random.default_rng(100 + seed)
+    corners = toy.Theta0.vertices()
+    for theta_star, vertex_w in [(rng.uniform(toy.Theta0.lb, toy.Theta0.ub), False),
+                                 (corners[seed % len(corners)], True)]:
+        ctrl, worst, thetas = _run(toy, theta_star, seed, vertex_w=vertex_w)
+        assert worst <= 1e-6
+        assert np.prod(thetas[-1].ub - thetas[-1].lb) < np.prod(toy.Theta0.ub - toy.Theta0.lb)
+
+
+def test_closed_loop_on_fast_convex_matches_exact(toy):
+    theta = np.array([0.9, 0.2])
+    _, worst, th_e = _run(toy, theta, 7, steps=10, target="exact")
+    _, worst_d, th_d = _run(toy, theta, 7, steps=10, target="fast-convex")
+    assert worst <= 1e-6 and worst_d <= 1e-6
+    assert np.allclose(th_e[-1].lb, th_d[-1].lb, atol=1e-5)
+
+
+def test_stored_plan_then_backup(toy):
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0)
+    x = np.array([0.5, 0.1])
+    u, info = ctrl.step(x, np.array([2.0]))
+    assert info.fallback is None and ctrl.k_inf == 0
+    plan = ctrl.plan.copy()
+    far = np.array([5.0, 5.0])                                       # outside every tube
+    for k in range(1, N):
+        u, info = ctrl.step(far, np.array([0.0]))
+        assert info.fallback == "stored_plan" and info.status != "ok"
+        assert "rapsf" in info.uncertified
+        assert np.allclose(u, toy.K @ far + plan[:, k])              # tube feedback on x_k
+    u, info = ctrl.step(far, np.array([0.0]))
+    assert info.fallback == "backup" and np.allclose(u, toy.K @ far)
+
+
+def test_backup_at_start_and_shrunk_horizon(toy):
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0, shrinking=True,
+                 backup=lambda x, u_p, k: np.array([-1.0]))
+    u, info = ctrl.step(np.array([5.0, 5.0]), np.array([0.0]))       # k_inf = N − 1 at start
+    assert info.fallback == "backup" and u[0] == -1.0
+    ctrl.step(np.array([0.5, 0.1]), np.array([2.0]))
+    u, info = ctrl.step(np.array([5.0, 5.0]), np.array([0.0]))
+    assert "rapsf_shrunk" in info.solutions                          # Remark 4.6 tried
+    assert info.fallback in ("shrunk_horizon", "stored_plan")
+
+
+class _Falsifying:
+    def update(self, xp, up, x):
+        return None
+
+
+class _Growing:
+    def update(self, xp, up, x):
+        return Box([0.0, -1.0], [2.0, 1.0])
+
+
+def test_falsified_model_and_non_nested_estimator(toy):
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
+                 estimator=_Falsifying())
+    ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    u, info = ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    assert info.status == "model_falsified" and info.fallback == "backup"
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
+                 estimator=_Growing())
+    ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    u, info = ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    assert info.status == "theta_not_nested" and ctrl.Theta is toy.Theta0
+    assert info.fallback is None
+
+
+def test_vertex_padding_keeps_one_compiled_problem(toy):
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0)
+    ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    ctrl._set_theta(Box([0.9, 0.2], [0.9, 0.2]))        # a single point: 1 vertex, padded
+    u, info = ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    assert info.fallback is None and len(ctrl._compiled) == 1
+    assert list(itertools.islice(ctrl._compiled, 1))[0] == (N, 4)
