@@ -100,13 +100,13 @@ def contractive_box(system: object, K: np.ndarray, vertices: np.ndarray, W: Poly
 
 def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W: Polytope,
                          F: np.ndarray, G: np.ndarray, lam: float | None = None,
-                         max_iterations: int = 100, tol: float = 1e-9) -> Polytope:
+                         max_sweeps: int = 100, tol: float = 1e-9) -> Polytope:
     """A λ-contractive polytope ``𝕏₀ = {H_X x <= 1}`` for all vertices, RPI for ``W`` and
     inside ``𝒵`` (SPEC §2.20 [Default]): start from ``{(F + GK)x <= 1}`` and add the rows
     ``[H_X]_r A_cl(θ^j)/λ`` that are not redundant (one LP each) until none is added; then
     ``A_cl(θ^j)𝕏₀ ⊆ λ𝕏₀`` and the set is RPI when ``w̄_r <= 1 − λ``. ``lam`` defaults to
     ``(1 + max_j ρ(A_cl(θ^j)))/2``. Raises when the rows do not settle within
-    ``max_iterations`` sweeps (λ below the joint spectral radius) or ``W`` is too large."""
+    ``max_sweeps`` sweeps (λ below the joint spectral radius) or ``W`` is too large."""
     n, _, _ = check_parametric_system(system, "contractive_polytope")
     Acls = closed_loop_matrices(system, K, vertices)
     if lam is None:
@@ -116,7 +116,7 @@ def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W:
     H = np.asarray(F + G @ K, dtype=float)
     H = H[np.linalg.norm(H, axis=1) > 1e-12]
     fresh = H
-    for _ in range(max_iterations):
+    for _ in range(max_sweeps):
         P = Polytope(H, np.ones(H.shape[0]), name="X0")
         added = []
         for a in (row @ A / lam for row in fresh for A in Acls):
@@ -128,7 +128,7 @@ def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W:
         H = np.vstack([H, fresh])
     else:
         raise BalustradeError(f"contractive_polytope: no λ = {lam:.4g} contractive polytope "
-                              f"after {max_iterations} sweeps ({H.shape[0]} rows); try a "
+                              f"after {max_sweeps} sweeps ({H.shape[0]} rows); try a "
                               "larger lam")
     X0 = _prune(Polytope(H, np.ones(H.shape[0]), name="X0"), tol)
     w_bar = np.array([W.support(row) for row in X0.H])
@@ -219,7 +219,7 @@ def _terminal_lp(system: object, c: object, K: np.ndarray, vertices: np.ndarray,
     cost[-1] = 1.0
     bounds = [(None, None)] * (m + n) + [(0, None), (None, None)]
     res = scipy.optimize.linprog(cost, A_ub=np.vstack(rows), b_ub=np.concatenate(rhs),
-                                 bounds=bounds, method="highs")
+                                 bounds=bounds)
     if res.status != 0:
         raise BalustradeError(f"check_assumption_4_11: LP at generator {(z, a)} failed "
                               f"({res.message})")
