@@ -6,11 +6,12 @@ from balustrade.dsl.ocp import OCP, Block, BlockKind, BlockTag, Parameter, Varia
 from balustrade.dsl.rates import input_rates, rate_cost, rate_limit
 from balustrade.dsl.sets import Box, Ellipsoid, FunctionSet, Polytope, Set
 from balustrade.dsl.system import LinearSystem, System
+from balustrade.dsl.system_parametric import ParametricLinearSystem
 from balustrade.dsl.tracking import tracking_cost
 
 __all__ = [
     "OCP", "Block", "BlockKind", "BlockTag", "Box", "Cost", "Ellipsoid", "Entry", "FunctionSet",
-    "Layout", "LinearSystem", "Parameter", "Polytope", "Set", "System", "Term", "TermKind",
-    "Variable", "VariableRole", "input_rates", "max_of", "norm", "quad", "rate_cost",
-    "rate_limit", "squared_norm", "sum_norms", "tracking_cost",
+    "Layout", "LinearSystem", "ParametricLinearSystem", "Parameter", "Polytope", "Set",
+    "System", "Term", "TermKind", "Variable", "VariableRole", "input_rates", "max_of", "norm",
+    "quad", "rate_cost", "rate_limit", "squared_norm", "sum_norms", "tracking_cost",
 ]

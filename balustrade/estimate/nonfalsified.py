@@ -1,0 +1,84 @@
+"""The non-falsified parameter set Δ_k of (4.7) (SPEC §2.19).
+
+For the model (4.6) ``x⁺ = A₀x + B₀u + D(x, u)θ + Ew`` and ``W = {H_w w <= h_w}``, one
+transition ``(x_{k−1}, u_{k−1}) → x_k`` leaves the parameters that explain it with some
+``w ∈ W``::
+
+    Δ_k = {θ : −H_w E⁻¹ D(x_{k−1}, u_{k−1}) θ <= h_w − H_w E⁻¹ (x_k − A₀x_{k−1} − B₀u_{k−1})}
+
+(``E = I`` in (4.7); an invertible ``E`` is folded into ``H_w``). Δ_k is a polyhedron, often
+unbounded (``D`` has rank at most ``min(n, q)``), so it is returned as half-spaces, not as a
+:class:`~balustrade.dsl.sets.Polytope` (which must be non-empty).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.dsl.sets import Polytope
+from balustrade.dsl.system_parametric import ParametricLinearSystem
+from balustrade.errors import BalustradeError, ShapeError
+
+#: a row of Δ_k whose θ-coefficients are below this (relative to the data) carries no
+#: information on θ: it is dropped if satisfied, kept (and makes Δ_k empty) if violated
+_ZERO_ROW = 1e-13
+
+
+@dataclass(frozen=True)
+class HalfSpaces:
+    """``{θ : H θ <= h}``, possibly empty or unbounded; ``H`` may have zero rows (all θ)."""
+
+    H: np.ndarray
+    h: np.ndarray
+
+    @property
+    def dim(self) -> int:
+        return int(self.H.shape[1])
+
+    def contains(self, theta: np.ndarray, tol: float = 1e-9) -> bool:
+        return bool(np.all(self.H @ theta - self.h <= tol))
+
+    def intersect(self, other: Polytope | HalfSpaces) -> HalfSpaces:
+        """Rows stacked: ``other``'s first."""
+        return HalfSpaces(np.vstack([other.H, self.H]), np.concatenate([other.h, self.h]))
+
+
+def disturbance_rows(system: ParametricLinearSystem, W: Polytope) -> np.ndarray:
+    """``H_w E⁻¹``: the rows that test ``x⁺ − A₀x − B₀u − Dθ ∈ E W``; needs an invertible
+    (square) ``E`` so that the residual determines ``w``."""
+    if not isinstance(W, Polytope):
+        raise BalustradeError(f"{system.name}: W must be a Polytope or Box (the disturbance "
+                              f"set of (4.7)), got {type(W).__name__}")
+    if W.dim != system.nw:
+        raise ShapeError(f"{system.name}: W", f"dimension {system.nw} (nw)",
+                         f"dimension {W.dim}", what="")
+    E = system.E
+    if E.shape[0] != E.shape[1] or np.linalg.matrix_rank(E) < E.shape[0]:
+        raise BalustradeError(f"{system.name}: the set-membership update (4.7) needs an "
+                              f"invertible E (w determined by the residual), got E of shape "
+                              f"{E.shape} and rank {np.linalg.matrix_rank(E)}")
+    return np.linalg.solve(E.T, W.H.T).T
+
+
+def nonfalsified_set(system: ParametricLinearSystem, W: Polytope, x_prev: object,
+                     u_prev: object, x_next: object,
+                     Hw: np.ndarray | None = None) -> HalfSpaces:
+    """Δ_k of (4.7) from one transition; ``Hw`` = :func:`disturbance_rows` if precomputed."""
+    Hw = disturbance_rows(system, W) if Hw is None else Hw
+    x_prev = as_vector(x_prev, f"{system.name}: x_prev", system.nx)
+    u_prev = as_vector(u_prev, f"{system.name}: u_prev", system.nu)
+    x_next = as_vector(x_next, f"{system.name}: x_next", system.nx)
+    D = system.D(x_prev, u_prev)
+    r0 = x_next - system.affine_part(x_prev, u_prev)
+    H = -Hw @ D
+    h = W.h - Hw @ r0
+    scale = max(1.0, float(np.abs(Hw).max()) * max(1.0, float(np.abs(D).max())))
+    informative = np.abs(H).max(axis=1) > _ZERO_ROW * scale
+    keep = informative | (h < 0)
+    return HalfSpaces(H[keep], h[keep])
+
+
+__all__ = ["HalfSpaces", "disturbance_rows", "nonfalsified_set"]

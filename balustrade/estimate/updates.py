@@ -1,0 +1,210 @@
+"""The parameter-set updates of SPEC §2.19: exact (4.7), fixed shape (box), hypercube.
+
+* :class:`ExactUpdate`: ``Θ_k = Θ_{k−1} ∩ Δ_k``, a polytope whose rows grow with ``k``
+  (``prune=True`` removes redundant rows, one LP each);
+* :class:`FixedShapeUpdate`: ``Θ_k = {H_θ θ <= h_{θ,k}}`` with the rows of Θ₀ and
+  ``h_{θ,k}[r] = max {H_θ[r] θ : θ ∈ Θ_{k−1} ∩ Δ_k}``, one LP per row;
+  :class:`BoxUpdate` is the axis-aligned box (``2q`` LPs, the thesis' "2p" is a typo) used
+  in the §4.7 example;
+* :class:`HypercubeUpdate`: ``Θ_k = B_∞(θ̄_k, η_k)`` with the nesting-preserving centre of
+  SPEC §2.19 (:func:`hypercube_centre`); ``centre="naive"`` centres the cube on the bounding
+  box instead, which can leave Θ_{k−1} — the base loop then refuses it (not nested).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from balustrade._checks import as_scalar
+from balustrade.backends.lp import is_feasible, solve_lp
+from balustrade.backends.solution import Status
+from balustrade.dsl.sets import Box, Polytope
+from balustrade.dsl.system_parametric import ParametricLinearSystem
+from balustrade.errors import BalustradeError
+from balustrade.estimate.base import Proposal, SetEstimator, Transition, require_box
+from balustrade.estimate.records import UpdateStatus
+
+#: outward margin added to every LP bound before clipping to Θ_{k−1}: θ* on the boundary of
+#: Δ_k (a vertex disturbance) must not be cut off by the LP's rounding
+MARGIN = 1e-9
+
+
+def _falsified(lps: int) -> Proposal:
+    return Proposal(None, lps, UpdateStatus.FALSIFIED,
+                    "Δ_k ∩ Θ_{k−1} is empty: the transition is inconsistent with W and "
+                    "Θ_{k−1} (model falsified); Θ_{k−1} kept")
+
+
+def _failed(lps: int, status: Status, what: str) -> Proposal:
+    return Proposal(None, lps, UpdateStatus.FAILED,
+                    f"{what} ended {status.value}; Θ_{{k−1}} kept")
+
+
+class ExactUpdate(SetEstimator):
+    """``Θ_k = Θ_{k−1} ∩ Δ_k`` (exact update of SPEC §2.19); rows grow with ``k`` unless
+    ``prune`` removes the redundant ones."""
+
+    def __init__(self, system: ParametricLinearSystem, W: Polytope, Theta0: Polytope,
+                 prune: bool = False, name: str = "exact_update"):
+        super().__init__(system, W, Theta0, name=name)
+        self.prune = bool(prune)
+
+    def propose(self, Theta_prev: Polytope, data: Transition) -> Proposal:
+        both = data.delta.intersect(Theta_prev)
+        status = is_feasible(both.H, both.h)
+        if status is Status.INFEASIBLE:
+            return _falsified(1)
+        if status is not Status.OPTIMAL:
+            return _failed(1, status, "the feasibility LP of Δ_k ∩ Θ_{k−1}")
+        H, h, lps = both.H, both.h, 1
+        if self.prune:
+            H, h, extra = remove_redundant(H, h, keep=0)
+            lps += extra
+        return Proposal(Polytope(H, h, name=f"Theta_{self.k + 1}"), lps)
+
+
+def remove_redundant(H: np.ndarray, h: np.ndarray, keep: int = 0,
+                     tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray, int]:
+    """Drop rows ``r >= keep`` implied by the others: ``max {H_r θ : other rows,
+    H_r θ <= h_r + 1} <= h_r + tol`` (one LP per candidate row). Returns ``(H, h, lps)``."""
+    rows = list(range(H.shape[0]))
+    lps = 0
+    for r in range(H.shape[0] - 1, keep - 1, -1):
+        others = [i for i in rows if i != r]
+        Hr = np.vstack([H[others], H[r]])
+        hr = np.concatenate([h[others], [h[r] + 1.0]])
+        res = solve_lp(H[r], Hr, hr)
+        lps += 1
+        if res.status is Status.OPTIMAL and res.value <= h[r] + tol:
+            rows = others
+    return H[rows], h[rows], lps
+
+
+class FixedShapeUpdate(SetEstimator):
+    """``Θ_k = {H_θ θ <= h_{θ,k}}`` with ``H_θ`` the rows of Θ₀ and
+    ``h_{θ,k}[r] = max {H_θ[r] θ : θ ∈ Θ_{k−1} ∩ Δ_k}`` (one LP per row), clipped to
+    ``h_{θ,k−1}`` so that nesting holds exactly."""
+
+    def __init__(self, system: ParametricLinearSystem, W: Polytope, Theta0: Polytope,
+                 margin: float = MARGIN, name: str = "fixed_shape_update"):
+        super().__init__(system, W, Theta0, name=name)
+        self.margin = as_scalar(margin, f"{name}: margin", low=0.0)
+
+    def _support_bounds(self, Theta_prev: Polytope,
+                        data: Transition) -> tuple[np.ndarray | None, Proposal | None]:
+        """``max H_θ[r] θ`` over ``Θ_{k−1} ∩ Δ_k`` for every row of Θ₀ (or a refusal)."""
+        both = data.delta.intersect(Theta_prev)
+        rows = self.Theta0.H
+        out = np.empty(rows.shape[0])
+        for r, a in enumerate(rows):
+            res = solve_lp(a, both.H, both.h)
+            if res.status is Status.INFEASIBLE:
+                return None, _falsified(r + 1)
+            if res.status is not Status.OPTIMAL:
+                return None, _failed(r + 1, res.status, f"the LP of row {r}")
+            out[r] = res.value
+        return out, None
+
+    def _previous_h(self, Theta_prev: Polytope) -> np.ndarray:
+        """``h_{θ,k−1}`` in the row order of Θ₀ (Θ_{k−1} has the same rows)."""
+        return Theta_prev.h
+
+    def propose(self, Theta_prev: Polytope, data: Transition) -> Proposal:
+        bounds, refusal = self._support_bounds(Theta_prev, data)
+        if refusal is not None:
+            return refusal
+        h = np.minimum(bounds + self.margin, self._previous_h(Theta_prev))
+        return Proposal(self._make(h), lps=len(bounds))
+
+    def _make(self, h: np.ndarray) -> Polytope:
+        return Polytope(self.Theta0.H, h, name=f"Theta_{self.k + 1}")
+
+
+class BoxUpdate(FixedShapeUpdate):
+    """The fixed-shape update with an axis-aligned box: ``2q`` LPs per step (SPEC §2.19
+    [Default] for the §4.7 example); Θ_k is a :class:`~balustrade.dsl.sets.Box`."""
+
+    def __init__(self, system: ParametricLinearSystem, W: Polytope, Theta0: Box,
+                 margin: float = MARGIN, name: str = "box_update"):
+        super().__init__(system, W, require_box(Theta0, name), margin=margin, name=name)
+
+    def _previous_h(self, Theta_prev: Polytope) -> np.ndarray:
+        box = require_box(Theta_prev, self.name)
+        return np.concatenate([box.ub, -box.lb])
+
+    def _make(self, h: np.ndarray) -> Box:
+        q = self.system.q
+        ub, lb = h[:q], -h[q:]
+        lb = np.minimum(lb, ub)  # LP rounding on a flat set
+        return Box(lb, ub, name=f"Theta_{self.k + 1}")
+
+
+def hypercube_centre(lo: np.ndarray, hi: np.ndarray, centre_prev: np.ndarray,
+                     eta_prev: float, rule: str = "nested") -> tuple[np.ndarray, float]:
+    """Centre and half-width ``(θ̄_k, η_k)`` of the hypercube update of SPEC §2.19 from the
+    bounding box ``[lo, hi]`` of ``Θ_{k−1} ∩ Δ_k`` and ``Θ_{k−1} = B_∞(θ̄_{k−1}, η_{k−1})``.
+
+    ``η_k = max_j (hi_j − lo_j)/2``; ``rule="nested"`` picks, per coordinate, the point of
+    ``[hi_j − η_k, lo_j + η_k] ∩ [θ̄_{k−1,j} − η_{k−1} + η_k, θ̄_{k−1,j} + η_{k−1} − η_k]``
+    (non-empty when ``[lo, hi] ⊆ Θ_{k−1}``) nearest the box's midpoint: the cube contains
+    ``[lo, hi]`` and lies in Θ_{k−1}. ``rule="naive"`` takes the midpoint itself, which
+    contains ``[lo, hi]`` but can leave Θ_{k−1}."""
+    mid = 0.5 * (lo + hi)
+    eta = float(np.max(hi - lo)) / 2.0
+    if rule == "naive":
+        return mid, eta
+    if rule != "nested":
+        raise BalustradeError(f"hypercube_centre: rule must be 'nested' or 'naive', got "
+                              f"{rule!r}")
+    eta = min(eta, float(eta_prev))
+    a = np.maximum(hi - eta, centre_prev - eta_prev + eta)
+    b = np.minimum(lo + eta, centre_prev + eta_prev - eta)
+    b = np.maximum(a, b)  # rounding only: the interval is non-empty in exact arithmetic
+    return np.clip(mid, a, b), eta
+
+
+class HypercubeUpdate(SetEstimator):
+    """``Θ_k = B_∞(θ̄_k, η_k)``: bounding box of ``Θ_{k−1} ∩ Δ_k`` (``2q`` LPs), then the
+    centre of :func:`hypercube_centre`. Θ₀ must be a cube."""
+
+    def __init__(self, system: ParametricLinearSystem, W: Polytope, Theta0: Box,
+                 centre: str = "nested", margin: float = MARGIN,
+                 name: str = "hypercube_update"):
+        box = require_box(Theta0, name)
+        widths = box.ub - box.lb
+        if not np.allclose(widths, widths[0], rtol=1e-12, atol=0.0):
+            raise BalustradeError(f"{name}: Theta0 must be a hypercube (equal widths) for the "
+                                  f"hypercube update, got widths {widths.tolist()}")
+        if centre not in ("nested", "naive"):
+            raise BalustradeError(f"{name}: centre must be 'nested' or 'naive', got "
+                                  f"{centre!r}")
+        super().__init__(system, W, box, name=name)
+        self.centre = centre
+        self.margin = as_scalar(margin, f"{name}: margin", low=0.0)
+
+    def propose(self, Theta_prev: Polytope, data: Transition) -> Proposal:
+        prev = require_box(Theta_prev, self.name)
+        both = data.delta.intersect(prev)
+        q = self.system.q
+        lo, hi = np.empty(q), np.empty(q)
+        lps = 0
+        for j in range(q):
+            e = np.eye(q)[j]
+            for maximize, out in ((True, hi), (False, lo)):
+                res = solve_lp(e, both.H, both.h, maximize=maximize)
+                lps += 1
+                if res.status is Status.INFEASIBLE:
+                    return _falsified(lps)
+                if res.status is not Status.OPTIMAL:
+                    return _failed(lps, res.status, f"the bound LP of θ_{j + 1}")
+                out[j] = res.value
+        lo = np.maximum(lo - self.margin, prev.lb)
+        hi = np.minimum(hi + self.margin, prev.ub)
+        centre_prev = 0.5 * (prev.lb + prev.ub)
+        eta_prev = float(np.max(prev.ub - prev.lb)) / 2.0
+        c, eta = hypercube_centre(lo, hi, centre_prev, eta_prev, rule=self.centre)
+        return Proposal(Box(c - eta, c + eta, name=f"Theta_{self.k + 1}"), lps)
+
+
+__all__ = ["BoxUpdate", "ExactUpdate", "FixedShapeUpdate", "HypercubeUpdate",
+           "hypercube_centre", "remove_redundant"]
