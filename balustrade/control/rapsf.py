@@ -21,9 +21,10 @@ Parameter-set updates (Assumption 4.2): any ``estimator`` with
 ``update(x_prev, u_prev, x) -> Θ`` (a :class:`~balustrade.dsl.sets.Polytope`; e.g. the
 set-membership estimators of :mod:`balustrade.estimate`). A new set is accepted only if it is
 nested in the current one (its vertices inside ``Θ_{k−1}``; else ``"theta_not_nested"`` and
-``Θ_{k−1}`` is kept). An estimator that raises :class:`~balustrade.errors.EmptySetError` or
-returns ``None`` has falsified every model in ``Θ``: the status ``"model_falsified"`` is
-recorded and the backup policy is applied from then on.
+``Θ_{k−1}`` is kept). An estimator that raises :class:`~balustrade.errors.EmptySetError`,
+returns ``None`` or records the status ``"falsified"`` as the last entry of its ``history``
+(:class:`balustrade.estimate.SetEstimator`) has falsified every model in ``Θ``: the status
+``"model_falsified"`` is recorded and the backup policy is applied from then on.
 
 Vertex data: on a CasADi target the vertices of ``Θ_k`` and the constants ``s_jr`` are
 parameters of one compiled problem per horizon (no recompile when ``Θ_k`` changes; fewer
@@ -112,8 +113,9 @@ class RAPSF:
             new = self.estimator.update(self._prev[0], self._prev[1], x)
         except EmptySetError:
             new = None
-        if new is None:
-            self.falsified = True
+        history = getattr(self.estimator, "history", None)
+        if new is None or (history and str(getattr(history[-1], "status", "")) == "falsified"):
+            self.falsified = True                   # Δ_k ∩ Θ_{k−1} = ∅: no θ explains x_k
             return
         check_instance(new, Polytope, f"{self.name}: estimator.update result")
         if not np.all(self.Theta.contains_many(np.atleast_2d(new.vertices()), tol=1e-9)):
