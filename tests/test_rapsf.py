@@ -1,8 +1,6 @@
 """The homothetic-tube RAPSF (thesis Chapter 4, SPEC §2.18, §2.20, §2.21) on a 2-state toy
-with two uncertain parameters (spring and damping of a discretized mass), Θ₀ a box.
-
-The parametric model is a local stand-in with the attributes of
-``balustrade.dsl.system_parametric.ParametricLinearSystem`` (``A0, A_list, B0, B_list``)."""
+with two uncertain parameters (spring and damping of a discretized mass), Θ₀ a box, and
+a short run of the 3-mass chain of §4.7; parameter sets from ``estimate.BoxUpdate``."""
 
 from __future__ import annotations
 
@@ -11,7 +9,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import scipy.optimize
 
 from balustrade.backends import compile
 from balustrade.control.rapsf import RAPSF
@@ -24,7 +21,10 @@ from balustrade.design.rapsf import (
     robust_gain,
 )
 from balustrade.dsl.sets import Box, Polytope
+from balustrade.dsl.system_parametric import ParametricLinearSystem
 from balustrade.errors import BalustradeError, ShapeError
+from balustrade.estimate import BoxUpdate
+from balustrade.models.msd import msd_chain, msd_performance, msd_setup
 from balustrade.problems.rapsf import (
     TerminalSet,
     joint_constraints,
@@ -37,12 +37,11 @@ from balustrade.problems.rapsf import (
 N = 8
 
 
-def _system() -> SimpleNamespace:
-    return SimpleNamespace(A0=np.array([[1.0, 0.1], [0.0, 1.0]]),
-                           A_list=[np.array([[0.0, 0.0], [-0.1, 0.0]]),
+def _system() -> ParametricLinearSystem:
+    return ParametricLinearSystem(np.array([[1.0, 0.1], [0.0, 1.0]]),
+                                  [np.array([[0.0, 0.0], [-0.1, 0.0]]),
                                    np.array([[0.0, 0.0], [0.0, -0.1]])],
-                           B0=np.array([[0.0], [0.1]]), B_list=[np.zeros((2, 1))] * 2,
-                           nx=2, nu=1, q=2)
+                                  np.array([[0.0], [0.1]]), None, name="toy")
 
 
 @pytest.fixture(scope="module")
@@ -151,8 +150,8 @@ def test_checks_reject_bad_designs(toy):
 
 
 def test_bad_input_names_argument(toy):
-    bad = _system()
-    bad.A_list = [np.eye(3), np.eye(2)]
+    bad = SimpleNamespace(A0=np.eye(2), A_list=[np.eye(3), np.eye(2)], B0=np.ones((2, 1)),
+                          B_list=[np.zeros((2, 1))] * 2)
     with pytest.raises(ShapeError, match="A_list"):
         rapsf_problem(bad, toy.X0, toy.F, toy.G, toy.W, toy.K, N)
     with pytest.raises(BalustradeError, match="Theta0"):
@@ -162,35 +161,10 @@ def test_bad_input_names_argument(toy):
 
 
 # -- Algorithm 4.1 ------------------------------------------------------------------------------
-class BoxEstimator:
-    """Fixed-shape box update (SPEC §2.19), 2q LPs: a test stand-in for balustrade.estimate."""
-
-    def __init__(self, sys_: SimpleNamespace, W: Box, Theta: Box):
-        self.sys, self.W, self.T = sys_, W, Theta
-
-    def update(self, xp, up, x):
-        D = np.column_stack([A @ xp + B @ up for A, B in zip(self.sys.A_list, self.sys.B_list)])
-        r = x - self.sys.A0 @ xp - self.sys.B0 @ up
-        A_ub = np.vstack([-self.W.H @ D, self.T.H])
-        b_ub = np.concatenate([self.W.h - self.W.H @ r, self.T.h])
-        q = D.shape[1]
-        lo, hi = [], []
-        for i in range(q):
-            c = np.eye(q)[i]
-            a = scipy.optimize.linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * q)
-            b = scipy.optimize.linprog(-c, A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * q)
-            if a.status != 0 or b.status != 0:
-                return None
-            lo.append(a.fun)
-            hi.append(-b.fun)
-        self.T = Box(np.minimum(lo, hi), np.maximum(lo, hi))
-        return self.T
-
-
 def _run(t, theta_star, seed, steps=25, target="exact", vertex_w=False, shrinking=False):
     rng = np.random.default_rng(seed)
     ctrl = RAPSF(t.sys, t.X0, t.F, t.G, t.W, t.K, N, t.Theta0,
-                 estimator=BoxEstimator(t.sys, t.W, t.Theta0), target=target,
+                 estimator=BoxUpdate(t.sys, t.W, t.Theta0), target=target,
                  shrinking=shrinking)
     A, B = model_matrices(t.sys, theta_star)
     x = np.array([0.9, 0.2])
@@ -285,3 +259,42 @@ def test_vertex_padding_keeps_one_compiled_problem(toy):
     u, info = ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
     assert info.fallback is None and len(ctrl._compiled) == 1
     assert list(itertools.islice(ctrl._compiled, 1))[0] == (N, 4)
+
+
+def test_falsified_by_data_outside_theta0(toy):
+    """θ* outside Θ₀: the estimator finds Δ_k ∩ Θ_{k−1} empty; the filter says so and uses
+    the backup policy."""
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
+                 estimator=BoxUpdate(toy.sys, toy.W, toy.Theta0))
+    A, B = model_matrices(toy.sys, np.array([4.0, 2.0]))
+    x, statuses = np.array([0.5, 0.3]), []
+    for _ in range(4):
+        u, info = ctrl.step(x, np.array([0.0]))
+        statuses.append(info.status)
+        x = A @ x + B @ u
+    assert "model_falsified" in statuses and ctrl.falsified
+    assert info.fallback == "backup"
+
+
+def test_msd_three_masses_short_run():
+    """§4.7 chain, 3 masses: design by LMI + contractive polytope, 20 steps of the aggressive
+    controller with the box update; (x, u) ∈ 𝒵 and θ* ∈ Θ_k ⊆ Θ_{k−1}."""
+    sys_, st = msd_chain(3), msd_setup(3)
+    V = st.Theta0.vertices()
+    F, G = joint_constraints(st.X, st.U)
+    K = robust_gain(sys_, V, contraction=0.95)
+    X0 = contractive_polytope(sys_, K, V, st.W, F, G)
+    assert check_assumption_4_11(sys_, X0, st.W, K, V, F, G)
+    rng = np.random.default_rng(5)
+    theta = st.sample_theta(rng)
+    ctrl = RAPSF(sys_, X0, F, G, st.W, K, st.N, st.Theta0,
+                 estimator=BoxUpdate(sys_, st.W, st.Theta0), target="fast-convex")
+    x, prev = st.x0.copy(), st.Theta0
+    for k in range(20):
+        u, info = ctrl.step(x, msd_performance(k, x, 3))
+        assert np.all(F @ x + G @ u <= 1 + 1e-6), k
+        assert ctrl.Theta.contains(theta, tol=1e-7)
+        assert np.all(prev.contains_many(ctrl.Theta.vertices(), tol=1e-9))
+        prev = ctrl.Theta
+        x = sys_.step(x, u, theta, rng.uniform(-1e-3, 1e-3, 6))
+    assert np.prod(prev.ub - prev.lb) < np.prod(st.Theta0.ub - st.Theta0.lb)

@@ -25,6 +25,7 @@ from balustrade.problems.rapsf import (
     TerminalSet,
     check_parametric_system,
     closed_loop_matrices,
+    disturbance_map,
     model_matrices,
     robust_gain_sdp,
     tube_constants,
@@ -86,7 +87,8 @@ def contractive_box(system: object, K: np.ndarray, vertices: np.ndarray, W: Poly
         raise BalustradeError(f"contractive_box: max_j |A_cl(θ^j)| has spectral radius "
                               f"{lam:.4g} >= 1: no λ-contractive box for this K (use a "
                               "polytope 𝕏₀ or another K)")
-    w_bar = np.array([W.support(np.eye(n)[i]) for i in range(n)])
+    E = disturbance_map(system, n)
+    w_bar = np.array([W.support(E[i]) for i in range(n)])
     c_min = float(np.max(w_bar / ((1 - lam) * b)))
     FGK = F + G @ K
     t_unit = np.abs(FGK) @ b
@@ -131,7 +133,8 @@ def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W:
                               f"after {max_sweeps} sweeps ({H.shape[0]} rows); try a "
                               "larger lam")
     X0 = _prune(Polytope(H, np.ones(H.shape[0]), name="X0"), tol)
-    w_bar = np.array([W.support(row) for row in X0.H])
+    E = disturbance_map(system, n)
+    w_bar = np.array([W.support(row @ E) for row in X0.H])
     if np.any(w_bar > 1 - lam):
         raise BalustradeError(f"contractive_polytope: W is too large: max_r w̄_r = "
                               f"{w_bar.max():.4g} > 1 − λ = {1 - lam:.4g}; 𝕏₀ ⊆ 𝒵 is not RPI")

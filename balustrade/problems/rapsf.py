@@ -4,8 +4,8 @@ Chapter 4, SPEC §2.18 and §2.20).
 Dynamics affine in the parameter (4.6): ``x⁺ = A(θ)x + B(θ)u + w`` with
 ``A(θ) = A₀ + Σ_j θ_j A_j``, ``B(θ) = B₀ + Σ_j θ_j B_j``; any object with the attributes
 ``A0, A_list, B0, B_list`` (e.g. :class:`balustrade.dsl.system_parametric.ParametricLinearSystem`)
-is accepted. Tubes ``{z_i} ⊕ α_i 𝕏₀`` with ``𝕏₀ = {H_X x <= 1}`` and tube law ``κ(x, v) = Kx + v``;
-joint constraints ``𝒵 = {Fx + Gu <= 1}``.
+is accepted (``x⁺ = … + E w`` when it has ``E``). Tubes ``{z_i} ⊕ α_i 𝕏₀`` with
+``𝕏₀ = {H_X x <= 1}`` and tube law ``κ(x, v) = Kx + v``; joint constraints ``𝒵 = {Fx + Gu <= 1}``.
 
 * :func:`joint_constraints` — ``(F, G)`` of ``X × U`` normalized to right-hand side ``1``;
 * :func:`tube_constants` — the support-function constants ``w̄_r``, ``s_jr``, ``t_r`` of
@@ -61,6 +61,12 @@ def check_parametric_system(system: object, where: str) -> tuple[int, int, int]:
         as_matrix(Aj, f"{where}: A_list[{j}]", (n, n))
         as_matrix(Bj, f"{where}: B_list[{j}]", (n, m))
     return n, m, len(A_list)
+
+
+def disturbance_map(system: object, n: int) -> np.ndarray:
+    """``E`` of ``x⁺ = A(θ)x + B(θ)u + E w`` (``I`` when the system has none)."""
+    E = getattr(system, "E", None)
+    return np.eye(n) if E is None else as_matrix(E, "disturbance_map: E", (n, None))
 
 
 def model_matrices(system: object, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -140,7 +146,8 @@ def tube_constants(X0: Polytope, W: Polytope, system: object, K: np.ndarray,
     """All constants of SPEC §2.20 for the vertices ``θ^j`` (rows of ``vertices``)."""
     HX = unit_polytope(X0, "tube_constants")
     check_instance(W, Polytope, "tube_constants: W")
-    w_bar = np.array([W.support(row) for row in HX])
+    E = disturbance_map(system, HX.shape[1])
+    w_bar = np.array([W.support(row @ E) for row in HX])
     FGK = F + G @ K
     t = np.array([X0.support(row) for row in FGK])
     return TubeConstants(HX, w_bar, s_constants(X0, system, K, vertices), t)
@@ -179,9 +186,10 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W:
     G = as_matrix(G, f"{name}: G", (F.shape[0], m))
     HX = unit_polytope(X0, name)
     check_instance(W, Polytope, f"{name}: W")
-    if W.dim != n:
-        raise ShapeError(f"{name}: W", f"dimension {n}", f"dimension {W.dim}")
-    w_bar = np.array([W.support(row) for row in HX])
+    E = disturbance_map(system, n)
+    if W.dim != E.shape[1]:
+        raise ShapeError(f"{name}: W", f"dimension {E.shape[1]}", f"dimension {W.dim}")
+    w_bar = np.array([W.support(row @ E) for row in HX])                 # w̄_r
     t = np.array([X0.support(row) for row in F + G @ K])
     ocp = OCP(None, N, name=name)
     z = ocp.variable("z", n, N + 1, role="state")
@@ -272,6 +280,7 @@ def robust_gain_sdp(system: object, vertices: np.ndarray, contraction: float = 0
 
 
 __all__ = ["TerminalSet", "TubeConstants", "check_parametric_system",
-           "closed_loop_matrices", "joint_constraints", "model_matrices", "parameter_vertices",
+           "closed_loop_matrices", "disturbance_map", "joint_constraints", "model_matrices",
+           "parameter_vertices",
            "rapsf_problem", "robust_gain_sdp", "s_constants", "tube_constants",
            "unit_polytope"]
