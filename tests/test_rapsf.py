@@ -128,6 +128,8 @@ def test_constants_are_support_functions(toy):
         assert np.allclose(c.s[:, j], np.max(c.HX @ (A + B @ toy.K) @ xv.T, axis=1), atol=1e-7)
     assert np.allclose(c.t, np.max((toy.F + toy.G @ toy.K) @ xv.T, axis=1), atol=1e-7)
     assert np.allclose(c.w_bar, np.max(c.HX @ toy.W.vertices().T, axis=1))
+    by_vertices = s_constants(toy.X0, toy.sys, toy.K, toy.V, X0_vertices=xv)
+    assert np.allclose(by_vertices, c.s, atol=1e-7)                  # LPs == vertex maxima
 
 
 # -- offline design and Assumption 4.11 -------------------------------------------------------

@@ -87,6 +87,7 @@ class RAPSF:
         self.target = resolve_target(target)
         self.parametric = self.target.backend == "casadi"
         self._n_compiled = len(Theta0.vertices())
+        self._X0_vertices = _small_vertices(X0)
         self._compiled: dict = {}
         self.reset()
 
@@ -103,7 +104,7 @@ class RAPSF:
     def _set_theta(self, Theta: Polytope) -> None:
         self.Theta = Theta
         self.vertices = np.atleast_2d(Theta.vertices())
-        self._s = s_constants(self.X0, self.system, self.K, self.vertices)
+        self._s = s_constants(self.X0, self.system, self.K, self.vertices, self._X0_vertices)
 
     def _update_theta(self, x: np.ndarray, info: StepInfo) -> None:
         """Line 4 of Algorithm 4.1 with the nesting check of Assumption 4.2."""
@@ -198,6 +199,17 @@ class RAPSF:
     def _backup(self, x: np.ndarray, u_p: np.ndarray) -> np.ndarray:
         x_safe = np.where(np.isfinite(x), x, 0.0)
         return np.asarray(self.backup(x_safe, u_p, self.k), dtype=float).reshape(self.m)
+
+
+def _small_vertices(X0: Polytope, max_dim: int = 6) -> np.ndarray | None:
+    """The vertices of ``𝕏₀`` when it is small enough to enumerate once (then ``s_jr`` is a
+    matrix product per update instead of ``n_X · n_θ`` LPs); else ``None`` (LPs)."""
+    if X0.dim > max_dim:
+        return None
+    try:
+        return np.atleast_2d(X0.vertices())
+    except BalustradeError:
+        return None
 
 
 __all__ = ["RAPSF"]

@@ -132,13 +132,26 @@ class TubeConstants:
     t: np.ndarray
 
 
-def s_constants(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarray
-                ) -> np.ndarray:
-    """``s[r, j]`` (one LP per row and vertex; closed form for a box ``𝕏₀``); recompute
-    whenever the vertices of ``Θ_k`` change."""
+def support_rows(X0: Polytope, D: np.ndarray, X0_vertices: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """``max_{x∈𝕏₀} d_r x`` for every row ``d_r`` of ``D``: one LP per row, in closed form
+    for a :class:`~balustrade.dsl.sets.Box`, or as ``max_v d_r x^v`` over the vertices of
+    ``𝕏₀`` when they were enumerated once (``X0_vertices``, rows; same values, a matrix
+    product instead of LPs — the per-step update of ``s`` for small ``n``)."""
+    D = np.atleast_2d(np.asarray(D, dtype=float))
+    if X0_vertices is not None:
+        return np.max(D @ np.asarray(X0_vertices, dtype=float).T, axis=1)
+    return np.array([X0.support(row) for row in D])
+
+
+def s_constants(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarray,
+                X0_vertices: np.ndarray | None = None) -> np.ndarray:
+    """``s[r, j]`` (one LP per row and vertex, closed form for a box ``𝕏₀``, or over the
+    enumerated vertices of ``𝕏₀``, :func:`support_rows`); recompute whenever the vertices of
+    ``Θ_k`` change."""
     HX = unit_polytope(X0, "s_constants")
     Acls = closed_loop_matrices(system, K, vertices)
-    return np.array([[X0.support(HX[r] @ Acl) for Acl in Acls] for r in range(HX.shape[0])])
+    return np.column_stack([support_rows(X0, HX @ Acl, X0_vertices) for Acl in Acls])
 
 
 def tube_constants(X0: Polytope, W: Polytope, system: object, K: np.ndarray,
@@ -282,5 +295,5 @@ def robust_gain_sdp(system: object, vertices: np.ndarray, contraction: float = 0
 __all__ = ["TerminalSet", "TubeConstants", "check_parametric_system",
            "closed_loop_matrices", "disturbance_map", "joint_constraints", "model_matrices",
            "parameter_vertices",
-           "rapsf_problem", "robust_gain_sdp", "s_constants", "tube_constants",
+           "rapsf_problem", "robust_gain_sdp", "s_constants", "support_rows", "tube_constants",
            "unit_polytope"]
