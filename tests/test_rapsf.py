@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 from types import SimpleNamespace
 
+import casadi as ca
 import numpy as np
 import pytest
 
@@ -112,6 +113,18 @@ def test_solution_meets_vertex_conditions_by_brute_force(toy):
         assert sol.status == "optimal"
         tube, cons = _worst_tube_violation(toy, sol, Theta, rng)
         assert tube <= 1e-6 and cons <= 1e-6, (tube, cons)
+    # random feasible points with tight tubes: min Σα_i + a random linear term in (z, v)
+    for seed in range(2):
+        c = np.random.default_rng(seed).normal(size=(2, 2 * N + 1))
+        tight = rapsf_problem(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N)
+        z, a, v = (tight.variables[k].sym for k in ("z", "alpha", "v"))
+        tight.minimize(ca.sum2(a) + 0.01 * (ca.dot(ca.DM(c[:, :N + 1]), z)
+                                            + ca.dot(ca.DM(c[:1, N + 1:]), v)))
+        sol = compile(tight, "exact").solve({"x0": np.array([0.4, -0.2]),
+                                             "u_p": np.array([0.0]), "theta": V.T, "s": s})
+        assert sol.status == "optimal"
+        tube, cons = _worst_tube_violation(toy, sol, Theta, rng)
+        assert -1e-3 < tube <= 1e-6 and cons <= 1e-6, (tube, cons)       # tight, and inside
     # negative control: a support constant too small by 40 % breaks containment
     bad = solver.solve({"x0": np.array([0.8, 0.3]), "u_p": np.array([3.0]),
                         "theta": V.T, "s": 0.6 * s})
