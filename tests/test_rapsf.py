@@ -313,3 +313,16 @@ def test_msd_three_masses_short_run():
         prev = ctrl.Theta
         x = sys_.step(x, u, theta, rng.uniform(-1e-3, 1e-3, 6))
     assert np.prod(prev.ub - prev.lb) < np.prod(st.Theta0.ub - st.Theta0.lb)
+
+
+@pytest.mark.slow
+def test_fifty_seeded_runs_keep_constraints(toy):
+    """50 seeded runs: θ* at a vertex of Θ₀ (every other run) or uniform in Θ₀, vertex or
+    uniform disturbances; (x, u) ∈ 𝒵 at every step and θ* ∈ Θ_k ⊆ Θ_{k−1} (in :func:`_run`)."""
+    corners = toy.Theta0.vertices()
+    for seed in range(50):
+        rng = np.random.default_rng(1000 + seed)
+        theta = (corners[seed % len(corners)] if seed % 2 == 0
+                 else rng.uniform(toy.Theta0.lb, toy.Theta0.ub))
+        _, worst, _ = _run(toy, theta, seed, steps=30, vertex_w=seed % 3 == 0)
+        assert worst <= 1e-6, seed
