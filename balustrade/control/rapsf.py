@@ -147,7 +147,8 @@ class RAPSF:
 
     def _problem(self, horizon: int, **vertex_data: object) -> object:
         return rapsf_problem(self.system, self.X0, self.F, self.G, self.W, self.K, horizon,
-                             terminal=self.terminal, name=f"{self.name}_N{horizon}",
+                             terminal=self.terminal, X0_vertices=self._X0_vertices,
+                             name=f"{self.name}_N{horizon}",
                              **vertex_data)
 
     # -- Algorithm 4.1 --------------------------------------------------------------------------

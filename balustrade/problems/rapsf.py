@@ -179,7 +179,7 @@ class TerminalSet:
 def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W: Polytope,
                   K: np.ndarray, N: int, n_vertices: int | None = None,
                   vertices: np.ndarray | None = None, terminal: TerminalSet | None = None,
-                  name: str = "rapsf") -> OCP:
+                  X0_vertices: np.ndarray | None = None, name: str = "rapsf") -> OCP:
     """(4.5) with homothetic tubes (SPEC §2.20):
 
     ``min ‖u_p − (K x_k + v_0)‖²`` over ``z (n × N+1)``, ``alpha (1 × N+1) >= 0``, ``v (m × N)``
@@ -191,6 +191,8 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W:
     the vertices of ``Θ_k`` as columns; ``n_θ = n_vertices``, default ``2^q`` for a box) and
     ``s`` (``n_X × n_θ``, :func:`s_constants`). With numeric ``vertices`` (rows) they are
     constants. The Remark 4.6 variant is this problem with the shrunk horizon ``N − k_inf``.
+    ``X0_vertices`` (optional, the vertices of ``𝕏₀`` as rows) replaces the LPs of the
+    constants by maxima over them (:func:`support_rows`).
     """
     n, m, q = check_parametric_system(system, name)
     N = check_horizon(N, name)
@@ -203,7 +205,7 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W:
     if W.dim != E.shape[1]:
         raise ShapeError(f"{name}: W", f"dimension {E.shape[1]}", f"dimension {W.dim}")
     w_bar = np.array([W.support(row @ E) for row in HX])                 # w̄_r
-    t = np.array([X0.support(row) for row in F + G @ K])
+    t = support_rows(X0, F + G @ K, X0_vertices)
     ocp = OCP(None, N, name=name)
     z = ocp.variable("z", n, N + 1, role="state")
     alpha = ocp.variable("alpha", 1, N + 1, lb=0.0)
@@ -222,7 +224,7 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W:
         if V.shape[1] != q:
             raise ShapeError(f"{name}: vertices", f"rows of length q = {q}", V.shape)
         thetas = [ca.DM(th) for th in V]
-        s = ca.DM(s_constants(X0, system, K, V))
+        s = ca.DM(s_constants(X0, system, K, V, X0_vertices))
     A_j, B_j = _symbolic_models(system, thetas)
     H, Kd, Gd = ca.DM(HX), ca.DM(K), ca.DM(G)
     one = ca.DM.ones(HX.shape[0], 1)
