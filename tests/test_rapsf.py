@@ -171,6 +171,10 @@ def test_bad_input_names_argument(toy):
         rapsf_problem(bad, toy.X0, toy.F, toy.G, toy.W, toy.K, N)
     with pytest.raises(BalustradeError, match="Theta0"):
         RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, Box([0.0], [1.0]))
+    with pytest.raises(BalustradeError, match="not robustly invariant"):   # non-contractive
+        RAPSF(toy.sys, Box.symmetric(1e-3, 2), toy.F, toy.G, toy.W, toy.K, N, toy.Theta0)
+    with pytest.raises(BalustradeError, match="leaves"):
+        RAPSF(toy.sys, toy.X0, 10 * toy.F, 10 * toy.G, toy.W, toy.K, N, toy.Theta0)
     with pytest.raises(BalustradeError, match="affine in θ"):
         rapsf_problem(object(), toy.X0, toy.F, toy.G, toy.W, toy.K, N)
 

@@ -49,6 +49,7 @@ from balustrade.problems.rapsf import (
     check_parametric_system,
     rapsf_problem,
     s_constants,
+    tube_constants,
 )
 
 Backup = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
@@ -60,14 +61,16 @@ class RAPSF:
     ``system`` is affine in θ (``A0, A_list, B0, B_list``); ``X0`` the tube shape
     ``𝕏₀ = {H_X x <= h}`` (``h > 0``), ``(F, G)`` the joint constraints ``Fx + Gu <= 1``,
     ``W`` the disturbance polytope, ``K`` the tube gain, ``Theta0`` the initial parameter
-    set. ``values`` of each step: ``k_inf``, ``objective`` (of an optimal solve),
-    ``n_vertices`` (of ``Θ_k``)."""
+    set; with the default terminal set, ``X0`` must satisfy Assumption 4.11 for ``Θ₀``
+    (checked by LPs, else :class:`~balustrade.errors.BalustradeError`). ``values`` of each
+    step: ``k_inf``, ``objective`` (of an optimal solve), ``n_vertices`` (of ``Θ_k``)."""
 
     def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
                  W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
                  estimator: object | None = None, backup: Backup | None = None,
                  target: object = "exact", shrinking: bool = False,
-                 terminal: TerminalSet | None = None, name: str = "rapsf"):
+                 terminal: TerminalSet | None = None, tol: float = 1e-7,
+                 name: str = "rapsf"):
         self.n, self.m, self.q = check_parametric_system(system, name)
         self.N = check_horizon(N, name)
         self.K = as_matrix(K, f"{name}: K", (self.m, self.n))
@@ -89,7 +92,26 @@ class RAPSF:
         self._n_compiled = len(Theta0.vertices())
         self._X0_vertices = _small_vertices(X0)
         self._compiled: dict = {}
+        if terminal is None or terminal.H_T is None:
+            self._check_default_terminal(tol)
         self.reset()
+
+    def _check_default_terminal(self, tol: float) -> None:
+        """The §4.7 terminal set ``z = 0, 0 <= α <= 1`` needs ``A_cl(θ^j)𝕏₀ ⊕ W ⊆ 𝕏₀`` at
+        every vertex of ``Θ₀`` and ``(x, Kx) ∈ 𝒵`` on ``𝕏₀`` (Assumption 4.11, SPEC §2.20):
+        ``s_jr + w̄_r <= 1`` and ``t_r <= 1``; otherwise the guarantee is void, so refuse."""
+        c = tube_constants(self.X0, self.W, self.system, self.K, self.Theta0.vertices(),
+                           self.F, self.G)
+        rpi, cons = float(np.max(c.s + c.w_bar[:, None])), float(np.max(c.t))
+        if rpi > 1 + tol:
+            raise BalustradeError(f"{self.name}: X0 is not robustly invariant for K and W at "
+                                  f"the vertices of Theta0 (max_jr s_jr + w̄_r = {rpi:.4g} > 1):"
+                                  " the terminal set z = 0, α <= 1 is not safe (Assumption "
+                                  "4.11; see balustrade.design.rapsf.contractive_polytope)")
+        if cons > 1 + tol:
+            raise BalustradeError(f"{self.name}: (x, Kx) leaves 𝒵 on X0 (max_r t_r = "
+                                  f"{cons:.4g} > 1): the terminal set z = 0, α <= 1 is not "
+                                  "safe (Assumption 4.11)")
 
     def reset(self) -> None:
         """Back to ``k = 0``, ``Θ₀``, ``k_inf = N − 1`` and no stored plan."""
