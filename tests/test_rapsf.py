@@ -317,6 +317,8 @@ def test_msd_three_masses_short_run():
         prev = ctrl.Theta
         x = sys_.step(x, u, theta, rng.uniform(-1e-3, 1e-3, 6))
     assert np.prod(prev.ub - prev.lb) < np.prod(st.Theta0.ub - st.Theta0.lb)
+    ctrl.reset()                                             # back to Θ₀, estimator included
+    assert ctrl.Theta is st.Theta0 and ctrl.estimator.Theta is st.Theta0 and ctrl.plan is None
 
 
 @pytest.mark.slow

@@ -114,7 +114,10 @@ class RAPSF:
                                   "safe (Assumption 4.11)")
 
     def reset(self) -> None:
-        """Back to ``k = 0``, ``Θ₀``, ``k_inf = N − 1`` and no stored plan."""
+        """Back to ``k = 0``, ``Θ₀``, ``k_inf = N − 1`` and no stored plan (and the
+        estimator's own ``reset`` when it has one)."""
+        if callable(getattr(self.estimator, "reset", None)):
+            self.estimator.reset()
         self.k = 0
         self.k_inf = self.N - 1
         self.plan: np.ndarray | None = None
