@@ -5,6 +5,8 @@ from balustrade.control.fallbacks import project
 from balustrade.control.mpc import MPCController
 from balustrade.control.pcbf import PCBFSafetyFilter
 from balustrade.control.plant import ContinuousPlant
+from balustrade.control.rapsf import RAPSF
 
 __all__ = ["ContinuousPlant", "Controller", "MPCController", "PCBFSafetyFilter", "StepInfo",
            "Trace", "project", "simulate"]
+__all__ += ["RAPSF"]

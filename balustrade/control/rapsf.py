@@ -1,0 +1,241 @@
+"""Algorithm 4.1: the robust adaptive predictive safety filter with homothetic tubes (thesis
+Chapter 4, SPEC §2.21, with Remark 4.6 as an option).
+
+Per step: update ``Θ_k`` with the estimator (``k >= 1``), solve (4.5)
+(:func:`balustrade.problems.rapsf.rapsf_problem`) at ``(x_k, Θ_k)`` and apply
+``u_k = K x_k + v*_0``, storing the plan and setting ``k_inf = 0``. Otherwise
+(``k_inf ← k_inf + 1``):
+
+* ``k_inf <= N − 1`` and a stored plan: with ``shrinking=True`` (Remark 4.6) first solve (4.5)
+  with the horizon ``N − k_inf`` and apply its ``K x_k + v*_0`` (``"shrunk_horizon"``);
+  otherwise, or if that fails, the stored plan with tube feedback on the current state,
+  ``K x_k + v*_{k_inf | k − k_inf}`` (``"stored_plan"``);
+* else the backup policy ``π_Cf(x, u_p, k)`` (``"backup"``; default ``K x``, safe on the §4.7
+  terminal set ``z = 0, α <= 1``, i.e. on ``𝕏₀``).
+
+``k_inf`` starts at ``N − 1``, so a state in ``C_f \\ F_feas(Θ₀)`` uses the backup at once.
+Only a solve that ended ``optimal`` is used; any other status is recorded in
+``StepInfo.uncertified`` and handled as infeasible.
+
+Parameter-set updates (Assumption 4.2): any ``estimator`` with
+``update(x_prev, u_prev, x) -> Θ`` (a :class:`~balustrade.dsl.sets.Polytope`; e.g. the
+set-membership estimators of :mod:`balustrade.estimate`). A new set is accepted only if it is
+nested in the current one (its vertices inside ``Θ_{k−1}``; else ``"theta_not_nested"`` and
+``Θ_{k−1}`` is kept). An estimator that raises :class:`~balustrade.errors.EmptySetError`,
+returns ``None`` or records the status ``"falsified"`` as the last entry of its ``history``
+(:class:`balustrade.estimate.SetEstimator`) has falsified every model in ``Θ``: the status
+``"model_falsified"`` is recorded and the backup policy is applied from then on.
+
+Vertex data: on a CasADi target the vertices of ``Θ_k`` and the constants ``s_jr`` are
+parameters of one compiled problem per horizon (no recompile when ``Θ_k`` changes; fewer
+vertices than compiled are padded by repetition); on the convex targets (``"cvxpy"``,
+``"fast-convex"``) the problem is recompiled when the vertices change (their classify pass
+does not take parameters that multiply decision variables).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from balustrade._checks import as_matrix, check_horizon, check_instance
+from balustrade.backends import Solution, compile, resolve_target
+from balustrade.control.base import StepInfo, note_solve, outcome
+from balustrade.dsl.sets import Polytope
+from balustrade.errors import BalustradeError, EmptySetError
+from balustrade.problems.rapsf import (
+    TerminalSet,
+    check_parametric_system,
+    rapsf_problem,
+    s_constants,
+    tube_constants,
+)
+
+Backup = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
+
+
+class RAPSF:
+    """Algorithm 4.1 (SPEC §2.21) as a controller: ``step(x, u_p) -> (u, StepInfo)``.
+
+    ``system`` is affine in θ (``A0, A_list, B0, B_list``); ``X0`` the tube shape
+    ``𝕏₀ = {H_X x <= h}`` (``h > 0``), ``(F, G)`` the joint constraints ``Fx + Gu <= 1``,
+    ``W`` the disturbance polytope, ``K`` the tube gain, ``Theta0`` the initial parameter
+    set; with the default terminal set, ``X0`` must satisfy Assumption 4.11 for ``Θ₀``
+    (checked by LPs, else :class:`~balustrade.errors.BalustradeError`). ``values`` of each
+    step: ``k_inf``, ``objective`` (of an optimal solve), ``n_vertices`` (of ``Θ_k``)."""
+
+    def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
+                 W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
+                 estimator: object | None = None, backup: Backup | None = None,
+                 target: object = "exact", shrinking: bool = False,
+                 terminal: TerminalSet | None = None, tol: float = 1e-7,
+                 name: str = "rapsf"):
+        self.n, self.m, self.q = check_parametric_system(system, name)
+        self.N = check_horizon(N, name)
+        self.K = as_matrix(K, f"{name}: K", (self.m, self.n))
+        check_instance(Theta0, Polytope, f"{name}: Theta0")
+        if Theta0.dim != self.q:
+            raise BalustradeError(f"{name}: Theta0 has dimension {Theta0.dim}, the system "
+                                  f"has q = {self.q} parameters")
+        if estimator is not None and not callable(getattr(estimator, "update", None)):
+            raise BalustradeError(f"{name}: estimator must have a method "
+                                  "update(x_prev, u_prev, x) -> Θ")
+        if backup is not None and not callable(backup):
+            raise BalustradeError(f"{name}: backup must be callable as backup(x, u_p, k)")
+        self.system, self.X0, self.F, self.G, self.W = system, X0, F, G, W
+        self.Theta0, self.estimator, self.terminal, self.name = Theta0, estimator, terminal, name
+        self.backup = backup if backup is not None else (lambda x, u_p, k: self.K @ x)
+        self.shrinking = bool(shrinking)
+        self.target = resolve_target(target)
+        self.parametric = self.target.backend == "casadi"
+        self._n_compiled = len(Theta0.vertices())
+        self._X0_vertices = _small_vertices(X0)
+        self._compiled: dict = {}
+        if terminal is None or terminal.H_T is None:
+            self._check_default_terminal(tol)
+        self.reset()
+
+    def _check_default_terminal(self, tol: float) -> None:
+        """The §4.7 terminal set ``z = 0, 0 <= α <= 1`` needs ``A_cl(θ^j)𝕏₀ ⊕ W ⊆ 𝕏₀`` at
+        every vertex of ``Θ₀`` and ``(x, Kx) ∈ 𝒵`` on ``𝕏₀`` (Assumption 4.11, SPEC §2.20):
+        ``s_jr + w̄_r <= 1`` and ``t_r <= 1``; otherwise the guarantee is void, so refuse."""
+        c = tube_constants(self.X0, self.W, self.system, self.K, self.Theta0.vertices(),
+                           self.F, self.G)
+        rpi, cons = float(np.max(c.s + c.w_bar[:, None])), float(np.max(c.t))
+        if rpi > 1 + tol:
+            raise BalustradeError(f"{self.name}: X0 is not robustly invariant for K and W at "
+                                  f"the vertices of Theta0 (max_jr s_jr + w̄_r = {rpi:.4g} > 1):"
+                                  " the terminal set z = 0, α <= 1 is not safe (Assumption "
+                                  "4.11; see balustrade.design.rapsf.contractive_polytope)")
+        if cons > 1 + tol:
+            raise BalustradeError(f"{self.name}: (x, Kx) leaves 𝒵 on X0 (max_r t_r = "
+                                  f"{cons:.4g} > 1): the terminal set z = 0, α <= 1 is not "
+                                  "safe (Assumption 4.11)")
+
+    def reset(self) -> None:
+        """Back to ``k = 0``, ``Θ₀``, ``k_inf = N − 1`` and no stored plan (and the
+        estimator's own ``reset`` when it has one)."""
+        if callable(getattr(self.estimator, "reset", None)):
+            self.estimator.reset()
+        self.k = 0
+        self.k_inf = self.N - 1
+        self.plan: np.ndarray | None = None
+        self.falsified = False
+        self._set_theta(self.Theta0)
+        self._prev: tuple[np.ndarray, np.ndarray] | None = None
+
+    # -- Θ_k --------------------------------------------------------------------------------
+    def _set_theta(self, Theta: Polytope) -> None:
+        self.Theta = Theta
+        self.vertices = np.atleast_2d(Theta.vertices())
+        self._s = s_constants(self.X0, self.system, self.K, self.vertices, self._X0_vertices)
+
+    def _update_theta(self, x: np.ndarray, info: StepInfo) -> None:
+        """Line 4 of Algorithm 4.1 with the nesting check of Assumption 4.2."""
+        if self.estimator is None or self._prev is None or self.falsified:
+            return
+        try:
+            new = self.estimator.update(self._prev[0], self._prev[1], x)
+        except EmptySetError:
+            new = None
+        history = getattr(self.estimator, "history", None)
+        if new is None or (history and str(getattr(history[-1], "status", "")) == "falsified"):
+            self.falsified = True                   # Δ_k ∩ Θ_{k−1} = ∅: no θ explains x_k
+            return
+        check_instance(new, Polytope, f"{self.name}: estimator.update result")
+        if not np.all(self.Theta.contains_many(np.atleast_2d(new.vertices()), tol=1e-9)):
+            info.status = "theta_not_nested"
+            return
+        self._set_theta(new)
+
+    # -- (4.5) ------------------------------------------------------------------------------
+    def _solve(self, x: np.ndarray, u_p: np.ndarray, horizon: int) -> Solution:
+        params = {"x0": x, "u_p": u_p}
+        if self.parametric:
+            n_th = max(self._n_compiled, len(self.vertices))
+            key = (horizon, n_th)
+            if key not in self._compiled:
+                self._compiled[key] = compile(self._problem(horizon, n_vertices=n_th),
+                                              self.target)
+            idx = np.arange(n_th) % len(self.vertices)         # pad by repetition
+            params["theta"] = self.vertices[idx].T
+            params["s"] = self._s[:, idx]
+        else:
+            key = (horizon, self.vertices.tobytes())
+            if key not in self._compiled:
+                self._compiled = {k: c for k, c in self._compiled.items()
+                                  if k[1] == key[1]}               # keep the current Θ only
+                self._compiled[key] = compile(self._problem(horizon, vertices=self.vertices),
+                                              self.target)
+        return self._compiled[key].solve(params)
+
+    def _problem(self, horizon: int, **vertex_data: object) -> object:
+        return rapsf_problem(self.system, self.X0, self.F, self.G, self.W, self.K, horizon,
+                             terminal=self.terminal, X0_vertices=self._X0_vertices,
+                             name=f"{self.name}_N{horizon}",
+                             **vertex_data)
+
+    # -- Algorithm 4.1 --------------------------------------------------------------------------
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        """One step of Algorithm 4.1; never raises for a failed solve."""
+        x = np.asarray(x, dtype=float).reshape(self.n)
+        u_p = np.asarray(u_p, dtype=float).reshape(self.m)
+        info = StepInfo()
+        if not np.all(np.isfinite(u_p)):
+            u_p = np.where(np.isfinite(u_p), u_p, 0.0)
+            info.status = "non_finite_proposal"
+        self._update_theta(x, info)
+        info.values["n_vertices"] = float(len(self.vertices))
+        u = self._decide(x, u_p, info)
+        info.values["k_inf"] = float(self.k_inf)
+        self._prev = (x, u)
+        self.k += 1
+        return u, info
+
+    def _decide(self, x: np.ndarray, u_p: np.ndarray, info: StepInfo) -> np.ndarray:
+        if self.falsified or not np.all(np.isfinite(x)):
+            info.status = "model_falsified" if self.falsified else "non_finite_state"
+            info.fallback = "backup"
+            return self._backup(x, u_p)
+        sol = self._solve(x, u_p, self.N)
+        info.solutions["rapsf"] = sol
+        info.solve_time += float(getattr(sol, "solve_time", 0.0) or 0.0)
+        if note_solve(info, "rapsf", outcome(sol)):
+            self.plan = np.asarray(sol["v"], dtype=float).reshape(self.m, self.N)
+            self.k_inf = 0
+            info.values["objective"] = float(sol.objective)
+            return self.K @ x + self.plan[:, 0]
+        self.k_inf += 1
+        if info.status == "ok":
+            info.status = outcome(sol)
+        if self.k_inf <= self.N - 1 and self.plan is not None:
+            if self.shrinking:
+                short = self._solve(x, u_p, self.N - self.k_inf)
+                info.solutions["rapsf_shrunk"] = short
+                if note_solve(info, "rapsf_shrunk", outcome(short)):
+                    info.fallback = "shrunk_horizon"
+                    v0 = np.asarray(short["v"], dtype=float).reshape(self.m, -1)[:, 0]
+                    return self.K @ x + v0
+            info.fallback = "stored_plan"
+            return self.K @ x + self.plan[:, self.k_inf]
+        info.fallback = "backup"
+        return self._backup(x, u_p)
+
+    def _backup(self, x: np.ndarray, u_p: np.ndarray) -> np.ndarray:
+        x_safe = np.where(np.isfinite(x), x, 0.0)
+        return np.asarray(self.backup(x_safe, u_p, self.k), dtype=float).reshape(self.m)
+
+
+def _small_vertices(X0: Polytope, max_dim: int = 6) -> np.ndarray | None:
+    """The vertices of ``𝕏₀`` when it is small enough to enumerate once (then ``s_jr`` is a
+    matrix product per update instead of ``n_X · n_θ`` LPs); else ``None`` (LPs)."""
+    if X0.dim > max_dim:
+        return None
+    try:
+        return np.atleast_2d(X0.vertices())
+    except BalustradeError:
+        return None
+
+
+__all__ = ["RAPSF"]

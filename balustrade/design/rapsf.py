@@ -1,0 +1,233 @@
+"""Offline design of the homothetic-tube RAPSF (thesis Chapter 4, SPEC §2.20 [Default]):
+the tube gain ``K`` for all vertices of ``Θ₀`` (robust LMI :func:`robust_gain_sdp` solved on a
+synthesis target), a λ-contractive box ``𝕏₀`` checked by LPs, and the checks of
+Assumption 4.11 as public functions users call in their own tests:
+
+* :func:`check_rpi` — ``A_cl(θ^j)𝕏₀ ⊕ W ⊆ 𝕏₀`` for every vertex (``s_jr + w̄_r <= 1``);
+* :func:`check_constraints` — ``(x, Kx) ∈ 𝒵`` on ``𝕏₀`` (``t_r <= 1``);
+* :func:`check_assumption_4_11` — for every generator ``(z, α)`` of the terminal set there is
+  ``(v, z⁺, α⁺)`` meeting (4.5c)–(4.5e) (one LP per generator; the default ``z = 0,
+  0 <= α <= 1`` reduces to the two checks above).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.optimize
+
+from balustrade.backends import solve_synthesis
+from balustrade.dsl.sets import Box, Polytope
+from balustrade.dsl.sets_geometry import vertices as polytope_vertices
+from balustrade.errors import BalustradeError
+from balustrade.problems.rapsf import (
+    TerminalSet,
+    check_parametric_system,
+    closed_loop_matrices,
+    disturbance_map,
+    model_matrices,
+    robust_gain_sdp,
+    tube_constants,
+    unit_polytope,
+)
+
+
+@dataclass
+class CheckReport:
+    """The outcome of an LP check: ``ok`` and the largest violation (``<= tol`` when ok)."""
+
+    ok: bool
+    worst: float
+    details: dict = field(default_factory=dict)
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+
+def robust_gain(system: object, vertices: np.ndarray, contraction: float = 0.95,
+                target: object = "sdp") -> np.ndarray:
+    """``K = Y E⁻¹`` of :func:`~balustrade.problems.rapsf.robust_gain_sdp` (one quadratic
+    Lyapunov function with decay ``contraction`` for every vertex ``θ^j`` of ``Θ₀``)."""
+    sol = solve_synthesis(robust_gain_sdp(system, vertices, contraction), target)
+    if not sol.ok:
+        raise BalustradeError(f"robust_gain: the robust LMI is not solvable with contraction "
+                              f"{contraction} at the {len(np.atleast_2d(vertices))} vertices "
+                              f"of Θ₀ (status {sol.status}); try a contraction closer to 1")
+    E = 0.5 * (sol["E"] + sol["E"].T)
+    return np.asarray(sol["Y"]) @ np.linalg.inv(E)
+
+
+def contraction_factor(X0: Polytope, system: object, K: np.ndarray,
+                       vertices: np.ndarray) -> float:
+    """The smallest ``λ`` with ``A_cl(θ^j)𝕏₀ ⊆ λ𝕏₀`` for all vertices: ``max_jr s_jr``."""
+    HX = unit_polytope(X0, "contraction_factor")
+    return max(X0.support(row @ Acl) for Acl in closed_loop_matrices(system, K, vertices)
+               for row in HX)
+
+
+def contractive_box(system: object, K: np.ndarray, vertices: np.ndarray, W: Polytope,
+                    F: np.ndarray, G: np.ndarray, iterations: int = 500) -> Box:
+    """A λ-contractive box ``𝕏₀ = {|x| <= c b}`` for all vertices, RPI for ``W`` and inside
+    ``𝒵`` (SPEC §2.20 [Default]).
+
+    The shape ``b`` is the Perron vector of ``M = max_j |A_cl(θ^j)|`` (elementwise), found by
+    power iteration; then ``λ = ρ(M) < 1`` is required, and the scale ``c`` is the largest
+    with ``t_r <= 1``, which must exceed the smallest with ``λ + w̄_r/(c b_r) <= 1``.
+    Raises when ``ρ(M) >= 1`` (no contractive box for this ``K``: use a polytope)."""
+    n, _, _ = check_parametric_system(system, "contractive_box")
+    M = np.max(np.abs(np.stack(closed_loop_matrices(system, K, vertices))), axis=0)
+    M = M + 1e-9                                        # irreducible: a positive Perron vector
+    b = np.ones(n)
+    for _ in range(iterations):
+        b = M @ b
+        b = b / b.max()
+    lam = float(np.max((M @ b) / b))
+    if lam >= 1:
+        raise BalustradeError(f"contractive_box: max_j |A_cl(θ^j)| has spectral radius "
+                              f"{lam:.4g} >= 1: no λ-contractive box for this K (use a "
+                              "polytope 𝕏₀ or another K)")
+    E = disturbance_map(system, n)
+    w_bar = np.array([W.support(E[i]) for i in range(n)])
+    c_min = float(np.max(w_bar / ((1 - lam) * b)))
+    FGK = F + G @ K
+    t_unit = np.abs(FGK) @ b
+    c_max = float(1.0 / np.max(t_unit)) if np.max(t_unit) > 0 else np.inf
+    if c_min > c_max:
+        raise BalustradeError(f"contractive_box: the smallest RPI scaling {c_min:.4g} of the "
+                              f"λ = {lam:.4g} contractive box exceeds the largest one inside "
+                              f"𝒵 ({c_max:.4g}): W is too large for this K")
+    return Box.symmetric(c_max * b, name="X0")
+
+
+def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W: Polytope,
+                         F: np.ndarray, G: np.ndarray, lam: float | None = None,
+                         max_sweeps: int = 100, tol: float = 1e-9) -> Polytope:
+    """A λ-contractive polytope ``𝕏₀ = {H_X x <= 1}`` for all vertices, RPI for ``W`` and
+    inside ``𝒵`` (SPEC §2.20 [Default]): start from ``{(F + GK)x <= 1}`` and add the rows
+    ``[H_X]_r A_cl(θ^j)/λ`` that are not redundant (one LP each) until none is added; then
+    ``A_cl(θ^j)𝕏₀ ⊆ λ𝕏₀`` and the set is RPI when ``w̄_r <= 1 − λ``. ``lam`` defaults to
+    ``(1 + max_j ρ(A_cl(θ^j)))/2``. Raises when the rows do not settle within
+    ``max_sweeps`` sweeps (λ below the joint spectral radius) or ``W`` is too large."""
+    n, _, _ = check_parametric_system(system, "contractive_polytope")
+    Acls = closed_loop_matrices(system, K, vertices)
+    if lam is None:
+        lam = 0.5 * (1.0 + max(float(np.max(np.abs(np.linalg.eigvals(A)))) for A in Acls))
+    if not 0 < lam < 1:
+        raise BalustradeError(f"contractive_polytope: lam must lie in (0, 1), got {lam}")
+    H = np.asarray(F + G @ K, dtype=float)
+    H = H[np.linalg.norm(H, axis=1) > 1e-12]
+    fresh = H
+    for _ in range(max_sweeps):
+        P = Polytope(H, np.ones(H.shape[0]), name="X0")
+        added = []
+        for a in (row @ A / lam for row in fresh for A in Acls):
+            if P.support(a) > 1 + tol and not any(np.allclose(a, b) for b in added):
+                added.append(a)
+        if not added:
+            break
+        fresh = np.array(added)
+        H = np.vstack([H, fresh])
+    else:
+        raise BalustradeError(f"contractive_polytope: no λ = {lam:.4g} contractive polytope "
+                              f"after {max_sweeps} sweeps ({H.shape[0]} rows); try a "
+                              "larger lam")
+    X0 = _prune(Polytope(H, np.ones(H.shape[0]), name="X0"), tol)
+    E = disturbance_map(system, n)
+    w_bar = np.array([W.support(row @ E) for row in X0.H])
+    if np.any(w_bar > 1 - lam):
+        raise BalustradeError(f"contractive_polytope: W is too large: max_r w̄_r = "
+                              f"{w_bar.max():.4g} > 1 − λ = {1 - lam:.4g}; 𝕏₀ ⊆ 𝒵 is not RPI")
+    return X0
+
+
+def _prune(P: Polytope, tol: float) -> Polytope:
+    """Drop the rows of ``{Hx <= 1}`` implied by the others (one LP each)."""
+    keep = np.ones(P.H.shape[0], dtype=bool)
+    for r in range(P.H.shape[0]):
+        keep[r] = False
+        rest = Polytope(P.H[keep], P.h[keep], name=P.name)
+        keep[r] = rest.support(P.H[r]) > P.h[r] + tol
+    return Polytope(P.H[keep], P.h[keep], name=P.name)
+
+
+def check_rpi(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarray,
+              W: Polytope, lam: float = 1.0, tol: float = 1e-9) -> CheckReport:
+    """``A_cl(θ^j)𝕏₀ ⊕ W ⊆ λ𝕏₀`` for every vertex ``θ^j`` (i.e. ``s_jr + w̄_r <= λ``; one LP
+    per row and vertex)."""
+    n = check_parametric_system(system, "check_rpi")[0]
+    F0 = np.zeros((1, n))
+    c = tube_constants(X0, W, system, K, vertices, F0, np.zeros((1, np.shape(K)[0])))
+    excess = c.s + c.w_bar[:, None] - lam
+    worst = float(excess.max())
+    return CheckReport(worst <= tol, worst, {"s": c.s, "w_bar": c.w_bar})
+
+
+def check_constraints(X0: Polytope, F: np.ndarray, G: np.ndarray, K: np.ndarray,
+                      tol: float = 1e-9) -> CheckReport:
+    """``(x, Kx) ∈ 𝒵`` for all ``x ∈ 𝕏₀`` (``t_r <= 1``; one LP per row of ``𝒵``)."""
+    unit_polytope(X0, "check_constraints")
+    t = np.array([X0.support(row) for row in F + G @ K])
+    worst = float((t - 1.0).max())
+    return CheckReport(worst <= tol, worst, {"t": t})
+
+
+def check_assumption_4_11(system: object, X0: Polytope, W: Polytope, K: np.ndarray,
+                          vertices: np.ndarray, F: np.ndarray, G: np.ndarray,
+                          terminal: TerminalSet | None = None, tol: float = 1e-7
+                          ) -> CheckReport:
+    """Assumption 4.11 for ``𝕏_f`` and the vertices ``θ^j`` of ``Θ``: at every generator
+    ``(z, α)`` of ``𝕏_f`` an LP finds ``v`` and ``(z⁺, α⁺) ∈ 𝕏_f`` with (4.5c), (4.5d). The
+    feasible ``(z, α, v, z⁺, α⁺)`` form a polyhedron, so the generators suffice. The default
+    terminal set ``z = 0, 0 <= α <= 1`` is checked at ``α = 1`` with ``v = 0, z⁺ = 0, α⁺ = 1``
+    (:func:`check_rpi` and :func:`check_constraints`)."""
+    n, m, _ = check_parametric_system(system, "check_assumption_4_11")
+    if terminal is None or terminal.H_T is None:
+        rpi = check_rpi(X0, system, K, vertices, W, tol=tol)
+        cons = check_constraints(X0, F, G, K, tol=tol)
+        return CheckReport(rpi.ok and cons.ok, max(rpi.worst, cons.worst),
+                           {"rpi": rpi, "constraints": cons})
+    c = tube_constants(X0, W, system, K, vertices, F, G)
+    H_T, h_T = np.asarray(terminal.H_T, float), np.asarray(terminal.h_T, float).ravel()
+    Hz = np.hstack([H_T, h_T[:, None]])
+    gens = polytope_vertices(np.vstack([Hz, -np.eye(n + 1)[n:]]),
+                             np.concatenate([np.ones(H_T.shape[0]), [0.0]]),
+                             "check_assumption_4_11: terminal set")
+    worst = -np.inf
+    for gen in gens:
+        worst = max(worst, _terminal_lp(system, c, K, vertices, F, G, H_T, h_T, gen[:n],
+                                        gen[n], n, m))
+    return CheckReport(worst <= tol, float(worst), {"generators": gens})
+
+
+def _terminal_lp(system: object, c: object, K: np.ndarray, vertices: np.ndarray,
+                 F: np.ndarray, G: np.ndarray, H_T: np.ndarray, h_T: np.ndarray,
+                 z: np.ndarray, a: float, n: int, m: int) -> float:
+    """The smallest uniform violation ``ε`` of (4.5c)–(4.5e) over ``(v, z⁺, α⁺)`` at the
+    generator ``(z, α)`` (variables ``[v, z⁺, α⁺, ε]``, ``min ε``)."""
+    HX = c.HX
+    rows, rhs = [], []
+    for j, th in enumerate(np.atleast_2d(vertices)):
+        A, B = model_matrices(system, th)
+        Acl = A + B @ K
+        rows.append(np.hstack([HX @ B, -HX, -np.ones((HX.shape[0], 1)),
+                               -np.ones((HX.shape[0], 1))]))
+        rhs.append(-(HX @ Acl @ z + a * c.s[:, j] + c.w_bar))
+    rows.append(np.hstack([G, np.zeros((G.shape[0], n + 1)), -np.ones((G.shape[0], 1))]))
+    rhs.append(1.0 - (F + G @ K) @ z - a * c.t)
+    rows.append(np.hstack([np.zeros((H_T.shape[0], m)), H_T, h_T[:, None],
+                           -np.ones((H_T.shape[0], 1))]))
+    rhs.append(np.ones(H_T.shape[0]))
+    cost = np.zeros(m + n + 2)
+    cost[-1] = 1.0
+    bounds = [(None, None)] * (m + n) + [(0, None), (None, None)]
+    res = scipy.optimize.linprog(cost, A_ub=np.vstack(rows), b_ub=np.concatenate(rhs),
+                                 bounds=bounds)
+    if res.status != 0:
+        raise BalustradeError(f"check_assumption_4_11: LP at generator {(z, a)} failed "
+                              f"({res.message})")
+    return float(res.fun)
+
+
+__all__ = ["CheckReport", "check_assumption_4_11", "check_constraints", "check_rpi",
+           "contraction_factor", "contractive_box", "contractive_polytope", "robust_gain"]

@@ -1,0 +1,301 @@
+"""The robust adaptive predictive safety filter with linear homothetic tubes (thesis
+Chapter 4, SPEC §2.18 and §2.20).
+
+Dynamics affine in the parameter (4.6): ``x⁺ = A(θ)x + B(θ)u + w`` with
+``A(θ) = A₀ + Σ_j θ_j A_j``, ``B(θ) = B₀ + Σ_j θ_j B_j``; any object with the attributes
+``A0, A_list, B0, B_list`` (e.g. :class:`balustrade.dsl.system_parametric.ParametricLinearSystem`)
+is accepted (``x⁺ = … + E w`` when it has ``E``). Tubes ``{z_i} ⊕ α_i 𝕏₀`` with
+``𝕏₀ = {H_X x <= 1}`` and tube law ``κ(x, v) = Kx + v``; joint constraints ``𝒵 = {Fx + Gu <= 1}``.
+
+* :func:`joint_constraints` — ``(F, G)`` of ``X × U`` normalized to right-hand side ``1``;
+* :func:`tube_constants` — the support-function constants ``w̄_r``, ``s_jr``, ``t_r`` of
+  SPEC §2.20 (LPs over ``𝕏₀``; closed form for a box);
+* :func:`rapsf_problem` — the QP (4.5) of SPEC §2.20 (also the Remark 4.6 shrunk horizon:
+  pass ``N − k_inf``);
+* :func:`robust_gain_sdp` — the robust (quadratic-stability) LMI for ``K`` over the vertices
+  of ``Θ₀``, solved by :func:`balustrade.design.rapsf.robust_gain`.
+
+Parametric vertex data. With ``vertices=None`` the vertices of ``Θ_k`` (``theta``, ``q × n_θ``)
+and the constants ``s`` (``n_X × n_θ``) are *parameters*: a new ``Θ_k`` only changes parameter
+values. They multiply decision variables (``A_cl(θ^j) z_i``, ``α_i s_jr``), which the convex
+backends' classify pass refuses (parameters may not multiply variables in a constraint), so
+this form compiles on the CasADi targets only. With numeric ``vertices`` the vertex data are
+constants and the QP compiles on every target (``"exact"``, ``"cvxpy"``, ``"fast-convex"``);
+:class:`balustrade.control.rapsf.RAPSF` recompiles it when ``Θ_k`` changes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from balustrade._checks import as_matrix, check_horizon, check_instance
+from balustrade.dsl import OCP, Polytope, squared_norm
+from balustrade.dsl.synthesis import SynthesisProblem, bmat, trace
+from balustrade.errors import BalustradeError, ShapeError
+
+
+# -- the parametric model (4.6) ---------------------------------------------------------
+def check_parametric_system(system: object, where: str) -> tuple[int, int, int]:
+    """``(n, m, q)`` of a system affine in θ (Assumption 4.1); errors name the wrong
+    attribute or shape."""
+    for attr in ("A0", "A_list", "B0", "B_list"):
+        if not hasattr(system, attr):
+            raise BalustradeError(f"{where}: system must be affine in θ (attributes A0, "
+                                  f"A_list, B0, B_list); {type(system).__name__} has no "
+                                  f"{attr!r}")
+    A0 = as_matrix(system.A0, f"{where}: A0")
+    n = A0.shape[0]
+    if A0.shape != (n, n):
+        raise ShapeError(f"{where}: A0", "a square matrix", A0.shape)
+    B0 = as_matrix(system.B0, f"{where}: B0", (n, None))
+    m = B0.shape[1]
+    A_list, B_list = list(system.A_list), list(system.B_list)
+    if len(A_list) != len(B_list):
+        raise ShapeError(f"{where}: A_list and B_list", f"{len(A_list)} matrices each",
+                         f"{len(A_list)} and {len(B_list)}", what="")
+    for j, (Aj, Bj) in enumerate(zip(A_list, B_list, strict=True)):
+        as_matrix(Aj, f"{where}: A_list[{j}]", (n, n))
+        as_matrix(Bj, f"{where}: B_list[{j}]", (n, m))
+    return n, m, len(A_list)
+
+
+def disturbance_map(system: object, n: int) -> np.ndarray:
+    """``E`` of ``x⁺ = A(θ)x + B(θ)u + E w`` (``I`` when the system has none)."""
+    E = getattr(system, "E", None)
+    return np.eye(n) if E is None else as_matrix(E, "disturbance_map: E", (n, None))
+
+
+def model_matrices(system: object, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``A(θ)``, ``B(θ)`` of (4.6) at a numeric ``θ``."""
+    theta = np.asarray(theta, dtype=float).ravel()
+    A = np.array(system.A0, dtype=float) + sum(
+        (t * np.asarray(Aj, dtype=float) for t, Aj in zip(theta, system.A_list, strict=True)),
+        np.zeros_like(np.asarray(system.A0, dtype=float)))
+    B = np.array(system.B0, dtype=float) + sum(
+        (t * np.asarray(Bj, dtype=float) for t, Bj in zip(theta, system.B_list, strict=True)),
+        np.zeros_like(np.asarray(system.B0, dtype=float)))
+    return A, B
+
+
+def closed_loop_matrices(system: object, K: np.ndarray, vertices: np.ndarray
+                         ) -> list[np.ndarray]:
+    """``A_cl(θ^j) = A(θ^j) + B(θ^j)K`` for each row ``θ^j`` of ``vertices``."""
+    out = []
+    for th in np.atleast_2d(vertices):
+        A, B = model_matrices(system, th)
+        out.append(A + B @ K)
+    return out
+
+
+def parameter_vertices(Theta: Polytope) -> np.ndarray:
+    """Vertices of ``Θ`` as rows (``2^q`` for a box, in a fixed order)."""
+    check_instance(Theta, Polytope, "parameter_vertices: Theta")
+    return Theta.vertices()
+
+
+# -- 𝒵 and the support-function constants of SPEC §2.20 -------------------------------
+def joint_constraints(X: Polytope, U: Polytope) -> tuple[np.ndarray, np.ndarray]:
+    """``𝒵 = X × U`` as ``{Fx + Gu <= 1}`` (every row divided by its bound, which must be
+    positive: the origin inside ``X`` and ``U``)."""
+    check_instance(X, Polytope, "joint_constraints: X")
+    check_instance(U, Polytope, "joint_constraints: U")
+    for S in (X, U):
+        if np.any(S.h <= 0):
+            raise BalustradeError(f"joint_constraints: {S.name} must contain the origin in "
+                                  f"its interior (row bounds {S.h.tolist()})")
+    F = np.vstack([X.H / X.h[:, None], np.zeros((U.H.shape[0], X.dim))])
+    G = np.vstack([np.zeros((X.H.shape[0], U.dim)), U.H / U.h[:, None]])
+    return F, G
+
+
+def unit_polytope(X0: Polytope, where: str) -> np.ndarray:
+    """``H_X`` of ``𝕏₀ = {H_X x <= 1}`` (rows of ``X0`` divided by their positive bounds)."""
+    check_instance(X0, Polytope, f"{where}: X0")
+    if np.any(X0.h <= 0):
+        raise BalustradeError(f"{where}: X0 must contain the origin in its interior (row "
+                              f"bounds {X0.h.tolist()})")
+    return X0.H / X0.h[:, None]
+
+
+@dataclass(frozen=True)
+class TubeConstants:
+    """The constants of SPEC §2.20: ``w_bar[r] = max_{w∈W} [H_X]_r w``,
+    ``s[r, j] = max_{x∈𝕏₀} [H_X]_r A_cl(θ^j) x`` and ``t[r] = max_{x∈𝕏₀} [F+GK]_r x``."""
+
+    HX: np.ndarray
+    w_bar: np.ndarray
+    s: np.ndarray
+    t: np.ndarray
+
+
+def support_rows(X0: Polytope, D: np.ndarray, X0_vertices: np.ndarray | None = None
+                 ) -> np.ndarray:
+    """``max_{x∈𝕏₀} d_r x`` for every row ``d_r`` of ``D``: one LP per row, in closed form
+    for a :class:`~balustrade.dsl.sets.Box`, or as ``max_v d_r x^v`` over the vertices of
+    ``𝕏₀`` when they were enumerated once (``X0_vertices``, rows; same values, a matrix
+    product instead of LPs — the per-step update of ``s`` for small ``n``)."""
+    D = np.atleast_2d(np.asarray(D, dtype=float))
+    if X0_vertices is not None:
+        return np.max(D @ np.asarray(X0_vertices, dtype=float).T, axis=1)
+    return np.array([X0.support(row) for row in D])
+
+
+def s_constants(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarray,
+                X0_vertices: np.ndarray | None = None) -> np.ndarray:
+    """``s[r, j]`` (one LP per row and vertex, closed form for a box ``𝕏₀``, or over the
+    enumerated vertices of ``𝕏₀``, :func:`support_rows`); recompute whenever the vertices of
+    ``Θ_k`` change."""
+    HX = unit_polytope(X0, "s_constants")
+    Acls = closed_loop_matrices(system, K, vertices)
+    return np.column_stack([support_rows(X0, HX @ Acl, X0_vertices) for Acl in Acls])
+
+
+def tube_constants(X0: Polytope, W: Polytope, system: object, K: np.ndarray,
+                   vertices: np.ndarray, F: np.ndarray, G: np.ndarray) -> TubeConstants:
+    """All constants of SPEC §2.20 for the vertices ``θ^j`` (rows of ``vertices``)."""
+    HX = unit_polytope(X0, "tube_constants")
+    check_instance(W, Polytope, "tube_constants: W")
+    E = disturbance_map(system, HX.shape[1])
+    w_bar = np.array([W.support(row @ E) for row in HX])
+    FGK = F + G @ K
+    t = np.array([X0.support(row) for row in FGK])
+    return TubeConstants(HX, w_bar, s_constants(X0, system, K, vertices), t)
+
+
+# -- the QP (4.5) of SPEC §2.20 -------------------------------------------------------------
+@dataclass(frozen=True)
+class TerminalSet:
+    """``𝕏_f = {(z, α) : H_T z + h_T α <= 1}`` (4.5e); ``None`` fields mean the §4.7 default
+    ``z_N = 0, 0 <= α_N <= 1``."""
+
+    H_T: np.ndarray | None = None
+    h_T: np.ndarray | None = None
+
+
+def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W: Polytope,
+                  K: np.ndarray, N: int, n_vertices: int | None = None,
+                  vertices: np.ndarray | None = None, terminal: TerminalSet | None = None,
+                  X0_vertices: np.ndarray | None = None, name: str = "rapsf") -> OCP:
+    """(4.5) with homothetic tubes (SPEC §2.20):
+
+    ``min ‖u_p − (K x_k + v_0)‖²`` over ``z (n × N+1)``, ``alpha (1 × N+1) >= 0``, ``v (m × N)``
+    s.t. (4.5b) ``H_X(x_k − z_0) <= α_0 1``; (4.5c) for every vertex ``θ^j`` and step ``i``
+    ``H_X(A_cl(θ^j) z_i + B(θ^j) v_i − z_{i+1}) + α_i s_j + w̄ <= α_{i+1} 1``; (4.5d)
+    ``(F + GK) z_i + α_i t + G v_i <= 1``; (4.5e) the terminal set.
+
+    Parameters: ``x0``, ``u_p`` and, when ``vertices`` is ``None``, ``theta`` (``q × n_θ``,
+    the vertices of ``Θ_k`` as columns; ``n_θ = n_vertices``, default ``2^q`` for a box) and
+    ``s`` (``n_X × n_θ``, :func:`s_constants`). With numeric ``vertices`` (rows) they are
+    constants. The Remark 4.6 variant is this problem with the shrunk horizon ``N − k_inf``.
+    ``X0_vertices`` (optional, the vertices of ``𝕏₀`` as rows) replaces the LPs of the
+    constants by maxima over them (:func:`support_rows`).
+    """
+    n, m, q = check_parametric_system(system, name)
+    N = check_horizon(N, name)
+    K = as_matrix(K, f"{name}: K", (m, n))
+    F = as_matrix(F, f"{name}: F", (None, n))
+    G = as_matrix(G, f"{name}: G", (F.shape[0], m))
+    HX = unit_polytope(X0, name)
+    check_instance(W, Polytope, f"{name}: W")
+    E = disturbance_map(system, n)
+    if W.dim != E.shape[1]:
+        raise ShapeError(f"{name}: W", f"dimension {E.shape[1]}", f"dimension {W.dim}")
+    w_bar = np.array([W.support(row @ E) for row in HX])                 # w̄_r
+    t = support_rows(X0, F + G @ K, X0_vertices)
+    ocp = OCP(None, N, name=name)
+    z = ocp.variable("z", n, N + 1, role="state")
+    alpha = ocp.variable("alpha", 1, N + 1, lb=0.0)
+    v = ocp.variable("v", m, N, role="input")
+    x0 = ocp.parameter("x0", n)
+    u_p = ocp.parameter("u_p", m)
+    if vertices is None:
+        n_th = 2 ** q if n_vertices is None else int(n_vertices)
+        if n_th < 1:
+            raise BalustradeError(f"{name}: n_vertices must be positive, got {n_vertices}")
+        theta = ocp.parameter("theta", q, n_th)
+        s = ocp.parameter("s", HX.shape[0], n_th)
+        thetas = [theta[:, j] for j in range(n_th)]
+    else:
+        V = np.atleast_2d(np.asarray(vertices, dtype=float))
+        if V.shape[1] != q:
+            raise ShapeError(f"{name}: vertices", f"rows of length q = {q}", V.shape)
+        thetas = [ca.DM(th) for th in V]
+        s = ca.DM(s_constants(X0, system, K, V, X0_vertices))
+    A_j, B_j = _symbolic_models(system, thetas)
+    H, Kd, Gd = ca.DM(HX), ca.DM(K), ca.DM(G)
+    one = ca.DM.ones(HX.shape[0], 1)
+    ocp.le(ca.mtimes(H, x0 - z[:, 0]), alpha[0] * one, name="initial_tube", tag="tube")  # (4.5b)
+    for j, (A, B) in enumerate(zip(A_j, B_j, strict=True)):                             # (4.5c)
+        Acl = A + ca.mtimes(B, Kd)
+        rows = [ca.mtimes(H, ca.mtimes(Acl, z[:, i]) + ca.mtimes(B, v[:, i]) - z[:, i + 1])
+                + alpha[i] * s[:, j] + ca.DM(w_bar) - alpha[i + 1] * one for i in range(N)]
+        ocp.le(ca.vertcat(*rows), name=f"tube_vertex_{j}", tag="tube")
+    FGK = ca.DM(F + G @ K)
+    rows = [ca.mtimes(FGK, z[:, i]) + alpha[i] * ca.DM(t) + ca.mtimes(Gd, v[:, i]) for i in
+            range(N)]
+    ocp.le(ca.vertcat(*rows), 1.0, name="tube_constraints", tag="state")                 # (4.5d)
+    _terminal(ocp, z[:, N], alpha[N], terminal, n, name)                                 # (4.5e)
+    ocp.minimize(squared_norm(u_p - (ca.mtimes(Kd, x0) + v[:, 0]), label="filter"))
+    return ocp
+
+
+def _symbolic_models(system: object, thetas: Sequence[ca.SX | ca.DM]
+                     ) -> tuple[list, list]:
+    A0, B0 = ca.DM(np.asarray(system.A0, float)), ca.DM(np.asarray(system.B0, float))
+    As = [ca.DM(np.asarray(a, float)) for a in system.A_list]
+    Bs = [ca.DM(np.asarray(b, float)) for b in system.B_list]
+    A_out, B_out = [], []
+    for th in thetas:
+        A, B = A0, B0
+        for k, (Ak, Bk) in enumerate(zip(As, Bs, strict=True)):
+            A = A + th[k] * Ak
+            B = B + th[k] * Bk
+        A_out.append(A)
+        B_out.append(B)
+    return A_out, B_out
+
+
+def _terminal(ocp: OCP, zN: ca.SX, aN: ca.SX, terminal: TerminalSet | None, n: int,
+              name: str) -> None:
+    if terminal is None or terminal.H_T is None:
+        ocp.eq(zN, 0.0, name="terminal_center", tag="terminal")
+        ocp.le(aN, 1.0, name="terminal_dilation", tag="terminal")
+        return
+    H_T = as_matrix(terminal.H_T, f"{name}: terminal H_T", (None, n))
+    h_T = np.asarray(terminal.h_T, dtype=float).reshape(-1)
+    if h_T.size != H_T.shape[0]:
+        raise ShapeError(f"{name}: terminal h_T", (H_T.shape[0],), h_T.shape)
+    ocp.le(ca.mtimes(ca.DM(H_T), zN) + ca.DM(h_T) * aN, 1.0, name="terminal", tag="terminal")
+
+
+# -- the robust gain LMI ----------------------------------------------------------------------
+def robust_gain_sdp(system: object, vertices: np.ndarray, contraction: float = 0.95
+                    ) -> SynthesisProblem:
+    """Quadratic stabilization of ``A(θ^j) + B(θ^j)K`` at every vertex of ``Θ₀`` with decay
+    ``λ = contraction``: ``[[λ² E, (A_jE + B_jY)ᵀ], [A_jE + B_jY, E]] ⪰ 0``, ``E ⪰ I``,
+    ``min tr E``; ``K = Y E⁻¹`` (variables ``E``, ``Y``)."""
+    n, m, _ = check_parametric_system(system, "robust_gain_sdp")
+    if not 0 < contraction <= 1:
+        raise BalustradeError(f"robust_gain_sdp: contraction must lie in (0, 1], got "
+                              f"{contraction}")
+    sdp = SynthesisProblem("robust gain LMI (SPEC §2.20 [Default])")
+    E = sdp.matrix("E", (n, n), symmetric=True)
+    Y = sdp.matrix("Y", (m, n))
+    sdp.lmi("E >= I", E >> np.eye(n))
+    for j, th in enumerate(np.atleast_2d(vertices)):
+        A, B = model_matrices(system, th)
+        AEBY = A @ E + B @ Y
+        sdp.lmi(f"vertex {j}", bmat([[contraction ** 2 * E, AEBY.T], [AEBY, E]]))
+    sdp.minimize(trace(E))
+    return sdp
+
+
+__all__ = ["TerminalSet", "TubeConstants", "check_parametric_system",
+           "closed_loop_matrices", "disturbance_map", "joint_constraints", "model_matrices",
+           "parameter_vertices",
+           "rapsf_problem", "robust_gain_sdp", "s_constants", "support_rows", "tube_constants",
+           "unit_polytope"]
