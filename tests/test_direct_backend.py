@@ -297,3 +297,23 @@ def test_norms_of_sign_definite_rows_need_no_two_sided_epigraph(kind):
         assert a.objective == pytest.approx(b.objective, rel=1e-7, abs=1e-8)
         assert a.objective == pytest.approx(e.objective, rel=1e-6, abs=1e-6)
         assert verify(ocp, a).ok
+
+
+def test_a_nonfinite_optimal_answer_is_failed_not_optimal(monkeypatch):
+    """A solver saying "solved" with a NaN/inf point (or multipliers) is not passed on as
+    optimal: the status becomes ``failed`` and the message says why."""
+    from balustrade.backends.direct_engines import RawResult
+
+    ocp = OCP(name="box")
+    u = ocp.variable("u", 2, lb=-1.0, ub=1.0)
+    ocp.minimize(u[0] ** 2 + (u[1] - 3.0) ** 2)
+    compiled = compile(ocp, "fast-convex")
+    good = compiled.engine.run(compiled.program.q(np.zeros(0)), compiled.program.b(np.zeros(0)))
+    for field in ("y", "z"):
+        y, z = good.y.copy(), good.z.copy()
+        (y if field == "y" else z)[0] = np.nan
+        bad = RawResult(good.status, good.words, y, z, 3)
+        monkeypatch.setattr(compiled.engine, "run", lambda q, b, bad=bad: bad)
+        sol = compiled.solve()
+        assert sol.status == "failed" and "not finite" in sol.message, (field, sol.summary())
+        assert np.all(np.isnan(sol.w)) and np.isnan(sol.objective)

@@ -43,6 +43,14 @@ class RawResult:
     z: np.ndarray | None
     iterations: int
 
+    def __post_init__(self) -> None:
+        """A "solved" verdict with a missing or non-finite point or multipliers is a
+        failure: a NaN never passes as an optimal answer."""
+        if self.status.success and not all(
+                v is not None and np.all(np.isfinite(v)) for v in (self.y, self.z)):
+            self.status = Status.FAILED
+            self.words += "; but the point or its multipliers are not finite"
+
 
 _CLARABEL_STATUS = {
     "Solved": Status.OPTIMAL, "AlmostSolved": Status.OPTIMAL_INACCURATE,
