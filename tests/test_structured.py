@@ -180,6 +180,21 @@ def test_refuses_a_nonseparable_row_naming_the_block():
         compile(ocp, "structured-sqp")
 
 
+@pytest.mark.parametrize("coupling", [
+    lambda u: ca.sign(u[0, 1] - u[0, 0]),
+    lambda u: ca.if_else(u[0, 1] > 0, u[0, 0], 0.0),
+])
+def test_refuses_a_coupling_the_hessian_cannot_see(coupling):
+    """A row coupling two stages through a piecewise constant function has no cross-stage
+    Hessian entry; split by stage it would become another row (sign(u1 − u0) is not
+    sign(u1) − sign(u0)): refused, not silently changed."""
+    ocp = _random_ocp(2, 1, 4, 0, 1)
+    ocp.le(coupling(ocp.u) - 0.5, 0.0, name="jump")
+    data, _ = run_chain(CASADI_CHAIN, ocp)
+    with pytest.raises(StructureError, match="'jump'.*not additively separable"):
+        stage_order(ocp, data)
+
+
 def test_refuses_an_ocp_without_horizon():
     ocp = OCP(name="static")
     y = ocp.variable("y", 2)
