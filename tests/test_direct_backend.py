@@ -317,3 +317,14 @@ def test_a_nonfinite_optimal_answer_is_failed_not_optimal(monkeypatch):
         sol = compiled.solve()
         assert sol.status == "failed" and "not finite" in sol.message, (field, sol.summary())
         assert np.all(np.isnan(sol.w)) and np.isnan(sol.objective)
+
+
+@pytest.mark.parametrize("target", ["fast-convex-qp", "fast-convex-conic"])
+def test_bad_solver_options_raise_solver_errors_naming_them(target):
+    ocp = OCP(name="box")
+    u = ocp.variable("u", 2, lb=-1.0, ub=1.0)
+    ocp.minimize(u[0] ** 2 + (u[1] - 3.0) ** 2)
+    with pytest.raises(SolverError, match="'max_iter' cannot be 'many'"):
+        compile(ocp, target, options={"max_iter": "many"})
+    with pytest.raises(SolverError, match="unknown .* option 'nope'"):
+        compile(ocp, target, options={"nope": 1})
