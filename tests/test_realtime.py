@@ -59,6 +59,14 @@ def test_bad_budgets_are_refused(call, words):
         call()
 
 
+@pytest.mark.parametrize("backend", ["cvxpy", "direct", "auto"])
+def test_a_budget_on_a_backend_that_ignores_it_is_refused(backend):
+    from balustrade.backends.targets import Target
+
+    with pytest.raises(SolverError, match="budgets are for the CasADi"):
+        Target(backend, None, budget=Budget(iterations=3))
+
+
 def test_a_truncated_solution_cannot_claim_optimal():
     with pytest.raises(BalustradeError, match="truncated"):
         Solution("optimal", 0.0, {}, {}, 0.0, 1, "casadi", "sqpmethod", truncated=True)

@@ -188,6 +188,9 @@ class Target:
         if self.budget is not None and not isinstance(self.budget, Budget):
             raise SolverError(f"Target({self.name}): budget must be a Budget or None, got "
                               f"{type(self.budget).__name__}")
+        if self.budget is not None and self.backend != "casadi":
+            raise SolverError(f"Target({self.name}): budgets are for the CasADi NLP solvers; "
+                              f"the {self.backend} backend would ignore it")
 
     # -- derived targets ------------------------------------------------------------
     def with_options(self, options: Mapping[str, Any] | None = None, /,
