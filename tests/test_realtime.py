@@ -70,6 +70,18 @@ def test_a_budget_on_a_backend_that_ignores_it_is_refused(backend):
 def test_a_truncated_solution_cannot_claim_optimal():
     with pytest.raises(BalustradeError, match="truncated"):
         Solution("optimal", 0.0, {}, {}, 0.0, 1, "casadi", "sqpmethod", truncated=True)
+    # nor become optimal later, whichever attribute is set last
+    sol = Solution("max_iterations", 0.0, {}, {}, 0.0, 1, "casadi", "sqpmethod",
+                   truncated=True)
+    for status in ("optimal", "optimal_inaccurate"):
+        with pytest.raises(BalustradeError, match="truncated"):
+            sol.status = status
+    assert sol.status == "max_iterations"
+    ok = Solution("optimal", 0.0, {}, {}, 0.0, 1, "casadi", "sqpmethod")
+    with pytest.raises(BalustradeError, match="truncated"):
+        ok.truncated = True
+    assert not ok.truncated
+    sol.truncated, sol.status = False, "optimal"  # no longer truncated: allowed
 
 
 # -- backend reporting --------------------------------------------------------------------
