@@ -328,3 +328,5 @@ def test_bad_solver_options_raise_solver_errors_naming_them(target):
         compile(ocp, target, options={"max_iter": "many"})
     with pytest.raises(SolverError, match="unknown .* option 'nope'"):
         compile(ocp, target, options={"nope": 1})
+    with pytest.raises(SolverError, match="options must be a dict"):
+        DirectCompiled(ocp, options=[("max_iter", 3)])
