@@ -236,11 +236,14 @@ def stage_order(ocp: OCP, data: NLPData, last_controls: bool = True
             nxt = [v for v in vs if stage_arr[v] == (row_stages[-1] if row_stages else -1)]
             ok = (len(row_stages) == 2 and row_stages[1] == row_stages[0] + 1
                   and len(nxt) == 1 and nxt[0] in x_of_stage[row_stages[1]]
-                  and lbg[j] == 0.0 and ubg[j] == 0.0)
+                  and lbg[j] == 0.0 and ubg[j] == 0.0
+                  # the gap rows' Jacobian block on x_(k+1) must be the identity
+                  and ca.jacobian(expr, wel[int(nxt[0])]).is_one())
             if not ok:
                 raise StructureError(
                     f"{ocp.name}: dynamics block {block_of_row[j]!r}: row {j} is not of the "
-                    f"form x_(k+1) - f(x_k, u_k) = 0 (stages {row_stages})")
+                    f"form x_(k+1) - f(x_k, u_k) = 0 with coefficient 1 on x_(k+1) (stages "
+                    f"{row_stages})")
             dyn_by_state[int(nxt[0])] = (expr, j)
             continue
         if len(row_stages) <= 1:
