@@ -45,6 +45,9 @@ def test_realtime_preset_and_budgets_map_to_solver_options():
     assert "max_iter" not in moved.options and moved.budget == t.budget
     with pytest.raises(SolverError, match="no seconds budget"):
         ip.with_solver("sqpmethod")
+    # other options, or the budget's own value, may still be added
+    tuned = t.with_options({"max_iter": REALTIME_ITERATIONS, "print_time": False})
+    assert tuned.budget == t.budget and tuned.options["print_time"] is False
 
 
 @pytest.mark.parametrize("call, words", [
@@ -53,6 +56,8 @@ def test_realtime_preset_and_budgets_map_to_solver_options():
     (lambda: target("exact").with_budget(iterations=0), "positive int"),
     (lambda: target("exact").with_budget(seconds=-1.0), "positive finite"),
     (lambda: target("exact").with_budget(), "give iterations"),
+    (lambda: target("real-time").with_options(max_iter=100), "set by the budget"),
+    (lambda: target("real-time", options={"max_iter": 100}), "set by the budget"),
 ])
 def test_bad_budgets_are_refused(call, words):
     with pytest.raises(SolverError, match=words):

@@ -195,9 +195,18 @@ class Target:
     # -- derived targets ------------------------------------------------------------
     def with_options(self, options: Mapping[str, Any] | None = None, /,
                      **more: Any) -> Target:
-        """A copy with ``options`` (and keyword options) added to this target's."""
-        return replace(self, options={**self.options, **(options or {}), **more},
-                       name=f"{self.name}+options")
+        """A copy with ``options`` (and keyword options) added to this target's; an option
+        that imposes the target's budget cannot be changed here (use :meth:`with_budget`):
+        the budget would then say one bound and the solver run another."""
+        added = {**(options or {}), **more}
+        if self.budget is not None:
+            owned = self.budget.options(self.nlp_solver)
+            clash = [k for k in added if k in owned and added[k] != owned[k]]
+            if clash:
+                raise SolverError(f"Target({self.name}).with_options: {clash[0]!r} is set by "
+                                  f"the budget {self.budget} ({owned[clash[0]]!r}); change it "
+                                  f"with with_budget")
+        return replace(self, options={**self.options, **added}, name=f"{self.name}+options")
 
     def with_retries(self, retries: list[tuple[str, Mapping]] | tuple | None) -> Target:
         """A copy with another retry chain (``()`` for none, ``None`` for the default)."""
