@@ -214,9 +214,13 @@ def test_robust_filter_truncation_policy(unstable2d_tube):
     u, info = ctl.step(x, u_p)
     assert info.fallback is None and info.uncertified == {"filter": TRUNCATED}
     assert info.status == "filter_truncated" and np.isfinite(info.values["h_r"])
-    ctl = make(slack, _Truncating(filt_c, 1e-3))
+    ctl = make(slack, filt_c)
+    ctl.step(x, u_p)
+    assert ctl._last_filter is not None  # a converged (5.16) is the next warm start
+    ctl.filter = _Truncating(filt_c, 1e-3)
     u, info = ctl.step(x, u_p)
     assert info.fallback == "slack_solution" and info.status == "filter_truncated"
+    assert ctl._last_filter is None  # stopped infeasible: restart from (5.15), as in pcbf
     ctl = make(_Truncating(slack, 0.0), filt_c)
     u, info = ctl.step(x, u_p)
     assert "h_r" not in info.values and info.values["h_r_upper"] >= 0.0
