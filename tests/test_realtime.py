@@ -45,6 +45,8 @@ def test_realtime_preset_and_budgets_map_to_solver_options():
     assert "max_iter" not in moved.options and moved.budget == t.budget
     with pytest.raises(SolverError, match="no seconds budget"):
         ip.with_solver("sqpmethod")
+    # NumPy scalars are numbers too (e.g. a cap read from an array of settings)
+    assert target("exact").with_budget(np.int64(7), np.float32(0.5)).budget == Budget(7, 0.5)
     # other options, or the budget's own value, may still be added
     tuned = t.with_options({"max_iter": REALTIME_ITERATIONS, "print_time": False})
     assert tuned.budget == t.budget and tuned.options["print_time"] is False

@@ -59,6 +59,7 @@ A target is immutable; ``with_options``/``with_retries``/``with_solver`` return 
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
@@ -109,14 +110,20 @@ class Budget:
 
     def __post_init__(self) -> None:
         it, sec = self.iterations, self.seconds
-        if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 1):
+        if it is not None and (isinstance(it, bool) or not isinstance(it, numbers.Integral)
+                               or it < 1):
             raise SolverError(f"Budget: iterations must be a positive int or None, got {it!r}")
-        if sec is not None and (isinstance(sec, bool) or not isinstance(sec, int | float)
+        if sec is not None and (isinstance(sec, bool) or not isinstance(sec, numbers.Real)
                                 or not sec > 0 or sec == float("inf")):
             raise SolverError(f"Budget: seconds must be a positive finite number or None, "
                               f"got {sec!r}")
         if it is None and sec is None:
             raise SolverError("Budget: give iterations, seconds or both")
+        # NumPy scalars (np.int64(3), np.float32(0.05)) are stored as plain Python numbers
+        if it is not None:
+            object.__setattr__(self, "iterations", int(it))
+        if sec is not None:
+            object.__setattr__(self, "seconds", float(sec))
 
     def options(self, solver: str) -> dict[str, Any]:
         """The options of CasADi solver ``solver`` that impose this budget."""
