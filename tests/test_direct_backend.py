@@ -233,9 +233,9 @@ def test_quadratic_row_and_epigraphs_match_by_hand():
     assert a.dual["disc"][0] == pytest.approx(b.dual["disc"][0], rel=1e-5, abs=1e-7)
 
 
-def test_lowering_is_built_once():
+def test_lowering_is_built_once(monkeypatch):
     """P and A are constant: only q and b depend on the parameters (the tube row of a
-    parametrized centre enters b)."""
+    parametrized centre enters b); solves set up no solver and run no lowering pass."""
     ocp = OCP(name="far_tube")
     z = ocp.variable("z", 3)
     x = ocp.parameter("x", 3)
@@ -244,6 +244,14 @@ def test_lowering_is_built_once():
     prog, _ = ToConic().apply(Classify().apply(ocp)[0])
     assert prog.B.nnz == 3 and prog.Q.nnz == 0 and prog.cones[-1] == ("soc", 4)
     compiled = compile(ocp, "fast-convex")
+    import balustrade.backends.direct_backend as direct_backend
+
+    def rebuilt(*args, **kwargs):
+        raise AssertionError("a solve rebuilt the lowering or a solver")
+
+    for name in ("make_engine", "run_chain"):
+        monkeypatch.setattr(direct_backend, name, rebuilt)
+    monkeypatch.setattr(direct_backend.ToConic, "apply", rebuilt)
     for xv in (np.array([1e3, -2e3, 5e2]), np.array([3.0, 0.0, 0.0])):
         sol = compiled.solve({"x": xv})
         assert sol.status == "optimal", sol.summary()
@@ -297,3 +305,36 @@ def test_norms_of_sign_definite_rows_need_no_two_sided_epigraph(kind):
         assert a.objective == pytest.approx(b.objective, rel=1e-7, abs=1e-8)
         assert a.objective == pytest.approx(e.objective, rel=1e-6, abs=1e-6)
         assert verify(ocp, a).ok
+
+
+def test_a_nonfinite_optimal_answer_is_failed_not_optimal(monkeypatch):
+    """A solver saying "solved" with a NaN/inf point (or multipliers) is not passed on as
+    optimal: the status becomes ``failed`` and the message says why."""
+    from balustrade.backends.direct_engines import RawResult
+
+    ocp = OCP(name="box")
+    u = ocp.variable("u", 2, lb=-1.0, ub=1.0)
+    ocp.minimize(u[0] ** 2 + (u[1] - 3.0) ** 2)
+    compiled = compile(ocp, "fast-convex")
+    good = compiled.engine.run(compiled.program.q(np.zeros(0)), compiled.program.b(np.zeros(0)))
+    for field in ("y", "z"):
+        y, z = good.y.copy(), good.z.copy()
+        (y if field == "y" else z)[0] = np.nan
+        bad = RawResult(good.status, good.words, y, z, 3)
+        monkeypatch.setattr(compiled.engine, "run", lambda q, b, bad=bad: bad)
+        sol = compiled.solve()
+        assert sol.status == "failed" and "not finite" in sol.message, (field, sol.summary())
+        assert np.all(np.isnan(sol.w)) and np.isnan(sol.objective)
+
+
+@pytest.mark.parametrize("target", ["fast-convex-qp", "fast-convex-conic"])
+def test_bad_solver_options_raise_solver_errors_naming_them(target):
+    ocp = OCP(name="box")
+    u = ocp.variable("u", 2, lb=-1.0, ub=1.0)
+    ocp.minimize(u[0] ** 2 + (u[1] - 3.0) ** 2)
+    with pytest.raises(SolverError, match="'max_iter' cannot be 'many'"):
+        compile(ocp, target, options={"max_iter": "many"})
+    with pytest.raises(SolverError, match="unknown .* option 'nope'"):
+        compile(ocp, target, options={"nope": 1})
+    with pytest.raises(SolverError, match="options must be a dict"):
+        DirectCompiled(ocp, options=[("max_iter", 3)])

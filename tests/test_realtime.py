@@ -45,6 +45,11 @@ def test_realtime_preset_and_budgets_map_to_solver_options():
     assert "max_iter" not in moved.options and moved.budget == t.budget
     with pytest.raises(SolverError, match="no seconds budget"):
         ip.with_solver("sqpmethod")
+    # NumPy scalars are numbers too (e.g. a cap read from an array of settings)
+    assert target("exact").with_budget(np.int64(7), np.float32(0.5)).budget == Budget(7, 0.5)
+    # other options, or the budget's own value, may still be added
+    tuned = t.with_options({"max_iter": REALTIME_ITERATIONS, "print_time": False})
+    assert tuned.budget == t.budget and tuned.options["print_time"] is False
 
 
 @pytest.mark.parametrize("call, words", [
@@ -53,15 +58,37 @@ def test_realtime_preset_and_budgets_map_to_solver_options():
     (lambda: target("exact").with_budget(iterations=0), "positive int"),
     (lambda: target("exact").with_budget(seconds=-1.0), "positive finite"),
     (lambda: target("exact").with_budget(), "give iterations"),
+    (lambda: target("real-time").with_options(max_iter=100), "set by the budget"),
+    (lambda: target("real-time", options={"max_iter": 100}), "set by the budget"),
 ])
 def test_bad_budgets_are_refused(call, words):
     with pytest.raises(SolverError, match=words):
         call()
 
 
+@pytest.mark.parametrize("backend", ["cvxpy", "direct", "auto"])
+def test_a_budget_on_a_backend_that_ignores_it_is_refused(backend):
+    from balustrade.backends.targets import Target
+
+    with pytest.raises(SolverError, match="budgets are for the CasADi"):
+        Target(backend, None, budget=Budget(iterations=3))
+
+
 def test_a_truncated_solution_cannot_claim_optimal():
     with pytest.raises(BalustradeError, match="truncated"):
         Solution("optimal", 0.0, {}, {}, 0.0, 1, "casadi", "sqpmethod", truncated=True)
+    # nor become optimal later, whichever attribute is set last
+    sol = Solution("max_iterations", 0.0, {}, {}, 0.0, 1, "casadi", "sqpmethod",
+                   truncated=True)
+    for status in ("optimal", "optimal_inaccurate"):
+        with pytest.raises(BalustradeError, match="truncated"):
+            sol.status = status
+    assert sol.status == "max_iterations"
+    ok = Solution("optimal", 0.0, {}, {}, 0.0, 1, "casadi", "sqpmethod")
+    with pytest.raises(BalustradeError, match="truncated"):
+        ok.truncated = True
+    assert not ok.truncated
+    sol.truncated, sol.status = False, "optimal"  # no longer truncated: allowed
 
 
 # -- backend reporting --------------------------------------------------------------------
@@ -189,9 +216,13 @@ def test_robust_filter_truncation_policy(unstable2d_tube):
     u, info = ctl.step(x, u_p)
     assert info.fallback is None and info.uncertified == {"filter": TRUNCATED}
     assert info.status == "filter_truncated" and np.isfinite(info.values["h_r"])
-    ctl = make(slack, _Truncating(filt_c, 1e-3))
+    ctl = make(slack, filt_c)
+    ctl.step(x, u_p)
+    assert ctl._last_filter is not None  # a converged (5.16) is the next warm start
+    ctl.filter = _Truncating(filt_c, 1e-3)
     u, info = ctl.step(x, u_p)
     assert info.fallback == "slack_solution" and info.status == "filter_truncated"
+    assert ctl._last_filter is None  # stopped infeasible: restart from (5.15), as in pcbf
     ctl = make(_Truncating(slack, 0.0), filt_c)
     u, info = ctl.step(x, u_p)
     assert "h_r" not in info.values and info.values["h_r_upper"] >= 0.0

@@ -180,6 +180,36 @@ def test_refuses_a_nonseparable_row_naming_the_block():
         compile(ocp, "structured-sqp")
 
 
+@pytest.mark.parametrize("coupling", [
+    lambda u: ca.sign(u[0, 1] - u[0, 0]),
+    lambda u: ca.if_else(u[0, 1] > 0, u[0, 0], 0.0),
+])
+def test_refuses_a_coupling_the_hessian_cannot_see(coupling):
+    """A row coupling two stages through a piecewise constant function has no cross-stage
+    Hessian entry; split by stage it would become another row (sign(u1 − u0) is not
+    sign(u1) − sign(u0)): refused, not silently changed."""
+    ocp = _random_ocp(2, 1, 4, 0, 1)
+    ocp.le(coupling(ocp.u) - 0.5, 0.0, name="jump")
+    data, _ = run_chain(CASADI_CHAIN, ocp)
+    with pytest.raises(StructureError, match="'jump'.*not additively separable"):
+        stage_order(ocp, data)
+
+
+def test_refuses_a_scaled_dynamics_row_naming_the_block():
+    """``2·(x_(k+1) − A x_k − B u_k) = 0`` tagged dynamics: fatrop and HPIPM take the gap
+    rows' block on ``x_(k+1)`` as the identity (fatrop errored, the SQP stalled, and only
+    the IPOPT retry answered); refused at compile time instead."""
+    A, B = np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]])
+    ocp = OCP(LinearSystem(A, B), 4, name="scaled_dynamics")
+    ocp.initial_state(ocp.parameter("x0", 2))
+    x, u = ocp.x, ocp.u
+    ocp.eq(2.0 * (x[:, 1:] - (A @ x[:, :-1] + B @ u)), 0, name="dyn2", tag="dynamics")
+    ocp.minimize(squared_norm(x) + squared_norm(u))
+    for tgt in STRUCTURED:
+        with pytest.raises(StructureError, match="'dyn2'.*coefficient 1"):
+            compile(ocp, tgt)
+
+
 def test_refuses_an_ocp_without_horizon():
     ocp = OCP(name="static")
     y = ocp.variable("y", 2)

@@ -88,8 +88,10 @@ def _compile_auto(ocp: OCP, tgt: Target) -> Compiled:
         compiled: Compiled = DirectCompiled(ocp)
         compiled.target = PRESETS["fast-convex"]
     except ConvexityError:
-        compiled = CasadiCompiled(ocp, PRESETS["exact"].nlp_solver, {}, None)
-        compiled.target = PRESETS["exact"]
+        exact = PRESETS["exact"]  # exactly what compile(ocp, "exact") builds
+        compiled = CasadiCompiled(ocp, exact.nlp_solver, exact.solver_options(),
+                                  exact.retry_chain())
+        compiled.target = exact
     return compiled
 
 

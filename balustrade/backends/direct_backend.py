@@ -19,6 +19,7 @@ backends (``≥ 0`` for ``g <= 0`` rows, ``∇f + Σ λ ∇g = 0``).
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 
 import numpy as np
 import scipy.sparse as sp
@@ -56,6 +57,9 @@ class DirectCompiled:
             raise SolverError(f"{ocp.name}: the direct backend has no solver {solver!r}; use "
                               f"one of {', '.join(DIRECT_SOLVERS)} (or None: PIQP for LPs/QPs, "
                               "Clarabel for cones)")
+        if options is not None and not isinstance(options, Mapping):
+            raise SolverError(f"{ocp.name}: options must be a dict of solver options or None, "
+                              f"got {type(options).__name__}")
         self.solver_name = solver.lower() if solver else ("clarabel" if self.conic else "piqp")
         self.options = dict(options or {})
         self.engine = make_engine(self.solver_name, program, self.options)

@@ -43,6 +43,27 @@ class RawResult:
     z: np.ndarray | None
     iterations: int
 
+    def __post_init__(self) -> None:
+        """A "solved" verdict with a missing or non-finite point or multipliers is a
+        failure: a NaN never passes as an optimal answer."""
+        if self.status.success and not all(
+                v is not None and np.all(np.isfinite(v)) for v in (self.y, self.z)):
+            self.status = Status.FAILED
+            self.words += "; but the point or its multipliers are not finite"
+
+
+def _set_options(settings: object, options: dict, solver: str) -> None:
+    """Set ``options`` on a solver's settings object; an unknown name or a value of the
+    wrong type is a :class:`SolverError` naming the option (not the binding's TypeError)."""
+    for key, value in options.items():
+        if not isinstance(key, str) or key.startswith("_") or not hasattr(settings, key):
+            raise SolverError(f"direct backend: unknown {solver} option {key!r}")
+        try:
+            setattr(settings, key, value)
+        except (TypeError, ValueError, OverflowError) as exc:
+            raise SolverError(f"direct backend: {solver} option {key!r} cannot be "
+                              f"{value!r} ({type(value).__name__}): {exc}") from None
+
 
 _CLARABEL_STATUS = {
     "Solved": Status.OPTIMAL, "AlmostSolved": Status.OPTIMAL_INACCURATE,
@@ -68,10 +89,7 @@ class ClarabelEngine:
         settings.verbose = False
         settings.presolve_enable = False  # else data updates are refused
         settings.input_sparse_dropzeros = False
-        for key, value in {**DEFAULT_OPTIONS["clarabel"], **options}.items():
-            if not hasattr(settings, key):
-                raise SolverError(f"direct backend: unknown Clarabel option {key!r}")
-            setattr(settings, key, value)
+        _set_options(settings, {**DEFAULT_OPTIONS["clarabel"], **options}, "Clarabel")
         cones = [{"zero": clarabel.ZeroConeT, "nonneg": clarabel.NonnegativeConeT,
                   "soc": clarabel.SecondOrderConeT}[kind](m) for kind, m in prog.cones]
         A = prog.A if prog.A.shape[0] else sp.csc_matrix((0, prog.n_y))
@@ -114,10 +132,7 @@ class PiqpEngine:
         self.solver = piqp.SparseSolver()
         self.solver.settings.verbose = False
         self.solver.settings.preconditioner_reuse_on_update = False
-        for key, value in {**DEFAULT_OPTIONS["piqp"], **options}.items():
-            if not hasattr(self.solver.settings, key):
-                raise SolverError(f"direct backend: unknown PIQP option {key!r}")
-            setattr(self.solver.settings, key, value)
+        _set_options(self.solver.settings, {**DEFAULT_OPTIONS["piqp"], **options}, "PIQP")
         Pfull = prog.P if P is None else P
         Pfull = sp.triu(Pfull).tocsc()  # PIQP reads the upper triangle
         q0 = prog.q0 if q is None else q

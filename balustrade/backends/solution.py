@@ -104,9 +104,6 @@ class Solution:
         self.p = np.zeros(0) if p is None else as_float_array(p, "Solution: p").reshape(-1)
         self.raw = {} if raw is None else raw
         self.truncated, self.primal_residual = bool(truncated), float(primal_residual)
-        if self.truncated and self.status in SUCCESS_STATUSES:
-            raise BalustradeError(f"Solution: a truncated solve cannot be {self.status!r} "
-                                  f"(it stopped before converging)")
         if w is not None:
             given = as_float_array(w, "Solution: w").reshape(-1)
             if not np.array_equal(given, self.w, equal_nan=True):
@@ -115,6 +112,12 @@ class Solution:
     def __setattr__(self, name: str, value: object) -> None:
         if name == "status":  # a str from the caller becomes the enum (or an error)
             value = value if type(value) is Status else Status.of(value)
+        # a truncated solve is never optimal, whichever of the two is set last
+        status = value if name == "status" else getattr(self, "status", None)
+        if (value if name == "truncated" else getattr(self, "truncated", False)) \
+                and name in ("status", "truncated") and status in SUCCESS_STATUSES:
+            raise BalustradeError(f"Solution: a truncated solve cannot be {status!r} "
+                                  f"(it stopped before converging)")
         object.__setattr__(self, name, value)
 
     @property

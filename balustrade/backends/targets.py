@@ -59,6 +59,7 @@ A target is immutable; ``with_options``/``with_retries``/``with_solver`` return 
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
@@ -109,14 +110,20 @@ class Budget:
 
     def __post_init__(self) -> None:
         it, sec = self.iterations, self.seconds
-        if it is not None and (isinstance(it, bool) or not isinstance(it, int) or it < 1):
+        if it is not None and (isinstance(it, bool) or not isinstance(it, numbers.Integral)
+                               or it < 1):
             raise SolverError(f"Budget: iterations must be a positive int or None, got {it!r}")
-        if sec is not None and (isinstance(sec, bool) or not isinstance(sec, int | float)
+        if sec is not None and (isinstance(sec, bool) or not isinstance(sec, numbers.Real)
                                 or not sec > 0 or sec == float("inf")):
             raise SolverError(f"Budget: seconds must be a positive finite number or None, "
                               f"got {sec!r}")
         if it is None and sec is None:
             raise SolverError("Budget: give iterations, seconds or both")
+        # NumPy scalars (np.int64(3), np.float32(0.05)) are stored as plain Python numbers
+        if it is not None:
+            object.__setattr__(self, "iterations", int(it))
+        if sec is not None:
+            object.__setattr__(self, "seconds", float(sec))
 
     def options(self, solver: str) -> dict[str, Any]:
         """The options of CasADi solver ``solver`` that impose this budget."""
@@ -188,13 +195,25 @@ class Target:
         if self.budget is not None and not isinstance(self.budget, Budget):
             raise SolverError(f"Target({self.name}): budget must be a Budget or None, got "
                               f"{type(self.budget).__name__}")
+        if self.budget is not None and self.backend != "casadi":
+            raise SolverError(f"Target({self.name}): budgets are for the CasADi NLP solvers; "
+                              f"the {self.backend} backend would ignore it")
 
     # -- derived targets ------------------------------------------------------------
     def with_options(self, options: Mapping[str, Any] | None = None, /,
                      **more: Any) -> Target:
-        """A copy with ``options`` (and keyword options) added to this target's."""
-        return replace(self, options={**self.options, **(options or {}), **more},
-                       name=f"{self.name}+options")
+        """A copy with ``options`` (and keyword options) added to this target's; an option
+        that imposes the target's budget cannot be changed here (use :meth:`with_budget`):
+        the budget would then say one bound and the solver run another."""
+        added = {**(options or {}), **more}
+        if self.budget is not None:
+            owned = self.budget.options(self.nlp_solver)
+            clash = [k for k in added if k in owned and added[k] != owned[k]]
+            if clash:
+                raise SolverError(f"Target({self.name}).with_options: {clash[0]!r} is set by "
+                                  f"the budget {self.budget} ({owned[clash[0]]!r}); change it "
+                                  f"with with_budget")
+        return replace(self, options={**self.options, **added}, name=f"{self.name}+options")
 
     def with_retries(self, retries: list[tuple[str, Mapping]] | tuple | None) -> Target:
         """A copy with another retry chain (``()`` for none, ``None`` for the default)."""

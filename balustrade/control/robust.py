@@ -33,8 +33,9 @@ optimal; ``StepInfo.status`` carries the word ``"truncated"`` in place of their 
   feasible iterate only bounds ``h_r`` from above and is recorded as
   ``values["h_r_upper"]``, never as ``h_r`` — the thesis' fallback for a (5.15) without
   its optimum is the candidate, itself such an upper bound (``h_cand``);
-* the next solve is warm-started from a feasible truncated iterate (real-time iterations;
-  an infeasible one is dropped, as in :mod:`balustrade.control.pcbf`).
+* the next solve is warm-started from a feasible truncated iterate (real-time iterations);
+  after a (5.16) stopped infeasible, the next one starts from the primal of its step's
+  (5.15), as in :mod:`balustrade.control.pcbf` (not from an older converged (5.16)).
 
 Recorded values: ``h_r`` (the optimal value of (5.15)) and ``h_cand`` (``h̃`` of the candidate
 (5.17) built at the previous step, an upper bound on ``h_r`` by Theorem 5.15).
@@ -185,6 +186,8 @@ class RobustPCBFSafetyFilter:
                 f"{k}_{v}" for k, v in info.uncertified.items())
         else:
             chosen, info.status, info.fallback = s1, f"filter_{outcome(s2)}", "slack_solution"
+            if s2.truncated:  # stopped infeasible: restart from the (5.15) point next step
+                self._last_filter = None
         z = np.asarray(chosen["z"], dtype=float)
         v = np.asarray(chosen["v"], dtype=float).reshape(self.system.nu, -1)
         self.candidate = self._make_candidate(z, v, xi)

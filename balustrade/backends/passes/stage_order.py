@@ -221,9 +221,10 @@ def stage_order(ocp: OCP, data: NLPData, last_controls: bool = True
         parts = []
         for k in range(N + 1):
             others = [wel[i] for i in staged if stage_arr[i] != k]
-            rk = ca.substitute(expr, ca.vertcat(*others), ca.DM.zeros(len(others))) - zero_all
-            parts.append(at_stage(rk, k))
-        return parts, at_stage(zero_all, N)
+            parts.append(ca.substitute(expr, ca.vertcat(*others), ca.DM.zeros(len(others)))
+                         - zero_all)
+        _check_split(expr, parts, zero_all, w, p, f"{ocp.name}: {what}")
+        return [at_stage(rk, k) for k, rk in enumerate(parts)], at_stage(zero_all, N)
 
     sigma_init: list[tuple[ca.SX, ca.SX]] = []  # (sigma symbol, its value in original vars)
     dyn_by_state: dict[int, tuple[ca.SX, int]] = {}
@@ -235,11 +236,14 @@ def stage_order(ocp: OCP, data: NLPData, last_controls: bool = True
             nxt = [v for v in vs if stage_arr[v] == (row_stages[-1] if row_stages else -1)]
             ok = (len(row_stages) == 2 and row_stages[1] == row_stages[0] + 1
                   and len(nxt) == 1 and nxt[0] in x_of_stage[row_stages[1]]
-                  and lbg[j] == 0.0 and ubg[j] == 0.0)
+                  and lbg[j] == 0.0 and ubg[j] == 0.0
+                  # the gap rows' Jacobian block on x_(k+1) must be the identity
+                  and ca.jacobian(expr, wel[int(nxt[0])]).is_one())
             if not ok:
                 raise StructureError(
                     f"{ocp.name}: dynamics block {block_of_row[j]!r}: row {j} is not of the "
-                    f"form x_(k+1) - f(x_k, u_k) = 0 (stages {row_stages})")
+                    f"form x_(k+1) - f(x_k, u_k) = 0 with coefficient 1 on x_(k+1) (stages "
+                    f"{row_stages})")
             dyn_by_state[int(nxt[0])] = (expr, j)
             continue
         if len(row_stages) <= 1:
@@ -349,6 +353,26 @@ def _check_separable(expr: ca.SX, w: ca.SX, stage_arr: np.ndarray, what: str) ->
         raise StructureError(f"{what} couples variables of different stages non-separably "
                              "(a cross-stage Hessian entry, e.g. a rate cost or a norm over "
                              "several stages); it cannot be ordered by stage")
+
+
+def _check_split(expr: ca.SX, parts: list[ca.SX], const: ca.SX, w: ca.SX, p: ca.SX,
+                 what: str, points: int = 5) -> None:
+    """``expr == const + Σ_k parts[k]`` at a few random points: the Hessian test of
+    :func:`_check_separable` cannot see a cross-stage coupling through a piecewise
+    constant/linear function (``sign``, ``if_else``: structurally zero second derivatives),
+    which the split would silently replace by another function."""
+    size = ca.fabs(expr) + ca.fabs(const) + ca.sum1(ca.fabs(ca.vertcat(*parts)))
+    f = ca.Function("split_check", [w, p], [expr - const - sum(parts, ca.SX(0)), size])
+    rng = np.random.default_rng(0)
+    for _ in range(points):
+        gap, scale = (float(v) for v in f(rng.standard_normal(int(w.numel())),
+                                          rng.standard_normal(int(p.numel()))))
+        # (a point outside the functions' domain, e.g. log of a negative, says nothing)
+        if np.isfinite(scale) and not abs(gap) <= 1e-8 * (1.0 + scale):
+            raise StructureError(f"{what} is not additively separable by stage (its split "
+                                 f"by stage differs by {gap:.3g} at a test point: a "
+                                 "coupling through sign/if_else or similar); it cannot be "
+                                 "ordered by stage")
 
 
 def _check_hessian(nlp: StagedNLP, name: str) -> None:
