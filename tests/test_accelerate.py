@@ -133,6 +133,11 @@ def test_controller_that_cannot_be_emitted_raises(tmp_path) -> None:
         accelerate(cvx, build_dir=tmp_path)
     with pytest.raises(CodegenError, match="C identifier"):
         register(Mine, lambda c, n, d: None, lambda p, m: None, "not an identifier")
+    grid = GridPCBFFilter(SYS, SETUP.U, h_wavy, half_width=0.5, spacing=0.1, rho=0.8)
+    with pytest.raises(CodegenError, match="build_dir must be a path"):
+        accelerate(grid, build_dir=123)
+    with pytest.raises(CodegenError, match="extra_flags must be a tuple of strings"):
+        accelerate(grid, build_dir=tmp_path, extra_flags="-O2")  # not '-', 'O', '2'
     assert Mine not in registered()
 
 

@@ -132,6 +132,13 @@ def accelerate(controller: object, build_dir: str | Path | None = None,
     :class:`~balustrade.errors.CodegenError` saying why."""
     acc = _accelerator(controller)
     name = acc.name if name is None else name
+    if build_dir is not None and not isinstance(build_dir, (str, os.PathLike)):
+        raise CodegenError(f"accelerate: build_dir must be a path (str or Path), got "
+                           f"{type(build_dir).__name__}")
+    if isinstance(extra_flags, str) or not all(isinstance(f, str) for f in extra_flags):
+        raise CodegenError(f"accelerate: extra_flags must be a tuple of strings (one flag "
+                           f"each), got {extra_flags!r}")
+    extra_flags = tuple(extra_flags)
     root = default_build_dir() if build_dir is None else Path(build_dir)
     try:
         root.mkdir(parents=True, exist_ok=True)
