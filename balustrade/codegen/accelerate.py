@@ -35,7 +35,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS, build
+from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS, _flags, build
 from balustrade.codegen.emit import Emitted, emit_approximate, emit_pcbf
 from balustrade.codegen.emit_grid import emit_grid
 from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
@@ -135,10 +135,7 @@ def accelerate(controller: object, build_dir: str | Path | None = None,
     if build_dir is not None and not isinstance(build_dir, (str, os.PathLike)):
         raise CodegenError(f"accelerate: build_dir must be a path (str or Path), got "
                            f"{type(build_dir).__name__}")
-    if isinstance(extra_flags, str) or not all(isinstance(f, str) for f in extra_flags):
-        raise CodegenError(f"accelerate: extra_flags must be a tuple of strings (one flag "
-                           f"each), got {extra_flags!r}")
-    extra_flags = tuple(extra_flags)
+    extra_flags = _flags(extra_flags, "accelerate")
     root = default_build_dir() if build_dir is None else Path(build_dir)
     try:
         root.mkdir(parents=True, exist_ok=True)
