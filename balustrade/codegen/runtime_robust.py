@@ -30,6 +30,19 @@ _ROBUST_CODES = S.by_code(S.ROBUST)
 _MULTIOBJ_CODES = S.by_code(S.MULTIOBJ)
 
 
+def _refused(family: dict[int, S.Status], code: int) -> tuple[S.Status | None, StepInfo]:
+    """The :class:`StepInfo` every step starts from: an unknown code is status ``str(code)``
+    with fallback ``"unknown"``, the family's ``bad_input`` is ``"non_finite_state"``
+    (returned with the Status ``None``: nothing more to record); else the Status and a
+    StepInfo with its fallback."""
+    known = family.get(code)
+    if known is None:
+        return None, StepInfo(status=str(code), fallback="unknown")
+    if known.name == "bad_input":
+        return None, StepInfo(status="non_finite_state", fallback=known.fallback)
+    return known, StepInfo(fallback=known.fallback)
+
+
 def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float
                 ) -> StepInfo:
     """The :class:`StepInfo` :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`
@@ -37,12 +50,8 @@ def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float
     ``"filter_<f>"``, ``"non_finite_state"``; a converged C solve is named ``optimal``),
     ``fallback``, ``values["h_r"]`` (after a converged (5.15)) and ``values["h_cand"]``
     (when a candidate existed)."""
-    known = _ROBUST_CODES.get(code)
+    known, info = _refused(_ROBUST_CODES, code)
     if known is None:
-        return StepInfo(status=str(code), fallback="unknown")
-    info = StepInfo(fallback=known.fallback)
-    if known.name == "bad_input":
-        info.status = "non_finite_state"
         return info
     if np.isfinite(h_cand):
         info.values["h_cand"] = h_cand
@@ -124,12 +133,8 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` for the same
     decisions: ``status`` (``"ok"``, ``"problem_<s>"``, ``"init_<s>"``,
     ``"non_finite_state"``), ``fallback``, ``values`` ``h_cand``, ``bound``, ``h_tilde``."""
-    known = _MULTIOBJ_CODES.get(code)
+    known, info = _refused(_MULTIOBJ_CODES, code)
     if known is None:
-        return StepInfo(status=str(code), fallback="unknown")
-    info = StepInfo(fallback=known.fallback)
-    if known.name == "bad_input":
-        info.status = "non_finite_state"
         return info
     if known.name == "init_failed":
         info.status = f"init_{_PY_STATUS.get(s_code, str(s_code))}"
