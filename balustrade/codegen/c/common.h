@@ -4,7 +4,7 @@
  * instantiated once per symbol prefix by the generated <name>.c:
  *
  *   #define BAL_PROBLEM pendulum_pcbf_slack   (one problem: bal/problem.h, bal/problem.c)
- *   #define BAL_STEP pendulum_pcbf            (one control step: bal/pcbf.*, bal/approx.*)
+ *   #define BAL_STEP pendulum_pcbf            (one control step: bal/pcbf.*, approx.*, ...)
  *
  * BAL_PX(solve) is then pendulum_pcbf_slack_solve and BAL_QX(step) pendulum_pcbf_step: the
  * entry points have the real names of the emitted module.
@@ -39,6 +39,21 @@
   void X(free)(X(work)* wk);                                       \
   void X(reset)(X(work)* wk);                                      \
   int X(proposal_replaced)(const X(work)* wk);
+
+/* The accessors of a control step X that owns two emitted problems, the members A and B
+   of its work struct with their last statuses A##_status and B##_status: X(GET_A) and
+   X(GET_B) return &wk->A and &wk->B (for foreign-function callers), X(solve_status)(wk,
+   which) the BAL_* status of A's (which = 0) or B's last solve. */
+#define BAL_DECLARE_PAIR_ACCESSORS(X, A, B, GET_A, GET_B)          \
+  X(A##_work)* X(GET_A)(X(work)* wk);                              \
+  X(B##_work)* X(GET_B)(X(work)* wk);                              \
+  int X(solve_status)(const X(work)* wk, int which);
+#define BAL_DEFINE_PAIR_ACCESSORS(X, A, B, GET_A, GET_B)           \
+  X(A##_work)* X(GET_A)(X(work)* wk) { return &wk->A; }            \
+  X(B##_work)* X(GET_B)(X(work)* wk) { return &wk->B; }            \
+  int X(solve_status)(const X(work)* wk, int which) {              \
+    return which == 0 ? wk->A##_status : wk->B##_status;           \
+  }
 
 /* The work-struct members of the candidate (5.17)/(6.14) of the tube-based steps
    (bal/robust.h, bal/multiobj.h; used by bal/tube_common.c): z~ (NX x (N+1)), v~ (NU x N),

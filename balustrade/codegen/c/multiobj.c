@@ -131,11 +131,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
 
 #undef BAL_MO_COPY
 
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk) { return &wk->slack; }
-BAL_QX(problem_work)* BAL_QX(main_problem)(BAL_QX(work)* wk) { return &wk->problem; }
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which) {
-  return which == 0 ? wk->slack_status : wk->problem_status;
-}
+BAL_DEFINE_PAIR_ACCESSORS(BAL_QX, slack, problem, slack_problem, main_problem)
 void BAL_QX(values)(const BAL_QX(work)* wk, casadi_real* out) {
   out[0] = wk->values[0];
   out[1] = wk->values[1];

@@ -51,8 +51,7 @@ typedef struct BAL_QX(work) {
 BAL_DECLARE_STEP_LIFECYCLE(BAL_QX)
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  int* status, BAL_QX(work)* wk);
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk);
-BAL_QX(problem_work)* BAL_QX(main_problem)(BAL_QX(work)* wk);
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which); /* 0: (5.15), 1: (6.15) */
+/* solve_status which: 0 (5.15), 1 (6.15) */
+BAL_DECLARE_PAIR_ACCESSORS(BAL_QX, slack, problem, slack_problem, main_problem)
 void BAL_QX(values)(const BAL_QX(work)* wk, casadi_real* out);
 int BAL_QX(candidate_exact)(const BAL_QX(work)* wk);

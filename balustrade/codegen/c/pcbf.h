@@ -48,9 +48,7 @@ typedef struct BAL_QX(work) {
 BAL_DECLARE_STEP_LIFECYCLE(BAL_QX)
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk);
-/* Accessors for foreign-function callers. */
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk);
-BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk);
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which); /* 0: (2.24), 1: (2.23) */
+/* solve_status which: 0 (2.24), 1 (2.23) */
+BAL_DECLARE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 /* The last step's upper bound on h_PB from a merely feasible (2.24) (NAN if none). */
 casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk);

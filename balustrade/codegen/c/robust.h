@@ -54,10 +54,8 @@ typedef struct BAL_QX(work) {
 BAL_DECLARE_STEP_LIFECYCLE(BAL_QX)
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk);
-/* Accessors for foreign-function callers. */
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk);
-BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk);
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which); /* 0: (5.15), 1: (5.16) */
+/* solve_status which: 0 (5.15), 1 (5.16) */
+BAL_DECLARE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 /* h~ of the candidate (5.17) at the start of the last step (NAN if there was none). */
 casadi_real BAL_QX(h_cand)(const BAL_QX(work)* wk);
 /* 0 if the last candidate built needed a terminal input the C cannot compute (dropped). */
