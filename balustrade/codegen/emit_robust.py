@@ -199,8 +199,17 @@ def _cand(sym: str, spec: TubeDeployment) -> ca.Function:
 
 
 def _check_tube(name: str, spec: TubeDeployment, probs: dict[str, _Problem]) -> None:
-    """z, v, xi of the problems have the shapes of the horizon ``len(deltas)``."""
+    """``h_f`` is scalar (the C holds one double for ``ξ_N``, ``h_r``, ``h̃``) and z, v, xi of
+    the problems have the shapes of the horizon ``len(deltas)``."""
     nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
+    try:
+        h_f = spec.h_f(ca.SX.sym("z", nx))
+    except Exception as exc:
+        raise CodegenError(f"{name}: h_f failed on a CasADi symbol of shape ({nx}, 1): "
+                           f"{exc}") from exc
+    if not isinstance(h_f, (ca.SX, ca.MX, ca.DM)) or h_f.numel() != 1:
+        raise CodegenError(f"{name}: h_f must be scalar on a state of {nx} "
+                           f"entries, got shape {getattr(h_f, 'shape', type(h_f).__name__)}")
     if spec.K is None:
         raise CodegenError(f"{name}: the C applies u = v0 + K(x - z0): the error set needs "
                            "a linear feedback K (not a kappa_fn)")
@@ -249,6 +258,15 @@ def _tube_module(name: str, out_dir: Path, spec: TubeDeployment, U: object,
     family), the manifest (``extra`` after ``N``) and ``bal/<step>.c``. ``kind`` is
     ``(manifest kind, bal/ file, status family, manifest key of the family)``."""
     manifest_kind, step_file, family, family_key = kind
+    nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
+    n_xi = spec.X_E.H.shape[0] * N
+    for sym, fn in steps.items():  # the C's buffers (bal/robust.h, bal/multiobj.h)
+        sizes = [nx * (N + 1), nu * N, n_xi, 1, 1, 1] if sym.endswith("_cand") else \
+            [n_xi, 1, 1, 1]
+        got = [fn.numel_out(i) for i in range(fn.n_out())]
+        if got != sizes:
+            raise CodegenError(f"{name}: {sym} has outputs of {got} entries where the C "
+                               f"holds {sizes} (h_f must be scalar, π_f of {nu} entries)")
     files = _generate({k: v for p in probs.values() for k, v in p.functions().items()}
                       | steps, name, out_dir)
     cfg = C.Config()
