@@ -5,12 +5,15 @@ CodegenError saying why for a controller that cannot be emitted."""
 
 from __future__ import annotations
 
+import shutil
+
 import casadi as ca
 import numpy as np
 import pytest
 
 from balustrade.codegen import CGridPCBFFilter, CPCBFSafetyFilter, accelerate
 from balustrade.codegen.accelerate import register, registered, source_hash
+from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS
 from balustrade.control import PCBFSafetyFilter, simulate
 from balustrade.control.approximate import GridPCBFFilter
 from balustrade.design.terminal_cbf import synthesize_terminal_cbf
@@ -50,7 +53,7 @@ def test_accelerated_pcbf_trace_matches_python(pcbf: dict) -> None:
             assert t1.statuses == t2.statuses and t1.fallbacks == t2.fallbacks
 
 
-def test_second_call_hits_the_cache(pcbf: dict) -> None:
+def test_second_call_hits_the_cache(pcbf: dict, tmp_path) -> None:
     first = pcbf["c"].accelerated
     lib = first["dir"] / "libbal_pcbf.so"
     mtime = lib.stat().st_mtime_ns
@@ -58,8 +61,13 @@ def test_second_call_hits_the_cache(pcbf: dict) -> None:
     assert again.accelerated["cached"] and again.accelerated["dir"] == first["dir"]
     assert again.accelerated["hash"] == first["hash"]
     assert lib.stat().st_mtime_ns == mtime  # not rebuilt
-    # other flags are another build
-    assert source_hash(first["dir"], ("-O2",)) != first["hash"]
+    # other flags are another build: the cached hash is that of exactly these sources and
+    # flags (the library left out), and the same sources with another flag hash otherwise
+    src = tmp_path / "src"
+    shutil.copytree(first["dir"], src, ignore=shutil.ignore_patterns("*.so"))
+    flags = (*BASE_FLAGS, *THREAD_FLAGS, "-Werror")
+    assert source_hash(src, flags) == first["hash"]
+    assert source_hash(src, (*flags, "-O2")) != first["hash"]
     x = np.array([0.1, 0.5])
     pcbf["c"].reset()
     u1, _ = pcbf["c"].step(x, 2.0)
@@ -125,6 +133,11 @@ def test_controller_that_cannot_be_emitted_raises(tmp_path) -> None:
         accelerate(cvx, build_dir=tmp_path)
     with pytest.raises(CodegenError, match="C identifier"):
         register(Mine, lambda c, n, d: None, lambda p, m: None, "not an identifier")
+    grid = GridPCBFFilter(SYS, SETUP.U, h_wavy, half_width=0.5, spacing=0.1, rho=0.8)
+    with pytest.raises(CodegenError, match="build_dir must be a path"):
+        accelerate(grid, build_dir=123)
+    with pytest.raises(CodegenError, match="extra_flags must be a tuple of strings"):
+        accelerate(grid, build_dir=tmp_path, extra_flags="-O2")  # not '-', 'O', '2'
     assert Mine not in registered()
 
 

@@ -273,6 +273,10 @@ def test_emitters_refuse_wrong_objects(pcbf: dict, tmp_path) -> None:
         build(None)
     with pytest.raises(CodegenError, match="no 'drv.c'"):
         build_executable(tmp_path, main="drv.c")
+    with pytest.raises(CodegenError, match="build: extra_flags must be a tuple of strings"):
+        build(tmp_path, extra_flags="-O2")  # not the flags '-', 'O', '2'
+    with pytest.raises(CodegenError, match="build_executable: extra_flags must be a tuple"):
+        build_executable(tmp_path, extra_flags=[1])
     (tmp_path / "x.json").write_text("{not json")
     with pytest.raises(CodegenError, match="not a readable balustrade manifest"):
         load_manifest(tmp_path, "x")

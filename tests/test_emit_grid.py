@@ -5,6 +5,7 @@ and along closed loops of the pendulum, valgrind-clean when valgrind is installe
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 import subprocess
 
@@ -126,6 +127,19 @@ def test_grid_emit_refuses_non_box_U(tmp_path) -> None:
         emit_grid(g, "gp", tmp_path)
     with pytest.raises(CodegenError, match="GridPCBFFilter"):
         emit_grid(object(), "gp", tmp_path)
+
+
+def test_grid_emit_refuses_a_hand_built_spec_the_c_cannot_hold(tmp_path) -> None:
+    """A GridDeployment written by hand: a vector ĥ would overrun the one double the C
+    reads, arrays of the wrong size would not fit their ``nu``-sized C arrays."""
+    spec = GridPCBFFilter(SYS, U, h_wavy, half_width=0.5, spacing=0.1).deployment_spec()
+    bad = {"h": lambda x: ca.vertcat(ca.sumsqr(x), x[0]), "scale": np.ones(2),
+           "u_init": np.zeros(3), "offsets": np.zeros((4, 2))}
+    for field, value in bad.items():
+        with pytest.raises(CodegenError, match="scalar|entries|shape"):
+            emit_grid(dataclasses.replace(spec, **{field: value}), "gb", tmp_path / field)
+    with pytest.raises(CodegenError, match="scale > 0"):
+        emit_grid(dataclasses.replace(spec, scale=np.zeros(1)), "gb", tmp_path / "z")
 
 
 DRIVER = r"""

@@ -296,6 +296,20 @@ def test_multiobjective_bad_input_and_refusals(mo_pair: dict, tmp_path) -> None:
         emit_multiobjective(object(), "mo", tmp_path)
 
 
+def test_hand_built_spec_with_vector_h_f_is_refused(pair: dict, mo_pair: dict,
+                                                    tmp_path) -> None:
+    """A vector h_f would make <name>_post/<name>_cand write past the one double the C
+    holds for xi_N, h_r, h~: refused before any C is written."""
+    import casadi as ca
+
+    for emit, spec in ((emit_robust, pair["py"].deployment_spec()),
+                       (emit_multiobjective, mo_pair["py"].deployment_spec())):
+        h_f = spec.h_f
+        bad = dataclasses.replace(spec, h_f=lambda z, h_f=h_f: ca.vertcat(h_f(z), h_f(z)))
+        with pytest.raises(CodegenError, match="h_f must be scalar"):
+            emit(bad, "hb", tmp_path / emit.__name__)
+
+
 def test_entry_points_listed_and_exported(pair: dict, mo_pair: dict) -> None:
     """Every entry point of bal/robust.h and bal/multiobj.h (``cfiles.ENTRY_POINTS``) is
     named in the generated header and exported by the built library."""

@@ -35,7 +35,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS, build
+from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS, _flags, build
 from balustrade.codegen.emit import Emitted, emit_approximate, emit_pcbf
 from balustrade.codegen.emit_grid import emit_grid
 from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
@@ -132,6 +132,10 @@ def accelerate(controller: object, build_dir: str | Path | None = None,
     :class:`~balustrade.errors.CodegenError` saying why."""
     acc = _accelerator(controller)
     name = acc.name if name is None else name
+    if build_dir is not None and not isinstance(build_dir, (str, os.PathLike)):
+        raise CodegenError(f"accelerate: build_dir must be a path (str or Path), got "
+                           f"{type(build_dir).__name__}")
+    extra_flags = _flags(extra_flags, "accelerate")
     root = default_build_dir() if build_dir is None else Path(build_dir)
     try:
         root.mkdir(parents=True, exist_ok=True)

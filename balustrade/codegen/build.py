@@ -48,6 +48,16 @@ def _src_dir(src_dir: str | Path, what: str) -> Path:
     return path
 
 
+def _flags(extra_flags: object, what: str) -> tuple[str, ...]:
+    """``extra_flags`` as a tuple of strings (one flag each), else a CodegenError: a plain
+    string would be splatted into one flag per character."""
+    if isinstance(extra_flags, str) or not isinstance(extra_flags, (tuple, list)) or \
+            not all(isinstance(f, str) for f in extra_flags):
+        raise CodegenError(f"{what}: extra_flags must be a tuple of strings (one flag each), "
+                           f"got {extra_flags!r}")
+    return tuple(extra_flags)
+
+
 def _run(cmd: list[str], what: str) -> None:
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -64,6 +74,7 @@ def build(src_dir: str | Path, name: str | None = None, werror: bool = False,
     (``cc -O3 -fPIC -shared -Wall -Wextra [-Werror] ... -lm``) and return its path
     (default ``src_dir/lib<name>.so``; ``name`` defaults to the folder's manifest)."""
     src_dir = _src_dir(src_dir, "build")
+    extra_flags = _flags(extra_flags, "build")
     sources = _sources(src_dir)
     if not sources:
         raise CodegenError(f"no C sources in {src_dir}")
@@ -84,6 +95,7 @@ def build_executable(src_dir: str | Path, main: str = "main.c", werror: bool = T
     """Compile ``main.c`` with the other sources of ``src_dir`` into an executable
     (``-Wall -Wextra -Werror`` by default, as the generated Makefile does)."""
     src_dir = _src_dir(src_dir, "build_executable")
+    extra_flags = _flags(extra_flags, "build_executable")
     if not (src_dir / main).is_file():
         raise CodegenError(f"build_executable: no {main!r} in {src_dir} (write_example writes "
                            "main.c)")

@@ -29,8 +29,8 @@ from balustrade.codegen import status as S
 SUBDIR = "bal"
 #: the static files copied into ``<out_dir>/bal/`` (``#include``\\ d by the glue)
 STATIC = ("common.h", "problem.h", "problem.c", "step_common.c", "pcbf.h", "pcbf.c",
-          "approx.h", "approx.c", "grid.h", "grid.c",
-          "robust.h", "robust.c", "multiobj.h", "multiobj.c")
+          "h_common.c", "approx.h", "approx.c", "grid.h", "grid.c",
+          "tube_common.c", "robust.h", "robust.c", "multiobj.h", "multiobj.c")
 #: the entry points each static header declares (``<prefix>_<entry>``), listed by their real
 #: names in the generated ``<name>.h`` (checked against the built library by the tests)
 ENTRY_POINTS: dict[str, tuple[str, ...]] = {

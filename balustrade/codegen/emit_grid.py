@@ -31,6 +31,26 @@ from balustrade.dsl.sets import Box
 from balustrade.errors import CodegenError
 
 
+def _check_numbers(name: str, spec: GridDeployment, nu: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(offsets (M, nu), scale (nu,), u_init (nu,))`` of a (possibly hand-built) spec, all
+    finite, ``scale > 0`` and ``rho`` finite; else a CodegenError naming the field and its
+    shape (the C arrays are sized by ``nu``)."""
+    offsets = np.asarray(spec.offsets, dtype=float)
+    if offsets.ndim not in (1, 2) or offsets.size == 0 or offsets.size % nu or \
+            (offsets.ndim == 2 and offsets.shape[1] != nu):
+        raise CodegenError(f"{name}: offsets must have shape (M, {nu}), got {offsets.shape}")
+    scale = np.asarray(spec.scale, dtype=float)
+    u_init = np.asarray(spec.u_init, dtype=float)
+    if scale.size != nu or u_init.size != nu:
+        raise CodegenError(f"{name}: scale and u_init must have {nu} entries, got shapes "
+                           f"{scale.shape} and {u_init.shape}")
+    if not (np.all(np.isfinite(offsets)) and np.all(np.isfinite(scale)) and
+            np.all(scale > 0) and np.isfinite(float(spec.rho))):
+        raise CodegenError(f"{name}: offsets, scale and rho must be finite and scale > 0")
+    return offsets.reshape(-1, nu), scale.reshape(-1), u_init.reshape(-1)
+
+
 def emit_grid(controller: object, name: str, out_dir: str | Path,
               dynamics: ca.Function | None = None) -> Emitted:
     """Emit Algorithm 8.7 of a :class:`~balustrade.control.approximate.GridPCBFFilter` (or
@@ -47,15 +67,19 @@ def emit_grid(controller: object, name: str, out_dir: str | Path,
     if not isinstance(spec.U, Box):
         raise CodegenError(f"{name}: the C grid step clips its candidates to U, so U must be "
                            f"a Box, got {type(spec.U).__name__}")
-    out_dir = _out_dir(out_dir, name)
     system = spec.system
     nx, nu = system.nx, system.nu
-    offsets = np.asarray(spec.offsets, dtype=float).reshape(-1, nu)
+    offsets, scale, u_init = _check_numbers(name, spec, nu)
     x, u = ca.SX.sym("x", nx), ca.SX.sym("u", nu)
     h = spec.h
     functions = {f"{name}_h": ca.Function(f"{name}_h", [x], [h(x)], ["x"], ["h"]),
                  f"{name}_h_next": ca.Function(f"{name}_h_next", [x, u], [h(system(x, u))],
                                                ["x", "u"], ["h_next"])}
+    for fn in functions.values():
+        if fn.numel_out(0) != 1:  # the C reads one double: more would overrun it
+            raise CodegenError(f"{name}: ĥ must be scalar, {fn.name()} has an output of "
+                               f"shape {fn.size_out(0)}")
+    out_dir = _out_dir(out_dir, name)
     if dynamics is not None:
         functions[f"{name}_dynamics"] = dynamics
     files = _generate(functions, name, out_dir)
@@ -69,8 +93,8 @@ def emit_grid(controller: object, name: str, out_dir: str | Path,
     cfg.array(f"{name}_U_UB", spec.U.ub)
     cfg.comment("offsets j du, |j du| <= half width (rows, itertools.product order)")
     cfg.matrix(f"{name}_OFFSETS", offsets)
-    cfg.array(f"{name}_SCALE", spec.scale)
-    cfg.array(f"{name}_U_INIT", spec.u_init)
+    cfg.array(f"{name}_SCALE", scale)
+    cfg.array(f"{name}_U_INIT", u_init)
     cfg.status(S.GRID, "BAL_GRID_STATUS_CODES")
     manifest = {"kind": "grid", "nx": nx, "nu": nu, "n_offsets": len(offsets),
                 "rho": float(spec.rho),

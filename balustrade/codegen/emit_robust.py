@@ -57,7 +57,11 @@ from balustrade.codegen.emit import (
     _spec,
     _write_module,
 )
-from balustrade.control.deploy import MultiobjectiveDeployment, RobustDeployment
+from balustrade.control.deploy import (
+    MultiobjectiveDeployment,
+    RobustDeployment,
+    TubeDeployment,
+)
 from balustrade.errors import CodegenError
 
 #: the target to build both problems of Algorithm 5.2 with for C (module docstring)
@@ -86,7 +90,7 @@ def _norm(col: ca.SX, order: float) -> ca.SX:
     raise CodegenError(f"slack norm {order!r}: the C supports 1, 2 and inf")
 
 
-def _slack_cost(xi: ca.SX, xi_N: ca.SX, spec: RobustDeployment) -> ca.SX:
+def _slack_cost(xi: ca.SX, xi_N: ca.SX, spec: RobustDeployment | MultiobjectiveDeployment) -> ca.SX:
     """``h̃(ξ) = α_f ξ_N + Σ_i ‖ξ_i‖`` (SPEC §1.12)."""
     total = spec.alpha_f * xi_N
     for i in range(xi.shape[1]):
@@ -94,7 +98,7 @@ def _slack_cost(xi: ca.SX, xi_N: ca.SX, spec: RobustDeployment) -> ca.SX:
     return total
 
 
-def _policy(name: str, spec: RobustDeployment, z: ca.SX) -> ca.SX:
+def _policy(name: str, spec: TubeDeployment, z: ca.SX) -> ca.SX:
     """``π_f(z)`` on CasADi symbols: ``π_f`` itself if it accepts them, else the linear map
     it is checked to be (``π_f(x) = K_f x + c`` at random points), else a CodegenError."""
     nx, nu = spec.system.nx, spec.system.nu
@@ -120,7 +124,7 @@ def _policy(name: str, spec: RobustDeployment, z: ca.SX) -> ca.SX:
     return ca.mtimes(ca.DM(K), z) + ca.DM(c)
 
 
-def _terminal_input(name: str, spec: RobustDeployment, zN: ca.SX) -> tuple[ca.SX, ca.SX]:
+def _terminal_input(name: str, spec: TubeDeployment, zN: ca.SX) -> tuple[ca.SX, ca.SX]:
     """``(v_f, exact)``: the terminal input of (5.17)
     (:func:`~balustrade.control.robust_steps.terminal_input`) and whether the C computed
     it as Python does (module docstring)."""
@@ -145,7 +149,8 @@ def _terminal_input(name: str, spec: RobustDeployment, zN: ca.SX) -> tuple[ca.SX
     return ca.if_else(inside, u_f, v_min), ca.SX(1)
 
 
-def _post(sym: str, spec: RobustDeployment, prob: _Problem) -> ca.Function:
+def _post(sym: str, spec: RobustDeployment | MultiobjectiveDeployment, prob: _Problem
+          ) -> ca.Function:
     """``sym(w, f) -> (ξ, ξ_N, h_r, h̃)`` on the stacked vector ``w`` of ``prob`` ((5.15)
     or (6.15)): the polished slacks (:func:`~balustrade.control.robust_steps.
     polished_slacks`), ``h_r = min(max(f, 0), h̃)`` and ``h̃`` of the polished slacks."""
@@ -167,7 +172,7 @@ def _post(sym: str, spec: RobustDeployment, prob: _Problem) -> ca.Function:
                        ["w", "f"], ["xi", "xi_N", "h_r", "h_tilde"])
 
 
-def _cand(sym: str, spec: RobustDeployment) -> ca.Function:
+def _cand(sym: str, spec: TubeDeployment) -> ca.Function:
     """``sym(z, v, ξ) -> (z̃, ṽ, ξ̃, ξ̃_N, h̃(ξ̃), exact)``: the candidate (5.17)/(6.14)
     (:func:`~balustrade.control.robust_steps.robust_candidate`)."""
     system, X_E = spec.system, spec.X_E
@@ -193,9 +198,18 @@ def _cand(sym: str, spec: RobustDeployment) -> ca.Function:
                                           "h_cand", "exact"])
 
 
-def _check_tube(name: str, spec: RobustDeployment, probs: dict[str, _Problem]) -> None:
-    """z, v, xi of the problems have the shapes of the horizon ``len(deltas)``."""
+def _check_tube(name: str, spec: TubeDeployment, probs: dict[str, _Problem]) -> None:
+    """``h_f`` is scalar (the C holds one double for ``ξ_N``, ``h_r``, ``h̃``) and z, v, xi of
+    the problems have the shapes of the horizon ``len(deltas)``."""
     nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
+    try:
+        h_f = spec.h_f(ca.SX.sym("z", nx))
+    except Exception as exc:
+        raise CodegenError(f"{name}: h_f failed on a CasADi symbol of shape ({nx}, 1): "
+                           f"{exc}") from exc
+    if not isinstance(h_f, (ca.SX, ca.MX, ca.DM)) or h_f.numel() != 1:
+        raise CodegenError(f"{name}: h_f must be scalar on a state of {nx} "
+                           f"entries, got shape {getattr(h_f, 'shape', type(h_f).__name__)}")
     if spec.K is None:
         raise CodegenError(f"{name}: the C applies u = v0 + K(x - z0): the error set needs "
                            "a linear feedback K (not a kappa_fn)")
@@ -211,7 +225,7 @@ def _check_tube(name: str, spec: RobustDeployment, probs: dict[str, _Problem]) -
                                f"({spec.X_E.H.shape[0]}, {N})")
 
 
-def _tube_config(cfg: C.Config, name: str, spec: RobustDeployment, U: object) -> None:
+def _tube_config(cfg: C.Config, name: str, spec: TubeDeployment, U: object) -> None:
     """The ``#define``\\ s shared by bal/robust.c and bal/multiobj.c."""
     nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
     cfg.define(f"{name}_NX", nx)
@@ -231,6 +245,47 @@ def _work_sizes(cfg: C.Config, name: str, syms: list[str]) -> None:
         for sym in syms[1:]:
             expr = f"BAL_MAX2({expr}, {sym}_SZ_{key})"
         cfg.define(f"{name}_SZ_{key}", expr)
+
+
+def _tube_module(name: str, out_dir: Path, spec: TubeDeployment, U: object,
+                 libs: list[str], probs: dict[str, _Problem], steps: dict[str, ca.Function],
+                 kind: tuple[str, str, tuple[S.Status, ...], str], comment: str,
+                 title: str, defines: list[tuple[str, object, str | None]],
+                 extra: dict) -> Emitted:
+    """The module of a tube-based step, shared by :func:`emit_robust` and
+    :func:`emit_multiobjective`: the CasADi code of both problems and of ``steps``, the
+    config (the problems, :func:`_tube_config`, ``defines``, the work sizes, the status
+    family), the manifest (``extra`` after ``N``) and ``bal/<step>.c``. ``kind`` is
+    ``(manifest kind, bal/ file, status family, manifest key of the family)``."""
+    manifest_kind, step_file, family, family_key = kind
+    nx, nu, N = spec.system.nx, spec.system.nu, len(spec.deltas)
+    n_xi = spec.X_E.H.shape[0] * N
+    for sym, fn in steps.items():  # the C's buffers (bal/robust.h, bal/multiobj.h)
+        sizes = [nx * (N + 1), nu * N, n_xi, 1, 1, 1] if sym.endswith("_cand") else \
+            [n_xi, 1, 1, 1]
+        got = [fn.numel_out(i) for i in range(fn.n_out())]
+        if got != sizes:
+            raise CodegenError(f"{name}: {sym} has outputs of {got} entries where the C "
+                               f"holds {sizes} (h_f must be scalar, π_f of {nu} entries)")
+    files = _generate({k: v for p in probs.values() for k, v in p.functions().items()}
+                      | steps, name, out_dir)
+    cfg = C.Config()
+    for p in probs.values():
+        p.config(cfg)
+    cfg.comment(f"---- {comment} (bal/{step_file}.h) ----")
+    _tube_config(cfg, name, spec, U)
+    for macro, value, doc in defines:
+        cfg.define(macro, value, doc)
+    _work_sizes(cfg, name, list(steps))
+    cfg.status(family, f"BAL_{step_file.upper()}_STATUS_CODES")
+    manifest = {"kind": manifest_kind, "nx": spec.system.nx, "nu": spec.system.nu,
+                "N": len(spec.deltas), **extra,
+                "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
+                "problems": {k: p.manifest() for k, p in probs.items()},
+                family_key: S.manifest(family)}
+    return _write_module(name, out_dir, title, cfg,
+                         [*(("problem", p.P) for p in probs.values()), (step_file, name)],
+                         files, manifest, tuple(sorted(set(libs))))
 
 
 def emit_robust(controller: object, name: str, out_dir: str | Path,
@@ -264,31 +319,15 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
                     "(5.16) variable": (f.vars, ["z", "v"])},
              "build the problems with balustrade.problems.robust")
     _check_tube(name, spec, {"(5.15)": s, "(5.16)": f})
-    system = spec.system
-    nx, nu, N = system.nx, system.nu, len(spec.deltas)
-    n_xi = spec.X_E.H.shape[0] * N
+    N = len(spec.deltas)
     steps = {f"{name}_post": _post(f"{name}_post", spec, s),
              f"{name}_cand": _cand(f"{name}_cand", spec)}
-    files = _generate({**s.functions(), **f.functions(), **steps}, name, out_dir)
-    cfg = C.Config()
-    s.config(cfg)
-    f.config(cfg)
-    cfg.comment(f"---- Algorithm 5.2, the robust PCBF step {name}: (5.15) then (5.16) "
-                "(bal/robust.h) ----")
-    _tube_config(cfg, name, spec, U)
-    _work_sizes(cfg, name, list(steps))
-    cfg.status(S.ROBUST, "BAL_ROBUST_STATUS_CODES")
-    manifest = {"kind": "robust", "nx": nx, "nu": nu, "N": N, "n_xi": n_xi,
-                "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
-                "problems": {"slack": s.manifest(), "filter": f.manifest()},
-                "robust_status": S.manifest(S.ROBUST)}
-    return _write_module(name, out_dir, "Algorithm 5.2, the robust PCBF filter "
-                         "(5.15)+(5.16)", cfg,
-                         [("problem", s.P), ("problem", f.P), ("robust", name)], files,
-                         manifest, tuple(sorted(set(libs))))
-
-
-
+    return _tube_module(
+        name, out_dir, spec, U, libs, {"slack": s, "filter": f}, steps,
+        ("robust", "robust", S.ROBUST, "robust_status"),
+        f"Algorithm 5.2, the robust PCBF step {name}: (5.15) then (5.16)",
+        "Algorithm 5.2, the robust PCBF filter (5.15)+(5.16)", [],
+        {"n_xi": spec.X_E.H.shape[0] * N})
 
 
 def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
@@ -332,31 +371,17 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
                     "(6.15) variable": (p.vars, ["z", "v", "xi", "xi_N"])},
              "build the problems with balustrade.problems.multiobjective")
     _check_tube(name, spec, {"(5.15)": s, "(6.15)": p})
-    system = spec.system
-    nx, nu, N = system.nx, system.nu, len(spec.deltas)
     steps = {f"{name}_post_slack": _post(f"{name}_post_slack", spec, s),
              f"{name}_post_problem": _post(f"{name}_post_problem", spec, p),
              f"{name}_cand": _cand(f"{name}_cand", spec)}
-    files = _generate({**s.functions(), **p.functions(), **steps}, name, out_dir)
-    cfg = C.Config()
-    s.config(cfg)
-    p.config(cfg)
-    cfg.comment(f"---- Algorithm 6.4, the multiobjective robust PCBF step {name} "
-                "(bal/multiobj.h) ----")
-    _tube_config(cfg, name, spec, U)
-    cfg.define(f"{name}_RHO", C.c_double(spec.rho), "rho of (6.15g)")
-    cfg.define(f"{name}_BOUND_TOL", C.c_double(spec.bound_tol))
-    _work_sizes(cfg, name, list(steps))
-    cfg.status(S.MULTIOBJ, "BAL_MULTIOBJ_STATUS_CODES")
-    manifest = {"kind": "multiobjective", "nx": nx, "nu": nu, "N": N,
-                "rho": float(spec.rho), "bound_tol": float(spec.bound_tol),
-                "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
-                "problems": {"slack": s.manifest(), "problem": p.manifest()},
-                "multiobj_status": S.manifest(S.MULTIOBJ)}
-    return _write_module(name, out_dir, "Algorithm 6.4, the multiobjective robust PCBF "
-                         "controller (5.15)+(6.15)", cfg,
-                         [("problem", s.P), ("problem", p.P), ("multiobj", name)], files,
-                         manifest, tuple(sorted(set(libs))))
+    return _tube_module(
+        name, out_dir, spec, U, libs, {"slack": s, "problem": p}, steps,
+        ("multiobjective", "multiobj", S.MULTIOBJ, "multiobj_status"),
+        f"Algorithm 6.4, the multiobjective robust PCBF step {name}",
+        "Algorithm 6.4, the multiobjective robust PCBF controller (5.15)+(6.15)",
+        [(f"{name}_RHO", C.c_double(spec.rho), "rho of (6.15g)"),
+         (f"{name}_BOUND_TOL", C.c_double(spec.bound_tol), None)],
+        {"rho": float(spec.rho), "bound_tol": float(spec.bound_tol)})
 
 
 __all__ = ["EMITTABLE_TARGET", "emit_multiobjective", "emit_robust"]

@@ -248,6 +248,38 @@ class _OwnsWork:
     """Frees the C work structure allocated by the library (``self._work``, ``self._free``)
     on :meth:`close` or garbage collection."""
 
+    def _open(self, lib_path: str | Path, manifest: dict | None, kind: str, what: str
+              ) -> dict:
+        """Load the library (``self._lib``) and return its manifest; a manifest of another
+        ``kind`` raises :class:`~balustrade.errors.CodegenError` (``what`` names the
+        expected module)."""
+        self._lib = _Library(lib_path, manifest)
+        m = self._lib.manifest
+        if m.get("kind") != kind:
+            raise CodegenError(f"{self._lib.path.name}: not an emitted {what} "
+                               f"(kind {m.get('kind')!r})")
+        return m
+
+    def _allocate(self, prefix: str) -> None:
+        """Bind ``<prefix>_free`` and ``<prefix>_reset`` of a control step and allocate its
+        work structure (``<prefix>_alloc``; a failure raises
+        :class:`~balustrade.errors.CodegenError`)."""
+        vp = ctypes.c_void_p
+        self._free = self._lib.fn(f"{prefix}_free", None, [vp])
+        self._reset = self._lib.fn(f"{prefix}_reset", None, [vp])
+        self._work = self._lib.fn(f"{prefix}_alloc", vp, [])()
+        if not self._work:
+            raise CodegenError(f"{prefix}_alloc failed (no CasADi memory left)")
+
+    def _step_buffers(self) -> None:
+        """The step's input/output buffers and its argument tuple
+        ``(x, u_p, u, h, &status, work)`` (``self.nx``, ``self.nu`` set)."""
+        self._x, self._u_p = np.zeros(self.nx), np.zeros(self.nu)
+        self._u, self._h = np.zeros(self.nu), np.zeros(1)
+        self._status = ctypes.c_int(0)
+        self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u), _ptr(self._h),
+                      ctypes.byref(self._status), self._work)
+
     def close(self) -> None:
         if getattr(self, "_work", None):
             self._free(self._work)
@@ -339,37 +371,24 @@ class CPCBFSafetyFilter(_OwnsWork):
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None,
                  keep_solutions: bool = False):
-        self._lib = _Library(lib_path, manifest)
-        m = self._lib.manifest
-        if m.get("kind") != "pcbf":
-            raise CodegenError(f"{self._lib.path.name}: not an emitted PCBF filter "
-                               f"(kind {m.get('kind')!r})")
+        m = self._open(lib_path, manifest, "pcbf", "PCBF filter")
         Q = m["name"]
         self.nx, self.nu, self.N = m["nx"], m["nu"], m["N"]
         self.keep_solutions = keep_solutions
         vp = ctypes.c_void_p
-        self._alloc = self._lib.fn(f"{Q}_alloc", vp, [])
-        self._free = self._lib.fn(f"{Q}_free", None, [vp])
-        self._reset = self._lib.fn(f"{Q}_reset", None, [vp])
         self._step = self._lib.fn(f"{Q}_step", ctypes.c_int,
                                   [_dbl_p, _dbl_p, _dbl_p, _dbl_p,
                                    ctypes.POINTER(ctypes.c_int), vp])
         self._status_fn = self._lib.fn(f"{Q}_solve_status", ctypes.c_int, [vp, ctypes.c_int])
         self._h_upper = self._lib.fn(f"{Q}_h_upper", ctypes.c_double, [vp])
         self._replaced = self._lib.fn(f"{Q}_proposal_replaced", ctypes.c_int, [vp])
-        self._work = self._alloc()
-        if not self._work:
-            raise CodegenError(f"{Q}_alloc failed (no CasADi memory left)")
+        self._allocate(Q)
         slack_ptr = self._lib.fn(f"{Q}_slack_problem", vp, [vp])(self._work)
         filt_ptr = self._lib.fn(f"{Q}_filter_problem", vp, [vp])(self._work)
         self.slack = _CProblemView(self._lib, f"{Q}_slack", m["problems"]["slack"], slack_ptr)
         self.filter = _CProblemView(self._lib, f"{Q}_filter", m["problems"]["filter"],
                                     filt_ptr)
-        self._x, self._u_p = np.zeros(self.nx), np.zeros(self.nu)
-        self._u, self._h = np.zeros(self.nu), np.zeros(1)
-        self._status = ctypes.c_int(0)
-        self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u), _ptr(self._h),
-                      ctypes.byref(self._status), self._work)
+        self._step_buffers()
         # the per-step calls of step(), prebuilt: unchecked handles, converted arguments
         wk = ctypes.c_void_p(self._work)
         self._hot_step = (self._lib.raw(f"{Q}_step", ctypes.c_int), (*self._args[:5], wk))
@@ -486,15 +505,9 @@ class CApproximatePCBFFilter(_OwnsWork):
     _FILTER_FEASIBLE = S.code_of(S.APPROX, "filter_feasible")
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
-        self._lib = _Library(lib_path, manifest)
-        m = self._lib.manifest
-        if m.get("kind") != "approximate":
-            raise CodegenError(f"{self._lib.path.name}: not an emitted Algorithm 7.5 filter "
-                               f"(kind {m.get('kind')!r})")
+        m = self._open(lib_path, manifest, "approximate", "Algorithm 7.5 filter")
         A, vp = m["name"], ctypes.c_void_p
         self.nx, self.nu = m["nx"], m["nu"]
-        self._free = self._lib.fn(f"{A}_free", None, [vp])
-        self._reset = self._lib.fn(f"{A}_reset", None, [vp])
         self._step = self._lib.fn(f"{A}_step", ctypes.c_int,
                                   [_dbl_p, _dbl_p, _dbl_p, _dbl_p,
                                    ctypes.POINTER(ctypes.c_int), vp])
@@ -502,14 +515,8 @@ class CApproximatePCBFFilter(_OwnsWork):
         self._counter = self._lib.fn(f"{A}_counter", ctypes.c_long, [vp, ctypes.c_int])
         self._set_certify = self._lib.fn(f"{A}_set_certify", None, [vp, ctypes.c_int])
         self._replaced = self._lib.fn(f"{A}_proposal_replaced", ctypes.c_int, [vp])
-        self._work = self._lib.fn(f"{A}_alloc", vp, [])()
-        if not self._work:
-            raise CodegenError(f"{A}_alloc failed (no CasADi memory left)")
-        self._x, self._u_p = np.zeros(self.nx), np.zeros(self.nu)
-        self._u, self._h = np.zeros(self.nu), np.zeros(1)
-        self._status = ctypes.c_int(0)
-        self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u), _ptr(self._h),
-                      ctypes.byref(self._status), self._work)
+        self._allocate(A)
+        self._step_buffers()
 
     @property
     def certify(self) -> bool:

@@ -12,10 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from balustrade.codegen import status as S
-from balustrade.codegen.runtime import _dbl_p, _Library, _load, _OwnsWork, _ptr
+from balustrade.codegen.runtime import _dbl_p, _load, _OwnsWork
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
-from balustrade.errors import CodegenError
 
 
 class CGridPCBFFilter(_OwnsWork):
@@ -29,15 +28,9 @@ class CGridPCBFFilter(_OwnsWork):
     _BAD = S.code_of(S.GRID, "non_finite_state")
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
-        self._lib = _Library(lib_path, manifest)
-        m = self._lib.manifest
-        if m.get("kind") != "grid":
-            raise CodegenError(f"{self._lib.path.name}: not an emitted Algorithm 8.7 filter "
-                               f"(kind {m.get('kind')!r})")
+        m = self._open(lib_path, manifest, "grid", "Algorithm 8.7 filter")
         A, vp = m["name"], ctypes.c_void_p
         self.nx, self.nu = m["nx"], m["nu"]
-        self._free = self._lib.fn(f"{A}_free", None, [vp])
-        self._reset = self._lib.fn(f"{A}_reset", None, [vp])
         self._step = self._lib.fn(f"{A}_step", ctypes.c_int,
                                   [_dbl_p, _dbl_p, _dbl_p, _dbl_p,
                                    ctypes.POINTER(ctypes.c_int), vp])
@@ -45,15 +38,9 @@ class CGridPCBFFilter(_OwnsWork):
         self._counter = self._lib.fn(f"{A}_counter", ctypes.c_long, [vp, ctypes.c_int])
         self._replaced = self._lib.fn(f"{A}_proposal_replaced", ctypes.c_int, [vp])
         u_prev = self._lib.fn(f"{A}_u_prev", _dbl_p, [vp])
-        self._work = self._lib.fn(f"{A}_alloc", vp, [])()
-        if not self._work:
-            raise CodegenError(f"{A}_alloc failed (no CasADi memory left)")
+        self._allocate(A)
         self._u_prev = np.ctypeslib.as_array(u_prev(self._work), shape=(self.nu,))
-        self._x, self._u_p = np.zeros(self.nx), np.zeros(self.nu)
-        self._u, self._h = np.zeros(self.nu), np.zeros(1)
-        self._status = ctypes.c_int(0)
-        self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u), _ptr(self._h),
-                      ctypes.byref(self._status), self._work)
+        self._step_buffers()
 
     def reset(self) -> None:
         """``u_{k−1} := Π_U(u_init)``, counters to zero (as the Python filter)."""

@@ -19,17 +19,28 @@ from balustrade.codegen.runtime import (
     _PY_STATUS,
     _CProblemView,
     _dbl_p,
-    _Library,
     _OwnsWork,
     _proposal,
     _ptr,
 )
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
-from balustrade.errors import CodegenError
 
 _ROBUST_CODES = S.by_code(S.ROBUST)
 _MULTIOBJ_CODES = S.by_code(S.MULTIOBJ)
+
+
+def _refused(family: dict[int, S.Status], code: int) -> tuple[S.Status | None, StepInfo]:
+    """The :class:`StepInfo` every step starts from: an unknown code is status ``str(code)``
+    with fallback ``"unknown"``, the family's ``bad_input`` is ``"non_finite_state"``
+    (returned with the Status ``None``: nothing more to record); else the Status and a
+    StepInfo with its fallback."""
+    known = family.get(code)
+    if known is None:
+        return None, StepInfo(status=str(code), fallback="unknown")
+    if known.name == "bad_input":
+        return None, StepInfo(status="non_finite_state", fallback=known.fallback)
+    return known, StepInfo(fallback=known.fallback)
 
 
 def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float
@@ -39,12 +50,8 @@ def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float
     ``"filter_<f>"``, ``"non_finite_state"``; a converged C solve is named ``optimal``),
     ``fallback``, ``values["h_r"]`` (after a converged (5.15)) and ``values["h_cand"]``
     (when a candidate existed)."""
-    known = _ROBUST_CODES.get(code)
+    known, info = _refused(_ROBUST_CODES, code)
     if known is None:
-        return StepInfo(status=str(code), fallback="unknown")
-    info = StepInfo(fallback=known.fallback)
-    if known.name == "bad_input":
-        info.status = "non_finite_state"
         return info
     if np.isfinite(h_cand):
         info.values["h_cand"] = h_cand
@@ -64,36 +71,23 @@ class CRobustPCBFSafetyFilter(_OwnsWork):
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None,
                  keep_solutions: bool = False):
-        self._lib = _Library(lib_path, manifest)
-        m = self._lib.manifest
-        if m.get("kind") != "robust":
-            raise CodegenError(f"{self._lib.path.name}: not an emitted robust PCBF filter "
-                               f"(kind {m.get('kind')!r})")
+        m = self._open(lib_path, manifest, "robust", "robust PCBF filter")
         Q = m["name"]
         self.nx, self.nu, self.N = m["nx"], m["nu"], m["N"]
         self.keep_solutions = keep_solutions
         vp, ci = ctypes.c_void_p, ctypes.c_int
-        self._alloc = self._lib.fn(f"{Q}_alloc", vp, [])
-        self._free = self._lib.fn(f"{Q}_free", None, [vp])
-        self._reset = self._lib.fn(f"{Q}_reset", None, [vp])
         self._step = self._lib.fn(f"{Q}_step", ci,
                                   [_dbl_p, _dbl_p, _dbl_p, _dbl_p, ctypes.POINTER(ci), vp])
         self._status_fn = self._lib.fn(f"{Q}_solve_status", ci, [vp, ci])
         self._h_cand = self._lib.fn(f"{Q}_h_cand", ctypes.c_double, [vp])
         self._replaced = self._lib.fn(f"{Q}_proposal_replaced", ci, [vp])
         self._exact = self._lib.fn(f"{Q}_candidate_exact", ci, [vp])
-        self._work = self._alloc()
-        if not self._work:
-            raise CodegenError(f"{Q}_alloc failed (no CasADi memory left)")
+        self._allocate(Q)
         self.slack = _CProblemView(self._lib, f"{Q}_slack", m["problems"]["slack"],
                                    self._lib.fn(f"{Q}_slack_problem", vp, [vp])(self._work))
         self.filter = _CProblemView(self._lib, f"{Q}_filter", m["problems"]["filter"],
                                     self._lib.fn(f"{Q}_filter_problem", vp, [vp])(self._work))
-        self._x, self._u_p = np.zeros(self.nx), np.zeros(self.nu)
-        self._u, self._h = np.zeros(self.nu), np.zeros(1)
-        self._status = ci(0)
-        self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u), _ptr(self._h),
-                      ctypes.byref(self._status), self._work)
+        self._step_buffers()
 
     def reset(self) -> None:
         self._reset(self._work)
@@ -139,12 +133,8 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` for the same
     decisions: ``status`` (``"ok"``, ``"problem_<s>"``, ``"init_<s>"``,
     ``"non_finite_state"``), ``fallback``, ``values`` ``h_cand``, ``bound``, ``h_tilde``."""
-    known = _MULTIOBJ_CODES.get(code)
+    known, info = _refused(_MULTIOBJ_CODES, code)
     if known is None:
-        return StepInfo(status=str(code), fallback="unknown")
-    info = StepInfo(fallback=known.fallback)
-    if known.name == "bad_input":
-        info.status = "non_finite_state"
         return info
     if known.name == "init_failed":
         info.status = f"init_{_PY_STATUS.get(s_code, str(s_code))}"
@@ -162,26 +152,18 @@ class CMultiobjectivePCBFFilter(_OwnsWork):
     :class:`CRobustPCBFSafetyFilter`."""
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
-        self._lib = _Library(lib_path, manifest)
-        m = self._lib.manifest
-        if m.get("kind") != "multiobjective":
-            raise CodegenError(f"{self._lib.path.name}: not an emitted multiobjective PCBF "
-                               f"controller (kind {m.get('kind')!r})")
+        m = self._open(lib_path, manifest, "multiobjective",
+                       "multiobjective PCBF controller")
         Q = m["name"]
         self.nx, self.nu, self.N = m["nx"], m["nu"], m["N"]
         vp, ci = ctypes.c_void_p, ctypes.c_int
-        self._alloc = self._lib.fn(f"{Q}_alloc", vp, [])
-        self._free = self._lib.fn(f"{Q}_free", None, [vp])
-        self._reset = self._lib.fn(f"{Q}_reset", None, [vp])
         self._step = self._lib.fn(f"{Q}_step", ci,
                                   [_dbl_p, _dbl_p, _dbl_p, ctypes.POINTER(ci), vp])
         self._status_fn = self._lib.fn(f"{Q}_solve_status", ci, [vp, ci])
         self._values_fn = self._lib.fn(f"{Q}_values", None, [vp, _dbl_p])
         self._replaced = self._lib.fn(f"{Q}_proposal_replaced", ci, [vp])
         self._exact = self._lib.fn(f"{Q}_candidate_exact", ci, [vp])
-        self._work = self._alloc()
-        if not self._work:
-            raise CodegenError(f"{Q}_alloc failed (no CasADi memory left)")
+        self._allocate(Q)
         self.slack = _CProblemView(self._lib, f"{Q}_slack", m["problems"]["slack"],
                                    self._lib.fn(f"{Q}_slack_problem", vp, [vp])(self._work))
         self.problem = _CProblemView(self._lib, f"{Q}_problem", m["problems"]["problem"],

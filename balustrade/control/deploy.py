@@ -101,13 +101,12 @@ class ProblemsDeployment:
 
 
 @dataclass(frozen=True)
-class RobustDeployment(ProblemsDeployment):
-    """Algorithm 5.2 (Section 5.5): (5.15) then (5.16) with the polished slacks fixed, the
-    applied ``u = v₀ + K(x − z₀)``, the candidate (5.17) and the fallbacks of
-    :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`. ``problems`` holds
-    ``"slack"`` (5.15) (parameter ``x0``; variables ``z``, ``v``, ``xi``, ``xi_N``) and
-    ``"filter"`` (5.16) (parameters ``x0``, ``u_p``, ``xi``, ``xi_N``; variables ``z``,
-    ``v``), so :func:`balustrade.codegen.emit_problems` still emits them one by one."""
+class TubeDeployment(ProblemsDeployment):
+    """What the tube-based steps of Algorithms 5.2 and 6.4 (Chapters 5 and 6) share: the
+    applied ``u = v₀ + K(x − z₀)`` (5.16), the candidate (5.17)/(6.14) built from
+    ``(z, v, ξ)``, the slacks' ``h̃`` (SPEC §1.12) and the projected-proposal fallback.
+    ``problems["slack"]`` is (5.15) (parameter ``x0``; variables ``z``, ``v``, ``xi``,
+    ``xi_N``)."""
 
     #: the model ``x+ = f(x, u, w)`` (the candidate's last state, ``w = 0``)
     system: System
@@ -124,30 +123,32 @@ class RobustDeployment(ProblemsDeployment):
     K: np.ndarray | None = field(repr=False)
     #: the tightenings ``Δ_i`` (one per step)
     deltas: np.ndarray = field(repr=False)
-    #: ``α_f`` and the slack norm of ``h̃`` (SPEC §1.12)
+    #: ``α_f`` of ``h̃`` (SPEC §1.12)
     alpha_f: float
+
+
+@dataclass(frozen=True)
+class RobustDeployment(TubeDeployment):
+    """Algorithm 5.2 (Section 5.5): (5.15) then (5.16) with the polished slacks fixed, the
+    applied ``u = v₀ + K(x − z₀)``, the candidate (5.17) and the fallbacks of
+    :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`. ``problems`` holds
+    ``"slack"`` (5.15) and ``"filter"`` (5.16) (parameters ``x0``, ``u_p``, ``xi``,
+    ``xi_N``; variables ``z``, ``v``), so :func:`balustrade.codegen.emit_problems` still
+    emits them one by one."""
+
+    #: the slack norm of ``h̃`` (SPEC §1.12)
     slack_norm: int | float
 
 
 @dataclass(frozen=True)
-class MultiobjectiveDeployment(ProblemsDeployment):
+class MultiobjectiveDeployment(TubeDeployment):
     """Algorithm 6.4 (Section 6.4): (5.15) once for the first candidate, then per step
     (6.15) with the decrease bound (6.15g), the applied ``u = v₀ + K(x − z₀)``, the
     candidate (6.14) and the fallbacks of
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController`.
-    ``problems`` holds ``"slack"`` (5.15) (parameter ``x0``; variables ``z``, ``v``,
-    ``xi``, ``xi_N``) and ``"problem"`` (6.15) (parameters ``x0``, ``u_p``, ``bound``;
-    the same variables). The other fields are those of :class:`RobustDeployment`."""
+    ``problems`` holds ``"slack"`` (5.15) and ``"problem"`` (6.15) (parameters ``x0``,
+    ``u_p``, ``bound``; the variables of (5.15))."""
 
-    system: System
-    X_E: Polytope
-    U: Set
-    U_E: Polytope
-    h_f: Callable
-    pi_f: Callable
-    K: np.ndarray | None = field(repr=False)
-    deltas: np.ndarray = field(repr=False)
-    alpha_f: float
     #: ``ρ`` of (6.15g) and the margin ``bound_tol · max(1, |bound|)`` added to the bound
     rho: float
     bound_tol: float
@@ -157,5 +158,5 @@ class MultiobjectiveDeployment(ProblemsDeployment):
     slack_norm: int | float = 1
 
 
-__all__ = ["ApproximateDeployment", "MultiobjectiveDeployment", "PCBFDeployment",
-           "ProblemsDeployment", "RobustDeployment"]
+__all__ = ["ApproximateDeployment", "GridDeployment", "MultiobjectiveDeployment",
+           "PCBFDeployment", "ProblemsDeployment", "RobustDeployment", "TubeDeployment"]

@@ -9,6 +9,7 @@
 #include <string.h>
 
 #include "step_common.c"
+#include "h_common.c"
 
 static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
 static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
@@ -22,24 +23,6 @@ static int BAL_QX(in_box)(const casadi_real* u, casadi_real tol) {
   return 1;
 }
 
-static casadi_real BAL_QX(eval_h)(BAL_QX(work)* wk, const casadi_real* x) {
-  casadi_real v = NAN;
-  wk->harg[0] = x;
-  wk->hres[0] = &v;
-  if (BAL_QX(h)(wk->harg, wk->hres, wk->hiw, wk->hw, wk->hmem)) return NAN;
-  return v;
-}
-
-static casadi_real BAL_QX(eval_h_next)(BAL_QX(work)* wk, const casadi_real* x,
-                                       const casadi_real* u) {
-  casadi_real v = NAN;
-  wk->harg[0] = x;
-  wk->harg[1] = u;
-  wk->hres[0] = &v;
-  if (BAL_QX(h_next)(wk->harg, wk->hres, wk->hiw, wk->hw, wk->nmem)) return NAN;
-  return v;
-}
-
 int BAL_QX(init)(BAL_QX(work)* wk) {
   wk->ready = 0;
   if (BAL_QX(dec_init)(&wk->dec)) return -1;
@@ -47,15 +30,7 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
     BAL_QX(dec_finalize)(&wk->dec);
     return -1;
   }
-  BAL_QX(h_incref)();
-  wk->hmem = BAL_QX(h_checkout)();
-  BAL_QX(h_next_incref)();
-  wk->nmem = BAL_QX(h_next_checkout)();
-  if (wk->hmem < 0 || wk->nmem < 0) {
-    if (wk->hmem >= 0) BAL_QX(h_release)(wk->hmem);
-    if (wk->nmem >= 0) BAL_QX(h_next_release)(wk->nmem);
-    BAL_QX(h_decref)();
-    BAL_QX(h_next_decref)();
+  if (BAL_QX(h_acquire)(wk)) {
     BAL_QX(filter_finalize)(&wk->filter);
     BAL_QX(dec_finalize)(&wk->dec);
     return -1;
@@ -68,10 +43,7 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
 
 void BAL_QX(finalize)(BAL_QX(work)* wk) {
   if (!wk->ready) return;
-  BAL_QX(h_next_release)(wk->nmem);
-  BAL_QX(h_next_decref)();
-  BAL_QX(h_release)(wk->hmem);
-  BAL_QX(h_decref)();
+  BAL_QX(h_release_all)(wk);
   BAL_QX(filter_finalize)(&wk->filter);
   BAL_QX(dec_finalize)(&wk->dec);
   wk->ready = 0;

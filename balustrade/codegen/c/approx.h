@@ -43,16 +43,11 @@ typedef struct BAL_QX(work) {
   long n_steps, n_certified, n_solved, n_fallbacks, n_proposal_feasible;
 } BAL_QX(work);
 
-int BAL_QX(init)(BAL_QX(work)* wk);
-void BAL_QX(finalize)(BAL_QX(work)* wk);
-BAL_QX(work)* BAL_QX(alloc)(void);
-void BAL_QX(free)(BAL_QX(work)* wk);
-void BAL_QX(reset)(BAL_QX(work)* wk); /* zero the counters */
+/* reset: zero the counters */
+BAL_DECLARE_STEP_LIFECYCLE(BAL_QX)
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk);
 void BAL_QX(set_certify)(BAL_QX(work)* wk, int certify); /* 0: always solve (7.6), (7.5) */
 casadi_real BAL_QX(dh)(const BAL_QX(work)* wk); /* dh of the last solved step (NAN if none) */
-/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
-int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk);
 /* which: 0 steps, 1 certified, 2 solved, 3 fallbacks, 4 proposal feasible */
 long BAL_QX(counter)(const BAL_QX(work)* wk, int which);

@@ -4,7 +4,7 @@
  * instantiated once per symbol prefix by the generated <name>.c:
  *
  *   #define BAL_PROBLEM pendulum_pcbf_slack   (one problem: bal/problem.h, bal/problem.c)
- *   #define BAL_STEP pendulum_pcbf            (one control step: bal/pcbf.*, bal/approx.*)
+ *   #define BAL_STEP pendulum_pcbf            (one control step: bal/pcbf.*, approx.*, ...)
  *
  * BAL_PX(solve) is then pendulum_pcbf_slack_solve and BAL_QX(step) pendulum_pcbf_step: the
  * entry points have the real names of the emitted module.
@@ -25,6 +25,45 @@
    cost only bounds h_PB, so the PCBF step treats it as a failed (2.24)), exactly as
    balustrade.control does with the backend's "feasible" status */
 #define BAL_SOLVED(s) ((s) == BAL_OK || (s) == BAL_FEASIBLE)
+
+/* The entry points every control step X = BAL_QX declares (bal/pcbf.h, bal/approx.h,
+   bal/grid.h, bal/robust.h, bal/multiobj.h): X(init) / X(finalize) of a caller-owned work
+   struct (init returns 0 on success), X(alloc) / X(free) of a heap one
+   (BAL_DEFINE_ALLOC_FREE), X(reset) for a new closed loop (what it forgets: the step's
+   header), and X(proposal_replaced), the entries of the last step's u_p that were NaN or
+   inf (replaced by 0). */
+#define BAL_DECLARE_STEP_LIFECYCLE(X)                              \
+  int X(init)(X(work)* wk);                                        \
+  void X(finalize)(X(work)* wk);                                   \
+  X(work)* X(alloc)(void);                                         \
+  void X(free)(X(work)* wk);                                       \
+  void X(reset)(X(work)* wk);                                      \
+  int X(proposal_replaced)(const X(work)* wk);
+
+/* The accessors of a control step X that owns two emitted problems, the members A and B
+   of its work struct with their last statuses A##_status and B##_status: X(GET_A) and
+   X(GET_B) return &wk->A and &wk->B (for foreign-function callers), X(solve_status)(wk,
+   which) the BAL_* status of A's (which = 0) or B's last solve. */
+#define BAL_DECLARE_PAIR_ACCESSORS(X, A, B, GET_A, GET_B)          \
+  X(A##_work)* X(GET_A)(X(work)* wk);                              \
+  X(B##_work)* X(GET_B)(X(work)* wk);                              \
+  int X(solve_status)(const X(work)* wk, int which);
+#define BAL_DEFINE_PAIR_ACCESSORS(X, A, B, GET_A, GET_B)           \
+  X(A##_work)* X(GET_A)(X(work)* wk) { return &wk->A; }            \
+  X(B##_work)* X(GET_B)(X(work)* wk) { return &wk->B; }            \
+  int X(solve_status)(const X(work)* wk, int which) {              \
+    return which == 0 ? wk->A##_status : wk->B##_status;           \
+  }
+
+/* The work-struct members of the candidate (5.17)/(6.14) of the tube-based steps
+   (bal/robust.h, bal/multiobj.h; used by bal/tube_common.c): z~ (NX x (N+1)), v~ (NU x N),
+   xi~, xi~_N, h~, and the same for the next candidate while X(cand) builds it (nok: its
+   terminal input was computed exactly). */
+#define BAL_TUBE_CANDIDATE_MEMBERS(X)                              \
+  casadi_real cz[X(NX) * (X(N) + 1)], cv[X(NU) * X(N)];            \
+  casadi_real cxi[X(N_XI)], cxi_N, ch;                             \
+  casadi_real nz[X(NX) * (X(N) + 1)], nv[X(NU) * X(N)];            \
+  casadi_real nxi[X(N_XI)], nxi_N, nh, nok;
 
 /* X(alloc) and X(free) of a work struct that has X(init) and X(finalize), for X = BAL_PX or
    BAL_QX: alloc returns 0 when calloc or init fails; free accepts 0. */

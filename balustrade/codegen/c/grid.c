@@ -7,6 +7,7 @@
 #include <string.h>
 
 #include "step_common.c"
+#include "h_common.c"
 
 static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
 static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
@@ -16,17 +17,7 @@ static const casadi_real BAL_QX(u_init)[BAL_QX(NU)] = BAL_QX(U_INIT);
 
 int BAL_QX(init)(BAL_QX(work)* wk) {
   wk->ready = 0;
-  BAL_QX(h_incref)();
-  wk->hmem = BAL_QX(h_checkout)();
-  BAL_QX(h_next_incref)();
-  wk->nmem = BAL_QX(h_next_checkout)();
-  if (wk->hmem < 0 || wk->nmem < 0) {
-    if (wk->hmem >= 0) BAL_QX(h_release)(wk->hmem);
-    if (wk->nmem >= 0) BAL_QX(h_next_release)(wk->nmem);
-    BAL_QX(h_decref)();
-    BAL_QX(h_next_decref)();
-    return -1;
-  }
+  if (BAL_QX(h_acquire)(wk)) return -1;
   BAL_QX(reset)(wk);
   wk->ready = 1;
   return 0;
@@ -34,10 +25,7 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
 
 void BAL_QX(finalize)(BAL_QX(work)* wk) {
   if (!wk->ready) return;
-  BAL_QX(h_next_release)(wk->nmem);
-  BAL_QX(h_next_decref)();
-  BAL_QX(h_release)(wk->hmem);
-  BAL_QX(h_decref)();
+  BAL_QX(h_release_all)(wk);
   wk->ready = 0;
 }
 
@@ -118,16 +106,10 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u
   BAL_QX(candidates)(wk);
   /* step 2: every candidate, one loop */
   for (k = 0; k < wk->n_cand; ++k) {
-    casadi_real v = NAN;
-    wk->harg[0] = x;
-    wk->harg[1] = wk->cand + wk->order[k] * BAL_QX(NU);
-    wk->hres[0] = &v;
-    if (BAL_QX(h_next)(wk->harg, wk->hres, wk->hiw, wk->hw, wk->nmem)) v = NAN;
+    casadi_real v = BAL_QX(eval_h_next)(wk, x, wk->cand + wk->order[k] * BAL_QX(NU));
     wk->values[k] = isfinite(v) ? v : INFINITY;
   }
-  wk->harg[0] = x;
-  wk->hres[0] = &h_x;
-  if (BAL_QX(h)(wk->harg, wk->hres, wk->hiw, wk->hw, wk->hmem)) h_x = NAN;
+  h_x = BAL_QX(eval_h)(wk, x);
   *h_out = h_x;
   /* step 3: the first closest admissible candidate, else the first grid minimizer */
   thr = BAL_QX(RHO) * h_x;

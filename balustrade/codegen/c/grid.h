@@ -38,18 +38,12 @@ typedef struct BAL_QX(work) {
   long n_steps, n_decrease_infeasible;
 } BAL_QX(work);
 
-int BAL_QX(init)(BAL_QX(work)* wk);
-void BAL_QX(finalize)(BAL_QX(work)* wk);
-BAL_QX(work)* BAL_QX(alloc)(void);
-void BAL_QX(free)(BAL_QX(work)* wk);
-/* u_{k-1} := clip(u_init) (A_U_INIT, NaN read as 0), counters to zero */
-void BAL_QX(reset)(BAL_QX(work)* wk);
+/* reset: u_{k-1} := clip(u_init) (A_U_INIT, NaN read as 0), counters to zero */
+BAL_DECLARE_STEP_LIFECYCLE(BAL_QX)
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk);
 /* candidates of the last step (0 after a refused state) */
 int BAL_QX(n_candidates)(const BAL_QX(work)* wk);
-/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
-int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk);
 /* which: 0 steps, 1 steps without a decreasing candidate */
 long BAL_QX(counter)(const BAL_QX(work)* wk, int which);
 /* u_{k-1} (A_NU values, owned by the work struct) */

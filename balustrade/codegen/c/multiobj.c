@@ -19,6 +19,8 @@ BAL_DEFINE_PAIR_INIT_FINALIZE(BAL_QX, slack, problem)
 
 BAL_DEFINE_ALLOC_FREE(BAL_QX)
 
+#include "tube_common.c"
+
 void BAL_QX(reset)(BAL_QX(work)* wk) {
   BAL_QX(slack_cold_start)(&wk->slack);
   BAL_QX(problem_cold_start)(&wk->problem);
@@ -27,15 +29,6 @@ void BAL_QX(reset)(BAL_QX(work)* wk) {
   wk->slack_status = wk->problem_status = BAL_NOT_RUN;
   wk->h_prev = NAN;
   wk->values[0] = wk->values[1] = wk->values[2] = NAN;
-}
-
-static void BAL_QX(applied)(const casadi_real* x, const casadi_real* z0,
-                            const casadi_real* v0, casadi_real* u) {
-  casadi_int i, j;
-  for (i = 0; i < BAL_QX(NU); ++i) {
-    u[i] = v0[i];
-    for (j = 0; j < BAL_QX(NX); ++j) u[i] += BAL_QX(kappa)[i + j * BAL_QX(NU)] * (x[j] - z0[j]);
-  }
 }
 
 /* polished slacks and h~ of a solution w with value f (Q_post_slack / Q_post_problem);
@@ -51,31 +44,6 @@ static int BAL_QX(polish)(BAL_QX(work)* wk, BAL_QX(post_fn) post, const casadi_r
   wk->res[2] = &wk->h_r;
   wk->res[3] = &wk->h_tilde;
   return post(wk->arg, wk->res, wk->iw, wk->w, 0);
-}
-
-static void BAL_QX(make_candidate)(BAL_QX(work)* wk, const casadi_real* z,
-                                   const casadi_real* v, const casadi_real* xi) {
-  wk->arg[0] = z;
-  wk->arg[1] = v;
-  wk->arg[2] = xi;
-  wk->res[0] = wk->nz;
-  wk->res[1] = wk->nv;
-  wk->res[2] = wk->nxi;
-  wk->res[3] = &wk->nxi_N;
-  wk->res[4] = &wk->nh;
-  wk->res[5] = &wk->nok;
-  if (BAL_QX(cand)(wk->arg, wk->res, wk->iw, wk->w, 0) || !(wk->nok > 0.5)) {
-    wk->have_cand = 0;
-    wk->cand_exact = 0;
-    return;
-  }
-  memcpy(wk->cz, wk->nz, sizeof(wk->cz));
-  memcpy(wk->cv, wk->nv, sizeof(wk->cv));
-  memcpy(wk->cxi, wk->nxi, sizeof(wk->cxi));
-  wk->cxi_N = wk->nxi_N;
-  wk->ch = wk->nh;
-  wk->have_cand = 1;
-  wk->cand_exact = 1;
 }
 
 #define BAL_MO_COPY(var, src, n)                                              \
@@ -163,11 +131,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
 
 #undef BAL_MO_COPY
 
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk) { return &wk->slack; }
-BAL_QX(problem_work)* BAL_QX(main_problem)(BAL_QX(work)* wk) { return &wk->problem; }
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which) {
-  return which == 0 ? wk->slack_status : wk->problem_status;
-}
+BAL_DEFINE_PAIR_ACCESSORS(BAL_QX, slack, problem, slack_problem, main_problem)
 void BAL_QX(values)(const BAL_QX(work)* wk, casadi_real* out) {
   out[0] = wk->values[0];
   out[1] = wk->values[1];

@@ -31,11 +31,8 @@ typedef struct BAL_QX(work) {
   BAL_QX(slack_work) slack;
   BAL_QX(problem_work) problem;
   casadi_real p_slack[BAL_QX(slack_NP) + 1], p_problem[BAL_QX(problem_NP) + 1];
-  /* the candidate (6.14): z~ (NX x (N+1)), v~ (NU x N), xi~, xi~_N, h~ */
-  casadi_real cz[BAL_QX(NX) * (BAL_QX(N) + 1)], cv[BAL_QX(NU) * BAL_QX(N)];
-  casadi_real cxi[BAL_QX(N_XI)], cxi_N, ch;
-  casadi_real nz[BAL_QX(NX) * (BAL_QX(N) + 1)], nv[BAL_QX(NU) * BAL_QX(N)];
-  casadi_real nxi[BAL_QX(N_XI)], nxi_N, nh, nok;
+  /* the candidate (6.14), and the next one while it is built */
+  BAL_TUBE_CANDIDATE_MEMBERS(BAL_QX)
   /* polished slacks of the last solve and their h~ */
   casadi_real xi[BAL_QX(N_XI)], xi_N, h_r, h_tilde;
   casadi_real h_prev;              /* h~(xi*_{k-1}) */
@@ -50,17 +47,11 @@ typedef struct BAL_QX(work) {
   int ready;
 } BAL_QX(work);
 
-int BAL_QX(init)(BAL_QX(work)* wk);
-void BAL_QX(finalize)(BAL_QX(work)* wk);
-BAL_QX(work)* BAL_QX(alloc)(void);
-void BAL_QX(free)(BAL_QX(work)* wk);
-/* Forget warm starts and the candidate (a new closed loop). */
-void BAL_QX(reset)(BAL_QX(work)* wk);
+/* reset: forget warm starts and the candidate (a new closed loop) */
+BAL_DECLARE_STEP_LIFECYCLE(BAL_QX)
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  int* status, BAL_QX(work)* wk);
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk);
-BAL_QX(problem_work)* BAL_QX(main_problem)(BAL_QX(work)* wk);
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which); /* 0: (5.15), 1: (6.15) */
+/* solve_status which: 0 (5.15), 1 (6.15) */
+BAL_DECLARE_PAIR_ACCESSORS(BAL_QX, slack, problem, slack_problem, main_problem)
 void BAL_QX(values)(const BAL_QX(work)* wk, casadi_real* out);
-int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk);
 int BAL_QX(candidate_exact)(const BAL_QX(work)* wk);

@@ -121,10 +121,6 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
 
 #undef BAL_PCBF_COPY_SHARED
 
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk) { return &wk->slack; }
-BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk) { return &wk->filter; }
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which) {
-  return which == 0 ? wk->slack_status : wk->filter_status;
-}
+BAL_DEFINE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk) { return wk->h_upper; }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }

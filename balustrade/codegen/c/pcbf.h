@@ -44,19 +44,11 @@ typedef struct BAL_QX(work) {
   int ready;
 } BAL_QX(work);
 
-int BAL_QX(init)(BAL_QX(work)* wk);
-void BAL_QX(finalize)(BAL_QX(work)* wk);
-BAL_QX(work)* BAL_QX(alloc)(void);
-void BAL_QX(free)(BAL_QX(work)* wk);
-/* Forget warm starts and the plan (a new closed loop). */
-void BAL_QX(reset)(BAL_QX(work)* wk);
+/* reset: forget warm starts and the plan (a new closed loop) */
+BAL_DECLARE_STEP_LIFECYCLE(BAL_QX)
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk);
-/* Accessors for foreign-function callers. */
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk);
-BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk);
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which); /* 0: (2.24), 1: (2.23) */
+/* solve_status which: 0 (2.24), 1 (2.23) */
+BAL_DECLARE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 /* The last step's upper bound on h_PB from a merely feasible (2.24) (NAN if none). */
 casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk);
-/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
-int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk);

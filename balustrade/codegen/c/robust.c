@@ -19,6 +19,8 @@ BAL_DEFINE_PAIR_INIT_FINALIZE(BAL_QX, slack, filter)
 
 BAL_DEFINE_ALLOC_FREE(BAL_QX)
 
+#include "tube_common.c"
+
 void BAL_QX(reset)(BAL_QX(work)* wk) {
   BAL_QX(slack_cold_start)(&wk->slack);
   BAL_QX(filter_cold_start)(&wk->filter);
@@ -26,43 +28,6 @@ void BAL_QX(reset)(BAL_QX(work)* wk) {
   wk->cand_exact = 1;
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_cand = wk->h_r = NAN;
-}
-
-/* u := v0 + K (x - z0) */
-static void BAL_QX(applied)(const casadi_real* x, const casadi_real* z0,
-                            const casadi_real* v0, casadi_real* u) {
-  casadi_int i, j;
-  for (i = 0; i < BAL_QX(NU); ++i) {
-    u[i] = v0[i];
-    for (j = 0; j < BAL_QX(NX); ++j) u[i] += BAL_QX(kappa)[i + j * BAL_QX(NU)] * (x[j] - z0[j]);
-  }
-}
-
-/* The next candidate (5.17) from (z, v, xi) (Q_cand); kept only if its terminal input was
-   computed exactly. z, v, xi may point into the current candidate. */
-static void BAL_QX(make_candidate)(BAL_QX(work)* wk, const casadi_real* z,
-                                   const casadi_real* v, const casadi_real* xi) {
-  wk->arg[0] = z;
-  wk->arg[1] = v;
-  wk->arg[2] = xi;
-  wk->res[0] = wk->nz;
-  wk->res[1] = wk->nv;
-  wk->res[2] = wk->nxi;
-  wk->res[3] = &wk->nxi_N;
-  wk->res[4] = &wk->nh;
-  wk->res[5] = &wk->nok;
-  if (BAL_QX(cand)(wk->arg, wk->res, wk->iw, wk->w, 0) || !(wk->nok > 0.5)) {
-    wk->have_cand = 0;
-    wk->cand_exact = 0;
-    return;
-  }
-  memcpy(wk->cz, wk->nz, sizeof(wk->cz));
-  memcpy(wk->cv, wk->nv, sizeof(wk->cv));
-  memcpy(wk->cxi, wk->nxi, sizeof(wk->cxi));
-  wk->cxi_N = wk->nxi_N;
-  wk->ch = wk->nh;
-  wk->have_cand = 1;
-  wk->cand_exact = 1;
 }
 
 /* A failed (5.15): the last candidate (then shifted again), or u_p clipped to U. */
@@ -148,11 +113,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   return *status;
 }
 
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk) { return &wk->slack; }
-BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk) { return &wk->filter; }
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which) {
-  return which == 0 ? wk->slack_status : wk->filter_status;
-}
+BAL_DEFINE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 casadi_real BAL_QX(h_cand)(const BAL_QX(work)* wk) { return wk->h_cand; }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }
 int BAL_QX(candidate_exact)(const BAL_QX(work)* wk) { return wk->cand_exact; }

@@ -34,12 +34,8 @@ typedef struct BAL_QX(work) {
   BAL_QX(slack_work) slack;
   BAL_QX(filter_work) filter;
   casadi_real p_slack[BAL_QX(slack_NP) + 1], p_filter[BAL_QX(filter_NP) + 1];
-  /* the candidate (5.17) for the next step: z~ (NX x (N+1)), v~ (NU x N), xi~, h~ */
-  casadi_real cz[BAL_QX(NX) * (BAL_QX(N) + 1)], cv[BAL_QX(NU) * BAL_QX(N)];
-  casadi_real cxi[BAL_QX(N_XI)], cxi_N, ch;
-  /* the next candidate while it is built */
-  casadi_real nz[BAL_QX(NX) * (BAL_QX(N) + 1)], nv[BAL_QX(NU) * BAL_QX(N)];
-  casadi_real nxi[BAL_QX(N_XI)], nxi_N, nh, nok;
+  /* the candidate (5.17) for the next step, and the next one while it is built */
+  BAL_TUBE_CANDIDATE_MEMBERS(BAL_QX)
   /* the polished slacks of (5.15) and h_r */
   casadi_real xi[BAL_QX(N_XI)], xi_N, h_r;
   casadi_real u_p[BAL_QX(NU)]; /* the proposal used (non-finite entries replaced by 0) */
@@ -54,21 +50,13 @@ typedef struct BAL_QX(work) {
   int ready;
 } BAL_QX(work);
 
-int BAL_QX(init)(BAL_QX(work)* wk);
-void BAL_QX(finalize)(BAL_QX(work)* wk);
-BAL_QX(work)* BAL_QX(alloc)(void);
-void BAL_QX(free)(BAL_QX(work)* wk);
-/* Forget warm starts and the candidate (a new closed loop). */
-void BAL_QX(reset)(BAL_QX(work)* wk);
+/* reset: forget warm starts and the candidate (a new closed loop) */
+BAL_DECLARE_STEP_LIFECYCLE(BAL_QX)
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk);
-/* Accessors for foreign-function callers. */
-BAL_QX(slack_work)* BAL_QX(slack_problem)(BAL_QX(work)* wk);
-BAL_QX(filter_work)* BAL_QX(filter_problem)(BAL_QX(work)* wk);
-int BAL_QX(solve_status)(const BAL_QX(work)* wk, int which); /* 0: (5.15), 1: (5.16) */
+/* solve_status which: 0 (5.15), 1 (5.16) */
+BAL_DECLARE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 /* h~ of the candidate (5.17) at the start of the last step (NAN if there was none). */
 casadi_real BAL_QX(h_cand)(const BAL_QX(work)* wk);
-/* Entries of the last step's u_p that were NaN or inf (replaced by 0). */
-int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk);
 /* 0 if the last candidate built needed a terminal input the C cannot compute (dropped). */
 int BAL_QX(candidate_exact)(const BAL_QX(work)* wk);

@@ -1,5 +1,6 @@
 /* bal/step_common.c: input checks and the box projection shared by the control steps
- * (bal/pcbf.c, bal/approx.c; one step per translation unit). */
+ * (bal/pcbf.c, bal/approx.c, bal/grid.c, bal/robust.c, bal/multiobj.c; one step per
+ * translation unit). */
 #include <math.h>
 
 /* 1 if the n values are all finite */
