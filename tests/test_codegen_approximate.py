@@ -119,3 +119,16 @@ def test_approximate_non_finite_input_falls_back_as_python(approx: dict) -> None
     assert i1.status == i2.status and np.abs(u1 - u2).max() <= 1e-6
     with pytest.raises(ShapeError, match="CApproximatePCBFFilter.step: x"):
         c.step(np.zeros(3), np.array([1.0]))
+
+
+def test_approximate_refuses_a_vector_h_the_c_cannot_hold(approx: dict, tmp_path) -> None:
+    """A hand-edited deployment spec with a vector ĥ: the C reads one double for ĥ and
+    ĥ(f(x, u)), so the emitter refuses it (naming the function) before writing anything."""
+    import dataclasses
+
+    import casadi as ca
+
+    spec = approx["py"].deployment_spec()
+    bad = dataclasses.replace(spec, h=lambda x: ca.vertcat(ca.sumsqr(x), x[0]))
+    with pytest.raises(CodegenError, match="scalar.*apv_h"):
+        emit_approximate(bad, "apv", tmp_path)

@@ -610,6 +610,10 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
                  f"{name}_h": ca.Function(f"{name}_h", [x], [h(x)], ["x"], ["h"]),
                  f"{name}_h_next": ca.Function(f"{name}_h_next", [x, u], [h(system(x, u))],
                                                ["x", "u"], ["h_next"])}
+    for key in (f"{name}_h", f"{name}_h_next"):  # the C reads one double: more overruns it
+        if functions[key].numel_out(0) != 1:
+            raise CodegenError(f"{name}: ĥ must be scalar, {key} has an output of shape "
+                               f"{functions[key].size_out(0)}")
     if dynamics is not None:
         functions[f"{name}_dynamics"] = dynamics
     files = _generate(functions, name, out_dir)
