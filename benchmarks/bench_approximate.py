@@ -43,6 +43,7 @@ from balustrade.learn.sampler import Evaluator, ProblemSpec, Seed
 from balustrade.learn.train import MLPModel
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
+from benchmarks._timing import interleaved
 
 
 def random_network(widths: tuple[int, ...] = (16, 16, 16), nx: int = 2,
@@ -64,21 +65,6 @@ def _median_time(fn, items, repeat: int = 1) -> float:
             times.append(time.perf_counter() - t)
     return float(np.median(times))
 
-
-def _interleaved(fns: dict, items, repeat: int = 1, block: int = 10) -> dict[str, float]:
-    """Median time of each function, the functions taking turns on blocks of ``block``
-    items: a load change on the shared machine hits all of them alike (ratios of the same
-    run), while each keeps its caches warm within a block."""
-    times: dict[str, list[float]] = {k: [] for k in fns}
-    items = list(items)
-    for _ in range(repeat):
-        for i in range(0, len(items), block):
-            for k, fn in fns.items():
-                for item in items[i:i + block]:
-                    t = time.perf_counter()
-                    fn(item)
-                    times[k].append(time.perf_counter() - t)
-    return {k: float(np.median(v)) for k, v in times.items()}
 
 
 def _raw_pcbf_step(slack, filt) -> callable:
@@ -143,7 +129,7 @@ def run(quick: bool = False) -> list[dict]:
             filters[label] = _filters(h_hat, solver, system, s.U, states, u_p)
             for both, f in filters[label].items():
                 fns[(label, both)] = lambda x, f=f: f.step(x, u_p)
-        t = _interleaved(fns, states)
+        t = interleaved(fns, states)
         rows.append({"name": f"PCBF step (2.24)+(2.23), N=10, {solver}", "median_s": t["pcbf"]})
         if "raw" in t:
             rows.append({"name": "PCBF step, the two nlpsol calls only (buffered), sqpmethod",
@@ -164,7 +150,7 @@ def run(quick: bool = False) -> list[dict]:
                          "ratio": t["pcbf"] / t[(label, True)]})
     cert = ApproximatePCBFFilter(system, s.U, net, target="fast-sqp")
     h_next = cert._h_next
-    t = _interleaved({"cert": lambda x: cert.certifies(x, u_p),
+    t = interleaved({"cert": lambda x: cert.certifies(x, u_p),
                       "call": lambda x: bool(np.all(np.abs(u_p) <= 3.0)
                                              and float(h_next(x, u_p)) <= 0.0)},
                      states, repeat=20)

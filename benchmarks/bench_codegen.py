@@ -49,6 +49,7 @@ from balustrade.learn.export import to_casadi
 from balustrade.learn.train import MLPModel
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
+from benchmarks._timing import interleaved
 
 RATES = (-1.5, -0.75, 0.0, 0.75, 1.5)
 U_P = 2.0
@@ -73,19 +74,6 @@ def _median_time(fn, reps: int) -> float:
     return float(np.median(times))
 
 
-def _interleaved(fns: dict, items, repeat: int = 1, block: int = 10) -> dict[str, float]:
-    """Median time per call of each function, taking turns on blocks of ``block`` items."""
-    times: dict[str, list[float]] = {k: [] for k in fns}
-    items = list(items)
-    for _ in range(repeat):
-        for i in range(0, len(items), block):
-            for k, fn in fns.items():
-                for item in items[i:i + block]:
-                    t0 = time.perf_counter()
-                    fn(item)
-                    times[k].append(time.perf_counter() - t0)
-    return {k: float(np.median(v)) for k, v in times.items()}
-
 
 def _network(widths: tuple[int, ...] = (32, 32, 32, 32), seed: int = 0) -> ca.Function:
     """A softplus MLP ``ĥ`` with random (Glorot-scaled) weights on the pendulum state."""
@@ -109,7 +97,7 @@ def _grid_rows(quick: bool, build_dir: Path) -> list[dict]:
         c._x[:] = x
         c._step(*c._args)
 
-    t = _interleaved({"python": lambda x: py.step(x, u_p), "c": lambda x: c.step(x, u_p),
+    t = interleaved({"python": lambda x: py.step(x, u_p), "c": lambda x: c.step(x, u_p),
                       "raw": raw}, states, repeat=1 if quick else 3)
     label = f"Alg. 8.7 grid step (4x32 network, {len(py.offsets)} inputs)"
     return [{"name": f"{label}: Python (CasADi map)", "median_s": t["python"]},
@@ -170,7 +158,7 @@ def run(quick: bool = False) -> list[dict]:
             c_acc._x[:] = x
             args_acc[0](*args_acc[1])
 
-        inter = _interleaved({"python": lambda x: ctl["casadi"].step(x, U_P),
+        inter = interleaved({"python": lambda x: ctl["casadi"].step(x, U_P),
                               "c_lib": lambda x: c_acc.step(x, U_P), "bare": bare},
                              states, repeat=1 if quick else 5)
         grid_rows = _grid_rows(quick, out / "accelerate")
