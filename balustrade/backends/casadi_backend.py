@@ -93,8 +93,12 @@ QPSOL_DEFAULTS: dict[str, dict] = {
     # QPs that converge need < 60 iterations there and on the pendulum. Measured on the
     # cart-pole closed loop (40 steps, interleaved, CPU time, under load): median step
     # 1455 -> 273 ms, worst 3335 -> 562 ms, failures 0 -> 0, inputs equal to 2.5e-10.
+    # min_lam (qrqp: "smallest multiplier treated as inactive", default 0): together with
+    # the objective scaling of objective_scale it takes the emittable chain from 72 to 2
+    # failures of (5.15) in 200 states of the 2-D example (29 with min_lam alone, 30 with
+    # the scaling alone; tests/test_sqp_convergence.py)
     "qrqp": {"print_iter": False, "print_header": False, "print_info": False,
-             "error_on_fail": False, "max_iter": 100},
+             "error_on_fail": False, "max_iter": 100, "min_lam": 1e-10},
     "hpipm": {"hpipm": {"iter_max": 200, "res_g_max": 1e-10, "res_b_max": 1e-10,
                         "res_d_max": 1e-10, "res_m_max": 1e-10},
               "error_on_fail": False},
@@ -120,6 +124,35 @@ def solver_options(solver: str, options: dict | None = None) -> dict:
                 else v
         opts["qpsol_options"] = qp
     return opts
+
+
+#: :func:`objective_scale` scales an sqpmethod objective whose gradient is larger than this
+OBJECTIVE_MAX_GRADIENT = 1.0
+
+
+def objective_scale(nlp: dict, x0: np.ndarray, solver: str) -> float:
+    """The factor ``s <= 1`` by which the objective handed to ``sqpmethod`` is multiplied:
+    ``OBJECTIVE_MAX_GRADIENT / max|∇f(x0, p = 0)|`` when that gradient is larger, else 1
+    (other solvers: 1; IPOPT scales by itself, ``nlp_scaling_method`` gradient-based).
+
+    Why (issue #14 §3): the slack problems (5.15)/(6.15) weigh ``ξ_N`` by ``α_f = 1e6``, so
+    the multipliers of the dynamics and tube rows reach 1e8 while the rows are O(1). CasADi's
+    sqpmethod has no NLP scaling, and qrqp's absolute tolerances (1e-8) then cannot tell an
+    active from an inactive row: it cycles (``Enforced ubz to reduce |du|`` / ``Dropped ubz
+    for regularity``) to its ``max_iter``, returns a point violating ``ξ >= 0``, and the SQP
+    stops with ``Search_Direction_Becomes_Too_Small``. On the unstable 2-D example (N = 10)
+    the emittable chain alone failed (5.15) on 72 of 200 random states; with this scaling
+    and qrqp's ``min_lam`` (:data:`QPSOL_DEFAULTS`) on 2 (``tests/test_sqp_convergence.py``).
+    The minimizer is unchanged; the multipliers are divided by ``s`` when reported.
+    ``x0`` is the layout's initial point; a non-finite gradient there gives 1."""
+    if solver != "sqpmethod":
+        return 1.0
+    grad = ca.Function("grad_f", [nlp["x"], nlp["p"]], [ca.gradient(nlp["f"], nlp["x"])])
+    g = np.abs(np.asarray(grad(x0, np.zeros(nlp["p"].numel())), dtype=float))
+    top = float(np.max(g, initial=0.0))
+    if not np.isfinite(top) or top <= OBJECTIVE_MAX_GRADIENT:
+        return 1.0
+    return OBJECTIVE_MAX_GRADIENT / top
 
 
 def _refuse_nonlinear_dynamics(ocp: OCP) -> None:
@@ -219,7 +252,11 @@ class CasadiCompiled:
                                                       staged.ubg)
             self._x0 = staged.x0
             data = staged
-        nlp = data.nlp
+        #: the factor the solver's objective is multiplied by (:func:`objective_scale`);
+        #: multipliers are divided by it on the way out, warm starts stay in solver units
+        self.objective_scale = objective_scale(data.nlp, data.x0, solver)
+        nlp = data.nlp if self.objective_scale == 1.0 else \
+            {**data.nlp, "f": data.nlp["f"] * self.objective_scale}
         self.nlp = nlp
         self.options = opts
         #: derivative functions shared by every sqpmethod built on this NLP (first attempt,
@@ -371,8 +408,9 @@ class CasadiCompiled:
             elapsed = time.perf_counter() - start
             return self._failed(p, elapsed, str(exc))
         w_all = np.asarray(res["x"]).reshape(-1)
-        lam_g = np.asarray(res["lam_g"]).reshape(-1)
-        lam_x = np.asarray(res["lam_x"]).reshape(-1)
+        # multipliers of the declared problem (the solver's objective is scaled)
+        lam_g = np.asarray(res["lam_g"]).reshape(-1) / self.objective_scale
+        lam_x = np.asarray(res["lam_x"]).reshape(-1) / self.objective_scale
         x_orig = res["x"]
         if self.stages is not None:  # back from stage order to the layout's order
             lam_g, lam_x = self.stages.row_dual(lam_g), self.stages.primal(lam_x)
