@@ -44,6 +44,7 @@ primal point (never the epigraph value), so it is the exact value of that point.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import re
 import time
 
@@ -155,6 +156,28 @@ def objective_scale(nlp: dict, x0: np.ndarray, solver: str) -> float:
     return OBJECTIVE_MAX_GRADIENT / top
 
 
+def row_scale(nlp: dict, x0: np.ndarray, solver: str) -> np.ndarray | None:
+    """Per-row factors ``s_i <= 1`` for ``sqpmethod``: ``OBJECTIVE_MAX_GRADIENT /
+    max|∇g_i(x0, p = 0)|`` for the rows whose gradient there is larger, else 1 (IPOPT's
+    gradient-based rule, which sqpmethod lacks); ``None`` when no row is scaled.
+
+    Why: (6.15g) ``α_f ξ_N + Σ 1ᵀξ_i <= bound`` has the coefficient ``α_f = 1e6``; unscaled,
+    the emittable chain alone failed (6.15) on every one of 200 random states of the 2-D
+    example (``Search_Direction_Becomes_Too_Small``). Rows and their bounds are scaled
+    together (the feasible set is unchanged); a row multiplier is ``λ_i = λ̃_i s_i / s_f``."""
+    if solver != "sqpmethod" or nlp["g"].numel() == 0:
+        return None
+    jac = ca.Function("jac_g", [nlp["x"], nlp["p"]], [ca.jacobian(nlp["g"], nlp["x"])])
+    J = np.abs(np.asarray(ca.densify(jac(x0, np.zeros(nlp["p"].numel()))), dtype=float))
+    top = np.max(J, axis=1, initial=0.0)
+    big = np.isfinite(top) & (top > OBJECTIVE_MAX_GRADIENT)
+    if not np.any(big):
+        return None
+    scale = np.ones(top.size)
+    scale[big] = OBJECTIVE_MAX_GRADIENT / top[big]
+    return scale
+
+
 def _refuse_nonlinear_dynamics(ocp: OCP) -> None:
     """fatrop is refused on nonlinear dynamics: on the kinematic bicycle (5.15) (N = 8)
     a fatrop solve did not return within 60 s, even with ``max_iter`` 300 (CasADi 3.8.2,
@@ -252,11 +275,19 @@ class CasadiCompiled:
                                                       staged.ubg)
             self._x0 = staged.x0
             data = staged
-        #: the factor the solver's objective is multiplied by (:func:`objective_scale`);
-        #: multipliers are divided by it on the way out, warm starts stay in solver units
+        #: the factors the solver's objective and rows are multiplied by
+        #: (:func:`objective_scale`, :func:`row_scale`); multipliers are mapped back on the
+        #: way out, warm starts stay in solver units; ``lbg``/``ubg``/``nlp`` are the scaled
         self.objective_scale = objective_scale(data.nlp, data.x0, solver)
-        nlp = data.nlp if self.objective_scale == 1.0 else \
-            {**data.nlp, "f": data.nlp["f"] * self.objective_scale}
+        self.row_scale = row_scale(data.nlp, data.x0, solver)
+        if self.objective_scale != 1.0 or self.row_scale is not None:
+            rs = np.ones(data.lbg.size) if self.row_scale is None else self.row_scale
+            data = dataclasses.replace(
+                data, nlp={**data.nlp, "f": data.nlp["f"] * self.objective_scale,
+                           "g": data.nlp["g"] * ca.DM(rs)},
+                lbg=data.lbg * rs, ubg=data.ubg * rs)
+            self.lbg, self.ubg = data.lbg, data.ubg
+        nlp = data.nlp
         self.nlp = nlp
         self.options = opts
         #: derivative functions shared by every sqpmethod built on this NLP (first attempt,
@@ -408,8 +439,10 @@ class CasadiCompiled:
             elapsed = time.perf_counter() - start
             return self._failed(p, elapsed, str(exc))
         w_all = np.asarray(res["x"]).reshape(-1)
-        # multipliers of the declared problem (the solver's objective is scaled)
+        # multipliers of the declared problem (the solver's objective and rows are scaled)
         lam_g = np.asarray(res["lam_g"]).reshape(-1) / self.objective_scale
+        if self.row_scale is not None:
+            lam_g = lam_g * self.row_scale
         lam_x = np.asarray(res["lam_x"]).reshape(-1) / self.objective_scale
         x_orig = res["x"]
         if self.stages is not None:  # back from stage order to the layout's order
