@@ -257,10 +257,10 @@ def test_multiobjective_c_equals_python_along_closed_loops(mo_pair: dict) -> Non
     (6.14) as warm start and fallback, all as in Python (steps where one side's solve
     converges only at tol_du are skipped, as in :func:`_random_states`).
 
-    On this design (6.15) rarely converges with the emittable chain (sqpmethod + qrqp stops
-    on a vanishing search direction; Python's own chain ends with IPOPT, which has no C), so
-    mostly the fallback "warm_start" (the candidate (6.14)) and its carried state are
-    compared here."""
+    With the sqpmethod scaling (casadi_backend.objective_scale/row_scale) (6.15) converges
+    on most steps of the emittable chain; where it does not (Python's own chain ends with
+    IPOPT, which has no C) the fallback "warm_start" (the candidate (6.14)) and its carried
+    state are compared."""
     py, c, system = mo_pair["py"], mo_pair["c"], mo_pair["system"]
     rng = np.random.default_rng(3)
     starts = [unstable2d_setup(N).x0, *rng.uniform([-0.8, -5.0], [0.8, 5.0], (5, 2))]
@@ -278,7 +278,7 @@ def test_multiobjective_c_equals_python_along_closed_loops(mo_pair: dict) -> Non
             seen[str(out_c[1].fallback)] = seen.get(str(out_c[1].fallback), 0) + 1
             x = system.step(x, out_py[0], w)
     compared = sum(v for k, v in seen.items() if k != "boundary")
-    assert compared >= 20 and seen.get("warm_start", 0) >= 10, seen
+    assert compared >= 20 and seen.get("None", 0) >= 10 and seen.get("warm_start", 0) >= 5, seen
     assert seen.get("boundary", 0) <= 1, seen
 
 

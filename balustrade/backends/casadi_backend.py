@@ -44,6 +44,7 @@ primal point (never the epigraph value), so it is the exact value of that point.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import re
 import time
 
@@ -93,8 +94,13 @@ QPSOL_DEFAULTS: dict[str, dict] = {
     # QPs that converge need < 60 iterations there and on the pendulum. Measured on the
     # cart-pole closed loop (40 steps, interleaved, CPU time, under load): median step
     # 1455 -> 273 ms, worst 3335 -> 562 ms, failures 0 -> 0, inputs equal to 2.5e-10.
+    # min_lam (qrqp: "smallest multiplier treated as inactive", default 0): together with
+    # the objective scaling of objective_scale it takes the emittable chain from 72 to 2
+    # failures of (5.15) in 200 states of the 2-D example (46 with the scaling alone;
+    # tests/test_sqp_convergence.py). 1e-14, not larger: with 1e-8 or 1e-6 the pendulum
+    # (2.24) failed on 3 of the 1000 states of test_codegen (0 with 1e-14 and 1e-18)
     "qrqp": {"print_iter": False, "print_header": False, "print_info": False,
-             "error_on_fail": False, "max_iter": 100},
+             "error_on_fail": False, "max_iter": 100, "min_lam": 1e-14},
     "hpipm": {"hpipm": {"iter_max": 200, "res_g_max": 1e-10, "res_b_max": 1e-10,
                         "res_d_max": 1e-10, "res_m_max": 1e-10},
               "error_on_fail": False},
@@ -120,6 +126,63 @@ def solver_options(solver: str, options: dict | None = None) -> dict:
                 else v
         opts["qpsol_options"] = qp
     return opts
+
+
+#: :func:`objective_scale` and :func:`row_scale` scale an sqpmethod objective or row whose
+#: gradient is larger than this (IPOPT's ``nlp_scaling_max_gradient``). Not 1: scaling
+#: ``1e6 ξ_N + Σ ξ`` to gradient 1 puts the ``Σ ξ`` part (1e-6) below qrqp's absolute dual
+#: tolerance, and sqpmethod then reported "optimal" after one iteration at a point 30 %
+#: worse (the pendulum (2.24), tests/test_casadi_backend.py). Termination tolerances are
+#: those of the scaled problem, as in IPOPT.
+OBJECTIVE_MAX_GRADIENT = 100.0
+
+
+def objective_scale(nlp: dict, x0: np.ndarray, solver: str) -> float:
+    """The factor ``s <= 1`` by which the objective handed to ``sqpmethod`` is multiplied:
+    ``OBJECTIVE_MAX_GRADIENT / max|∇f(x0, p = 0)|`` when that gradient is larger, else 1
+    (other solvers: 1; IPOPT scales by itself, ``nlp_scaling_method`` gradient-based).
+
+    Why (issue #14 §3): the slack problems (5.15)/(6.15) weigh ``ξ_N`` by ``α_f = 1e6``, so
+    the multipliers of the dynamics and tube rows reach 1e8 while the rows are O(1). CasADi's
+    sqpmethod has no NLP scaling, and qrqp's absolute tolerances (1e-8) then cannot tell an
+    active from an inactive row: it cycles (``Enforced ubz to reduce |du|`` / ``Dropped ubz
+    for regularity``) to its ``max_iter``, returns a point violating ``ξ >= 0``, and the SQP
+    stops with ``Search_Direction_Becomes_Too_Small``. On the unstable 2-D example (N = 10)
+    the emittable chain alone failed (5.15) on 72 of 200 random states; with this scaling
+    and qrqp's ``min_lam`` (:data:`QPSOL_DEFAULTS`) on 2 (``tests/test_sqp_convergence.py``).
+    The minimizer is unchanged; the multipliers are divided by ``s`` when reported.
+    ``x0`` is the layout's initial point; a non-finite gradient there gives 1."""
+    if solver != "sqpmethod":
+        return 1.0
+    grad = ca.Function("grad_f", [nlp["x"], nlp["p"]], [ca.gradient(nlp["f"], nlp["x"])])
+    g = np.abs(np.asarray(grad(x0, np.zeros(nlp["p"].numel())), dtype=float))
+    top = float(np.max(g, initial=0.0))
+    if not np.isfinite(top) or top <= OBJECTIVE_MAX_GRADIENT:
+        return 1.0
+    return OBJECTIVE_MAX_GRADIENT / top
+
+
+def row_scale(nlp: dict, x0: np.ndarray, solver: str) -> np.ndarray | None:
+    """Per-row factors ``s_i <= 1`` for ``sqpmethod``: ``OBJECTIVE_MAX_GRADIENT /
+    max|∇g_i(x0, p = 0)|`` for the rows whose gradient there is larger, else 1 (IPOPT's
+    gradient-based rule, which sqpmethod lacks); ``None`` when no row is scaled.
+
+    Why: (6.15g) ``α_f ξ_N + Σ 1ᵀξ_i <= bound`` has the coefficient ``α_f = 1e6``; unscaled,
+    the emittable chain alone failed (6.15) on every one of 198 random states of the 2-D
+    example (``Search_Direction_Becomes_Too_Small``), with it on 36. Rows and their bounds
+    are scaled together (the feasible set is unchanged); a row multiplier is
+    ``λ_i = λ̃_i s_i / s_f``."""
+    if solver != "sqpmethod" or nlp["g"].numel() == 0:
+        return None
+    jac = ca.Function("jac_g", [nlp["x"], nlp["p"]], [ca.jacobian(nlp["g"], nlp["x"])])
+    J = np.abs(np.asarray(ca.densify(jac(x0, np.zeros(nlp["p"].numel()))), dtype=float))
+    top = np.max(J, axis=1, initial=0.0)
+    big = np.isfinite(top) & (top > OBJECTIVE_MAX_GRADIENT)
+    if not np.any(big):
+        return None
+    scale = np.ones(top.size)
+    scale[big] = OBJECTIVE_MAX_GRADIENT / top[big]
+    return scale
 
 
 def _refuse_nonlinear_dynamics(ocp: OCP) -> None:
@@ -227,6 +290,22 @@ class CasadiCompiled:
             self._x0 = staged.x0
             data = staged
             self._data = data
+        # the factors the solver's objective and rows are multiplied by (objective_scale,
+        # row_scale; sqpmethod with qrqp only): multipliers are mapped back on the way out,
+        # warm starts stay in solver units, lbg/ubg/nlp are the scaled ones. Not with hpipm
+        # ("structured-sqp"): there the scaled dual tolerance moved the initial-state
+        # multiplier of the pendulum (2.24) by 0.3 % (test_structured)
+        scaled = solver if opts.get("qpsol", "qrqp") == "qrqp" else "unscaled"
+        self.objective_scale = objective_scale(data.nlp, data.x0, scaled)
+        self.row_scale = row_scale(data.nlp, data.x0, scaled)
+        if self.objective_scale != 1.0 or self.row_scale is not None:
+            rs = np.ones(data.lbg.size) if self.row_scale is None else self.row_scale
+            data = dataclasses.replace(
+                data, nlp={**data.nlp, "f": data.nlp["f"] * self.objective_scale,
+                           "g": data.nlp["g"] * ca.DM(rs)},
+                lbg=data.lbg * rs, ubg=data.ubg * rs)
+            self.lbg, self.ubg = data.lbg, data.ubg
+        self._data = data  # what the lowerings (expanded, compact) are built from
         self.options = opts
         nlp, derivatives = self._lower(self.lowering)
         self.nlp = nlp
@@ -403,8 +482,11 @@ class CasadiCompiled:
             elapsed = time.perf_counter() - start
             return self._failed(p, elapsed, str(exc))
         w_all = np.asarray(res["x"]).reshape(-1)
-        lam_g = np.asarray(res["lam_g"]).reshape(-1)
-        lam_x = np.asarray(res["lam_x"]).reshape(-1)
+        # multipliers of the declared problem (the solver's objective and rows are scaled)
+        lam_g = np.asarray(res["lam_g"]).reshape(-1) / self.objective_scale
+        if self.row_scale is not None:
+            lam_g = lam_g * self.row_scale
+        lam_x = np.asarray(res["lam_x"]).reshape(-1) / self.objective_scale
         x_orig = res["x"]
         if self.stages is not None:  # back from stage order to the layout's order
             lam_g, lam_x = self.stages.row_dual(lam_g), self.stages.primal(lam_x)

@@ -314,6 +314,8 @@ class _Problem:
             cfg.define(f"{P}_SZ_{key}", expr)
         cfg.define(f"{P}_TOL_PR", C.c_double(self.tol_pr))
         cfg.define(f"{P}_TOL_DU", C.c_double(self.tol_du))
+        cfg.define(f"{P}_F_SCALE", C.c_double(getattr(self.c, "objective_scale", 1.0)),
+                   "the solver's objective is the declared one times this")
         cfg.define(f"{P}_ACCEPT_TOL", C.c_double(self.accept_tol))
         for n, v in self.params.items():
             cfg.define(f"{P}_P_{n}", v["offset"])

@@ -2,7 +2,8 @@
  * cold-start retries and the BAL_FEASIBLE rule (mirroring balustrade's CasADi backend).
  * Included once per problem by the generated <name>.c, after <name>.h. The numbers come
  * from <name>_config.h: bounds P_LBX/P_UBX/P_LBG/P_UBG, initial point P_INIT_X, the
- * tolerances P_TOL_PR, P_TOL_DU, P_ACCEPT_TOL, and P_SOLVERS(X), the CasADi solvers of the
+ * tolerances P_TOL_PR, P_TOL_DU, P_ACCEPT_TOL, the objective scale P_F_SCALE, and
+ * P_SOLVERS(X), the CasADi solvers of the
  * first attempt and of each retry (the same function twice shares its memory). P_kkt
  * evaluates the solver's own convergence measures at a point.
  */
@@ -116,6 +117,7 @@ static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which) {
   if (which < 0 || which >= BAL_PX(N_SOLVERS)) return BAL_EVAL_ERROR;
   flag = BAL_PX(solvers)[which].eval(wk->arg, wk->res, wk->iw, wk->w, wk->mem[which]);
   if (flag) return BAL_EVAL_ERROR;
+  wk->f /= BAL_PX(F_SCALE); /* the declared objective (casadi_backend.objective_scale) */
   wk->karg[0] = wk->x;
   wk->karg[1] = p;
   wk->karg[2] = wk->lam_x;
