@@ -140,15 +140,16 @@ def test_closed_loop_same_trace(pair: dict) -> None:
 
 
 def _failing_state(pair: dict) -> np.ndarray:
-    """A state where (5.15) does not converge on this target (the SQP stops on a vanishing
-    search direction), found among a few random ones."""
+    """A state where (5.15) does not converge on this target, found among random states far
+    outside X (|x| ~ 1e3; with the scaled SQP, states near X converge — 2 failures in 200 —
+    while about 8 in 10 of these stop on a vanishing search direction)."""
     py = pair["py"]
     rng = np.random.default_rng(7)
     for _ in range(60):
-        x = rng.uniform(LOW, HIGH)
+        x = 1e3 * rng.uniform(LOW, HIGH)
         if not py.slack.solve({"x0": x}).success:
             return x
-    pytest.skip("no state found where (5.15) fails")
+    raise AssertionError("no state found where (5.15) fails: the fallback test needs one")
 
 
 def test_fallbacks_candidate_then_projected(pair: dict) -> None:
