@@ -10,6 +10,7 @@ valid set. With ``check_true=θ*`` (tests, simulations) it also records ``θ* �
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,7 +46,7 @@ class Proposal:
     extra: dict = field(default_factory=dict)
 
 
-class SetEstimator:
+class SetEstimator(ABC):
     """Base of the set-membership estimators: holds ``Theta`` (the current set Θ_k), ``k``
     and ``history`` (one :class:`~.records.UpdateRecord` per update). Subclasses implement
     :meth:`propose`."""
@@ -75,9 +76,9 @@ class SetEstimator:
         self.history: list[UpdateRecord] = []
 
     # -- to implement ------------------------------------------------------------------
+    @abstractmethod
     def propose(self, Theta_prev: Polytope, data: Transition) -> Proposal:
         """A new set from Θ_{k−1} and the transition (``None`` + status if none)."""
-        raise NotImplementedError
 
     # -- the loop ------------------------------------------------------------------------
     def update(self, x_prev: object, u_prev: object, x_next: object,
