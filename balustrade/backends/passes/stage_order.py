@@ -34,7 +34,7 @@ same feasible set and optimum after :meth:`StageInverse.primal`):
 
 Anything else (a dynamics row that is not ``x_{k+1} − f(x_k, u_k)``, a cost or row coupling
 stages non-separably such as a rate cost ``‖u_k − u_{k−1}‖``) is refused with a
-:class:`~balustrade.errors.StructureError` naming the block.
+:class:`StructureError` naming the block.
 """
 
 from __future__ import annotations
