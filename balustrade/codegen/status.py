@@ -14,8 +14,8 @@ Six families:
 
 A problem emitted from a target with an iteration budget (real-time mode, issue #14 §5:
 ``Target.with_budget``, the ``"real-time"`` preset) reports a solve stopped by it as
-``BAL_TRUNCATED`` (:data:`SOLVE`), the C twin of the backend's ``max_iterations`` with
-``Solution.truncated``; the PCBF step applies the truncation policy of
+``BAL_TRUNCATED`` (:data:`SOLVE`), the C twin of a solve the backend reports as truncated
+(``Solution.truncated``); the PCBF step applies the truncation policy of
 :mod:`balustrade.control.pcbf` to it, and the runtime reports it with the word
 ``"truncated"`` as ``StepInfo`` does in Python.
 
