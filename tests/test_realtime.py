@@ -350,3 +350,43 @@ def test_c_step_reports_truncation_exactly_as_python(pend, rt_c):
         assert np.abs(t1.inputs - t2.inputs).max() <= 1e-6
         truncated += t2.n_truncated
     assert truncated >= 1  # the budget is reached and reported by the C
+
+
+def test_emitted_robust_step_reports_truncation_as_python(unstable2d_tube, tmp_path):
+    """Algorithm 5.2 with a 5-iteration SQP budget, Python and its emitted C (§5.6 system,
+    N = 10): the same status words, uncertified record, ``h_r_upper``, fallbacks and inputs
+    along closed loops in which (5.15) and (5.16) are truncated — a feasible truncated
+    (5.16) applied, infeasible ones replaced by the (5.15) solution and restarted from it
+    (3 iterations, the real-time preset, rarely get (5.15) feasible from a cold start)."""
+    from balustrade.codegen import CRobustPCBFSafetyFilter, build, emit_robust
+    from balustrade.control.robust import RobustPCBFSafetyFilter
+
+    t = unstable2d_tube
+    system, s = t["system"], t["s"]
+    budget = target("robust-sqp").with_budget(iterations=5)
+    py = RobustPCBFSafetyFilter.build(system, s.X, s.U, t["cbf"], t["cbf"].policy, t["N"],
+                                      s.deltas(), t["error"], s.alpha_f, slack_norm=1,
+                                      target=budget, slack_target=budget)
+    emitted = emit_robust(py, "rtrob", tmp_path)
+    c = CRobustPCBFSafetyFilter(build(tmp_path, emitted.name, werror=True))
+    rng = np.random.default_rng(3)
+    truncated, applied = 0, 0
+    for x0 in ([-0.2, 0.0], [0.5, 2.0]):
+        proposals = rng.uniform(-4.0, 4.0, size=30)
+        runs = []
+        for ctl in (py, c):
+            ctl.reset()
+            runs.append(simulate(system, ctl, x0, 30, keep_infos=True,
+                                 proposal=lambda k, x, p=proposals: np.array([p[k]])))
+        t1, t2 = runs
+        assert [i.status for i in t1.infos] == [i.status for i in t2.infos]
+        assert [i.uncertified for i in t1.infos] == [i.uncertified for i in t2.infos]
+        assert t1.fallbacks == t2.fallbacks
+        for a, b in zip(t1.infos, t2.infos):
+            assert ("h_r_upper" in a.values) == ("h_r_upper" in b.values)
+            if "h_r_upper" in a.values:
+                assert a.values["h_r_upper"] == pytest.approx(b.values["h_r_upper"], abs=1e-6)
+        assert np.abs(t1.inputs - t2.inputs).max() <= 1e-6
+        truncated += t2.n_truncated
+        applied += sum(i.uncertified.get("filter") == TRUNCATED for i in t2.infos)
+    assert truncated >= 1 and applied >= 1
