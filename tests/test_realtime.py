@@ -390,3 +390,27 @@ def test_emitted_robust_step_reports_truncation_as_python(unstable2d_tube, tmp_p
         truncated += t2.n_truncated
         applied += sum(i.uncertified.get("filter") == TRUNCATED for i in t2.infos)
     assert truncated >= 1 and applied >= 1
+
+
+def test_multiobjective_records_truncation_with_the_word(unstable2d_tube):
+    """Algorithm 6.4 treats a truncated (6.15) as a failed one (the candidate) and records
+    it as ``problem_truncated`` (it recorded the bare ``max_iterations``, which
+    ``Trace.n_truncated`` did not count); the C runtime reads ``BAL_TRUNCATED`` the same."""
+    from balustrade.codegen import status as S
+    from balustrade.codegen.runtime_robust import multiobjective_info
+    from balustrade.control.multiobjective import MultiobjectivePCBFController
+
+    t = unstable2d_tube
+    system, s = t["system"], t["s"]
+    ctl = MultiobjectivePCBFController.build(system, s.X, s.U, t["cbf"], t["cbf"].policy,
+                                             t["N"], s.deltas(), t["error"], s.alpha_f,
+                                             target="exact", slack_target="exact")
+    ctl.problem = _Truncating(ctl.problem, 0.0)
+    x = np.array([0.3, 0.5])
+    ctl.step(x, np.array([0.5]))
+    _, info = ctl.step(x, np.array([0.5]))
+    assert info.status == "problem_truncated" and info.fallback == "warm_start"
+    trunc = S.code_of(S.SOLVE, "truncated")
+    c_info = multiobjective_info(S.code_of(S.MULTIOBJ, "warm_start"), S.code_of(S.SOLVE, "ok"),
+                                 trunc, np.full(3, np.nan))
+    assert c_info.status == "problem_truncated" and c_info.fallback == "warm_start"
