@@ -290,3 +290,127 @@ def test_realtime_closed_loop_keeps_the_state_constraints(pend, tmp_path):
           f"the first step, under load) wall median {np.median(wall):.3f} / p99 "
           f"{np.percentile(wall, 99):.2f} / worst {wall.max():.2f} ms, CPU median "
           f"{np.median(cpu):.3f} / worst {cpu.max():.2f} ms")
+
+
+# -- the emitted C (issue #14 §5): truncation reported as Python reports it -----------------
+def test_budget_switches_off_the_small_step_stop():
+    """Under a budget sqpmethod stops only by converging or by the budget (the C tells a
+    truncated solve by that), and the companion option follows the solver."""
+    from balustrade.backends.targets import BUDGET_COMPANIONS
+
+    t = target("real-time")
+    assert t.options["min_step_size"] == BUDGET_COMPANIONS["sqpmethod"]["min_step_size"] < 0
+    assert "min_step_size" not in t.with_solver("ipopt").options
+    with pytest.raises(SolverError, match="set by the budget"):
+        t.with_options(min_step_size=1e-10)
+
+
+@pytest.fixture(scope="module")
+def rt_c(pend, tmp_path_factory):
+    """The pendulum PCBF on the real-time preset, in Python and emitted as C."""
+    from balustrade.codegen import CPCBFSafetyFilter, build, emit_pcbf
+
+    ctl = PCBFSafetyFilter.build(pend.system, pend.X, pend.U, pend.h_f, pend.N, pend.deltas,
+                                 target="real-time")
+    out = tmp_path_factory.mktemp("rt_pcbf")
+    emitted = emit_pcbf(ctl, "rtpend", out)
+    lib = build(out, emitted.name, werror=True)
+    return {"py": ctl, "c": CPCBFSafetyFilter(lib), "out": out, "emitted": emitted}
+
+
+def test_emitted_budget_and_truncated_status(rt_c):
+    from balustrade.codegen import status as S
+
+    assert S.code_of(S.SOLVE, "truncated") not in (S.code_of(S.SOLVE, "ok"),
+                                                   S.code_of(S.SOLVE, "feasible"))
+    config = (rt_c["out"] / "rtpend_config.h").read_text()
+    assert f"#define rtpend_slack_BUDGET {REALTIME_ITERATIONS}" in config
+    assert "#define BAL_TRUNCATED 6" in config
+    assert "#define rtpend_slack_N_SOLVERS 1" in config  # no retry after a budget stop
+    assert rt_c["emitted"].manifest["problems"]["slack"]["budget"] == REALTIME_ITERATIONS
+
+
+def test_c_step_reports_truncation_exactly_as_python(pend, rt_c):
+    """C = Python on real-time closed loops of the pendulum: the same truncated flags
+    (status words, uncertified record, ``Trace.n_truncated``), fallbacks and inputs."""
+    py, c = rt_c["py"], rt_c["c"]
+    rng = np.random.default_rng(7)
+    truncated = 0
+    for omega0 in (-1.5, 0.75, 1.5):
+        proposals = rng.uniform(-3.0, 3.0, size=60)
+        runs = []
+        for ctl in (py, c):
+            ctl.reset()
+            runs.append(simulate(pend.system, ctl, [0.0, omega0], 60, keep_infos=True,
+                                 proposal=lambda k, x, p=proposals: np.array([p[k] + 2.0])))
+        t1, t2 = runs
+        assert [i.status for i in t1.infos] == [i.status for i in t2.infos]
+        assert [i.uncertified for i in t1.infos] == [i.uncertified for i in t2.infos]
+        assert t1.fallbacks == t2.fallbacks and t1.n_truncated == t2.n_truncated
+        assert np.abs(t1.inputs - t2.inputs).max() <= 1e-6
+        truncated += t2.n_truncated
+    assert truncated >= 1  # the budget is reached and reported by the C
+
+
+def test_emitted_robust_step_reports_truncation_as_python(unstable2d_tube, tmp_path):
+    """Algorithm 5.2 with a 5-iteration SQP budget, Python and its emitted C (§5.6 system,
+    N = 10): the same status words, uncertified record, ``h_r_upper``, fallbacks and inputs
+    along closed loops in which (5.15) and (5.16) are truncated — a feasible truncated
+    (5.16) applied, infeasible ones replaced by the (5.15) solution and restarted from it
+    (3 iterations, the real-time preset, rarely get (5.15) feasible from a cold start)."""
+    from balustrade.codegen import CRobustPCBFSafetyFilter, build, emit_robust
+    from balustrade.control.robust import RobustPCBFSafetyFilter
+
+    t = unstable2d_tube
+    system, s = t["system"], t["s"]
+    budget = target("robust-sqp").with_budget(iterations=5)
+    py = RobustPCBFSafetyFilter.build(system, s.X, s.U, t["cbf"], t["cbf"].policy, t["N"],
+                                      s.deltas(), t["error"], s.alpha_f, slack_norm=1,
+                                      target=budget, slack_target=budget)
+    emitted = emit_robust(py, "rtrob", tmp_path)
+    c = CRobustPCBFSafetyFilter(build(tmp_path, emitted.name, werror=True))
+    rng = np.random.default_rng(3)
+    truncated, applied = 0, 0
+    for x0 in ([-0.2, 0.0], [0.5, 2.0]):
+        proposals = rng.uniform(-4.0, 4.0, size=30)
+        runs = []
+        for ctl in (py, c):
+            ctl.reset()
+            runs.append(simulate(system, ctl, x0, 30, keep_infos=True,
+                                 proposal=lambda k, x, p=proposals: np.array([p[k]])))
+        t1, t2 = runs
+        assert [i.status for i in t1.infos] == [i.status for i in t2.infos]
+        assert [i.uncertified for i in t1.infos] == [i.uncertified for i in t2.infos]
+        assert t1.fallbacks == t2.fallbacks
+        for a, b in zip(t1.infos, t2.infos):
+            assert ("h_r_upper" in a.values) == ("h_r_upper" in b.values)
+            if "h_r_upper" in a.values:
+                assert a.values["h_r_upper"] == pytest.approx(b.values["h_r_upper"], abs=1e-6)
+        assert np.abs(t1.inputs - t2.inputs).max() <= 1e-6
+        truncated += t2.n_truncated
+        applied += sum(i.uncertified.get("filter") == TRUNCATED for i in t2.infos)
+    assert truncated >= 1 and applied >= 1
+
+
+def test_multiobjective_records_truncation_with_the_word(unstable2d_tube):
+    """Algorithm 6.4 treats a truncated (6.15) as a failed one (the candidate) and records
+    it as ``problem_truncated`` (it recorded the bare ``max_iterations``, which
+    ``Trace.n_truncated`` did not count); the C runtime reads ``BAL_TRUNCATED`` the same."""
+    from balustrade.codegen import status as S
+    from balustrade.codegen.runtime_robust import multiobjective_info
+    from balustrade.control.multiobjective import MultiobjectivePCBFController
+
+    t = unstable2d_tube
+    system, s = t["system"], t["s"]
+    ctl = MultiobjectivePCBFController.build(system, s.X, s.U, t["cbf"], t["cbf"].policy,
+                                             t["N"], s.deltas(), t["error"], s.alpha_f,
+                                             target="exact", slack_target="exact")
+    ctl.problem = _Truncating(ctl.problem, 0.0)
+    x = np.array([0.3, 0.5])
+    ctl.step(x, np.array([0.5]))
+    _, info = ctl.step(x, np.array([0.5]))
+    assert info.status == "problem_truncated" and info.fallback == "warm_start"
+    trunc = S.code_of(S.SOLVE, "truncated")
+    c_info = multiobjective_info(S.code_of(S.MULTIOBJ, "warm_start"), S.code_of(S.SOLVE, "ok"),
+                                 trunc, np.full(3, np.nan))
+    assert c_info.status == "problem_truncated" and c_info.fallback == "warm_start"

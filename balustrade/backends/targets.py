@@ -98,6 +98,16 @@ BUDGET_OPTIONS: dict[str, dict[str, str]] = {
     "ipopt": {"iterations": "ipopt.max_iter", "seconds": "ipopt.max_wall_time"},
 }
 
+#: options a budget sets besides its bound, per solver. sqpmethod's ``min_step_size``
+#: (default 1e-10; stop with ``Search_Direction_Becomes_Too_Small``) is switched off (-1:
+#: no step norm is below it): under a budget an SQP runs until it converges or the budget
+#: is spent (a vanishing step costs nothing more), so every stop without convergence is
+#: the budget's — which is how the emitted C, which has no solver return status, tells a
+#: truncated solve (``BAL_TRUNCATED``, :mod:`balustrade.codegen.status`) as Python does
+BUDGET_COMPANIONS: dict[str, dict[str, Any]] = {
+    "sqpmethod": {"min_step_size": -1.0},
+}
+
 
 @dataclass(frozen=True)
 class Budget:
@@ -139,7 +149,7 @@ class Budget:
                 raise SolverError(f"Budget: solver {solver!r} has no {kind} budget (it takes "
                                   f"{', '.join(names)}); use another solver or that kind")
             out[names[kind]] = float(value) if kind == "seconds" else int(value)
-        return out
+        return {**BUDGET_COMPANIONS.get(solver, {}), **out}
 
 
 @dataclass(frozen=True)
@@ -239,7 +249,8 @@ class Target:
         other = replace(self, solver=solver, name=f"{self.backend}:{solver}")
         if self.budget is None:
             return other
-        stale = set(BUDGET_OPTIONS.get(self.nlp_solver, {}).values())
+        stale = set(BUDGET_OPTIONS.get(self.nlp_solver, {}).values()) | set(
+            BUDGET_COMPANIONS.get(self.nlp_solver, {}))
         options = {k: v for k, v in self.options.items() if k not in stale}
         return replace(other, options={**options, **self.budget.options(other.nlp_solver)})
 
@@ -414,5 +425,6 @@ def sampling_targets(spec: Target | str) -> tuple[Target, Target | None]:
     return target(spec), None
 
 
-__all__ = ["ALIASES", "BACKEND_NAMES", "BUDGET_OPTIONS", "PRESETS", "REALTIME_ITERATIONS",
-           "SAMPLING_PAIRS", "Budget", "Target", "companion", "sampling_targets", "target"]
+__all__ = ["ALIASES", "BACKEND_NAMES", "BUDGET_COMPANIONS", "BUDGET_OPTIONS", "PRESETS",
+           "REALTIME_ITERATIONS", "SAMPLING_PAIRS", "Budget", "Target", "companion",
+           "sampling_targets", "target"]

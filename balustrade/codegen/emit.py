@@ -39,6 +39,7 @@ import numpy as np
 from balustrade._checks import as_vector
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.emittable import c_attempts
+from balustrade.backends.solution import FEASIBILITY_TOL
 from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
 from balustrade.codegen.support import check_no_callbacks
@@ -250,7 +251,13 @@ class _Problem:
         # the cold-start retries the emitted C runs (backends.emittable.c_attempts): the
         # same solver again reuses its function, other settings get their own
         self.retry_labels, self.retry_docs = [], []
-        for k, (plugin, over, label) in enumerate(c_attempts(c.solver_name, c.options)):
+        # an iteration budget (real-time mode): a stop by it is BAL_TRUNCATED, and no retry
+        # runs after any failure (the budgeted targets have none: the time bound)
+        budget = getattr(c, "budget", None)
+        self.budget = 0 if budget is None or budget.iterations is None else \
+            int(budget.iterations)
+        attempts = [] if self.budget else c_attempts(c.solver_name, c.options)
+        for k, (plugin, over, label) in enumerate(attempts):
             sym = f"{P}_nlp" if plugin == c.solver_name and not over else \
                 f"{P}_nlp_retry{k + 1}"
             self.solvers.append((sym, plugin, {**c.options, **over}))
@@ -317,6 +324,10 @@ class _Problem:
         cfg.define(f"{P}_F_SCALE", C.c_double(getattr(self.c, "objective_scale", 1.0)),
                    "the solver's objective is the declared one times this")
         cfg.define(f"{P}_ACCEPT_TOL", C.c_double(self.accept_tol))
+        cfg.define(f"{P}_BUDGET", self.budget,
+                   "iteration budget (0: none); a stop by it is BAL_TRUNCATED")
+        cfg.define(f"{P}_TRUNC_TOL", C.c_double(FEASIBILITY_TOL),
+                   "a BAL_TRUNCATED iterate with primal residual <= this is feasible")
         for n, v in self.params.items():
             cfg.define(f"{P}_P_{n}", v["offset"])
         for n, v in self.vars.items():
@@ -332,7 +343,7 @@ class _Problem:
         return {"prefix": self.P, "title": self.title, "np": self.np, "nw": self.nw,
                 "ng": self.ng, "n_user": self.layout.user_size, "variables": self.vars,
                 "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
-                "accept_tol": self.accept_tol,
+                "accept_tol": self.accept_tol, "budget": self.budget,
                 "retries": list(self.retry_labels),
                 "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol")}
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.backends.emittable import c_retry_chain
+from balustrade.backends.solution import FEASIBILITY_TOL
 from balustrade.codegen import status as S
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
@@ -35,6 +36,9 @@ _STATUS = {code: st.name for code, st in S.by_code(S.SOLVE).items()}
 _OK, _FEASIBLE = S.code_of(S.SOLVE, "ok"), S.code_of(S.SOLVE, "feasible")
 _SOLVED = (_OK, _FEASIBLE)
 _BAD_INPUT = S.code_of(S.SOLVE, "bad_input")
+#: a solve stopped by its iteration budget (real-time mode): named "truncated", the word
+#: the Python controllers record (``balustrade.control.base.TRUNCATED``)
+_TRUNCATED = S.code_of(S.SOLVE, "truncated")
 #: solve status code -> the Solution status of the Python backend where they coincide
 #: (a converged C solve is the backend's "optimal"); the others keep the C name
 _PY_STATUS = {**_STATUS, _OK: "optimal"}
@@ -236,6 +240,13 @@ class _CProblemView:
         self._res_fn(self.work, _ptr(self._res))
         return float(self._res[0]), float(self._res[1])
 
+    def truncated_feasible(self) -> bool:
+        """The last solve's iterate meets every row and bound within
+        :data:`~balustrade.backends.solution.FEASIBILITY_TOL` (what
+        :func:`balustrade.control.base.feasible_truncation` asks of a truncated solve; the
+        C's ``<P>_truncated_feasible`` with the same tolerance, ``<P>_TRUNC_TOL``)."""
+        return bool(self.residuals()[0] <= FEASIBILITY_TOL)
+
     def unpack(self, w: np.ndarray) -> dict[str, np.ndarray]:
         """The user's variables (copies) from the solver's ``x`` (epigraph blocks after)."""
         if self._layout is None:
@@ -357,8 +368,8 @@ class CProblem(_OwnsWork):
         if not warm:
             self._cold(self._work)
         code = self._solve(self._work, self._p_ptr)
-        if code in _SOLVED:
-            self._warm(self._work)
+        if code in _SOLVED or (code == _TRUNCATED and self.view.truncated_feasible()):
+            self._warm(self._work)  # a feasible truncated iterate is continued (real time)
         w = self.view.x.copy()
         value = float(self.view.value_fn(self._work)) if code != _BAD_INPUT else float("nan")
         return _STATUS.get(code, str(code)), value, self.view.unpack(w), w
@@ -436,9 +447,11 @@ class CPCBFSafetyFilter(_OwnsWork):
             info = StepInfo(values={"h_PB": float(self._h[0])})
         else:
             # the bound of a merely feasible (2.24) is only read when there is one
-            h_upper = float(self._h_upper(self._work)) if s_code == _FEASIBLE else \
-                float("nan")
-            info = _pcbf_info(code, s_code, f_code, float(self._h[0]), h_upper)
+            h_upper = float(self._h_upper(self._work)) if s_code in (_FEASIBLE, _TRUNCATED) \
+                else float("nan")
+            info = _pcbf_info(code, s_code, f_code, float(self._h[0]), h_upper,
+                              s_code == _TRUNCATED and self.slack.truncated_feasible(),
+                              f_code == _TRUNCATED and self.filter.truncated_feasible())
         info.solve_time = elapsed
         if code != self._BAD and not finite_u_p:
             fn, args = self._hot_replaced
@@ -451,12 +464,15 @@ class CPCBFSafetyFilter(_OwnsWork):
         return self._u.copy(), info
 
 
-def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float) -> StepInfo:
+def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float,
+               s_trunc_ok: bool = False, f_trunc_ok: bool = False) -> StepInfo:
     """The :class:`StepInfo` :class:`~balustrade.control.pcbf.PCBFSafetyFilter` records for
     the same decisions, from the C step's code and its two solve statuses: ``status``
     (``"ok"``, ``"slack_<s>"``, ``"slack_<s>_filter_<f>"``, ``"filter_<f>"``, with a
-    converged C solve named ``optimal``), ``fallback``, ``h_PB`` (NaN after a merely
-    feasible (2.24), whose cost is ``h_PB_upper``) and ``uncertified``."""
+    converged C solve named ``optimal`` and one stopped by its budget ``truncated``),
+    ``fallback``, ``h_PB`` (NaN after a merely feasible (2.24), whose cost is
+    ``h_PB_upper``) and ``uncertified``. ``s_trunc_ok``/``f_trunc_ok``: the truncated
+    (2.24)/(2.23) stopped at a feasible iterate (used as the Python policy uses it)."""
     known = _PCBF_CODES.get(code)
     info = StepInfo(fallback=known.fallback if known is not None else "unknown")
     s, f = _PY_STATUS.get(s_code, str(s_code)), _PY_STATUS.get(f_code, str(f_code))
@@ -466,8 +482,11 @@ def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float) ->
     if known.name == "bad_input":
         info.status = "non_finite_state"
         return info
-    certified = s_code == _OK or (s_code == _FEASIBLE and np.isfinite(h))
-    if s_code == _FEASIBLE and not certified:
+    s_usable = s_code == _FEASIBLE or s_trunc_ok  # feasible, not converged
+    certified = s_code == _OK or (s_usable and np.isfinite(h))
+    # a truncated (2.24) never makes the step "ok", even when certified by h_PB >= 0
+    plain = certified and s_code != _TRUNCATED
+    if s_usable and not certified:
         info.uncertified["slack"] = s
         info.values.update(h_PB=float("nan"), h_PB_upper=h_upper)
     elif certified:
@@ -475,12 +494,12 @@ def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float) ->
     if known.name in ("shifted_plan", "projected_proposal"):
         info.status = f"slack_{s}"
         return info
-    if f_code in _SOLVED:
+    if f_code in _SOLVED or f_trunc_ok:
         if f_code != _OK:
             info.uncertified["filter"] = f
-        info.status = "ok" if certified and f_code == _OK else f"slack_{s}_filter_{f}"
+        info.status = "ok" if plain and f_code == _OK else f"slack_{s}_filter_{f}"
     else:
-        info.status = ("" if certified else f"slack_{s}_") + f"filter_{f}"
+        info.status = ("" if plain else f"slack_{s}_") + f"filter_{f}"
     return info
 
 

@@ -17,6 +17,7 @@ from balustrade._checks import as_vector
 from balustrade.codegen import status as S
 from balustrade.codegen.runtime import (
     _PY_STATUS,
+    _TRUNCATED,
     _CProblemView,
     _dbl_p,
     _OwnsWork,
@@ -43,13 +44,15 @@ def _refused(family: dict[int, S.Status], code: int) -> tuple[S.Status | None, S
     return known, StepInfo(fallback=known.fallback)
 
 
-def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float
-                ) -> StepInfo:
+def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float,
+                h_r_upper: float = float("nan")) -> StepInfo:
     """The :class:`StepInfo` :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`
     records for the same decisions: ``status`` (``"ok"``, ``"slack_<s>"``,
-    ``"filter_<f>"``, ``"non_finite_state"``; a converged C solve is named ``optimal``),
-    ``fallback``, ``values["h_r"]`` (after a converged (5.15)) and ``values["h_cand"]``
-    (when a candidate existed)."""
+    ``"filter_<f>"``, ``"non_finite_state"``; a converged C solve is named ``optimal``, one
+    stopped by its budget ``truncated``), ``fallback``, ``values["h_r"]`` (after a
+    converged (5.15)), ``values["h_r_upper"]`` (the cost of a feasible truncated (5.15):
+    ``h_r_upper`` when finite), ``values["h_cand"]`` (when a candidate existed) and
+    ``uncertified["filter"]`` (a feasible truncated (5.16), applied)."""
     known, info = _refused(_ROBUST_CODES, code)
     if known is None:
         return info
@@ -57,9 +60,13 @@ def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float
         info.values["h_cand"] = h_cand
     if known.name in ("candidate", "projected_proposal"):
         info.status = f"slack_{_PY_STATUS.get(s_code, str(s_code))}"
+        if np.isfinite(h_r_upper):
+            info.values["h_r_upper"] = h_r_upper
         return info
     info.values["h_r"] = h_r
-    info.status = "ok" if known.name == "ok" else \
+    if known.name == "ok" and f_code == _TRUNCATED:
+        info.uncertified["filter"] = _PY_STATUS[f_code]
+    info.status = "ok" if known.name == "ok" and not info.uncertified else \
         f"filter_{_PY_STATUS.get(f_code, str(f_code))}"
     return info
 
@@ -113,9 +120,12 @@ class CRobustPCBFSafetyFilter(_OwnsWork):
         start = time.perf_counter()
         u, h_r, code = self.step_raw(x, u_p)
         elapsed = time.perf_counter() - start
-        info = robust_info(code, self._status_fn(self._work, 0),
-                           self._status_fn(self._work, 1), h_r,
-                           float(self._h_cand(self._work)))
+        s_code = self._status_fn(self._work, 0)
+        # a feasible truncated (5.15) bounds h_r from above (robust.py's h_r_upper)
+        h_r_upper = max(float(self.slack.value_fn(self.slack.work)), 0.0) \
+            if s_code == _TRUNCATED and self.slack.truncated_feasible() else float("nan")
+        info = robust_info(code, s_code, self._status_fn(self._work, 1), h_r,
+                           float(self._h_cand(self._work)), h_r_upper)
         info.solve_time = elapsed
         if code != self._BAD:
             note_proposal(info, int(self._replaced(self._work)))

@@ -12,6 +12,13 @@ Six families:
 * :data:`ROBUST` — return value of the Algorithm 5.2 step (5.15)+(5.16);
 * :data:`MULTIOBJ` — return value of the Algorithm 6.4 step ((5.15) once, then (6.15)).
 
+A problem emitted from a target with an iteration budget (real-time mode, issue #14 §5:
+``Target.with_budget``, the ``"real-time"`` preset) reports a solve stopped by it as
+``BAL_TRUNCATED`` (:data:`SOLVE`), the C twin of a solve the backend reports as truncated
+(``Solution.truncated``); the PCBF step applies the truncation policy of
+:mod:`balustrade.control.pcbf` to it, and the runtime reports it with the word
+``"truncated"`` as ``StepInfo`` does in Python.
+
 Each family has a *bad input* code: a parameter or state that is NaN or inf is refused
 before any solver runs (NaN compares false, so a residual test would pass it as
 converged); the steps then apply the proposal, NaN entries replaced by 0, clipped to ``U``
@@ -53,6 +60,11 @@ SOLVE: tuple[Status, ...] = (
     Status("BAL_BAD_INPUT", 5, "bad_input", None,
            "a parameter is NaN or inf (or p is NULL): nothing was solved, the solution "
            "and value are NaN"),
+    Status("BAL_TRUNCATED", 6, "truncated", None,
+           "stopped by the problem's iteration budget (P_BUDGET > 0, real-time mode) "
+           "before converging: not retried, never optimal; its iterate, value and primal "
+           "residual (residuals[0]) are in the work struct, and a step applies it only when "
+           "that residual is <= P_TRUNC_TOL"),
     Status("BAL_NOT_RUN", -1, "not_run", None, "the solve was not attempted"),
 )
 

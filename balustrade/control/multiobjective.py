@@ -32,7 +32,7 @@ import numpy as np
 
 from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, Target, companion, compile
-from balustrade.control.base import StepInfo, note_solve
+from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import MultiobjectiveDeployment, ProblemsDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
@@ -103,7 +103,7 @@ class MultiobjectiveLyapunovController:
             s0 = self.init.solve({"x0": x, "u_p": u_p})
             info.solve_time += s0.solve_time
             if not s0.success:
-                info.status = f"init_{s0.status}"
+                info.status = f"init_{outcome(s0)}"
                 info.fallback = "projected_proposal"
                 return project(u_p, d.U), info
             note_solve(info, "init", s0.status)
@@ -128,7 +128,7 @@ class MultiobjectiveLyapunovController:
             info.status = "ok"
         else:
             v = self.u_tilde
-            info.status, info.fallback = f"problem_{sol.status}", "warm_start"
+            info.status, info.fallback = f"problem_{outcome(sol)}", "warm_start"
         info.values["V"] = d.V(x, v)
         u = v[:, 0].copy()
         self._prev = (x, u, v)
@@ -216,7 +216,7 @@ class MultiobjectivePCBFController:
             s0 = self._h_r(x)
             info.solve_time += s0.solve_time
             if not s0.success:
-                info.status, info.fallback = f"init_{s0.status}", "projected_proposal"
+                info.status, info.fallback = f"init_{outcome(s0)}", "projected_proposal"
                 return project(u_p, self.U), info
             note_solve(info, "slack", s0.status)
             xi0, xi0_N = polished_slacks(s0, self.X_E, self.h_f, self.deltas)
@@ -250,7 +250,7 @@ class MultiobjectivePCBFController:
             info.status = "ok"
         else:
             z, v, xi, xi_N = c.z, c.v, c.xi, c.xi_N
-            info.status, info.fallback = f"problem_{sol.status}", "warm_start"
+            info.status, info.fallback = f"problem_{outcome(sol)}", "warm_start"
         self.h_prev = self.h_tilde(xi, xi_N)
         info.values["h_tilde"] = self.h_prev
         self.candidate = self._make_candidate(z, v, xi)

@@ -50,7 +50,7 @@ static int BAL_QX(fallback)(BAL_QX(work)* wk, casadi_real* u_out, int* status) {
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk) {
   casadi_int i;
-  int certified;
+  int certified, trunc_ok;
   const casadi_real* plan_src;
   if (!x || !u_p || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_PCBF_BAD_INPUT;
@@ -71,14 +71,18 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   /* (2.24): h_PB(x_k) and the slacks xi* */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
   wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
-  if (!BAL_SOLVED(wk->slack_status)) return BAL_QX(fallback)(wk, u_out, status);
+  /* a truncated (2.24) at a feasible iterate (real-time mode) is continued primal-dual by
+     the next solve and used as a merely feasible one; stopped infeasible it is a failure */
+  trunc_ok = BAL_QX(slack_truncated_feasible)(&wk->slack, wk->slack_status);
+  if (trunc_ok) BAL_QX(slack_warm_start)(&wk->slack);
+  if (!BAL_SOLVED(wk->slack_status) && !trunc_ok) return BAL_QX(fallback)(wk, u_out, status);
   /* only an optimal (2.24) gives h_PB; a feasible point of cost <= ZERO_TOL is optimal
      (h_PB >= 0 is a lower bound it attains), a costlier one only bounds h_PB above */
   certified = wk->slack_status == BAL_OK || fmax(wk->slack.f, 0.0) <= BAL_QX(ZERO_TOL);
   if (certified) {
     if (wk->slack_status == BAL_OK) {
       BAL_QX(slack_warm_start)(&wk->slack);
-    } else {
+    } else if (!trunc_ok) {
       BAL_QX(slack_warm_start_primal)(&wk->slack);
     }
     wk->have_slack = 1;
@@ -100,8 +104,14 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     BAL_QX(SHARED)(BAL_PCBF_COPY_SHARED)
   }
   wk->filter_status = BAL_QX(filter_solve)(&wk->filter, wk->p_filter);
-  if (BAL_SOLVED(wk->filter_status)) {
-    if (wk->filter_status == BAL_OK) {
+  trunc_ok = BAL_QX(filter_truncated_feasible)(&wk->filter, wk->filter_status);
+  if (wk->filter_status == BAL_TRUNCATED && !trunc_ok) {
+    wk->have_filter = 0; /* stopped infeasible: the next (2.23) starts from (2.24) */
+  }
+  if (BAL_SOLVED(wk->filter_status) || trunc_ok) {
+    /* a truncated (2.23) at a feasible iterate meets its safety constraints: applied (not
+       certified closest to u_p) and continued by the next solve */
+    if (wk->filter_status == BAL_OK || trunc_ok) {
       BAL_QX(filter_warm_start)(&wk->filter);
       wk->have_filter = 1;
     }

@@ -19,6 +19,10 @@
  *          from above; h_out NAN, Q_h_upper the bound) -> a failed (2.24): the shifted
  *          plan; no plan left -> (2.23) on its slacks          BAL_PCBF_FEASIBLE_SLACK
  *          (a BAL_FEASIBLE point of cost <= Q_ZERO_TOL is optimal: h_PB >= 0)
+ *   a solve stopped by its iteration budget (BAL_TRUNCATED, real-time mode): at a
+ *          feasible iterate (residual <= P_TRUNC_TOL) (2.24) is used as a BAL_FEASIBLE one
+ *          and (2.23) is applied, both continued primal-dual by the next step's solve;
+ *          stopped infeasible, it is a failed solve (a failed (2.23) restarts from (2.24))
  *   x NaN/inf, NULL args         -> u_p (NaN -> 0) clipped to U    BAL_PCBF_BAD_INPUT
  *                                   (nothing solved; both solve statuses BAL_BAD_INPUT)
  *   u_p NaN/inf (x finite)       -> those entries of u_p read as 0, the step runs as usual

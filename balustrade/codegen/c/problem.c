@@ -2,8 +2,9 @@
  * cold-start retries and the BAL_FEASIBLE rule (mirroring balustrade's CasADi backend).
  * Included once per problem by the generated <name>.c, after <name>.h. The numbers come
  * from <name>_config.h: bounds P_LBX/P_UBX/P_LBG/P_UBG, initial point P_INIT_X, the
- * tolerances P_TOL_PR, P_TOL_DU, P_ACCEPT_TOL, the objective scale P_F_SCALE, and
- * P_SOLVERS(X), the CasADi solvers of the
+ * tolerances P_TOL_PR, P_TOL_DU, P_ACCEPT_TOL, the objective scale P_F_SCALE, the
+ * iteration budget P_BUDGET (0: none; else a first attempt that stops without converging is
+ * BAL_TRUNCATED, never retried), and P_SOLVERS(X), the CasADi solvers of the
  * first attempt and of each retry (the same function twice shares its memory). P_kkt
  * evaluates the solver's own convergence measures at a point.
  */
@@ -180,6 +181,13 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
   }
   first = BAL_PX(attempt)(wk, p, 0);
   if (first == BAL_OK) return first;
+#if BAL_PX(BUDGET) > 0
+  /* stopped by the iteration budget (the budgeted SQP has no other way to stop without
+     converging: backends.targets.BUDGET_COMPANIONS): truncated, its iterate and residuals
+     kept in wk, no retry and no rescue (the time bound holds), as the backend's
+     max_iterations with Solution.truncated */
+  if (first == BAL_FEASIBLE || first == BAL_NOT_CONVERGED) return BAL_TRUNCATED;
+#endif
   have_feasible = first == BAL_FEASIBLE;
   if (have_feasible) BAL_PX(feasible_copy)(wk, 1);
   for (which = 1; which < BAL_PX(N_SOLVERS); ++which) {
@@ -198,6 +206,10 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
     return BAL_FEASIBLE;
   }
   return first;
+}
+
+int BAL_PX(truncated_feasible)(const BAL_PX(work)* wk, int status) {
+  return status == BAL_TRUNCATED && wk->pr_inf <= BAL_PX(TRUNC_TOL);
 }
 
 const casadi_real* BAL_PX(primal)(const BAL_PX(work)* wk) { return wk->x; }

@@ -52,8 +52,13 @@ void BAL_PX(warm_start)(BAL_PX(work)* wk);
 void BAL_PX(warm_start_primal)(BAL_PX(work)* wk);
 /* Solve with parameters p (P_NP values) from the warm start in wk; returns BAL_*
    (call P_warm_start afterwards to start the next solve from this solution).
-   A NaN or inf parameter returns BAL_BAD_INPUT without solving (x and f are then NaN). */
+   A NaN or inf parameter returns BAL_BAD_INPUT without solving (x and f are then NaN).
+   With an iteration budget (P_BUDGET > 0) a solve stopped by it returns BAL_TRUNCATED
+   (its iterate in x; P_truncated_feasible tells whether it may be used). */
 int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p);
+/* 1 if status is BAL_TRUNCATED and the iterate in wk meets every row and bound within
+   P_TRUNC_TOL (absolute: Solution.feasible_within of balustrade's backend), else 0. */
+int BAL_PX(truncated_feasible)(const BAL_PX(work)* wk, int status);
 /* Pointers into wk, for foreign-function callers. */
 const casadi_real* BAL_PX(primal)(const BAL_PX(work)* wk);
 casadi_real BAL_PX(value)(const BAL_PX(work)* wk);

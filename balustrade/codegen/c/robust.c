@@ -67,7 +67,14 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   /* (5.15): h_r(x_k) and the slacks */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
   wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
-  if (wk->slack_status != BAL_OK) return BAL_QX(fallback)(wk, x, u_out, status);
+  if (wk->slack_status != BAL_OK) {
+    /* a truncated (5.15) at a feasible iterate (real-time mode) is continued primal-dual
+       by the next solve; its cost only bounds h_r (balustrade.control.robust) */
+    if (BAL_QX(slack_truncated_feasible)(&wk->slack, wk->slack_status)) {
+      BAL_QX(slack_warm_start)(&wk->slack);
+    }
+    return BAL_QX(fallback)(wk, x, u_out, status);
+  }
   BAL_QX(slack_warm_start)(&wk->slack);
   wk->have_slack = 1;
   /* polished slacks and h_r (Q_post) */
@@ -97,7 +104,14 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
            BAL_QX(NU) * BAL_QX(N) * sizeof(casadi_real));
   }
   wk->filter_status = BAL_QX(filter_solve)(&wk->filter, wk->p_filter);
-  if (wk->filter_status == BAL_OK) {
+  if (wk->filter_status == BAL_TRUNCATED &&
+      !BAL_QX(filter_truncated_feasible)(&wk->filter, wk->filter_status)) {
+    wk->have_filter = 0; /* stopped infeasible: the next (5.16) starts from (5.15) */
+  }
+  /* a truncated (5.16) at a feasible iterate meets the tube constraints: applied (not
+     certified closest to u_p) and continued by the next solve */
+  if (wk->filter_status == BAL_OK ||
+      BAL_QX(filter_truncated_feasible)(&wk->filter, wk->filter_status)) {
     BAL_QX(filter_warm_start)(&wk->filter);
     wk->have_filter = 1;
     z = wk->filter.x + BAL_QX(filter_W_z);
