@@ -258,12 +258,14 @@ def one_step_fraction(d: dict) -> float:
 
 
 def slice_grid(d: dict, sets: dict, points: int) -> dict:
-    """Fig. 4.4: feasibility on a grid of ``(p₁, p₂)`` with the other states ``0``."""
-    s = d["setup"]
+    """Fig. 4.4: feasibility on a grid of ``(p₁, v₁)`` with the other states ``0`` (with all
+    velocities ``0`` every ``p ∈ X`` is admissible here, so the thesis' position slice is
+    the whole square; the velocity of mass 1 shows where the sets end)."""
+    s, n = d["setup"], d["n"]
     g = np.linspace(s.X.lb[0], s.X.ub[0], points)
     P1, P2 = np.meshgrid(g, g)
-    xs = np.zeros((P1.size, 2 * d["n"]))
-    xs[:, 0], xs[:, 1] = P1.ravel(), P2.ravel()
+    xs = np.zeros((P1.size, 2 * n))
+    xs[:, 0], xs[:, n] = P1.ravel(), P2.ravel()
     return {"grid": g, **{name: sets[name].feasible(xs).reshape(P1.shape) == 1
                           for name in ("F_theta0", "F_theta150", "Ff_theta150") if name in sets}}
 
@@ -354,7 +356,7 @@ def run(out: Path, quick: bool = False, masses: tuple[int, ...] = (3,),
         metrics["sizes"]["8"] = ("not run: the robust LMI over 128 vertices took > 400 s and "
                                  "(4.5) has N·2^7·n_X tube rows; run `python -m "
                                  "balustrade.reproduce.msd_adaptive --masses 3 8`")
-    metrics["table"] = table(metrics)
+    metrics["summary_table"] = table(metrics)
     metrics["plots"] = plots
     metrics["wall_time_s"] = time.perf_counter() - start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json))
@@ -434,8 +436,8 @@ def _plots(data: dict, out: Path, n: str) -> list[str]:
                         alpha=0.45)
             ax.plot([], [], color=colour, lw=6, alpha=0.45, label=name)
     ax.set_xlabel("p_1")
-    ax.set_ylabel("p_2")
-    ax.set_title(f"{n} masses: admissible sets, slice p_3.. = 0, v = 0 (Fig. 4.4)")
+    ax.set_ylabel("v_1")
+    ax.set_title(f"{n} masses: admissible sets, slice (p_1, v_1), others 0 (Fig. 4.4)")
     ax.legend(fontsize=7)
     paths.append(save(fig, out / f"fig4_4_slice_n{n}.png"))
     return paths
@@ -451,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     metrics = run(Path(args.out), quick=args.quick, masses=tuple(args.masses),
                   ts_variant=args.ts_variant)
-    print(metrics["table"])
+    print(metrics["summary_table"])
     return 0
 
 
