@@ -87,6 +87,12 @@ def test_wilson_interval_and_bad_input():
         feasibility_lp(bil)
     with pytest.raises(BalustradeError, match="no parameter 'x'"):
         feasibility_lp(_cross_polytope(2), state="x")
+    shifted = _cross_polytope(2)
+    c = shifted.parameter("c", 2)
+    shifted.le(shifted.variables["y"].sym - c, 5.0, name="shifted")
+    for build in (feasibility_lp, CompiledFeasibility):      # c enters the constraints
+        with pytest.raises(BalustradeError, match="'c'.*no value"):
+            build(shifted)
     lp = feasibility_lp(_cross_polytope(2))
     with pytest.raises(ShapeError, match="xs"):
         lp.feasible(np.zeros((4, 3)))

@@ -135,10 +135,17 @@ class CompiledFeasibility:
             raise BalustradeError(f"CompiledFeasibility: {ocp.name} has no parameter "
                                   f"{state!r} (parameters: {sorted(ocp.parameters)})")
         self.ocp, self.state, self.name = ocp, state, name or ocp.name
-        self.values = {p.name: (values or {}).get(p.name, p.default
-                                                  if p.default is not None
-                                                  else np.zeros(p.shape))
-                       for p in ocp.parameters.values() if p.name != state}
+        given, rows = dict(values or {}), ocp.constraint_vector()
+        self.values = {}
+        for p in ocp.parameters.values():
+            if p.name == state:
+                continue
+            value = given.get(p.name, p.default)
+            if value is None and ca.depends_on(rows, ca.vec(p.sym)):
+                raise BalustradeError(f"CompiledFeasibility: parameter {p.name!r} of "
+                                      f"{ocp.name} enters the constraints and has no value: "
+                                      "pass it in values")
+            self.values[p.name] = np.zeros(p.shape) if value is None else value  # cost only
         self.dim = ocp.parameters[state].sym.numel()
         self.compiled = compile(ocp, target)
         self._lp: FeasibilityLP | None = None
