@@ -204,3 +204,22 @@ def test_fifty_seeded_runs_three_masses(msd3):
     for seed in range(50):
         r = _seeded_run(seed, 150, msd3)
         assert r["z_ok"] and r["theta_in"] and r["nested"], (seed, r["worst_z"])
+
+
+def test_one_step_bound_fraction_is_exact_and_linprog_fallback_agrees():
+    """The necessary condition that explains Table 4.1 here (positions one step ahead in X):
+    its closed-form fraction against 2·10⁵ samples; and the batch LP's from-scratch fallback
+    decides the ℓ1 ball like the warm-started model."""
+    from balustrade.backends.lp_batch import _linprog_status
+
+    for n in (3, 8):
+        d = {"n": n, "setup": msd_setup(n), "system": msd_chain(n)}
+        xs = np.random.default_rng(n).uniform(-2.3, 2.3, (200_000, 2 * n))
+        p = M.one_step_fraction(d)
+        assert abs(M.one_step_bound(d, xs).mean() - p) < 4 * np.sqrt(p * (1 - p) / 2e5)
+    lp = feasibility_lp(_cross_polytope(2))
+    xs = np.random.default_rng(1).uniform(-1, 1, (40, 2))
+    lo, hi = lp.row_bounds(xs)
+    slow = [_linprog_status(lp.lp, lo[i], hi[i]) for i in range(len(xs))]
+    assert np.array_equal(np.array(slow), lp.feasible(xs))
+    assert np.array_equal(np.array(slow) == 1, np.abs(xs).sum(axis=1) <= 1)
