@@ -38,10 +38,12 @@ U_BOUND = 3.5
 
 
 def msd_chain(n: int = 3, Ts: float = TS, damping: float = DAMPING,
-              damper_sign: int = 1) -> ParametricLinearSystem:
+              damper_sign: int = 1, input_gain: float = 1.0) -> ParametricLinearSystem:
     """The chain of ``n >= 2`` masses as ``x⁺ = (A₀ + Σθ_jA_j)x + B₀u + w`` (4.6), with
     ``θ_j = c_{j,j+1}`` the spring between masses ``j`` and ``j + 1`` (``q = n − 1``).
-    ``damper_sign`` is the sign before the last damper term (SPEC §3.2 [Typo?])."""
+    ``damper_sign`` is the sign before the last damper term (SPEC §3.2 [Typo?]);
+    ``input_gain`` multiplies ``u_i`` in ``v⁺_i`` (``1`` as printed; ``Ts`` is the
+    Euler-discretized force, a sensitivity variant of the reproduction)."""
     n = as_count(n, "msd_chain: n (number of masses)", low=2)
     Ts = as_scalar(Ts, "msd_chain: Ts", low=0.0, low_open=True)
     d = as_scalar(damping, "msd_chain: damping", low=0.0)
@@ -65,7 +67,8 @@ def msd_chain(n: int = 3, Ts: float = TS, damping: float = DAMPING,
         Aj[n + j + 1, j + 1] -= Ts  # − T_s c (p_{j+1} − p_j) on mass j + 1
         Aj[n + j + 1, j] += Ts
         A_list.append(Aj)
-    B0 = np.vstack([np.zeros((n, n)), np.eye(n)])
+    gain = as_scalar(input_gain, "msd_chain: input_gain", low=0.0, low_open=True)
+    B0 = np.vstack([np.zeros((n, n)), gain * np.eye(n)])
     return ParametricLinearSystem(A0, A_list, B0, None, name=f"msd{n}")
 
 
