@@ -139,6 +139,7 @@ class PiqpEngine:
         self.has_eq = self.m0 > 0
         self.has_ineq = prog.A.shape[0] > self.m0
         self._blocks = _row_blocks(prog.A, self.m0)
+        self._mats: tuple[sp.csc_matrix | None, sp.csc_matrix | None] | None = None
         A_eq, A_ineq = self._matrices(prog.A.data)
         self.solver = piqp.SparseSolver()
         self.solver.settings.verbose = False
@@ -155,10 +156,19 @@ class PiqpEngine:
                                                      sp.csc_matrix | None]:
         """The equality and inequality blocks of ``A`` with the nonzero values ``values``
         (in the order of ``A.data``), always on the set-up pattern (explicit zeros kept: an
-        update with another pattern would be taken silently and wrongly)."""
-        return tuple(sp.csc_matrix((values[at], indices, indptr), shape=shape) if used else None
-                     for (indices, indptr, at, shape), used in
-                     zip(self._blocks, (self.has_eq, self.has_ineq), strict=True))
+        update with another pattern would be taken silently and wrongly). The two matrices
+        are built once and only their values overwritten (scipy's constructor checks cost
+        more than PIQP's update of a small problem)."""
+        if self._mats is None:
+            self._mats = tuple(
+                sp.csc_matrix((values[at], indices, indptr), shape=shape) if used else None
+                for (indices, indptr, at, shape), used in
+                zip(self._blocks, (self.has_eq, self.has_ineq), strict=True))
+        else:
+            for mat, (_, _, at, _) in zip(self._mats, self._blocks, strict=True):
+                if mat is not None:
+                    mat.data[:] = values[at]
+        return self._mats
 
     def run(self, q: np.ndarray, b: np.ndarray, A: np.ndarray | None = None) -> RawResult:
         mats = {}
