@@ -16,11 +16,15 @@ Paths, timed interleaved on the same states in one run (blocks of 10 steps, path
   written in plain cvxpy from the current vertices and solved (PIQP, the tolerances of
   balustrade's cvxpy target), rebuilt from scratch every step (the thesis' YALMIP way).
 
-``ratio`` is the baseline's median over the path's. The states are those of one closed loop of
-the ``fast-convex`` path (seed 0, ``θ*`` uniform in ``Θ₀``, uniform disturbances, the
-aggressive :func:`~balustrade.models.msd.msd_performance`); every path's controller steps
-through them with its own estimator. The first state (compiles) is a warm-up and not timed.
-The baseline is verified in the run: its input equals the ``fast-convex`` path's on every state
+``ratio`` is the baseline's median over the path's; ``mean_s``/``max_s`` show what the median
+hides (the recompiles of the constant form happen only on the ``theta_changes`` steps where
+``Θ_k`` changed). ``fast-convex-conic`` is the direct backend on Clarabel instead of PIQP.
+Every path runs its own closed loop (:class:`Loop`) with the same ``θ*`` (uniform in ``Θ₀``)
+and disturbance sequence (seed 0) and the aggressive
+:func:`~balustrade.models.msd.msd_performance`, so a path whose solve fails continues with its
+own fallback (``fallbacks``: steps that did not apply a fresh optimal solve) and its estimator
+sees its own inputs. The first step (compiles) is a warm-up and not timed.
+The baseline is verified in the run: its input equals the ``fast-convex`` path's at every step
 within :data:`U_ATOL` (else :class:`BaselineMismatch`). Thesis (YALMIP + MOSEK): 6 ms for 3
 masses, 340 ms for 8; the issue's goal: 1 ms and 20 ms in Python. 8 masses (``2⁷ = 128``
 vertices of ``Θ₀``; 20 steps, without the recompiling path) are run only when the design
@@ -126,12 +130,14 @@ class RebuiltCvxpy:
         self.HX, self.w_bar, self.t = unit_polytope(X0, "baseline"), c.w_bar, c.t
         self.X0_vertices = _small_vertices(X0)
         self.prev: tuple[np.ndarray, np.ndarray] | None = None
+        self.bounds: list[tuple[np.ndarray, np.ndarray]] = []  # Θ_k per step (a box)
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> np.ndarray:
         d = self.d
         system, K, F, G, N = d["system"], d["K"], d["F"], d["G"], d["setup"].N
         if self.prev is not None:
             self.Theta = self.estimator.update(self.prev[0], self.prev[1], x)
+        self.bounds.append((np.array(self.Theta.lb), np.array(self.Theta.ub)))
         V = np.atleast_2d(self.Theta.vertices())
         s = s_constants(d["X0"], system, K, V, self.X0_vertices)
         n, m = K.shape[1], K.shape[0]
@@ -156,21 +162,29 @@ class RebuiltCvxpy:
         return u
 
 
-def _states(d: dict, steps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """States, proposals and inputs of one closed loop of the ``fast-convex`` path."""
-    system, st, n = d["system"], d["setup"], d["n"]
-    ctrl = _controller(d, "fast-convex", "parameters")
-    rng = np.random.default_rng(0)
-    theta = st.sample_theta(rng)
-    x, xs, ups, us = st.x0.copy(), [], [], []
-    for k in range(steps):
-        u_p = msd_performance(k, x, n)
-        u, _ = ctrl.step(x, u_p)
-        xs.append(x)
-        ups.append(u_p)
-        us.append(u)
-        x = system.step(x, u, theta, rng.uniform(-st.W.ub, st.W.ub))
-    return np.array(xs), np.array(ups), np.array(us)
+class Loop:
+    """One closed loop of a path: the §4.7 chain with ``θ*`` and the disturbances of seed 0
+    (the same for every path), the aggressive proposal, ``step`` the path's controller."""
+
+    def __init__(self, d: dict, step, steps: int):
+        system, st = d["system"], d["setup"]
+        rng = np.random.default_rng(0)
+        self.theta = st.sample_theta(rng)
+        self.ws = rng.uniform(-st.W.ub, st.W.ub, size=(steps, 2 * d["n"]))
+        self.d, self.step, self.system = d, step, system
+        self.x = st.x0.copy()
+        self.applied: list[np.ndarray] = []
+        self.times: list[float] = []
+        self.fallbacks = 0  # steps that did not apply a fresh optimal solve
+
+    def __call__(self, k: int) -> None:
+        u_p = msd_performance(k, self.x, self.d["n"])
+        t0 = time.perf_counter()
+        u, info = self.step(self.x, u_p)
+        self.times.append(time.perf_counter() - t0)
+        self.applied.append(u)
+        self.fallbacks += info is not None and info.fallback is not None
+        self.x = self.system.step(self.x, u, self.theta, self.ws[k])
 
 
 def _controller(d: dict, target: str, vertex_data: str) -> RAPSF:
@@ -184,35 +198,41 @@ def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
     """The paths on ``steps`` states of ``d``'s chain (without the recompiling ``fast-convex
     constants`` path unless ``constants``)."""
     n = d["n"]
-    xs, ups, us = _states(d, steps)
     paths = {"fast-convex": _controller(d, "fast-convex", "parameters"),
+             "fast-convex-conic": _controller(d, "fast-convex-conic", "parameters"),
              "fast-convex constants": _controller(d, "fast-convex", "constants"),
              "exact": _controller(d, "exact", "parameters")}
     if not constants:
         del paths["fast-convex constants"]
     baseline = RebuiltCvxpy(d)
-    applied: dict[str, list[np.ndarray]] = {k: [] for k in [*paths, BASELINE]}
-    fns = {k: (lambda i, c=c, k=k: applied[k].append(c.step(xs[i], ups[i])[0]))
-           for k, c in paths.items()}
-    fns[BASELINE] = lambda i: applied[BASELINE].append(baseline.step(xs[i], ups[i]))
-    for fn in fns.values():
-        fn(0)                                          # warm-up: compiles
-    times = interleaved(fns, range(1, steps), block=10)
-    ref = np.array(applied["fast-convex"])
-    gap = float(np.max(np.abs(np.array(applied[BASELINE]) - ref)))
+    loops = {k: Loop(d, c.step, steps) for k, c in paths.items()}
+    loops[BASELINE] = Loop(d, lambda x, u_p: (baseline.step(x, u_p), None), steps)
+    for loop in loops.values():
+        loop(0)                                        # warm-up: compiles
+        loop.times.clear()
+        loop.fallbacks = 0
+    times = interleaved(loops, range(1, steps), block=10)
+    ref = np.array(loops["fast-convex"].applied)
+    gap = float(np.max(np.abs(np.array(loops[BASELINE].applied) - ref)))
     if gap > U_ATOL:
         raise BaselineMismatch(f"{n} masses: the cvxpy baseline's input differs from "
                                f"fast-convex's by {gap:.3g} > {U_ATOL:g}")
+    changes = int(np.count_nonzero(np.any(np.diff(np.array(
+        [np.r_[lo, hi] for lo, hi in baseline.bounds]), axis=0) != 0, axis=1)))
     rows = []
     t_base = times[BASELINE]
     for k in [*paths, BASELINE]:
-        row = {"name": f"rapsf {n} masses Alg 4.1 step: {k}", "median_s": times[k]}
+        loop = loops[k]
+        row = {"name": f"rapsf {n} masses Alg 4.1 step: {k}", "median_s": times[k],
+               "mean_s": float(np.mean(loop.times)), "max_s": float(np.max(loop.times))}
         if k != BASELINE:
             row.update(baseline=BASELINE, ratio=t_base / times[k],
-                       max_du_vs_fast_convex=float(np.max(np.abs(np.array(applied[k]) - ref))))
+                       max_du_vs_fast_convex=float(np.max(np.abs(np.array(loop.applied)
+                                                                 - ref))),
+                       fallbacks=loop.fallbacks)
         row.update(goal_s=GOAL_S[n], vs_thesis=THESIS_S[n] / times[k], steps=steps - 1,
                    n_vertices=int(len(d["setup"].Theta0.vertices())),
-                   tube_rows=int(d["X0"].H.shape[0]))
+                   tube_rows=int(d["X0"].H.shape[0]), theta_changes=changes)
         rows.append(row)
     return rows
 
