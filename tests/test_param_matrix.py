@@ -206,3 +206,24 @@ def test_rapsf_vertex_data_option_is_checked(toy):
     with pytest.raises(BalustradeError, match="vertex_data"):
         RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
               vertex_data="numbers")
+
+
+@pytest.mark.parametrize("target", ["fast-convex", "cvxpy"])
+def test_rapsf_pads_fewer_vertices_without_recompiling(toy, target):
+    """A Θ_k with fewer vertices than compiled (a point: 1 of 4) repeats them: same compiled
+    problem, and the answer of the constant form with that single vertex."""
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0, target=target)
+    const = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0, target=target,
+                  vertex_data="constants")
+    x, u_p = np.array([0.5, 0.1]), np.array([1.0])
+    ctrl.step(x, u_p)
+    point = Box([0.9, 0.2], [0.9, 0.2])
+    ctrl._set_theta(point)
+    const._set_theta(point)
+    u, info = ctrl.step(x, np.array([10.0]))
+    uc, infoc = const.step(x, np.array([10.0]))
+    assert info.status == "ok" and infoc.status == "ok"
+    assert info.values["objective"] > 1e-3                     # the filter is active
+    assert list(ctrl._compiled) == [(N, 4)]
+    assert np.allclose(u, uc, atol=1e-6)
+    assert info.values["objective"] == pytest.approx(infoc.values["objective"], abs=1e-7)
