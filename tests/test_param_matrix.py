@@ -129,6 +129,22 @@ def test_infeasible_parameters_are_reported_and_the_next_solve_is_right(target):
     assert _agree(compiled, PS[1], "squared")
 
 
+@pytest.mark.parametrize("target", ["fast-convex", "fast-convex-conic", "cvxpy"])
+def test_the_infeasibility_check_sees_the_same_matrix(target):
+    """``(1 − a) x₀ = ½`` is feasible at ``a = 0`` and infeasible at ``a = 1``: the feasibility
+    solve that confirms "infeasible" must get ``A(p)`` too — with ``A(0)`` it would find the
+    constraints feasible and report ``failed``."""
+    ocp = OCP(name="vanishing_row")
+    x = ocp.variable("x", 2, lb=-1.0, ub=1.0)
+    a = ocp.parameter("a", 1)
+    ocp.eq((1 - a[0]) * x[0], 0.5, name="vanishing")
+    ocp.minimize(squared_norm(x - 0.2))
+    compiled = compile(ocp, target)
+    assert compiled.solve({"a": 1.0}).status == "infeasible"
+    ok = compiled.solve({"a": 0.5})
+    assert ok.status == "optimal" and ok["x"][0] == pytest.approx(1.0, abs=1e-7)
+
+
 def test_parameter_times_variable_elsewhere_is_still_refused():
     """Only affine rows take ``p · w``: inside a quadratic row the direct backend refuses it
     naming the block."""
