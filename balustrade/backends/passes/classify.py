@@ -57,9 +57,6 @@ class Bilinear:
         return Bilinear(new[self.row[sel]], self.col[sel], self.par[sel], self.val[sel],
                         int(keep.size))
 
-    def scaled(self, factor: float) -> Bilinear:
-        return Bilinear(self.row, self.col, self.par, factor * self.val, self.rows)
-
     def matrix(self, p: np.ndarray, n_cols: int) -> sp.csr_matrix:
         """``Σ_k p_k A_k`` at ``p`` (``rows × n_cols``)."""
         return sp.csr_matrix((self.val * np.asarray(p, float)[self.par], (self.row, self.col)),

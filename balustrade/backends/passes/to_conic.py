@@ -119,13 +119,6 @@ class ConicProgram:
             return None
         return self.A.data + self.A_param @ np.asarray(p, dtype=float)
 
-    def A_at(self, p: np.ndarray) -> sp.csc_matrix:
-        """``A(p)`` (the constant ``A`` when it does not depend on ``p``)."""
-        if self.A_param is None:
-            return self.A
-        return sp.csc_matrix((self.A_data(p), self.A.indices, self.A.indptr),
-                             shape=self.A.shape)
-
     def b(self, p: np.ndarray) -> np.ndarray:
         b = self.b0 + self.B @ p if self.B.shape[1] else self.b0.copy()
         if self.derived:
