@@ -4,9 +4,13 @@ interfaces (issue #14 §1).
 The chain :data:`balustrade.backends.passes.DIRECT_CHAIN` classifies the OCP
 (:mod:`~balustrade.backends.passes.classify`, refusing a nonconvex block by name) and builds
 the conic data ``P, A, K`` once (:mod:`~balustrade.backends.passes.to_conic`); a solve only
-computes ``q = q0 + Q p`` and ``b = b0 + B p + D φ(p)`` and hands them to a solver set up at
-compile time (:mod:`~balustrade.backends.direct_engines`): PIQP for LPs/QPs, Clarabel when a
-cone is needed. No cvxpy canonicalization is run per solve.
+computes ``q = q0 + Q p`` and ``b = b0 + B p + D φ(p)`` (and, for rows with coefficients
+affine in the parameters, the values ``A.data + A_param p`` of ``A(p)`` on its fixed
+pattern) and hands them to a solver set up at compile time
+(:mod:`~balustrade.backends.direct_engines`): PIQP for LPs/QPs, Clarabel when a cone is
+needed. No cvxpy canonicalization is run per solve. Every re-solve (the feasibility check,
+the unequilibrated and the rescaled retries, the solve with the large rows) gets the same
+``A(p)``.
 
 Statuses follow :mod:`~balustrade.backends.cvxpy_backend`: an "infeasible" verdict is
 confirmed by the feasibility problem (same constraints, no cost); rows with large bounds are
@@ -40,6 +44,11 @@ from balustrade.errors import SolverError
 
 #: statuses after which a solve is retried (unequilibrated, then with the cost rescaled)
 _RETRY = (Status.FAILED, Status.MAX_ITERATIONS, Status.OPTIMAL_INACCURATE)
+
+
+def _run(engine: object, q: np.ndarray, b: np.ndarray, A: np.ndarray | None) -> RawResult:
+    """``engine.run`` with the values of ``A(p)`` only when ``A`` depends on ``p``."""
+    return engine.run(q, b) if A is None else engine.run(q, b, A)
 
 
 class DirectCompiled:
@@ -80,21 +89,21 @@ class DirectCompiled:
         p = self.ocp.pack_parameters(params)
         prog = self.program
         start = time.perf_counter()
-        q, b = prog.q(p), prog.b(p)
-        raw = self.engine.run(q, b)
+        q, b, A = prog.q(p), prog.b(p), prog.A_data(p)
+        raw = _run(self.engine, q, b, A)
         message = raw.words
         if raw.status == Status.INFEASIBLE:
-            raw, message = self._check_infeasible(raw, b)
+            raw, message = self._check_infeasible(raw, b, A)
         if prog.large is not None and raw.status != Status.INFEASIBLE \
                 and not self._within_large(raw, p):
             first = "violated them" if raw.status.success else raw.status
             full, engine = self._full_problem()
             prog = full
-            raw = engine.run(full.q(p), full.b(p))
+            raw = _run(engine, full.q(p), full.b(p), full.A_data(p))
             message = (f"{raw.words} (with the {self.program.large.c.size} large bounds/rows "
                        f"|b| >= {LARGE_BOUND:g}; the solve without them: {first})")
         if raw.status in _RETRY and prog is self.program and self._second is not False:
-            raw, message = self._unequilibrated(raw, message, q, b)
+            raw, message = self._unequilibrated(raw, message, q, b, A)
         if raw.status in _RETRY and self.cost_scale > BIG_WEIGHT and prog is self.program:
             raw, message = self._rescaled(raw, message, p)
         elapsed = time.perf_counter() - start
@@ -108,14 +117,15 @@ class DirectCompiled:
                         iterations=raw.iterations, backend="direct", solver=self.solver_name,
                         p=p, message=message)
 
-    def _check_infeasible(self, raw: RawResult, b: np.ndarray) -> tuple[RawResult, str]:
+    def _check_infeasible(self, raw: RawResult, b: np.ndarray, A: np.ndarray | None
+                          ) -> tuple[RawResult, str]:
         """Confirm "infeasible" with the feasibility problem (no cost): badly scaled weights
         can make a solver declare a feasible problem infeasible."""
         prog = self.program
         if self._feasibility is None:
             self._feasibility = make_engine(self.solver_name, prog, self.options,
                                             P=sp.csc_matrix(prog.P.shape), q=np.zeros(prog.n_y))
-        check = self._feasibility.run(np.zeros(prog.n_y), b)
+        check = _run(self._feasibility, np.zeros(prog.n_y), b, A)
         if check.status.success:
             failed = RawResult(Status.FAILED, raw.words, None, None, raw.iterations)
             return failed, (f"{raw.words}; but the constraints alone are feasible "
@@ -140,15 +150,15 @@ class DirectCompiled:
             self._full = (full, make_engine(self.solver_name, full, self.options))
         return self._full
 
-    def _unequilibrated(self, raw: RawResult, message: str, q: np.ndarray, b: np.ndarray
-                        ) -> tuple[RawResult, str]:
+    def _unequilibrated(self, raw: RawResult, message: str, q: np.ndarray, b: np.ndarray,
+                        A: np.ndarray | None) -> tuple[RawResult, str]:
         """Re-solve with Clarabel's equilibration off: on the robust filter (5.16) of the
         rendezvous far from the origin the equilibrated solve stops "AlmostSolved" where the
         unequilibrated one converges to the tolerances. Kept only if it converges."""
         if self._second is None:
             self._second = make_engine(self.solver_name, self.program,
                                        {**self.options, "equilibrate_enable": False})
-        retry = self._second.run(q, b)
+        retry = _run(self._second, q, b, A)
         if retry.status == Status.OPTIMAL:
             retry.iterations += raw.iterations
             return retry, f"{retry.words} (without equilibration; first: {raw.words})"
@@ -163,7 +173,7 @@ class DirectCompiled:
         if self._scaled is None:
             self._scaled = make_engine(self.solver_name, prog, self.options,
                                        P=(prog.P / scale).tocsc(), q=prog.q0 / scale)
-        retry = self._scaled.run(prog.q(p) / scale, prog.b(p))
+        retry = _run(self._scaled, prog.q(p) / scale, prog.b(p), prog.A_data(p))
         if raw.status == Status.OPTIMAL_INACCURATE and retry.status != Status.OPTIMAL:
             return raw, message
         if retry.status.success:

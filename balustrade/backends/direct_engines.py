@@ -1,6 +1,10 @@
 """The solver objects of the direct backend: Clarabel and PIQP through their own interfaces,
 set up once from a :class:`~balustrade.backends.passes.to_conic.ConicProgram` (``P``, ``A``
-and the cones), then only the vectors ``q``, ``b`` are updated per solve.
+and the cones), then only the vectors ``q``, ``b`` are updated per solve — and the values of
+``A`` on its fixed sparsity pattern when ``A`` depends on the parameters
+(:attr:`~balustrade.backends.passes.to_conic.ConicProgram.A_param`): Clarabel takes the new
+nonzero values directly (``update(A=values)``, its equilibration of the set-up data applied
+to them), PIQP the equality and inequality blocks as matrices with the set-up pattern.
 
 Each solve starts from the solver's own initial point: Clarabel (presolve and structural-zero
 dropping off, so that data updates are allowed) keeps nothing but the equilibration of the
@@ -77,7 +81,8 @@ _PIQP_STATUS = {
 
 
 class ClarabelEngine:
-    """``clarabel.DefaultSolver`` set up once; :meth:`run` updates ``q``, ``b`` and solves."""
+    """``clarabel.DefaultSolver`` set up once; :meth:`run` updates ``q``, ``b`` (and the
+    values of ``A`` when given) and solves."""
 
     name = "clarabel"
 
@@ -100,8 +105,11 @@ class ClarabelEngine:
             raise SolverError("direct backend: Clarabel refuses data updates with these "
                               "settings (presolve or dropped structural zeros)")
 
-    def run(self, q: np.ndarray, b: np.ndarray) -> RawResult:
-        self.solver.update(q=q, b=b)
+    def run(self, q: np.ndarray, b: np.ndarray, A: np.ndarray | None = None) -> RawResult:
+        if A is None:
+            self.solver.update(q=q, b=b)
+        else:
+            self.solver.update(q=q, b=b, A=A)
         sol = self.solver.solve()
         words = str(sol.status)
         status = _CLARABEL_STATUS.get(words, Status.FAILED)
@@ -128,7 +136,11 @@ class PiqpEngine:
             raise SolverError("direct backend: PIQP takes LPs and QPs only; this problem "
                               "needs a second-order cone (use solver 'clarabel')")
         self.m0 = sum(m for kind, m in prog.cones if kind == "zero")
-        A = prog.A.tocsr()
+        self.has_eq = self.m0 > 0
+        self.has_ineq = prog.A.shape[0] > self.m0
+        self._blocks = _row_blocks(prog.A, self.m0)
+        self._mats: tuple[sp.csc_matrix | None, sp.csc_matrix | None] | None = None
+        A_eq, A_ineq = self._matrices(prog.A.data)
         self.solver = piqp.SparseSolver()
         self.solver.settings.verbose = False
         self.solver.settings.preconditioner_reuse_on_update = False
@@ -136,19 +148,35 @@ class PiqpEngine:
         Pfull = prog.P if P is None else P
         Pfull = sp.triu(Pfull).tocsc()  # PIQP reads the upper triangle
         q0 = prog.q0 if q is None else q
-        self.has_eq = self.m0 > 0
-        self.has_ineq = A.shape[0] > self.m0
         b = prog.b0
-        self.solver.setup(Pfull, q0,
-                          A[:self.m0].tocsc() if self.has_eq else None,
-                          b[:self.m0] if self.has_eq else None,
-                          A[self.m0:].tocsc() if self.has_ineq else None,
-                          None,
-                          b[self.m0:] if self.has_ineq else None)
+        self.solver.setup(Pfull, q0, A_eq, b[:self.m0] if self.has_eq else None,
+                          A_ineq, None, b[self.m0:] if self.has_ineq else None)
 
-    def run(self, q: np.ndarray, b: np.ndarray) -> RawResult:
+    def _matrices(self, values: np.ndarray) -> tuple[sp.csc_matrix | None,
+                                                     sp.csc_matrix | None]:
+        """The equality and inequality blocks of ``A`` with the nonzero values ``values``
+        (in the order of ``A.data``), always on the set-up pattern (explicit zeros kept: an
+        update with another pattern would be taken silently and wrongly). The two matrices
+        are built once and only their values overwritten (scipy's constructor checks cost
+        more than PIQP's update of a small problem)."""
+        if self._mats is None:
+            self._mats = tuple(
+                sp.csc_matrix((values[at], indices, indptr), shape=shape) if used else None
+                for (indices, indptr, at, shape), used in
+                zip(self._blocks, (self.has_eq, self.has_ineq), strict=True))
+        else:
+            for mat, (_, _, at, _) in zip(self._mats, self._blocks, strict=True):
+                if mat is not None:
+                    mat.data[:] = values[at]
+        return self._mats
+
+    def run(self, q: np.ndarray, b: np.ndarray, A: np.ndarray | None = None) -> RawResult:
+        mats = {}
+        if A is not None:
+            A_eq, A_ineq = self._matrices(A)
+            mats = {k: v for k, v in (("A", A_eq), ("G", A_ineq)) if v is not None}
         self.solver.update(c=q, b=b[:self.m0] if self.has_eq else None,
-                           h_u=b[self.m0:] if self.has_ineq else None)
+                           h_u=b[self.m0:] if self.has_ineq else None, **mats)
         status_obj = self.solver.solve()
         words = str(status_obj.name)
         if words == "PIQP_DUAL_INFEASIBLE":
@@ -162,6 +190,19 @@ class PiqpEngine:
         z = np.concatenate(parts) if parts else np.zeros(0)
         return RawResult(_PIQP_STATUS.get(words, Status.FAILED), f"PIQP: {words}",
                          np.asarray(res.x, dtype=float), z, int(res.info.iter))
+
+
+def _row_blocks(A: sp.csc_matrix, m0: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                          tuple[int, int]]]:
+    """The CSC structure of rows ``:m0`` and ``m0:`` of ``A`` and where their nonzeros sit in
+    ``A.data`` (found by slicing ``A`` with the values ``1 … nnz``)."""
+    code = sp.csc_matrix((np.arange(1, A.nnz + 1, dtype=float), A.indices, A.indptr),
+                         shape=A.shape).tocsr()
+    out = []
+    for part in (code[:m0].tocsc(), code[m0:].tocsc()):
+        part.sort_indices()
+        out.append((part.indices, part.indptr, part.data.astype(np.int64) - 1, part.shape))
+    return out
 
 
 def make_engine(solver: str, prog: ConicProgram, options: dict, **data) -> ClarabelEngine | \

@@ -26,11 +26,13 @@ returns ``None`` or records the status ``"falsified"`` as the last entry of its 
 (:class:`balustrade.estimate.SetEstimator`) has falsified every model in ``Θ``: the status
 ``"model_falsified"`` is recorded and the backup policy is applied from then on.
 
-Vertex data: on a CasADi target the vertices of ``Θ_k`` and the constants ``s_jr`` are
-parameters of one compiled problem per horizon (no recompile when ``Θ_k`` changes; fewer
-vertices than compiled are padded by repetition); on the convex targets (``"cvxpy"``,
-``"fast-convex"``) the problem is recompiled when the vertices change (their classify pass
-does not take parameters that multiply decision variables).
+Vertex data (``vertex_data``): with ``"parameters"`` (the default) the vertices of ``Θ_k``
+and the constants ``s_jr`` are parameters of one compiled problem per horizon on every target
+— CasADi, and the convex targets (``"cvxpy"``, ``"fast-convex"``, ``"auto"``), whose lowering
+keeps the rows ``H_X A_cl(θ^j) z_i + α_i s_j`` as a constraint matrix affine in the parameters
+and only updates its values — so a new ``Θ_k`` never recompiles (fewer vertices than compiled
+are padded by repetition). With ``"constants"`` the vertex data are numbers in the problem,
+which is recompiled whenever the vertices change.
 """
 
 from __future__ import annotations
@@ -63,14 +65,16 @@ class RAPSF:
     ``W`` the disturbance polytope, ``K`` the tube gain, ``Theta0`` the initial parameter
     set; with the default terminal set, ``X0`` must satisfy Assumption 4.11 for ``Θ₀``
     (checked by LPs, else :class:`~balustrade.errors.BalustradeError`). ``values`` of each
-    step: ``k_inf``, ``objective`` (of an optimal solve), ``n_vertices`` (of ``Θ_k``)."""
+    step: ``k_inf``, ``objective`` (of an optimal solve), ``n_vertices`` (of ``Θ_k``).
+    ``vertex_data``: ``"parameters"`` (one compile per horizon) or ``"constants"`` (recompiled
+    when ``Θ_k`` changes), see the module docstring."""
 
     def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
                  W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
                  estimator: object | None = None, backup: Backup | None = None,
                  target: object = "exact", shrinking: bool = False,
                  terminal: TerminalSet | None = None, tol: float = 1e-7,
-                 name: str = "rapsf"):
+                 name: str = "rapsf", vertex_data: str = "parameters"):
         self.n, self.m, self.q = check_parametric_system(system, name)
         self.N = check_horizon(N, name)
         self.K = as_matrix(K, f"{name}: K", (self.m, self.n))
@@ -88,7 +92,10 @@ class RAPSF:
         self.backup = backup if backup is not None else (lambda x, u_p, k: self.K @ x)
         self.shrinking = bool(shrinking)
         self.target = resolve_target(target)
-        self.parametric = self.target.backend == "casadi"
+        if vertex_data not in ("parameters", "constants"):
+            raise BalustradeError(f"{name}: vertex_data must be 'parameters' or 'constants', "
+                                  f"got {vertex_data!r}")
+        self.parametric = vertex_data == "parameters"
         self._n_compiled = len(Theta0.vertices())
         self._X0_vertices = _small_vertices(X0)
         self._compiled: dict = {}

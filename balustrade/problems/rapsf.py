@@ -17,11 +17,15 @@ is accepted (``x⁺ = … + E w`` when it has ``E``). Tubes ``{z_i} ⊕ α_i �
 
 Parametric vertex data. With ``vertices=None`` the vertices of ``Θ_k`` (``theta``, ``q × n_θ``)
 and the constants ``s`` (``n_X × n_θ``) are *parameters*: a new ``Θ_k`` only changes parameter
-values. They multiply decision variables (``A_cl(θ^j) z_i``, ``α_i s_jr``), which the convex
-backends' classify pass refuses (parameters may not multiply variables in a constraint), so
-this form compiles on the CasADi targets only. With numeric ``vertices`` the vertex data are
-constants and the QP compiles on every target (``"exact"``, ``"cvxpy"``, ``"fast-convex"``);
-:class:`balustrade.control.rapsf.RAPSF` recompiles it when ``Θ_k`` changes.
+values. They multiply decision variables (``A_cl(θ^j) z_i``, ``α_i s_jr``), so the rows (4.5c)
+are affine in the variables with coefficients affine in the parameters; every target compiles
+this form once: CasADi as any parameter, the convex backends' classify pass records the
+constraint matrix as ``A(p) = A₀ + Σ_k p_k A_k``
+(:class:`~balustrade.backends.passes.classify.Bilinear`), the direct backend (``"fast-convex"``)
+updates the values of ``A(p)`` on a fixed sparsity pattern per solve and cvxpy keeps the
+product DPP. With numeric ``vertices`` the vertex data are constants (a smaller problem per
+``Θ_k``, rebuilt when it changes). :class:`balustrade.control.rapsf.RAPSF` uses the parametric
+form by default (``vertex_data="parameters"``: one compile per horizon).
 """
 
 from __future__ import annotations

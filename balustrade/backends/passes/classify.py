@@ -5,9 +5,14 @@ First pass of the cvxpy chain (:mod:`balustrade.backends.passes`): :class:`Class
 an OCP into a :class:`ClassifiedProblem` — every block as :class:`Piece` objects (rows and
 their form), every cost term with its affine argument or quadratic decomposition — or
 refuses it with an error naming the block; :mod:`~balustrade.backends.passes.to_cvxpy` then
-turns the pieces into DPP-parametrized cvxpy atoms. Parameters must enter affinely and must not
-multiply decision variables inside a constraint; the multiplier of a parameter-affine
-linear cost term is allowed (``(b + M p)ᵀ w`` is DPP).
+turns the pieces into DPP-parametrized cvxpy atoms. Parameters must enter affinely; the
+multiplier of a parameter-affine linear cost term is allowed (``(b + M p)ᵀ w`` is DPP), and so
+are rows that are affine in the decision variables with coefficients affine in the parameters,
+``A(p) w + B p + c`` with ``A(p) = A₀ + Σ_k p_k A_k`` (:class:`Bilinear`; e.g. the vertex rows
+``H_X A_cl(θ^j) z_i + α_i s_j`` of (4.5c) with the vertices ``θ^j`` and the constants ``s_j``
+parameters, SPEC §2.20). The structure ``A_k`` is recorded once (sparse triplets), so the
+backends form ``A(p)`` on a fixed sparsity pattern per solve. Parameters may not multiply
+decision variables anywhere else (a quadratic row, the cost's quadratic part).
 
 A row that is a convex quadratic jointly in ``(w, p)`` — the tube's initial constraint
 ``(x_k − z_0)ᵀ P (x_k − z_0) <= 1`` ((2.15), (5.15b)) with the state ``x_k`` a parameter —
@@ -32,12 +37,75 @@ from balustrade.errors import ConvexityError
 
 
 @dataclass
+class Bilinear:
+    """The parameter-dependent part of a constraint matrix, ``Σ_k p_k A_k``, as triplets: entry
+    ``(row[t], col[t])`` of ``A(p)`` gains ``val[t] · p[par[t]]`` (one triplet per nonzero of
+    some ``A_k``; ``rows`` the number of rows)."""
+
+    row: np.ndarray
+    col: np.ndarray
+    par: np.ndarray
+    val: np.ndarray
+    rows: int
+
+    def take(self, keep: np.ndarray) -> Bilinear:
+        """The rows ``keep`` (in that order), renumbered ``0 … len(keep) − 1``."""
+        keep = np.asarray(keep, dtype=int)
+        new = np.full(self.rows, -1, dtype=int)
+        new[keep] = np.arange(keep.size)
+        sel = new[self.row] >= 0
+        return Bilinear(new[self.row[sel]], self.col[sel], self.par[sel], self.val[sel],
+                        int(keep.size))
+
+    def matrix(self, p: np.ndarray, n_cols: int) -> sp.csr_matrix:
+        """``Σ_k p_k A_k`` at ``p`` (``rows × n_cols``)."""
+        return sp.csr_matrix((self.val * np.asarray(p, float)[self.par], (self.row, self.col)),
+                             shape=(self.rows, n_cols))
+
+    @property
+    def param_rows(self) -> np.ndarray:
+        """Per row: whether some entry of it depends on a parameter."""
+        out = np.zeros(self.rows, dtype=bool)
+        out[self.row] = True
+        return out
+
+    @staticmethod
+    def stack(parts: list[tuple[Bilinear | None, int]]) -> Bilinear | None:
+        """Blocks of ``m`` rows each (``None``: no parameter part) one below the other."""
+        if all(b is None for b, _ in parts):
+            return None
+        rows, cols, pars, vals, offset = [], [], [], [], 0
+        for b, m in parts:
+            if b is not None:
+                rows.append(b.row + offset)
+                cols.append(b.col)
+                pars.append(b.par)
+                vals.append(b.val)
+            offset += m
+        return Bilinear(np.concatenate(rows), np.concatenate(cols), np.concatenate(pars),
+                        np.concatenate(vals), offset)
+
+
+@dataclass
 class Affine:
-    """``A w + B p + c`` (sparse ``A``, ``B``)."""
+    """``A(p) w + B p + c`` (sparse ``A``, ``B``) with ``A(p) = A + Σ_k p_k A_k`` when ``Ap``
+    holds the parameter part (:class:`Bilinear`; only for constraint rows), else ``A``."""
 
     A: sp.csr_matrix
     B: sp.csr_matrix
     c: np.ndarray
+    Ap: Bilinear | None = None
+
+    def take(self, keep: np.ndarray) -> Affine:
+        """The rows ``keep``."""
+        return Affine(self.A[keep], self.B[keep], self.c[keep],
+                      None if self.Ap is None else self.Ap.take(keep))
+
+    @property
+    def param_rows(self) -> np.ndarray:
+        """Per row: whether it depends on a parameter (through ``B`` or ``A(p)``)."""
+        dep = np.diff(sp.csr_matrix(self.B).indptr) != 0
+        return dep | self.Ap.param_rows if self.Ap is not None else dep
 
 
 @dataclass
@@ -96,14 +164,41 @@ def _hessian_support(Hz: ca.SX, w: ca.SX, p: ca.SX, symmetrize: bool = False
     return support, H[support][:, support].toarray()
 
 
-def affine(expr: ca.SX, w: ca.SX, p: ca.SX, block: str) -> Affine | None:
-    """Return the affine decomposition of ``expr`` or ``None`` if it is not affine."""
+def affine(expr: ca.SX, w: ca.SX, p: ca.SX, block: str, bilinear: bool = False
+           ) -> Affine | None:
+    """Return the affine decomposition of ``expr`` or ``None`` if it is not affine. With
+    ``bilinear`` also ``A(p) w + B p + c`` with ``A(p)`` affine in ``p`` (:class:`Bilinear`:
+    the Jacobian in ``w`` does not depend on ``w`` and its nonzeros are affine in ``p``)."""
     Jw = ca.jacobian(expr, w)
     Jp = ca.jacobian(expr, p) if p.numel() else ca.SX(expr.numel(), 0)
-    if not (_constant(Jw, w, p) and _constant(Jp, w, p)):
+    if _constant(Jw, w, p) and _constant(Jp, w, p):
+        c = _vector(_evaluate(expr, w, p))
+        return Affine(_dm_to_sparse(_evaluate(Jw, w, p)), _dm_to_sparse(_evaluate(Jp, w, p)),
+                      c)
+    if not bilinear or not p.numel() or ca.depends_on(Jw, w):
         return None
+    return _bilinear(expr, Jw, Jp, w, p)
+
+
+def _bilinear(expr: ca.SX, Jw: ca.SX, Jp: ca.SX, w: ca.SX, p: ca.SX) -> Affine | None:
+    """``A(p) w + B p + c`` for ``expr`` affine in ``w`` with ``Jw = A(p)``: ``A₀ = A(0)``,
+    ``A_k`` from the (constant) Jacobian of the nonzeros of ``A(p)`` in ``p``, ``B`` the
+    ``p``-Jacobian at ``w = 0`` (must be constant: ``expr`` affine in ``p`` for fixed ``w``);
+    ``None`` if any of it fails."""
+    nz = Jw.nz[:] if Jw.nnz() else ca.SX(0, 1)
+    T = ca.jacobian(nz, p)
+    Jp0 = ca.substitute(Jp, w, ca.DM.zeros(w.numel()))
+    if not (_constant(T, w, p) and _constant(Jp0, w, p)):
+        return None
+    rows, cols = Jw.sparsity().get_triplet()
+    Tm = _dm_to_sparse(_evaluate(T, w, p)).tocoo()
+    keep = Tm.data != 0
+    rows, cols = np.asarray(rows, int), np.asarray(cols, int)
+    Ap = Bilinear(rows[Tm.row[keep]], cols[Tm.row[keep]], Tm.col[keep].astype(int),
+                  Tm.data[keep].astype(float), int(expr.numel()))
     c = _vector(_evaluate(expr, w, p))
-    return Affine(_dm_to_sparse(_evaluate(Jw, w, p)), _dm_to_sparse(_evaluate(Jp, w, p)), c)
+    return Affine(_dm_to_sparse(_evaluate(Jw, w, p)), _dm_to_sparse(_evaluate(Jp0, w, p)), c,
+                  Ap)
 
 
 def quadratic(expr: ca.SX, w: ca.SX, p: ca.SX, where: str) -> Quadratic:
@@ -276,7 +371,7 @@ class ClassifiedProblem:
 def classify_block(block: Block, w: ca.SX, p: ca.SX) -> ClassifiedBlock:
     """The pieces of ``block`` (:class:`ClassifiedBlock`); a nonlinear equality or a row that
     is neither affine nor convex quadratic raises :class:`ConvexityError` naming it."""
-    aff = affine(block.expr, w, p, block.name)
+    aff = affine(block.expr, w, p, block.name, bilinear=True)
     if aff is not None:
         return ClassifiedBlock(block, (Piece(np.arange(block.rows), aff),))
     if block.kind == BlockKind.EQ:
@@ -286,7 +381,7 @@ def classify_block(block: Block, w: ca.SX, p: ca.SX) -> ClassifiedBlock:
     pieces, affine_rows, affine_parts = [], [], []
     for r in range(block.rows):
         row_expr = block.expr[r]
-        row_aff = affine(row_expr, w, p, block.name)
+        row_aff = affine(row_expr, w, p, block.name, bilinear=True)
         if row_aff is not None:
             affine_rows.append(r)
             affine_parts.append(row_aff)
@@ -319,7 +414,8 @@ def stack(parts: list[Affine]) -> Affine | None:
         return None
     return Affine(sp.vstack([a.A for a in parts]).tocsr(),
                   sp.vstack([a.B for a in parts]).tocsr(),
-                  np.concatenate([a.c for a in parts]))
+                  np.concatenate([a.c for a in parts]),
+                  Bilinear.stack([(a.Ap, a.c.size) for a in parts]))
 
 
 class Classify(Pass):

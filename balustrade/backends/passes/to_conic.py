@@ -5,9 +5,14 @@ ClassifiedProblem` becomes the standard conic form of the solvers' own interface
     min ½ yᵀ P y + qᵀ y   s.t.   A y + s = b,   s ∈ K = {0}ᵐ⁰ × ℝ₊ᵐ¹ × SOC × … × SOC
 
 with ``y = (w, t)`` the OCP's decision vector and the epigraph variables of the norm/max cost
-terms. ``P`` and ``A`` are constant (built once); only ``q = q0 + Q p`` and
-``b = b0 + B p + D φ(p)`` change with the parameters ``p`` (``φ`` the non-affine
-parameter-only parts of quadratic rows, e.g. ``−h(x_k)`` of the CBF decrease (2.20)).
+terms. ``P`` is constant (built once); ``q = q0 + Q p`` and ``b = b0 + B p + D φ(p)`` change
+with the parameters ``p`` (``φ`` the non-affine parameter-only parts of quadratic rows, e.g.
+``−h(x_k)`` of the CBF decrease (2.20)). ``A`` is constant too unless some affine row has
+coefficients affine in ``p`` (:class:`~balustrade.backends.passes.classify.Bilinear`, e.g. the
+vertex rows of (4.5c) with ``Θ_k``-vertex data as parameters): then ``A(p)`` keeps one
+sparsity pattern (the union of ``A₀`` and every ``A_k``, explicit zeros kept) and only its
+values change, ``A(p).data = A.data + A_param p`` (:attr:`ConicProgram.A_param`, built once),
+which the solvers take as a value update of the matrix they were set up with.
 
 Rows (``g ≤ 0`` is ``s = −g ≥ 0``): affine pieces are zero or nonnegative rows; a jointly
 quadratic row without affine part is the cone ``‖L_w w + L_p p + l‖ ≤ √(−2c)`` about its
@@ -32,6 +37,7 @@ import scipy.sparse as sp
 from balustrade.backends.passes.base import Pass
 from balustrade.backends.passes.classify import (
     Affine,
+    Bilinear,
     ClassifiedProblem,
     JointQuadratic,
     Quadratic,
@@ -70,6 +76,7 @@ class _Rows:
     B: sp.csr_matrix
     phi: list[tuple[int, int, float]] = field(default_factory=list)  # (row, φ index, coef)
     dual: tuple[str, np.ndarray, str, float] | None = None  # (block, rows, mode, factor)
+    Ap: Bilinear | None = None  # the parameter part of A (rows affine in p · w)
 
 
 @dataclass
@@ -94,6 +101,9 @@ class ConicProgram:
     large: Affine | None
     cost_scale: float
     objective: ca.Function = field(repr=False)
+    #: ``A(p).data = A.data + A_param @ p`` on the fixed pattern of ``A`` (``None``: ``A``
+    #: does not depend on ``p``)
+    A_param: sp.csr_matrix | None = None
 
     @property
     def conic(self) -> bool:
@@ -102,6 +112,12 @@ class ConicProgram:
 
     def q(self, p: np.ndarray) -> np.ndarray:
         return self.q0 + self.Q @ p if self.Q.shape[1] else self.q0.copy()
+
+    def A_data(self, p: np.ndarray) -> np.ndarray | None:
+        """The values of ``A(p)`` on the pattern of :attr:`A` (``None`` if constant)."""
+        if self.A_param is None:
+            return None
+        return self.A.data + self.A_param @ np.asarray(p, dtype=float)
 
     def b(self, p: np.ndarray) -> np.ndarray:
         b = self.b0 + self.B @ p if self.B.shape[1] else self.b0.copy()
@@ -124,6 +140,28 @@ class ToConic(Pass):
 
     def apply(self, classified: ClassifiedProblem) -> tuple[ConicProgram, None]:
         return _Builder(classified, self.with_large).build(), None
+
+
+def parametric_pattern(A: sp.spmatrix, Ap: Bilinear, n_p: int
+                       ) -> tuple[sp.csc_matrix, sp.csr_matrix]:
+    """``A(p) = A + Σ_k p_k A_k`` on one sparsity pattern: ``(A', A_param)`` with ``A'`` the
+    values at ``p = 0`` on the union of the patterns of ``A`` and every ``A_k`` (canonical CSC,
+    explicit zeros kept) and ``A(p).data = A'.data + A_param @ p`` (``nnz × n_p``)."""
+    A = sp.coo_matrix(A)
+    m, n = A.shape
+    rows = np.concatenate([A.row, Ap.row]).astype(np.int64)
+    cols = np.concatenate([A.col, Ap.col]).astype(np.int64)
+    keys = np.unique(cols * m + rows)                       # column-major order = CSC order
+    pat_cols, pat_rows = np.divmod(keys, m)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(pat_cols, minlength=n))])
+    data = np.zeros(keys.size)
+    np.add.at(data, np.searchsorted(keys, A.col.astype(np.int64) * m + A.row), A.data)
+    at = np.searchsorted(keys, Ap.col.astype(np.int64) * m + Ap.row)
+    A_param = sp.csr_matrix((Ap.val, (at, Ap.par)), shape=(keys.size, n_p))
+    A_param.sum_duplicates()
+    out = sp.csc_matrix((data, pat_rows.astype(np.int32), indptr.astype(np.int32)),
+                        shape=(m, n))
+    return out, A_param
 
 
 def _epigraph_size(kind: TermKind, signs: np.ndarray) -> int:
@@ -187,7 +225,7 @@ class _Builder:
     def _leq(self, aff: Affine, dual=None) -> None:
         """``A w + B p + c <= 0`` as nonnegative rows ``s = −c − B p − A w``."""
         self.rows.append(_Rows("nonneg", self._widen(aff.A), -aff.c, -self._B(aff.B, aff.c.size),
-                               dual=dual))
+                               dual=dual, Ap=aff.Ap))
 
     # -- build ---------------------------------------------------------------------------
     def build(self) -> ConicProgram:
@@ -224,6 +262,10 @@ class _Builder:
                 duals[block].append(DualMap(rows, at, mode, factor))
             offset += m
         A = sp.vstack([r.A for r in order]).tocsc() if order else sp.csc_matrix((0, self.n_y))
+        Ap = Bilinear.stack([(r.Ap, r.b0.size) for r in order]) if order else None
+        A_param = None
+        if Ap is not None:
+            A, A_param = parametric_pattern(A, Ap, self.n_p)
         B = sp.vstack([r.B for r in order]).tocsr() if order else sp.csr_matrix((0, self.n_p))
         b0 = np.concatenate([r.b0 for r in order]) if order else np.zeros(0)
         D = sp.csr_matrix((phi_vals, (phi_rows, phi_cols)), shape=(offset, len(self.derived)))
@@ -232,7 +274,8 @@ class _Builder:
                             self.derived, cones, duals,
                             None if self.with_large else stack(self.large_rows),
                             self.cost_scale,
-                            ca.Function("objective", [self.c.w, self.c.p], [ocp.cost.expr()]))
+                            ca.Function("objective", [self.c.w, self.c.p], [ocp.cost.expr()]),
+                            A_param)
 
     # -- constraints -----------------------------------------------------------------------
     def _piece(self, block: str, kind: BlockKind, rows: np.ndarray, form) -> None:
@@ -249,21 +292,21 @@ class _Builder:
         those with a large constant offset set aside."""
         if kind == BlockKind.EQ:
             self.rows.append(_Rows("zero", self._widen(aff.A), -aff.c,
-                                   -self._B(aff.B, aff.c.size), dual=(block, rows, LINEAR, 1.0)))
+                                   -self._B(aff.B, aff.c.size), dual=(block, rows, LINEAR, 1.0),
+                                   Ap=aff.Ap))
             return
-        no_p = np.diff(aff.B.indptr) == 0
+        no_p = ~aff.param_rows
         empty = (np.diff(aff.A.indptr) == 0) & no_p
         large = no_p & ~empty & (aff.c <= -LARGE_BOUND) & (aff.c > -INFINITE_BOUND)
         if np.any(large) and not self.with_large:
             idx = np.flatnonzero(large)
-            self.large_rows.append(Affine(aff.A[idx], aff.B[idx], aff.c[idx]))
+            self.large_rows.append(aff.take(idx))
         drop = (empty & (aff.c <= 0)) | (aff.c <= -INFINITE_BOUND)
         if not self.with_large:
             drop |= (aff.c <= -LARGE_BOUND) & no_p
         keep = np.flatnonzero(~drop)
         if keep.size:
-            self._leq(Affine(aff.A[keep], aff.B[keep], aff.c[keep]),
-                      dual=(block, rows[keep], LINEAR, 1.0))
+            self._leq(aff.take(keep), dual=(block, rows[keep], LINEAR, 1.0))
 
     def _joint_quadratic(self, block: str, rows: np.ndarray, jq: JointQuadratic) -> None:
         """``½‖v‖² + aᵀw + bᵀp + c <= 0``, ``v = L_w w_I + L_p p_J + l`` about its centre:

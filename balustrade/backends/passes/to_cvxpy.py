@@ -2,7 +2,11 @@
 ClassifiedProblem` becomes a DPP-parametrized cvxpy problem (:class:`CvxpyProgram`).
 
 One decision vector ``W`` and one parameter vector ``P`` (the OCP's layouts); affine pieces
-become ``A W + B P + c``, jointly quadratic rows the cone about their centre (``‖v‖ <=
+become ``A W + B P + c`` — with coefficients affine in the parameters (``A(p) = A₀ + Σ_k p_k
+A_k``, :class:`~balustrade.backends.passes.classify.Bilinear`) the parameter part is the one
+DPP product ``S (R P ∘ C W)`` (``R`` picks the parameter and weight of each nonzero of some
+``A_k``, ``C`` its variable, ``S`` sums them into rows), so the problem stays parametric and
+is not rebuilt when ``p`` changes — jointly quadratic rows the cone about their centre (``‖v‖ <=
 √(−2c)`` for the tube row (5.15b)), quadratic rows ``½‖L W_I‖² + (a + M P)ᵀW + φ(P)`` with
 a non-affine ``φ`` fed as a derived parameter (e.g. ``−h(x_k)`` of (2.20)). Bounds and
 constant row offsets with ``|b| >= INFINITE_BOUND`` are left out; those with ``|b| >=
@@ -71,10 +75,18 @@ class CvxpyProgram:
 
 
 def affine_expr(aff: Affine, W: cp.Variable, P: cp.Parameter | None) -> cp.Expression:
-    """``A W + c (+ B P)`` as a cvxpy expression."""
+    """``A(P) W + c (+ B P)`` as a cvxpy expression (DPP: the parameter part of ``A(P)`` is
+    ``S (R P ∘ C W)``, a product of a parameter-affine and a parameter-free expression)."""
     expr = aff.A @ W + aff.c
     if P is not None and aff.B.nnz:
         expr = expr + aff.B @ P
+    if P is not None and aff.Ap is not None and aff.Ap.val.size:
+        bl, nt = aff.Ap, aff.Ap.val.size
+        t = np.arange(nt)
+        R = sp.csr_matrix((bl.val, (t, bl.par)), shape=(nt, P.size))
+        C = sp.csr_matrix((np.ones(nt), (t, bl.col)), shape=(nt, W.size))
+        S = sp.csr_matrix((np.ones(nt), (bl.row, t)), shape=(bl.rows, nt))
+        expr = expr + S @ cp.multiply(R @ P, C @ W)
     return expr
 
 
@@ -161,18 +173,18 @@ class _Builder:
         with an infinite offset (``c <= −INFINITE_BOUND``) or no variables and ``c <= 0``."""
         if kind == BlockKind.EQ:
             return [(rows, affine_expr(aff, self.W, self.P) == 0, 1.0)]
-        no_p = np.diff(aff.B.indptr) == 0
+        no_p = ~aff.param_rows
         empty = (np.diff(aff.A.indptr) == 0) & no_p
         large = np.flatnonzero(no_p & ~empty & (aff.c <= -LARGE_BOUND)
                                & (aff.c > -INFINITE_BOUND))
         if large.size:
-            self.large_rows.append(Affine(aff.A[large], aff.B[large], aff.c[large]))
+            self.large_rows.append(aff.take(large))
         keep = np.flatnonzero(~((aff.c <= -LARGE_BOUND) & no_p | (empty & (aff.c <= 0))
                                 | (aff.c <= -INFINITE_BOUND)))
         if keep.size == 0:
             return []
         if keep.size < rows.size:
-            aff = Affine(aff.A[keep], aff.B[keep], aff.c[keep])
+            aff = aff.take(keep)
         return [(rows[keep], affine_expr(aff, self.W, self.P) <= 0, 1.0)]
 
     def _quadratic_expr(self, q: Quadratic) -> cp.Expression:
