@@ -127,6 +127,8 @@ def test_sampling_problem_registered_resumable_and_drops_infeasible(tmp_path):
     assert ds.done
     cols = ds.read()
     ok = cols["ok"]
+    assert np.sum(~ok) >= 1                          # both lines end at an infeasible point
+    assert all("infeasible" in r for r in cols["reason"][~ok])
     assert np.all(cols["reason"][ok] == "")
     assert np.all(cols["reason"][~ok] != "")
     tp = ds.throughput()
