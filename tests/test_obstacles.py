@@ -177,3 +177,46 @@ def test_quick_reproduction(tmp_path):
     assert (tmp_path / "metrics.json").exists() and (tmp_path / "figure8_2.png").exists()
     assert len(m["python"]["runs"]) == 5 and m["python"]["steps"] == 5 * R.STEPS
     assert m["pcbf"]["n"] == 3
+
+
+def test_one_command_samples_independent_splits(tmp_path, capsys):
+    """`balustrade sample --config` with splits: one dataset per split, own seeds and goals,
+    throughput per core printed and recorded; a second call resumes (nothing to do)."""
+    import json
+
+    from balustrade.cli import main
+
+    cfg = {"problem": "obstacles", "target": "exact", "problem_kwargs": {"N": 10},
+           "mode": "geometric", "scale": 1.0, "line_step": 1.0, "goals_per_chunk": 1,
+           "cap": None, "workers": 1,
+           "splits": {"train": {"goals": 1, "seed": 1, "x_seed": [-0.4, -0.4, 0, 0.5, 0]},
+                      "val": {"goals": 1, "seed": 2, "x_seed": [0.4, 0.4, 1, 1, 0]}}}
+    path = tmp_path / "cfg.json"
+    path.write_text(json.dumps(cfg))
+    assert main(["sample", "--config", str(path), "--out", str(tmp_path / "d")]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("points per core-second") == 2
+    tr, va = ShardedDataset(tmp_path / "d" / "train"), ShardedDataset(tmp_path / "d" / "val")
+    assert tr.done and va.done
+    a, b = tr.read(), va.read()
+    assert (a["x0"][0], a["x1"][0]) == (-0.4, -0.4) and (b["x0"][0], b["x1"][0]) == (0.4, 0.4)
+    assert tr.manifest()["config"]["seed"] == 1 and va.manifest()["config"]["seed"] == 2
+    assert tr.manifest()["config"]["problem"]["kwargs"] == {"N": 10, "target": "exact"}
+    assert main(["sample", "--config", str(path), "--out", str(tmp_path / "d")]) == 0
+    assert tr.throughput()["runs"] == 1                 # resumed: no chunk left to sample
+
+
+def test_train_with_an_independent_validation_set():
+    pytest.importorskip("torch")
+    from balustrade.learn.train import TrainConfig, train
+
+    rng = np.random.default_rng(0)
+    X, Xv = rng.normal(size=(64, 2)), rng.normal(size=(16, 2))
+    y, yv = X[:, 0] ** 2, Xv[:, 0] ** 2 + 5.0        # a shifted validation set
+    model = train(X, y, TrainConfig(widths=(4,), epochs=3, batch_size=16),
+                  validation=(Xv, yv))
+    assert len(model.history["val_mse_h"]) == 3
+    # the last validation MSE is that of the final model on (Xv, yv), not on a split of X
+    assert model.history["val_mse_h"][-1] == pytest.approx(np.mean((model(Xv) - yv) ** 2))
+    with pytest.raises(Exception, match="validation"):
+        train(X, y, TrainConfig(widths=(4,), epochs=1), validation=(Xv[:, :1], yv))

@@ -11,7 +11,8 @@ Examples::
     balustrade train --data out/pendulum-D --target h --widths 16 16 16 --out out/h.npz
     balustrade sample --config configs/obstacles-full.json --scheduler tcp://head:8786
 
-A config may hold ``"splits"``: named datasets sampled by one command into ``OUT/<name>``,
+A config may hold ``"problem_kwargs"`` (arguments of the problem factory, e.g.
+``{"N": 10}``) and ``"splits"``: named datasets sampled by one command into ``OUT/<name>``,
 each a dict of options overriding the others (e.g. the independent training and validation
 sets of Section 8.3: ``{"train": {"goals": 150000, "seed": 1}, "val": {"goals": 75000,
 "seed": 2, "x_seed": [...]}}``). An interrupted ``sample`` is resumed by running the same
@@ -32,7 +33,7 @@ SAMPLE_DEFAULTS: dict[str, Any] = {
     "upper": [2.0, 8.0], "grid_step": [0.01, 0.04], "band": True, "cap": 10.0,
     "chunk_size": 500, "goals": 1024, "goals_per_chunk": 16, "line_step": 0.01, "seed": 0,
     "workers": None, "scheduler": None, "quiet": False, "cold": False, "scale": 1.5,
-    "x_seed": None, "splits": None,
+    "x_seed": None, "splits": None, "problem_kwargs": None,
 }
 TRAIN_DEFAULTS: dict[str, Any] = {
     "target": "h", "widths": [16, 16, 16], "epochs": 30, "lr": 5e-3, "batch_size": 8,
@@ -76,7 +77,8 @@ def _cmd_sample(args: argparse.Namespace) -> int:
              for name, opts in splits.items()] if splits else [(Path(cfg["out"]), cfg)])
     with make_executor(cfg["workers"], cfg["scheduler"]) as ex:
         for out, job in jobs:
-            spec = ProblemSpec.of(job["problem"], target=job["target"])
+            spec = ProblemSpec.of(job["problem"], target=job["target"],
+                                  **(job["problem_kwargs"] or {}))
             chunks, plan = _plan(spec.build().X, job)
             ds = run_sampling(out, spec, chunks, ex, plan, progress=not job["quiet"])
             if not job["quiet"]:
