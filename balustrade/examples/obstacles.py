@@ -18,8 +18,8 @@ def obstacle_problems(target: str = "exact", slack_norm: int | str = "inf", N: i
     domain (the arena, headings, speeds 0–4 m/s, steering), not the constraint set.
 
     ``N`` overrides the horizon 50 (tests use a short one). The problems are nonconvex
-    (the discs): a solve reports a local optimum, and infeasible states (no stop outside
-    the tightened discs within ``N`` steps, SPEC §2.32) are dropped by the sampler with the
+    (the disks): a solve reports a local optimum, and infeasible states (no stop outside
+    the tightened disks within ``N`` steps, SPEC §2.32) are dropped by the sampler with the
     solver's status recorded as the reason."""
     system, s = obstacle_car(), obstacle_setup()
     n = s.N if N is None else int(N)

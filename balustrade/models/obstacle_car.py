@@ -8,7 +8,7 @@ SPEC §2.32 and §3.7).
     p_y⁺ = p_y + T_s v sin ψ      v⁺ = v + T_s τ
 
 Inputs ``−5 <= τ <= 2``, ``−2.8 <= Δδ <= 2.8``; state constraints ``|δ| <= 0.75`` and nine
-discs ``c_{x,i}(x) = r² − (p_x − o_{x,i})² − (p_y − o_{y,i})² <= 0`` ([Default] r = 0.15 on a
+disks ``c_{x,i}(x) = r² − (p_x − o_{x,i})² − (p_y − o_{y,i})² <= 0`` ([Default] r = 0.15 on a
 3 × 3 grid with 0.8 m spacing centred at the origin). The other states are unconstrained:
 the large boxes SPEC §2.32 allows for compactness of ``X(ξ)`` are left out of ``c_x`` (they
 would never be active and would add 4 rows × N slacks to (2.24)); the sampling domain
@@ -51,7 +51,7 @@ def obstacle_car(ts: float = TS, wheelbase: float = WHEELBASE) -> System:
 
 
 def grid_obstacles(spacing: float = SPACING, radius: float = RADIUS) -> np.ndarray:
-    """Rows ``(o_x, o_y, r)`` of the 3 × 3 grid of discs centred at the origin."""
+    """Rows ``(o_x, o_y, r)`` of the 3 × 3 grid of disks centred at the origin."""
     c = spacing * np.array([-1.0, 0.0, 1.0])
     return np.array([[ox, oy, radius] for ox in c for oy in c])
 
@@ -61,8 +61,8 @@ def constraint_set(obstacles: np.ndarray, delta_max: float = DELTA_MAX) -> Funct
     obs = np.asarray(obstacles, float)
 
     def c(x: ca.SX) -> ca.SX:
-        discs = [o[2] ** 2 - (x[0] - o[0]) ** 2 - (x[1] - o[1]) ** 2 for o in obs]
-        return ca.vertcat(*discs, x[4] - delta_max, -x[4] - delta_max)
+        disks = [o[2] ** 2 - (x[0] - o[0]) ** 2 - (x[1] - o[1]) ** 2 for o in obs]
+        return ca.vertcat(*disks, x[4] - delta_max, -x[4] - delta_max)
 
     return FunctionSet(c, 5, name="X_obstacles")
 

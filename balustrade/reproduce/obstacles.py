@@ -1,6 +1,6 @@
 """Section 8.3: obstacle avoidance with the approximate PCBF filter (Figures 8.2, 8.3).
 
-The car (8.1) among nine discs (:mod:`balustrade.models.obstacle_car`), the naive
+The car (8.1) among nine disks (:mod:`balustrade.models.obstacle_car`), the naive
 obstacle-unaware MPC (8.2) with ``v_ref = 3`` as the performance controller, Algorithm 7.5
 (:class:`~balustrade.control.approximate.ApproximatePCBFFilter`, ``ρ = 0.5``) with a learned
 ``ĥ = net³`` (5 × 32 softplus trained on ``∛h`` with a Huber loss, SPEC §3.7), five initial
