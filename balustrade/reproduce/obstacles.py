@@ -219,7 +219,8 @@ def sample_data(out: Path, config: Path = CONFIG, workers: int = 2) -> dict[str,
     with make_executor(cfg["workers"]) as ex:
         for name, opts in cfg["splits"].items():
             job = {**cfg, **opts}
-            spec = ProblemSpec.of(job["problem"], target=job["target"])
+            spec = ProblemSpec.of(job["problem"], target=job["target"],
+                                  **(job["problem_kwargs"] or {}))
             chunks, plan = _plan(spec.build().X, job)
             run_sampling(out / name, spec, chunks, ex, plan, progress=False)
             paths[name] = out / name
