@@ -356,7 +356,7 @@ def run(out: Path, quick: bool = False) -> dict:
         from balustrade.learn.dataset import ShardedDataset
 
         t = time.perf_counter()
-        paths = sample_data(out / "data")
+        paths = sample_data(out / "data", CONFIG)
         metrics["sampling_s"] = time.perf_counter() - t
         tr, va = ShardedDataset(paths["train"]), ShardedDataset(paths["val"])
         X, y = tr.arrays("h")
