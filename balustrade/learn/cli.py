@@ -9,8 +9,15 @@ Examples::
     balustrade sample --out out/pendulum-D --scheduler tcp://head:8786   # same, on Dask
     balustrade sample --out out/geo --mode geometric --goals 4096 --line-step 0.01
     balustrade train --data out/pendulum-D --target h --widths 16 16 16 --out out/h.npz
+    balustrade sample --config configs/obstacles-full.json --scheduler tcp://head:8786
 
-An interrupted ``sample`` is resumed by running the same command again.
+A config may hold ``"problem_kwargs"`` (arguments of the problem factory, e.g.
+``{"N": 10}``) and ``"splits"``: named datasets sampled by one command into ``OUT/<name>``,
+each a dict of options overriding the others (e.g. the independent training and validation
+sets of Section 8.3: ``{"train": {"goals": 150000, "seed": 1}, "val": {"goals": 75000,
+"seed": 2, "x_seed": [...]}}``). An interrupted ``sample`` is resumed by running the same
+command again (finished splits and chunks are skipped). At the end it prints the
+throughput per core (points per core-second, recorded per run in each manifest).
 """
 
 from __future__ import annotations
@@ -25,7 +32,8 @@ SAMPLE_DEFAULTS: dict[str, Any] = {
     "problem": "pendulum", "target": "fast-sqp", "mode": "grid", "lower": [-2.0, -8.0],
     "upper": [2.0, 8.0], "grid_step": [0.01, 0.04], "band": True, "cap": 10.0,
     "chunk_size": 500, "goals": 1024, "goals_per_chunk": 16, "line_step": 0.01, "seed": 0,
-    "workers": None, "scheduler": None, "quiet": False, "cold": False,
+    "workers": None, "scheduler": None, "quiet": False, "cold": False, "scale": 1.5,
+    "x_seed": None, "splits": None, "problem_kwargs": None,
 }
 TRAIN_DEFAULTS: dict[str, Any] = {
     "target": "h", "widths": [16, 16, 16], "epochs": 30, "lr": 5e-3, "batch_size": 8,
@@ -55,30 +63,50 @@ def _merge(args: argparse.Namespace, defaults: dict[str, Any]) -> dict[str, Any]
 
 def _cmd_sample(args: argparse.Namespace) -> int:
     from balustrade.errors import BalustradeError
-    from balustrade.learn.dataset import geometric_plan, grid_plan, run_sampling
+    from balustrade.learn.dataset import run_sampling
     from balustrade.learn.executors import make_executor
     from balustrade.learn.sampler import ProblemSpec
 
     cfg = _merge(args, SAMPLE_DEFAULTS)
     if not cfg.get("out"):
         raise BalustradeError("sample: --out (or 'out' in the config file) is required")
-    spec = ProblemSpec.of(cfg["problem"], target=cfg["target"])
-    X = spec.build().X
-    if cfg["mode"] == "grid":
-        chunks, plan = grid_plan(X, cfg["lower"], cfg["upper"], cfg["grid_step"],
-                                 int(cfg["chunk_size"]), cfg["cap"], bool(cfg["band"]),
-                                 warm=not cfg["cold"])
-    elif cfg["mode"] == "geometric":
-        chunks, plan = geometric_plan(X, int(cfg["goals"]), int(cfg["goals_per_chunk"]),
-                                      float(cfg["line_step"]), int(cfg["seed"]), cfg["cap"])
-    else:
-        raise BalustradeError(f"sample: unknown mode {cfg['mode']!r} (grid | geometric)")
+    splits = cfg.pop("splits", None)
+    if splits is not None and not isinstance(splits, dict):
+        raise BalustradeError("sample: 'splits' must map dataset names to option dicts")
+    jobs = ([(Path(cfg["out"]) / name, {**cfg, **(opts or {})})
+             for name, opts in splits.items()] if splits else [(Path(cfg["out"]), cfg)])
     with make_executor(cfg["workers"], cfg["scheduler"]) as ex:
-        ds = run_sampling(cfg["out"], spec, chunks, ex, plan, progress=not cfg["quiet"])
-    rows = sum(ds.completed().values())
-    if not cfg["quiet"]:
-        print(f"{rows} samples in {len(chunks)} shards at {Path(cfg['out']).resolve()}")
+        for out, job in jobs:
+            spec = ProblemSpec.of(job["problem"], target=job["target"],
+                                  **(job["problem_kwargs"] or {}))
+            chunks, plan = _plan(spec.build().X, job)
+            ds = run_sampling(out, spec, chunks, ex, plan, progress=not job["quiet"])
+            if not job["quiet"]:
+                rows = sum(ds.completed().values())
+                tp = ds.throughput()
+                rate = tp["points_per_core_s"]
+                print(f"{rows} samples in {len(chunks)} shards at {out.resolve()}; "
+                      f"throughput {rate:.3g} points per core-second" if rate else
+                      f"{rows} samples in {len(chunks)} shards at {out.resolve()}")
+                dropped = ds.dropped()
+                if dropped:
+                    print(f"dropped (not used for training): {dropped}")
     return 0
+
+
+def _plan(X: Any, cfg: dict[str, Any]) -> tuple[list, dict[str, Any]]:
+    from balustrade.errors import BalustradeError
+    from balustrade.learn.dataset import geometric_plan, grid_plan
+
+    if cfg["mode"] == "grid":
+        return grid_plan(X, cfg["lower"], cfg["upper"], cfg["grid_step"],
+                         int(cfg["chunk_size"]), cfg["cap"], bool(cfg["band"]),
+                         warm=not cfg["cold"])
+    if cfg["mode"] == "geometric":
+        return geometric_plan(X, int(cfg["goals"]), int(cfg["goals_per_chunk"]),
+                              float(cfg["line_step"]), int(cfg["seed"]), cfg["cap"],
+                              float(cfg["scale"]), cfg["x_seed"])
+    raise BalustradeError(f"sample: unknown mode {cfg['mode']!r} (grid | geometric)")
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -109,7 +137,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        "(Algorithm 7.6 or a grid), resumable, local or on Dask")
     s.add_argument("--config", help="JSON file with any of the options below")
     s.add_argument("--out", help="dataset directory (Parquet shards + manifest.json)")
-    s.add_argument("--problem", help="'pendulum' or 'package.module:function'")
+    s.add_argument("--problem", help="'pendulum', 'obstacles' or 'package.module:function'")
     s.add_argument("--target", help="solver target (balustrade.backends presets): fast-sqp "
                    "(default; warm-started line walks, the sampling-cold target for cold "
                    "starts and failed warm solves) or exact (interior point, warm and cold)")
@@ -125,6 +153,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--goals-per-chunk", dest="goals_per_chunk", type=int)
     s.add_argument("--line-step", dest="line_step", type=float, help="geometric mode: d")
     s.add_argument("--seed", type=int)
+    s.add_argument("--scale", type=float, help="geometric mode: goals in scale × the box")
+    s.add_argument("--x-seed", dest="x_seed", type=float, nargs="+",
+                   help="geometric mode: the initial seed state (default: the origin)")
     s.add_argument("--workers", type=int, help="local processes (default: all cores)")
     s.add_argument("--scheduler", help="Dask scheduler address (tcp://host:8786)")
     s.add_argument("--cold", action="store_const", const=True, help="no warm starts")

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import json
 import os
+import time
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -132,6 +134,27 @@ class ShardedDataset:
         table = pa.concat_tables(tables)
         return {name: table.column(name).to_numpy() for name in table.column_names}
 
+    def dropped(self) -> dict[str, int]:
+        """Rows not usable for training (``ok`` false) by reason (the status of the failed
+        solve, e.g. ``"slack: infeasible"`` where (2.24) has no solution), SPEC §2.32."""
+        cols = self.read(["ok", "reason"]) if self.completed() else {}
+        if not cols or "reason" not in cols:
+            return {}
+        bad = ~np.asarray(cols["ok"], bool)
+        return dict(Counter(str(r) for r in np.asarray(cols["reason"])[bad]))
+
+    def throughput(self) -> dict[str, Any]:
+        """Points, seconds and points per second per core over the runs recorded in the
+        manifest (each call of :func:`run_sampling` that wrote shards adds one run)."""
+        runs = self.manifest().get("runs", [])
+        points = sum(r["points"] for r in runs)
+        core_s = sum(r["seconds"] * r["workers"] for r in runs)
+        wall = sum(r["seconds"] for r in runs)
+        return {"runs": len(runs), "points": int(points), "wall_s": float(wall),
+                "core_s": float(core_s),
+                "points_per_s": float(points / wall) if wall > 0 else None,
+                "points_per_core_s": float(points / core_s) if core_s > 0 else None}
+
     def arrays(self, target: str = "h", only_ok: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """``(X, y)`` for training: states (columns ``x0, x1, ...``) and the target column."""
         cols = self.read()
@@ -165,17 +188,33 @@ def run_sampling(path: str | Path, spec: ProblemSpec, chunks: Sequence[Chunk],
     total = sum(len(c) for c in chunks)
     bar = Progress(total, desc=f"sampling {Path(path).name}", unit="points", enabled=progress,
                    initial=sum(len(c) for c in chunks if c.id in done))
-    written = 0
+    written, rows, start = 0, 0, time.perf_counter()
+    workers = int(getattr(executor, "workers", 1) or 1)
     try:
         for chunk, columns in executor.imap_unordered(run_chunk, todo, spec):
             ds.write_shard(chunk.id, columns)
             written += 1
+            rows += len(next(iter(columns.values()))) if columns else 0
             bar.update(len(chunk))
             if stop_after is not None and written >= stop_after:
                 raise InterruptedRun(f"stopped after {written} chunks (stop_after)")
     finally:
         bar.close()
+        if written:
+            _record_run(ds, rows, written, time.perf_counter() - start, workers)
     return ds
+
+
+def _record_run(ds: ShardedDataset, rows: int, chunks: int, seconds: float,
+                workers: int) -> None:
+    """Append this call's throughput (rows = sampled points incl. dropped ones) to the
+    manifest: resumed runs add up in :meth:`ShardedDataset.throughput`."""
+    manifest = ds.manifest()
+    manifest.setdefault("runs", []).append(
+        {"points": int(rows), "chunks": int(chunks), "seconds": float(seconds),
+         "workers": int(workers),
+         "points_per_core_s": float(rows / (seconds * workers)) if seconds > 0 else None})
+    ds._write_manifest(manifest)
 
 
 def _jsonable(obj: object) -> object:
@@ -228,15 +267,24 @@ def grid_plan(X: Any, lower: object, upper: object, steps: object, chunk_size: i
 
 
 def geometric_plan(X: Any, n_goals: int, goals_per_chunk: int = 16, step: float = 0.01,
-                   seed: int = 0, cap: float | None = None, scale: float = 1.5
+                   seed: int = 0, cap: float | None = None, scale: float = 1.5,
+                   x_seed: Sequence[float] | None = None
                    ) -> tuple[list[Chunk], dict[str, Any]]:
     """Algorithm 7.6's work: ``n_goals`` scrambled Sobol goal points in ``scale ×`` the box of
-    ``X``, split into chunks; each chunk walks lines from its own seed set (from the origin),
-    seeds drawn with ``default_rng(seed + chunk id)``."""
+    ``X``, split into chunks; each chunk walks lines from its own seed set (from ``x_seed``,
+    default the origin), seeds drawn with ``default_rng(seed + chunk id)``. Independent
+    training and validation sets (Section 8.3) use different ``seed`` (goals and seed
+    draws) and ``x_seed``."""
     goals = sobol_goals(X, n_goals, seed=seed, scale=scale)
+    xs = None if x_seed is None else tuple(float(v) for v in x_seed)
+    if xs is not None and len(xs) != X.dim:
+        raise BalustradeError(f"geometric_plan: x_seed must have {X.dim} entries, got "
+                              f"{len(xs)}")
     chunks = split_chunks(goals, goals_per_chunk, kind="geometric", seed=seed, step=step,
-                          cap=cap)
+                          cap=cap, x_seed=xs)
     config = {"mode": "geometric", "n_goals": int(n_goals), "goals_per_chunk":
               int(goals_per_chunk), "step": float(step), "seed": int(seed), "cap": cap,
               "scale": float(scale)}
+    if xs is not None:
+        config["x_seed"] = list(xs)
     return chunks, config

@@ -11,8 +11,13 @@ AND dual solution of the same problem (a :class:`~balustrade.backends.Solution` 
   "infeasible"), leave ``S_PB`` and solve (2.24);
 * previously outside: solve (2.24); if ``h_PB <= tol``, enter ``S_PB`` and solve (7.8).
 
-``tol = 1e-6`` (SPEC default). Plain gridding (Section 7.5) walks the grid in snake order
-with the same warm starts and rejects points with ``h_PB`` above a cap.
+``tol = 1e-6`` (SPEC default). A point where a solve fails (e.g. (2.24) infeasible: with a
+hard terminal constraint, SPEC §2.32, there are states from which no input sequence meets
+it) is kept as a row with ``ok = False`` and the failing solve's status in the ``reason``
+column (empty for good rows); training drops these rows
+(:meth:`~balustrade.learn.dataset.ShardedDataset.arrays`) and the walk of that line stops.
+Plain gridding (Section 7.5) walks the grid in snake order with the same warm starts and
+rejects points with ``h_PB`` above a cap.
 
 The compiled problems are not shipped to workers: a :class:`ProblemSpec` (a factory name
 and JSON-able arguments) is, and each worker process builds and caches the problems once.
@@ -31,7 +36,7 @@ from balustrade.dsl.sets import Box
 from balustrade.errors import BalustradeError, moved_names
 
 TOL = 1e-6
-COLUMNS = ("h", "h_pb", "h_bar", "in_s", "ok", "iterations")
+COLUMNS = ("h", "h_pb", "h_bar", "in_s", "ok", "iterations", "reason")
 
 
 @dataclass
@@ -75,8 +80,10 @@ def compile_pair(ocp: object, target: Target | str) -> tuple[Compiled, Compiled 
 
 #: sampling problems by name: ``"package.module:function"`` paths returning
 #: :class:`PCBFProblems` (the examples live outside :mod:`balustrade.learn`, which defines no
-#: model; :func:`balustrade.examples.pendulum.pendulum_problems` is the pendulum of Section 7.5)
-PROBLEMS: dict[str, str] = {"pendulum": "balustrade.examples.pendulum:pendulum_problems"}
+#: model; :func:`balustrade.examples.pendulum.pendulum_problems` is the pendulum of Section 7.5,
+#: :func:`balustrade.examples.obstacles.obstacle_problems` the obstacle car of Section 8.3)
+PROBLEMS: dict[str, str] = {"pendulum": "balustrade.examples.pendulum:pendulum_problems",
+                            "obstacles": "balustrade.examples.obstacles:obstacle_problems"}
 
 
 @dataclass(frozen=True)
@@ -133,6 +140,7 @@ class Sample:
     ok: bool
     iterations: int = 0
     solutions: dict = field(default_factory=dict, repr=False)
+    reason: str = ""
 
 
 class Evaluator:
@@ -211,7 +219,9 @@ class Evaluator:
         else:
             h = h_pb
         new.in_s = in_s
-        return Sample(x, h, h_pb, h_bar, in_s, bool(ok and np.isfinite(h)), its, sols), new
+        good = bool(ok and np.isfinite(h))
+        reason = "" if good else _reason(sols)
+        return Sample(x, h, h_pb, h_bar, in_s, good, its, sols, reason), new
 
     def walk(self, x0: np.ndarray, goal: np.ndarray, d: float, seed: Seed,
              cap: float | None = None) -> tuple[list[Sample], Seed]:
@@ -264,6 +274,13 @@ class Chunk:
         return len(self.points)
 
 
+def _reason(sols: dict) -> str:
+    """Why a point was dropped: ``"<problem>: <status>"`` of the failed solves (the last
+    one decides), ``"non-finite value"`` if every solve succeeded."""
+    failed = [f"{k}: {v.status}" for k, v in sols.items() if not v.success]
+    return "; ".join(failed) if failed else "non-finite value"
+
+
 def run_chunk(spec: ProblemSpec, chunk: Chunk, tol: float = TOL) -> dict[str, np.ndarray]:
     """Run one chunk in this process; returns columns ``x0..x{n-1}``, :data:`COLUMNS`,
     ``chunk`` and ``index`` (row order within the chunk)."""
@@ -301,6 +318,8 @@ def samples_to_columns(samples: list[Sample], nx: int, chunk_id: int = 0
     cols["in_s"] = np.array([s.in_s for s in samples], dtype=bool)
     cols["ok"] = np.array([s.ok for s in samples], dtype=bool)
     cols["iterations"] = np.array([s.iterations for s in samples], dtype=np.int64)
+    cols["reason"] = np.array([s.reason for s in samples], dtype=object).astype(str) \
+        if samples else np.array([], dtype=str)
     cols["chunk"] = np.full(len(samples), chunk_id, dtype=np.int64)
     cols["index"] = np.arange(len(samples), dtype=np.int64)
     return cols

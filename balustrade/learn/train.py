@@ -130,12 +130,19 @@ def to_model(net, mean: np.ndarray, scale: np.ndarray, output_transform: str | N
 
 
 def train(X: np.ndarray, y: np.ndarray, config: TrainConfig | None = None,
-          verbose: bool = False, return_net: bool = False):
+          verbose: bool = False, return_net: bool = False,
+          validation: tuple[np.ndarray, np.ndarray] | None = None):
     """Fit ``ĥ`` to ``(X, y)``; returns the :class:`MLPModel` (and the torch network if
     ``return_net``). ``history`` holds per-epoch training and validation loss (in the
     transformed output space), the validation MSE of ``ĥ`` itself and the learning rate
     at the end of each epoch (``lr_schedule="cosine"``: cosine annealing to 0 over all
-    optimizer steps, so the last epochs average out the minibatch noise of small batches)."""
+    optimizer steps, so the last epochs average out the minibatch noise of small batches).
+
+    ``validation=(X_val, y_val)``: an independent validation set (Section 8.3 samples it
+    with its own seeds and goals) used for the history instead of a random split of
+    ``(X, y)``; ``val_fraction`` is then ignored (all of ``(X, y)`` is trained on). Use it
+    when ``(X, y)`` holds augmented copies of the same state (a random split would put
+    copies on both sides)."""
     try:
         import torch
     except ImportError as exc:  # pragma: no cover - depends on the environment
@@ -154,14 +161,29 @@ def train(X: np.ndarray, y: np.ndarray, config: TrainConfig | None = None,
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
     perm = rng.permutation(len(y))
-    n_val = int(round(cfg.val_fraction * len(y)))
+    n_val = 0 if validation is not None else int(round(cfg.val_fraction * len(y)))
     val, tr = perm[:n_val], perm[n_val:]
+    if validation is not None:
+        Xv = np.asarray(validation[0], dtype=float)
+        yv = np.asarray(validation[1], dtype=float).reshape(-1)
+        if Xv.ndim != 2 or Xv.shape[1] != X.shape[1] or len(Xv) != len(yv) or not len(yv):
+            raise BalustradeError(f"train: validation needs X_val of shape (m, {X.shape[1]}) "
+                                  f"and y_val of shape (m,), got {Xv.shape} and {yv.shape}")
+        if not (np.all(np.isfinite(Xv)) and np.all(np.isfinite(yv))):
+            raise BalustradeError("train: X_val and y_val must be finite")
     mean = X[tr].mean(axis=0) if cfg.standardize else np.zeros(X.shape[1])
     scale = X[tr].std(axis=0) if cfg.standardize else np.ones(X.shape[1])
     scale = np.where(scale > 0, scale, 1.0)
     target = np.cbrt(y) if cfg.output_transform == "cbrt" else y
     Xt = torch.from_numpy((X - mean) / scale)
     yt = torch.from_numpy(target).reshape(-1, 1)
+    if validation is not None:  # evaluated as rows appended after the training rows
+        n_val = len(yv)
+        val = np.arange(len(y), len(y) + n_val)
+        Xt = torch.cat([Xt, torch.from_numpy((Xv - mean) / scale)])
+        yt = torch.cat([yt, torch.from_numpy(np.cbrt(yv) if cfg.output_transform == "cbrt"
+                                             else yv).reshape(-1, 1)])
+        y = np.concatenate([y, yv])
     net = build_network(X.shape[1], cfg.widths)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     n_batches = -(-len(tr) // cfg.batch_size)
