@@ -19,6 +19,8 @@ import scipy.linalg
 import scipy.optimize
 
 from balustrade.backends import solve_synthesis
+from balustrade.backends.lp import solve_lps
+from balustrade.backends.solution import Status
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.sets_geometry import vertices as polytope_vertices
 from balustrade.errors import BalustradeError
@@ -173,7 +175,13 @@ def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W:
     ``[H_X]_r A_cl(θ^j)/λ`` that are not redundant (one LP each) until none is added; then
     ``A_cl(θ^j)𝕏₀ ⊆ λ𝕏₀`` and the set is RPI when ``w̄_r <= 1 − λ``. ``lam`` defaults to
     ``(1 + max_j ρ(A_cl(θ^j)))/2``. Raises when the rows do not settle within
-    ``max_sweeps`` sweeps (λ below the joint spectral radius) or ``W`` is too large."""
+    ``max_sweeps`` sweeps (λ below the joint spectral radius) or ``W`` is too large.
+
+    Speed (8 masses: 128 vertices, 40 starting rows): candidate rows are deduplicated
+    first, screened by the bounding box of the current polytope (``support`` over the box
+    ``>=`` over the polytope, so a row the box already satisfies is redundant without its
+    LP), and the rest solved on one warm-started LP model (:func:`_supports`); the rows
+    added are those of the plain loop (one ``linprog`` per candidate)."""
     n, _, _ = check_parametric_system(system, "contractive_polytope")
     Acls = closed_loop_matrices(system, K, vertices)
     if lam is None:
@@ -186,8 +194,9 @@ def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W:
     for _ in range(max_sweeps):
         P = Polytope(H, np.ones(H.shape[0]), name="X0")
         added = []
-        for a in (row @ A / lam for row in fresh for A in Acls):
-            if P.support(a) > 1 + tol and not any(np.allclose(a, b) for b in added):
+        for a, value in zip(*_supports(P, _distinct(row @ A / lam for row in fresh
+                                                    for A in Acls), tol), strict=True):
+            if value > 1 + tol and not any(np.allclose(a, b) for b in added):
                 added.append(a)
         if not added:
             break
@@ -204,6 +213,46 @@ def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W:
         raise BalustradeError(f"contractive_polytope: W is too large: max_r w̄_r = "
                               f"{w_bar.max():.4g} > 1 − λ = {1 - lam:.4g}; 𝕏₀ ⊆ 𝒵 is not RPI")
     return X0
+
+
+def _distinct(rows: object) -> list[np.ndarray]:
+    """The rows without exact repeats, in order (e.g. ``[H_X]_r A_cl(θ^j)`` of a row that
+    does not see θ is the same for every vertex: one LP instead of ``2^q``)."""
+    seen: set[bytes] = set()
+    out = []
+    for a in rows:
+        key = np.asarray(a, dtype=float).tobytes()
+        if key not in seen:
+            seen.add(key)
+            out.append(a)
+    return out
+
+
+def _supports(P: Polytope, rows: list[np.ndarray], tol: float
+              ) -> tuple[list[np.ndarray], np.ndarray]:
+    """``(rows, upper bounds of their supports over P)``: the bound of its bounding box
+    (``2n`` LPs, support over the box ``>=`` over ``P``) where that is ``<= 1 + tol`` (the
+    row is redundant then, no LP needed), else the support itself (one warm-started LP
+    model for all of them, :func:`~balustrade.backends.lp.solve_lps`; ``P.support`` for any
+    it did not solve)."""
+    if not rows:
+        return rows, np.zeros(0)
+    n = P.dim
+    R = np.array(rows, dtype=float)
+    ones = np.ones(P.H.shape[0])
+    ext = solve_lps(np.vstack([np.eye(n), -np.eye(n)]), P.H, ones)
+    if len(ext) == 2 * n and all(r.status is Status.OPTIMAL for r in ext):
+        ub = np.array([r.value for r in ext[:n]])
+        lb = -np.array([r.value for r in ext[n:]])
+        value = np.maximum(R * ub, R * lb).sum(axis=1)
+    else:
+        value = np.full(len(R), np.inf)
+    todo = np.flatnonzero(value > 1 + tol)
+    res = solve_lps(R[todo], P.H, ones) if len(todo) else []
+    for k, idx in enumerate(todo):
+        ok = k < len(res) and res[k].status is Status.OPTIMAL
+        value[idx] = res[k].value if ok else P.support(R[idx])
+    return rows, value
 
 
 def _prune(P: Polytope, tol: float) -> Polytope:
