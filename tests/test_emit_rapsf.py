@@ -136,6 +136,17 @@ def test_c_equals_python_along_a_closed_loop(design3: dict, emitted3: dict) -> N
         x = d["sys"].step(x, out_py[0], theta, rng.uniform(-1e-3, 1e-3, 6))
     assert paths[None] >= 100, paths                  # (4.5) solved on most steps
     np.testing.assert_allclose(c.host.Theta.vertices(), py.Theta.vertices())
+    # then states outside X, where (4.5) is infeasible: the stored plan with the current
+    # state's feedback for k_inf = 1 … N − 1, then the backup K x, in both
+    far = np.full(6, 3.0)
+    fallbacks = []
+    for k in range(st.N + 1):
+        u_p = msd_performance(200 + k, far, 3)
+        py._prev = c.host._prev = None    # no Θ update from these states (else: falsified)
+        out_py, out_c = py.step(far, u_p), c.step(far, u_p)
+        _same(out_py, out_c, ("outside X", k))
+        fallbacks.append(out_c[1].fallback)
+    assert fallbacks == ["stored_plan"] * (st.N - 1) + ["backup"] * 2, fallbacks
 
 
 @pytest.mark.slow
