@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from balustrade.codegen import CRAPSF, build, build_executable, emit_rapsf
+from balustrade.codegen.accelerate import registered
 from balustrade.codegen.emit_rapsf import EMITTABLE_TARGET, link_flags
 from balustrade.control.rapsf import RAPSF
 from balustrade.design.rapsf import (
@@ -63,6 +64,7 @@ def test_refuses_what_the_c_does_not_run(design3: dict, tmp_path) -> None:
     with pytest.raises(BalustradeError, match="convex-qp"):
         emit_rapsf(_controller(design3, target="fast-convex"), "r", tmp_path)
     assert not list(tmp_path.iterdir())
+    assert RAPSF in registered()                      # accelerate(rapsf) emits this step
 
 
 # -- the robust gain of the 8-mass chain (fast) --------------------------------------------
