@@ -98,6 +98,23 @@ def test_lqr_certificate_refuses_a_too_strong_contraction() -> None:
     np.testing.assert_allclose(robust_gain(sys_, V, contraction=0.95), K_lmi)
 
 
+def test_batched_supports_screen_only_redundant_rows(design3: dict) -> None:
+    """The speed-up of :func:`contractive_polytope` (dedup, bounding-box screen, one LP
+    model): a row it reports ``<= 1`` is redundant by its own LP too, and a row above 1
+    gets the LP's value — so the polytope gains the same rows as with one LP each."""
+    from balustrade.design.rapsf import _supports
+
+    X0 = design3["X0"]
+    rng = np.random.default_rng(1)
+    rows = [r for r in rng.normal(size=(60, 6)) * rng.uniform(0.05, 1.5, (60, 1))]
+    _, values = _supports(X0, rows, 1e-9)
+    exact = np.array([X0.support(r) for r in rows])
+    screened = values <= 1 + 1e-9
+    assert screened.any() and (~screened).any()
+    assert np.all(exact[screened] <= 1 + 1e-7)
+    np.testing.assert_allclose(values[~screened], exact[~screened], rtol=1e-7, atol=1e-9)
+
+
 # -- the C step (slow: one ~100 s build) ---------------------------------------------------
 @pytest.fixture(scope="module")
 def emitted3(design3: dict, tmp_path_factory: pytest.TempPathFactory) -> dict:
