@@ -19,6 +19,12 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
 ``"fast-sqp-noretry"`` ``fast-sqp`` without retries, for loops with their own fallbacks and for
                        warm-started sampling (a failed warm solve is redone by a cold twin).
 ``"robust-sqp"``       ``fast-sqp`` with 500 SQP iterations (the robust filter (5.16)).
+``"convex-qp"``        CasADi ``sqpmethod`` with DAQP (dual active set, proximal iterations for
+                       the singular Hessians of filter costs) as QP solver; on a convex QP one
+                       SQP iteration. Retries: the other convexification only (no IPOPT), the
+                       chain its emitted C runs, so Python and C agree without a mirror mode.
+                       Its C links libdaqp (shipped in the casadi wheel). For the RAPSF QP
+                       (4.5), where qrqp cycles (docs/deploy_c.md).
 ``"long-horizon"``     IPOPT with the adaptive barrier update (long horizons, e.g. the
                        rendezvous N = 200).
 ``"sampling-cold"``    IPOPT demanding absolute complementarity (slacks weighted by
@@ -322,11 +328,24 @@ _IPOPT_WARM = {"ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_pus
 # α_f ξ_N ≈ 4e-6 at states of S_PB (above tol = 1e-6); demand absolute complementarity.
 _IPOPT_SAMPLING = {"ipopt.compl_inf_tol": 1e-12}
 
+# "convex-qp": DAQP needs a positive definite Hessian unless its proximal-point iterations
+# are on (eps_prox > 0; they converge to the exact minimizer). Measured on the RAPSF QP (4.5)
+# of the 3-mass chain (1440 tube rows), 40 closed-loop steps: with DAQP's default
+# tolerances (1e-6) sqpmethod (tol_pr 1e-9) never converged (26 failures); primal/dual
+# tolerances 1e-12 and eps_prox 1e-6: 5 failures; eps_prox 1e-9: more; eps_prox 1e-3: none.
+# iter_limit 5000 (the default 1000 stopped at x = 0).
+_CONVEX_QP = {"qpsol": "daqp",
+              "qpsol_options": {"daqp": {"eps_prox": 1e-3, "iter_limit": 5000,
+                                         "primal_tol": 1e-12, "dual_tol": 1e-12},
+                                "error_on_fail": False}}
+_CONVEX_QP_RETRIES = (("sqpmethod", {"convexify_strategy": "eigen-reflect"}),)
+
 PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", name="exact"),
     Target("casadi", "sqpmethod", name="fast-sqp"),
     Target("casadi", "sqpmethod", retries=(), name="fast-sqp-noretry"),
     Target("casadi", "sqpmethod", {"max_iter": 500}, name="robust-sqp"),
+    Target("casadi", "sqpmethod", _CONVEX_QP, retries=_CONVEX_QP_RETRIES, name="convex-qp"),
     Target("casadi", "ipopt", {"ipopt.mu_strategy": "adaptive"}, name="long-horizon"),
     Target("casadi", "ipopt", _IPOPT_SAMPLING, name="sampling-cold"),
     Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="sampling-warm"),

@@ -39,6 +39,7 @@ from balustrade.codegen.emit import (
     write_example,
 )
 from balustrade.codegen.emit_grid import emit_grid
+from balustrade.codegen.emit_rapsf import emit_rapsf
 from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
 from balustrade.codegen.runtime import (
     CApproximatePCBFFilter,
@@ -49,10 +50,12 @@ from balustrade.codegen.runtime import (
     mirror_c_retries,
 )
 from balustrade.codegen.runtime_grid import CGridPCBFFilter
+from balustrade.codegen.runtime_rapsf import CRAPSF
 from balustrade.codegen.runtime_robust import CMultiobjectivePCBFFilter, CRobustPCBFSafetyFilter
 from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_libraries
 
 __all__ = [
+    "CRAPSF", "emit_rapsf",
     "SUPPORTED", "CApproximatePCBFFilter", "CFunction", "CPCBFSafetyFilter", "CProblem",
     "CMultiobjectivePCBFFilter", "CRobustPCBFSafetyFilter",
     "Emitted", "build", "build_executable", "check_no_callbacks", "emit_approximate",

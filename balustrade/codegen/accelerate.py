@@ -16,7 +16,10 @@ registered class of the controller's MRO wins). Built in:
 :func:`~balustrade.codegen.emit_grid.emit_grid`), the robust filter of Algorithm 5.2
 (:func:`~balustrade.codegen.emit_robust.emit_robust`) and Algorithm 6.4
 (:func:`~balustrade.codegen.emit_robust.emit_multiobjective`), the last two when built on
-an emittable target. Emitters of further controllers plug in with ``register(cls, emit, load)``.
+an emittable target, and Algorithm 4.1 (:class:`~balustrade.control.rapsf.RAPSF` built with
+``target="convex-qp"``, :func:`~balustrade.codegen.emit_rapsf.emit_rapsf`; its C links the
+target's QP solver library from the casadi wheel, the flags come from its manifest).
+Emitters of further controllers plug in with ``register(cls, emit, load)``.
 
 Cache: the generated sources are hashed (with the compiler flags); the library is built once
 per hash into ``build_dir/<name>-<hash>/`` (default: ``$BALUSTRADE_CACHE`` or
@@ -38,13 +41,16 @@ from pathlib import Path
 from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS, _flags, build
 from balustrade.codegen.emit import Emitted, emit_approximate, emit_pcbf
 from balustrade.codegen.emit_grid import emit_grid
+from balustrade.codegen.emit_rapsf import emit_rapsf
 from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
 from balustrade.codegen.runtime import CApproximatePCBFFilter, CPCBFSafetyFilter
 from balustrade.codegen.runtime_grid import CGridPCBFFilter
+from balustrade.codegen.runtime_rapsf import CRAPSF
 from balustrade.codegen.runtime_robust import CMultiobjectivePCBFFilter, CRobustPCBFSafetyFilter
 from balustrade.control.approximate import ApproximatePCBFFilter, GridPCBFFilter
 from balustrade.control.multiobjective import MultiobjectivePCBFController
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.control.rapsf import RAPSF
 from balustrade.control.robust import RobustPCBFSafetyFilter
 from balustrade.errors import CodegenError
 
@@ -148,6 +154,9 @@ def accelerate(controller: object, build_dir: str | Path | None = None,
     try:
         emitted = acc.emit(controller, name, staging)
         emit_s = time.perf_counter() - start
+        # a solver library the C links (Algorithm 4.1's QP solver): its flags
+        extra_flags = (*extra_flags, *emitted.manifest.get("link_flags", ()))
+        flags = (*flags, *emitted.manifest.get("link_flags", ()))
         digest = source_hash(staging, flags)
         final = root / f"{name}-{digest[:20]}"
         lib = final / f"lib{name}.so"
@@ -180,6 +189,17 @@ register(RobustPCBFSafetyFilter, lambda c, n, d: emit_robust(c, n, d),
          CRobustPCBFSafetyFilter, "bal_robust")
 register(MultiobjectivePCBFController, lambda c, n, d: emit_multiobjective(c, n, d),
          CMultiobjectivePCBFFilter, "bal_multiobj")
+
+
+def _emit_rapsf(controller: RAPSF, name: str, out_dir: Path) -> Emitted:
+    """:func:`emit_rapsf`, with the controller kept (in memory only) as the manifest's
+    ``_host``: :class:`CRAPSF` runs a copy of its estimator for Θ_k."""
+    emitted = emit_rapsf(controller, name, out_dir)
+    emitted.manifest["_host"] = controller
+    return emitted
+
+
+register(RAPSF, _emit_rapsf, CRAPSF, "bal_rapsf")
 
 __all__ = ["Accelerator", "accelerate", "default_build_dir", "register", "registered",
            "source_hash"]

@@ -30,7 +30,8 @@ SUBDIR = "bal"
 #: the static files copied into ``<out_dir>/bal/`` (``#include``\\ d by the glue)
 STATIC = ("common.h", "problem.h", "problem.c", "step_common.c", "pcbf.h", "pcbf.c",
           "h_common.c", "approx.h", "approx.c", "grid.h", "grid.c",
-          "tube_common.c", "robust.h", "robust.c", "multiobj.h", "multiobj.c")
+          "tube_common.c", "robust.h", "robust.c", "multiobj.h", "multiobj.c", "rapsf.h",
+          "rapsf.c")
 #: the entry points each static header declares (``<prefix>_<entry>``), listed by their real
 #: names in the generated ``<name>.h`` (checked against the built library by the tests)
 ENTRY_POINTS: dict[str, tuple[str, ...]] = {
@@ -48,6 +49,8 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "multiobj": ("init", "finalize", "alloc", "free", "reset", "step", "slack_problem",
                  "main_problem", "solve_status", "values", "proposal_replaced",
                  "candidate_exact"),
+    "rapsf": ("init", "finalize", "alloc", "free", "reset", "step", "main_problem",
+              "solve_status", "k_inf", "objective", "proposal_replaced"),
 }
 #: values per line of an array macro
 _PER_LINE = 6

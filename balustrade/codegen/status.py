@@ -3,14 +3,15 @@ config headers (:mod:`~balustrade.codegen.cfiles`; the static C in ``codegen/c/`
 the macro names), the manifests written by :mod:`~balustrade.codegen.emit` and the Python
 names read by :mod:`~balustrade.codegen.runtime` are all generated from these tables.
 
-Six families:
+Seven families:
 
 * :data:`SOLVE` — return value of ``<problem>_solve`` (one problem, e.g. (2.24));
 * :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
 * :data:`APPROX` — return value of the Algorithm 7.5 step (7.5)+(7.6);
 * :data:`GRID` — return value of the Algorithm 8.7 step (grid filter, no solver);
 * :data:`ROBUST` — return value of the Algorithm 5.2 step (5.15)+(5.16);
-* :data:`MULTIOBJ` — return value of the Algorithm 6.4 step ((5.15) once, then (6.15)).
+* :data:`MULTIOBJ` — return value of the Algorithm 6.4 step ((5.15) once, then (6.15));
+* :data:`RAPSF` — return value of the Algorithm 4.1 step ((4.5), stored plan, backup).
 
 A problem emitted from a target with an iteration budget (real-time mode, issue #14 §5:
 ``Target.with_budget``, the ``"real-time"`` preset) reports a solve stopped by it as
@@ -149,8 +150,24 @@ MULTIOBJ: tuple[Status, ...] = (
 )
 
 
+#: The Algorithm 4.1 step: ``fallback`` as in :class:`~balustrade.control.rapsf.RAPSF`
+#: (only ``BAL_OK`` is a success, as only ``optimal`` is in Python).
+RAPSF: tuple[Status, ...] = (
+    Status("BAL_RAPSF_OK", 0, "ok", None, "K x + v*_0 of (4.5); the plan is stored"),
+    Status("BAL_RAPSF_STORED_PLAN", 1, "stored_plan", "stored_plan",
+           "(4.5) failed: K x + v*_{k_inf} of the stored plan (k_inf <= N - 1)"),
+    Status("BAL_RAPSF_BACKUP", 2, "backup", "backup",
+           "(4.5) failed and no plan left: the backup policy K x"),
+    Status("BAL_RAPSF_FALSIFIED", 3, "model_falsified", "backup",
+           "the estimator excluded every model: the backup policy K x, nothing solved"),
+    Status("BAL_RAPSF_BAD_INPUT", 4, "bad_input", "backup",
+           "x is NaN or inf (or a pointer is NULL): nothing solved, K x with NaN -> 0"),
+)
+
+
 #: every family (the static C may use the macros of any of them)
-FAMILIES: tuple[tuple[Status, ...], ...] = (SOLVE, PCBF, APPROX, GRID, ROBUST, MULTIOBJ)
+FAMILIES: tuple[tuple[Status, ...], ...] = (SOLVE, PCBF, APPROX, GRID, ROBUST, MULTIOBJ,
+                                            RAPSF)
 
 
 def by_code(family: tuple[Status, ...]) -> dict[int, Status]:

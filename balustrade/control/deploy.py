@@ -158,5 +158,26 @@ class MultiobjectiveDeployment(TubeDeployment):
     slack_norm: int | float = 1
 
 
+@dataclass(frozen=True)
+class RAPSFDeployment(ProblemsDeployment):
+    """Algorithm 4.1 (Chapter 4, SPEC §2.21): ``problems["main"]`` is (4.5) with the
+    horizon ``N`` and the vertex data as parameters (``x0``, ``u_p``, ``theta``
+    ``q × n_theta``, ``s``; variable ``v``), the applied ``u = K x + v*_0``, the stored
+    plan, the backup ``K x``. The estimator and ``s`` stay in Python (``host``)."""
+
+    #: the tube gain ``K`` (also the backup policy's)
+    K: np.ndarray = field(repr=False)
+    #: horizon and the number of vertex columns compiled into (4.5)
+    N: int
+    n_vertices: int
+    #: Remark 4.6 (a shrunk-horizon solve before the stored plan; not emitted)
+    shrinking: bool
+    #: the backup policy is the default ``K x`` (a user's callable is not emitted)
+    default_backup: bool
+    #: the Python controller whose estimator and ``s`` feed the C (never solves there)
+    host: object = field(repr=False)
+
+
 __all__ = ["ApproximateDeployment", "GridDeployment", "MultiobjectiveDeployment",
-           "PCBFDeployment", "ProblemsDeployment", "RobustDeployment", "TubeDeployment"]
+           "PCBFDeployment", "ProblemsDeployment", "RAPSFDeployment", "RobustDeployment",
+           "TubeDeployment"]

@@ -44,6 +44,7 @@ import numpy as np
 from balustrade._checks import as_matrix, check_horizon, check_instance
 from balustrade.backends import Solution, compile, resolve_target
 from balustrade.control.base import StepInfo, note_solve, outcome
+from balustrade.control.deploy import RAPSFDeployment
 from balustrade.dsl.sets import Polytope
 from balustrade.errors import BalustradeError, EmptySetError
 from balustrade.problems.rapsf import (
@@ -89,6 +90,7 @@ class RAPSF:
             raise BalustradeError(f"{name}: backup must be callable as backup(x, u_p, k)")
         self.system, self.X0, self.F, self.G, self.W = system, X0, F, G, W
         self.Theta0, self.estimator, self.terminal, self.name = Theta0, estimator, terminal, name
+        self.default_backup = backup is None
         self.backup = backup if backup is not None else (lambda x, u_p, k: self.K @ x)
         self.shrinking = bool(shrinking)
         self.target = resolve_target(target)
@@ -176,6 +178,23 @@ class RAPSF:
                 self._compiled[key] = compile(self._problem(horizon, vertices=self.vertices),
                                               self.target)
         return self._compiled[key].solve(params)
+
+    def deployment_spec(self) -> RAPSFDeployment:
+        """Algorithm 4.1 for :func:`balustrade.codegen.emit_rapsf` (one C call per step):
+        (4.5) compiled as :meth:`step` compiles it (parametric vertex data, the same
+        compiled object), and this controller as the ``host`` of the estimator."""
+        if not self.parametric:
+            raise BalustradeError(f"{self.name}: the C step takes the vertex data as "
+                                  f"parameters, which needs a CasADi target, not "
+                                  f"{self.target.name!r} (e.g. target='convex-qp')")
+        n_th = max(self._n_compiled, len(self.vertices))
+        key = (self.N, n_th)
+        if key not in self._compiled:
+            self._compiled[key] = compile(self._problem(self.N, n_vertices=n_th), self.target)
+        return RAPSFDeployment({"main": self._compiled[key]}, "Algorithm 4.1, the RAPSF",
+                               K=self.K, N=self.N, n_vertices=n_th,
+                               shrinking=self.shrinking, default_backup=self.default_backup,
+                               host=self)
 
     def _problem(self, horizon: int, **vertex_data: object) -> object:
         return rapsf_problem(self.system, self.X0, self.F, self.G, self.W, self.K, horizon,

@@ -1,0 +1,103 @@
+/* bal/rapsf.c: the Algorithm 4.1 control step Q = BAL_STEP (bal/rapsf.h) with the fallbacks
+ * of balustrade.control.rapsf.RAPSF. Included by the generated <name>.c after the problem
+ * Q_main. From <name>_config.h: Q_NX, Q_NU, Q_N, Q_NQ, Q_NTH, Q_NXR, the tube gain Q_K
+ * (NU x NX, column-major) and the offsets of Q_main (Q_main_P_x0, ..., Q_main_W_v).
+ */
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "step_common.c"
+
+static const casadi_real BAL_QX(gain)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
+
+int BAL_QX(init)(BAL_QX(work)* wk) {
+  wk->ready = 0;
+  if (BAL_QX(main_init)(&wk->main)) return -1;
+  BAL_QX(reset)(wk);
+  wk->ready = 1;
+  return 0;
+}
+
+void BAL_QX(finalize)(BAL_QX(work)* wk) {
+  if (!wk->ready) return;
+  BAL_QX(main_finalize)(&wk->main);
+  wk->ready = 0;
+}
+
+BAL_DEFINE_ALLOC_FREE(BAL_QX)
+
+void BAL_QX(reset)(BAL_QX(work)* wk) {
+  (void) bal_clip; /* bal/step_common.c's box projection: no box fallback here */
+  BAL_QX(main_cold_start)(&wk->main);
+  wk->have_plan = 0;
+  wk->k_inf = BAL_QX(N) - 1;
+  wk->main_status = BAL_NOT_RUN;
+  wk->n_replaced = 0;
+  wk->objective = NAN;
+}
+
+/* u := K x + v (v may be 0: the backup policy K x); NaN entries of x count as 0 */
+static void BAL_QX(feedback)(const casadi_real* x, const casadi_real* v, casadi_real* u) {
+  casadi_int i, j;
+  casadi_real xj;
+  for (i = 0; i < BAL_QX(NU); ++i) {
+    u[i] = v ? v[i] : 0.0;
+    for (j = 0; j < BAL_QX(NX); ++j) {
+      xj = isfinite(x[j]) ? x[j] : 0.0;
+      u[i] += BAL_QX(gain)[i + j * BAL_QX(NU)] * xj;
+    }
+  }
+}
+
+int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real* theta,
+                 const casadi_real* s, int falsified, casadi_real* u_out, int* status,
+                 BAL_QX(work)* wk) {
+  casadi_int i;
+  if (!x || !u_p || !theta || !s || !u_out || !status || !wk) {
+    if (status) *status = BAL_RAPSF_BAD_INPUT;
+    if (x && u_out) BAL_QX(feedback)(x, 0, u_out);
+    return BAL_RAPSF_BAD_INPUT;
+  }
+  wk->main_status = BAL_NOT_RUN;
+  wk->objective = NAN;
+  wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
+  if (falsified || !bal_finite(x, BAL_QX(NX))) {
+    /* nothing solved: the backup policy; k_inf and the plan are kept */
+    BAL_QX(feedback)(x, 0, u_out);
+    *status = falsified ? BAL_RAPSF_FALSIFIED : BAL_RAPSF_BAD_INPUT;
+    return *status;
+  }
+  for (i = 0; i < BAL_QX(NX); ++i) wk->p[BAL_QX(main_P_x0) + i] = x[i];
+  for (i = 0; i < BAL_QX(NU); ++i) wk->p[BAL_QX(main_P_u_p) + i] = wk->u_p[i];
+  memcpy(wk->p + BAL_QX(main_P_theta), theta,
+         BAL_QX(NQ) * BAL_QX(NTH) * sizeof(casadi_real));
+  memcpy(wk->p + BAL_QX(main_P_s), s, BAL_QX(NXR) * BAL_QX(NTH) * sizeof(casadi_real));
+  /* every solve starts cold, as the Python controller's */
+  BAL_QX(main_cold_start)(&wk->main);
+  wk->main_status = BAL_QX(main_solve)(&wk->main, wk->p);
+  if (wk->main_status == BAL_OK) {
+    memcpy(wk->plan, wk->main.x + BAL_QX(main_W_v), sizeof(wk->plan));
+    wk->have_plan = 1;
+    wk->k_inf = 0;
+    wk->objective = wk->main.f;
+    BAL_QX(feedback)(x, wk->plan, u_out);
+    *status = BAL_RAPSF_OK;
+    return *status;
+  }
+  wk->k_inf += 1;
+  if (wk->k_inf <= BAL_QX(N) - 1 && wk->have_plan) {
+    BAL_QX(feedback)(x, wk->plan + wk->k_inf * BAL_QX(NU), u_out);
+    *status = BAL_RAPSF_STORED_PLAN;
+  } else {
+    BAL_QX(feedback)(x, 0, u_out);
+    *status = BAL_RAPSF_BACKUP;
+  }
+  return *status;
+}
+
+BAL_QX(main_work)* BAL_QX(main_problem)(BAL_QX(work)* wk) { return &wk->main; }
+int BAL_QX(solve_status)(const BAL_QX(work)* wk) { return wk->main_status; }
+int BAL_QX(k_inf)(const BAL_QX(work)* wk) { return wk->k_inf; }
+casadi_real BAL_QX(objective)(const BAL_QX(work)* wk) { return wk->objective; }
+int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }

@@ -1,0 +1,131 @@
+"""Emit Algorithm 4.1, the robust adaptive predictive safety filter (thesis Chapter 4, SPEC
+§2.21), as one C call per control step.
+
+:func:`emit_rapsf` writes the module of :mod:`~balustrade.codegen.emit` (``bal/``,
+``<name>_config.h``, ``<name>.h/.c``, ``<name>_casadi.c/.h``, ``<name>.json``) with the step
+``<name>_step(x, u_p, theta, s, falsified, u_out, status, work)`` of ``bal/rapsf.c``: the QP
+(4.5) with the vertices of ``Θ_k`` and the constants ``s_jr`` (SPEC §2.20) as parameters,
+``u = K x + v*_0`` after a converged solve (the plan stored, ``k_inf = 0``), else the stored
+plan ``K x + v*_{k_inf}`` while ``k_inf <= N − 1``, else the backup ``K x``.
+
+What stays in the host language: the set-membership estimator (line 4 of Algorithm 4.1, LPs
+or the box update of :mod:`balustrade.estimate`) with the nesting check of Assumption 4.2,
+and ``s_jr`` of the new vertices (:func:`~balustrade.problems.rapsf.s_constants`); they
+change the QP's parameters only, never its structure. :class:`~balustrade.codegen.CRAPSF`
+runs them in Python (on a copy of the controller) and passes the data to the C step.
+
+Not emitted (:class:`~balustrade.errors.CodegenError`): the Remark 4.6 shrinking variant
+(``shrinking=True``: one more QP per horizon ``1 … N−1``), a user's backup policy, the
+terminal-set enlargement. The controller must be built on a CasADi target that can be
+emitted; the QP (4.5) needs :data:`EMITTABLE_TARGET` (``"convex-qp"``, a dual active-set QP
+solver inside the SQP; the self-contained ``"fast-sqp"`` cycles on this QP's degenerate
+active sets and fails, docs/deploy_c.md). Its C links that solver's library, shipped with
+the casadi wheel (``Emitted.libraries``): :func:`link_flags` gives the flags for
+:func:`~balustrade.codegen.build.build`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+
+from balustrade.codegen import cfiles as C
+from balustrade.codegen import status as S
+from balustrade.codegen.emit import (
+    Emitted,
+    _check_accept_tol,
+    _check_compiled,
+    _check_identifier,
+    _generate,
+    _out_dir,
+    _Problem,
+    _require,
+    _spec,
+    _write_module,
+)
+from balustrade.control.deploy import RAPSFDeployment
+from balustrade.errors import CodegenError
+
+#: the target to build :class:`~balustrade.control.rapsf.RAPSF` with for C
+EMITTABLE_TARGET = "convex-qp"
+
+
+def casadi_dir() -> Path:
+    """The installed casadi package folder: the solver libraries it ships and, in
+    ``include/``, their headers."""
+    return Path(ca.__file__).resolve().parent
+
+
+def link_flags(libraries: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """Compiler flags for C that links the solver ``libraries`` shipped in the casadi wheel
+    (``-I``/``-L`` its folders, ``-l<lib>`` forced in with ``--no-as-needed``: the build
+    lists them before the sources, and an rpath so the library loads)."""
+    if not libraries:
+        return ()
+    root = casadi_dir()
+    return (f"-I{root / 'include'}", f"-L{root}", f"-Wl,-rpath,{root}", "-Wl,--no-as-needed",
+            *(f"-l{lib}" for lib in libraries))
+
+
+def emit_rapsf(controller: object, name: str, out_dir: str | Path,
+               allow_external: bool = True, accept_tol: float | None = None) -> Emitted:
+    """Emit Algorithm 4.1 of a :class:`~balustrade.control.rapsf.RAPSF` built with
+    ``target="convex-qp"`` (:data:`EMITTABLE_TARGET`) as one C call per control step
+    (module docstring; ``bal/rapsf.h``). ``allow_external`` (default True) admits a QP
+    solver whose C links a library (:func:`link_flags`)."""
+    _check_identifier(name)
+    _check_accept_tol(name, accept_tol)
+    spec = _spec(controller, name, RAPSFDeployment, "RAPSF")
+    if spec.shrinking:
+        raise CodegenError(f"{name}: the Remark 4.6 shrinking variant (shrinking=True: one "
+                           "more QP per horizon 1 … N−1) is not emitted; build the RAPSF "
+                           "with shrinking=False")
+    if not spec.default_backup:
+        raise CodegenError(f"{name}: a user's backup policy is Python; the C applies the "
+                           "default backup K x (build the RAPSF without backup=...)")
+    compiled = spec.problems["main"]
+    try:
+        libs = _check_compiled(compiled, f"{name}: the QP (4.5)", allow_external)
+    except CodegenError as exc:
+        raise CodegenError(f"{exc}; for Algorithm 4.1 build the RAPSF with "
+                           f"target={EMITTABLE_TARGET!r}") from exc
+    out_dir = _out_dir(out_dir, name)
+    P = _Problem(compiled, f"{name}_main", f"the RAPSF QP (4.5) {compiled.ocp.name!r}", name,
+                 accept_tol)
+    _require(name, {"(4.5) parameter": (P.params, ["x0", "u_p", "theta", "s"]),
+                    "(4.5) variable": (P.vars, ["v"])},
+             "build (4.5) with balustrade.problems.rapsf.rapsf_problem (n_vertices=...)")
+    K = np.asarray(spec.K, dtype=float)
+    nu, nx = K.shape
+    nq, nth = (list(P.params["theta"]["shape"]) + [1])[:2]
+    nxr = int(P.params["s"]["shape"][0])
+    if list(P.vars["v"]["shape"]) != [nu, spec.N] or int(P.params["x0"]["shape"][0]) != nx \
+            or nth != spec.n_vertices:
+        raise CodegenError(f"{name}: (4.5) has v {P.vars['v']['shape']}, x0 "
+                           f"{P.params['x0']['shape']}, theta {P.params['theta']['shape']}; "
+                           f"expected ({nu}, {spec.N}), ({nx},), (q, {spec.n_vertices})")
+    files = _generate(P.functions(), name, out_dir)
+    cfg = C.Config()
+    P.config(cfg)
+    cfg.comment(f"---- Algorithm 4.1, the RAPSF step {name} (bal/rapsf.h) ----")
+    cfg.define(f"{name}_NX", nx)
+    cfg.define(f"{name}_NU", nu)
+    cfg.define(f"{name}_N", spec.N)
+    cfg.define(f"{name}_NQ", nq, "parameters θ")
+    cfg.define(f"{name}_NTH", nth, "vertex columns of theta and s")
+    cfg.define(f"{name}_NXR", nxr, "rows of H_X (rows of s)")
+    cfg.array(f"{name}_K", K.T.reshape(-1), nu * nx)
+    cfg.status(S.RAPSF, "BAL_RAPSF_STATUS_CODES")
+    manifest = {"kind": "rapsf", "nx": nx, "nu": nu, "N": spec.N, "nq": nq,
+                "n_vertices": nth, "n_rows": nxr,
+                "K": K.tolist(), "link_flags": list(link_flags(libs)),
+                "problems": {"main": P.manifest()},
+                "rapsf_status": S.manifest(S.RAPSF)}
+    return _write_module(name, out_dir, "Algorithm 4.1, the RAPSF (4.5)", cfg,
+                         [("problem", P.P), ("rapsf", name)], files, manifest,
+                         tuple(sorted(set(libs))))
+
+
+__all__ = ["EMITTABLE_TARGET", "casadi_dir", "emit_rapsf", "link_flags"]

@@ -1,0 +1,151 @@
+"""Load the emitted Algorithm 4.1 step (:mod:`~balustrade.codegen.emit_rapsf`) with ctypes:
+:class:`CRAPSF`, the same ``step(x, u_p) -> (u, StepInfo)``, ``reset()``, status words and
+fallbacks as :class:`~balustrade.control.rapsf.RAPSF`, one foreign call per step.
+
+The parameter set ``Θ_k`` is not computed in C: :class:`CRAPSF` keeps a copy of the Python
+controller (``host``) whose estimator update (line 4 of Algorithm 4.1, the nesting check of
+Assumption 4.2, the ``"model_falsified"`` rule) and constants ``s_jr`` it runs before each
+C step, and passes the vertices (padded by repetition, as the Python controller pads them)
+and ``s`` to the C."""
+
+from __future__ import annotations
+
+import copy
+import ctypes
+import time
+from pathlib import Path
+
+import numpy as np
+
+from balustrade._checks import as_vector
+from balustrade.codegen import status as S
+from balustrade.codegen.runtime import _PY_STATUS, _CProblemView, _dbl_p, _OwnsWork, _proposal, _ptr
+from balustrade.control.base import StepInfo
+from balustrade.errors import BalustradeError, CodegenError
+
+_CODES = S.by_code(S.RAPSF)
+
+
+def _host_copy(controller: object) -> object:
+    """A copy of the RAPSF ``controller`` with its own estimator (deep copy), reset: the C
+    controller's Θ_k evolves independently of the original's."""
+    for attr in ("_update_theta", "vertices", "reset"):
+        if not hasattr(controller, attr):
+            raise CodegenError(f"CRAPSF: host must be the RAPSF controller that was emitted, "
+                               f"got {type(controller).__name__}")
+    host = copy.copy(controller)
+    host.estimator = copy.deepcopy(controller.estimator)
+    host.reset()
+    return host
+
+
+class CRAPSF(_OwnsWork):
+    """The emitted Algorithm 4.1 step as a closed-loop controller (the fallbacks computed in
+    C, ``Θ_k`` and ``s`` in Python on ``host``, a copy of the emitted
+    :class:`~balustrade.control.rapsf.RAPSF`; :func:`~balustrade.codegen.accelerate`
+    passes it). ``values``: ``k_inf``, ``n_vertices`` and ``objective`` (after a converged
+    (4.5)), as the Python controller records them."""
+
+    _BAD = S.code_of(S.RAPSF, "bad_input")
+    _OK = S.code_of(S.RAPSF, "ok")
+    _FALSIFIED = S.code_of(S.RAPSF, "model_falsified")
+
+    def __init__(self, lib_path: str | Path, manifest: dict | None = None,
+                 host: object | None = None):
+        m = self._open(lib_path, manifest, "rapsf", "RAPSF (Algorithm 4.1)")
+        host = host if host is not None else m.get("_host")
+        if host is None:
+            raise CodegenError("CRAPSF: pass host=<the emitted RAPSF controller>: its "
+                               "estimator computes Θ_k for the C step")
+        self.host = _host_copy(host)
+        Q = m["name"]
+        self.nx, self.nu, self.N = m["nx"], m["nu"], m["N"]
+        self.nq, self.n_vertices, self.n_rows = m["nq"], m["n_vertices"], m["n_rows"]
+        vp, ci = ctypes.c_void_p, ctypes.c_int
+        self._step = self._lib.fn(f"{Q}_step", ci, [_dbl_p, _dbl_p, _dbl_p, _dbl_p, ci,
+                                                    _dbl_p, ctypes.POINTER(ci), vp])
+        self._status_fn = self._lib.fn(f"{Q}_solve_status", ci, [vp])
+        self._k_inf = self._lib.fn(f"{Q}_k_inf", ci, [vp])
+        self._objective = self._lib.fn(f"{Q}_objective", ctypes.c_double, [vp])
+        self._allocate(Q)
+        self.main = _CProblemView(self._lib, f"{Q}_main", m["problems"]["main"],
+                                  self._lib.fn(f"{Q}_main_problem", vp, [vp])(self._work))
+        self._x, self._u_p, self._u = np.zeros(self.nx), np.zeros(self.nu), np.zeros(self.nu)
+        self._theta = np.zeros(self.nq * self.n_vertices)
+        self._s = np.zeros(self.n_rows * self.n_vertices)
+        self._status = ci(0)
+
+    @property
+    def k_inf(self) -> int:
+        return int(self._k_inf(self._work))
+
+    def reset(self) -> None:
+        """A new closed loop: the C forgets its plan (``k_inf = N − 1``), the host goes back
+        to ``Θ₀`` (its estimator's own ``reset`` included)."""
+        self._reset(self._work)
+        self.host.reset()
+
+    def _vertex_data(self) -> None:
+        """``theta`` and ``s`` of the host's ``Θ_k``, padded by repetition to the compiled
+        number of vertex columns (column-major, as the problem stacks them)."""
+        V, s = np.atleast_2d(self.host.vertices), self.host._s
+        if len(V) > self.n_vertices:
+            raise BalustradeError(f"CRAPSF.step: Θ_k has {len(V)} vertices, the C was "
+                                  f"emitted for {self.n_vertices} (theta of shape "
+                                  f"({self.nq}, {self.n_vertices})); emit it again")
+        idx = np.arange(self.n_vertices) % len(V)
+        self._theta[:] = V[idx].T.reshape(-1, order="F")
+        self._s[:] = s[:, idx].reshape(-1, order="F")
+
+    def step_raw(self, x: np.ndarray, u_p: np.ndarray, falsified: bool = False
+                 ) -> tuple[np.ndarray, int]:
+        """One C step with the vertex data already loaded: ``(u, status code)`` (``u`` is a
+        view of the output buffer)."""
+        self._x[:] = x
+        self._u_p[:] = u_p
+        code = self._step(_ptr(self._x), _ptr(self._u_p), _ptr(self._theta), _ptr(self._s),
+                          int(bool(falsified)), _ptr(self._u), ctypes.byref(self._status),
+                          self._work)
+        return self._u, code
+
+    def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        """One step: the host's Θ_k update, then one C call (module docstring). Wrong shapes
+        raise :class:`~balustrade.errors.ShapeError`; a NaN or inf ``x`` gives the backup
+        ``K x`` with NaN entries as 0 (``"non_finite_state"``); NaN or inf entries of
+        ``u_p`` are read as 0 (``"non_finite_proposal"``)."""
+        u_p = _proposal(u_p, self.nu, "CRAPSF.step: u_p")
+        x = as_vector(x, "CRAPSF.step: x", self.nx, finite=False)
+        h = self.host
+        info = StepInfo()
+        if not np.all(np.isfinite(u_p)):
+            info.status = "non_finite_proposal"
+        h._update_theta(x, info)
+        info.values["n_vertices"] = float(len(h.vertices))
+        self._vertex_data()
+        start = time.perf_counter()
+        u, code = self.step_raw(x, u_p, h.falsified)
+        info.solve_time = time.perf_counter() - start
+        known = _CODES.get(code)
+        if known is None:
+            info.status, info.fallback = str(code), "unknown"
+        elif code == self._BAD:
+            info.status, info.fallback = "non_finite_state", known.fallback
+        elif code == self._FALSIFIED:
+            info.status, info.fallback = "model_falsified", known.fallback
+        elif code == self._OK:
+            info.values["objective"] = float(self._objective(self._work))
+        else:
+            solve = self._status_fn(self._work)
+            name = _PY_STATUS.get(solve, str(solve))
+            info.uncertified["rapsf"] = name
+            if info.status == "ok":
+                info.status = name
+            info.fallback = known.fallback
+        info.values["k_inf"] = float(self.k_inf)
+        u = u.copy()
+        h._prev = (x, u)
+        h.k += 1
+        return u, info
+
+
+__all__ = ["CRAPSF"]
