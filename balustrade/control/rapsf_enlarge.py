@@ -1,0 +1,105 @@
+"""Online terminal-set enlargement for Algorithm 4.1 (thesis Theorem 4.12, Remark 4.13,
+SPEC §2.22): after every successful solve of (4.5) its tube pairs ``(z*_i, α*_i)`` (and the
+zero-dilation points of Remark 4.13) join the generators of the terminal set.
+
+Bookkeeping per recorded solution:
+
+1. candidates: the ``N + 1`` pairs and, with ``zero_dilation`` and the vertices of ``𝕏₀``,
+   the ``(N + 1)·n₀`` zero-dilation points;
+2. candidates inside the current hull (generators and base set) are dropped — one warm-started
+   separation LP each (:func:`balustrade.backends.hull.hull_distances`);
+3. when more than ``capacity`` generators would result, the union is pruned to its extreme
+   points (:func:`balustrade.backends.hull.extreme_points`); if that is still more than
+   ``capacity``, the solution's candidates are *not* added (counted in ``rejected``). Keeping
+   only some of them could drop the successor pair of a kept one and break Assumption 4.11;
+   the old set stays valid for every later (nested) ``Θ``.
+
+``capacity`` bounds the generator count so that the compiled (4.5) keeps one shape
+(:meth:`TerminalSet.slot`, padding with ``(0, 0)``). Call :meth:`reset` whenever ``Θ`` goes back
+to a larger set: the recorded tubes are robust only for the sets they were solved with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from balustrade.backends.hull import extreme_points, hull_distances
+from balustrade.errors import BalustradeError
+from balustrade.problems.rapsf import TerminalSet
+from balustrade.problems.rapsf_enlarge import base_generators, tube_pairs, zero_dilation_points
+
+
+class TerminalEnlargement:
+    """The growing generator list of the enlarged terminal set (4.10) for a state of
+    dimension ``n`` over the base set ``base`` (``None``: the §4.7 default)."""
+
+    def __init__(self, n: int, base: TerminalSet | None = None,
+                 X0_vertices: np.ndarray | None = None, capacity: int = 64,
+                 zero_dilation: bool = True, tol: float = 1e-7):
+        if base is not None and base.has_generators:
+            raise BalustradeError("TerminalEnlargement: base must be an H-representation or "
+                                  "the default terminal set, not a hull of generators")
+        if int(capacity) < 1:
+            raise BalustradeError(f"TerminalEnlargement: capacity must be positive, got "
+                                  f"{capacity}")
+        self.n, self.base, self.capacity, self.tol = int(n), base, int(capacity), float(tol)
+        self.X0_vertices = None if X0_vertices is None else np.atleast_2d(
+            np.asarray(X0_vertices, dtype=float))
+        self.zero_dilation = bool(zero_dilation) and self.X0_vertices is not None
+        self._base = base_generators(base, self.n)
+        self.reset()
+
+    def reset(self) -> None:
+        """No generators (the base set only)."""
+        self.generators = np.zeros((self.n + 1, 0))
+        self.version = 0
+        self.recorded = 0
+        self.rejected = 0
+
+    def candidates(self, z: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+        """The tube pairs of one solution and, if enabled, its zero-dilation points."""
+        P = tube_pairs(z, alpha, self.n)
+        if self.zero_dilation:
+            P = np.hstack([P, zero_dilation_points(z, alpha, self.X0_vertices)])
+        return P
+
+    def record(self, z: np.ndarray, alpha: np.ndarray) -> int:
+        """Add the solution ``(z, α)`` of a successful solve; returns the number of
+        generators added (0 when all candidates lie in the hull or it was rejected)."""
+        C = self.candidates(z, alpha)
+        self.recorded += 1
+        ref = self._reference(self.generators)
+        if ref.shape[1]:
+            d = hull_distances(C, ref)
+            C = C[:, d > self.tol * (1.0 + np.abs(C).sum(axis=0))]
+        if C.shape[1] == 0:
+            return 0
+        new = np.hstack([self.generators, C])
+        if new.shape[1] > self.capacity:
+            new = new[:, extreme_points(new, self.tol, fixed=self._base)]
+            if new.shape[1] > self.capacity:
+                self.rejected += 1
+                return 0
+        added = new.shape[1] - self.generators.shape[1]
+        self.generators = new
+        self.version += 1
+        return added
+
+    def _reference(self, V: np.ndarray) -> np.ndarray:
+        return V if self._base is None else np.hstack([V, self._base])
+
+    @property
+    def terminal_set(self) -> TerminalSet:
+        """The current enlarged set (numeric generators over the base)."""
+        return TerminalSet.from_generators(self.generators[:self.n], self.generators[self.n],
+                                           self.base)
+
+    def padded(self) -> np.ndarray:
+        """The generators padded with ``(0, 0)`` to ``capacity`` columns (the value of the
+        parameter ``terminal_generators`` of :meth:`TerminalSet.slot`)."""
+        out = np.zeros((self.n + 1, self.capacity))
+        out[:, :self.generators.shape[1]] = self.generators
+        return out
+
+
+__all__ = ["TerminalEnlargement"]
