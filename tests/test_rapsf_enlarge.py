@@ -138,7 +138,7 @@ def test_closed_loop_is_safe_and_never_worse_than_default(run):
     assert run.worst <= 1e-6
     assert all(enl for dflt, enl in run.pairs if dflt), run.pairs   # default ok → enlarged ok
     assert len(run.ctrl._compiled) == 1                  # generators are a parameter
-    assert run.ctrl._enlarge.recorded >= STEPS // 2
+    assert run.ctrl.enlargement.recorded >= STEPS // 2
 
 
 def test_fast_convex_recompiles_with_the_same_answers(toy, run):
@@ -188,8 +188,16 @@ def test_record_drops_candidates_inside_and_respects_capacity():
     assert np.array_equal(enl.generators, before)
     full = TerminalEnlargement(2, X0_vertices=np.array([[1, 0], [0, 1], [-1, 0], [0, -1.0]]),
                                capacity=2)
-    assert full.record(z, alpha) == 0 and full.rejected == 1   # kept whole or not at all
+    assert full.record(z, alpha) == 0 and full.rejected == 1   # not even the last tube fits
     assert full.generators.shape[1] == 0
+    # a tube starting far out: all 7 extreme points do not fit in 5, the suffix i >= 1 does
+    far = np.array([[1.5, 0.2, 0.0], [0.0, 0.1, 0.0]])
+    alpha = np.array([0.2, 0.5, 1.0])
+    X = np.array([[1, 0], [0, 1], [-1, 0], [0, -1.0]])
+    assert TerminalEnlargement(2, X0_vertices=X, capacity=7).record(far, alpha) == 7
+    part = TerminalEnlargement(2, X0_vertices=X, capacity=5)
+    assert part.record(far, alpha) == 4 and part.truncated == 1
+    assert np.all(np.abs(part.generators[0]) <= 1.0)           # the i = 0 tube was dropped
 
 
 def test_zero_dilation_points_are_tube_vertices():

@@ -59,14 +59,27 @@ def extreme_points(V: np.ndarray, tol: float = 1e-9, fixed: np.ndarray | None = 
     """A boolean mask over the columns of ``V``: ``True`` for a generator whose distance to
     the hull of the other kept generators (and of the columns of ``fixed``, which are never
     pruned) exceeds ``tol·(1 + ‖v‖₁)``. Generators are tested in order and a pruned one no
-    longer counts as "other", so duplicates keep exactly one copy."""
+    longer counts as "other", so duplicates keep exactly one copy.
+
+    Many generators (more than ``4(d + 1)``) are first screened: the maximisers of ``±e_i``
+    and ``8d`` fixed random directions are extreme, and every generator inside their hull
+    (one warm LP model for all) is not; only the rest is tested one by one."""
     V = np.atleast_2d(np.asarray(V, dtype=float))
     d, G = V.shape
     F = np.zeros((d, 0)) if fixed is None else np.atleast_2d(np.asarray(fixed, dtype=float))
     if F.shape[0] != d:
         raise ShapeError("extreme_points: fixed", f"{d} rows (as V)", F.shape)
-    keep = np.ones(G, dtype=bool)
-    for g in range(G):
+    todo = np.arange(G)
+    if G > 4 * (d + 1):
+        D = np.vstack([np.eye(d), -np.eye(d), np.random.default_rng(0).normal(size=(8 * d, d))])
+        E = np.unique(np.argmax(D @ V, axis=1))
+        dist = hull_distances(V, np.hstack([V[:, E], F]))
+        out = dist > tol * (1.0 + np.abs(V).sum(axis=0))
+        out[E] = True
+        todo = np.flatnonzero(out)
+    keep = np.zeros(G, dtype=bool)
+    keep[todo] = True
+    for g in todo:
         keep[g] = False
         others = np.hstack([V[:, keep], F])
         if others.shape[1] == 0:

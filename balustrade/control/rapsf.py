@@ -102,7 +102,7 @@ class RAPSF:
         self._compiled: dict = {}
         if terminal is None or terminal.H_T is None:
             self._check_default_terminal(tol)
-        self._enlarge = _enlargement(enlarge, self.n, terminal, self._X0_vertices, name)
+        self.enlargement = _enlargement(enlarge, self.n, terminal, self._X0_vertices, name)
         self.reset()
 
     def _check_default_terminal(self, tol: float) -> None:
@@ -133,16 +133,16 @@ class RAPSF:
         self.falsified = False
         self._set_theta(self.Theta0)
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
-        if self._enlarge is not None:               # its tubes are robust for Θ_k, not Θ₀
-            self._enlarge.reset()
+        if self.enlargement is not None:               # its tubes are robust for Θ_k, not Θ₀
+            self.enlargement.reset()
 
     @property
     def terminal_set(self) -> TerminalSet:
         """The terminal set (4.5e) currently in use: with ``enlarge`` the hull (4.10) of the
         recorded tube pairs and the base set (:class:`TerminalEnlargement`), else the given
         set (``TerminalSet()`` for the §4.7 default)."""
-        if self._enlarge is not None:
-            return self._enlarge.terminal_set
+        if self.enlargement is not None:
+            return self.enlargement.terminal_set
         return self.terminal if self.terminal is not None else TerminalSet()
 
     # -- Θ_k --------------------------------------------------------------------------------
@@ -181,10 +181,10 @@ class RAPSF:
             idx = np.arange(n_th) % len(self.vertices)         # pad by repetition
             params["theta"] = self.vertices[idx].T
             params["s"] = self._s[:, idx]
-            if self._enlarge is not None:
-                params["terminal_generators"] = self._enlarge.padded()
+            if self.enlargement is not None:
+                params["terminal_generators"] = self.enlargement.padded()
         else:
-            version = 0 if self._enlarge is None else self._enlarge.version
+            version = 0 if self.enlargement is None else self.enlargement.version
             key = (horizon, (self.vertices.tobytes(), version))
             if key not in self._compiled:
                 self._compiled = {k: c for k, c in self._compiled.items()
@@ -195,10 +195,10 @@ class RAPSF:
 
     def _problem(self, horizon: int, **vertex_data: object) -> object:
         terminal = self.terminal
-        if self._enlarge is not None:          # a parameter slot, or the current generators
-            base = self._enlarge.base or TerminalSet()
-            terminal = (base.slot(self._enlarge.capacity) if self.parametric
-                        else self._enlarge.terminal_set)
+        if self.enlargement is not None:          # a parameter slot, or the current generators
+            base = self.enlargement.base or TerminalSet()
+            terminal = (base.slot(self.enlargement.capacity) if self.parametric
+                        else self.enlargement.terminal_set)
         return rapsf_problem(self.system, self.X0, self.F, self.G, self.W, self.K, horizon,
                              terminal=terminal, X0_vertices=self._X0_vertices,
                              name=f"{self.name}_N{horizon}",
@@ -233,9 +233,9 @@ class RAPSF:
             self.plan = np.asarray(sol["v"], dtype=float).reshape(self.m, self.N)
             self.k_inf = 0
             info.values["objective"] = float(sol.objective)
-            if self._enlarge is not None:                       # Theorem 4.12: record
-                self._enlarge.record(sol["z"], sol["alpha"])
-                info.values["n_generators"] = float(self._enlarge.generators.shape[1])
+            if self.enlargement is not None:                       # Theorem 4.12: record
+                self.enlargement.record(sol["z"], sol["alpha"])
+                info.values["n_generators"] = float(self.enlargement.generators.shape[1])
             return self.K @ x + self.plan[:, 0]
         self.k_inf += 1
         if info.status == "ok":

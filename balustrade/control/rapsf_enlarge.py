@@ -52,38 +52,66 @@ class TerminalEnlargement:
     def reset(self) -> None:
         """No generators (the base set only)."""
         self.generators = np.zeros((self.n + 1, 0))
+        self.tubes: list[tuple[np.ndarray, np.ndarray]] = []
         self.version = 0
         self.recorded = 0
         self.rejected = 0
+        self.truncated = 0
 
-    def candidates(self, z: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-        """The tube pairs of one solution and, if enabled, its zero-dilation points."""
+    def candidates(self, z: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The tube pairs of one solution and, if enabled, its zero-dilation points (columns),
+        with the tube index ``i`` of each column."""
         P = tube_pairs(z, alpha, self.n)
+        idx = np.arange(P.shape[1])
         if self.zero_dilation:
             P = np.hstack([P, zero_dilation_points(z, alpha, self.X0_vertices)])
-        return P
+            idx = np.concatenate([idx, np.repeat(idx, len(self.X0_vertices))])
+        return P, idx
 
     def record(self, z: np.ndarray, alpha: np.ndarray) -> int:
-        """Add the solution ``(z, α)`` of a successful solve; returns the number of
-        generators added (0 when all candidates lie in the hull or it was rejected)."""
-        C = self.candidates(z, alpha)
+        """Add the solution ``(z, α)`` of a successful solve; returns the net change of the
+        generator count (0 when all candidates lie in the hull or none fit). The tube is kept
+        in ``tubes`` either way (for an offline hull of all data,
+        :func:`balustrade.design.rapsf_enlarge.enlarged_terminal_set`)."""
+        C, idx = self.candidates(z, alpha)
+        self.tubes.append((np.array(z, dtype=float), np.array(alpha, dtype=float).ravel()))
         self.recorded += 1
         ref = self._reference(self.generators)
         if ref.shape[1]:
-            d = hull_distances(C, ref)
-            C = C[:, d > self.tol * (1.0 + np.abs(C).sum(axis=0))]
+            out = hull_distances(C, ref) > self.tol * (1.0 + np.abs(C).sum(axis=0))
+            C, idx = C[:, out], idx[out]
         if C.shape[1] == 0:
             return 0
-        new = np.hstack([self.generators, C])
-        if new.shape[1] > self.capacity:
-            new = new[:, extreme_points(new, self.tol, fixed=self._base)]
-            if new.shape[1] > self.capacity:
+        new = self._merged(C)
+        m = 0
+        while new.shape[1] > self.capacity:
+            # too many: keep only the tubes i >= m (a suffix keeps every successor pair)
+            kept = self._extreme_count(new, C)
+            m = _smallest_suffix(idx, kept, new.shape[1] - len(kept), self.capacity, m + 1)
+            if m is None:
                 self.rejected += 1
                 return 0
+            C, idx = C[:, idx >= m], idx[idx >= m]
+            new = self._merged(C)
+        if m > 0:
+            self.truncated += 1
         added = new.shape[1] - self.generators.shape[1]
         self.generators = new
         self.version += 1
         return added
+
+    def _merged(self, C: np.ndarray) -> np.ndarray:
+        new = np.hstack([self.generators, C])
+        if new.shape[1] > self.capacity:
+            new = new[:, extreme_points(new, self.tol, fixed=self._base)]
+        return new
+
+    def _extreme_count(self, new: np.ndarray, C: np.ndarray) -> np.ndarray:
+        """Which candidate columns of ``C`` survived in ``new`` (a boolean per column)."""
+        if C.shape[1] == 0:
+            return np.zeros(0, dtype=bool)
+        return np.array([np.any(np.all(np.isclose(new, c[:, None], rtol=0, atol=1e-15),
+                                       axis=0)) for c in C.T])
 
     def _reference(self, V: np.ndarray) -> np.ndarray:
         return V if self._base is None else np.hstack([V, self._base])
@@ -100,6 +128,16 @@ class TerminalEnlargement:
         out = np.zeros((self.n + 1, self.capacity))
         out[:, :self.generators.shape[1]] = self.generators
         return out
+
+
+def _smallest_suffix(idx: np.ndarray, kept: np.ndarray, n_old: int, capacity: int,
+                     start: int) -> int | None:
+    """The smallest ``m >= start`` whose surviving candidates of tubes ``i >= m`` fit next
+    to the ``n_old`` surviving old generators, or ``None`` when not even ``i = N`` fits."""
+    for m in range(start, int(idx.max()) + 2 if idx.size else start + 1):
+        if n_old + int(np.count_nonzero(kept & (idx >= m))) <= capacity:
+            return m if np.any(idx >= m) else None
+    return None
 
 
 __all__ = ["TerminalEnlargement"]
