@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scipy.spatial import ConvexHull
 
 from balustrade.backends import compile
 from balustrade.backends.hull import extreme_points, hull_distances
@@ -176,6 +177,18 @@ def test_pruning_removes_interior_generators():
     kept = {tuple(c) for c in ts.generators.T.round(12)}
     assert kept == {(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)}   # (0, .5) in base
     assert extreme_points(np.array([[0.0, 1.0, 2.0]])).tolist() == [True, False, True]
+
+
+def test_extreme_points_match_qhull():
+    """Screening + warm-started one-by-one LPs give the vertices of the convex hull."""
+    P = np.random.default_rng(4).normal(size=(40, 3))
+    P[5] = P[:4].mean(axis=0)                               # an interior point
+    P[7] = P[3]                                             # a duplicate
+    mask = extreme_points(P.T)
+    expected = set(ConvexHull(P).vertices.tolist())
+    assert set(np.flatnonzero(mask).tolist()) == expected - {7} or \
+        set(np.flatnonzero(mask).tolist()) == expected - {3}
+    assert not mask[5]
 
 
 def test_record_drops_candidates_inside_and_respects_capacity():

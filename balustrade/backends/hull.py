@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from balustrade.backends.lp import solve_lps
+from balustrade.backends.lp import _highs, solve_lps
 from balustrade.backends.solution import Status
 from balustrade.errors import BalustradeError, ShapeError
 
@@ -77,6 +77,9 @@ def extreme_points(V: np.ndarray, tol: float = 1e-9, fixed: np.ndarray | None = 
         out = dist > tol * (1.0 + np.abs(V).sum(axis=0))
         out[E] = True
         todo = np.flatnonzero(out)
+    keep = _prune_warm(V, F, todo, tol)
+    if keep is not None:
+        return keep
     keep = np.zeros(G, dtype=bool)
     keep[todo] = True
     for g in todo:
@@ -88,6 +91,62 @@ def extreme_points(V: np.ndarray, tol: float = 1e-9, fixed: np.ndarray | None = 
         dist = hull_distances(V[:, g:g + 1], others)[0]
         keep[g] = dist > tol * (1.0 + float(np.abs(V[:, g]).sum()))
     return keep
+
+
+def _prune_warm(V: np.ndarray, F: np.ndarray, todo: np.ndarray, tol: float
+                ) -> np.ndarray | None:
+    """The one-by-one test of :func:`extreme_points` in one HiGHS model: the separation set
+    of all generators, where testing ``g`` frees its own row and a pruned generator's row
+    stays free; only the cost and one row bound change between the LPs (warm starts).
+    ``None`` without ``highspy`` or when an LP does not end optimal (then the caller tests
+    with fresh models)."""
+    try:
+        import highspy
+    except ImportError:  # pragma: no cover - highspy ships with the test environment
+        return None
+    d, G = V.shape
+    H, h = _separation_set(np.hstack([V, F]))
+    solver = _highs(highspy)
+    m, nc = H.shape
+    lp = highspy.HighsLp()
+    lp.num_col_, lp.num_row_ = nc, m
+    lp.col_cost_ = np.zeros(nc)
+    lp.col_lower_ = np.full(nc, -highspy.kHighsInf)
+    lp.col_upper_ = np.full(nc, highspy.kHighsInf)
+    lp.row_lower_ = np.full(m, -highspy.kHighsInf)
+    upper = np.asarray(h, dtype=float).copy()
+    active = np.zeros(G, dtype=bool)
+    active[todo] = True
+    upper[:G][~active] = highspy.kHighsInf
+    lp.row_upper_ = upper
+    lp.sense_ = highspy.ObjSense.kMaximize
+    A = lp.a_matrix_
+    A.format_ = highspy.MatrixFormat.kRowwise
+    A.start_ = np.arange(0, m * nc + 1, nc, dtype=np.int32)
+    A.index_ = np.tile(np.arange(nc, dtype=np.int32), m)
+    A.value_ = np.ascontiguousarray(H, dtype=float).ravel()
+    lp.a_matrix_ = A
+    solver.clearModel()
+    solver.passModel(lp)
+    cols = np.arange(nc, dtype=np.int32)
+    n_fixed = F.shape[1]
+    for g in todo:
+        active[g] = False
+        solver.changeRowBounds(int(g), -highspy.kHighsInf, highspy.kHighsInf)
+        if not active.any() and n_fixed == 0:
+            keep_g = True                                   # nothing else to be inside of
+        else:
+            c = np.append(V[:, g], -1.0)
+            solver.changeColsCost(nc, cols, c)
+            solver.run()
+            if str(solver.getModelStatus()).rsplit(".", 1)[-1] != "kOptimal":
+                return None
+            dist = float(c @ np.asarray(solver.getSolution().col_value, dtype=float))
+            keep_g = dist > tol * (1.0 + float(np.abs(V[:, g]).sum()))
+        if keep_g:
+            active[g] = True
+            solver.changeRowBounds(int(g), -highspy.kHighsInf, 0.0)
+    return active
 
 
 __all__ = ["extreme_points", "hull_distances"]

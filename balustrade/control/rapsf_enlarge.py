@@ -28,14 +28,23 @@ from balustrade.errors import BalustradeError
 from balustrade.problems.rapsf import TerminalSet
 from balustrade.problems.rapsf_enlarge import base_generators, tube_pairs, zero_dilation_points
 
+#: ``zero_dilation=None`` adds Remark 4.13's points only when ``𝕏₀`` has at most this many
+#: vertices per state dimension: each tube gives ``(N + 1)·n₀`` candidates, and for the
+#: 3-mass chain (``n₀ = 216`` in 6 dimensions) their pruning took ~85 s per solve (measured
+#: under load) with the capacity exceeded by the first tube alone.
+ZERO_DILATION_MAX_VERTICES = 4
+
 
 class TerminalEnlargement:
     """The growing generator list of the enlarged terminal set (4.10) for a state of
-    dimension ``n`` over the base set ``base`` (``None``: the §4.7 default)."""
+    dimension ``n`` over the base set ``base`` (``None``: the §4.7 default). ``X0_vertices``
+    (rows) enable the zero-dilation points of Remark 4.13 (``zero_dilation``: ``None`` =
+    when ``n₀ <= 4n``, see :data:`ZERO_DILATION_MAX_VERTICES`); ``capacity`` bounds the
+    generator count; ``tol`` is the hull-distance tolerance of the pruning."""
 
     def __init__(self, n: int, base: TerminalSet | None = None,
                  X0_vertices: np.ndarray | None = None, capacity: int = 64,
-                 zero_dilation: bool = True, tol: float = 1e-7):
+                 zero_dilation: bool | None = None, tol: float = 1e-7):
         if base is not None and base.has_generators:
             raise BalustradeError("TerminalEnlargement: base must be an H-representation or "
                                   "the default terminal set, not a hull of generators")
@@ -45,6 +54,9 @@ class TerminalEnlargement:
         self.n, self.base, self.capacity, self.tol = int(n), base, int(capacity), float(tol)
         self.X0_vertices = None if X0_vertices is None else np.atleast_2d(
             np.asarray(X0_vertices, dtype=float))
+        if zero_dilation is None:                   # auto: only for few vertices of 𝕏₀
+            zero_dilation = (self.X0_vertices is not None
+                             and len(self.X0_vertices) <= ZERO_DILATION_MAX_VERTICES * self.n)
         self.zero_dilation = bool(zero_dilation) and self.X0_vertices is not None
         self._base = base_generators(base, self.n)
         self.reset()
@@ -140,4 +152,4 @@ def _smallest_suffix(idx: np.ndarray, kept: np.ndarray, n_old: int, capacity: in
     return None
 
 
-__all__ = ["TerminalEnlargement"]
+__all__ = ["ZERO_DILATION_MAX_VERTICES", "TerminalEnlargement"]
