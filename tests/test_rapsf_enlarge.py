@@ -16,7 +16,7 @@ from balustrade.backends import compile
 from balustrade.backends.hull import extreme_points, hull_distances
 from balustrade.control.rapsf import RAPSF
 from balustrade.control.rapsf_enlarge import TerminalEnlargement
-from balustrade.design.rapsf import contractive_polytope, robust_gain
+from balustrade.design.rapsf import check_assumption_4_11, contractive_polytope, robust_gain
 from balustrade.design.rapsf_enlarge import (
     check_enlarged_terminal,
     enlarged_terminal_set,
@@ -92,6 +92,8 @@ def test_enlarged_set_satisfies_assumption_4_11_at_its_generators(toy, run):
     report = check_enlarged_terminal(toy.sys, toy.X0, toy.W, toy.K, run.vertices, toy.F,
                                      toy.G, ts)
     assert report.ok, report.worst
+    assert check_assumption_4_11(toy.sys, toy.X0, toy.W, toy.K, run.vertices, toy.F, toy.G,
+                                 ts).worst == report.worst                # dispatches here
     # negative control: the generator farthest from the origin moved outward by 50 %
     V = ts.generators.copy()
     g = int(np.argmax(np.abs(V[:2]).sum(axis=0)))
