@@ -145,10 +145,12 @@ class TerminalEnlargement:
 def _smallest_suffix(idx: np.ndarray, kept: np.ndarray, n_old: int, capacity: int,
                      start: int) -> int | None:
     """The smallest ``m >= start`` whose surviving candidates of tubes ``i >= m`` fit next
-    to the ``n_old`` surviving old generators, or ``None`` when not even ``i = N`` fits."""
+    to the ``n_old`` surviving old generators, or ``None`` when that leaves no surviving
+    candidate (nothing worth adding)."""
     for m in range(start, int(idx.max()) + 2 if idx.size else start + 1):
-        if n_old + int(np.count_nonzero(kept & (idx >= m))) <= capacity:
-            return m if np.any(idx >= m) else None
+        count = int(np.count_nonzero(kept & (idx >= m)))
+        if n_old + count <= capacity:
+            return m if count else None     # no extreme candidate left: nothing to add
     return None
 
 
