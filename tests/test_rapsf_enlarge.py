@@ -242,3 +242,29 @@ def test_bad_generator_shapes_raise_shape_error(toy):
     with pytest.raises(BalustradeError, match="dimension 3"):
         RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
               enlarge=TerminalEnlargement(3))
+
+
+@pytest.mark.slow
+def test_msd_three_masses_enlarged_closed_loop():
+    """§4.7 chain, 3 masses, 30 steps with ``enlarge=True``: (x, u) ∈ 𝒵 at every step and the
+    online set satisfies Assumption 4.11 at its generators for the final Θ."""
+    from balustrade.models.msd import msd_chain, msd_performance, msd_setup
+
+    sys_, st = msd_chain(3), msd_setup(3)
+    V = st.Theta0.vertices()
+    F, G = joint_constraints(st.X, st.U)
+    K = robust_gain(sys_, V, contraction=0.95)
+    X0 = contractive_polytope(sys_, K, V, st.W, F, G)
+    rng = np.random.default_rng(5)
+    theta = st.sample_theta(rng)
+    ctrl = RAPSF(sys_, X0, F, G, st.W, K, st.N, st.Theta0,
+                 estimator=BoxUpdate(sys_, st.W, st.Theta0), target="fast-convex",
+                 enlarge=True)
+    x = st.x0.copy()
+    for k in range(30):
+        u, info = ctrl.step(x, msd_performance(k, x, 3))
+        assert np.all(F @ x + G @ u <= 1 + 1e-6), k
+        x = sys_.step(x, u, theta, rng.uniform(-1e-3, 1e-3, 6))
+    ts = ctrl.terminal_set
+    assert ts.generators.shape[1] > 0 and not ctrl.enlargement.zero_dilation   # 216 vertices
+    assert check_enlarged_terminal(sys_, X0, st.W, K, ctrl.Theta.vertices(), F, G, ts)
