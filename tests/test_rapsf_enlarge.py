@@ -162,6 +162,22 @@ def test_fast_convex_recompiles_with_the_same_answers(toy, run):
         assert a["v"][:, 0] == pytest.approx(b["v"][:, 0], abs=1e-4)
 
 
+def test_hull_over_an_h_representation_base(toy, run):
+    """Generators over ``{H_T z + h_T α <= 1}`` (the perspective with a ``z'`` variable): the
+    check passes, and the CasADi and convex targets agree on (4.5) with it."""
+    small = TerminalSet(np.vstack([np.eye(2), -np.eye(2)]) / 0.05, np.full(4, 1.0))
+    ts = enlarged_terminal_set(2, run.ctrl.enlargement.tubes[:6], base=small)
+    assert ts.H_T is not None and ts.generators.shape[1] > 0
+    assert check_enlarged_terminal(toy.sys, toy.X0, toy.W, toy.K, run.vertices, toy.F, toy.G,
+                                   ts)
+    ocp = rapsf_problem(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, vertices=run.vertices,
+                        terminal=ts)
+    p = {"x0": np.array([0.6, 0.4]), "u_p": np.array([2.5])}
+    a, b = compile(ocp, "exact").solve(p), compile(ocp, "fast-convex").solve(p)
+    assert a.status == b.status == "optimal"
+    assert a["v"][:, 0] == pytest.approx(b["v"][:, 0], abs=1e-4)
+
+
 def test_reset_clears_the_generators(toy):
     ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0, enlarge=True,
                  target="fast-convex")
