@@ -186,6 +186,14 @@ def test_reset_clears_the_generators(toy):
     ctrl.reset()                         # back to Θ₀: the recorded tubes no longer count
     assert ctrl.terminal_set.generators.shape[1] == 0
 
+    def failing(z, alpha):
+        raise BalustradeError("a pruning LP failed")
+
+    ctrl.enlargement.record = failing    # a failed bookkeeping step never fails the filter
+    u, info = ctrl.step(np.array([0.5, 0.1]), np.array([2.0]))
+    assert info.status == "enlarge_failed" and info.fallback is None
+    assert ctrl.terminal_set.generators.shape[1] == 0
+
 
 # -- generators and pruning -------------------------------------------------------------------
 def test_pruning_removes_interior_generators():

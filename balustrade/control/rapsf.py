@@ -234,7 +234,10 @@ class RAPSF:
             self.k_inf = 0
             info.values["objective"] = float(sol.objective)
             if self.enlargement is not None:                       # Theorem 4.12: record
-                self.enlargement.record(sol["z"], sol["alpha"])
+                try:
+                    self.enlargement.record(sol["z"], sol["alpha"])
+                except BalustradeError:             # a pruning LP failed: keep the old set
+                    info.status = "enlarge_failed"
                 info.values["n_generators"] = float(self.enlargement.generators.shape[1])
             return self.K @ x + self.plan[:, 0]
         self.k_inf += 1
