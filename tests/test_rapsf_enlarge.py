@@ -215,6 +215,9 @@ def test_extreme_points_match_qhull():
     assert set(np.flatnonzero(mask).tolist()) == expected - {7} or \
         set(np.flatnonzero(mask).tolist()) == expected - {3}
     assert not mask[5]
+    many = np.random.default_rng(5).normal(size=(400, 3))      # above SCREEN_MIN: screened
+    assert set(np.flatnonzero(extreme_points(many.T)).tolist()) == \
+        set(ConvexHull(many).vertices.tolist())
 
 
 def test_record_drops_candidates_inside_and_respects_capacity():

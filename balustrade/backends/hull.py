@@ -22,6 +22,10 @@ from balustrade.backends.lp import _highs, solve_lps
 from balustrade.backends.solution import Status
 from balustrade.errors import BalustradeError, ShapeError
 
+#: :func:`extreme_points` screens by random directions only above this many generators (the
+#: screen costs one LP per generator itself: it pays off when most are inside the hull)
+SCREEN_MIN = 128
+
 
 def _separation_set(V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``{(a, b) : Vᵀa − b <= 0, −1 <= a <= 1}`` as ``H [a; b] <= h``."""
@@ -61,16 +65,17 @@ def extreme_points(V: np.ndarray, tol: float = 1e-9, fixed: np.ndarray | None = 
     pruned) exceeds ``tol·(1 + ‖v‖₁)``. Generators are tested in order and a pruned one no
     longer counts as "other", so duplicates keep exactly one copy.
 
-    Many generators (more than ``4(d + 1)``) are first screened: the maximisers of ``±e_i``
-    and ``8d`` fixed random directions are extreme, and every generator inside their hull
-    (one warm LP model for all) is not; only the rest is tested one by one."""
+    Many generators (more than ``max(4(d + 1), SCREEN_MIN)``) are first screened: the
+    maximisers of ``±e_i`` and ``8d`` fixed random directions are extreme, and every
+    generator inside their hull (one warm LP model for all) is not; only the rest is tested
+    one by one."""
     V = np.atleast_2d(np.asarray(V, dtype=float))
     d, G = V.shape
     F = np.zeros((d, 0)) if fixed is None else np.atleast_2d(np.asarray(fixed, dtype=float))
     if F.shape[0] != d:
         raise ShapeError("extreme_points: fixed", f"{d} rows (as V)", F.shape)
     todo = np.arange(G)
-    if G > 4 * (d + 1):
+    if G > max(4 * (d + 1), SCREEN_MIN):
         D = np.vstack([np.eye(d), -np.eye(d), np.random.default_rng(0).normal(size=(8 * d, d))])
         E = np.unique(np.argmax(D @ V, axis=1))
         dist = hull_distances(V, np.hstack([V[:, E], F]))
