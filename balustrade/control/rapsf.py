@@ -45,6 +45,7 @@ from balustrade._checks import as_matrix, check_horizon, check_instance
 from balustrade.backends import Solution, compile, resolve_target
 from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import RAPSFDeployment
+from balustrade.control.rapsf_enlarge import TerminalEnlargement
 from balustrade.dsl.sets import Polytope
 from balustrade.errors import BalustradeError, EmptySetError
 from balustrade.problems.rapsf import (
@@ -68,14 +69,23 @@ class RAPSF:
     (checked by LPs, else :class:`~balustrade.errors.BalustradeError`). ``values`` of each
     step: ``k_inf``, ``objective`` (of an optimal solve), ``n_vertices`` (of ``Θ_k``).
     ``vertex_data``: ``"parameters"`` (one compile per horizon) or ``"constants"`` (recompiled
-    when ``Θ_k`` changes), see the module docstring."""
+    when ``Θ_k`` changes), see the module docstring.
+
+    ``enlarge=True`` (or a :class:`~balustrade.control.rapsf_enlarge.TerminalEnlargement`)
+    enlarges the terminal set online (Theorem 4.12, Remark 4.13, SPEC §2.22): every optimal
+    solve adds its tube pairs (and zero-dilation points) to the generators of a hull that
+    replaces (4.5e); ``terminal_set`` is the set in use, ``values["n_generators"]`` its size.
+    With ``vertex_data="parameters"`` the generators are a parameter of fixed ``capacity``
+    (no recompile, on every target); with ``"constants"`` the problem is recompiled when they
+    change."""
 
     def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
                  W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
                  estimator: object | None = None, backup: Backup | None = None,
                  target: object = "exact", shrinking: bool = False,
                  terminal: TerminalSet | None = None, tol: float = 1e-7,
-                 name: str = "rapsf", vertex_data: str = "parameters"):
+                 enlarge: bool | TerminalEnlargement = False, name: str = "rapsf",
+                 vertex_data: str = "parameters"):
         self.n, self.m, self.q = check_parametric_system(system, name)
         self.N = check_horizon(N, name)
         self.K = as_matrix(K, f"{name}: K", (self.m, self.n))
@@ -103,6 +113,7 @@ class RAPSF:
         self._compiled: dict = {}
         if terminal is None or terminal.H_T is None:
             self._check_default_terminal(tol)
+        self.enlargement = _enlargement(enlarge, self.n, terminal, self._X0_vertices, name)
         self.reset()
 
     def _check_default_terminal(self, tol: float) -> None:
@@ -133,6 +144,17 @@ class RAPSF:
         self.falsified = False
         self._set_theta(self.Theta0)
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
+        if self.enlargement is not None:               # its tubes are robust for Θ_k, not Θ₀
+            self.enlargement.reset()
+
+    @property
+    def terminal_set(self) -> TerminalSet:
+        """The terminal set (4.5e) currently in use: with ``enlarge`` the hull (4.10) of the
+        recorded tube pairs and the base set (:class:`TerminalEnlargement`), else the given
+        set (``TerminalSet()`` for the §4.7 default)."""
+        if self.enlargement is not None:
+            return self.enlargement.terminal_set
+        return self.terminal if self.terminal is not None else TerminalSet()
 
     # -- Θ_k --------------------------------------------------------------------------------
     def _set_theta(self, Theta: Polytope) -> None:
@@ -170,8 +192,11 @@ class RAPSF:
             idx = np.arange(n_th) % len(self.vertices)         # pad by repetition
             params["theta"] = self.vertices[idx].T
             params["s"] = self._s[:, idx]
+            if self.enlargement is not None:
+                params["terminal_generators"] = self.enlargement.padded()
         else:
-            key = (horizon, self.vertices.tobytes())
+            version = 0 if self.enlargement is None else self.enlargement.version
+            key = (horizon, (self.vertices.tobytes(), version))
             if key not in self._compiled:
                 self._compiled = {k: c for k, c in self._compiled.items()
                                   if k[1] == key[1]}               # keep the current Θ only
@@ -185,8 +210,8 @@ class RAPSF:
         compiled object), and this controller as the ``host`` of the estimator."""
         if not self.parametric:
             raise BalustradeError(f"{self.name}: the C step takes the vertex data as "
-                                  f"parameters, which needs a CasADi target, not "
-                                  f"{self.target.name!r} (e.g. target='convex-qp')")
+                                  "parameters; build the controller with "
+                                  "vertex_data='parameters' (and target='convex-qp')")
         n_th = max(self._n_compiled, len(self.vertices))
         key = (self.N, n_th)
         if key not in self._compiled:
@@ -197,8 +222,13 @@ class RAPSF:
                                host=self)
 
     def _problem(self, horizon: int, **vertex_data: object) -> object:
+        terminal = self.terminal
+        if self.enlargement is not None:          # a parameter slot, or the current generators
+            base = self.enlargement.base or TerminalSet()
+            terminal = (base.slot(self.enlargement.capacity) if self.parametric
+                        else self.enlargement.terminal_set)
         return rapsf_problem(self.system, self.X0, self.F, self.G, self.W, self.K, horizon,
-                             terminal=self.terminal, X0_vertices=self._X0_vertices,
+                             terminal=terminal, X0_vertices=self._X0_vertices,
                              name=f"{self.name}_N{horizon}",
                              **vertex_data)
 
@@ -231,6 +261,12 @@ class RAPSF:
             self.plan = np.asarray(sol["v"], dtype=float).reshape(self.m, self.N)
             self.k_inf = 0
             info.values["objective"] = float(sol.objective)
+            if self.enlargement is not None:                       # Theorem 4.12: record
+                try:
+                    self.enlargement.record(sol["z"], sol["alpha"])
+                except BalustradeError:             # a pruning LP failed: keep the old set
+                    info.status = "enlarge_failed"
+                info.values["n_generators"] = float(self.enlargement.generators.shape[1])
             return self.K @ x + self.plan[:, 0]
         self.k_inf += 1
         if info.status == "ok":
@@ -251,6 +287,25 @@ class RAPSF:
     def _backup(self, x: np.ndarray, u_p: np.ndarray) -> np.ndarray:
         x_safe = np.where(np.isfinite(x), x, 0.0)
         return np.asarray(self.backup(x_safe, u_p, self.k), dtype=float).reshape(self.m)
+
+
+def _enlargement(enlarge: bool | TerminalEnlargement, n: int, terminal: TerminalSet | None,
+                 X0_vertices: np.ndarray | None, name: str) -> TerminalEnlargement | None:
+    """The ``enlarge`` option: ``False`` (none), ``True`` (a :class:`TerminalEnlargement`
+    over ``terminal`` with zero-dilation points when the vertices of ``𝕏₀`` are known), or
+    a user-built one (its ``n`` must match)."""
+    if terminal is not None and terminal.has_generators and enlarge is not False:
+        raise BalustradeError(f"{name}: enlarge needs an H-representation or the default as "
+                              "terminal set (the generators are recorded online)")
+    if isinstance(enlarge, TerminalEnlargement):
+        if enlarge.n != n:
+            raise BalustradeError(f"{name}: enlarge is for states of dimension {enlarge.n}, "
+                                  f"the system has n = {n}")
+        return enlarge
+    if not isinstance(enlarge, bool):
+        raise BalustradeError(f"{name}: enlarge must be a bool or a TerminalEnlargement, got "
+                              f"{type(enlarge).__name__}")
+    return TerminalEnlargement(n, terminal, X0_vertices) if enlarge else None
 
 
 def _small_vertices(X0: Polytope, max_dim: int = 6) -> np.ndarray | None:

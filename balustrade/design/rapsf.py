@@ -296,6 +296,9 @@ def check_assumption_4_11(system: object, X0: Polytope, W: Polytope, K: np.ndarr
     terminal set ``z = 0, 0 <= α <= 1`` is checked at ``α = 1`` with ``v = 0, z⁺ = 0, α⁺ = 1``
     (:func:`check_rpi` and :func:`check_constraints`)."""
     n, m, _ = check_parametric_system(system, "check_assumption_4_11")
+    if terminal is not None and terminal.has_generators:   # a hull (4.10): its own LPs
+        from balustrade.design.rapsf_enlarge import check_enlarged_terminal
+        return check_enlarged_terminal(system, X0, W, K, vertices, F, G, terminal, tol)
     if terminal is None or terminal.H_T is None:
         rpi = check_rpi(X0, system, K, vertices, W, tol=tol)
         cons = check_constraints(X0, F, G, K, tol=tol)

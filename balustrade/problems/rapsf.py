@@ -39,7 +39,7 @@ import numpy as np
 from balustrade._checks import as_matrix, check_horizon, check_instance
 from balustrade.dsl import OCP, Polytope, squared_norm
 from balustrade.dsl.synthesis import SynthesisProblem, bmat, trace
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 
 # -- the parametric model (4.6) ---------------------------------------------------------
@@ -174,10 +174,75 @@ def tube_constants(X0: Polytope, W: Polytope, system: object, K: np.ndarray,
 @dataclass(frozen=True)
 class TerminalSet:
     """``𝕏_f = {(z, α) : H_T z + h_T α <= 1}`` (4.5e); ``None`` fields mean the §4.7 default
-    ``z_N = 0, 0 <= α_N <= 1``."""
+    ``z_N = 0, 0 <= α_N <= 1``.
+
+    With generators (:meth:`from_generators`; thesis (4.10), SPEC §2.22) the set is the convex
+    hull ``co({(Z[:, g], a[g])}_g ∪ 𝕏_f)`` of the generator pairs and the base set ``𝕏_f``
+    above, imposed in (4.5) in the perspective form of SPEC §2.22:
+    ``(z_N, α_N) = Σ_g λ_g (Z_g, a_g) + (z', α')`` with ``λ >= 0``, ``λ_f >= 0``,
+    ``Σλ_g + λ_f = 1`` and ``(z', α')`` in ``λ_f 𝕏_f`` (``H_T z' + h_T α' <= λ_f 1``,
+    ``α' >= 0``; for the default ``z' = 0, 0 <= α' <= λ_f``). ``capacity`` (set by
+    :meth:`slot`) makes the generators a parameter ``terminal_generators`` of shape
+    ``(n + 1) × capacity`` (rows ``[Z; a]``; pad unused columns with ``(0, 0)``, which every
+    such set contains) so that a growing generator list does not change the compiled problem.
+    """
 
     H_T: np.ndarray | None = None
     h_T: np.ndarray | None = None
+    Z: np.ndarray | None = None
+    a: np.ndarray | None = None
+    capacity: int | None = None
+
+    @classmethod
+    def from_generators(cls, Z: np.ndarray, a: np.ndarray,
+                        base: TerminalSet | None = None) -> TerminalSet:
+        """``co({(Z[:, g], a[g])} ∪ base)``: ``Z`` is ``n × G`` (translations as columns),
+        ``a`` the ``G`` dilations (``>= 0``); ``base`` an H-representation or ``None`` (the
+        default set). Wrong shapes → :class:`~balustrade.errors.ShapeError`."""
+        Z = np.asarray(Z, dtype=float)
+        if Z.ndim != 2:
+            raise ShapeError("TerminalSet.from_generators: Z", "an n × G matrix (columns "
+                             "are the translations z_g)", Z.shape)
+        a = np.asarray(a, dtype=float)
+        if a.ndim > 2 or a.size != Z.shape[1] or (a.ndim == 2 and 1 not in a.shape):
+            raise ShapeError("TerminalSet.from_generators: a", (Z.shape[1],), a.shape)
+        a = a.reshape(-1)
+        if not (np.all(np.isfinite(Z)) and np.all(np.isfinite(a))):
+            raise NonFiniteError("TerminalSet.from_generators: Z and a must be finite")
+        if np.any(a < 0):
+            raise BalustradeError(f"TerminalSet.from_generators: dilations a must be >= 0, "
+                                  f"got min {a.min():.3g}")
+        H_T, h_T = (None, None) if base is None else (base.H_T, base.h_T)
+        if base is not None and base.has_generators:
+            raise BalustradeError("TerminalSet.from_generators: base must be an "
+                                  "H-representation or the default set, not a hull")
+        if H_T is not None and np.shape(H_T)[1] != Z.shape[0]:
+            raise ShapeError("TerminalSet.from_generators: Z", f"{np.shape(H_T)[1]} rows "
+                             "(the columns of base.H_T)", Z.shape)
+        return cls(H_T, h_T, Z, a)
+
+    @property
+    def has_generators(self) -> bool:
+        """Whether the set is a hull of generators (numeric or a parameter slot)."""
+        return self.Z is not None or self.capacity is not None
+
+    @property
+    def generators(self) -> np.ndarray:
+        """The numeric generator pairs as columns ``[Z; a]`` (``n + 1 × G``; ``G = 0``
+        without generators)."""
+        if self.Z is None:
+            n = 0 if self.H_T is None else np.shape(self.H_T)[1]
+            return np.zeros((n + 1, 0))
+        return np.vstack([self.Z, self.a[None, :]])
+
+    def slot(self, capacity: int) -> TerminalSet:
+        """The same base with ``capacity`` generators as the parameter
+        ``terminal_generators`` (the compiled form of a growing hull)."""
+        capacity = int(capacity)
+        if capacity < 1:
+            raise BalustradeError(f"TerminalSet.slot: capacity must be positive, got "
+                                  f"{capacity}")
+        return TerminalSet(self.H_T, self.h_T, None, None, capacity)
 
 
 def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W: Polytope,
@@ -265,15 +330,51 @@ def _symbolic_models(system: object, thetas: Sequence[ca.SX | ca.DM]
 
 def _terminal(ocp: OCP, zN: ca.SX, aN: ca.SX, terminal: TerminalSet | None, n: int,
               name: str) -> None:
+    if terminal is not None and terminal.has_generators:
+        _terminal_hull(ocp, zN, aN, terminal, n, name)
+        return
     if terminal is None or terminal.H_T is None:
         ocp.eq(zN, 0.0, name="terminal_center", tag="terminal")
         ocp.le(aN, 1.0, name="terminal_dilation", tag="terminal")
         return
+    H_T, h_T = _terminal_rows(terminal, n, name)
+    ocp.le(ca.mtimes(ca.DM(H_T), zN) + ca.DM(h_T) * aN, 1.0, name="terminal", tag="terminal")
+
+
+def _terminal_rows(terminal: TerminalSet, n: int, name: str) -> tuple[np.ndarray, np.ndarray]:
     H_T = as_matrix(terminal.H_T, f"{name}: terminal H_T", (None, n))
     h_T = np.asarray(terminal.h_T, dtype=float).reshape(-1)
     if h_T.size != H_T.shape[0]:
         raise ShapeError(f"{name}: terminal h_T", (H_T.shape[0],), h_T.shape)
-    ocp.le(ca.mtimes(ca.DM(H_T), zN) + ca.DM(h_T) * aN, 1.0, name="terminal", tag="terminal")
+    return H_T, h_T
+
+
+def _terminal_hull(ocp: OCP, zN: ca.SX, aN: ca.SX, terminal: TerminalSet, n: int,
+                   name: str) -> None:
+    """(4.5e) with the hull of generators and the base set, perspective form of SPEC §2.22."""
+    if terminal.capacity is not None:
+        gens = ocp.parameter("terminal_generators", n + 1, terminal.capacity)
+        count = terminal.capacity
+    else:
+        V = terminal.generators
+        if V.shape[0] != n + 1:
+            raise ShapeError(f"{name}: terminal generators Z", f"{n} rows (the state "
+                             "dimension)", (V.shape[0] - 1, V.shape[1]))
+        gens, count = ca.DM(V), V.shape[1]
+    lam = ocp.variable("terminal_lambda", count, 1, lb=0.0)
+    lam_f = ocp.variable("terminal_lambda_base", 1, 1, lb=0.0)
+    a_b = ocp.variable("terminal_alpha_base", 1, 1, lb=0.0)
+    if terminal.H_T is None:                                  # λ_f·{z = 0, 0 <= α <= 1}
+        z_b = ca.DM.zeros(n, 1)
+        ocp.le(a_b - lam_f, 0.0, name="terminal_base", tag="terminal")
+    else:                                                     # λ_f·{H_T z + h_T α <= 1}
+        H_T, h_T = _terminal_rows(terminal, n, name)
+        z_b = ocp.variable("terminal_z_base", n, 1)
+        ocp.le(ca.mtimes(ca.DM(H_T), z_b) + ca.DM(h_T) * a_b - lam_f, 0.0,
+               name="terminal_base", tag="terminal")
+    hull = ca.mtimes(gens, lam) + ca.vertcat(z_b, a_b)
+    ocp.eq(ca.vertcat(zN, aN) - hull, 0.0, name="terminal_hull", tag="terminal")
+    ocp.eq(ca.sum1(lam) + lam_f, 1.0, name="terminal_weights", tag="terminal")
 
 
 # -- the robust gain LMI ----------------------------------------------------------------------
