@@ -167,3 +167,62 @@ def test_model_bad_input():
         chronos_cartesian(steps=0)
     with pytest.raises(BalustradeError, match="T"):
         steady_speed(1.5)
+
+
+# -- PCBF design (examples/chronos.py) ---------------------------------------------------------
+@pytest.fixture(scope="module")
+def cbf():
+    from balustrade.examples.chronos import chronos_terminal_cbf
+
+    return chronos_terminal_cbf()
+
+
+def test_steady_states_are_equilibria_of_the_frenet_model(cbf):
+    ss = cbf.steady
+    assert ss.kappa.size == 21
+    assert ss.kappa[0] == pytest.approx(0.0) and ss.kappa[-1] == pytest.approx(1 / 0.6)
+    np.testing.assert_allclose(ss.z[0], [0, 0, 1, 0, 0], atol=1e-9)
+    # at the arcs' curvature the car yaws at ω = κ·ṡ and steers left
+    assert ss.z[-1][4] == pytest.approx(ss.kappa[-1] * (np.cos(ss.z[-1][1]) - ss.z[-1][3]
+                                                        * np.sin(ss.z[-1][1])), rel=1e-6)
+    assert ss.u[-1][1] > 0.1
+    # the cubic fits reproduce the 21 steady states used by h_f and pi_f
+    s_arc = 2.0 + 0.3 * np.pi
+    x = np.r_[s_arc, ss.z[-1]]
+    assert cbf.V(x) < 1e-8
+    np.testing.assert_allclose(cbf.policy(x), ss.u[-1], atol=1e-4)  # cubic fit: ~5e-6
+
+
+def test_terminal_cbf_invariance_check(cbf):
+    from dataclasses import replace
+
+    from balustrade.examples.chronos import check_invariance
+
+    rep = check_invariance(cbf, starts=3, seed=5)
+    assert rep.failed == 0 and rep.solved == 3 * 11
+    assert rep.ok, rep
+    # the check finds a counterexample when the ellipsoid is too large
+    big = replace(cbf, P=cbf.P / 4.0)
+    bad = check_invariance(big, starts=3, seed=5)
+    assert bad.constraints > 0 and not bad.ok
+
+
+def test_pcbf_on_and_off_the_track():
+    from balustrade.backends import compile
+    from balustrade.examples.chronos import chronos_design
+    from balustrade.problems.pcbf import pcbf_slack_problem
+
+    d = chronos_design(N=20)
+    assert d.N == 20 and d.deltas[3] == pytest.approx(3e-4) and d.alpha_f == 10.0
+    prob = compile(pcbf_slack_problem(d.system, d.X, d.U, d.cbf, d.N, d.deltas,
+                                      alpha_f=d.alpha_f, slack_norm=1), "exact")
+    on = prob.solve({"x0": np.array([0.5, 0.0, 0.0, 1.0, 0.0, 0.0])})
+    assert on.success and on.objective <= 1e-6
+    off = prob.solve({"x0": np.array([0.5, 0.3, 0.0, 1.0, 0.0, 0.0])})
+    assert off.success and off.objective > 0.05  # starts outside X: xi_0 >= 0.086
+
+
+def test_chronos_is_a_sampling_problem():
+    from balustrade.learn.sampler import PROBLEMS
+
+    assert PROBLEMS["chronos"] == "balustrade.examples.chronos:chronos_problems"

@@ -76,7 +76,8 @@ def compile_pair(ocp: object, target: Target | str) -> tuple[Compiled, Compiled 
 #: sampling problems by name: ``"package.module:function"`` paths returning
 #: :class:`PCBFProblems` (the examples live outside :mod:`balustrade.learn`, which defines no
 #: model; :func:`balustrade.examples.pendulum.pendulum_problems` is the pendulum of Section 7.5)
-PROBLEMS: dict[str, str] = {"pendulum": "balustrade.examples.pendulum:pendulum_problems"}
+PROBLEMS: dict[str, str] = {"pendulum": "balustrade.examples.pendulum:pendulum_problems",
+                            "chronos": "balustrade.examples.chronos:chronos_problems"}
 
 
 @dataclass(frozen=True)
