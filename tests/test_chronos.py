@@ -226,3 +226,25 @@ def test_chronos_is_a_sampling_problem():
     from balustrade.learn.sampler import PROBLEMS
 
     assert PROBLEMS["chronos"] == "balustrade.examples.chronos:chronos_problems"
+
+
+def test_oval_straights_are_axis_aligned():
+    tr = oval()
+    _, _, psi = tr.centre(np.array([0.5, 1.0, 1.5]))
+    np.testing.assert_allclose(psi, 0.0, atol=1e-7)
+    _, _, psi = tr.centre(np.array([2.0 + np.pi * 0.6 + 1.0]))
+    np.testing.assert_allclose(psi, np.pi, atol=1e-7)
+
+
+# -- reproduction --------------------------------------------------------------------------------
+def test_scenario_one_leaves_the_track_without_filter():
+    from balustrade.reproduce import registry
+    from balustrade.reproduce.chronos import SCENARIOS, closed_loop, violation_sites
+
+    assert "chronos" in registry()
+    run = closed_loop(oval(), SCENARIOS["p-controller"], max_steps=150)
+    sites = violation_sites(run)
+    assert sites and 2.0 < sites[0]["s"] < 3.0  # at the entry of the first curve
+    assert run["c_max"].max() > 0.01
+    # the controller alone on a straight stays inside
+    assert run["c_max"][:50].max() < 0

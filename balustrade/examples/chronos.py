@@ -27,6 +27,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -364,6 +365,48 @@ def chronos_problems(target: str = "fast-sqp", N: int = 50, slack_norm: int = 1
     return PCBFProblems(slack, extended, d.sample_box, 1.0, slack_cold, extended_cold)
 
 
+def pcbf_states(design: ChronosDesign, n: int, seed: int = 0) -> np.ndarray:
+    """``n`` test states for timing (2.24): random ``s``, lateral offset and heading up to
+    the track edge, speed 0.5–2 m/s, small ``v_y`` and ``ω``."""
+    rng = np.random.default_rng(seed)
+    lo = np.array([0.0, -0.22, -0.4, 0.5, -0.1, -1.0])
+    hi = np.array([design.track.length, 0.22, 0.4, 2.0, 0.1, 1.0])
+    return lo + (hi - lo) * rng.uniform(size=(as_count(n, "pcbf_states: n", low=1), 6))
+
+
+def time_pcbf(targets: tuple[str, ...] = ("exact", "fast-sqp", "structured-sqp",
+                                          "long-horizon"),
+              n_states: int = 5, design: ChronosDesign | None = None, seed: int = 0
+              ) -> dict[str, dict]:
+    """Wall time of one cold solve of the PCBF (2.24) (``N = 50``) per target on
+    :func:`pcbf_states`: median, max, statuses and objectives (the problem is nonconvex:
+    targets may stop in different local minima — compare the objectives). A target that
+    refuses the problem is reported with the reason."""
+    d = chronos_design() if design is None else design
+    ocp = pcbf_slack_problem(d.system, d.X, d.U, d.cbf, d.N, d.deltas, alpha_f=d.alpha_f,
+                             slack_norm=1)
+    states = pcbf_states(d, n_states, seed)
+    out: dict[str, dict] = {}
+    for name in targets:
+        try:
+            prob = compile(ocp, name)
+        except BalustradeError as exc:
+            out[name] = {"refused": str(exc)}
+            continue
+        times, statuses, objectives = [], [], []
+        for x in states:
+            t0 = time.perf_counter()
+            sol = prob.solve({"x0": x})
+            times.append(time.perf_counter() - t0)
+            statuses.append(str(sol.status))
+            objectives.append(float(sol.objective) if sol.success else float("nan"))
+        out[name] = {"median_s": float(np.median(times)), "max_s": float(np.max(times)),
+                     "all_ok": all(s == "optimal" for s in statuses), "statuses": statuses,
+                     "objectives": objectives}
+    return out
+
+
 __all__ = ["ChronosDesign", "ChronosTerminalCBF", "InvarianceReport", "SteadyStates",
            "check_invariance", "chronos_design", "chronos_problems", "chronos_terminal_cbf",
-           "random_states_in", "steady_states", "terminal_cbf_sdp"]
+           "pcbf_states", "random_states_in", "steady_states", "terminal_cbf_sdp",
+           "time_pcbf"]

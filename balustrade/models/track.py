@@ -216,13 +216,17 @@ def oval(straight: float = 2.0, radius: float = 0.6, width: float = 0.5,
          transition: float = 0.2) -> Track:
     """The SPEC §3.8 default track: two straights of ``straight`` m and two half circles
     of radius ``radius`` (counter-clockwise, ``κ = 1/radius``), width ``width``, curvature
-    ramps of ``transition`` m. ``s = 0`` is the start of the lower straight, heading +x."""
+    ramps of ``transition`` m. ``s = 0`` is the start of the lower straight (mid-ramp), whose
+    heading after the ramp is +x."""
     straight = as_scalar(straight, "oval: straight", low=0.0, low_open=True)
     radius = as_scalar(radius, "oval: radius", low=0.0, low_open=True)
     arc = np.pi * radius
+    # s = 0 lies mid-ramp: start with heading −∫_0^{t/2} κ ds = −t/(8r), so that the straights
+    # (after the ramp) are parallel to the x axis
     return Track(np.array([straight, arc, straight, arc]),
                  np.array([0.0, 1.0 / radius, 0.0, 1.0 / radius]), width=width,
-                 transition=transition, start=(-straight / 2, -radius, 0.0), name="oval")
+                 transition=transition, start=(-straight / 2, -radius, -transition / (8 * radius)),
+                 name="oval")
 
 
 def plot_track(ax: object, track: Track, trajectories: object = (), color_by: object = None,
