@@ -248,3 +248,27 @@ def test_scenario_one_leaves_the_track_without_filter():
     assert run["c_max"].max() > 0.01
     # the controller alone on a straight stays inside
     assert run["c_max"][:50].max() < 0
+
+
+def test_grid_filter_has_the_thesis_grid_and_a_periodic_h():
+    from balustrade.learn.train import MLPModel
+    from balustrade.reproduce.chronos import grid_filter, h_function
+
+    rng = np.random.default_rng(0)
+    widths = [6, 32, 32, 32, 32, 1]
+    model = MLPModel([rng.standard_normal((o, i)) * 0.3 for i, o in zip(widths, widths[1:])],
+                     [rng.standard_normal(o) * 0.1 for o in widths[1:]], np.zeros(6),
+                     np.ones(6), output_transform="cbrt")
+    tr = oval()
+    h = h_function(model, tr)
+    x = np.array([1.3, 0.1, -0.2, 1.2, 0.05, 0.3])
+    assert float(h(x)) == pytest.approx(float(model(x[None])[0]), rel=1e-9)
+    assert float(h(x + np.r_[tr.length, 0, 0, 0, 0, 0])) == pytest.approx(float(h(x)),
+                                                                           rel=1e-9)
+    flt = grid_filter(h, tr)
+    assert flt.rho == 0.9
+    assert len(flt.offsets) == 11 * 5  # ΔT = 0.1 within ±0.5, Δδ = 0.05 within ±0.1
+    assert np.max(np.abs(flt.offsets), axis=0) == pytest.approx([0.5, 0.1])
+    u, info = flt.step(x, np.array([0.3, 0.0]))
+    assert np.all(np.abs(u - np.array([0.3, 0.0])) <= [0.5 + 1e-12, 0.1 + 1e-12])
+    assert 0.0 <= u[0] <= 1.0 and abs(u[1]) <= 0.4
