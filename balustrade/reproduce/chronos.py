@@ -50,6 +50,8 @@ K_P, T_CMD, LOOKAHEAD = 1.0, 0.3, 0.2
 HALF_WIDTH, SPACING, RHO = (0.5, 0.1), (0.1, 0.05), 0.9
 #: Algorithm 7.6 plan: goal points, chunks (of 4 goals) sampled per call, label cap
 SAMPLE_GOALS, SAMPLE_SHARDS, CAP = 4096, 16, 5.0
+#: std of the estimation noise on (e, μ) in the robustness variant
+NOISE = 0.01
 TOL = 1e-3
 
 Controller = Callable[[np.ndarray], np.ndarray]
@@ -273,8 +275,16 @@ def _filtered(out: Path, track: Track, metrics: dict) -> dict[str, dict]:
     metrics["training"] = {"widths": [32] * 4, "epochs": 300, "lr": 1e-3, "batch_size": 64,
                            "transform": "cbrt", "val_mse": float(val[-1]) if val else None}
     h_hat = h_function(model, track)
-    return {name: closed_loop(track, ctrl, grid_filter(h_hat, track))
+    runs = {name: closed_loop(track, ctrl, grid_filter(h_hat, track))
             for name, ctrl in SCENARIOS.items()}
+    # robustness variants of scenario 1: estimation noise (1 cm, 0.01 rad) and a one-step
+    # input delay
+    ctrl = SCENARIOS["p-controller"]
+    runs["p-controller+noise"] = closed_loop(track, ctrl, grid_filter(h_hat, track),
+                                             noise=NOISE)
+    runs["p-controller+delay"] = closed_loop(track, ctrl, grid_filter(h_hat, track),
+                                             delay=True)
+    return runs
 
 
 def run(out: Path, quick: bool = False) -> dict:
@@ -319,8 +329,9 @@ def run(out: Path, quick: bool = False) -> dict:
                                "scenarios": summary,
                                "all_within_tol": all(s["within_tol"] for s in
                                                      summary.values())}
-        figures += [_plot_runs(out, track, runs, "with Algorithm 8.7", "chronos_filtered.png"),
-                    _plot_inputs(out, runs, "chronos_filtered_inputs.png")]
+        main = {k: runs[k] for k in SCENARIOS}
+        figures += [_plot_runs(out, track, main, "with Algorithm 8.7", "chronos_filtered.png"),
+                    _plot_inputs(out, main, "chronos_filtered_inputs.png")]
     metrics["figures"] = figures
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     return metrics
