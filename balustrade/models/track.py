@@ -34,7 +34,9 @@ RESOLUTION = 2000
 
 @dataclass
 class Track:
-    """A closed (or open) track from curvature samples.
+    """A track from curvature samples, treated as closed: ``κ(s)``, the centre line and the
+    projections are periodic in ``s`` with period ``L`` (:meth:`closure` says how well the
+    samples actually close).
 
     ``lengths[j]`` (m, > 0) and ``curvatures[j]`` (1/m) describe segment ``j`` of constant
     curvature before smoothing; ``width`` is the full track width (the constraint of (8.6)
