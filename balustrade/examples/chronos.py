@@ -295,26 +295,30 @@ def check_invariance(cbf: ChronosTerminalCBF, system: System | None = None, star
     rng = np.random.default_rng(seed)
     x1 = random_states_in(cbf, starts, 1.0, rng)
     x0 = random_states_in(cbf, starts, cbf.level, rng)
-    solved = failed = 0
+    counts = [0, 0]  # NLPs solved, failed
 
-    def in_v1(x: ca.SX) -> ca.SX:
+    def worst(rows, n_rows: int, region, starts_: np.ndarray) -> tuple[float, np.ndarray]:
+        """The largest of ``rows(x)[r]`` over ``region(x) <= 0``, over all rows ``r``."""
+        best = (-np.inf, starts_[0])
+        for r in range(n_rows):
+            v, arg, ok, bad = _maximize(lambda x, r=r: rows(x)[r], region, starts_, target)
+            counts[0], counts[1] = counts[0] + ok, counts[1] + bad
+            best = max(best, (v, arg), key=lambda t: t[0])
+        return best
+
+    def v1(x: ca.SX) -> ca.SX:  # the 1-sublevel set {V <= 1}
         return cbf.V(x) - 1.0
 
-    def worst_row(rows_of):
-        nonlocal solved, failed
-        vals = []
-        for r in range(rows_of[1]):
-            v, arg, ok, bad = _maximize(lambda x, r=r: rows_of[0](x)[r],
-                                        in_v1 if rows_of[2] else cbf, rows_of[3], target)
-            solved, failed = solved + ok, failed + bad
-            vals.append((v, arg))
-        return max(vals, key=lambda t: t[0])
+    def input_rows(x: ca.SX) -> ca.SX:  # π_f(x) ∈ U as rows <= 0
+        return ca.vertcat(cbf.policy(x) - ca.DM(U.ub), ca.DM(U.lb) - cbf.policy(x))
 
-    c_val, c_arg = worst_row((lambda x: constraint_values(x, params), 6, True, x1))
-    U_rows = (lambda x: ca.vertcat(cbf.policy(x) - ca.DM(U.ub), ca.DM(U.lb) - cbf.policy(x)))
-    u_val, u_arg = worst_row((U_rows, 4, False, x0))
-    d_val, d_arg, ok, bad = _maximize(lambda x: cbf(system(x, cbf.policy(x))), cbf, x0, target)
-    solved, failed = solved + ok, failed + bad
+    def next_h(x: ca.SX) -> ca.SX:  # h_f(f(x, π_f(x)))
+        return ca.vertcat(cbf(system(x, cbf.policy(x))))
+
+    c_val, c_arg = worst(lambda x: constraint_values(x, params), 6, v1, x1)
+    u_val, u_arg = worst(input_rows, 4, cbf, x0)
+    d_val, d_arg = worst(next_h, 1, cbf, x0)
+    solved, failed = counts
     return InvarianceReport(c_val, u_val, d_val, solved, failed,
                             {"constraints": c_arg.tolist(), "inputs": u_arg.tolist(),
                              "decrease": d_arg.tolist()})
