@@ -81,9 +81,11 @@ def compile_pair(ocp: object, target: Target | str) -> tuple[Compiled, Compiled 
 #: sampling problems by name: ``"package.module:function"`` paths returning
 #: :class:`PCBFProblems` (the examples live outside :mod:`balustrade.learn`, which defines no
 #: model; :func:`balustrade.examples.pendulum.pendulum_problems` is the pendulum of Section 7.5,
-#: :func:`balustrade.examples.obstacles.obstacle_problems` the obstacle car of Section 8.3)
+#: :func:`balustrade.examples.obstacles.obstacle_problems` the obstacle car of Section 8.3,
+#: :func:`balustrade.examples.chronos.chronos_problems` the Chronos car of Section 8.4)
 PROBLEMS: dict[str, str] = {"pendulum": "balustrade.examples.pendulum:pendulum_problems",
-                            "obstacles": "balustrade.examples.obstacles:obstacle_problems"}
+                            "obstacles": "balustrade.examples.obstacles:obstacle_problems",
+                            "chronos": "balustrade.examples.chronos:chronos_problems"}
 
 
 @dataclass(frozen=True)
