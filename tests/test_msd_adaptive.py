@@ -181,7 +181,7 @@ def _seeded_run(seed: int, steps: int, d: dict) -> dict:
     theta = corners[seed % len(corners)] if seed % 2 == 0 else s.sample_theta(rng)
     ws = (rng.choice([-1.0, 1.0], (steps, 2 * d["n"])) * s.W.ub if seed % 3 != 1
           else rng.uniform(s.W.lb, s.W.ub, (steps, 2 * d["n"])))
-    ctrl, _ = M.adaptive_controller(d, enlarge=False)
+    ctrl = M.adaptive_controller(d)
     return M.closed_loop(ctrl, d, theta, ws)
 
 
