@@ -5,7 +5,8 @@
 * :class:`FixedShapeUpdate`: ``Θ_k = {H_θ θ <= h_{θ,k}}`` with the rows of Θ₀ and
   ``h_{θ,k}[r] = max {H_θ[r] θ : θ ∈ Θ_{k−1} ∩ Δ_k}``, one LP per row;
   :class:`BoxUpdate` is the axis-aligned box (``2q`` LPs, the thesis' "2p" is a typo) used
-  in the §4.7 example;
+  in the §4.7 example; the row LPs share one feasible set and are solved side by side in one
+  HiGHS run (:func:`~balustrade.backends.lp.solve_lps_joint`);
 * :class:`HypercubeUpdate`: ``Θ_k = B_∞(θ̄_k, η_k)`` with the nesting-preserving centre of
   SPEC §2.19 (:func:`hypercube_centre`); ``centre="naive"`` centres the cube on the bounding
   box instead, which can leave Θ_{k−1} — the base loop then refuses it (not nested).
@@ -16,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from balustrade._checks import as_scalar
-from balustrade.backends.lp import is_feasible, solve_lp, solve_lps
+from balustrade.backends.lp import is_feasible, solve_lp, solve_lps_joint
 from balustrade.backends.solution import Status
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.system_parametric import ParametricLinearSystem
@@ -94,7 +95,7 @@ class FixedShapeUpdate(SetEstimator):
                         data: Transition) -> tuple[np.ndarray | None, Proposal | None]:
         """``max H_θ[r] θ`` over ``Θ_{k−1} ∩ Δ_k`` for every row of Θ₀ (or a refusal)."""
         both = data.delta.intersect(Theta_prev)
-        results = solve_lps(self.Theta0.H, both.H, both.h)
+        results = solve_lps_joint(self.Theta0.H, both.H, both.h)
         last = results[-1]
         if last.status is Status.INFEASIBLE:
             return None, _falsified(len(results))
@@ -183,7 +184,7 @@ class HypercubeUpdate(SetEstimator):
         prev = require_box(Theta_prev, self.name)
         both = data.delta.intersect(prev)
         q = self.system.q
-        results = solve_lps(np.vstack([np.eye(q), -np.eye(q)]), both.H, both.h)
+        results = solve_lps_joint(np.vstack([np.eye(q), -np.eye(q)]), both.H, both.h)
         lps, last = len(results), results[-1]
         if last.status is Status.INFEASIBLE:
             return _falsified(lps)
