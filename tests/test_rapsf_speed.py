@@ -79,6 +79,7 @@ def _loop(toy, estimator_cls, old: bool, monkeypatch, steps=25, target="fast-con
     with monkeypatch.context() as mp:
         if old:
             mp.setattr(updates, "solve_lps_joint", solve_lps)  # one warm-started run per row
+            mp.setattr(updates, "_box_inside", lambda *a: False)  # LPs on every step
         ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=estimator_cls(sys_, W, Theta0),
                      target=target)
         if old:
@@ -94,7 +95,8 @@ def _loop(toy, estimator_cls, old: bool, monkeypatch, steps=25, target="fast-con
             boxes.append(np.r_[ctrl.Theta.lb, ctrl.Theta.ub])
             s.append(ctrl._s.copy())
             x = A @ x + B @ u + 0.004 * rng.uniform(-1, 1, 2)
-    return np.array(us), np.array(boxes), np.array(s)
+        no_lp = sum(r.lps == 0 for r in ctrl.estimator.history)
+    return np.array(us), np.array(boxes), np.array(s), no_lp
 
 
 @pytest.mark.parametrize("estimator_cls", [BoxUpdate, HypercubeUpdate])
@@ -103,9 +105,33 @@ def test_fast_path_equals_old_path_on_a_closed_loop(toy, estimator_cls, monkeypa
     if estimator_cls is HypercubeUpdate:                       # Θ₀ must be a cube
         sys_, _, W, F, G, K, X0 = toy
         toy_ = (sys_, Box([0.5, 0.0], [1.0, 0.5], name="Theta0"), W, F, G, K, X0)
-    u_new, box_new, s_new = _loop(toy_, estimator_cls, False, monkeypatch)
-    u_old, box_old, s_old = _loop(toy_, estimator_cls, True, monkeypatch)
+    u_new, box_new, s_new, no_lp_new = _loop(toy_, estimator_cls, False, monkeypatch, 50)
+    u_old, box_old, s_old, no_lp_old = _loop(toy_, estimator_cls, True, monkeypatch, 50)
     assert len(np.unique(box_new, axis=0)) > 3                  # Θ_k does change
+    assert no_lp_old == 0
+    if estimator_cls is BoxUpdate:                              # steps with Θ_{k−1} ⊆ Δ_k
+        assert no_lp_new > 0
     np.testing.assert_allclose(box_new, box_old, rtol=0, atol=1e-12)
     np.testing.assert_allclose(s_new, s_old, rtol=0, atol=1e-12)
     np.testing.assert_allclose(u_new, u_old, rtol=0, atol=1e-8)
+
+
+def test_uninformative_transition_keeps_the_set_without_lps(toy):
+    sys_, Theta0, W, F, G, K, X0 = toy
+    est = BoxUpdate(sys_, W, Theta0)
+    x, u = np.array([0.0, 0.0]), np.array([0.0])
+    same = est.update(x, u, x)                      # x⁺ = 0 for every θ: Δ_k ⊇ Θ₀
+    assert same is Theta0 and est.history[-1].lps == 0
+    assert est.history[-1].status == "updated"
+    A, B = model_matrices(sys_, np.array([1.0, 0.25]))
+    x = np.array([0.9, 0.2])
+    cut = est.update(x, u + 1.0, A @ x + B @ (u + 1.0))  # informative: 2q LPs, a smaller box
+    assert est.history[-1].lps == 2 * sys_.q
+    assert np.prod(cut.ub - cut.lb) < np.prod(Theta0.ub - Theta0.lb)
+    assert cut.contains(np.array([1.0, 0.25]), tol=1e-9)
+    ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=BoxUpdate(sys_, W, Theta0),
+                 target="fast-convex")
+    ctrl.step(np.zeros(2), np.zeros(1))
+    s_before = ctrl._s
+    ctrl.step(np.zeros(2), np.zeros(1))                    # x⁺ = 0 again: nothing learned
+    assert ctrl.Theta is Theta0 and ctrl._s is s_before     # no recomputation of s

@@ -156,6 +156,8 @@ class RAPSF:
         if new is None or (history and str(getattr(history[-1], "status", "")) == "falsified"):
             self.falsified = True                   # Δ_k ∩ Θ_{k−1} = ∅: no θ explains x_k
             return
+        if new is self.Theta:                       # the same set: Θ_k, s_jr unchanged
+            return
         check_instance(new, Polytope, f"{self.name}: estimator.update result")
         if not np.all(self.Theta.contains_many(np.atleast_2d(new.vertices()), tol=1e-9)):
             info.status = "theta_not_nested"
