@@ -1,7 +1,8 @@
 """Per-step time of Algorithm 4.1 (the robust adaptive predictive safety filter, thesis
 Chapter 4, SPEC §2.21) on the mass–spring–damper chain of §4.7 (SPEC §3.2), the parameter-set
-update included (the box update :class:`~balustrade.estimate.BoxUpdate`, ``2q`` LPs, and the
-constants ``s_jr`` of the new ``Θ_k``).
+update included (the box update :class:`~balustrade.estimate.BoxUpdate`: ``2q`` LPs in one
+HiGHS run on the ``update_lp_steps`` steps whose transition cuts ``Θ_{k−1}``, none on the
+others, where ``Θ_{k−1} ⊆ Δ_k``; and the constants ``s_jr`` of a new ``Θ_k``).
 
 Paths, timed interleaved on the same states in one run (blocks of 10 steps, path after path,
 :func:`benchmarks._timing.interleaved`), each one ``controller.step`` per state:
@@ -229,7 +230,8 @@ def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
             row.update(baseline=BASELINE, ratio=t_base / times[k],
                        max_du_vs_fast_convex=float(np.max(np.abs(np.array(loop.applied)
                                                                  - ref))),
-                       fallbacks=loop.fallbacks)
+                       fallbacks=loop.fallbacks,
+                       update_lp_steps=sum(r.lps > 0 for r in paths[k].estimator.history))
         row.update(goal_s=GOAL_S[n], vs_thesis=THESIS_S[n] / times[k], steps=steps - 1,
                    n_vertices=int(len(d["setup"].Theta0.vertices())),
                    tube_rows=int(d["X0"].H.shape[0]), theta_changes=changes)

@@ -26,6 +26,11 @@ returns ``None`` or records the status ``"falsified"`` as the last entry of its 
 (:class:`balustrade.estimate.SetEstimator`) has falsified every model in ``Θ``: the status
 ``"model_falsified"`` is recorded and the backup policy is applied from then on.
 
+An estimator that returns the current set itself (e.g. :class:`~balustrade.estimate.BoxUpdate`
+when ``Θ_{k−1} ⊆ Δ_k``) costs nothing more: ``Θ_k`` and ``s_jr`` are kept. With the vertices
+of ``𝕏₀`` enumerated (small ``n``), ``s_jr`` of a new ``Θ_k`` is one tensor product over the
+affine form of ``A_cl(θ)``.
+
 Vertex data (``vertex_data``): with ``"parameters"`` (the default) the vertices of ``Θ_k``
 and the constants ``s_jr`` are parameters of one compiled problem per horizon on every target
 — CasADi, and the convex targets (``"cvxpy"``, ``"fast-convex"``, ``"auto"``), whose lowering
