@@ -1,7 +1,8 @@
 """Per-step time of Algorithm 4.1 (the robust adaptive predictive safety filter, thesis
 Chapter 4, SPEC §2.21) on the mass–spring–damper chain of §4.7 (SPEC §3.2), the parameter-set
-update included (the box update :class:`~balustrade.estimate.BoxUpdate`, ``2q`` LPs, and the
-constants ``s_jr`` of the new ``Θ_k``).
+update included (the box update :class:`~balustrade.estimate.BoxUpdate`: ``2q`` LPs in one
+HiGHS run on the ``update_lp_steps`` steps whose transition cuts ``Θ_{k−1}``, none on the
+others, where ``Θ_{k−1} ⊆ Δ_k``; and the constants ``s_jr`` of a new ``Θ_k``).
 
 Paths, timed interleaved on the same states in one run (blocks of 10 steps, path after path,
 :func:`benchmarks._timing.interleaved`), each one ``controller.step`` per state:
@@ -30,7 +31,9 @@ masses, 340 ms for 8; the issue's goal: 1 ms and 20 ms in Python. 8 masses (``2�
 vertices of ``Θ₀``; 20 steps, without the recompiling path) are run only when the design
 (robust LMI over 128 vertices, contractive 𝕏₀ in 16 dimensions) finishes within
 :data:`DESIGN_BUDGET_S`; else the row says "not measured" and why. ``quick``: 3 masses,
-30 steps; the full run: 3 masses, 150 steps (the thesis' run length).
+30 steps; the full run: 3 masses, 150 steps (the thesis' run length). :func:`step_split`
+adds where the ``fast-convex`` step's time goes (estimator update, ``s_jr``, QP solver,
+backend, bookkeeping).
 """
 
 from __future__ import annotations
@@ -229,7 +232,8 @@ def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
             row.update(baseline=BASELINE, ratio=t_base / times[k],
                        max_du_vs_fast_convex=float(np.max(np.abs(np.array(loop.applied)
                                                                  - ref))),
-                       fallbacks=loop.fallbacks)
+                       fallbacks=loop.fallbacks,
+                       update_lp_steps=sum(r.lps > 0 for r in paths[k].estimator.history))
         row.update(goal_s=GOAL_S[n], vs_thesis=THESIS_S[n] / times[k], steps=steps - 1,
                    n_vertices=int(len(d["setup"].Theta0.vertices())),
                    tube_rows=int(d["X0"].H.shape[0]), theta_changes=changes)
@@ -237,8 +241,56 @@ def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
     return rows
 
 
+def step_split(d: dict, steps: int, target: str = "fast-convex") -> list[dict]:
+    """Where one ``controller.step`` of the parametric path spends its time, per step:
+    the estimator's update (nonfalsified set, support LPs, records), the new vertices and
+    ``s_jr`` of ``Θ_k`` (``_set_theta``, only on steps where ``Θ_k`` changed), the solver
+    engine's run (the QP solver's update and solve) and the rest of the backend's ``solve``
+    (parameter packing, ``q``/``b``/``A(p)``, the :class:`~balustrade.backends.Solution`),
+    and the remainder of the step (Algorithm 4.1's bookkeeping, ``StepInfo``). Each part is
+    timed by wrapping the controller's own bound methods (instance attributes, nothing else
+    is touched); ``mean_s`` is the mean over all steps (a part not run on a step counts 0)."""
+    ctrl = _controller(d, target, "parameters")
+    loop = Loop(d, ctrl.step, steps)
+    loop(0)                                                   # warm-up: compiles
+    acc: dict[str, float] = {}
+
+    def timed(fn, part):
+        def call(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                acc[part] = acc.get(part, 0.0) + time.perf_counter() - t0
+        return call
+
+    ctrl.estimator.update = timed(ctrl.estimator.update, "estimator update")
+    ctrl._set_theta = timed(ctrl._set_theta, "vertices and s of a new Θ_k")
+    for compiled in ctrl._compiled.values():
+        compiled.solve = timed(compiled.solve, "backend solve")
+        compiled.engine.run = timed(compiled.engine.run, "solver engine run")
+    parts = ["estimator update", "vertices and s of a new Θ_k", "solver engine run",
+             "backend solve, rest", "step, rest"]
+    per: dict[str, list[float]] = {k: [] for k in ["step", *parts]}
+    for k in range(1, steps):
+        acc.clear()
+        loop(k)
+        total = loop.times[-1]
+        acc["backend solve, rest"] = acc.get("backend solve", 0.0) - acc.get(
+            "solver engine run", 0.0)
+        acc["step, rest"] = total - sum(acc.get(p, 0.0) for p in parts[:2]) - acc.get(
+            "backend solve", 0.0)
+        per["step"].append(total)
+        for p in parts:
+            per[p].append(acc.get(p, 0.0))
+    return [{"name": f"rapsf {d['n']} masses Alg 4.1 step split ({target}): {p}",
+             "median_s": float(np.median(v)), "mean_s": float(np.mean(v)),
+             "steps": steps - 1} for p, v in per.items()]
+
+
 def run(quick: bool = False) -> list[dict]:
-    rows = bench_size(design(3), 30 if quick else 150)
+    d3 = design(3)
+    rows = bench_size(d3, 30 if quick else 150) + step_split(d3, 30 if quick else 150)
     if quick:
         return rows
     d8, why = design_within(8, DESIGN_BUDGET_S)

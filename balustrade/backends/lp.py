@@ -6,8 +6,12 @@ dimension) variables; they name no solver (issue #13 §1), so the solver lives h
 objectives over one feasible set with one ``highspy`` model (set up once, only the cost
 changes, the simplex warm-starts from the previous basis), about 5x faster than as many
 ``linprog`` calls for the ``2q`` LPs of a box update (falls back to ``linprog`` without
-``highspy``). Statuses are the backends' one :class:`~balustrade.backends.solution.Status`; a
-solve that is not optimal is never given a value.
+``highspy``). :func:`solve_lps_joint` returns the same values from one HiGHS run: the ``k``
+LPs side by side as one block-diagonal LP in ``k`` copies of θ (separable, so each copy is
+optimal for its own row); one run costs about half of ``k`` warm-started ones (HiGHS' fixed
+cost per run dominates LPs in a few variables). Statuses are the backends' one
+:class:`~balustrade.backends.solution.Status`; a solve that is not optimal is never given a
+value.
 """
 
 from __future__ import annotations
@@ -110,6 +114,50 @@ def solve_lps(C: np.ndarray, H: np.ndarray, h: np.ndarray,
     return out
 
 
+def solve_lps_joint(C: np.ndarray, H: np.ndarray, h: np.ndarray,
+                    maximize: bool = True) -> list[LPResult]:
+    """:func:`solve_lps` in one HiGHS run: ``max Σ_i C[i]ᵀθ_i`` s.t. ``Hθ_i <= h`` for every
+    ``i`` (block diagonal, separable: the optimum is the sum of the single optima and every
+    ``θ_i`` is a maximiser of its own LP). All optimal: one result per row of ``C``, as
+    :func:`solve_lps` (values equal up to rounding). The set empty: one ``INFEASIBLE`` result
+    (as :func:`solve_lps`, which stops at the first row). Any other outcome (an unbounded
+    row, a verdict HiGHS could not reach) is decided row by row by :func:`solve_lps`."""
+    C = np.atleast_2d(np.asarray(C, dtype=float))
+    try:
+        import highspy
+    except ImportError:  # pragma: no cover - highspy ships with the test environment
+        highspy = None
+    if highspy is None or H.shape[0] == 0:
+        return solve_lps(C, H, h, maximize)
+    k, (m, n) = C.shape[0], H.shape
+    solver = _highs(highspy)
+    lp = highspy.HighsLp()
+    lp.num_col_, lp.num_row_ = k * n, k * m
+    lp.col_cost_ = C.ravel()
+    lp.col_lower_ = np.full(k * n, -highspy.kHighsInf)
+    lp.col_upper_ = np.full(k * n, highspy.kHighsInf)
+    lp.row_lower_ = np.full(k * m, -highspy.kHighsInf)
+    lp.row_upper_ = np.tile(np.asarray(h, dtype=float), k)
+    lp.sense_ = highspy.ObjSense.kMaximize if maximize else highspy.ObjSense.kMinimize
+    A = lp.a_matrix_
+    A.format_ = highspy.MatrixFormat.kRowwise
+    A.start_ = np.arange(0, k * m * n + 1, n, dtype=np.int32)
+    A.index_ = (np.arange(k, dtype=np.int32)[:, None] * n
+                + np.tile(np.arange(n, dtype=np.int32), m)[None, :]).ravel()
+    A.value_ = np.tile(np.ascontiguousarray(H, dtype=float).ravel(), k)
+    lp.a_matrix_ = A
+    solver.clearModel()
+    solver.passModel(lp)
+    solver.run()
+    status = _HIGHS_STATUS.get(str(solver.getModelStatus()).rsplit(".", 1)[-1], Status.FAILED)
+    if status is Status.INFEASIBLE:
+        return [LPResult(status, float("nan"), None)]
+    if status is not Status.OPTIMAL:
+        return solve_lps(C, H, h, maximize)
+    X = np.asarray(solver.getSolution().col_value, dtype=float).reshape(k, n)
+    return [LPResult(status, float(c @ x), x) for c, x in zip(C, X, strict=True)]
+
+
 #: HiGHS model statuses (by name) -> Status; everything else is FAILED
 _HIGHS_STATUS = {"kOptimal": Status.OPTIMAL, "kInfeasible": Status.INFEASIBLE,
                  "kUnbounded": Status.UNBOUNDED, "kIterationLimit": Status.MAX_ITERATIONS}
@@ -154,4 +202,4 @@ def is_feasible(H: np.ndarray, h: np.ndarray) -> Status:
     return solve_lps(np.zeros((1, H.shape[1])), H, h)[0].status
 
 
-__all__ = ["LPResult", "is_feasible", "solve_lp", "solve_lps"]
+__all__ = ["LPResult", "is_feasible", "solve_lp", "solve_lps", "solve_lps_joint"]

@@ -26,6 +26,11 @@ returns ``None`` or records the status ``"falsified"`` as the last entry of its 
 (:class:`balustrade.estimate.SetEstimator`) has falsified every model in ``Θ``: the status
 ``"model_falsified"`` is recorded and the backup policy is applied from then on.
 
+An estimator that returns the current set itself (e.g. :class:`~balustrade.estimate.BoxUpdate`
+when ``Θ_{k−1} ⊆ Δ_k``) costs nothing more: ``Θ_k`` and ``s_jr`` are kept. With the vertices
+of ``𝕏₀`` enumerated (small ``n``), ``s_jr`` of a new ``Θ_k`` is one tensor product over the
+affine form of ``A_cl(θ)``.
+
 Vertex data (``vertex_data``): with ``"parameters"`` (the default) the vertices of ``Θ_k``
 and the constants ``s_jr`` are parameters of one compiled problem per horizon on every target
 — CasADi, and the convex targets (``"cvxpy"``, ``"fast-convex"``, ``"auto"``), whose lowering
@@ -54,6 +59,7 @@ from balustrade.problems.rapsf import (
     rapsf_problem,
     s_constants,
     tube_constants,
+    unit_polytope,
 )
 
 Backup = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
@@ -110,6 +116,7 @@ class RAPSF:
         self.parametric = vertex_data == "parameters"
         self._n_compiled = len(Theta0.vertices())
         self._X0_vertices = _small_vertices(X0)
+        self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
         self._compiled: dict = {}
         if terminal is None or terminal.H_T is None:
             self._check_default_terminal(tol)
@@ -160,7 +167,11 @@ class RAPSF:
     def _set_theta(self, Theta: Polytope) -> None:
         self.Theta = Theta
         self.vertices = np.atleast_2d(Theta.vertices())
-        self._s = s_constants(self.X0, self.system, self.K, self.vertices, self._X0_vertices)
+        if self._s_affine is None:
+            self._s = s_constants(self.X0, self.system, self.K, self.vertices,
+                                  self._X0_vertices)
+        else:
+            self._s = _s_from_affine(self._s_affine, self.vertices)
 
     def _update_theta(self, x: np.ndarray, info: StepInfo) -> None:
         """Line 4 of Algorithm 4.1 with the nesting check of Assumption 4.2."""
@@ -173,6 +184,8 @@ class RAPSF:
         history = getattr(self.estimator, "history", None)
         if new is None or (history and str(getattr(history[-1], "status", "")) == "falsified"):
             self.falsified = True                   # Δ_k ∩ Θ_{k−1} = ∅: no θ explains x_k
+            return
+        if new is self.Theta:                       # the same set: Θ_k, s_jr unchanged
             return
         check_instance(new, Polytope, f"{self.name}: estimator.update result")
         if not np.all(self.Theta.contains_many(np.atleast_2d(new.vertices()), tol=1e-9)):
@@ -317,6 +330,30 @@ def _small_vertices(X0: Polytope, max_dim: int = 6) -> np.ndarray | None:
         return np.atleast_2d(X0.vertices())
     except BalustradeError:
         return None
+
+
+def _s_affine(system: object, X0: Polytope, K: np.ndarray,
+              X0_vertices: np.ndarray | None) -> np.ndarray | None:
+    """``T[i] = H_X A_cl,i V_Xᵀ`` for ``A_cl(θ) = A_cl,0 + Σ_i θ_i A_cl,i`` (``A_cl,i = A_i +
+    B_i K``, (4.6) is affine in θ) and the enumerated vertices ``V_X`` of ``𝕏₀``, stacked
+    ``(q + 1, n_X, n_v)``: then ``s_jr = max_v (T[0] + Σ_i θ^j_i T[i])_rv`` (SPEC §2.20) is
+    one small tensor product per new ``Θ_k`` (:func:`_s_from_affine`) instead of
+    :func:`~balustrade.problems.rapsf.s_constants`' model matrices per vertex. ``None``
+    without enumerated vertices (then ``s_constants`` solves its LPs)."""
+    if X0_vertices is None:
+        return None
+    HX = unit_polytope(X0, "rapsf")
+    A0, B0 = (np.asarray(M, dtype=float) for M in (system.A0, system.B0))
+    parts = [A0 + B0 @ K] + [np.asarray(Ai, dtype=float) + np.asarray(Bi, dtype=float) @ K
+                             for Ai, Bi in zip(system.A_list, system.B_list, strict=True)]
+    V = np.asarray(X0_vertices, dtype=float).T
+    return np.stack([HX @ P @ V for P in parts])
+
+
+def _s_from_affine(T: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """``s[r, j]`` for the vertices ``θ^j`` (rows) from :func:`_s_affine`'s ``T``."""
+    weights = np.column_stack([np.ones(len(vertices)), vertices])       # (n_θ, q + 1)
+    return np.tensordot(weights, T, axes=1).max(axis=2).T
 
 
 __all__ = ["RAPSF"]

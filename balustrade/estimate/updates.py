@@ -5,7 +5,9 @@
 * :class:`FixedShapeUpdate`: ``Θ_k = {H_θ θ <= h_{θ,k}}`` with the rows of Θ₀ and
   ``h_{θ,k}[r] = max {H_θ[r] θ : θ ∈ Θ_{k−1} ∩ Δ_k}``, one LP per row;
   :class:`BoxUpdate` is the axis-aligned box (``2q`` LPs, the thesis' "2p" is a typo) used
-  in the §4.7 example;
+  in the §4.7 example; the row LPs share one feasible set and are solved side by side in one
+  HiGHS run (:func:`~balustrade.backends.lp.solve_lps_joint`), and none at all when the box
+  Θ_{k−1} lies inside Δ_k (nothing learned, Θ_{k−1} returned);
 * :class:`HypercubeUpdate`: ``Θ_k = B_∞(θ̄_k, η_k)`` with the nesting-preserving centre of
   SPEC §2.19 (:func:`hypercube_centre`); ``centre="naive"`` centres the cube on the bounding
   box instead, which can leave Θ_{k−1} — the base loop then refuses it (not nested).
@@ -16,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from balustrade._checks import as_scalar
-from balustrade.backends.lp import is_feasible, solve_lp, solve_lps
+from balustrade.backends.lp import is_feasible, solve_lp, solve_lps_joint
 from balustrade.backends.solution import Status
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.system_parametric import ParametricLinearSystem
@@ -94,7 +96,7 @@ class FixedShapeUpdate(SetEstimator):
                         data: Transition) -> tuple[np.ndarray | None, Proposal | None]:
         """``max H_θ[r] θ`` over ``Θ_{k−1} ∩ Δ_k`` for every row of Θ₀ (or a refusal)."""
         both = data.delta.intersect(Theta_prev)
-        results = solve_lps(self.Theta0.H, both.H, both.h)
+        results = solve_lps_joint(self.Theta0.H, both.H, both.h)
         last = results[-1]
         if last.status is Status.INFEASIBLE:
             return None, _falsified(len(results))
@@ -107,6 +109,9 @@ class FixedShapeUpdate(SetEstimator):
         return Theta_prev.h
 
     def propose(self, Theta_prev: Polytope, data: Transition) -> Proposal:
+        if _box_inside(Theta_prev, data.delta):
+            return Proposal(Theta_prev, 0, reason="Θ_{k−1} ⊆ Δ_k (its vertices satisfy "
+                            "every row): the transition excludes nothing, no LP")
         bounds, refusal = self._support_bounds(Theta_prev, data)
         if refusal is not None:
             return refusal
@@ -115,6 +120,19 @@ class FixedShapeUpdate(SetEstimator):
 
     def _make(self, h: np.ndarray) -> Polytope:
         return Polytope(self.Theta0.H, h, name=f"Theta_{self.k + 1}")
+
+
+def _box_inside(Theta: Polytope, delta: object) -> bool:
+    """Whether a box ``Θ_{k−1}`` lies in ``Δ_k = {Hθ <= h}`` (all ``2^q`` vertices satisfy
+    every row). Then ``max {H_θ[r] θ : Θ_{k−1} ∩ Δ_k} = max {H_θ[r] θ : Θ_{k−1}}``: the
+    fixed-shape update of a box returns ``Θ_{k−1}`` itself (the support LPs would give its
+    bounds, which the clipping to ``h_{θ,k−1}`` returns exactly). Sound even when the test
+    is rounded: ``Θ_{k−1}`` always contains ``Θ_{k−1} ∩ Δ_k``. Only for boxes (vertices
+    without enumeration); on the §4.7 chain most steps are such uninformative ones."""
+    if not isinstance(Theta, Box) or delta.H.shape[0] == 0:
+        return isinstance(Theta, Box)
+    V = Theta.vertices()
+    return bool(np.all(delta.H @ V.T <= delta.h[:, None]))
 
 
 class BoxUpdate(FixedShapeUpdate):
@@ -183,7 +201,7 @@ class HypercubeUpdate(SetEstimator):
         prev = require_box(Theta_prev, self.name)
         both = data.delta.intersect(prev)
         q = self.system.q
-        results = solve_lps(np.vstack([np.eye(q), -np.eye(q)]), both.H, both.h)
+        results = solve_lps_joint(np.vstack([np.eye(q), -np.eye(q)]), both.H, both.h)
         lps, last = len(results), results[-1]
         if last.status is Status.INFEASIBLE:
             return _falsified(lps)

@@ -1,0 +1,137 @@
+"""The fast step path of Algorithm 4.1 (issue #15 bench goal) gives the old path's answers:
+the ``2q`` support LPs of the box/fixed-shape/hypercube updates in one HiGHS run
+(:func:`balustrade.backends.lp.solve_lps_joint`) and ``s_jr`` of a new ``Θ_k`` from the
+affine form of ``A_cl(θ)`` (SPEC §2.20) instead of
+:func:`~balustrade.problems.rapsf.s_constants`."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import balustrade.estimate.updates as updates
+from balustrade.backends.lp import solve_lp, solve_lps, solve_lps_joint
+from balustrade.backends.solution import Status
+from balustrade.control.rapsf import RAPSF, _s_from_affine
+from balustrade.design.rapsf import contractive_polytope, robust_gain
+from balustrade.dsl.sets import Box
+from balustrade.dsl.system_parametric import ParametricLinearSystem
+from balustrade.estimate import BoxUpdate, HypercubeUpdate
+from balustrade.problems.rapsf import joint_constraints, model_matrices, s_constants
+
+N = 8
+
+
+@pytest.fixture(scope="module")
+def toy():
+    sys_ = ParametricLinearSystem(np.array([[1.0, 0.1], [0.0, 1.0]]),
+                                  [np.array([[0.0, 0.0], [-0.1, 0.0]]),
+                                   np.array([[0.0, 0.0], [0.0, -0.1]])],
+                                  np.array([[0.0], [0.1]]), None, name="toy")
+    Theta0 = Box([0.5, 0.0], [1.5, 0.5], name="Theta0")
+    V = Theta0.vertices()
+    W = Box.symmetric(0.004, 2, name="W")
+    F, G = joint_constraints(Box.symmetric(2.0, 2), Box.symmetric(3.0, 1))
+    K = robust_gain(sys_, V, contraction=0.95)
+    X0 = contractive_polytope(sys_, K, V, W, F, G)
+    return sys_, Theta0, W, F, G, K, X0
+
+
+def test_joint_lps_equal_single_lps_and_statuses():
+    rng = np.random.default_rng(3)
+    C = np.vstack([np.eye(3), -np.eye(3)])
+    for _ in range(5):
+        H, h = rng.normal(size=(16, 3)), rng.uniform(1.0, 2.0, 16)
+        for maximize in (True, False):
+            joint = solve_lps_joint(C, H, h, maximize=maximize)
+            assert [r.status for r in joint] == [Status.OPTIMAL] * 6
+            np.testing.assert_allclose([r.value for r in joint],
+                                       [r.value for r in solve_lps(C, H, h, maximize)],
+                                       rtol=0, atol=1e-10)
+            for c, r in zip(C, joint, strict=True):  # each θ_i feasible and attains its value
+                assert np.all(H @ r.x <= h + 1e-9)
+                assert abs(c @ r.x - solve_lp(c, H, h, maximize).value) <= 1e-9
+    box = np.vstack([np.eye(3), -np.eye(3)])
+    empty = solve_lps_joint(C, box, np.array([1, 1, 1, -2, 0, 0.0]))
+    assert len(empty) == 1 and empty[0].status is Status.INFEASIBLE and empty[0].x is None
+    half = solve_lps_joint(C, np.eye(3)[:1], np.ones(1))      # unbounded rows: row by row
+    assert [r.status for r in half] == [Status.OPTIMAL, Status.UNBOUNDED]
+    free = solve_lps_joint(C, np.zeros((0, 3)), np.zeros(0))  # no rows: row by row
+    assert [r.status for r in free] == [Status.UNBOUNDED]
+
+
+def test_s_from_affine_equals_s_constants(toy):
+    sys_, Theta0, W, F, G, K, X0 = toy
+    ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0)
+    assert ctrl._s_affine is not None                         # the fast path is used here
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        lo = rng.uniform(Theta0.lb, Theta0.ub)
+        hi = rng.uniform(lo, Theta0.ub)
+        V = Box(lo, hi).vertices()
+        np.testing.assert_allclose(_s_from_affine(ctrl._s_affine, V),
+                                   s_constants(X0, sys_, K, V, ctrl._X0_vertices),
+                                   rtol=0, atol=1e-13)
+
+
+def _loop(toy, estimator_cls, old: bool, monkeypatch, steps=25, target="fast-convex"):
+    sys_, Theta0, W, F, G, K, X0 = toy
+    with monkeypatch.context() as mp:
+        if old:
+            mp.setattr(updates, "solve_lps_joint", solve_lps)  # one warm-started run per row
+            mp.setattr(updates, "_box_inside", lambda *a: False)  # LPs on every step
+        ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=estimator_cls(sys_, W, Theta0),
+                     target=target)
+        if old:
+            ctrl._s_affine = None
+            ctrl.reset()                                       # s of Θ₀ by s_constants
+        rng = np.random.default_rng(4)
+        theta = rng.uniform(Theta0.lb, Theta0.ub)
+        A, B = model_matrices(sys_, theta)
+        x, us, boxes, s = np.array([0.9, 0.2]), [], [], []
+        for k in range(steps):
+            u, info = ctrl.step(x, np.array([3.0 * np.sin(0.4 * k) + 1.5]))
+            us.append(u)
+            boxes.append(np.r_[ctrl.Theta.lb, ctrl.Theta.ub])
+            s.append(ctrl._s.copy())
+            x = A @ x + B @ u + 0.004 * rng.uniform(-1, 1, 2)
+        no_lp = sum(r.lps == 0 for r in ctrl.estimator.history)
+    return np.array(us), np.array(boxes), np.array(s), no_lp
+
+
+@pytest.mark.parametrize("estimator_cls", [BoxUpdate, HypercubeUpdate])
+def test_fast_path_equals_old_path_on_a_closed_loop(toy, estimator_cls, monkeypatch):
+    toy_ = toy
+    if estimator_cls is HypercubeUpdate:                       # Θ₀ must be a cube
+        sys_, _, W, F, G, K, X0 = toy
+        toy_ = (sys_, Box([0.5, 0.0], [1.0, 0.5], name="Theta0"), W, F, G, K, X0)
+    u_new, box_new, s_new, no_lp_new = _loop(toy_, estimator_cls, False, monkeypatch, 50)
+    u_old, box_old, s_old, no_lp_old = _loop(toy_, estimator_cls, True, monkeypatch, 50)
+    assert len(np.unique(box_new, axis=0)) > 3                  # Θ_k does change
+    assert no_lp_old == 0
+    if estimator_cls is BoxUpdate:                              # steps with Θ_{k−1} ⊆ Δ_k
+        assert no_lp_new > 0
+    np.testing.assert_allclose(box_new, box_old, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(s_new, s_old, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(u_new, u_old, rtol=0, atol=1e-8)
+
+
+def test_uninformative_transition_keeps_the_set_without_lps(toy):
+    sys_, Theta0, W, F, G, K, X0 = toy
+    est = BoxUpdate(sys_, W, Theta0)
+    x, u = np.array([0.0, 0.0]), np.array([0.0])
+    same = est.update(x, u, x)                      # x⁺ = 0 for every θ: Δ_k ⊇ Θ₀
+    assert same is Theta0 and est.history[-1].lps == 0
+    assert est.history[-1].status == "updated"
+    A, B = model_matrices(sys_, np.array([1.0, 0.25]))
+    x = np.array([0.9, 0.2])
+    cut = est.update(x, u + 1.0, A @ x + B @ (u + 1.0))  # informative: 2q LPs, a smaller box
+    assert est.history[-1].lps == 2 * sys_.q
+    assert np.prod(cut.ub - cut.lb) < np.prod(Theta0.ub - Theta0.lb)
+    assert cut.contains(np.array([1.0, 0.25]), tol=1e-9)
+    ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=BoxUpdate(sys_, W, Theta0),
+                 target="fast-convex")
+    ctrl.step(np.zeros(2), np.zeros(1))
+    s_before = ctrl._s
+    ctrl.step(np.zeros(2), np.zeros(1))                    # x⁺ = 0 again: nothing learned
+    assert ctrl.Theta is Theta0 and ctrl._s is s_before     # no recomputation of s
