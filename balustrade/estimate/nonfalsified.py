@@ -83,7 +83,12 @@ def nonfalsified_set(system: ParametricLinearSystem, W: Polytope, x_prev: object
     # vertex disturbance leaves h = ±1e-19 on the rows θ does not enter)
     rounding = _ROUNDING * max(1.0, float(np.abs(W.h).max()), float(np.abs(Hw @ r0).max()))
     keep = informative | (h < -rounding)
-    return HalfSpaces(H[keep], h[keep])
+    H, h = H[keep], h[keep]
+    # rows scaled to unit ∞-norm (the same half-spaces): the LPs over the intersection of many
+    # steps' rows (bounding boxes, support functions) are then equally conditioned per row
+    norms = np.abs(H).max(axis=1) if H.shape[0] else np.zeros(0)
+    norms = np.where(norms > 0, norms, 1.0)
+    return HalfSpaces(H / norms[:, None], h / norms)
 
 
 __all__ = ["HalfSpaces", "disturbance_rows", "nonfalsified_set"]
