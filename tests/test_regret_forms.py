@@ -191,8 +191,8 @@ def test_unweighted_syntheses_agree_in_all_forms(label, seed, n, T, stiff, const
 
 
 # problems whose 𝒪 term the default form states through the LQ definition of 𝒪 and solves
-# directly (problems/regret/lifting.py); (3.32) declares it too but its lifted solve is not
-# reliable (docs/regret.md) and is re-solved like the whitened one was
+# directly (problems/regret/lifting.py); (3.32) does not (its lifted solve was measured worse
+# than the whitened one, docs/regret.md)
 LIFTED_DIRECT = ("generalized (3.28)", "zero-x0 (3.30)")
 
 

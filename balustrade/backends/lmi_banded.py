@@ -41,7 +41,9 @@ LMI's coefficient map carries cond(C)². The optimal D block of (3.32) with W = 
 55 in the original coordinates and 8.6·10⁵ in these; Clarabel then stalls (AlmostSolved 33 %
 above the optimum) or ends "optimal" slightly off. No rescaling of C fixed it reliably, so
 the syntheses certify every result independently and re-solve a banded result that is not ok
-outside banded coordinates (:mod:`balustrade.control.regret_synthesis`; docs/regret.md).
+outside banded coordinates (:mod:`balustrade.control.regret_synthesis`; docs/regret.md). When
+the problem declares the LQ form of its 𝒪 term (:mod:`balustrade.problems.regret.lifting`),
+the structured pass lifts it instead and uses these coordinates with ``whiten=False``: no B.
 
 :func:`banded_congruence` builds C, or returns :class:`NotBanded` with the reason when a
 condition fails (a dense weight whose inverse is not banded, a Hankel rank above the block

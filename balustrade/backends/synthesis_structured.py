@@ -12,7 +12,9 @@ reformulations of each other:
     banded coordinates (:mod:`.lmi_banded`): one cone whose pattern is chordal with small
     cliques, left to Clarabel's chordal decomposition; when the structure is missing (a dense
     weight whose inverse is not banded, a Hankel rank above the block size) the block falls back
-    to ``"split"`` and the reason is reported (``banded_fallback``).
+    to ``"split"`` and the reason is reported (``banded_fallback``). A block that declares the
+    LQ form of its 𝒪 term (``ArrowLMI.lift``, :mod:`balustrade.problems.regret.lifting`) is
+    lowered in the lifted (α, ξ) coordinates instead of whitening 𝒪 (``banded_route``).
 ``"split"``
     the chordal split: with D block diagonal on the declared column blocks, the Schur
     complement on D gives one small cone per block, ``Z_k ⪰ [b_kᵀ; L_k] D_k⁻¹ [b_k, L_kᵀ]``,

@@ -24,7 +24,10 @@ to hide a level 33 % above the optimum in banded coordinates
 its controller attains — so a banded solve that is not ok is re-solved outside banded
 coordinates (``lmi="split"``), the reason recorded in ``info["banded_fallback"]`` (or, when that
 form cannot run, in ``info["banded_retry"]`` and the inaccurate result is returned with ``ok``
-False).
+False). With W = 𝒪 the banded form states the 𝒪 term through its LQ definition
+for (3.28) and (3.30) (:mod:`balustrade.problems.regret.lifting`, no whitening;
+``info["banded_route"]``), which are then solved directly; (3.32) keeps the whitened form and
+its re-solve (the lifted one was measured worse there, docs/regret.md).
 
 ``lmi`` chooses how the arrow LMIs reach the solver: ``"banded"`` (default), ``"split"``,
 ``"single"`` (see :mod:`balustrade.backends.synthesis_structured`); ``target`` the solver

@@ -40,6 +40,10 @@ The regret rows L' = LN keep their structure: the free part stays causal (w_k re
 blocks of N), so the semiseparable coordinates of :mod:`balustrade.backends.lmi_banded` apply
 with blocks of m + n — without any whitening of 𝒪. This module states the data (numpy only);
 the lowering is in :mod:`balustrade.backends.synthesis_structured`.
+
+Declared by (3.28) and (3.30) with W_w = "O" (solved directly, docs/regret.md). (3.32) would
+qualify too, but with its pointwise multipliers the lifted solve was measured worse than the
+whitened one (the solver stalls in the semiseparable coordinates on ξ), so it does not declare it.
 """
 
 from __future__ import annotations
