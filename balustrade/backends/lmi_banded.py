@@ -43,7 +43,7 @@ above the optimum) or ends "optimal" slightly off. No rescaling of C fixed it re
 the syntheses certify every result independently and re-solve a banded result that is not ok
 outside banded coordinates (:mod:`balustrade.control.regret_synthesis`; docs/regret.md). When
 the problem declares the LQ form of its 𝒪 term (:mod:`balustrade.problems.regret.lifting`),
-the structured pass lifts it instead and uses these coordinates with ``whiten=False``: no B.
+``lmi="lifted"`` lifts it instead and uses these coordinates with ``whiten=False``: no B.
 
 :func:`banded_congruence` builds C, or returns :class:`NotBanded` with the reason when a
 condition fails (a dense weight whose inverse is not banded, a Hankel rank above the block

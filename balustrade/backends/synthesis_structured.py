@@ -12,9 +12,13 @@ reformulations of each other:
     banded coordinates (:mod:`.lmi_banded`): one cone whose pattern is chordal with small
     cliques, left to Clarabel's chordal decomposition; when the structure is missing (a dense
     weight whose inverse is not banded, a Hankel rank above the block size) the block falls back
-    to ``"split"`` and the reason is reported (``banded_fallback``). A block that declares the
-    LQ form of its 𝒪 term (``ArrowLMI.lift``, :mod:`balustrade.problems.regret.lifting`) is
-    lowered in the lifted (α, ξ) coordinates instead of whitening 𝒪 (``banded_route``).
+    to ``"split"`` and the reason is reported (``banded_fallback``).
+``"lifted"``
+    ``"banded"``, except that a block declaring the LQ form of its 𝒪 term (``ArrowLMI.lift``,
+    :mod:`balustrade.problems.regret.lifting`) is lowered in the lifted (α, ξ) coordinates
+    instead of whitening 𝒪 (``banded_route`` says which; the form is reported as
+    ``"banded"``, so a result that is not ok is re-solved like a banded one). Exact, but not
+    the default: measured no better than the whitened form (docs/regret.md).
 ``"split"``
     the chordal split: with D block diagonal on the declared column blocks, the Schur
     complement on D gives one small cone per block, ``Z_k ⪰ [b_kᵀ; L_k] D_k⁻¹ [b_k, L_kᵀ]``,
@@ -52,7 +56,7 @@ from balustrade.dsl.synthesis_arrow import AffineMap, ArrowLMI
 from balustrade.errors import BalustradeError, SolverError
 
 #: how an arrow LMI reaches the solver (module docstring)
-LMI_FORMS = ("banded", "split", "single")
+LMI_FORMS = ("banded", "split", "single", "lifted")
 #: info["banded_route"] of an arrow LMI whose 𝒪 term was lifted (no whitening of 𝒪)
 LIFTED_ROUTE = "lifted: 𝒪 through its LQ definition, (x, u) coordinates, no whitening"
 
@@ -101,8 +105,8 @@ class StructuredSynthesis(CompiledSynthesis):
         self._current_theta = self.lower(blk.theta)
         a = None if blk.a is None else self.lower(blk.a)
         y = None if blk.y is None else self._vector(blk.y)
-        if self.lmi == "banded":
-            if blk.lift is not None:
+        if self.lmi in ("banded", "lifted"):
+            if self.lmi == "lifted" and blk.lift is not None:
                 out = _lifted(self, blk, a, y)
                 if not isinstance(out, NotBanded):
                     self.form, self.banded_route = "banded", LIFTED_ROUTE

@@ -41,9 +41,9 @@ blocks of N), so the semiseparable coordinates of :mod:`balustrade.backends.lmi_
 with blocks of m + n — without any whitening of 𝒪. This module states the data (numpy only);
 the lowering is in :mod:`balustrade.backends.synthesis_structured`.
 
-Declared by (3.28) and (3.30) with W_w = "O" (solved directly, docs/regret.md). (3.32) would
-qualify too, but with its pointwise multipliers the lifted solve was measured worse than the
-whitened one (the solver stalls in the semiseparable coordinates on ξ), so it does not declare it.
+Declared by (3.28), (3.30) and (3.32) with W_w = "O"; used by ``lmi="lifted"`` (not the
+default: measured no better than the whitened banded form, and worse for (3.32) at T = 25 —
+the solver stalls in the semiseparable coordinates on ξ; docs/regret.md).
 """
 
 from __future__ import annotations

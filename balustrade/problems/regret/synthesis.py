@@ -173,7 +173,7 @@ class _Statement:
 
         ``lq = (μ, a_rest)`` declares that the first D term, the first b term and μ's part of
         ``a`` are μ·δᵀ𝒪δ with δ = (αx₀, w) (W_w = 𝒪; ``a_rest`` = a without it): the lowering
-        may then state it through the LQ definition of 𝒪 (:mod:`.lifting`)."""
+        may then state it through the LQ definition of 𝒪 (:mod:`.lifting`, ``lmi="lifted"``)."""
         ops = self.ops
         cols = slice(ops.n, ops.nd) if on == "w" else slice(0, ops.nd)
         b_dense = 0 if b and np.any(b[0][1] != 0) else None
@@ -351,10 +351,7 @@ def pointwise_regret_problem(ops: Operators, x0: object, P: object, W: object = 
     d = W3.shape[0]
     S_terms = [(lams[i], _block_term(Pm, sl, d)) for i, sl in enumerate(_p_blocks(ops))]
     st.arrow("w", D=[(mu, W3), *S_terms], a=float(x0v @ W1 @ x0v) * mu - total(lams),
-             b=[(mu, W2 @ x0v)], x0=x0v)
-    # no LQ lifting here (unlike (3.28)/(3.30)): with the pointwise multipliers the lifted
-    # solve was measured worse than the whitened one (rocket T = 25: 1.051 "optimal_inaccurate"
-    # below its controller's ≥ 1.611, against 0.4917 ≥ 0.475; docs/regret.md)
+             b=[(mu, W2 @ x0v)], x0=x0v, lq=(mu, -total(lams)) if _is_O(W) else None)
     st.constrain(constraints, x0v, Pm)
     return st.minimize(mu, _value("mu"), lambda Pu, v: (
         "lower_bound", _pointwise_lb(ops, Pu, x0v, Pm, Wm)), ("lambda",))
