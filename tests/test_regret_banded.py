@@ -149,3 +149,86 @@ def test_parallel_rows_recovers_scaled_copies(seed, k, dim, copies, n_groups):
         assert np.allclose(R[i], a * R[r], atol=1e-12)
     n_generic = k * n_groups                          # the random rows are pairwise independent
     assert len(np.unique(rep)) == n_generic
+
+
+# ----------------------------------------------------------------------------------------------
+# the 𝒪 weight through its LQ definition (problems/regret/lifting.py, issue #12)
+# ----------------------------------------------------------------------------------------------
+def _fibre_min(N, na, K, k0, alpha, w):
+    """min k₀α² + ξᵀ𝒦ξ over N ξ + n_α α = w (a null-space parametrization)."""
+    xi0 = np.linalg.lstsq(N, w - na * alpha, rcond=None)[0]
+    assert np.allclose(N @ xi0, w - na * alpha)
+    Vt = np.linalg.svd(N)[2]
+    Zn = Vt[N.shape[0]:].T
+    xi = xi0 - Zn @ np.linalg.solve(Zn.T @ K @ Zn, Zn.T @ K @ xi0)
+    return k0 * alpha**2 + xi @ K @ xi
+
+
+@settings(max_examples=20, deadline=None)
+@given(systems)
+def test_lq_lifting_gives_the_noncausal_cost(case):
+    """(★): δᵀ𝒪δ = min over the fibre of k₀α² + ξᵀ𝒦ξ, δ = (αx₀, w); N block lower bidiagonal
+    in blocks of m + n, 𝒦 block diagonal."""
+    from balustrade.problems.regret.lifting import lq_maps
+
+    ops, rng = random_ltv(*case)
+    x0 = rng.standard_normal(ops.n)
+    N, na, K, k0 = lq_maps(ops, x0)
+    nb = ops.m + ops.n
+    assert block_bandwidth(K, nb, tol=0.0) == 0
+    assert np.all(np.abs(N[: ops.p * (ops.T - 1), nb:] * np.kron(np.triu(np.ones(
+        (ops.T - 1, ops.T - 1)), 1), np.ones((ops.p, nb)))) == 0)      # nothing above the band
+    for _ in range(3):
+        alpha, w = rng.standard_normal(), rng.standard_normal(ops.p * ops.T)
+        delta = np.concatenate([alpha * x0, w])
+        assert _fibre_min(N, na, K, k0, alpha, w) == pytest.approx(delta @ ops.O @ delta,
+                                                                   rel=1e-8, abs=1e-10)
+
+
+def _min_eig(M):
+    return float(np.linalg.eigvalsh(0.5 * (M + M.T))[0])
+
+
+def _threshold(psd_at, lo=0.0, hi=1.0):
+    """Smallest μ ≥ 0 with psd_at(μ) (bisection; psd_at is monotone in μ)."""
+    while not psd_at(hi):
+        hi *= 2.0
+        assert hi < 1e8
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if psd_at(mid) else (mid, hi)
+    return hi
+
+
+@settings(max_examples=8, deadline=None)
+@given(systems)
+def test_lifted_lmi_has_the_same_feasible_set(case):
+    """The lifted arrow LMI of (3.28) with W = 𝒪 (D' = μ𝒦 + λNᵀN, b' = λNᵀn_α,
+    a' = μk₀ − λω + λ‖n_α‖², y' = y + Ln_α, L' = LN) holds exactly for the same μ as the
+    original [[μx₀ᵀ𝒪₁x₀ − λω, μ(𝒪₂x₀)ᵀ, yᵀ], [μ𝒪₂x₀, λI + μ𝒪₃, Lᵀ], [y, L, I]] ⪰ 0, for
+    random θ and λ: the smallest feasible μ agrees."""
+    from balustrade.problems.regret.lifting import lq_maps
+
+    ops, rng = random_ltv(*case)
+    par = Parametrization(ops)
+    x0 = rng.standard_normal(ops.n)
+    N, na, K, k0 = lq_maps(ops, x0)
+    O1, O2, O3 = ops.O_parts
+    cols = slice(ops.n, ops.nd)
+    theta = 0.3 * rng.standard_normal(par.n_theta)
+    L = par.Y(cols).value(theta)
+    y = par.Y_x0(x0).value(theta).ravel()
+    lam, omega = rng.uniform(0.5, 3.0), rng.uniform(0.5, 2.0)
+    d = L.shape[1]
+
+    def orig(mu):
+        return _min_eig(_arrow(L, lam * np.eye(d) + mu * O3, mu * x0 @ O1 @ x0 - lam * omega,
+                               mu * O2 @ x0, y)) >= -1e-12
+
+    def lifted(mu):
+        return _min_eig(_arrow(L @ N, mu * K + lam * N.T @ N,
+                               mu * k0 - lam * omega + lam * na @ na, lam * N.T @ na,
+                               y + L @ na)) >= -1e-12
+
+    mu_o, mu_l = _threshold(orig), _threshold(lifted)
+    assert mu_l == pytest.approx(mu_o, rel=1e-6, abs=1e-9)

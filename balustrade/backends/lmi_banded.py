@@ -41,7 +41,9 @@ LMI's coefficient map carries cond(C)². The optimal D block of (3.32) with W = 
 55 in the original coordinates and 8.6·10⁵ in these; Clarabel then stalls (AlmostSolved 33 %
 above the optimum) or ends "optimal" slightly off. No rescaling of C fixed it reliably, so
 the syntheses certify every result independently and re-solve a banded result that is not ok
-outside banded coordinates (:mod:`balustrade.control.regret_synthesis`; docs/regret.md).
+outside banded coordinates (:mod:`balustrade.control.regret_synthesis`; docs/regret.md). When
+the problem declares the LQ form of its 𝒪 term (:mod:`balustrade.problems.regret.lifting`),
+``lmi="lifted"`` lifts it instead and uses these coordinates with ``whiten=False``: no B.
 
 :func:`banded_congruence` builds C, or returns :class:`NotBanded` with the reason when a
 condition fails (a dense weight whose inverse is not banded, a Hankel rank above the block
@@ -170,13 +172,15 @@ def semiseparable_coordinates(L0: np.ndarray, extent: np.ndarray, m: int, p: int
 
 
 def banded_congruence(L0: np.ndarray, free_mask: np.ndarray, D_terms: list[np.ndarray],
-                      m: int, p: int) -> BandedCongruence | NotBanded:
+                      m: int, p: int, whiten: bool = True) -> BandedCongruence | NotBanded:
     """C for the LMI above: L0 = constant part of L, free_mask = where X can be nonzero,
-    D_terms = the constant matrices D_i of D = Σ α_i D_i (in the original coordinates)."""
+    D_terms = the constant matrices D_i of D = Σ α_i D_i (in the original coordinates).
+    ``whiten=False``: the D_i are banded already (the lifted form of the 𝒪 weight,
+    :mod:`balustrade.problems.regret.lifting`), C = G."""
     d = L0.shape[1]
     if d % p:
         return NotBanded(f"{d} columns are not whole blocks of {p}")
-    dense = [Di for Di in D_terms if block_bandwidth(Di, p) > 0]
+    dense = [Di for Di in D_terms if block_bandwidth(Di, p) > 0] if whiten else []
     B = weight_factor(dense, p)
     if isinstance(B, NotBanded):
         return B
@@ -219,13 +223,14 @@ class BandedPieces:
 
 
 def banded_pieces(L: AffineMap, m: int, p: int, D_mats: Sequence[np.ndarray],
-                  b_vecs: Sequence[np.ndarray] = ()) -> BandedPieces | NotBanded:
+                  b_vecs: Sequence[np.ndarray] = (), whiten: bool = True
+                  ) -> BandedPieces | NotBanded:
     """Transform L (rows in blocks of m, columns in blocks of p), the D_i and the b_i by the
-    congruence above."""
+    congruence above (``whiten``: see :func:`banded_congruence`)."""
     M, d = L.shape
     free_mask = (np.diff(L.A.indptr) > 0).reshape((M, d), order="F")
     L0 = L.c.reshape((M, d), order="F")
-    cong = banded_congruence(L0, free_mask, list(D_mats), m, p)
+    cong = banded_congruence(L0, free_mask, list(D_mats), m, p, whiten)
     if isinstance(cong, NotBanded):
         return cong
     C = cong.C

@@ -13,6 +13,12 @@ reformulations of each other:
     cliques, left to Clarabel's chordal decomposition; when the structure is missing (a dense
     weight whose inverse is not banded, a Hankel rank above the block size) the block falls back
     to ``"split"`` and the reason is reported (``banded_fallback``).
+``"lifted"``
+    ``"banded"``, except that a block declaring the LQ form of its 𝒪 term (``ArrowLMI.lift``,
+    :mod:`balustrade.problems.regret.lifting`) is lowered in the lifted (α, ξ) coordinates
+    instead of whitening 𝒪 (``banded_route`` says which; the form is reported as
+    ``"banded"``, so a result that is not ok is re-solved like a banded one). Exact, but not
+    the default: measured no better than the whitened form (docs/regret.md).
 ``"split"``
     the chordal split: with D block diagonal on the declared column blocks, the Schur
     complement on D gives one small cone per block, ``Z_k ⪰ [b_kᵀ; L_k] D_k⁻¹ [b_k, L_kᵀ]``,
@@ -50,7 +56,9 @@ from balustrade.dsl.synthesis_arrow import AffineMap, ArrowLMI
 from balustrade.errors import BalustradeError, SolverError
 
 #: how an arrow LMI reaches the solver (module docstring)
-LMI_FORMS = ("banded", "split", "single")
+LMI_FORMS = ("banded", "split", "single", "lifted")
+#: info["banded_route"] of an arrow LMI whose 𝒪 term was lifted (no whitening of 𝒪)
+LIFTED_ROUTE = "lifted: 𝒪 through its LQ definition, (x, u) coordinates, no whitening"
 
 
 class StructuredSynthesis(CompiledSynthesis):
@@ -69,6 +77,7 @@ class StructuredSynthesis(CompiledSynthesis):
         self.lmi = lmi
         self.form = "single" if lmi == "single" else "split"
         self.banded_fallback: str | None = None
+        self.banded_route: str | None = None
         self._extra: list[cp.Constraint] = []
         self._dense: list[int] = []          # cones a solver cannot decompose (memory check)
         super().__init__(problem, target)
@@ -96,10 +105,17 @@ class StructuredSynthesis(CompiledSynthesis):
         self._current_theta = self.lower(blk.theta)
         a = None if blk.a is None else self.lower(blk.a)
         y = None if blk.y is None else self._vector(blk.y)
-        if self.lmi == "banded":
+        if self.lmi in ("banded", "lifted"):
+            if self.lmi == "lifted" and blk.lift is not None:
+                out = _lifted(self, blk, a, y)
+                if not isinstance(out, NotBanded):
+                    self.form, self.banded_route = "banded", LIFTED_ROUTE
+                    return out
+                self.banded_route = f"lifting did not apply ({out.reason}); whitened"
             out = _banded(self, blk, a, y)
             if not isinstance(out, NotBanded):
                 self.form = "banded"
+                self.banded_route = self.banded_route or "banded coordinates"
                 return out
             self.banded_fallback = out.reason
         leaves = _leaves(self, blk)
@@ -141,7 +157,8 @@ class StructuredSynthesis(CompiledSynthesis):
 
     def solve(self, params=None) -> SynthesisSolution:   # type: ignore[override]
         sol = super().solve(params)
-        sol.info.update({"lmi": self.form, "banded_fallback": self.banded_fallback})
+        sol.info.update({"lmi": self.form, "banded_fallback": self.banded_fallback,
+                         "banded_route": self.banded_route})
         sol.info.setdefault("psd_cone_sizes", self.psd_sizes)
         return sol
 
@@ -262,17 +279,55 @@ def _monolithic(M: int, leaves: Sequence[_Leaf], a: cp.Expression | None,
 def _banded(low: StructuredSynthesis, blk: ArrowLMI, a: cp.Expression | None,
             y: cp.Expression | None) -> list[cp.Constraint] | NotBanded:
     """The arrow LMI in banded coordinates (:mod:`.lmi_banded`), one PSD constraint."""
-    M, d = blk.L.shape
     pieces = banded_pieces(blk.L, blk.row_block, blk.block, [Di for _, Di in blk.D],
                            [bi for _, bi in blk.b])
     if isinstance(pieces, NotBanded):
         return pieces
+    return _banded_cone(low, pieces, [al for al, _ in blk.D], [be for be, _ in blk.b], a, y)
+
+
+def _lifted(low: StructuredSynthesis, blk: ArrowLMI, a: cp.Expression | None,
+            y: cp.Expression | None) -> list[cp.Constraint] | NotBanded:
+    """The arrow LMI with its 𝒪 term through the LQ definition of 𝒪, in the coordinates
+    (α, ξ) of :mod:`balustrade.problems.regret.lifting` (proof of the equivalence there):
+    D' = μ𝒦 + NᵀD_rN, b' = Nᵀ(b_r + D_rn_α), a' = μk₀ + a_r + 2b_rᵀn_α + n_αᵀD_rn_α,
+    y' = y + Ln_α, L' = LN — then the semiseparable coordinates of :mod:`.lmi_banded` on ξ
+    (blocks of m + n), without whitening: every D' term is banded already."""
+    lift = blk.lift
+    N, na = np.asarray(lift.N), np.asarray(lift.n_alpha)
+    rest_D = [(al, Di) for i, (al, Di) in enumerate(blk.D) if i != lift.dense]
+    rest_b = [(be, bi) for j, (be, bi) in enumerate(blk.b) if j != lift.b_dense]
+    D_coefs = [lift.coef] + [al for al, _ in rest_D]
+    D_mats = [np.asarray(lift.K)] + [N.T @ Di @ N for _, Di in rest_D]
+    b_terms = [(al, N.T @ (Di @ na)) for al, Di in rest_D] + [(be, N.T @ bi) for be, bi in rest_b]
+    b_terms = [(c, v) for c, v in b_terms if np.any(v)] if a is not None else []
+    pieces = banded_pieces(blk.L.times(N), blk.row_block, lift.block, D_mats,
+                           [v for _, v in b_terms], whiten=False)
+    if isinstance(pieces, NotBanded):
+        return pieces
+    if a is not None:
+        a_terms = [(lift.coef, lift.k0)] + [(al, float(na @ Di @ na)) for al, Di in rest_D]
+        a_terms += [(be, 2.0 * float(bi @ na)) for be, bi in rest_b]
+        a = low.combination([(c, v) for c, v in a_terms if v != 0.0] or [(lift.coef, 0.0)])
+        if lift.a_rest is not None:
+            a = a + low.lower(lift.a_rest)
+        if np.any(na):
+            Ln = low._vector(blk.L.times(na.reshape(-1, 1)))
+            y = Ln if y is None else y + Ln
+    return _banded_cone(low, pieces, D_coefs, [c for c, _ in b_terms], a, y)
+
+
+def _banded_cone(low: StructuredSynthesis, pieces, D_coefs: Sequence[Expr],
+                 b_coefs: Sequence[Expr], a: cp.Expression | None, y: cp.Expression | None
+                 ) -> list[cp.Constraint]:
+    """[[a, bᵀ, yᵀ], [b, Σα_iD_i, LCᵀ], [y, LC, I]] ⪰ 0 from transformed pieces, one cone."""
+    M, d = pieces.c.size // pieces.C.shape[1], pieces.C.shape[1]
     LC = cp.reshape(pieces.A @ low._current_theta + pieces.c, (M, d), order="F")
-    Dp = low.combination([(al, Di) for (al, _), Di in zip(blk.D, pieces.D)])
+    Dp = low.combination(list(zip(D_coefs, pieces.D)))
     grid: list[list] = []
     if a is not None:
-        bcol = (cp.reshape(low.combination([(be, bi) for (be, _), bi in zip(blk.b, pieces.b)]),
-                           (d, 1), order="F") if blk.b else np.zeros((d, 1)))
+        bcol = (cp.reshape(low.combination(list(zip(b_coefs, pieces.b))), (d, 1), order="F")
+                if b_coefs else np.zeros((d, 1)))
         ycol = np.zeros((M, 1)) if y is None else cp.reshape(y, (M, 1), order="F")
         grid.append([cp.reshape(a, (1, 1), order="F"), bcol.T, ycol.T])
         grid.append([bcol, Dp, LC.T])

@@ -24,11 +24,13 @@ to hide a level 33 % above the optimum in banded coordinates
 its controller attains — so a banded solve that is not ok is re-solved outside banded
 coordinates (``lmi="split"``), the reason recorded in ``info["banded_fallback"]`` (or, when that
 form cannot run, in ``info["banded_retry"]`` and the inaccurate result is returned with ``ok``
-False).
+False). ``lmi="lifted"`` states an 𝒪 term through its LQ definition instead of whitening it
+(:mod:`balustrade.problems.regret.lifting`; ``info["banded_route"]``): exact, not the default
+(measured no better than the whitened form, and worse for (3.32) at T = 25, docs/regret.md).
 
 ``lmi`` chooses how the arrow LMIs reach the solver: ``"banded"`` (default), ``"split"``,
-``"single"`` (see :mod:`balustrade.backends.synthesis_structured`); ``target`` the solver
-(a :class:`~balustrade.backends.targets.Target` or preset name, default ``"sdp"``).
+``"single"``, ``"lifted"`` (see :mod:`balustrade.backends.synthesis_structured`); ``target``
+the solver (a :class:`~balustrade.backends.targets.Target` or preset name, default ``"sdp"``).
 """
 
 from __future__ import annotations
@@ -166,7 +168,7 @@ def synthesize(problem: RegretProblem, lmi: str = "banded", target: TargetSpec =
     attempt in info["banded_fallback"]; otherwise the banded result is returned with the
     retry's outcome in info["banded_retry"]."""
     res = solve_once(problem, lmi, target)
-    if res.info.get("lmi") != "banded" or res.ok:
+    if res.info.get("lmi") != "banded" or res.ok:   # "lifted" is reported as "banded"
         return res
     retry = solve_once(problem, "split", target)
     cert = res.info.get("certificate", {})

@@ -88,6 +88,7 @@ class ArrowLMI:
     a: Expr | None = None
     b: tuple[tuple[Expr, np.ndarray], ...] = ()
     y: AffineMap | None = None
+    lift: object | None = None     # a lowering's alternative form of one D term (data only)
 
     @property
     def size(self) -> int:
@@ -107,7 +108,7 @@ def _combination(terms: Terms) -> Expr:
 
 def arrow_lmi(theta: Expr, L: AffineMap, D: Terms, *, col_blocks: Sequence[slice],
               block: int, row_block: int, a: object | None = None, b: Terms = (),
-              y: AffineMap | None = None) -> Expr:
+              y: AffineMap | None = None, lift: object | None = None) -> Expr:
     """[[a, bᵀ, yᵀ], [b, Σα_iD_i, Lᵀ], [y, L, I]] (``a`` None drops the first row and column)
     as a :func:`bmat` expression carrying its :class:`ArrowLMI` structure in ``.data``."""
     M, d = L.shape
@@ -129,7 +130,7 @@ def arrow_lmi(theta: Expr, L: AffineMap, D: Terms, *, col_blocks: Sequence[slice
         ycol = np.zeros((M, 1)) if y is None else y.of(theta)
         mat = bmat([[a, bcol.T, ycol.T], [bcol, Dx, Lx.T], [ycol, Lx, np.eye(M)]])
     mat.data = ArrowLMI(theta, L, D, tuple(col_blocks), int(block), int(row_block),
-                        None if a is None else as_expr(a), b, y)
+                        None if a is None else as_expr(a), b, y, lift)
     mat.label = "arrow LMI"
     return mat
 

@@ -50,6 +50,7 @@ from balustrade.dsl.synthesis import (
 )
 from balustrade.dsl.synthesis_arrow import arrow_lmi
 from balustrade.errors import BalustradeError, ShapeError, moved_names
+from balustrade.problems.regret.lifting import lq_lift
 from balustrade.problems.regret.operators import Operators
 from balustrade.problems.regret.parametrization import Parametrization, normalize_halfspaces
 from balustrade.problems.regret.verify import (
@@ -165,16 +166,25 @@ class _Statement:
 
     def arrow(self, on: str, D: Sequence[tuple[object, np.ndarray]], a: object | None = None,
               b: Sequence[tuple[object, np.ndarray]] = (), x0: np.ndarray | None = None,
-              name: str = "regret LMI") -> None:
+              name: str = "regret LMI", lq: tuple[object, object | None] | None = None
+              ) -> None:
         """[[a, bᵀ, yᵀ], [b, D, Lᵀ], [y, L, I]] ⪰ 0 with L = Y[:, cols] and y = Y[:, x₀]x₀;
-        ``on`` = "w" (cols = the disturbances w) or "delta" (cols = all of δ = (x₀, w))."""
+        ``on`` = "w" (cols = the disturbances w) or "delta" (cols = all of δ = (x₀, w)).
+
+        ``lq = (μ, a_rest)`` declares that the first D term, the first b term and μ's part of
+        ``a`` are μ·δᵀ𝒪δ with δ = (αx₀, w) (W_w = 𝒪; ``a_rest`` = a without it): the lowering
+        may then state it through the LQ definition of 𝒪 (:mod:`.lifting`, ``lmi="lifted"``)."""
         ops = self.ops
         cols = slice(ops.n, ops.nd) if on == "w" else slice(0, ops.nd)
+        b_dense = 0 if b and np.any(b[0][1] != 0) else None
         b = [(beta, vec) for beta, vec in b if np.any(vec != 0)]
         y = None if x0 is None else self.par.Y_x0(x0)
+        lift = None
+        if lq is not None and on == "w":
+            lift = lq_lift(ops, x0, lq[0], dense=0, b_dense=b_dense, a_rest=lq[1])
         self.sdp.lmi(name, arrow_lmi(self.theta, self.par.Y(cols), D, a=a, b=b, y=y,
                                      col_blocks=_p_blocks(ops, 1 if on == "w" else 0),
-                                     block=ops.p, row_block=ops.m))
+                                     block=ops.p, row_block=ops.m, lift=lift))
 
     def constrain(self, constraints: StateInputConstraints | None, x0: np.ndarray | None,
                   P: np.ndarray | None = None, omega: float | None = None) -> None:
@@ -228,6 +238,11 @@ def _opt_P(ops: Operators, P: object | None) -> np.ndarray | None:
 
 def _opt_omega(omega: object | None) -> float | None:
     return None if omega is None else _omega(omega)
+
+
+def _is_O(W: object) -> bool:
+    """W_w = 𝒪 given by name: the weight term has the LQ form of :mod:`.lifting`."""
+    return isinstance(W, str) and W == "O"
 
 
 def _label(W: object) -> str:
@@ -287,7 +302,8 @@ def generalized_regret_problem(ops: Operators, x0: object, omega: float, W: obje
     st = _Statement(ops, f"generalized regret (3.28), W={_label(W)}")
     mu, lam = st.sdp.scalar("mu"), st.sdp.scalar("lambda", nonneg=True)
     st.arrow("w", D=[(mu, W3), (lam, np.eye(W3.shape[0]))],
-             a=float(x0v @ W1 @ x0v) * mu - om * lam, b=[(mu, W2 @ x0v)], x0=x0v)
+             a=float(x0v @ W1 @ x0v) * mu - om * lam, b=[(mu, W2 @ x0v)], x0=x0v,
+             lq=(mu, -om * lam) if _is_O(W) else None)
     st.constrain(constraints, x0v, _opt_P(ops, constraint_P), om)
     return st.minimize(mu, _value("mu"), lambda Pu, v: ("exact", generalized_level_energy(
         ops, Pu, x0v, om, Wm, guess=float(v["mu"]))), ("lambda",))
@@ -312,7 +328,7 @@ def zero_x0_regret_problem(ops: Operators, W: object = "I", *, adversarial_x0: b
     if adversarial_x0:
         st.arrow("delta", D=[(mu, Wm)])
     else:
-        st.arrow("w", D=[(mu, ops.partition(Wm)[2])])
+        st.arrow("w", D=[(mu, ops.partition(Wm)[2])], lq=(mu, None) if _is_O(W) else None)
     st.constrain(constraints, None if adversarial_x0 else np.zeros(ops.n),
                  _opt_P(ops, constraint_P), _opt_omega(omega))
     return st.minimize(mu, _value("mu"),
@@ -335,7 +351,7 @@ def pointwise_regret_problem(ops: Operators, x0: object, P: object, W: object = 
     d = W3.shape[0]
     S_terms = [(lams[i], _block_term(Pm, sl, d)) for i, sl in enumerate(_p_blocks(ops))]
     st.arrow("w", D=[(mu, W3), *S_terms], a=float(x0v @ W1 @ x0v) * mu - total(lams),
-             b=[(mu, W2 @ x0v)], x0=x0v)
+             b=[(mu, W2 @ x0v)], x0=x0v, lq=(mu, -total(lams)) if _is_O(W) else None)
     st.constrain(constraints, x0v, Pm)
     return st.minimize(mu, _value("mu"), lambda Pu, v: (
         "lower_bound", _pointwise_lb(ops, Pu, x0v, Pm, Wm)), ("lambda",))
