@@ -56,8 +56,14 @@ from balustrade.models.bicycle import (
 METHODS = ("incremental", "linearization")
 #: the disturbance enters the heading
 G_HEADING = np.array([[0.0], [1.0], [0.0], [0.0]])
-#: λ values of the incremental design's line search (every design so far picked 0.95)
-LAMBDAS = (0.85, 0.9, 0.93, 0.95, 0.97, 0.98)
+#: λ values of the incremental design's line search (a wider search, 0.05…0.95 and 0.97…0.99,
+#: picked 0.95 on every domain of the fixed-point iteration)
+LAMBDAS = (0.93, 0.95, 0.97)
+#: each iteration enlarges D by this factor times the semi-axes of E (overshoot: fewer SDPs)
+PAD_FACTOR = 1.1
+#: smallest semi-axes of E along (p_y, ψ, v, δ): v is undisturbed and dead-beat controlled,
+#: its axis would collapse (P_vv ≈ 5e8) and slow the horizon solvers down
+MIN_AXES = (1e-3, 1e-3, 0.005, 1e-3)
 #: decrease factor λ_f of the terminal invariance LMI
 DECREASE_F = 0.99
 
@@ -103,19 +109,20 @@ def bicycle_ldi(pad: np.ndarray | None = None) -> PolytopicLDI:
     return PolytopicLDI(A0, tuple(dirs), intervals, input_matrix(), Box(lo, hi, name="D"))
 
 
-def _incremental_error(X: Box, U: Box, W: Box, x_s: np.ndarray, iterations: int = 6
+def _incremental_error(X: Box, U: Box, W: Box, x_s: np.ndarray, iterations: int = 8
                        ) -> tuple[ErrorSet, PolytopicLDI]:
     """The fixed point of the module docstring: ``D`` covers ``X ⊕ E`` in ``(ψ, v, δ)``."""
     pad = np.zeros(3)
     for _ in range(iterations):
         ldi = bicycle_ldi(pad)
-        error = incremental_rpi(ldi, W, X, U, G_HEADING, x_s, lambdas=LAMBDAS, name="E_bicycle")
+        error = incremental_rpi(ldi, W, X, U, G_HEADING, x_s, lambdas=LAMBDAS, name="E_bicycle",
+                                min_axes=MIN_AXES)
         axes = np.sqrt(np.diag(np.linalg.inv(error.E.P)))[1:]
         if np.all(axes <= pad + 1e-9):
             error.info["domain_covers_X_plus_E"] = True
             error.info["pad_psi_v_delta"] = pad.tolist()
             return error, ldi
-        pad = np.maximum(pad, axes * 1.02)
+        pad = np.maximum(pad, axes * PAD_FACTOR)
     raise BalustradeError(f"bicycle_design: the Jacobian domain did not settle in {iterations} "
                           f"iterations (pad {pad.tolist()})")
 
