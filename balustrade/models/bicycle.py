@@ -10,6 +10,17 @@ lane centre, ``|ψ| <= 35°``, ``0.5 <= v <= 1.3`` m/s, ``|δ| <= 35°``, ``|Δ�
 The robust PCBF ingredients around the operating point ``x_s = (0, 0, 1.1, 0)`` (error set,
 terminal CBF :class:`ShiftedCBF`) are synthesized in :mod:`balustrade.examples.bicycle`:
 a model imports only the language.
+
+**Jacobian structure** (:func:`jacobian_ldi`). ``∂f/∂u = B`` is constant and
+
+``∂f/∂x = I + a_1 e_1e_2ᵀ + a_2 e_1e_3ᵀ + a_3 e_2e_3ᵀ + a_4 e_2e_4ᵀ`` with
+``a = (T_s v cos ψ, T_s sin ψ, T_s tan δ / l, T_s v / (l cos² δ))``:
+
+affine in four nonlinear functions of ``(ψ, v, δ)`` only (not of ``p_y``, ``u`` or ``w``).
+On a box of ``(ψ, v, δ)`` with ``|ψ|, |δ| < 90°`` each ``a_k`` ranges over an interval
+computed exactly (monotonicity of sin and tan, products of intervals of one sign for
+``v cos ψ`` and ``v / cos² δ``), so every Jacobian on the box lies in the convex hull of
+the 16 matrices at the corners of the interval box of ``a`` (a polytopic LDI).
 """
 
 from __future__ import annotations
@@ -21,7 +32,7 @@ import numpy as np
 
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import System
-from balustrade.errors import moved_names
+from balustrade.errors import BalustradeError, moved_names
 
 TS, WHEELBASE, V_S = 0.05, 0.09, 1.1
 DEG = np.pi / 180.0
@@ -35,6 +46,52 @@ def bicycle(ts: float = TS, wheelbase: float = WHEELBASE) -> System:
                           x[3] + u[0])
 
     return System(f, nx=4, nu=2, nw=1, name="kinematic_bicycle")
+
+
+def input_matrix(ts: float = TS) -> np.ndarray:
+    """``∂f/∂u`` (constant): ``Δδ`` enters ``δ`` directly, ``τ`` enters ``v`` times ``T_s``."""
+    return np.array([[0.0, 0.0], [0.0, 0.0], [0.0, ts], [1.0, 0.0]])
+
+
+def _interval_product(a: tuple[float, float], b: tuple[float, float]) -> tuple[float, float]:
+    corners = [a[0] * b[0], a[0] * b[1], a[1] * b[0], a[1] * b[1]]
+    return min(corners), max(corners)
+
+
+def _even_range(fn: object, lo: float, hi: float) -> tuple[float, float]:
+    """Range of an even function increasing in ``|θ|`` on ``[lo, hi]`` (cos⁻², −cos)."""
+    ends = [fn(lo), fn(hi)]
+    return (fn(0.0) if lo <= 0.0 <= hi else min(ends)), max(ends)
+
+
+def jacobian_ldi(lb: np.ndarray, ub: np.ndarray, ts: float = TS, wheelbase: float = WHEELBASE
+                 ) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """``(A0, [E_1..E_4], intervals)`` with ``∂f/∂x = A0 + Σ_k a_k E_k`` and
+    ``a_k ∈ [intervals[k, 0], intervals[k, 1]]`` for every state of the box ``[lb, ub]``
+    (state order ``(p_y, ψ, v, δ)``; the ``p_y`` bounds are ignored, they may be infinite).
+    Module docstring; ``|ψ|, |δ| < 90°`` on the box."""
+    lb, ub = np.asarray(lb, dtype=float).reshape(4), np.asarray(ub, dtype=float).reshape(4)
+    for k, label in ((1, "psi"), (3, "delta")):
+        if not (-np.pi / 2 < lb[k] <= ub[k] < np.pi / 2):
+            raise BalustradeError(f"jacobian_ldi: the {label} range [{lb[k]}, {ub[k]}] must lie "
+                             "inside (-90°, 90°)")
+    if not (np.isfinite(lb[2]) and np.isfinite(ub[2]) and lb[2] <= ub[2]):
+        raise BalustradeError(f"jacobian_ldi: the v range [{lb[2]}, {ub[2]}] must be finite")
+    cos_psi = tuple(-c for c in reversed(_even_range(lambda t: -np.cos(t), lb[1], ub[1])))
+    sec2 = _even_range(lambda t: 1.0 / np.cos(t) ** 2, lb[3], ub[3])
+    v = (lb[2], ub[2])
+    a1 = _interval_product(v, cos_psi)
+    a4 = _interval_product(v, sec2)
+    intervals = np.array([[ts * a1[0], ts * a1[1]],
+                          [ts * np.sin(lb[1]), ts * np.sin(ub[1])],
+                          [ts / wheelbase * np.tan(lb[3]), ts / wheelbase * np.tan(ub[3])],
+                          [ts / wheelbase * a4[0], ts / wheelbase * a4[1]]])
+    E = []
+    for i, j in ((0, 1), (0, 2), (1, 2), (1, 3)):
+        M = np.zeros((4, 4))
+        M[i, j] = 1.0
+        E.append(M)
+    return np.eye(4), E, intervals
 
 
 def bicycle_sets() -> tuple[Box, Box, Box]:

@@ -1,0 +1,451 @@
+"""A nonlinear RPI error set that holds: an incremental quadratic Lyapunov function with a
+linear error feedback from an SDP over a polytopic bound of the Jacobians (thesis §6.5 and
+§8.2, SPEC §2.31 "RPI set"), and the ellipsoidal terminal CBF of (6.17) made robust to the
+same Jacobian bound; plus checks a user can run on *any* ``E``/``κ``/``h_f``.
+
+**Setting.** ``x⁺ = f(x, u) + G w`` with ``∂f/∂u = B`` constant and, for every ``x`` of a
+convex domain ``D``, ``∂f/∂x(x) ∈ conv{A_1, …, A_M}`` (a :class:`PolytopicLDI`). For the
+kinematic bicycle the Jacobian is ``A0 + Σ_k a_k(x) E_k`` with four scalar functions
+``a_k`` whose ranges on a box are intervals (:func:`balustrade.models.bicycle.jacobian_ldi`);
+the ``A_i`` are the ``2⁴`` corners.
+
+**Claim 1 (RPI).** Let ``E_P ≻ 0``, ``Y``, ``λ ∈ (0, 1)`` satisfy for every vertex ``A_i`` and
+every vertex ``w^v`` of ``W``
+
+    ``M_i,v = [[λE_P, 0, (A_iE_P+BY)ᵀ], [0, 1−λ, (Gw^v)ᵀ], [A_iE_P+BY, Gw^v, E_P]] ⪰ 0``,
+
+and set ``P = E_P⁻¹``, ``K = Y P``, ``V(e) = eᵀPe``. Then for all ``z, x = z + e`` whose
+segment lies in ``D`` (e.g. both in ``D``, ``D`` convex), every ``v``, and every ``w ∈ W``,
+the error ``e⁺ = f(z+e, v+Ke) + Gw − f(z, v)`` satisfies ``V(e⁺) <= λV(e) + (1−λ)``; hence
+``V(e) <= 1 ⇒ V(e⁺) <= 1``: ``E = {V <= 1}`` is RPI for the *nonlinear* error dynamics.
+
+*Proof.* By the fundamental theorem of calculus along the segment (``f`` is C¹ on ``D``),
+``f(z+e, v+Ke) − f(z, v) = Ā e + BKe`` with ``Ā = ∫₀¹ ∂f/∂x(z + se) ds`` (``∂f/∂u = B`` is
+constant, so the input part is exact). Each integrand lies in the convex hull of the ``A_i``;
+the integral of a hull-valued function over ``[0, 1]`` is in the (closed) hull, so
+``Ā = Σ_i θ_i A_i`` with ``θ`` in the simplex. ``M`` is affine in ``A``, so
+``Σ_i θ_i M_i,v = M(Ā)_v ⪰ 0``, and ``M(Ā)`` is affine in ``w^v`` too, so it holds for every
+``w ∈ W = conv{w^v}`` (with ``(Gw)`` in place of ``Gw^v``). A Schur complement of
+``M(Ā)_w`` with respect to ``E_P`` and the congruence ``diag(P, 1)`` give
+``[[λP, 0], [0, 1−λ]] − [Ā+BK, Gw]ᵀ P [Ā+BK, Gw] ⪰ 0``; evaluating at ``(e, 1)`` yields
+``V(e⁺) <= λ V(e) + (1−λ)``. ∎
+
+Among the feasible ``(E_P, Y)`` the SDP minimizes the relative tightenings of all state and
+input rows, as :func:`~balustrade.problems.rpi.rpi_sdp` does; ``λ`` is line-searched.
+
+**Claim 2 (terminal CBF).** Let ``x_s, u_s`` be an equilibrium of ``f``, ``E_f ≻ 0``, ``Y_f``
+with ``[[λ_f E_f, (A_iE_f+BY_f)ᵀ], [A_iE_f+BY_f, E_f]] ⪰ 0`` for every ``i``, the state rows
+of ``X ⊖ E`` (tightened by ``Δ_{N−1}``) and the input rows of ``U ⊖ KE`` (scaled by
+``1/sqrt(1+level)``) as in (6.17). With ``P_f = E_f⁻¹``, ``K_f = Y_f P_f``,
+``h_f(x) = (x−x_s)ᵀP_f(x−x_s) − 1`` and ``π_f(x) = u_s + K_f(x−x_s)``: if ``S_f = {h_f <= 0}``
+lies in ``D`` (it lies in ``X ⊖ E``, so ``X ⊆ D`` suffices), then for ``z ∈ S_f`` the nominal
+``z⁺ = f(z, π_f(z))`` satisfies ``h_f(z⁺) + 1 <= λ_f (h_f(z) + 1)``, so ``S_f`` is invariant
+with decrease for the *nonlinear* nominal model, ``S_f ⊆ X ⊖ E`` with the tightening
+``Δ_{N−1}`` and ``π_f(S_f) ⊆ U ⊖ KE``. *Proof:* ``z⁺ − x_s = (Ā + BK_f)(z − x_s)`` with ``Ā``
+the mean Jacobian along the segment from ``x_s`` to ``z`` (inside the convex ``S_f ⊆ D``),
+then as in Claim 1 without ``w``. The thesis instead designs on the linearization at ``x_s``
+and verifies afterwards [41, §IV]; the checks below do that verification for any design.
+
+**Checks** (for any error set / terminal CBF, e.g. the linearization design as a negative
+control): :func:`sampled_rpi_check` (random ``z``, ``v``, ``e ∈ ∂E``, ``w``),
+:func:`worst_case_rpi_check` (the NLP ``max V(e⁺) − 1`` over ``z``, ``v``, ``V(e) <= 1``, ``w``
+from many starts, on a CasADi target of :mod:`balustrade.backends.targets`),
+:func:`sampled_terminal_check` and :func:`worst_case_terminal_check` (``max h_f(z⁺)`` over
+``S_f``; also the decrease, the state rows and the input rows). A margin ``<= 0`` means no
+counterexample was found; they test, the claims above prove.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from balustrade._checks import as_matrix, check_instance
+from balustrade.backends import compile, compile_synthesis, solve_synthesis
+from balustrade.dsl.error_sets import ErrorSet, bounded_vertices
+from balustrade.dsl.ocp import OCP
+from balustrade.dsl.sets import Box, Ellipsoid, Polytope, Set
+from balustrade.dsl.synthesis import SynthesisProblem, bmat, logdet
+from balustrade.dsl.system import System
+from balustrade.errors import BalustradeError, ShapeError
+from balustrade.problems.terminal_cbf import TerminalCBF, terminal_cbf_from
+
+
+@dataclass(frozen=True)
+class PolytopicLDI:
+    """``∂f/∂x ∈ conv{A0 + Σ_k a_k E_k : a_k ∈ {lo_k, hi_k}}``, ``∂f/∂u = B`` on ``domain``
+    (a box of states; the claims of the module docstring hold for segments inside it)."""
+
+    A0: np.ndarray
+    directions: tuple[np.ndarray, ...]
+    intervals: np.ndarray
+    B: np.ndarray
+    domain: Box
+
+    def __post_init__(self) -> None:
+        n = self.A0.shape[0]
+        if self.A0.shape != (n, n) or any(E.shape != (n, n) for E in self.directions):
+            raise ShapeError("PolytopicLDI: A0 and directions", f"({n}, {n}) matrices",
+                             [self.A0.shape, *(E.shape for E in self.directions)])
+        if self.intervals.shape != (len(self.directions), 2):
+            raise ShapeError("PolytopicLDI: intervals", (len(self.directions), 2),
+                             self.intervals.shape)
+        if np.any(self.intervals[:, 0] > self.intervals[:, 1]):
+            raise BalustradeError(f"PolytopicLDI: intervals: a lower end exceeds an upper end "
+                                  f"({self.intervals.tolist()})")
+        if self.B.shape[0] != n or self.domain.dim != n:
+            raise ShapeError("PolytopicLDI: B, domain", f"{n} rows / dimension {n}",
+                             (self.B.shape, self.domain.dim))
+
+    def vertices(self) -> list[np.ndarray]:
+        """The ``2^K`` matrices at the corners of the interval box (duplicates removed)."""
+        out: list[np.ndarray] = []
+        for corner in itertools.product(*self.intervals.tolist()):
+            A = self.A0 + sum(c * E for c, E in zip(corner, self.directions))
+            if not any(np.array_equal(A, B) for B in out):
+                out.append(A)
+        return out
+
+    def describe_domain(self) -> dict:
+        return {"lb": self.domain.lb.tolist(), "ub": self.domain.ub.tolist(),
+                "intervals": self.intervals.tolist(), "vertices": len(self.vertices())}
+
+
+def _shifted(S: Polytope, center: np.ndarray, name: str) -> Polytope:
+    return Polytope(S.H, S.h - S.H @ center, name=name)
+
+
+def incremental_rpi_sdp(ldi: PolytopicLDI, W: Set, X: Polytope, U: Polytope,
+                        G: np.ndarray, min_axes: object = 1e-3) -> SynthesisProblem:
+    """The SDP of Claim 1 (module docstring) with ``λ`` as the parameter ``"lambda"``: one
+    LMI block ``vertex i, w j`` per Jacobian vertex and disturbance vertex; objective the sum
+    of squared relative tightenings of the rows of ``X`` and ``U`` (centred at the operating
+    point: their ``h`` must be positive). ``E_P ⪰ diag(min_axes²)`` (a scalar or one entry per
+    state) makes ``E`` contain the axis-aligned ellipsoid with these semi-axes: an
+    undisturbed, dead-beat-controlled direction (the bicycle's ``v``) would otherwise
+    collapse and make ``P = E_P⁻¹`` ill-conditioned for the horizon solvers (``P_vv ≈ 5e8``
+    for the bicycle without it)."""
+    check_instance(W, Set, "incremental_rpi_sdp: W")
+    check_instance(X, Polytope, "incremental_rpi_sdp: X")
+    check_instance(U, Polytope, "incremental_rpi_sdp: U")
+    n, m = ldi.B.shape
+    G = as_matrix(G, "incremental_rpi_sdp: G", (n, W.dim))
+    for S in (X, U):
+        if np.any(S.h <= 0):
+            raise BalustradeError(f"incremental_rpi_sdp: the operating point must be inside "
+                                  f"{S.name} (row bounds {S.h.tolist()})")
+    sdp = SynthesisProblem("incremental RPI SDP over a polytopic LDI (§6.5, §8.2)")
+    E = sdp.matrix("E", (n, n), symmetric=True)
+    Y = sdp.matrix("Y", (m, n))
+    t_u = sdp.vector("t_u", U.H.shape[0])
+    lam = sdp.parameter("lambda", nonneg=True)
+    axes = np.broadcast_to(np.asarray(min_axes, dtype=float), (n,))
+    if np.any(axes <= 0):
+        raise BalustradeError(f"incremental_rpi_sdp: min_axes must be positive, got {axes}")
+    sdp.lmi("E > min_axes", E >> np.diag(axes ** 2))
+    ws = bounded_vertices(W) @ G.T
+    for i, A in enumerate(ldi.vertices()):
+        AEBY = A @ E + ldi.B @ Y
+        for j, w in enumerate(ws):
+            wc = w.reshape(n, 1)
+            sdp.lmi(f"vertex {i}, w {j}", bmat([[lam * E, np.zeros((n, 1)), AEBY.T],
+                                                 [np.zeros((1, n)), 1 - lam, wc.T],
+                                                 [AEBY, wc, E]]))
+    for j, a in enumerate(U.H):
+        sdp.lmi(f"input row {j}", bmat([[t_u[j], a[None] @ Y], [(a[None] @ Y).T, E]]))
+    sdp.minimize(sum([(a @ E @ a) / b ** 2 for a, b in zip(X.H, X.h)]
+                     + [t_u[j] / b ** 2 for j, b in enumerate(U.h)]))
+    return sdp
+
+
+def incremental_rpi(ldi: PolytopicLDI, W: Set, X: Polytope, U: Polytope, G: np.ndarray,
+                    x_s: np.ndarray, u_s: np.ndarray | None = None,
+                    lambdas: Sequence[float] | None = None, target: object = "sdp",
+                    name: str = "E", min_axes: object = 1e-3) -> ErrorSet:
+    """``E = {eᵀPe <= 1}`` and ``κ(e) = Ke`` of Claim 1 (module docstring), line-searching
+    ``λ`` (default 19 values in ``(0, 1)``; ``min_axes``: :func:`incremental_rpi_sdp`);
+    ``X``, ``U`` are centred at ``(x_s, u_s)`` for the objective. ``info``: ``lambda``,
+    ``objective``, ``solve_time``, ``method``, ``domain`` (the box of states on which the
+    Jacobian bound, hence the guarantee, holds)."""
+    u_s = np.zeros(ldi.B.shape[1]) if u_s is None else np.asarray(u_s, dtype=float)
+    lambdas = list(lambdas) if lambdas is not None else list(np.linspace(0.05, 0.95, 19))
+    for lv in lambdas:
+        if not 0 < lv < 1:
+            raise BalustradeError(f"incremental_rpi: lambdas: every λ must lie in (0, 1), "
+                                  f"got {lv}")
+    sdp = incremental_rpi_sdp(ldi, W, _shifted(X, np.asarray(x_s, dtype=float), "X-x_s"),
+                              _shifted(U, u_s, "U-u_s"), G, min_axes)
+    compiled = compile_synthesis(sdp, target)
+    best, start = None, time.perf_counter()
+    for lv in lambdas:
+        sol = compiled.solve({"lambda": lv})
+        if sol.ok and (best is None or sol.objective < best[0].objective):
+            best = (sol, lv)
+    if best is None:
+        raise BalustradeError(
+            f"incremental_rpi: no λ of {len(lambdas)} admits a common incremental quadratic "
+            f"Lyapunov function on the domain {ldi.describe_domain()}; shrink the domain or "
+            "the disturbance")
+    sol, lv = best
+    Ev = 0.5 * (sol["E"] + sol["E"].T)
+    P = np.linalg.inv(Ev)
+    P = 0.5 * (P + P.T)
+    return ErrorSet(Ellipsoid(P, name=name), sol["Y"] @ P,
+                    info={"objective": sol.objective, "lambda": lv,
+                          "solve_time": time.perf_counter() - start,
+                          "method": "incremental quadratic Lyapunov function over a "
+                                    "polytopic LDI (Claim 1 of balustrade.design."
+                                    "incremental_rpi)",
+                          "domain": ldi.describe_domain()})
+
+
+def robust_terminal_cbf(ldi: PolytopicLDI, X_E: Polytope, U_E: Polytope, x_s: np.ndarray,
+                        delta_N: float = 0.0, level: float = 1.0,
+                        decrease_factor: float = 0.99, target: object = "sdp"
+                        ) -> TerminalCBF:
+    """The terminal CBF of Claim 2 (module docstring): (6.17) with the invariance LMI at
+    every Jacobian vertex, the state rows of ``X_E`` tightened by ``delta_N`` and the input
+    rows of ``U_E`` scaled by ``1/sqrt(1 + level)`` (so ``γ_f >= level``), all centred at
+    ``x_s`` (``u_s = 0``). ``P``, ``K`` act on ``x − x_s``."""
+    n, m = ldi.B.shape
+    x_s = np.asarray(x_s, dtype=float).reshape(n)
+    Xc, Uc = _shifted(X_E, x_s, "X_E-x_s"), U_E
+    bx = Xc.h - delta_N
+    bu = Uc.h / np.sqrt(1.0 + level)
+    if np.any(bx <= 0) or np.any(bu <= 0):
+        raise BalustradeError(f"robust_terminal_cbf: x_s must lie inside X_E tightened by "
+                              f"delta_N and 0 inside U_E (state bounds {bx.tolist()}, input "
+                              f"bounds {bu.tolist()})")
+    sdp = SynthesisProblem("terminal CBF SDP (6.17) over a polytopic LDI")
+    E = sdp.matrix("E", (n, n), symmetric=True)
+    Y = sdp.matrix("Y", (m, n))
+    for i, A in enumerate(ldi.vertices()):
+        AEBY = A @ E + ldi.B @ Y
+        sdp.lmi(f"invariance {i}", bmat([[decrease_factor * E, AEBY.T], [AEBY, E]]))
+    for i, (a, b) in enumerate(zip(Xc.H, bx)):
+        sdp.lmi(f"state row {i}", bmat([[b ** 2, a[None] @ E], [(a[None] @ E).T, E]]))
+    for j, (a, b) in enumerate(zip(Uc.H, bu)):
+        sdp.lmi(f"input row {j}", bmat([[b ** 2, a[None] @ Y], [(a[None] @ Y).T, E]]))
+    sdp.minimize(-logdet(E))
+    sol = solve_synthesis(sdp, target)
+    if not sol.ok:
+        raise BalustradeError(f"robust_terminal_cbf: no solution ({sol.status}: "
+                              f"{sol.message}) on the domain {ldi.describe_domain()}")
+    return terminal_cbf_from(sol.values, Uc, decrease_factor, sol.status, sol.solve_time)
+
+
+# -- checks -----------------------------------------------------------------------------------
+@dataclass
+class InvarianceCheck:
+    """A check's result: ``margin`` is the largest violation found (``<= tol``: none);
+    ``worst`` the point attaining it; ``parts`` the margins of each condition."""
+
+    method: str
+    margin: float
+    worst: dict = field(default_factory=dict)
+    parts: dict = field(default_factory=dict)
+    count: int = 0
+    failed_starts: int = 0
+    tol: float = 1e-7
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.margin <= self.tol)
+
+    def summary(self) -> dict:
+        return {"method": self.method, "margin": float(self.margin), "ok": self.ok,
+                "count": self.count, "failed_starts": self.failed_starts,
+                "parts": {k: float(v) for k, v in self.parts.items()},
+                "worst": {k: np.asarray(v).tolist() for k, v in self.worst.items()}}
+
+
+def _ellipsoid_P(error: ErrorSet) -> np.ndarray:
+    check_instance(error, ErrorSet, "RPI check: error")
+    if not isinstance(error.E, Ellipsoid):
+        raise BalustradeError(f"RPI check: the error set must be an Ellipsoid, got "
+                              f"{type(error.E).__name__}")
+    if error.K is None:
+        raise BalustradeError("RPI check: the error set needs a linear feedback K")
+    return np.asarray(error.E.P, dtype=float)
+
+
+def _boundary(rng: np.random.Generator, P: np.ndarray, count: int) -> np.ndarray:
+    """``count`` points of ``∂{eᵀPe <= 1}``, uniform in direction."""
+    L = np.linalg.cholesky(np.linalg.inv(P))
+    d = rng.standard_normal((count, P.shape[0]))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    return d @ L.T
+
+
+def _fn(system: System) -> Callable:
+    x, u, w = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu), ca.SX.sym("w", system.nw)
+    return ca.Function("f", [x, u, w], [system(x, u, w)])
+
+
+def sampled_rpi_check(system: System, error: ErrorSet, Z: Box, V: Polytope, W: Box,
+                      samples: int = 20000, seed: int = 0) -> InvarianceCheck:
+    """``max V(e⁺) − 1`` over random ``z ∈ Z``, ``v ∈ V``, ``e ∈ ∂E``, ``w ∈ W`` (``Z``, ``W``
+    boxes, ``V`` a polytope such as ``U ⊖ KE``; half the ``w`` at vertices),
+    ``e⁺ = f(z+e, v+Ke, w) − f(z, v, 0)``. Evaluated batched."""
+    P = _ellipsoid_P(error)
+    K = np.asarray(error.K, dtype=float)
+    rng = np.random.default_rng(seed)
+    zs, vs = Z.sample(samples, rng), V.sample(samples, rng)
+    es = _boundary(rng, P, samples)
+    ws = W.sample(samples, rng)
+    half = samples // 2
+    ws[:half] = np.where(rng.random((half, W.dim)) < 0.5, W.lb, W.ub)
+    f = _fn(system).map(samples)
+    x1 = np.asarray(f((zs + es).T, (vs + es @ K.T).T, ws.T))
+    x0 = np.asarray(f(zs.T, vs.T, np.zeros((W.dim, samples))))
+    en = (x1 - x0).T
+    vals = np.einsum("ij,jk,ik->i", en, P, en) - 1.0
+    k = int(np.argmax(vals))
+    return InvarianceCheck("sampled", float(vals[k]),
+                           {"z": zs[k], "v": vs[k], "e": es[k], "w": ws[k]},
+                           {"V(e+)-1": float(vals[k])}, samples)
+
+
+def worst_case_rpi_check(system: System, error: ErrorSet, Z: Box, V: Polytope, W: Box,
+                         starts: int = 20, seed: int = 0, target: object = "exact"
+                         ) -> InvarianceCheck:
+    """The NLP ``max V(e⁺) − 1`` over ``z ∈ Z``, ``v ∈ V``, ``eᵀPe <= 1``, ``w ∈ W`` (a
+    horizon-free :class:`~balustrade.dsl.ocp.OCP` on ``target``, default the ``"exact"``
+    preset) from ``starts`` random starts; the margin is the best converged local maximum
+    (a local solver: a lower bound on the true maximum, like sampling, but sharper).
+    Starts whose solve did not succeed are counted in ``failed_starts``, not used."""
+    P = _ellipsoid_P(error)
+    K = np.asarray(error.K, dtype=float)
+    nx, nu, nw = system.nx, system.nu, system.nw
+    ocp = OCP(name="worst_case_rpi")
+    z = ocp.variable("z", nx, lb=Z.lb, ub=Z.ub)
+    v = ocp.variable("v", nu)
+    ocp.le(ca.mtimes(ca.DM(V.H), v), ca.DM(V.h), name="v_in_V")
+    s = ocp.variable("s", nx)   # e = L⁻ᵀ s with P = L Lᵀ: eᵀPe = ‖s‖² (well scaled)
+    w = ocp.variable("w", nw, lb=W.lb, ub=W.ub)
+    L = np.linalg.cholesky(P)
+    Linv_T = np.linalg.inv(L).T
+    e = ca.mtimes(ca.DM(Linv_T), s)
+    ocp.le(ca.sumsqr(s), 1.0, name="e_in_E")
+    en = system(z + e, v + ca.mtimes(ca.DM(K), e), w) - system(z, v, ca.DM.zeros(nw))
+    ocp.minimize(-ca.sumsqr(ca.mtimes(ca.DM(L.T), en)))
+    compiled = compile(ocp, target)
+    rng = np.random.default_rng(seed)
+    es = _boundary(rng, P, starts)
+    guesses = [{"z": Z.sample(1, rng)[0], "v": V.sample(1, rng)[0], "e": es[k],
+                "w": W.sample(1, rng)[0]} for k in range(starts - starts // 2)]
+    if starts // 2:  # the other half: the worst points of a sampled pre-pass
+        pre = [sampled_rpi_check(system, error, Z, V, W, 200, seed + 1 + k)
+               for k in range(starts // 2)]
+        guesses += [c.worst for c in pre]
+    best, worst, failed = -np.inf, {}, 0
+    for guess in guesses:
+        guess = {"z": guess["z"], "v": guess["v"], "s": L.T @ guess["e"], "w": guess["w"]}
+        sol = compiled.solve({}, warm_start=guess)
+        if not sol.success:
+            failed += 1
+            continue
+        val = -float(sol.objective) - 1.0
+        if val > best:
+            best = val
+            worst = {n: np.asarray(sol[n], dtype=float).reshape(-1) for n in "zvw"}
+            worst["e"] = Linv_T @ np.asarray(sol["s"], dtype=float).reshape(-1)
+    if not np.isfinite(best):
+        raise BalustradeError(f"worst_case_rpi_check: none of {starts} starts converged")
+    return InvarianceCheck("worst-case NLP", best, worst, {"V(e+)-1": best}, starts, failed)
+
+
+@dataclass(frozen=True)
+class TerminalSpec:
+    """What the terminal checks need: ``h_f(x) = (x−x_s)ᵀP(x−x_s) − 1``, ``π_f(x) = K(x−x_s)``
+    (``u_s = 0``), the tightened sets and ``Δ_{N−1}``, the decrease factor ``λ_f``."""
+
+    P: np.ndarray
+    K: np.ndarray
+    x_s: np.ndarray
+    X_E: Polytope
+    U_E: Polytope
+    delta_N: float = 0.0
+    decrease_factor: float = 1.0
+
+
+def _set_margins(spec: TerminalSpec) -> dict:
+    """Exact support-function maxima over ``S_f`` of the state rows (with ``Δ``) and the
+    input rows: ``max_{S_f} a(x) − b`` for every row."""
+    Einv = np.linalg.inv(spec.P)
+    xs = spec.x_s
+    st = [float(a @ xs + np.sqrt(a @ Einv @ a) - (b - spec.delta_N))
+          for a, b in zip(spec.X_E.H, spec.X_E.h)]
+    inp = [float(np.sqrt(a @ spec.K @ Einv @ spec.K.T @ a) - b)
+           for a, b in zip(spec.U_E.H, spec.U_E.h)]
+    return {"state_rows": max(st), "input_rows": max(inp)}
+
+
+def sampled_terminal_check(system: System, spec: TerminalSpec, samples: int = 20000,
+                           seed: int = 0) -> InvarianceCheck:
+    """Invariance of ``S_f = {h_f <= 0}`` under ``π_f`` for the nonlinear nominal model:
+    ``max h_f(z⁺)`` over random ``z ∈ S_f`` (half on ``∂S_f``), the decrease
+    ``max h_f(z⁺) + 1 − λ_f (h_f(z) + 1)``, and exactly the rows ``S_f ⊆ X_E ⊖ Δ``,
+    ``π_f(S_f) ⊆ U_E``. ``margin`` is the largest of the four."""
+    rng = np.random.default_rng(seed)
+    d = _boundary(rng, spec.P, samples)
+    d[samples // 2:] *= rng.random((samples - samples // 2, 1)) ** (1 / spec.P.shape[0])
+    zs = spec.x_s + d
+    us = d @ spec.K.T
+    f = _fn(system).map(samples)
+    zn = np.asarray(f(zs.T, us.T, np.zeros((system.nw, samples)))).T - spec.x_s
+    Vn = np.einsum("ij,jk,ik->i", zn, spec.P, zn)
+    V0 = np.einsum("ij,jk,ik->i", d, spec.P, d)
+    parts = {"h_f(z+)": float(np.max(Vn - 1.0)),
+             "decrease": float(np.max(Vn - spec.decrease_factor * V0)), **_set_margins(spec)}
+    k = int(np.argmax(Vn))
+    return InvarianceCheck("sampled", max(parts.values()), {"z": zs[k]}, parts, samples)
+
+
+def worst_case_terminal_check(system: System, spec: TerminalSpec, starts: int = 20,
+                              seed: int = 0, target: object = "exact") -> InvarianceCheck:
+    """The NLPs ``max h_f(z⁺)`` and ``max h_f(z⁺) + 1 − λ_f(h_f(z) + 1)`` over ``z ∈ S_f``
+    from ``starts`` random starts each (as :func:`worst_case_rpi_check`), plus the exact
+    row margins of :func:`sampled_terminal_check`."""
+    nx, nw = system.nx, system.nw
+    Pd = ca.DM(spec.P)
+    L = np.linalg.cholesky(spec.P)
+    Linv_T = np.linalg.inv(L).T
+    parts, worst, failed = {}, {}, 0
+    rng = np.random.default_rng(seed)
+    for label, lam in (("h_f(z+)", 0.0), ("decrease", spec.decrease_factor)):
+        ocp = OCP(name="worst_case_terminal")
+        s = ocp.variable("s", nx)   # d = L⁻ᵀ s, P = L Lᵀ (as in worst_case_rpi_check)
+        d = ca.mtimes(ca.DM(Linv_T), s)
+        ocp.le(ca.sumsqr(s), 1.0, name="z_in_S_f")
+        z = ca.DM(spec.x_s) + d
+        zn = system(z, ca.mtimes(ca.DM(spec.K), d), ca.DM.zeros(nw)) - ca.DM(spec.x_s)
+        ocp.minimize(-(ca.mtimes([zn.T, Pd, zn]) - lam * ca.mtimes([d.T, Pd, d])))
+        compiled = compile(ocp, target)
+        best = -np.inf
+        for d0 in _boundary(rng, spec.P, starts):
+            sol = compiled.solve({}, warm_start={"s": L.T @ d0})
+            if not sol.success:
+                failed += 1
+                continue
+            val = -float(sol.objective) - (1.0 if lam == 0.0 else 0.0)
+            if val > best:
+                best = val
+                worst[label] = spec.x_s + Linv_T @ np.asarray(sol["s"], dtype=float).reshape(-1)
+        if not np.isfinite(best):
+            raise BalustradeError(f"worst_case_terminal_check: none of {starts} starts "
+                                  f"converged ({label})")
+        parts[label] = best
+    parts.update(_set_margins(spec))
+    return InvarianceCheck("worst-case NLP", max(parts.values()), worst, parts, 2 * starts,
+                           failed)
+
+
+__all__ = ["InvarianceCheck", "PolytopicLDI", "TerminalSpec", "incremental_rpi",
+           "incremental_rpi_sdp", "robust_terminal_cbf", "sampled_rpi_check",
+           "sampled_terminal_check", "worst_case_rpi_check", "worst_case_terminal_check"]

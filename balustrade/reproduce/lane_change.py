@@ -1,0 +1,335 @@
+"""Section 8.2 / Figure 8.1: lane change of the kinematic bicycle under a destabilizing
+"human" driver, robust PCBF (Algorithm 5.2) vs the multiobjective robust PCBF (Algorithm 6.4).
+
+Model and sets: :mod:`balustrade.models.bicycle` (SPEC §2.31, ``l = 0.09``); design:
+:func:`balustrade.examples.bicycle.bicycle_design` — the error set and ``κ`` of an incremental
+Lyapunov function over all Jacobians and the terminal CBF robust to them (proved RPI /
+invariant for the nonlinear model in :mod:`balustrade.design.incremental_rpi`; both checks,
+sampled and worst-case NLP, are run and recorded here). SPEC §3.6 defaults: ``N = 20``,
+``α_f = 1e6``, ``Δ_i = i·1e-4``, ``ρ = 0.9``, ``x_0 = (0.4, 0, 1.1, 0)`` (the adjacent lane),
+the human ``Δδ_p = 0.5 p_y + 0.5 ψ``, ``τ_p = 0``, 200 steps, ``w`` i.i.d. uniform in
+``|w| <= 0.5°`` (seeded). Slack norm: ℓ1 for both (Algorithm 6.4's ``h̃`` is ℓ1; with the
+SPEC's Euclidean norm the robust slack problem took ~4 s per step on the SQP with many
+failed solves, so it is not used). Cost: ``‖v_0 + κ(x − z_0) − u_p‖²``.
+
+Runs (the closed loops all use the emittable target ``robust-sqp`` for both problems, so
+Python and C run the same algorithm):
+
+* **Python**, seed 0: both controllers, Algorithm 6.4 with ``record_h_r`` (an extra (5.15)
+  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with ``ρ = 0.5``
+  (:data:`EXTRA_RHOS`); per-step wall times of the two controllers
+  interleaved step by step, on ``robust-sqp`` and on ``exact`` (the solver of the thesis);
+* **C** (:func:`~balustrade.codegen.accelerate`): the same seed-0 closed loops compared with
+  Python step by step (``C = Python``: largest input and state difference, statuses and
+  fallbacks that differ — counted, not hidden; no mirror mode), then the seeded runs
+  (50; quick: 5) for the must-shows, timed per step.
+
+Must-shows (``metrics["must_show"]``): ``h_r`` non-increasing along every robust run (and
+``h̃`` along every multiobjective run — Theorem 6.15 decreases ``h̃``, of which ``h_r`` is
+a lower bound; the seed-0 ``h_r`` of Algorithm 6.4 is reported too), ``X`` kept once
+inside ``S_r`` (``h_r = 0``; for 6.4 ``h̃ = 0``, which implies it), both converge to the
+lane (final ``|p_y| <= 0.2`` and ``h = 0``), the multiobjective peak lateral acceleration
+``v² tan δ / l`` at most the robust one, C = Python for both.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from balustrade.codegen import accelerate
+from balustrade.control.multiobjective import MultiobjectivePCBFController
+from balustrade.control.robust import RobustPCBFSafetyFilter
+from balustrade.design.incremental_rpi import (
+    sampled_rpi_check,
+    sampled_terminal_check,
+    worst_case_rpi_check,
+    worst_case_terminal_check,
+)
+from balustrade.examples.bicycle import BicycleDesign, bicycle_design
+from balustrade.models.bicycle import WHEELBASE
+from balustrade.reproduce._plotting import figure, save
+
+NAMES = ("lane-change",)
+THESIS = {"step_ms": {"robust": 140, "multiobjective": 116}, "N": 20, "steps": 200,
+          "reported": "both converge to the lane; rho gives a less abrupt manoeuvre; the car "
+                      "then follows the road edge"}
+X0 = np.array([0.4, 0.0, 1.1, 0.0])
+RHO = 0.9
+#: further ρ of Algorithm 6.4 run in Python (seed 0): with ρ = 0.9 the required decrease
+#: is a tenth of the candidate's and the lane is not reached within 200 steps
+EXTRA_RHOS = (0.5,)
+STEPS = 200
+#: target of both problems of both controllers in the closed loops (emittable: C = Python)
+TARGET = "robust-sqp"
+#: the thesis' solver, for the Python timing only
+TIMING_TARGET = "exact"
+#: h below this counts as 0 (S_r); tolerance of the monotonicity tests
+H_ZERO, H_TOL = 1e-6, 1e-6
+STATE_TOL = 1e-6
+
+
+def human(x: np.ndarray) -> np.ndarray:
+    """The destabilizing driver of SPEC §3.6: ``Δδ_p = 0.5 p_y + 0.5 ψ`` (rad), ``τ_p = 0``."""
+    return np.array([0.5 * x[0] + 0.5 * x[1], 0.0])
+
+
+def controllers(d: BicycleDesign, target: str = TARGET, record_h_r: bool = False,
+                rho: float = RHO) -> dict:
+    """Algorithm 5.2 and Algorithm 6.4 (``ρ = 0.9``), both problems on ``target``."""
+    common = (d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N, d.deltas, d.error, d.alpha_f)
+    return {"robust": RobustPCBFSafetyFilter.build(*common, slack_norm=1, target=target,
+                                                   slack_target=target),
+            "multiobjective": MultiobjectivePCBFController.build(
+                *common, rho=rho, target=target, slack_target=target, record_h_r=record_h_r)}
+
+
+def multiobjective(d: BicycleDesign, rho: float, target: str = TARGET,
+                   record_h_r: bool = True) -> MultiobjectivePCBFController:
+    common = (d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N, d.deltas, d.error, d.alpha_f)
+    return MultiobjectivePCBFController.build(*common, rho=rho, target=target,
+                                              slack_target=target, record_h_r=record_h_r)
+
+
+def disturbances(d: BicycleDesign, seed: int, steps: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(d.W.lb, d.W.ub, (steps, d.W.dim))
+
+
+def lateral_acceleration(states: np.ndarray) -> np.ndarray:
+    """``a_lat = v² tan δ / l`` of the kinematic bicycle."""
+    return states[:, 2] ** 2 * np.tan(states[:, 3]) / WHEELBASE
+
+
+def closed_loop(ctrl: object, d: BicycleDesign, ws: np.ndarray) -> dict:
+    """One closed loop from ``X0`` under the human proposal and the disturbances ``ws``."""
+    ctrl.reset()
+    x = X0.copy()
+    xs, us, h, ht, times, statuses, fallbacks, retried = [x], [], [], [], [], [], [], []
+    for w in ws:
+        start = time.perf_counter()
+        u, info = ctrl.step(x, human(x))
+        times.append(time.perf_counter() - start)
+        h.append(info.values.get("h_r", np.nan))
+        ht.append(info.values.get("h_tilde", np.nan))
+        statuses.append(info.status)
+        fallbacks.append(info.fallback)
+        retried.append(any("after retries" in getattr(sol, "message", "")
+                           for sol in info.solutions.values()))
+        x = d.system.step(x, u, w)
+        xs.append(x)
+        us.append(u)
+    return {"states": np.array(xs), "inputs": np.array(us), "h_r": np.array(h),
+            "h_tilde": np.array(ht), "times": np.array(times), "statuses": statuses,
+            "fallbacks": fallbacks, "retried": retried}
+
+
+def interleaved_times(ctrls: dict, d: BicycleDesign, ws: np.ndarray) -> dict:
+    """Per-step wall times of the controllers, stepping them alternately (A, B, A, B …)
+    along their own closed loops (the machine's load hits both alike)."""
+    xs = {k: X0.copy() for k in ctrls}
+    times: dict[str, list[float]] = {k: [] for k in ctrls}
+    for c in ctrls.values():
+        c.reset()
+    for w in ws:
+        for name, c in ctrls.items():
+            x = xs[name]
+            start = time.perf_counter()
+            u, _ = c.step(x, human(x))
+            times[name].append(time.perf_counter() - start)
+            xs[name] = d.system.step(x, u, w)
+    return {k: {"median_ms": 1e3 * float(np.median(v)), "p90_ms": 1e3 * float(
+        np.percentile(v, 90)), "max_ms": 1e3 * float(np.max(v)), "steps": len(v)}
+        for k, v in times.items()}
+
+
+def run_metrics(r: dict, d: BicycleDesign, key: str) -> dict:
+    """The must-show quantities of one run; ``key`` is the decreasing value (``h_r`` for
+    Algorithm 5.2, ``h_tilde`` for 6.4)."""
+    h = r[key]
+    finite = h[np.isfinite(h)]
+    inc = np.diff(finite)
+    bound = H_TOL * np.maximum(1.0, np.abs(finite[:-1]))
+    inside_X = d.X.contains_many(r["states"][:-1], tol=STATE_TOL)
+    zero = np.flatnonzero(np.isfinite(h) & (h <= H_ZERO))
+    entry = int(zero[0]) if zero.size else -1
+    alat = lateral_acceleration(r["states"])
+    return {"non_increasing": bool(np.all(inc <= bound)),
+            "largest_increase": float(inc.max()) if inc.size else 0.0,
+            "nan_values": int(np.sum(~np.isfinite(h))),
+            "entered_S_r_at": entry,
+            # vacuous (True) for a run that never entered S_r; "entered_S_r_at" tells
+            "X_kept_after_S_r": bool(entry < 0 or inside_X[entry:].all()),
+            "final_p_y": float(r["states"][-1, 0]),
+            "final_h": float(h[-1]) if np.isfinite(h[-1]) else None,
+            "converged": bool(abs(r["states"][-1, 0]) <= 0.2 + STATE_TOL and entry >= 0
+                              and np.isfinite(h[-1]) and h[-1] <= H_ZERO),
+            "peak_lateral_acceleration": float(np.max(np.abs(alat))),
+            "fallbacks": int(sum(f is not None for f in r["fallbacks"])),
+            "not_ok": int(sum(s != "ok" for s in r["statuses"])),
+            "median_step_ms": 1e3 * float(np.median(r["times"]))}
+
+
+def compare(py: dict, c: dict) -> dict:
+    """C = Python along the same closed loop (same seed): input/state differences, the
+    first step where the inputs differ by more than 1e-6, statuses and fallbacks, and the
+    Python steps with a solve that needed the backend's retry chain (whose last member, an
+    interior-point solver, has no C: docs/deploy_c.md, "Convergence on these problems")."""
+    du = np.max(np.abs(py["inputs"] - c["inputs"]), axis=1)
+    dx = np.max(np.abs(py["states"] - c["states"]), axis=1)
+    first = np.flatnonzero(du > 1e-6)
+    return {"max_input_diff": float(du.max()), "max_state_diff": float(dx.max()),
+            "first_step_input_diff_gt_1e-6": int(first[0]) if first.size else -1,
+            "status_mismatches": int(sum(a != b for a, b in zip(py["statuses"],
+                                                                 c["statuses"]))),
+            "fallback_mismatches": int(sum(a != b for a, b in zip(py["fallbacks"],
+                                                                  c["fallbacks"]))),
+            "python_not_ok": int(sum(s != "ok" for s in py["statuses"])),
+            "python_steps_after_retries": int(sum(py["retried"])),
+            "c_not_ok": int(sum(s != "ok" for s in c["statuses"])),
+            "equal": bool(du.max() <= 1e-6 and first.size == 0)}
+
+
+def checks(d: BicycleDesign, quick: bool) -> dict:
+    """The RPI and terminal-set checks of :mod:`balustrade.design.incremental_rpi`."""
+    samples, starts = (5000, 6) if quick else (50000, 40)
+    Z, V = d.X, d.U_E
+    spec = d.terminal_spec()
+    return {"rpi_sampled": sampled_rpi_check(d.system, d.error, Z, V, d.W, samples).summary(),
+            "rpi_worst_case": worst_case_rpi_check(d.system, d.error, Z, V, d.W,
+                                                   starts).summary(),
+            "terminal_sampled": sampled_terminal_check(d.system, spec, samples).summary(),
+            "terminal_worst_case": worst_case_terminal_check(d.system, spec,
+                                                             starts).summary()}
+
+
+def run(out: Path, quick: bool = False) -> dict:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    seeds = 5 if quick else 50
+    timing_steps = 30 if quick else STEPS
+    start = time.perf_counter()
+    d = bicycle_design(N=20)
+    metrics: dict = {"N": d.N, "steps": STEPS, "rho": RHO, "x0": X0.tolist(), "seeds": seeds,
+                     "target": TARGET, "design": {
+                         "method": d.method, "lambda": d.error.info["lambda"],
+                         "domain": d.error.info["domain"], "gamma_f": d.cbf.gamma_f,
+                         "E_semi_axes": np.sqrt(np.diag(np.linalg.inv(d.error.E.P))).tolist(),
+                         "K": d.error.K.tolist()}}
+    metrics["checks"] = checks(d, quick)
+    ws0 = disturbances(d, 0, STEPS)
+    py = controllers(d, record_h_r=True)
+    runs_py = {k: closed_loop(c, d, ws0) for k, c in py.items()}
+    extra = {f"multiobjective_rho{r:g}": closed_loop(multiobjective(d, r), d, ws0)
+             for r in EXTRA_RHOS}
+    metrics["python_seed0"] = {
+        "robust": run_metrics(runs_py["robust"], d, "h_r"),
+        "multiobjective": run_metrics(runs_py["multiobjective"], d, "h_tilde"),
+        "multiobjective_h_r": run_metrics(runs_py["multiobjective"], d, "h_r"),
+        **{k: run_metrics(r, d, "h_tilde") for k, r in extra.items()}}
+    ws_t = ws0[:timing_steps]
+    metrics["python_step_ms"] = {
+        TARGET: interleaved_times(controllers(d), d, ws_t),
+        TIMING_TARGET: interleaved_times(controllers(d, TIMING_TARGET), d, ws_t)}
+    # -- C: the same controllers (without the recording solve) emitted and built
+    py_plain = controllers(d)
+    build_start = time.perf_counter()
+    c_ctrls = {k: accelerate(c) for k, c in py_plain.items()}
+    metrics["c_build_s"] = time.perf_counter() - build_start
+    runs_c0 = {k: closed_loop(c, d, ws0) for k, c in c_ctrls.items()}
+    # record_h_r only adds (5.15) solves whose warm starts serve other (5.15) solves: the
+    # decisions of Algorithm 6.4 are those of the plain controller the C was emitted from
+    metrics["c_equals_python"] = {k: compare(runs_py[k], runs_c0[k]) for k in c_ctrls}
+    per_seed: dict[str, list[dict]] = {k: [] for k in c_ctrls}
+    times_c: dict[str, list[float]] = {k: [] for k in c_ctrls}
+    for seed in range(seeds):
+        ws = disturbances(d, seed, STEPS)
+        for k, c in c_ctrls.items():
+            r = runs_c0[k] if seed == 0 else closed_loop(c, d, ws)
+            per_seed[k].append(run_metrics(r, d, "h_r" if k == "robust" else "h_tilde"))
+            times_c[k].extend(r["times"].tolist())
+    metrics["c_runs"] = {k: _aggregate(v) for k, v in per_seed.items()}
+    metrics["c_step_ms"] = {k: {"median_ms": 1e3 * float(np.median(v)),
+                                "p90_ms": 1e3 * float(np.percentile(v, 90)),
+                                "max_ms": 1e3 * float(np.max(v))} for k, v in times_c.items()}
+    rob, mo = per_seed["robust"], per_seed["multiobjective"]
+    metrics["must_show"] = {
+        "rpi_checks_pass": bool(all(c["ok"] for c in metrics["checks"].values())),
+        "h_r_non_increasing_every_robust_run": all(r["non_increasing"] for r in rob),
+        "h_tilde_non_increasing_every_multiobjective_run": all(r["non_increasing"]
+                                                               for r in mo),
+        "X_kept_once_in_S_r_every_run": all(r["X_kept_after_S_r"] for r in rob + mo),
+        "runs_that_entered_S_r": {"robust": sum(r["entered_S_r_at"] >= 0 for r in rob),
+                                  "multiobjective": sum(r["entered_S_r_at"] >= 0
+                                                        for r in mo)},
+        "both_converge_every_run": all(r["converged"] for r in rob + mo),
+        "mo_peak_lat_acc_le_robust_every_seed": all(
+            m["peak_lateral_acceleration"] <= r["peak_lateral_acceleration"] + 1e-9
+            for r, m in zip(rob, mo)),
+        "c_equals_python": {k: v["equal"] for k, v in metrics["c_equals_python"].items()},
+        "c_median_step_le_10ms": {k: v["median_ms"] <= 10.0
+                                  for k, v in metrics["c_step_ms"].items()}}
+    metrics["thesis"] = THESIS
+    metrics["plots"] = [_figure(runs_py | extra, d, out)]
+    metrics["wall_time_s"] = time.perf_counter() - start
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json))
+    return metrics
+
+
+def _json(value: object) -> object:
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
+
+
+def _aggregate(rows: list[dict]) -> dict:
+    return {"runs": len(rows),
+            "non_increasing": sum(r["non_increasing"] for r in rows),
+            "entered_S_r": sum(r["entered_S_r_at"] >= 0 for r in rows),
+            "X_kept_after_S_r": sum(r["X_kept_after_S_r"] for r in rows),
+            "converged": sum(r["converged"] for r in rows),
+            "entered_S_r_at_max": max(r["entered_S_r_at"] for r in rows),
+            "largest_increase": max(r["largest_increase"] for r in rows),
+            "fallbacks": sum(r["fallbacks"] for r in rows),
+            "not_ok": sum(r["not_ok"] for r in rows),
+            "peak_lateral_acceleration_median": float(np.median(
+                [r["peak_lateral_acceleration"] for r in rows])),
+            "final_abs_p_y_max": max(abs(r["final_p_y"]) for r in rows)}
+
+
+def _figure(runs: dict, d: BicycleDesign, out: Path) -> str:
+    """Figure 8.1: lateral position, heading, steering and h over time, both methods."""
+    fig, ax = figure(4, 1, (8, 10))
+    t = np.arange(STEPS + 1) * 0.05
+    deg = 180 / np.pi
+    for name, r in runs.items():
+        rho = name.removeprefix("multiobjective_rho") if "rho" in name else f"{RHO:g}"
+        label = "robust PCBF (Alg. 5.2)" if name == "robust" else \
+            f"multiobjective PCBF (Alg. 6.4, rho={rho})"
+        ax[0].plot(t, r["states"][:, 0], label=label)
+        ax[1].plot(t, r["states"][:, 1] * deg, label=label)
+        ax[2].plot(t, r["states"][:, 3] * deg, label=label)
+        ax[3].semilogy(t[:-1], np.maximum(r["h_r"], 1e-10), label=f"h_r, {name}")
+        if name != "robust":
+            ax[3].semilogy(t[:-1], np.maximum(r["h_tilde"], 1e-10), "--",
+                           label=f"h_tilde, {name}")
+    for y in (-0.2, 0.2):
+        ax[0].axhline(y, color="k", ls="--", lw=0.8)
+    for a in (ax[1], ax[2]):
+        a.axhline(35, color="k", ls="--", lw=0.8)
+        a.axhline(-35, color="k", ls="--", lw=0.8)
+    ax[0].set_ylabel("p_y [m]")
+    ax[1].set_ylabel("heading psi [deg]")
+    ax[2].set_ylabel("steering delta [deg]")
+    ax[3].set_ylabel("h (log)")
+    ax[3].set_xlabel("t [s]")
+    ax[0].set_title("lane change under a destabilizing driver (Figure 8.1)")
+    ax[0].legend(fontsize=7)
+    ax[3].legend(fontsize=7)
+    return save(fig, out / "fig8_1_lane_change.png")

@@ -1,0 +1,156 @@
+"""§8.2 lane change: the incremental RPI design of :mod:`balustrade.design.incremental_rpi`
+holds for the nonlinear bicycle (sampled and worst-case NLP checks of E and of the terminal
+set) while the linearization design fails them (negative control); the Jacobian bound
+contains every Jacobian; the robust PCBF's h_r does not increase along a closed loop; the
+quick reproduction's metrics are consistent (slow)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from balustrade.design.incremental_rpi import (
+    PolytopicLDI,
+    sampled_rpi_check,
+    sampled_terminal_check,
+    worst_case_rpi_check,
+    worst_case_terminal_check,
+)
+from balustrade.dsl.sets import Box
+from balustrade.errors import BalustradeError
+from balustrade.examples.bicycle import bicycle_design, bicycle_ldi
+from balustrade.models.bicycle import bicycle, bicycle_sets, input_matrix, jacobian_ldi
+
+
+@pytest.fixture(scope="module")
+def new():
+    return bicycle_design()
+
+
+@pytest.fixture(scope="module")
+def old():
+    return bicycle_design(method="linearization")
+
+
+def test_jacobian_bound_contains_every_jacobian():
+    """∂f/∂x = A0 + Σ a_k E_k with a_k in the computed intervals at random states of a
+    box wider than X, and ∂f/∂u = B; the vertices' hull is what the SDP covers."""
+    X, _, _ = bicycle_sets()
+    lo, hi = X.lb - [0, 0.1, 0.0, 0.1], X.ub + [0, 0.1, 0.0, 0.1]
+    A0, dirs, intervals = jacobian_ldi(lo, hi)
+    system, rng = bicycle(), np.random.default_rng(1)
+    box = Box(lo, hi)
+    for x in box.sample(500, rng):
+        A, B = system.jacobians(x, rng.standard_normal(2))
+        a = np.array([A[0, 1], A[0, 2], A[1, 2], A[1, 3]])
+        assert np.allclose(A, A0 + sum(ak * E for ak, E in zip(a, dirs)))
+        assert np.all(a >= intervals[:, 0] - 1e-12) and np.all(a <= intervals[:, 1] + 1e-12)
+        assert np.allclose(B, input_matrix())
+    # the interval ends are attained (tight bound): corners of the box
+    assert np.isclose(intervals[3, 1], 0.05 / 0.09 * hi[2] / np.cos(hi[3]) ** 2)
+    ldi = PolytopicLDI(A0, tuple(dirs), intervals, input_matrix(), box)
+    assert len(ldi.vertices()) == 16
+
+
+def test_bad_inputs_name_the_argument():
+    X, _, _ = bicycle_sets()
+    with pytest.raises(BalustradeError, match="psi range"):
+        jacobian_ldi(X.lb - [0, 1.2, 0, 0], X.ub)
+    with pytest.raises(BalustradeError, match="method"):
+        bicycle_design(method="linearisation")
+    with pytest.raises(BalustradeError, match="intervals"):
+        PolytopicLDI(np.eye(4), (np.eye(4),), np.array([[1.0, 0.0]]), input_matrix(),
+                     Box(X.lb, X.ub))
+
+
+def test_domain_covers_X_plus_E(new):
+    """The Jacobian domain D contains X ⊕ (semi-axes of E) along ψ, v, δ: every nominal
+    z ∈ X and true x = z + e lie in D, where Claim 1 holds."""
+    info = new.error.info
+    assert info["domain_covers_X_plus_E"]
+    axes = np.sqrt(np.diag(np.linalg.inv(new.error.E.P)))
+    lb, ub = np.array(info["domain"]["lb"]), np.array(info["domain"]["ub"])
+    assert np.all(lb[1:] <= new.X.lb[1:] - axes[1:] + 1e-9)
+    assert np.all(ub[1:] >= new.X.ub[1:] + axes[1:] - 1e-9)
+    assert np.isinf(lb[0]) and np.isinf(ub[0])     # any p_y
+
+
+def test_incremental_design_passes_both_rpi_checks(new):
+    d = new
+    s = sampled_rpi_check(d.system, d.error, d.X, d.U_E, d.W, samples=4000, seed=3)
+    assert s.ok and s.margin < -0.01, s.summary()
+    w = worst_case_rpi_check(d.system, d.error, d.X, d.U_E, d.W, starts=4, seed=3)
+    assert w.ok and w.margin < 0, w.summary()
+    assert w.margin >= s.margin - 1e-9            # the NLP starts from sampled worst points
+
+
+def test_linearization_design_fails_both_rpi_checks(old):
+    """Negative control: the linearization E is not RPI for the nonlinear model."""
+    d = old
+    s = sampled_rpi_check(d.system, d.error, d.X, d.U_E, d.W, samples=4000, seed=3)
+    assert not s.ok and s.margin > 0.1, s.summary()
+    w = worst_case_rpi_check(d.system, d.error, d.X, d.U_E, d.W, starts=4, seed=3)
+    assert not w.ok and w.margin >= s.margin - 1e-9, w.summary()
+
+
+def test_terminal_set_invariant_for_the_nonlinear_model(new, old):
+    for check in (lambda d: sampled_terminal_check(d.system, d.terminal_spec(), 4000, 2),
+                  lambda d: worst_case_terminal_check(d.system, d.terminal_spec(), 4, 2)):
+        good, bad = check(new), check(old)
+        assert good.ok and good.parts["h_f(z+)"] < -0.05, good.summary()
+        assert good.parts["input_rows"] < 0 and good.parts["state_rows"] <= 1e-7
+        assert not bad.ok and bad.parts["h_f(z+)"] > 0.01, bad.summary()
+
+
+def test_the_rpi_check_sees_a_shrunk_set(new):
+    """The check can fail: the same K with E shrunk to half is not RPI (the disturbance
+    alone leaves it)."""
+    from dataclasses import replace
+
+    d = new
+    small = replace(d.error, E=d.error.E.scale(0.5))
+    s = sampled_rpi_check(d.system, small, d.X, d.U_E, d.W, samples=2000, seed=0)
+    assert not s.ok
+
+
+def test_robust_pcbf_h_r_non_increasing_from_the_adjacent_lane(new):
+    from balustrade.control.robust import RobustPCBFSafetyFilter
+    from balustrade.reproduce.lane_change import TARGET, closed_loop, disturbances, run_metrics
+
+    d = new
+    robust = RobustPCBFSafetyFilter.build(d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N,
+                                          d.deltas, d.error, d.alpha_f, target=TARGET,
+                                          slack_target=TARGET)
+    r = closed_loop(robust, d, disturbances(d, 0, 30))
+    m = run_metrics(r, d, "h_r")
+    assert r["h_r"][0] > 1.0                       # starts outside X: h_r > 0
+    assert m["non_increasing"] and m["nan_values"] == 0, m
+    assert m["entered_S_r_at"] >= 0 and m["X_kept_after_S_r"], m
+    assert abs(m["final_p_y"]) <= 0.2
+
+
+@pytest.mark.slow
+def test_quick_reproduction(tmp_path):
+    from balustrade.reproduce import run
+
+    m = run("lane-change", tmp_path, quick=True)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["must_show"] == json.loads(json.dumps(m["must_show"]))
+    ms = m["must_show"]
+    assert ms["rpi_checks_pass"]
+    assert ms["h_r_non_increasing_every_robust_run"]
+    assert ms["h_tilde_non_increasing_every_multiobjective_run"]
+    assert ms["X_kept_once_in_S_r_every_run"]
+    assert m["c_runs"]["robust"]["runs"] == 5
+    for name in ("robust", "multiobjective"):
+        assert m["python_seed0"][name]["fallbacks"] == 0
+    assert (tmp_path / "fig8_1_lane_change.png").is_file()
+
+
+def test_bicycle_ldi_pad_widens_the_intervals():
+    a, b = bicycle_ldi(), bicycle_ldi(np.array([0.1, 0.0, 0.1]))
+    assert np.all(b.intervals[:, 0] <= a.intervals[:, 0])
+    assert np.all(b.intervals[:, 1] >= a.intervals[:, 1])
+    assert b.intervals[3, 1] > a.intervals[3, 1]
