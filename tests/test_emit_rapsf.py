@@ -61,6 +61,8 @@ def test_refuses_what_the_c_does_not_run(design3: dict, tmp_path) -> None:
         emit_rapsf(_controller(design3, shrinking=True), "r", tmp_path)
     with pytest.raises(CodegenError, match="backup"):
         emit_rapsf(_controller(design3, backup=lambda x, u_p, k: 0 * x[:3]), "r", tmp_path)
+    with pytest.raises(CodegenError, match="enlarge"):  # its generators live in Python
+        emit_rapsf(_controller(design3, enlarge=True), "r", tmp_path)
     with pytest.raises(BalustradeError, match="convex-qp"):
         emit_rapsf(_controller(design3, target="fast-convex"), "r", tmp_path)
     assert not list(tmp_path.iterdir())

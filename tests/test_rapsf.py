@@ -332,3 +332,24 @@ def test_fifty_seeded_runs_keep_constraints(toy):
                  else rng.uniform(toy.Theta0.lb, toy.Theta0.ub))
         _, worst, _ = _run(toy, theta, seed, steps=30, vertex_w=seed % 3 == 0)
         assert worst <= 1e-6, seed
+
+
+def test_nan_state_mid_run_takes_the_backup_and_learns_on(toy):
+    """A NaN measurement in the middle of a run: that step applies the backup with
+    ``"non_finite_state"`` (no exception, the model is not falsified), and the estimator
+    resumes from the next two finite states — a transition across the NaN is never used."""
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
+                 estimator=BoxUpdate(toy.sys, toy.W, toy.Theta0))
+    theta_star = toy.Theta0.vertices().mean(axis=0)
+    A, B = model_matrices(toy.sys, theta_star)
+    x = np.array([0.5, 0.1])
+    for k in range(8):
+        meas = np.array([np.nan, x[1]]) if k == 3 else x
+        u, info = ctrl.step(meas, np.array([1.0]))
+        if k == 3:
+            assert info.status == "non_finite_state" and info.fallback == "backup"
+        else:
+            assert info.status != "model_falsified", (k, info.status)
+        assert np.all(np.isfinite(u)) and not ctrl.falsified
+        assert ctrl.Theta.contains(theta_star, tol=1e-7)
+        x = A @ x + B @ u

@@ -82,6 +82,10 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
         raise CodegenError(f"{name}: the Remark 4.6 shrinking variant (shrinking=True: one "
                            "more QP per horizon 1 … N−1) is not emitted; build the RAPSF "
                            "with shrinking=False")
+    if getattr(spec.host, "enlargement", None) is not None:
+        raise CodegenError(f"{name}: the terminal-set enlargement (enlarge=True) records its "
+                           "generators in Python and is not emitted; build the RAPSF without "
+                           "enlarge")
     if not spec.default_backup:
         raise CodegenError(f"{name}: a user's backup policy is Python; the C applies the "
                            "default backup K x (build the RAPSF without backup=...)")

@@ -143,7 +143,7 @@ class CRAPSF(_OwnsWork):
             info.fallback = known.fallback
         info.values["k_inf"] = float(self.k_inf)
         u = u.copy()
-        h._prev = (x, u)
+        h._prev = (x, u) if np.all(np.isfinite(x)) else None   # as RAPSF.step
         h.k += 1
         return u, info
 

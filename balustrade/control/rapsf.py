@@ -177,6 +177,8 @@ class RAPSF:
         """Line 4 of Algorithm 4.1 with the nesting check of Assumption 4.2."""
         if self.estimator is None or self._prev is None or self.falsified:
             return
+        if not np.all(np.isfinite(x)):              # no transition to learn from: Θ_k kept
+            return
         try:
             new = self.estimator.update(self._prev[0], self._prev[1], x)
         except EmptySetError:
@@ -258,7 +260,8 @@ class RAPSF:
         info.values["n_vertices"] = float(len(self.vertices))
         u = self._decide(x, u_p, info)
         info.values["k_inf"] = float(self.k_inf)
-        self._prev = (x, u)
+        # a non-finite state starts no transition: the next update needs two measured states
+        self._prev = (x, u) if np.all(np.isfinite(x)) else None
         self.k += 1
         return u, info
 
