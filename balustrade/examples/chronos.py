@@ -17,8 +17,8 @@
   the 0.99-sublevel set) and ``π_f(x) = u_ss(κ(s)) + KΔz``; ``z_ss``, ``u_ss`` are cubic
   fits in ``κ`` of the 21 steady states.
 * :func:`check_invariance` — randomly initialized NLPs (as the thesis does): the largest
-  constraint value on ``{V <= 1}``, input-bound value of ``π_f`` on ``S_f = {h_f <= 0}``
-  and ``h_f(f(x, π_f(x)))`` on ``S_f``, each maximized from random starts through the
+  constraint value and input-bound value of ``π_f`` on ``D_f = {V <= 1}`` and
+  ``h_f(f(x, π_f(x)))`` on ``S_f``, each maximized from random starts through the
   ``"exact"`` target. Local maxima: evidence, not a proof.
 * :func:`chronos_design` / :func:`chronos_problems` — the PCBF (2.24) with ``N = 50``,
   ``α_f = 10``, ``Δ_i = i·10⁻⁴`` on the Euler Frenet model, and the compiled pair
@@ -61,6 +61,10 @@ V_DESIGN, N_KAPPA, LEVEL = 1.0, 21, 0.99
 DEVIATION_BOUNDS = {2: 0.3, 3: 0.15, 4: 1.0, 1: 0.3}
 #: margin (m) on the linearized corner rows (``sin μ ≈ μ``, ``cos μ ≈ 1``)
 CORNER_MARGIN = 0.01
+#: input rows of the design tightened by this much: ``π_f`` interpolates ``u_ss(κ)`` between
+#: the 21 design curvatures, where the vertex rows alone let ``T`` reach −5e-6 on
+#: ``D_f = {V <= 1}`` (found by :func:`check_invariance`)
+INPUT_MARGIN = 1e-3
 POLY_DEGREE = 3
 #: ``λ`` of the invariance LMIs: with 0.99 the random NLPs found ``h_f(f(x, π_f(x))) ≈ 4e-3
 #: > 0`` on ``∂S_f`` (nonlinearity); 0.95 leaves a margin (no counterexample found)
@@ -128,7 +132,7 @@ def _rows(ss: SteadyStates, params: ChronosParams, U: Box
             h.append(bound)
     Hu = np.vstack([np.eye(2), -np.eye(2)])
     hu = np.array([min(U.ub[i] - u[i] for u in ss.u) for i in range(2)] +
-                  [min(u[i] - U.lb[i] for u in ss.u) for i in range(2)])
+                  [min(u[i] - U.lb[i] for u in ss.u) for i in range(2)]) - INPUT_MARGIN
     return np.array(H), np.array(h), Hu, hu
 
 
@@ -242,7 +246,11 @@ class InvarianceReport:
 
     @property
     def ok(self) -> bool:
-        return max(self.constraints, self.inputs, self.decrease) <= 1e-6
+        """No counterexample *and* every row maximized by at least one solved NLP (a check
+        whose NLPs all failed has checked nothing)."""
+        values = (self.constraints, self.inputs, self.decrease)
+        return (self.solved > 0 and all(np.isfinite(v) for v in values)
+                and max(values) <= 1e-6)
 
 
 def _maximize(objective, region, starts: np.ndarray, target: object) -> tuple[float, np.ndarray,
@@ -303,6 +311,8 @@ def check_invariance(cbf: ChronosTerminalCBF, system: System | None = None, star
         for r in range(n_rows):
             v, arg, ok, bad = _maximize(lambda x, r=r: rows(x)[r], region, starts_, target)
             counts[0], counts[1] = counts[0] + ok, counts[1] + bad
+            if ok == 0:                         # nothing solved: this row is unchecked
+                v = np.inf
             best = max(best, (v, arg), key=lambda t: t[0])
         return best
 
@@ -316,7 +326,7 @@ def check_invariance(cbf: ChronosTerminalCBF, system: System | None = None, star
         return ca.vertcat(cbf(system(x, cbf.policy(x))))
 
     c_val, c_arg = worst(lambda x: constraint_values(x, params), 6, v1, x1)
-    u_val, u_arg = worst(input_rows, 4, cbf, x0)
+    u_val, u_arg = worst(input_rows, 4, v1, x1)      # π_f ∈ U on the domain D_f = {V <= 1}
     d_val, d_arg = worst(next_h, 1, cbf, x0)
     solved, failed = counts
     return InvarianceReport(c_val, u_val, d_val, solved, failed,

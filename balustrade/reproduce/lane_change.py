@@ -152,7 +152,7 @@ def run_metrics(r: dict, d: BicycleDesign, key: str) -> dict:
     finite = h[np.isfinite(h)]
     inc = np.diff(finite)
     bound = H_TOL * np.maximum(1.0, np.abs(finite[:-1]))
-    inside_X = d.X.contains_many(r["states"][:-1], tol=STATE_TOL)
+    inside_X = d.X.contains_many(r["states"], tol=STATE_TOL)     # the final state too
     zero = np.flatnonzero(np.isfinite(h) & (h <= H_ZERO))
     entry = int(zero[0]) if zero.size else -1
     alat = lateral_acceleration(r["states"])
@@ -291,6 +291,8 @@ def _json(value: object) -> object:
 def _aggregate(rows: list[dict]) -> dict:
     return {"runs": len(rows),
             "non_increasing": sum(r["non_increasing"] for r in rows),
+            # steps without a value (fallbacks): "non_increasing" is judged across them
+            "nan_values": sum(r["nan_values"] for r in rows),
             "entered_S_r": sum(r["entered_S_r_at"] >= 0 for r in rows),
             "X_kept_after_S_r": sum(r["X_kept_after_S_r"] for r in rows),
             "converged": sum(r["converged"] for r in rows),
