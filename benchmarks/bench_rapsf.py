@@ -104,12 +104,18 @@ def design_within(n: int, budget: float) -> tuple[dict | None, str]:
     proc = ctx.Process(target=_design_child, args=(n, queue))
     start = time.perf_counter()
     proc.start()
-    proc.join(budget)
+    try:     # read before join: a result larger than the pipe buffer blocks the child's exit
+        out = queue.get(timeout=budget)
+    except Exception:  # noqa: BLE001 - queue.Empty: no result within the budget
+        out = None
+    proc.join(5.0)
     if proc.is_alive():
         proc.terminate()
         proc.join()
+    if out is None:
+        if proc.exitcode not in (None, 0):
+            return None, f"design failed: exit code {proc.exitcode}"
         return None, f"design did not finish within {budget:.0f} s"
-    out = queue.get() if not queue.empty() else {"error": f"exit code {proc.exitcode}"}
     if "error" in out:
         return None, f"design failed: {out['error']}"
     system, st = msd_chain(n), msd_setup(n)

@@ -144,22 +144,25 @@ def test_closed_loop_is_safe_and_never_worse_than_default(run):
     assert run.ctrl.enlargement.recorded >= STEPS // 2
 
 
-def test_fast_convex_recompiles_with_the_same_answers(toy, run):
-    """The numeric-generator form (convex targets) and the parameter slot (CasADi) agree."""
+def test_numeric_hull_and_parameter_slot_agree(toy, run):
+    """The numeric-generator form (``vertex_data="constants"``) and the parameter slot agree,
+    the slot on CasADi (``exact``) and on the direct backend (``fast-convex``)."""
     ts = run.terminal
     num = compile(rapsf_problem(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N,
                                 vertices=run.vertices, terminal=ts), "fast-convex")
-    slot = compile(rapsf_problem(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N,
-                                 vertices=run.vertices, terminal=TerminalSet().slot(64)),
-                   "exact")
+    slots = [compile(rapsf_problem(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N,
+                                   vertices=run.vertices, terminal=TerminalSet().slot(64)),
+                     target) for target in ("exact", "fast-convex")]
     enl = TerminalEnlargement(2)
     enl.generators = ts.generators
     for x in (np.array([-1.4, 1.4]), np.array([0.5, 0.3])):
         p = {"x0": x, "u_p": np.array([2.0])}
         a = num.solve(p)
-        b = slot.solve({**p, "terminal_generators": enl.padded()})
-        assert a.status == b.status == "optimal"
-        assert a["v"][:, 0] == pytest.approx(b["v"][:, 0], abs=1e-4)
+        assert a.status == "optimal"
+        for slot in slots:
+            b = slot.solve({**p, "terminal_generators": enl.padded()})
+            assert b.status == "optimal"
+            assert a["v"][:, 0] == pytest.approx(b["v"][:, 0], abs=1e-4)
 
 
 def test_hull_over_an_h_representation_base(toy, run):
