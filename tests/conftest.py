@@ -78,3 +78,28 @@ def unstable2d_tube():
     slack = robust_pcbf_slack_problem(system, s.X, s.U, cbf, N, s.deltas(), error, s.alpha_f)
     return {"system": system, "s": s, "error": error, "cbf": cbf, "X_E": X_E, "U_E": U_E,
             "slack": slack, "N": N}
+
+
+@pytest.fixture(scope="session")
+def rapsf_toy():
+    """The 2-state toy of the Chapter 4 tests: x⁺ = A(θ)x + Bu + w with θ ∈ [0.5, 1.5] ×
+    [0, 0.5] acting on the velocity row, |w| <= 0.004, X = [−2, 2]², U = [−3, 3]; the robust
+    gain (contraction 0.95) and a λ-contractive tube shape 𝕏₀ (one design per session)."""
+    from types import SimpleNamespace
+
+    from balustrade.design.rapsf import contractive_polytope, robust_gain
+    from balustrade.dsl.sets import Box
+    from balustrade.dsl.system_parametric import ParametricLinearSystem
+    from balustrade.problems.rapsf import joint_constraints
+
+    sys_ = ParametricLinearSystem(np.array([[1.0, 0.1], [0.0, 1.0]]),
+                                  [np.array([[0.0, 0.0], [-0.1, 0.0]]),
+                                   np.array([[0.0, 0.0], [0.0, -0.1]])],
+                                  np.array([[0.0], [0.1]]), None, name="toy")
+    Theta0 = Box([0.5, 0.0], [1.5, 0.5], name="Theta0")
+    V = Theta0.vertices()
+    W = Box.symmetric(0.004, 2, name="W")
+    F, G = joint_constraints(Box.symmetric(2.0, 2), Box.symmetric(3.0, 1))
+    K = robust_gain(sys_, V, contraction=0.95)
+    X0 = contractive_polytope(sys_, K, V, W, F, G)
+    return SimpleNamespace(sys=sys_, Theta0=Theta0, V=V, W=W, F=F, G=G, K=K, X0=X0)

@@ -18,14 +18,12 @@ import balustrade.control.rapsf as rapsf_module
 from balustrade.backends import compile
 from balustrade.backends.passes.classify import Affine, Classify
 from balustrade.control.rapsf import RAPSF
-from balustrade.design.rapsf import contractive_polytope, robust_gain
 from balustrade.dsl.costs import norm, squared_norm
 from balustrade.dsl.ocp import OCP
 from balustrade.dsl.sets import Box
-from balustrade.dsl.system_parametric import ParametricLinearSystem
 from balustrade.errors import BalustradeError, ConvexityError
 from balustrade.estimate import BoxUpdate
-from balustrade.problems.rapsf import joint_constraints, model_matrices
+from balustrade.problems.rapsf import model_matrices
 
 TARGETS = ("exact", "cvxpy", "fast-convex", "fast-convex-conic")
 #: parameter values: feasible ones, one where x1 enters row 0 only through p (a1 = 0 → ≠ 0)
@@ -162,18 +160,8 @@ N = 8
 
 
 @pytest.fixture(scope="module")
-def toy() -> SimpleNamespace:
-    sys_ = ParametricLinearSystem(np.array([[1.0, 0.1], [0.0, 1.0]]),
-                                  [np.array([[0.0, 0.0], [-0.1, 0.0]]),
-                                   np.array([[0.0, 0.0], [0.0, -0.1]])],
-                                  np.array([[0.0], [0.1]]), None, name="toy")
-    Theta0 = Box([0.5, 0.0], [1.5, 0.5], name="Theta0")
-    V = Theta0.vertices()
-    W = Box.symmetric(0.004, 2, name="W")
-    F, G = joint_constraints(Box.symmetric(2.0, 2), Box.symmetric(3.0, 1))
-    K = robust_gain(sys_, V, contraction=0.95)
-    X0 = contractive_polytope(sys_, K, V, W, F, G)
-    return SimpleNamespace(sys=sys_, Theta0=Theta0, W=W, F=F, G=G, K=K, X0=X0)
+def toy(rapsf_toy) -> SimpleNamespace:
+    return rapsf_toy             # tests/conftest.py
 
 
 def _closed_loop(t, target, vertex_data, steps=12, monkeypatch=None):

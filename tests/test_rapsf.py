@@ -22,7 +22,6 @@ from balustrade.design.rapsf import (
     robust_gain,
 )
 from balustrade.dsl.sets import Box, Polytope
-from balustrade.dsl.system_parametric import ParametricLinearSystem
 from balustrade.errors import BalustradeError, ShapeError
 from balustrade.estimate import BoxUpdate
 from balustrade.models.msd import msd_chain, msd_performance, msd_setup
@@ -38,23 +37,9 @@ from balustrade.problems.rapsf import (
 N = 8
 
 
-def _system() -> ParametricLinearSystem:
-    return ParametricLinearSystem(np.array([[1.0, 0.1], [0.0, 1.0]]),
-                                  [np.array([[0.0, 0.0], [-0.1, 0.0]]),
-                                   np.array([[0.0, 0.0], [0.0, -0.1]])],
-                                  np.array([[0.0], [0.1]]), None, name="toy")
-
-
 @pytest.fixture(scope="module")
-def toy() -> SimpleNamespace:
-    sys_ = _system()
-    Theta0 = Box([0.5, 0.0], [1.5, 0.5], name="Theta0")
-    V = Theta0.vertices()
-    W = Box.symmetric(0.004, 2, name="W")
-    F, G = joint_constraints(Box.symmetric(2.0, 2), Box.symmetric(3.0, 1))
-    K = robust_gain(sys_, V, contraction=0.95)
-    X0 = contractive_polytope(sys_, K, V, W, F, G)
-    return SimpleNamespace(sys=sys_, Theta0=Theta0, V=V, W=W, F=F, G=G, K=K, X0=X0)
+def toy(rapsf_toy) -> SimpleNamespace:
+    return rapsf_toy             # tests/conftest.py
 
 
 # -- the QP (4.5) ------------------------------------------------------------------------------

@@ -22,8 +22,6 @@ from balustrade.design.rapsf_enlarge import (
     enlarged_terminal_set,
     prune_terminal_set,
 )
-from balustrade.dsl.sets import Box
-from balustrade.dsl.system_parametric import ParametricLinearSystem
 from balustrade.errors import BalustradeError, ShapeError
 from balustrade.estimate import BoxUpdate
 from balustrade.problems.rapsf import (
@@ -40,23 +38,9 @@ STEPS = 25
 GRID = np.array([[a, b] for a in np.linspace(-2, 2, 11) for b in np.linspace(-2, 2, 11)])
 
 
-def _system() -> ParametricLinearSystem:
-    return ParametricLinearSystem(np.array([[1.0, 0.1], [0.0, 1.0]]),
-                                  [np.array([[0.0, 0.0], [-0.1, 0.0]]),
-                                   np.array([[0.0, 0.0], [0.0, -0.1]])],
-                                  np.array([[0.0], [0.1]]), None, name="toy")
-
-
 @pytest.fixture(scope="module")
-def toy() -> SimpleNamespace:
-    sys_ = _system()
-    Theta0 = Box([0.5, 0.0], [1.5, 0.5], name="Theta0")
-    V = Theta0.vertices()
-    W = Box.symmetric(0.004, 2, name="W")
-    F, G = joint_constraints(Box.symmetric(2.0, 2), Box.symmetric(3.0, 1))
-    K = robust_gain(sys_, V, contraction=0.95)
-    X0 = contractive_polytope(sys_, K, V, W, F, G)
-    return SimpleNamespace(sys=sys_, Theta0=Theta0, V=V, W=W, F=F, G=G, K=K, X0=X0)
+def toy(rapsf_toy) -> SimpleNamespace:
+    return rapsf_toy             # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

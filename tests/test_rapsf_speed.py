@@ -13,28 +13,17 @@ import balustrade.estimate.updates as updates
 from balustrade.backends.lp import solve_lp, solve_lps, solve_lps_joint
 from balustrade.backends.solution import Status
 from balustrade.control.rapsf import RAPSF, _s_from_affine
-from balustrade.design.rapsf import contractive_polytope, robust_gain
 from balustrade.dsl.sets import Box
-from balustrade.dsl.system_parametric import ParametricLinearSystem
 from balustrade.estimate import BoxUpdate, HypercubeUpdate
-from balustrade.problems.rapsf import joint_constraints, model_matrices, s_constants
+from balustrade.problems.rapsf import model_matrices, s_constants
 
 N = 8
 
 
 @pytest.fixture(scope="module")
-def toy():
-    sys_ = ParametricLinearSystem(np.array([[1.0, 0.1], [0.0, 1.0]]),
-                                  [np.array([[0.0, 0.0], [-0.1, 0.0]]),
-                                   np.array([[0.0, 0.0], [0.0, -0.1]])],
-                                  np.array([[0.0], [0.1]]), None, name="toy")
-    Theta0 = Box([0.5, 0.0], [1.5, 0.5], name="Theta0")
-    V = Theta0.vertices()
-    W = Box.symmetric(0.004, 2, name="W")
-    F, G = joint_constraints(Box.symmetric(2.0, 2), Box.symmetric(3.0, 1))
-    K = robust_gain(sys_, V, contraction=0.95)
-    X0 = contractive_polytope(sys_, K, V, W, F, G)
-    return sys_, Theta0, W, F, G, K, X0
+def toy(rapsf_toy):
+    t = rapsf_toy                # tests/conftest.py
+    return t.sys, t.Theta0, t.W, t.F, t.G, t.K, t.X0
 
 
 def test_joint_lps_equal_single_lps_and_statuses():
