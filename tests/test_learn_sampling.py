@@ -176,6 +176,16 @@ def test_local_processes_and_dask_equal_serial(plan, reference, tmp_path):
     assert np.array_equal(half["h"], reference["h"][: len(half["h"])], equal_nan=True)
 
 
+def test_dask_counts_worker_threads_not_workers():
+    """Throughput per core divides by the cores the cluster has: the threads of all workers
+    (a worker with 2 threads is 2 cores), not the number of workers at connect time."""
+    from distributed import Client, LocalCluster
+
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        assert DaskExecutor(client=client).workers == 2
+
+
 def test_killed_subprocess_resumes_to_the_same_dataset(tmp_path):
     out = tmp_path / "killed"
     args = [sys.executable, "-m", "balustrade.cli", "sample", "--out", str(out),

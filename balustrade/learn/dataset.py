@@ -193,6 +193,7 @@ def run_sampling(path: str | Path, spec: ProblemSpec, chunks: Sequence[Chunk],
     try:
         for chunk, columns in executor.imap_unordered(run_chunk, todo, spec):
             ds.write_shard(chunk.id, columns)
+            workers = max(workers, int(getattr(executor, "workers", 1) or 1))  # a growing cluster
             written += 1
             rows += len(next(iter(columns.values()))) if columns else 0
             bar.update(len(chunk))

@@ -104,7 +104,14 @@ class DaskExecutor:
             raise BalustradeError("DaskExecutor: give a scheduler address or a client")
         self._own = client is None
         self.client = Client(address) if client is None else client
-        self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
+
+    @property
+    def workers(self) -> int:
+        """Worker threads (cores) connected now: the sum of ``nthreads`` over the workers
+        (a cluster that is still starting has fewer than it will have; run_sampling takes the
+        largest count it sees)."""
+        info = self.client.scheduler_info().get("workers", {})
+        return max(1, sum(int(w.get("nthreads", 1) or 1) for w in info.values()))
 
     def imap_unordered(self, fn: Callable[..., Any], items: Iterable[Any],
                        *args: Any) -> Iterator[tuple[Any, Any]]:
