@@ -154,3 +154,23 @@ def test_bicycle_ldi_pad_widens_the_intervals():
     assert np.all(b.intervals[:, 0] <= a.intervals[:, 0])
     assert np.all(b.intervals[:, 1] >= a.intervals[:, 1])
     assert b.intervals[3, 1] > a.intervals[3, 1]
+
+
+def test_design_arguments_are_checked():
+    """Claim 2 needs λ_f ∈ (0, 1]; shapes and non-finite numbers name the argument."""
+    from balustrade.design.incremental_rpi import incremental_rpi, robust_terminal_cbf
+    from balustrade.errors import BalustradeError
+    from balustrade.examples.bicycle import bicycle_ldi
+    from balustrade.models.bicycle import bicycle_sets
+
+    ldi = bicycle_ldi()
+    X, U, W = bicycle_sets()
+    x_s = np.array([0.0, 0.0, 1.1, 0.0])
+    with pytest.raises(BalustradeError, match="decrease_factor"):
+        robust_terminal_cbf(ldi, X, U, x_s, decrease_factor=1.5)
+    with pytest.raises(BalustradeError, match="delta_N"):
+        robust_terminal_cbf(ldi, X, U, x_s, delta_N=float("nan"))
+    with pytest.raises(BalustradeError, match="x_s"):
+        robust_terminal_cbf(ldi, X, U, x_s[:3])
+    with pytest.raises(BalustradeError, match="x_s"):
+        incremental_rpi(ldi, W, X, U, np.array([[0.0], [1.0], [0.0], [0.0]]), x_s[:3])

@@ -57,7 +57,6 @@ counterexample was found; they test, the claims above prove.
 
 from __future__ import annotations
 
-import itertools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -65,102 +64,23 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_matrix, check_instance
+from balustrade._checks import as_scalar, as_vector, check_instance
 from balustrade.backends import compile, compile_synthesis, solve_synthesis
-from balustrade.dsl.error_sets import ErrorSet, bounded_vertices
+from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.ocp import OCP
 from balustrade.dsl.sets import Box, Ellipsoid, Polytope, Set
-from balustrade.dsl.synthesis import SynthesisProblem, bmat, logdet
 from balustrade.dsl.system import System
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade.errors import BalustradeError
+from balustrade.problems.incremental_rpi import (
+    PolytopicLDI,
+    incremental_rpi_sdp,
+    robust_terminal_cbf_sdp,
+)
 from balustrade.problems.terminal_cbf import TerminalCBF, terminal_cbf_from
-
-
-@dataclass(frozen=True)
-class PolytopicLDI:
-    """``∂f/∂x ∈ conv{A0 + Σ_k a_k E_k : a_k ∈ {lo_k, hi_k}}``, ``∂f/∂u = B`` on ``domain``
-    (a box of states; the claims of the module docstring hold for segments inside it)."""
-
-    A0: np.ndarray
-    directions: tuple[np.ndarray, ...]
-    intervals: np.ndarray
-    B: np.ndarray
-    domain: Box
-
-    def __post_init__(self) -> None:
-        n = self.A0.shape[0]
-        if self.A0.shape != (n, n) or any(E.shape != (n, n) for E in self.directions):
-            raise ShapeError("PolytopicLDI: A0 and directions", f"({n}, {n}) matrices",
-                             [self.A0.shape, *(E.shape for E in self.directions)])
-        if self.intervals.shape != (len(self.directions), 2):
-            raise ShapeError("PolytopicLDI: intervals", (len(self.directions), 2),
-                             self.intervals.shape)
-        if np.any(self.intervals[:, 0] > self.intervals[:, 1]):
-            raise BalustradeError(f"PolytopicLDI: intervals: a lower end exceeds an upper end "
-                                  f"({self.intervals.tolist()})")
-        if self.B.shape[0] != n or self.domain.dim != n:
-            raise ShapeError("PolytopicLDI: B, domain", f"{n} rows / dimension {n}",
-                             (self.B.shape, self.domain.dim))
-
-    def vertices(self) -> list[np.ndarray]:
-        """The ``2^K`` matrices at the corners of the interval box (duplicates removed)."""
-        out: list[np.ndarray] = []
-        for corner in itertools.product(*self.intervals.tolist()):
-            A = self.A0 + sum(c * E for c, E in zip(corner, self.directions))
-            if not any(np.array_equal(A, B) for B in out):
-                out.append(A)
-        return out
-
-    def describe_domain(self) -> dict:
-        return {"lb": self.domain.lb.tolist(), "ub": self.domain.ub.tolist(),
-                "intervals": self.intervals.tolist(), "vertices": len(self.vertices())}
 
 
 def _shifted(S: Polytope, center: np.ndarray, name: str) -> Polytope:
     return Polytope(S.H, S.h - S.H @ center, name=name)
-
-
-def incremental_rpi_sdp(ldi: PolytopicLDI, W: Set, X: Polytope, U: Polytope,
-                        G: np.ndarray, min_axes: object = 1e-3) -> SynthesisProblem:
-    """The SDP of Claim 1 (module docstring) with ``λ`` as the parameter ``"lambda"``: one
-    LMI block ``vertex i, w j`` per Jacobian vertex and disturbance vertex; objective the sum
-    of squared relative tightenings of the rows of ``X`` and ``U`` (centred at the operating
-    point: their ``h`` must be positive). ``E_P ⪰ diag(min_axes²)`` (a scalar or one entry per
-    state) makes ``E`` contain the axis-aligned ellipsoid with these semi-axes: an
-    undisturbed, dead-beat-controlled direction (the bicycle's ``v``) would otherwise
-    collapse and make ``P = E_P⁻¹`` ill-conditioned for the horizon solvers (``P_vv ≈ 5e8``
-    for the bicycle without it)."""
-    check_instance(W, Set, "incremental_rpi_sdp: W")
-    check_instance(X, Polytope, "incremental_rpi_sdp: X")
-    check_instance(U, Polytope, "incremental_rpi_sdp: U")
-    n, m = ldi.B.shape
-    G = as_matrix(G, "incremental_rpi_sdp: G", (n, W.dim))
-    for S in (X, U):
-        if np.any(S.h <= 0):
-            raise BalustradeError(f"incremental_rpi_sdp: the operating point must be inside "
-                                  f"{S.name} (row bounds {S.h.tolist()})")
-    sdp = SynthesisProblem("incremental RPI SDP over a polytopic LDI (§6.5, §8.2)")
-    E = sdp.matrix("E", (n, n), symmetric=True)
-    Y = sdp.matrix("Y", (m, n))
-    t_u = sdp.vector("t_u", U.H.shape[0])
-    lam = sdp.parameter("lambda", nonneg=True)
-    axes = np.broadcast_to(np.asarray(min_axes, dtype=float), (n,))
-    if np.any(axes <= 0):
-        raise BalustradeError(f"incremental_rpi_sdp: min_axes must be positive, got {axes}")
-    sdp.lmi("E > min_axes", E >> np.diag(axes ** 2))
-    ws = bounded_vertices(W) @ G.T
-    for i, A in enumerate(ldi.vertices()):
-        AEBY = A @ E + ldi.B @ Y
-        for j, w in enumerate(ws):
-            wc = w.reshape(n, 1)
-            sdp.lmi(f"vertex {i}, w {j}", bmat([[lam * E, np.zeros((n, 1)), AEBY.T],
-                                                 [np.zeros((1, n)), 1 - lam, wc.T],
-                                                 [AEBY, wc, E]]))
-    for j, a in enumerate(U.H):
-        sdp.lmi(f"input row {j}", bmat([[t_u[j], a[None] @ Y], [(a[None] @ Y).T, E]]))
-    sdp.minimize(sum([(a @ E @ a) / b ** 2 for a, b in zip(X.H, X.h)]
-                     + [t_u[j] / b ** 2 for j, b in enumerate(U.h)]))
-    return sdp
 
 
 def incremental_rpi(ldi: PolytopicLDI, W: Set, X: Polytope, U: Polytope, G: np.ndarray,
@@ -172,13 +92,15 @@ def incremental_rpi(ldi: PolytopicLDI, W: Set, X: Polytope, U: Polytope, G: np.n
     ``X``, ``U`` are centred at ``(x_s, u_s)`` for the objective. ``info``: ``lambda``,
     ``objective``, ``solve_time``, ``method``, ``domain`` (the box of states on which the
     Jacobian bound, hence the guarantee, holds)."""
-    u_s = np.zeros(ldi.B.shape[1]) if u_s is None else np.asarray(u_s, dtype=float)
+    n, m = ldi.B.shape
+    x_s = as_vector(x_s, "incremental_rpi: x_s", n)
+    u_s = np.zeros(m) if u_s is None else as_vector(u_s, "incremental_rpi: u_s", m)
     lambdas = list(lambdas) if lambdas is not None else list(np.linspace(0.05, 0.95, 19))
     for lv in lambdas:
         if not 0 < lv < 1:
             raise BalustradeError(f"incremental_rpi: lambdas: every λ must lie in (0, 1), "
                                   f"got {lv}")
-    sdp = incremental_rpi_sdp(ldi, W, _shifted(X, np.asarray(x_s, dtype=float), "X-x_s"),
+    sdp = incremental_rpi_sdp(ldi, W, _shifted(X, x_s, "X-x_s"),
                               _shifted(U, u_s, "U-u_s"), G, min_axes)
     compiled = compile_synthesis(sdp, target)
     best, start = None, time.perf_counter()
@@ -213,7 +135,11 @@ def robust_terminal_cbf(ldi: PolytopicLDI, X_E: Polytope, U_E: Polytope, x_s: np
     rows of ``U_E`` scaled by ``1/sqrt(1 + level)`` (so ``γ_f >= level``), all centred at
     ``x_s`` (``u_s = 0``). ``P``, ``K`` act on ``x − x_s``."""
     n, m = ldi.B.shape
-    x_s = np.asarray(x_s, dtype=float).reshape(n)
+    x_s = as_vector(x_s, "robust_terminal_cbf: x_s", n)
+    delta_N = as_scalar(delta_N, "robust_terminal_cbf: delta_N", low=0.0)
+    level = as_scalar(level, "robust_terminal_cbf: level", low=0.0)
+    decrease_factor = as_scalar(decrease_factor, "robust_terminal_cbf: decrease_factor",
+                                0.0, 1.0, low_open=True)              # λ_f of Claim 2
     Xc, Uc = _shifted(X_E, x_s, "X_E-x_s"), U_E
     bx = Xc.h - delta_N
     bu = Uc.h / np.sqrt(1.0 + level)
@@ -221,17 +147,7 @@ def robust_terminal_cbf(ldi: PolytopicLDI, X_E: Polytope, U_E: Polytope, x_s: np
         raise BalustradeError(f"robust_terminal_cbf: x_s must lie inside X_E tightened by "
                               f"delta_N and 0 inside U_E (state bounds {bx.tolist()}, input "
                               f"bounds {bu.tolist()})")
-    sdp = SynthesisProblem("terminal CBF SDP (6.17) over a polytopic LDI")
-    E = sdp.matrix("E", (n, n), symmetric=True)
-    Y = sdp.matrix("Y", (m, n))
-    for i, A in enumerate(ldi.vertices()):
-        AEBY = A @ E + ldi.B @ Y
-        sdp.lmi(f"invariance {i}", bmat([[decrease_factor * E, AEBY.T], [AEBY, E]]))
-    for i, (a, b) in enumerate(zip(Xc.H, bx)):
-        sdp.lmi(f"state row {i}", bmat([[b ** 2, a[None] @ E], [(a[None] @ E).T, E]]))
-    for j, (a, b) in enumerate(zip(Uc.H, bu)):
-        sdp.lmi(f"input row {j}", bmat([[b ** 2, a[None] @ Y], [(a[None] @ Y).T, E]]))
-    sdp.minimize(-logdet(E))
+    sdp = robust_terminal_cbf_sdp(ldi, Xc.H, bx, Uc.H, bu, decrease_factor)
     sol = solve_synthesis(sdp, target)
     if not sol.ok:
         raise BalustradeError(f"robust_terminal_cbf: no solution ({sol.status}: "
