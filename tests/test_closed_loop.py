@@ -8,6 +8,7 @@ import pytest
 
 from balustrade.backends import Solution
 from balustrade.control import PCBFSafetyFilter, simulate
+from balustrade.errors import BalustradeError
 from balustrade.testing import verify
 
 INITIAL_RATES = (-1.5, -0.75, 0.0, 0.75, 1.5)
@@ -126,3 +127,27 @@ def test_controller_arguments_are_validated():
     with pytest.raises(ShapeError, match="project: u"):
         project(np.zeros(3), Box.symmetric([1.0]))
     assert project(np.array([np.nan]), Box.symmetric([1.0]))[0] == 0.0
+
+
+def test_shifted_warm_start_is_the_shifted_plan(pend):
+    """``warm_start="shifted"`` starts (2.24) from the last plan shifted by one step with the
+    measured state first; the default starts from the last (2.24) solution; the emitted C only
+    does the default, so a shifted filter is refused for C; a bad value names the option."""
+    args = (pend.compiled["slack", "casadi"], pend.compiled["filter", "casadi"], pend.U)
+    ctl = PCBFSafetyFilter(*args, warm_start="shifted")
+    x = np.array([0.3, 0.5])
+    assert ctl._slack_start(x) is None                      # nothing to shift yet
+    u, info = ctl.step(x, np.array([3.0]))
+    last = ctl._last_filter
+    assert last is not None and last.success
+    start = ctl._slack_start(np.array([0.31, 0.4]))
+    X, U = np.asarray(last["x"]), np.asarray(last["u"])
+    np.testing.assert_array_equal(start["x"][:, 0], [0.31, 0.4])
+    np.testing.assert_array_equal(start["x"][:, 1:-1], X[:, 2:])
+    np.testing.assert_array_equal(start["u"][:, :-1], U[:, 1:])
+    assert not start["u"][:, -1].any()
+    assert PCBFSafetyFilter(*args)._slack_start(x) is None   # "last": the (2.24) solution
+    with pytest.raises(BalustradeError, match="warm_start"):
+        ctl.deployment_spec()
+    with pytest.raises(BalustradeError, match="warm_start"):
+        PCBFSafetyFilter(*args, warm_start="previous")

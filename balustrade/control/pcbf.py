@@ -89,8 +89,18 @@ ZERO_TOL = 1e-9
 class PCBFSafetyFilter:
     """Closed-loop PCBF filter over two compiled problems (any backend)."""
 
-    def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6):
+    def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6,
+                 warm_start: str = "last"):
+        """``warm_start``: ``"last"`` starts (2.24) from its last accepted solution;
+        ``"shifted"`` from the last (2.23) plan shifted by one step (states ``x_1 … x_N, x_N``
+        with the first replaced by the measured state, inputs ``u_1 … u_{N−1}, 0``) — the
+        recursive-feasibility candidate of the theory. On nonconvex problems (obstacles)
+        the local solver can lose the plan from ``"last"`` (docs/obstacles.md)."""
         check_instance(U, Set, "PCBFSafetyFilter: U")
+        if warm_start not in ("last", "shifted"):
+            raise BalustradeError(f"PCBFSafetyFilter: warm_start must be 'last' or 'shifted', "
+                                  f"got {warm_start!r}")
+        self.warm_start = warm_start
         for name, prob in (("slack", slack), ("filter", filter)):
             if not callable(getattr(prob, "solve", None)):
                 raise BalustradeError(f"PCBFSafetyFilter: {name} must be a compiled problem "
@@ -127,8 +137,18 @@ class PCBFSafetyFilter:
         u, info = self._step(x, u_p)
         return u, note_proposal(info, replaced)
 
+    def _slack_start(self, x: np.ndarray) -> Solution | dict | None:
+        """The warm start of (2.24): its last solution, or the shifted last plan."""
+        last = self._last_filter
+        if self.warm_start != "shifted" or last is None or not last.success:
+            return self._last_slack
+        X, U = np.asarray(last["x"], dtype=float), np.asarray(last["u"], dtype=float)
+        Xs = np.hstack([X[:, 1:], X[:, -1:]])
+        Xs[:, 0] = x
+        return {"x": Xs, "u": np.hstack([U[:, 1:], np.zeros((U.shape[0], 1))])}
+
     def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        s1 = self.slack.solve({"x0": x}, warm_start=self._last_slack)
+        s1 = self.slack.solve({"x0": x}, warm_start=self._slack_start(x))
         info = StepInfo(solve_time=s1.solve_time, solutions={"slack": s1})
         if feasible_truncation(s1):  # real-time iterations: the next solve continues it
             self._last_slack = s1
@@ -194,5 +214,9 @@ class PCBFSafetyFilter:
     def deployment_spec(self) -> PCBFDeployment:
         """What the emitted C step needs (:func:`balustrade.codegen.emit_pcbf`): both
         compiled problems, ``U``, ``eps`` and :data:`ZERO_TOL`."""
+        if self.warm_start != "last":
+            raise BalustradeError("PCBFSafetyFilter.deployment_spec: the emitted C starts (2.24) "
+                                  "from its last solution; build the filter with "
+                                  "warm_start='last' to emit it")
         return PCBFDeployment(slack=self.slack, filter=self.filter, U=self.U,
                               eps=float(self.eps), zero_tol=ZERO_TOL)

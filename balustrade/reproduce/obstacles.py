@@ -94,37 +94,18 @@ class NaiveMPC:
         return u
 
 
-class ShiftedStartPCBF(PCBFSafetyFilter):
-    """The PCBF algorithm with (2.24) warm-started from the *shifted* last filter plan
-    (states ``x_1 … x_N, x_N`` with ``x_0`` replaced by the measured state, inputs
-    ``u_1 … u_{N−1}, 0``) instead of the last (2.24) solution itself.
-
-    (2.24) of the car is nonconvex (the disks): from the unshifted warm start the local
-    solver loses the plan — measured from (−2.0, 0.5): ``h_PB = 0`` for 32 steps, then
-    0.031 although the shifted plan is feasible with zero slack — and the car then enters a
-    disk by 0.12 m. The shifted plan is the recursive-feasibility candidate of the theory;
-    starting there, the closed loops of :func:`closed_loops` stay outside the disks up to
-    the tightening (docs/obstacles.md). Kept here, beside the one example that needs it."""
-
-    def _step(self, x: np.ndarray, u_p: np.ndarray):  # noqa: ANN202 - as the base class
-        last = self._last_filter
-        if last is not None and last.success:
-            X, U = np.asarray(last["x"], float), np.asarray(last["u"], float)
-            Xs = np.hstack([X[:, 1:], X[:, -1:]])
-            Xs[:, 0] = x
-            Us = np.hstack([U[:, 1:], np.zeros((U.shape[0], 1))])
-            self._last_slack = {"x": Xs, "u": Us}
-        return super()._step(x, u_p)
-
-
 def pcbf_algorithm(target: str = "exact", shifted: bool = True) -> PCBFSafetyFilter:
     """The PCBF algorithm [41] for the car: (2.24) then (2.23), both with the hard
-    terminal constraint (``ξ_N ≡ 0``); ``shifted``: :class:`ShiftedStartPCBF`."""
+    terminal constraint (``ξ_N ≡ 0``); ``shifted``: (2.24) warm-started from the shifted last
+    plan (``PCBFSafetyFilter(warm_start="shifted")``): (2.24) of the car is nonconvex (the
+    disks), and from its own last solution the local solver lost the plan — measured from
+    (−2.0, 0.5): ``h_PB = 0`` for 32 steps, then 0.031 although the shifted plan is feasible
+    with zero slack, and the car entered a disk by 0.12 m."""
     system, s = obstacle_car(), obstacle_setup()
     args = (system, s.X, s.U, s.N, s.deltas, s.delta_N)
     slack = compile(stopping_pcbf_problem(*args), target)
     filt = compile(stopping_filter_problem(*args), target)
-    return (ShiftedStartPCBF if shifted else PCBFSafetyFilter)(slack, filt, s.U)
+    return PCBFSafetyFilter(slack, filt, s.U, warm_start="shifted" if shifted else "last")
 
 
 def path_of(status: str) -> str:
