@@ -223,3 +223,35 @@ def test_one_step_bound_fraction_is_exact_and_linprog_fallback_agrees():
     slow = [_linprog_status(lp.lp, lo[i], hi[i]) for i in range(len(xs))]
     assert np.array_equal(np.array(slow), lp.feasible(xs))
     assert np.array_equal(np.array(slow) == 1, np.abs(xs).sum(axis=1) <= 1)
+
+
+# -- 8 masses: the contractive parallelotope 𝕏₀ -----------------------------------------------
+def test_eight_mass_design_is_a_contractive_parallelotope_meeting_assumption_4_11():
+    """8 masses: no box is contractive in x (u does not act on p⁺ = p + T_s v), the design
+    takes a parallelotope ``|Tx| <= d``: 32 rows, contractive at all 128 vertices, RPI and
+    inside 𝒵 (Assumption 4.11 by LPs), and its closed-form support equals the LP's."""
+    from balustrade.design.rapsf import (
+        Parallelotope,
+        check_assumption_4_11,
+        contraction_factor,
+        contractive_box,
+    )
+    d = M.design(8)
+    X0, s = d["X0"], d["setup"]
+    assert isinstance(X0, Parallelotope) and X0.H.shape == (32, 16)
+    assert check_assumption_4_11(d["system"], X0, s.W, d["K"], d["V"], d["F"], d["G"]).ok
+    assert contraction_factor(X0, d["system"], d["K"], d["V"]) < 1
+    with pytest.raises(BalustradeError, match="no λ-contractive box"):
+        contractive_box(d["system"], d["K"], d["V"], s.W, d["F"], d["G"])
+    rng = np.random.default_rng(3)
+    for a in rng.normal(size=(5, 16)):
+        assert X0.support(a) == pytest.approx(Polytope.support(X0, a), rel=1e-7, abs=1e-9)
+    with pytest.raises(BalustradeError, match="d must be finite and > 0"):
+        Parallelotope(np.eye(2), [1.0, 0.0])
+
+
+def test_closed_loop_progress_line():
+    """The closed loop reports steps done, ms per step and the time left."""
+    line = M.step_line("rapsf", 3, 10, [0.1, 0.2, 0.3])
+    assert line == "rapsf: step 3/10, 200 ms/step, 1 s left"
+    assert M.step_line("rapsf", 10, 10, [0.1]).endswith("\n")

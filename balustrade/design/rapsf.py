@@ -167,6 +167,123 @@ def contractive_box(system: object, K: np.ndarray, vertices: np.ndarray, W: Poly
     return Box.symmetric(c_max * b, name="X0")
 
 
+class Parallelotope(Polytope):
+    """``{x : |T x| <= d}`` (``T`` invertible, ``d > 0``) as the unit polytope
+    ``{[T; −T]/d · x <= 1}``, with the support in closed form:
+    ``max_{|Tx| <= d} aᵀx = |aᵀT⁻¹| d`` (``y = Tx`` ranges over the box ``|y| <= d``), so
+    the constants ``s_jr``, ``t_r`` of SPEC §2.20 need no LP."""
+
+    def __init__(self, T: np.ndarray, d: np.ndarray, name: str = "X0"):
+        T = np.atleast_2d(np.asarray(T, dtype=float))
+        d = np.asarray(d, dtype=float).ravel()
+        if T.ndim != 2 or T.shape[0] != T.shape[1] or d.size != T.shape[0]:
+            raise BalustradeError(f"Parallelotope: T must be square and d one entry per row, "
+                                  f"got T {T.shape}, d {d.shape}")
+        if not np.all(np.isfinite(d)) or np.any(d <= 0):
+            raise BalustradeError(f"Parallelotope: d must be finite and > 0, got {d}")
+        if np.linalg.cond(T) > 1e12:
+            raise BalustradeError("Parallelotope: T is not invertible (condition number "
+                                  f"{np.linalg.cond(T):.3g})")
+        object.__setattr__(self, "T", T)
+        object.__setattr__(self, "d", d)
+        object.__setattr__(self, "T_inv", np.linalg.inv(T))
+        H = T / d[:, None]
+        super().__init__(np.vstack([H, -H]), np.ones(2 * d.size), name=name)
+
+    def support(self, a: np.ndarray) -> float:
+        """``|aᵀT⁻¹| d`` (closed form; :class:`Polytope` solves an LP)."""
+        a = np.asarray(a, dtype=float).ravel()
+        if a.size != self.dim:
+            raise BalustradeError(f"{self.name}.support(a): a has {a.size} entries, the set "
+                                  f"has dimension {self.dim}")
+        return float(np.abs(a @ self.T_inv) @ self.d)
+
+
+def parallelotope_bases(system: object, K: np.ndarray, vertices: np.ndarray
+                        ) -> list[np.ndarray]:
+    """Candidate coordinates ``T`` for :func:`contractive_parallelotope`: the identity, the
+    real modal basis of ``A_cl(θ_c)`` at the mean of ``vertices`` (eigenvectors; real and
+    imaginary parts for a complex pair) and ``Lᵀ`` with ``P = LLᵀ`` the Lyapunov matrix of
+    ``A_cl(θ_c)`` (``A_clᵀPA_cl − P = −I``), where they exist."""
+    n = check_parametric_system(system, "parallelotope_bases")[0]
+    A, B = model_matrices(system, np.mean(np.atleast_2d(vertices), axis=0))
+    Ac = A + B @ np.asarray(K, dtype=float)
+    bases = [np.eye(n)]
+    ev, vec = np.linalg.eig(Ac)
+    cols, used = [], set()
+    for i, lam_i in enumerate(ev):
+        if i in used:
+            continue
+        used.add(i)
+        if abs(lam_i.imag) <= 1e-12:
+            cols.append(vec[:, i].real)
+            continue
+        mate = [j for j in range(n) if j not in used and abs(ev[j] - np.conj(lam_i)) < 1e-9]
+        used.update(mate[:1])
+        cols += [vec[:, i].real, vec[:, i].imag]
+    Vm = np.column_stack(cols) if len(cols) == n else None
+    if Vm is not None and np.linalg.cond(Vm) < 1e8:
+        bases.append(np.linalg.inv(Vm))
+    if max(abs(ev)) < 1:
+        P = scipy.linalg.solve_discrete_lyapunov(Ac.T, np.eye(n))
+        try:
+            bases.append(np.linalg.cholesky(0.5 * (P + P.T)).T)
+        except np.linalg.LinAlgError:
+            pass
+    return bases
+
+
+def contractive_parallelotope(system: object, K: np.ndarray, vertices: np.ndarray,
+                              W: Polytope, F: np.ndarray, G: np.ndarray,
+                              bases: list[np.ndarray] | None = None,
+                              iterations: int = 500) -> Parallelotope:
+    """A λ-contractive parallelotope ``𝕏₀ = {|Tx| <= c b}`` for all vertices, RPI for ``W``
+    and inside ``𝒵``: :func:`contractive_box` in the coordinates ``y = Tx`` (``2n`` rows
+    instead of a polytope's many, supports in closed form). For each ``T`` of ``bases``
+    (default :func:`parallelotope_bases`) ``M = max_j |T A_cl(θ^j) T⁻¹|`` (elementwise),
+    ``b`` its Perron vector and ``λ = ρ(M) < 1``: then ``|T A_cl(θ^j) x| <= M|Tx| <= λcb``,
+    so ``A_cl(θ^j)𝕏₀ ⊆ λ𝕏₀`` at every vertex and, ``A_cl`` being affine in ``θ`` (4.6) and
+    ``𝕏₀`` convex, on their hull. ``c`` is the largest scale with ``t_r <= 1`` and must
+    exceed the smallest with ``λ + w̄_r/(c b_r) <= 1``; the first feasible ``T`` with the
+    smallest ``λ`` is returned. Raises when no ``T`` gives one.
+
+    Why (8 masses): no box in the original coordinates is contractive for any ``K`` (the
+    position row ``p⁺ = p + T_s v`` has ``|A_cl|`` row sum ``> 1``: ``u`` does not act on
+    it), and the contractive polytope has 104 rows, i.e. ``104·128`` LPs for ``s_jr`` per
+    update of ``Θ_k``."""
+    n, _, _ = check_parametric_system(system, "contractive_parallelotope")
+    Acls = closed_loop_matrices(system, K, vertices)
+    E = disturbance_map(system, n)
+    FGK = np.asarray(F + G @ K, dtype=float)
+    best, errors = None, []
+    for T in bases if bases is not None else parallelotope_bases(system, K, vertices):
+        T = np.asarray(T, dtype=float)
+        Ti = np.linalg.inv(T)
+        M = np.max(np.abs(np.stack([T @ A @ Ti for A in Acls])), axis=0) + 1e-9
+        b = np.ones(n)
+        for _ in range(iterations):
+            b = M @ b
+            b = b / b.max()
+        lam = float(np.max((M @ b) / b))
+        if lam >= 1:
+            errors.append(f"ρ = {lam:.4g} >= 1")
+            continue
+        unit = Parallelotope(T, b)
+        w_bar = np.array([max(W.support(row), W.support(-row)) for row in T @ E])  # |T E w|
+        c_min = float(np.max(w_bar / ((1 - lam) * b)))
+        t_unit = np.array([unit.support(row) for row in FGK])
+        c_max = float(1.0 / np.max(t_unit)) if np.max(t_unit) > 0 else np.inf
+        if c_min > c_max:
+            errors.append(f"λ = {lam:.4g}: RPI scale {c_min:.4g} > {c_max:.4g} inside 𝒵")
+            continue
+        if best is None or lam < best[0]:
+            best = (lam, T, c_max * b)
+    if best is None:
+        raise BalustradeError("contractive_parallelotope: no λ-contractive parallelotope for "
+                              "this K (" + "; ".join(errors) + "): use a polytope 𝕏₀")
+    return Parallelotope(best[1], best[2], name="X0")
+
+
 def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W: Polytope,
                          F: np.ndarray, G: np.ndarray, lam: float | None = None,
                          max_sweeps: int = 100, tol: float = 1e-9) -> Polytope:
@@ -348,4 +465,5 @@ def _terminal_lp(system: object, c: object, K: np.ndarray, vertices: np.ndarray,
 
 __all__ = ["LMI_MAX_VERTICES", "CheckReport", "centre_lqr_gain", "check_assumption_4_11",
            "check_constraints", "check_rpi", "contraction_factor", "contractive_box",
-           "contractive_polytope", "quadratic_contraction", "robust_gain"]
+           "contractive_parallelotope", "contractive_polytope", "Parallelotope",
+           "parallelotope_bases", "quadratic_contraction", "robust_gain"]
