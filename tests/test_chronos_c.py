@@ -145,6 +145,23 @@ def test_chronos_c_uses_the_tracks_curvature(chronos_c: dict, tmp_path) -> None:
     assert differs > 0  # the two tracks' models are not the same
 
 
+def test_reproduction_reports_the_c_filter(chronos_c: dict, tmp_path, monkeypatch) -> None:
+    """What ``reproduce chronos`` writes under ``c_filter``: C = Python along scenario 1
+    (closed loop and replay) with both step times; without a C compiler, why not."""
+    from balustrade.reproduce.chronos import _c_filter
+
+    fast = chronos_c["fast"]
+    fast.reset()
+    run_py = closed_loop(TRACK, SCENARIOS["p-controller"], fast, max_steps=150)
+    res = _c_filter(tmp_path, TRACK, fast, run_py)
+    assert res["status"] == "built" and res["c_equals_python"]
+    assert res["closed_loop_p_controller"]["steps"] == 150
+    assert res["replay_p_controller"]["c_step_median_ms"] > 0
+    monkeypatch.setenv("CC", "no-such-compiler-xyz")
+    res = _c_filter(tmp_path, TRACK, fast, run_py)
+    assert res["status"].startswith("not run") and "no-such-compiler-xyz" in res["status"]
+
+
 DRIVER = r"""
 #include <math.h>
 #include <stdio.h>

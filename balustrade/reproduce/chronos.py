@@ -364,7 +364,9 @@ def _c_filter(out: Path, track: Track, py_filter: object, run_py: dict) -> dict:
     t0 = time.time()
     c = c_grid_filter(py_filter, out / "c")
     build_s = time.time() - t0
-    run_c = closed_loop(track, SCENARIOS["p-controller"], c)
+    # the same step budget: both runs stop at three laps or where the Python run stopped
+    run_c = closed_loop(track, SCENARIOS["p-controller"], c,
+                        max_steps=len(run_py["frenet"]))
     n = min(len(run_c["u"]), len(run_py["u"]))
     m = min(len(run_c["frenet"]), len(run_py["frenet"]))
     loop = {"steps": int(n), "same_length": len(run_c["u"]) == len(run_py["u"]),
