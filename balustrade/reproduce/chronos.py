@@ -22,7 +22,11 @@ grid ``ΔT = 0.1``, ``Δδ = 0.05``, rate limits ``0.5``/``0.1``, ``ρ = 0.9``) 
 per call into ``out/data`` (resumable: run again for more; the thesis used 1.6e8 points —
 the cluster command is in ``docs/chronos.md``), trains and runs the three scenarios with
 the filter; ``metrics.json`` says how many samples the network saw and whether the
-constraints held (``all_within_tol``). ``quick=True`` skips the learned part (reported as
+constraints held (``all_within_tol``). The Python filter evaluates the network on all
+candidates at once (:func:`h_rows`); with a C compiler the emitted C of Algorithm 8.7
+(:func:`c_grid_filter`) runs scenario 1 too and ``metrics["c_filter"]`` says whether it
+took the Python filter's inputs and statuses and how long both steps took
+(:func:`compare_c`, interleaved). ``quick=True`` skips the learned part (reported as
 not run). Measured in this session (docs/chronos.md): the SPEC §3.8 acceptance is not
 met. With one fit on 2265 samples scenario 1 (and its noise/delay variants) stayed inside
 for three laps and the constant-steer cars crossed the border at a few sites; a fit on
