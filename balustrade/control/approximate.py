@@ -317,7 +317,8 @@ def _checked_rows(h_rows: object, h: ca.Function, nx: int
     X = np.random.default_rng(0).uniform(-1.0, 1.0, (4, nx))
     want = np.array([float(h(x)) for x in X])
     got = np.asarray(h_rows(X), dtype=float).reshape(-1)
-    if got.shape != want.shape or not np.allclose(got, want, rtol=1e-9, atol=1e-12):
+    if got.shape != want.shape or not np.allclose(got, want, rtol=1e-9, atol=1e-12,
+                                                         equal_nan=True):
         raise BalustradeError(f"GridPCBFFilter: h_rows must equal h_hat on the rows of an "
                               f"(M, {nx}) array and return (M,) values; on 4 test states "
                               f"it gave shape {got.shape} and values {got} instead of {want}")
