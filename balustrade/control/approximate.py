@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Callable
 
 import casadi as ca
 import numpy as np
@@ -204,10 +205,18 @@ class GridPCBFFilter:
     ``j·Δu``, ``|j·Δu| <= ū``, around the last applied input ``u_{k−1}``; candidates are
     clipped to ``U`` (a box) or dropped if outside ``U``. ``ĥ(f(x, u_i))`` is evaluated for
     all candidates in one batched CasADi call. ``ρ`` multiplies ``ĥ`` (default 0.9).
+
+    ``h_rows`` (optional): the same ``ĥ`` on the rows of an ``(M, nx)`` array, returning
+    ``(M,)`` values (e.g. a numpy network, :meth:`~balustrade.learn.train.MLPModel.__call__`).
+    The step then computes ``f(x, u_i)`` in one mapped CasADi call and ``ĥ`` with
+    ``h_rows``: a large network evaluated as dense matrix products instead of scalar
+    CasADi operations (≈ 10× faster for 55 candidates of a 4 × 32 net). It must equal
+    ``h_hat`` (checked on a few states at construction); the emitted C uses ``h_hat``.
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, half_width: object,
-                 spacing: object, rho: float = 0.9, u_init: np.ndarray | None = None):
+                 spacing: object, rho: float = 0.9, u_init: np.ndarray | None = None,
+                 h_rows: Callable[[np.ndarray], np.ndarray] | None = None):
         check_instance(system, System, "GridPCBFFilter: system")
         check_instance(U, Set, "GridPCBFFilter: U")
         self.system, self.U = system, U
@@ -230,6 +239,10 @@ class GridPCBFFilter:
         self._many = self._h_next.map(len(self.offsets))
         self._many_buf = Buffered(self._many)  # one low-overhead call per step
         self._h_buf = Buffered(self.h)
+        self.h_rows = None if h_rows is None else _checked_rows(h_rows, self.h, system.nx)
+        if self.h_rows is not None:
+            f = ca.Function("f", [x, u], [system(x, u)])
+            self._next_buf = Buffered(f.map(len(self.offsets)))
         self.u_init = np.zeros(self.nu) if u_init is None else \
             as_vector(u_init, "GridPCBFFilter: u_init", self.nu)
         self.reset()
@@ -265,7 +278,11 @@ class GridPCBFFilter:
         cand = self.candidates()
         padded = np.vstack([cand, np.repeat(cand[-1:], len(self.offsets) - len(cand), 0)])
         n = len(self.offsets)
-        values = self._many_buf(np.tile(x, n), padded.reshape(-1))[0][: len(cand)]
+        if self.h_rows is None:
+            values = self._many_buf(np.tile(x, n), padded.reshape(-1))[0][: len(cand)]
+        else:  # f(x, u_i) in one mapped call (column-major: one state per column)
+            nxt = self._next_buf(np.tile(x, n), padded.reshape(-1))[0]
+            values = np.asarray(self.h_rows(nxt.reshape(n, -1)[: len(cand)]), float)
         values = np.where(np.isfinite(values), values, np.inf)
         h_x = float(self._h_buf(x)[0][0])
         ok = values <= self.rho * h_x
@@ -288,6 +305,24 @@ class GridPCBFFilter:
         return GridDeployment(system=self.system, U=self.U, h=self.h,
                               offsets=self.offsets.copy(), scale=self.scale.copy(),
                               rho=float(self.rho), u_init=self.u_init.copy())
+
+
+def _checked_rows(h_rows: object, h: ca.Function, nx: int
+                  ) -> Callable[[np.ndarray], np.ndarray]:
+    """``h_rows`` if it is callable and equals ``h`` on a few fixed states (relative 1e-9),
+    else a BalustradeError naming the argument."""
+    if not callable(h_rows):
+        raise BalustradeError(f"GridPCBFFilter: h_rows must be callable, got "
+                              f"{type(h_rows).__name__}")
+    X = np.random.default_rng(0).uniform(-1.0, 1.0, (4, nx))
+    want = np.array([float(h(x)) for x in X])
+    got = np.asarray(h_rows(X), dtype=float).reshape(-1)
+    if got.shape != want.shape or not np.allclose(got, want, rtol=1e-9, atol=1e-12,
+                                                         equal_nan=True):
+        raise BalustradeError(f"GridPCBFFilter: h_rows must equal h_hat on the rows of an "
+                              f"(M, {nx}) array and return (M,) values; on 4 test states "
+                              f"it gave shape {got.shape} and values {got} instead of {want}")
+    return h_rows
 
 
 __all__ = ["ApproximatePCBFFilter", "GridPCBFFilter", "Solution"]

@@ -22,7 +22,11 @@ grid ``ΔT = 0.1``, ``Δδ = 0.05``, rate limits ``0.5``/``0.1``, ``ρ = 0.9``) 
 per call into ``out/data`` (resumable: run again for more; the thesis used 1.6e8 points —
 the cluster command is in ``docs/chronos.md``), trains and runs the three scenarios with
 the filter; ``metrics.json`` says how many samples the network saw and whether the
-constraints held (``all_within_tol``). ``quick=True`` skips the learned part (reported as
+constraints held (``all_within_tol``). The Python filter evaluates the network on all
+candidates at once (:func:`h_rows`); with a C compiler the emitted C of Algorithm 8.7
+(:func:`c_grid_filter`) runs scenario 1 too and ``metrics["c_filter"]`` says whether it
+took the Python filter's inputs and statuses and how long both steps took
+(:func:`compare_c`, interleaved). ``quick=True`` skips the learned part (reported as
 not run). Measured in this session (docs/chronos.md): the SPEC §3.8 acceptance is not
 met. With one fit on 2265 samples scenario 1 (and its noise/delay variants) stayed inside
 for three laps and the constant-steer cars crossed the border at a few sites; a fit on
@@ -259,14 +263,65 @@ def h_function(model: object, track: Track) -> ca.Function:
     return ca.Function("h_hat", [x], [expression(model, xw)])
 
 
-def grid_filter(h_hat: ca.Function, track: Track) -> object:
-    """Algorithm 8.7 on the Euler Frenet model with the §8.4 grid and ``ρ = 0.9``."""
+def h_rows(model: object, track: Track) -> Callable[[np.ndarray], np.ndarray]:
+    """The ``ĥ`` of :func:`h_function` on the rows of an ``(M, 6)`` array, evaluated by the
+    network's numpy forward pass (dense matrix products; the ``h_rows`` of
+    :class:`~balustrade.control.approximate.GridPCBFFilter`), ``s`` wrapped as there."""
+    L = track.length
+
+    def rows(X: np.ndarray) -> np.ndarray:
+        X = np.array(X, dtype=float, ndmin=2)
+        X[:, 0] = X[:, 0] - L * np.floor(X[:, 0] / L)
+        return model(X)
+    return rows
+
+
+def grid_filter(h_hat: ca.Function, track: Track,
+                rows: Callable[[np.ndarray], np.ndarray] | None = None) -> object:
+    """Algorithm 8.7 on the Euler Frenet model with the §8.4 grid and ``ρ = 0.9``;
+    ``rows`` (e.g. :func:`h_rows`) evaluates ``ĥ`` on all candidates at once."""
     from balustrade.control.approximate import GridPCBFFilter
     from balustrade.models.chronos import chronos_frenet, chronos_sets
 
     _, U = chronos_sets()
     return GridPCBFFilter(chronos_frenet(track), U, h_hat, HALF_WIDTH, SPACING, rho=RHO,
-                          u_init=np.array([T_CMD, 0.0]))
+                          u_init=np.array([T_CMD, 0.0]), h_rows=rows)
+
+
+def c_grid_filter(py_filter: object, build_dir: str | Path | None = None) -> object:
+    """The emitted C of Algorithm 8.7 (:func:`~balustrade.codegen.emit_grid.emit_grid`:
+    ``ĥ`` and the Frenet model with the track's ``κ(s)``, one call per step) built and
+    loaded as a controller (:func:`~balustrade.codegen.accelerate`), reset."""
+    from balustrade.codegen import accelerate
+
+    return accelerate(py_filter, build_dir=build_dir, name="chronos_grid", werror=True)
+
+
+def compare_c(py_filter: object, c_filter: object, states: np.ndarray,
+              proposals: np.ndarray) -> dict:
+    """Both filters (reset) stepped in lockstep on the same ``states`` and proposals,
+    interleaved (Python, C, Python, C …) so both see the same load: the largest input
+    difference, whether every status agreed, and the per-step wall times (median, ms)."""
+    py_filter.reset()
+    c_filter.reset()
+    t_py, t_c, t_native, du, same = [], [], [], 0.0, True
+    for x, u_p in zip(states, proposals):
+        t0 = time.perf_counter()
+        u1, i1 = py_filter.step(x, u_p)
+        t1 = time.perf_counter()
+        u2, i2 = c_filter.step(x, u_p)
+        t2 = time.perf_counter()
+        t_py.append(t1 - t0)
+        t_c.append(t2 - t1)
+        t_native.append(i2.solve_time)  # the foreign call alone
+        du = max(du, float(np.max(np.abs(np.asarray(u1) - np.asarray(u2)))))
+        same = same and (i1.status, i1.fallback) == (i2.status, i2.fallback)
+    return {"steps": len(t_py), "max_input_difference": du, "statuses_equal": bool(same),
+            "python_step_median_ms": float(1e3 * np.median(t_py)),
+            "c_step_median_ms": float(1e3 * np.median(t_c)),
+            "c_call_median_ms": float(1e3 * np.median(t_native)),
+            "python_step_max_ms": float(1e3 * np.max(t_py)),
+            "c_step_max_ms": float(1e3 * np.max(t_c))}
 
 
 def _filtered(out: Path, track: Track, metrics: dict) -> dict[str, dict]:
@@ -281,17 +336,56 @@ def _filtered(out: Path, track: Track, metrics: dict) -> dict[str, dict]:
     val = model.history.get("val_mse_h", [])
     metrics["training"] = {"widths": [32] * 4, "epochs": 300, "lr": 1e-3, "batch_size": 64,
                            "transform": "cbrt", "val_mse": float(val[-1]) if val else None}
-    h_hat = h_function(model, track)
-    runs = {name: closed_loop(track, ctrl, grid_filter(h_hat, track))
+    h_hat, rows = h_function(model, track), h_rows(model, track)
+    runs = {name: closed_loop(track, ctrl, grid_filter(h_hat, track, rows))
             for name, ctrl in SCENARIOS.items()}
     # robustness variants of scenario 1: estimation noise (1 cm, 0.01 rad) and a one-step
     # input delay
     ctrl = SCENARIOS["p-controller"]
-    runs["p-controller+noise"] = closed_loop(track, ctrl, grid_filter(h_hat, track),
+    runs["p-controller+noise"] = closed_loop(track, ctrl, grid_filter(h_hat, track, rows),
                                              noise=NOISE)
-    runs["p-controller+delay"] = closed_loop(track, ctrl, grid_filter(h_hat, track),
+    runs["p-controller+delay"] = closed_loop(track, ctrl, grid_filter(h_hat, track, rows),
                                              delay=True)
+    try:
+        metrics["c_filter"] = _c_filter(out, track, grid_filter(h_hat, track, rows),
+                                        runs["p-controller"])
+    except Exception as exc:  # noqa: BLE001 - reported, never faked
+        metrics["c_filter"] = {"status": "failed", "reason": f"{type(exc).__name__}: {exc}"}
     return runs
+
+
+def _c_filter(out: Path, track: Track, py_filter: object, run_py: dict) -> dict:
+    """The emitted C of Algorithm 8.7 on scenario 1: the closed loop with the C filter
+    against the Python one (inputs, states, statuses) and both steps timed interleaved on
+    the states of the Python run. Reported as not run when there is no C compiler."""
+    from balustrade.codegen import find_compiler
+    from balustrade.errors import CodegenError
+
+    try:
+        find_compiler()
+    except CodegenError as exc:
+        return {"status": f"not run: {exc}"}
+    t0 = time.time()
+    c = c_grid_filter(py_filter, out / "c")
+    build_s = time.time() - t0
+    # the same step budget: both runs stop at three laps or where the Python run stopped
+    run_c = closed_loop(track, SCENARIOS["p-controller"], c,
+                        max_steps=len(run_py["frenet"]))
+    n = min(len(run_c["u"]), len(run_py["u"]))
+    m = min(len(run_c["frenet"]), len(run_py["frenet"]))
+    loop = {"steps": int(n), "same_length": len(run_c["u"]) == len(run_py["u"]),
+            "max_input_difference": float(np.max(np.abs(run_c["u"][:n] - run_py["u"][:n]))),
+            "max_state_difference": float(np.max(np.abs(run_c["frenet"][:m] -
+                                                        run_py["frenet"][:m]))),
+            "statuses_equal": bool(np.array_equal(run_c["status"], run_py["status"]))}
+    timing = compare_c(py_filter, c, run_py["frenet"][: len(run_py["u_p"])], run_py["u_p"])
+    return {"status": "built", "dir": str(c.accelerated["dir"]), "build_s": build_s,
+            "closed_loop_p_controller": loop, "replay_p_controller": timing,
+            "c_equals_python": bool(loop["same_length"] and loop["statuses_equal"] and
+                                    loop["max_input_difference"] <= 1e-6 and
+                                    timing["statuses_equal"] and
+                                    timing["max_input_difference"] <= 1e-6),
+            "load": "2 cores shared with other jobs: times are under load"}
 
 
 def run(out: Path, quick: bool = False) -> dict:
@@ -323,6 +417,7 @@ def run(out: Path, quick: bool = False) -> dict:
     if quick:
         metrics["filtered"] = {"status": "not run (quick): sampling the PCBF at N = 50 takes "
                                          "about a second per point"}
+        metrics["c_filter"] = {"status": "not run (quick): the C filter needs the learned ĥ"}
         metrics["figures"] = figures
         (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
         return metrics
@@ -344,5 +439,5 @@ def run(out: Path, quick: bool = False) -> dict:
     return metrics
 
 
-__all__ = ["NAMES", "SCENARIOS", "closed_loop", "constant", "grid_filter", "h_function",
-           "p_controller", "run", "violation_sites"]
+__all__ = ["NAMES", "SCENARIOS", "c_grid_filter", "closed_loop", "compare_c", "constant",
+           "grid_filter", "h_function", "h_rows", "p_controller", "run", "violation_sites"]
