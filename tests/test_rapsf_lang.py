@@ -93,6 +93,28 @@ def test_dropping_the_block_changes_the_optimum(toy) -> None:
     assert sol.status == "optimal" and sol.objective < f_ref - 1.0
 
 
+def test_rapsf_controller_takes_the_set(toy) -> None:
+    """Algorithm 4.1 built with 𝒵 as a set (``G=None``) runs the same closed loop as with
+    the matrices; a 𝒵 that does not fit the system is refused at construction."""
+    from balustrade.control.rapsf import RAPSF
+
+    a = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
+              target="fast-convex")
+    b = RAPSF(toy.sys, toy.X0, _Z(toy), None, toy.W, toy.K, N, toy.Theta0,
+              target="fast-convex")
+    x, theta = np.array([1.5, 1.0]), np.array([1.2, 0.3])
+    for k in range(6):
+        u_p = np.array([3.0 * np.cos(k)])
+        (ua, ia), (ub, ib) = a.step(x, u_p), b.step(x, u_p)
+        assert ia.fallback == ib.fallback and ia.status == ib.status == "ok", (k, ia, ib)
+        np.testing.assert_allclose(ua, ub, atol=1e-9)
+        assert _Z(toy).contains_pair(x, ua, tol=1e-6)
+        x = toy.sys.step(x, ua, theta)
+    with pytest.raises(ShapeError, match="F"):
+        RAPSF(toy.sys, toy.X0, JointPolytope(np.ones((3, 3)), np.ones((3, 1))), None, toy.W,
+              toy.K, N, toy.Theta0)
+
+
 # -- the block on a plain horizon problem: all backends, against hand-written rows -----------
 def _double_integrator_ocp(block: str) -> OCP:
     sys_ = LinearSystem([[1.0, 0.1], [0.0, 1.0]], [[0.005], [0.1]], name="di")

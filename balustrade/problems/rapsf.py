@@ -169,7 +169,9 @@ def tube_constants(X0: Polytope, W: Polytope, system: object, K: np.ndarray,
     check_instance(W, Polytope, "tube_constants: W")
     E = disturbance_map(system, HX.shape[1])
     w_bar = np.array([W.support(row @ E) for row in HX])
-    t = as_joint(F, G, "tube_constants").feedback_support(K, X0)
+    Z = as_joint(F, G, "tube_constants").check_dims(HX.shape[1], np.shape(K)[0],
+                                                    "tube_constants")
+    t = Z.feedback_support(K, X0)
     return TubeConstants(HX, w_bar, s_constants(X0, system, K, vertices), t)
 
 
