@@ -113,6 +113,28 @@ def test_c_equals_python_with_forced_failures(toy, emitted: dict) -> None:
     assert paths["backup"] >= 2 and paths[None] >= 20, paths
 
 
+@pytest.mark.slow
+def test_without_shrinking_the_c_uses_the_stored_plan(toy, tmp_path) -> None:
+    """The same forced failures with ``shrinking=False``: the module has no shrunk problem
+    (``SHRINKING 0``, empty X-macro) and C = Python take the stored plan, never
+    ``shrunk_horizon``."""
+    py = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
+               target=EMITTABLE_TARGET)
+    em = emit_rapsf(py, "rn", tmp_path)
+    assert sorted(em.manifest["problems"]) == ["main"] and not em.manifest["shrinking"]
+    c = CRAPSF(build(tmp_path, em.name, werror=True, extra_flags=link_flags(em.libraries)),
+               host=py)
+    s_true, x, paths = py._s.copy(), np.array([0.05, 0.0]), Counter()
+    for k in range(16):
+        py._s = c.host._s = np.full_like(s_true, S_INFLATED) if 6 <= k < 6 + N else s_true
+        u_p = np.array([0.3 * np.sin(0.7 * k)])
+        out_py, out_c = py.step(x, u_p), c.step(x, u_p)
+        _same(out_py, out_c, k)
+        paths[out_py[1].fallback] += 1
+        x = toy.sys.step(x, out_py[0], np.array([1.2, 0.3]))
+    assert paths["stored_plan"] == N - 1 and paths["shrunk_horizon"] == 0, paths
+
+
 VALGRIND_MAIN = r"""
 #include <math.h>
 #include <stdio.h>
