@@ -55,10 +55,9 @@ def design3() -> dict:
 
 # -- refusals (fast) ---------------------------------------------------------------------
 def test_refuses_what_the_c_does_not_run(design3: dict, tmp_path) -> None:
-    """Remark 4.6 (shrinking), a user's backup policy and a convex (non-parametric) target
-    are refused with errors that say what to change, before anything is generated."""
-    with pytest.raises(CodegenError, match="shrinking"):
-        emit_rapsf(_controller(design3, shrinking=True), "r", tmp_path)
+    """A user's backup policy, the enlargement and a convex (non-parametric) target are
+    refused with errors that say what to change, before anything is generated (Remark
+    4.6, shrinking=True, is emitted: tests/test_rapsf_c_shrinking.py)."""
     with pytest.raises(CodegenError, match="backup"):
         emit_rapsf(_controller(design3, backup=lambda x, u_p, k: 0 * x[:3]), "r", tmp_path)
     with pytest.raises(CodegenError, match="enlarge"):  # its generators live in Python

@@ -8,14 +8,20 @@
 ``u = K x + v*_0`` after a converged solve (the plan stored, ``k_inf = 0``), else the stored
 plan ``K x + v*_{k_inf}`` while ``k_inf <= N − 1``, else the backup ``K x``.
 
+The Remark 4.6 shrinking variant (``shrinking=True``) is emitted too: (4.5) with every
+shorter horizon ``h = 1 … N−1`` is one more problem ``<name>_shrunk<h>`` of the module (same
+parameters ``x0, u_p, theta, s``), and after a failed (4.5) with ``k_inf <= N − 1`` and a
+stored plan the step first solves the one with ``h = N − k_inf`` and applies its
+``K x + v*_0`` (``BAL_RAPSF_SHRUNK_HORIZON``; the stored plan and ``k_inf`` are kept, as in
+:class:`~balustrade.control.rapsf.RAPSF`), falling back to the stored plan if it fails too.
+
 What stays in the host language: the set-membership estimator (line 4 of Algorithm 4.1, LPs
 or the box update of :mod:`balustrade.estimate`) with the nesting check of Assumption 4.2,
 and ``s_jr`` of the new vertices (:func:`~balustrade.problems.rapsf.s_constants`); they
 change the QP's parameters only, never its structure. :class:`~balustrade.codegen.CRAPSF`
 runs them in Python (on a copy of the controller) and passes the data to the C step.
 
-Not emitted (:class:`~balustrade.errors.CodegenError`): the Remark 4.6 shrinking variant
-(``shrinking=True``: one more QP per horizon ``1 … N−1``), a user's backup policy, the
+Not emitted (:class:`~balustrade.errors.CodegenError`): a user's backup policy, the
 terminal-set enlargement. The controller must be built on a CasADi target that can be
 emitted; the QP (4.5) needs :data:`EMITTABLE_TARGET` (``"convex-qp"``, a dual active-set QP
 solver inside the SQP; the self-contained ``"fast-sqp"`` cycles on this QP's degenerate
@@ -78,10 +84,6 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
     spec = _spec(controller, name, RAPSFDeployment, "RAPSF")
-    if spec.shrinking:
-        raise CodegenError(f"{name}: the Remark 4.6 shrinking variant (shrinking=True: one "
-                           "more QP per horizon 1 … N−1) is not emitted; build the RAPSF "
-                           "with shrinking=False")
     if getattr(spec.host, "enlargement", None) is not None:
         raise CodegenError(f"{name}: the terminal-set enlargement (enlarge=True) records its "
                            "generators in Python and is not emitted; build the RAPSF without "
@@ -110,9 +112,15 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
         raise CodegenError(f"{name}: (4.5) has v {P.vars['v']['shape']}, x0 "
                            f"{P.params['x0']['shape']}, theta {P.params['theta']['shape']}; "
                            f"expected ({nu}, {spec.N}), ({nx},), (q, {spec.n_vertices})")
-    files = _generate(P.functions(), name, out_dir)
+    shrunk, libs = _shrunk_problems(spec, name, P, nu, accept_tol, allow_external, libs)
+    functions = P.functions()
+    for Ph in shrunk.values():
+        functions.update(Ph.functions())
+    files = _generate(functions, name, out_dir)
     cfg = C.Config()
     P.config(cfg)
+    for Ph in shrunk.values():
+        Ph.config(cfg)
     cfg.comment(f"---- Algorithm 4.1, the RAPSF step {name} (bal/rapsf.h) ----")
     cfg.define(f"{name}_NX", nx)
     cfg.define(f"{name}_NU", nu)
@@ -121,15 +129,53 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
     cfg.define(f"{name}_NTH", nth, "vertex columns of theta and s")
     cfg.define(f"{name}_NXR", nxr, "rows of H_X (rows of s)")
     cfg.array(f"{name}_K", K.T.reshape(-1), nu * nx)
+    cfg.define(f"{name}_SHRINKING", int(bool(shrunk)),
+               "Remark 4.6: (4.5) with the horizon N - k_inf before the stored plan")
+    cfg.comment("the problems (4.5) with the shrunk horizons: X(member of the work struct, h)")
+    cfg.xmacro(f"{name}_SHRUNK", [f"{key}, {key.removeprefix('shrunk')}" for key in shrunk])
     cfg.status(S.RAPSF, "BAL_RAPSF_STATUS_CODES")
     manifest = {"kind": "rapsf", "nx": nx, "nu": nu, "N": spec.N, "nq": nq,
-                "n_vertices": nth, "n_rows": nxr,
+                "n_vertices": nth, "n_rows": nxr, "shrinking": bool(shrunk),
                 "K": K.tolist(), "link_flags": list(link_flags(libs)),
-                "problems": {"main": P.manifest()},
+                "problems": {"main": P.manifest(),
+                             **{key: Ph.manifest() for key, Ph in shrunk.items()}},
                 "rapsf_status": S.manifest(S.RAPSF)}
-    return _write_module(name, out_dir, "Algorithm 4.1, the RAPSF (4.5)", cfg,
-                         [("problem", P.P), ("rapsf", name)], files, manifest,
-                         tuple(sorted(set(libs))))
+    parts = [("problem", P.P), *[("problem", Ph.P) for Ph in shrunk.values()],
+             ("rapsf", name)]
+    return _write_module(name, out_dir, "Algorithm 4.1, the RAPSF (4.5)", cfg, parts, files,
+                         manifest, tuple(sorted(set(libs))))
+
+
+def _shrunk_problems(spec: RAPSFDeployment, name: str, P: _Problem, nu: int,
+                     accept_tol: float | None, allow_external: bool,
+                     libs: tuple[str, ...]) -> tuple[dict[str, _Problem], tuple[str, ...]]:
+    """The problems (4.5) with the horizons ``h = 1 … N−1`` of Remark 4.6 (``{}`` without
+    ``shrinking``), each checked for C and for the parameter layout of the main problem
+    (the step passes one parameter vector to all of them)."""
+    if not spec.shrinking:
+        return {}, libs
+    out: dict[str, _Problem] = {}
+    for h in range(1, spec.N):
+        key = f"shrunk{h}"
+        compiled = spec.problems.get(key)
+        if compiled is None:
+            raise CodegenError(f"{name}: shrinking=True needs (4.5) with the horizon {h} as "
+                               f"problems[{key!r}] (RAPSF.deployment_spec() compiles it)")
+        libs += _check_compiled(compiled, f"{name}: the QP (4.5) with horizon {h}",
+                                allow_external)
+        Ph = _Problem(compiled, f"{name}_{key}",
+                      f"the RAPSF QP (4.5) with the shrunk horizon {h} (Remark 4.6) "
+                      f"{compiled.ocp.name!r}", name, accept_tol)
+        layout = {k: (v["offset"], list(v["shape"])) for k, v in Ph.params.items()}
+        if layout != {k: (v["offset"], list(v["shape"])) for k, v in P.params.items()}:
+            raise CodegenError(f"{name}: (4.5) with horizon {h} has the parameters "
+                               f"{sorted(layout)} with another layout than the main problem "
+                               f"({sorted(P.params)}); build both with rapsf_problem")
+        if list(Ph.vars.get("v", {}).get("shape", [])) != [nu, h]:
+            raise CodegenError(f"{name}: (4.5) with horizon {h} must have the variable v "
+                               f"of shape ({nu}, {h})")
+        out[key] = Ph
+    return out, libs
 
 
 __all__ = ["EMITTABLE_TARGET", "casadi_dir", "emit_rapsf", "link_flags"]

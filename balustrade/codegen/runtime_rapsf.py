@@ -6,7 +6,10 @@ The parameter set ``Θ_k`` is not computed in C: :class:`CRAPSF` keeps a copy of
 controller (``host``) whose estimator update (line 4 of Algorithm 4.1, the nesting check of
 Assumption 4.2, the ``"model_falsified"`` rule) and constants ``s_jr`` it runs before each
 C step, and passes the vertices (padded by repetition, as the Python controller pads them)
-and ``s`` to the C."""
+and ``s`` to the C. With the Remark 4.6 variant emitted (``shrinking=True``) the C also
+solves (4.5) with the horizon ``N − k_inf`` after a failure; its status is recorded as
+the Python controller records it (``"shrunk_horizon"``, or ``uncertified["rapsf_shrunk"]``
+when it failed too)."""
 
 from __future__ import annotations
 
@@ -49,6 +52,7 @@ class CRAPSF(_OwnsWork):
     _BAD = S.code_of(S.RAPSF, "bad_input")
     _OK = S.code_of(S.RAPSF, "ok")
     _FALSIFIED = S.code_of(S.RAPSF, "model_falsified")
+    _NOT_RUN = S.code_of(S.SOLVE, "not_run")
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None,
                  host: object | None = None):
@@ -65,6 +69,8 @@ class CRAPSF(_OwnsWork):
         self._step = self._lib.fn(f"{Q}_step", ci, [_dbl_p, _dbl_p, _dbl_p, _dbl_p, ci,
                                                     _dbl_p, ctypes.POINTER(ci), vp])
         self._status_fn = self._lib.fn(f"{Q}_solve_status", ci, [vp])
+        self._shrunk_fn = self._lib.fn(f"{Q}_shrunk_status", ci, [vp])
+        self.shrinking = bool(m.get("shrinking", False))
         self._k_inf = self._lib.fn(f"{Q}_k_inf", ci, [vp])
         self._objective = self._lib.fn(f"{Q}_objective", ctypes.c_double, [vp])
         self._allocate(Q)
@@ -141,6 +147,9 @@ class CRAPSF(_OwnsWork):
             if info.status == "ok":
                 info.status = name
             info.fallback = known.fallback
+            shrunk = self._shrunk_fn(self._work)        # Remark 4.6's solve, if it ran
+            if shrunk != self._NOT_RUN and known.name != "shrunk_horizon":
+                info.uncertified["rapsf_shrunk"] = _PY_STATUS.get(shrunk, str(shrunk))
         info.values["k_inf"] = float(self.k_inf)
         u = u.copy()
         h._prev = (x, u) if np.all(np.isfinite(x)) else None   # as RAPSF.step

@@ -162,6 +162,8 @@ RAPSF: tuple[Status, ...] = (
            "the estimator excluded every model: the backup policy K x, nothing solved"),
     Status("BAL_RAPSF_BAD_INPUT", 4, "bad_input", "backup",
            "x is NaN or inf (or a pointer is NULL): nothing solved, K x with NaN -> 0"),
+    Status("BAL_RAPSF_SHRUNK_HORIZON", 5, "shrunk_horizon", "shrunk_horizon",
+           "(4.5) failed: K x + v*_0 of (4.5) with the horizon N - k_inf (Remark 4.6)"),
 )
 
 

@@ -170,7 +170,8 @@ class RAPSFDeployment(ProblemsDeployment):
     #: horizon and the number of vertex columns compiled into (4.5)
     N: int
     n_vertices: int
-    #: Remark 4.6 (a shrunk-horizon solve before the stored plan; not emitted)
+    #: Remark 4.6 (a shrunk-horizon solve before the stored plan): then ``problems`` also
+    #: holds (4.5) with the horizon ``h`` as ``"shrunk<h>"`` for ``h = 1 … N−1``
     shrinking: bool
     #: the backup policy is the default ``K x`` (a user's callable is not emitted)
     default_backup: bool

@@ -228,10 +228,16 @@ class RAPSF:
                                   "parameters; build the controller with "
                                   "vertex_data='parameters' (and target='convex-qp')")
         n_th = max(self._n_compiled, len(self.vertices))
-        key = (self.N, n_th)
-        if key not in self._compiled:
-            self._compiled[key] = compile(self._problem(self.N, n_vertices=n_th), self.target)
-        return RAPSFDeployment({"main": self._compiled[key]}, "Algorithm 4.1, the RAPSF",
+        horizons = {"main": self.N}
+        if self.shrinking:                      # Remark 4.6: (4.5) with N − k_inf, k_inf >= 1
+            horizons.update({f"shrunk{h}": h for h in range(1, self.N)})
+        problems = {}
+        for label, h in horizons.items():
+            if (h, n_th) not in self._compiled:
+                self._compiled[(h, n_th)] = compile(self._problem(h, n_vertices=n_th),
+                                                    self.target)
+            problems[label] = self._compiled[(h, n_th)]
+        return RAPSFDeployment(problems, "Algorithm 4.1, the RAPSF",
                                K=self.K, N=self.N, n_vertices=n_th,
                                shrinking=self.shrinking, default_backup=self.default_backup,
                                host=self)

@@ -379,6 +379,14 @@ class OCP:
         self.le(value, 0 if xi is None else xi, name=name, tag="terminal_cbf")
         return xi
 
+    def joint_constraint(self, Z: object, x: ca.SX | None = None, u: ca.SX | None = None,
+                         **kw: object) -> Block:
+        """``F x_i + G u_i <= 1`` for a :class:`~balustrade.dsl.joint.JointPolytope` ``Z``
+        (SPEC §2.20), also over tubes (see :func:`balustrade.dsl.joint.joint_constraint`)."""
+        from balustrade.dsl.joint import joint_constraint
+
+        return joint_constraint(self, Z, x, u, **kw)
+
     # -- engineering blocks (delegates: balustrade.dsl.rates, balustrade.dsl.tracking) ----
     def rate_limit(self, rate: object, soft: bool = False, u_prev: str | ca.SX = "u_prev",
                    name: str = "rate") -> ca.SX | None:

@@ -27,6 +27,7 @@ import numpy as np
 
 from balustrade._checks import check_instance
 from balustrade.dsl import OCP, Polytope
+from balustrade.dsl.joint import JointPolytope, as_joint
 from balustrade.dsl.sets import Box
 from balustrade.errors import BalustradeError, ShapeError
 from balustrade.problems.rapsf import (
@@ -87,22 +88,27 @@ def enlarged_disturbance(system: object, Theta0: Box, W: Polytope, X: Box, U: Bo
 
 
 def baseline_psf_problem(system: object, Theta0: Box, W_enlarged: Polytope, X0: Polytope,
-                         F: np.ndarray, G: np.ndarray, K: np.ndarray, N: int,
+                         F: np.ndarray | JointPolytope, G: np.ndarray | None,
+                         K: np.ndarray, N: int,
                          terminal: TerminalSet | None = None,
                          X0_vertices: np.ndarray | None = None,
                          name: str = "baseline_psf") -> OCP:
     """The robust PSF of [31] as used in §4.7: (4.5) with the single vertex ``θ_c`` of
     :func:`nominal_parameter` and the enlarged disturbance ``W̃`` (:func:`enlarged_
     disturbance`); the system's ``E`` is replaced by ``I`` since ``W̃`` already holds ``Ew``.
+    The joint constraints ``𝒵`` are the :class:`~balustrade.dsl.joint.JointPolytope` ``F``
+    (``G=None``) or the matrices ``F, G`` of ``F x + G u <= 1``, imposed on the tubes by the
+    block :func:`~balustrade.dsl.joint.joint_constraint` as in (4.5d).
     Parameters ``x0``, ``u_p``; apply ``K x + v_0``."""
-    n, _, _ = check_parametric_system(system, name)
+    n, m, _ = check_parametric_system(system, name)
+    Z = as_joint(F, G, name).check_dims(n, m, name)
     check_instance(W_enlarged, Polytope, f"{name}: W_enlarged")
     if W_enlarged.dim != n:
         raise ShapeError(f"{name}: W_enlarged", f"dimension n = {n}",
                          f"dimension {W_enlarged.dim}", what="")
     theta_c = nominal_parameter(Theta0)
     nominal = _Nominal(system)
-    return rapsf_problem(nominal, X0, F, G, W_enlarged, K, N, vertices=theta_c[None, :],
+    return rapsf_problem(nominal, X0, Z, None, W_enlarged, K, N, vertices=theta_c[None, :],
                          terminal=terminal, X0_vertices=X0_vertices, name=name)
 
 

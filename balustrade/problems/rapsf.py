@@ -5,9 +5,13 @@ Dynamics affine in the parameter (4.6): ``x⁺ = A(θ)x + B(θ)u + w`` with
 ``A(θ) = A₀ + Σ_j θ_j A_j``, ``B(θ) = B₀ + Σ_j θ_j B_j``; any object with the attributes
 ``A0, A_list, B0, B_list`` (e.g. :class:`balustrade.dsl.system_parametric.ParametricLinearSystem`)
 is accepted (``x⁺ = … + E w`` when it has ``E``). Tubes ``{z_i} ⊕ α_i 𝕏₀`` with
-``𝕏₀ = {H_X x <= 1}`` and tube law ``κ(x, v) = Kx + v``; joint constraints ``𝒵 = {Fx + Gu <= 1}``.
+``𝕏₀ = {H_X x <= 1}`` and tube law ``κ(x, v) = Kx + v``; joint constraints ``𝒵 = {Fx + Gu <= 1}``,
+the language's :class:`~balustrade.dsl.joint.JointPolytope` (every function below that takes
+``F, G`` also takes ``𝒵`` in place of ``F`` with ``G=None``), imposed over the tubes by the
+block :func:`~balustrade.dsl.joint.joint_constraint`.
 
-* :func:`joint_constraints` — ``(F, G)`` of ``X × U`` normalized to right-hand side ``1``;
+* :func:`joint_constraints` — ``(F, G)`` of ``X × U`` normalized to right-hand side ``1``
+  (:meth:`JointPolytope.product <balustrade.dsl.joint.JointPolytope.product>`);
 * :func:`tube_constants` — the support-function constants ``w̄_r``, ``s_jr``, ``t_r`` of
   SPEC §2.20 (LPs over ``𝕏₀``; closed form for a box);
 * :func:`rapsf_problem` — the QP (4.5) of SPEC §2.20 (also the Remark 4.6 shrunk horizon:
@@ -38,6 +42,7 @@ import numpy as np
 
 from balustrade._checks import as_matrix, check_horizon, check_instance
 from balustrade.dsl import OCP, Polytope, squared_norm
+from balustrade.dsl.joint import JointPolytope, as_joint
 from balustrade.dsl.synthesis import SynthesisProblem, bmat, trace
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
@@ -104,16 +109,12 @@ def parameter_vertices(Theta: Polytope) -> np.ndarray:
 # -- 𝒵 and the support-function constants of SPEC §2.20 -------------------------------
 def joint_constraints(X: Polytope, U: Polytope) -> tuple[np.ndarray, np.ndarray]:
     """``𝒵 = X × U`` as ``{Fx + Gu <= 1}`` (every row divided by its bound, which must be
-    positive: the origin inside ``X`` and ``U``)."""
+    positive: the origin inside ``X`` and ``U``): the blocks ``(F, G)`` of
+    :meth:`JointPolytope.product <balustrade.dsl.joint.JointPolytope.product>`."""
     check_instance(X, Polytope, "joint_constraints: X")
     check_instance(U, Polytope, "joint_constraints: U")
-    for S in (X, U):
-        if np.any(S.h <= 0):
-            raise BalustradeError(f"joint_constraints: {S.name} must contain the origin in "
-                                  f"its interior (row bounds {S.h.tolist()})")
-    F = np.vstack([X.H / X.h[:, None], np.zeros((U.H.shape[0], X.dim))])
-    G = np.vstack([np.zeros((X.H.shape[0], U.dim)), U.H / U.h[:, None]])
-    return F, G
+    Z = JointPolytope.product(X, U)
+    return Z.F, Z.G
 
 
 def unit_polytope(X0: Polytope, where: str) -> np.ndarray:
@@ -159,14 +160,18 @@ def s_constants(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarra
 
 
 def tube_constants(X0: Polytope, W: Polytope, system: object, K: np.ndarray,
-                   vertices: np.ndarray, F: np.ndarray, G: np.ndarray) -> TubeConstants:
-    """All constants of SPEC §2.20 for the vertices ``θ^j`` (rows of ``vertices``)."""
+                   vertices: np.ndarray, F: np.ndarray | JointPolytope,
+                   G: np.ndarray | None) -> TubeConstants:
+    """All constants of SPEC §2.20 for the vertices ``θ^j`` (rows of ``vertices``); ``𝒵``
+    given as matrices ``F, G`` or as a :class:`~balustrade.dsl.joint.JointPolytope`
+    ``F`` with ``G=None``."""
     HX = unit_polytope(X0, "tube_constants")
     check_instance(W, Polytope, "tube_constants: W")
     E = disturbance_map(system, HX.shape[1])
     w_bar = np.array([W.support(row @ E) for row in HX])
-    FGK = F + G @ K
-    t = np.array([X0.support(row) for row in FGK])
+    Z = as_joint(F, G, "tube_constants").check_dims(HX.shape[1], np.shape(K)[0],
+                                                    "tube_constants")
+    t = Z.feedback_support(K, X0)
     return TubeConstants(HX, w_bar, s_constants(X0, system, K, vertices), t)
 
 
@@ -245,7 +250,8 @@ class TerminalSet:
         return TerminalSet(self.H_T, self.h_T, None, None, capacity)
 
 
-def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W: Polytope,
+def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
+                  G: np.ndarray | None, W: Polytope,
                   K: np.ndarray, N: int, n_vertices: int | None = None,
                   vertices: np.ndarray | None = None, terminal: TerminalSet | None = None,
                   X0_vertices: np.ndarray | None = None, name: str = "rapsf") -> OCP:
@@ -254,7 +260,10 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W:
     ``min ‖u_p − (K x_k + v_0)‖²`` over ``z (n × N+1)``, ``alpha (1 × N+1) >= 0``, ``v (m × N)``
     s.t. (4.5b) ``H_X(x_k − z_0) <= α_0 1``; (4.5c) for every vertex ``θ^j`` and step ``i``
     ``H_X(A_cl(θ^j) z_i + B(θ^j) v_i − z_{i+1}) + α_i s_j + w̄ <= α_{i+1} 1``; (4.5d)
-    ``(F + GK) z_i + α_i t + G v_i <= 1``; (4.5e) the terminal set.
+    ``(F + GK) z_i + α_i t + G v_i <= 1`` (the block
+    :func:`~balustrade.dsl.joint.joint_constraint` over the homothetic tubes of ``𝕏₀``);
+    (4.5e) the terminal set. ``𝒵`` is ``F`` when it is a
+    :class:`~balustrade.dsl.joint.JointPolytope` (``G=None``), else ``{F x + G u <= 1}``.
 
     Parameters: ``x0``, ``u_p`` and, when ``vertices`` is ``None``, ``theta`` (``q × n_θ``,
     the vertices of ``Θ_k`` as columns; ``n_θ = n_vertices``, default ``2^q`` for a box) and
@@ -266,15 +275,13 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W:
     n, m, q = check_parametric_system(system, name)
     N = check_horizon(N, name)
     K = as_matrix(K, f"{name}: K", (m, n))
-    F = as_matrix(F, f"{name}: F", (None, n))
-    G = as_matrix(G, f"{name}: G", (F.shape[0], m))
+    Z = as_joint(F, G, name).check_dims(n, m, name)
     HX = unit_polytope(X0, name)
     check_instance(W, Polytope, f"{name}: W")
     E = disturbance_map(system, n)
     if W.dim != E.shape[1]:
         raise ShapeError(f"{name}: W", f"dimension {E.shape[1]}", f"dimension {W.dim}")
     w_bar = np.array([W.support(row @ E) for row in HX])                 # w̄_r
-    t = support_rows(X0, F + G @ K, X0_vertices)
     ocp = OCP(None, N, name=name)
     z = ocp.variable("z", n, N + 1, role="state")
     alpha = ocp.variable("alpha", 1, N + 1, lb=0.0)
@@ -295,7 +302,7 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W:
         thetas = [ca.DM(th) for th in V]
         s = ca.DM(s_constants(X0, system, K, V, X0_vertices))
     A_j, B_j = _symbolic_models(system, thetas)
-    H, Kd, Gd = ca.DM(HX), ca.DM(K), ca.DM(G)
+    H, Kd = ca.DM(HX), ca.DM(K)
     one = ca.DM.ones(HX.shape[0], 1)
     ocp.le(ca.mtimes(H, x0 - z[:, 0]), alpha[0] * one, name="initial_tube", tag="tube")  # (4.5b)
     for j, (A, B) in enumerate(zip(A_j, B_j, strict=True)):                             # (4.5c)
@@ -303,10 +310,8 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray, G: np.ndarray, W:
         rows = [ca.mtimes(H, ca.mtimes(Acl, z[:, i]) + ca.mtimes(B, v[:, i]) - z[:, i + 1])
                 + alpha[i] * s[:, j] + ca.DM(w_bar) - alpha[i + 1] * one for i in range(N)]
         ocp.le(ca.vertcat(*rows), name=f"tube_vertex_{j}", tag="tube")
-    FGK = ca.DM(F + G @ K)
-    rows = [ca.mtimes(FGK, z[:, i]) + alpha[i] * ca.DM(t) + ca.mtimes(Gd, v[:, i]) for i in
-            range(N)]
-    ocp.le(ca.vertcat(*rows), 1.0, name="tube_constraints", tag="state")                 # (4.5d)
+    ocp.joint_constraint(Z, z, v, feedback=K, tube=(alpha, X0), tube_vertices=X0_vertices,
+                         name="tube_constraints")                                       # (4.5d)
     _terminal(ocp, z[:, N], alpha[N], terminal, n, name)                                 # (4.5e)
     ocp.minimize(squared_norm(u_p - (ca.mtimes(Kd, x0) + v[:, 0]), label="filter"))
     return ocp

@@ -1,7 +1,9 @@
 /* bal/rapsf.c: the Algorithm 4.1 control step Q = BAL_STEP (bal/rapsf.h) with the fallbacks
  * of balustrade.control.rapsf.RAPSF. Included by the generated <name>.c after the problem
  * Q_main. From <name>_config.h: Q_NX, Q_NU, Q_N, Q_NQ, Q_NTH, Q_NXR, the tube gain Q_K
- * (NU x NX, column-major) and the offsets of Q_main (Q_main_P_x0, ..., Q_main_W_v).
+ * (NU x NX, column-major), the offsets of Q_main (Q_main_P_x0, ..., Q_main_W_v) and, for
+ * Remark 4.6, Q_SHRINKING with the X-macro Q_SHRUNK(X) = X(shrunk1, 1) ... of the problems
+ * (4.5) with the horizons 1 ... N-1 (same parameter layout as Q_main).
  */
 #include <math.h>
 #include <stdlib.h>
@@ -12,8 +14,21 @@
 static const casadi_real BAL_QX(gain)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
 
 int BAL_QX(init)(BAL_QX(work)* wk) {
+  int failed = 0; /* the horizon whose init failed (0: none) */
   wk->ready = 0;
   if (BAL_QX(main_init)(&wk->main)) return -1;
+#define BAL_RAPSF_SHRUNK_INIT(tag, h) \
+  if (!failed && BAL_QX(tag##_init)(&wk->tag)) failed = h;
+  BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_INIT)
+#undef BAL_RAPSF_SHRUNK_INIT
+  if (failed) { /* give back what was taken */
+#define BAL_RAPSF_SHRUNK_UNDO(tag, h) \
+  if (h < failed) BAL_QX(tag##_finalize)(&wk->tag);
+    BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_UNDO)
+#undef BAL_RAPSF_SHRUNK_UNDO
+    BAL_QX(main_finalize)(&wk->main);
+    return -1;
+  }
   BAL_QX(reset)(wk);
   wk->ready = 1;
   return 0;
@@ -21,6 +36,9 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
 
 void BAL_QX(finalize)(BAL_QX(work)* wk) {
   if (!wk->ready) return;
+#define BAL_RAPSF_SHRUNK_FINALIZE(tag, h) BAL_QX(tag##_finalize)(&wk->tag);
+  BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_FINALIZE)
+#undef BAL_RAPSF_SHRUNK_FINALIZE
   BAL_QX(main_finalize)(&wk->main);
   wk->ready = 0;
 }
@@ -33,6 +51,7 @@ void BAL_QX(reset)(BAL_QX(work)* wk) {
   wk->have_plan = 0;
   wk->k_inf = BAL_QX(N) - 1;
   wk->main_status = BAL_NOT_RUN;
+  wk->shrunk_status = BAL_NOT_RUN;
   wk->n_replaced = 0;
   wk->objective = NAN;
 }
@@ -50,6 +69,25 @@ static void BAL_QX(feedback)(const casadi_real* x, const casadi_real* v, casadi_
   }
 }
 
+#if BAL_QX(SHRINKING)
+/* Remark 4.6: (4.5) with the horizon h (1 <= h <= N - 1) at the parameters wk->p, from a
+   cold start as every solve; BAL_OK -> u_out = K x + v^_0 of it. Returns its status. */
+static int BAL_QX(solve_shrunk)(BAL_QX(work)* wk, int h, const casadi_real* x,
+                                casadi_real* u_out) {
+  int st = BAL_NOT_RUN;
+#define BAL_RAPSF_SHRUNK_SOLVE(tag, hh)                                     \
+  if (h == hh) {                                                            \
+    BAL_QX(tag##_cold_start)(&wk->tag);                                     \
+    st = BAL_QX(tag##_solve)(&wk->tag, wk->p);                              \
+    if (st == BAL_OK) BAL_QX(feedback)(x, wk->tag.x + BAL_QX(tag##_W_v), u_out); \
+  }
+  BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_SOLVE)
+#undef BAL_RAPSF_SHRUNK_SOLVE
+  wk->shrunk_status = st;
+  return st;
+}
+#endif
+
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real* theta,
                  const casadi_real* s, int falsified, casadi_real* u_out, int* status,
                  BAL_QX(work)* wk) {
@@ -60,6 +98,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
     return BAL_RAPSF_BAD_INPUT;
   }
   wk->main_status = BAL_NOT_RUN;
+  wk->shrunk_status = BAL_NOT_RUN;
   wk->objective = NAN;
   wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
   if (falsified || !bal_finite(x, BAL_QX(NX))) {
@@ -87,6 +126,12 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   }
   wk->k_inf += 1;
   if (wk->k_inf <= BAL_QX(N) - 1 && wk->have_plan) {
+#if BAL_QX(SHRINKING)
+    if (BAL_QX(solve_shrunk)(wk, BAL_QX(N) - wk->k_inf, x, u_out) == BAL_OK) {
+      *status = BAL_RAPSF_SHRUNK_HORIZON;
+      return *status;
+    }
+#endif
     BAL_QX(feedback)(x, wk->plan + wk->k_inf * BAL_QX(NU), u_out);
     *status = BAL_RAPSF_STORED_PLAN;
   } else {
@@ -98,6 +143,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
 
 BAL_QX(main_work)* BAL_QX(main_problem)(BAL_QX(work)* wk) { return &wk->main; }
 int BAL_QX(solve_status)(const BAL_QX(work)* wk) { return wk->main_status; }
+int BAL_QX(shrunk_status)(const BAL_QX(work)* wk) { return wk->shrunk_status; }
 int BAL_QX(k_inf)(const BAL_QX(work)* wk) { return wk->k_inf; }
 casadi_real BAL_QX(objective)(const BAL_QX(work)* wk) { return wk->objective; }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }

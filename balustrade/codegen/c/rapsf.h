@@ -1,7 +1,9 @@
 /* bal/rapsf.h: the Algorithm 4.1 control step Q = BAL_STEP (the robust adaptive predictive
  * safety filter with homothetic tubes, thesis Chapter 4, SPEC §2.21), one call per step.
  * Included by the generated <name>.h after the problem Q_main, the QP (4.5) with the
- * vertices of Theta_k (theta) and the support constants s_jr (s) as parameters.
+ * vertices of Theta_k (theta) and the support constants s_jr (s) as parameters, and, with
+ * Q_SHRINKING (Remark 4.6), the problems Q_shrunk<h>: (4.5) with the horizon h = 1 ... N-1
+ * and the same parameters (listed by the X-macro Q_SHRUNK of <name>_config.h).
  *
  * Q_step(x, u_p, theta, s, falsified, u_out, status, work):
  *   x         measured state x_k                          (Q_NX values, read)
@@ -17,6 +19,9 @@
  *   solve (4.5) at (x, Theta_k) from a cold start (the retries of bal/problem.c);
  *   BAL_OK -> u = K x + v*_0, store the plan v*, k_inf := 0        BAL_RAPSF_OK
  *   else k_inf := k_inf + 1 and
+ *     k_inf <= N - 1 and a stored plan, Q_SHRINKING (Remark 4.6): solve (4.5) with the
+ *       horizon N - k_inf (cold start); BAL_OK -> u = K x + v^_0 of that solve, the
+ *       stored plan and k_inf kept                                BAL_RAPSF_SHRUNK_HORIZON
  *     k_inf <= N - 1 and a stored plan -> u = K x + v*_{k_inf}    BAL_RAPSF_STORED_PLAN
  *     otherwise the backup policy u = K x                          BAL_RAPSF_BACKUP
  *   falsified                       -> u = K x, nothing solved     BAL_RAPSF_FALSIFIED
@@ -30,11 +35,14 @@
 
 typedef struct BAL_QX(work) {
   BAL_QX(main_work) main;
+#define BAL_RAPSF_SHRUNK_MEMBER(tag, h) BAL_QX(tag##_work) tag;
+  BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_MEMBER) /* (4.5) with the horizon h (Q_SHRINKING) */
+#undef BAL_RAPSF_SHRUNK_MEMBER
   casadi_real p[BAL_QX(main_NP) + 1];
   casadi_real plan[BAL_QX(NU) * BAL_QX(N)]; /* v* of the last converged (4.5), NU x N */
   casadi_real u_p[BAL_QX(NU)];              /* the proposal used (non-finite -> 0) */
   casadi_real objective;                    /* of the last converged (4.5), else NAN */
-  int have_plan, k_inf, main_status, n_replaced, ready;
+  int have_plan, k_inf, main_status, shrunk_status, n_replaced, ready;
 } BAL_QX(work);
 
 /* reset: forget the stored plan, k_inf := N - 1 (a new closed loop) */
@@ -46,6 +54,8 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
 BAL_QX(main_work)* BAL_QX(main_problem)(BAL_QX(work)* wk);
 /* BAL_* status of the last step's (4.5) solve (BAL_NOT_RUN if none ran) */
 int BAL_QX(solve_status)(const BAL_QX(work)* wk);
+/* BAL_* status of the last step's shrunk-horizon solve (BAL_NOT_RUN if none ran) */
+int BAL_QX(shrunk_status)(const BAL_QX(work)* wk);
 /* k_inf after the last step */
 int BAL_QX(k_inf)(const BAL_QX(work)* wk);
 /* objective of the last step's (4.5) if it converged, else NAN */
