@@ -51,6 +51,7 @@ class ShiftedCertificate:
         self.available = bool(ocp is not None and ocp.system is not None
                               and "x0" in ocp.parameters and ocp.system.ntheta == 0)
         self._evaluate: ca.Function | None = None
+        self._roll: ca.Function | None = None
 
     def _function(self) -> ca.Function:
         """``(w, p) → (inequality rows, equality rows, cost)`` of the declared OCP."""
@@ -64,6 +65,17 @@ class ShiftedCertificate:
                  ocp.cost.expr()])
         return self._evaluate
 
+    def _rollout(self) -> ca.Function:
+        """``(x, U) → [x, f(x, u_0), …]`` (``(nx, N+1)``) with the model, ``w = 0``."""
+        if self._roll is None:
+            system, N = self.ocp.system, self.ocp.N
+            x0, U = ca.SX.sym("x0", system.nx), ca.SX.sym("U", system.nu, N)
+            xs = [x0]
+            for j in range(N):
+                xs.append(system(xs[-1], U[:, j]))
+            self._roll = ca.Function("shifted_rollout", [x0, U], [ca.horzcat(*xs)])
+        return self._roll
+
     def candidate(self, x: np.ndarray, inputs: np.ndarray) -> dict[str, np.ndarray]:
         """The shifted plan from ``x``: ``inputs`` (``(nu, m)``, the remaining inputs of the
         last plan) padded with zeros (or cut) to ``N`` steps, states rolled out with the
@@ -73,10 +85,9 @@ class ShiftedCertificate:
         U = np.zeros((system.nu, N))
         m = min(N, inputs.shape[1])
         U[:, :m] = inputs[:, :m]
-        X = np.empty((system.nx, N + 1))
-        X[:, 0] = x
-        for j in range(N):
-            X[:, j + 1] = system.step(X[:, j], U[:, j])
+        X = np.asarray(self._rollout()(x, U), float)
+        if not np.all(np.isfinite(X)):
+            raise BalustradeError("ShiftedCertificate: the roll-out is not finite")
         values = {name: np.zeros(v.shape) for name, v in ocp.variables.items()}
         values[ocp.state_name], values[ocp.input_name] = X, U
         return values
