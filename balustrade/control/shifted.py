@@ -11,12 +11,12 @@ the lower bound ``h_PB >= 0``: the candidate is a *global* minimizer of (2.24).
 
 On a nonconvex (2.24) (disc obstacles) a local NLP solver can converge to a KKT point with
 a positive cost although such a candidate exists, even when started from it (measured on the
-obstacle car, docs/obstacles.md: IPOPT returned ``optimal`` with ``h_PB = 0.031`` where the
-shifted plan had zero slack). The filter (2.23) then relaxes the constraints by that
-spurious ``ξ*`` and the car enters an obstacle: the theorem's assumption that (2.24) is
-solved to its optimum is what fails. :class:`ShiftedCertificate` checks the candidate
-exactly (every declared block and bound of the OCP, the declared cost) so that the PCBF
-filter uses it in place of such a local optimum.
+obstacle car, docs/obstacles.md: the interior-point solver returned ``optimal`` with
+``h_PB = 0.031`` where the shifted plan had zero slack). The filter (2.23) then relaxes
+the constraints by that spurious ``ξ*`` and the car enters an obstacle: the theorem's
+assumption that (2.24) is solved to its optimum is what fails. :class:`ShiftedCertificate`
+checks the candidate exactly (every declared block and bound of the OCP, the declared cost)
+so that the PCBF filter uses it in place of such a local optimum.
 
 A candidate that does not meet every row within :data:`FEASIBILITY_TOL` or whose cost
 exceeds the zero tolerance certifies nothing (``None``), e.g. after a step with ``ξ* > 0`` or

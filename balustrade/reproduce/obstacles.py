@@ -99,7 +99,7 @@ def pcbf_algorithm(target: str = "exact", shifted: bool = True) -> PCBFSafetyFil
     terminal constraint (``ξ_N ≡ 0``); ``shifted``: (2.24) warm-started from the shifted last
     plan (``PCBFSafetyFilter(warm_start="shifted")``), else from its last solution.
 
-    (2.24) of the car is nonconvex (the disks) and IPOPT can end ``optimal`` at a local
+    (2.24) of the car is nonconvex (the disks) and the local solver can end ``optimal`` at a
     point with ``h_PB > 0`` where the shifted plan has zero slack (measured from (−2.0, 0.5):
     ``h_PB = 0`` for 32 steps, then 0.031; the car then entered a disk by 0.12 m). The
     library's shifted-plan certificate (``PCBFSafetyFilter(shifted_certificate=True)``, the
