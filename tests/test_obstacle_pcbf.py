@@ -43,19 +43,23 @@ class LocalOptimum:
         sol = self.compiled.solve(params, warm_start=warm_start)
         if not self.spoil:
             return sol
+        if self.spoil == "failed":
+            nan = {k: np.full_like(np.asarray(v, float), np.nan) for k, v in sol.primal.items()}
+            return Solution("failed", float("nan"), nan, {}, sol.solve_time, sol.iterations,
+                            sol.backend, sol.solver, p=sol.p)
         primal = {**sol.primal, "xi": np.full_like(np.asarray(sol["xi"]), self.xi)}
         return Solution("optimal", float(self.xi * np.size(sol["xi"])), primal, sol.dual,
                         sol.solve_time, sol.iterations, sol.backend, sol.solver, p=sol.p)
 
 
-def _two_steps(car, certificate: bool):
+def _two_steps(car, certificate: bool, spoil: bool | str = True):
     system, s, slack, filt = car
     spoilt = LocalOptimum(slack)
     pcbf = PCBFSafetyFilter(spoilt, filt, s.U, shifted_certificate=certificate)
     u0, info0 = pcbf.step(X0, FULL_THROTTLE)
     assert info0.status == "ok" and info0.values["h_PB"] <= 1e-9   # X0 is in S_PB
     x1 = system.step(X0, u0)
-    spoilt.spoil = True
+    spoilt.spoil = spoil
     u1, info1 = pcbf.step(x1, FULL_THROTTLE)
     return x1, u1, info1
 
@@ -75,6 +79,16 @@ def test_local_optimum_of_2_24_is_replaced_by_the_shifted_plan(car):
     _, _, old = _two_steps(car, certificate=False)
     assert old.values["h_PB"] == pytest.approx(0.03 * N)
     assert "shifted_certificate" not in old.values
+
+
+def test_failed_2_24_with_a_certified_shift_runs_the_filter(car):
+    """A failed (2.24) used to take fallback 2 (the shifted plan's next input, no (2.23));
+    with a certified shift h_PB = 0 and (2.23) runs on zero slacks."""
+    _, _, info = _two_steps(car, certificate=True, spoil="failed")
+    assert info.values["shifted_certificate"] == 1.0 and np.isnan(info.values["h_PB_solver"])
+    assert info.values["h_PB"] == 0.0 and info.fallback is None and info.status == "ok"
+    _, _, old = _two_steps(car, certificate=False, spoil="failed")
+    assert old.fallback == "shifted_plan"
 
 
 def test_certificate_is_exact_and_refuses_what_it_cannot_prove(car):
