@@ -137,3 +137,18 @@ def test_exact_pcbf_keeps_every_reference_loop_outside():
 
     m = R.loop_metrics(R.closed_loops(R.pcbf_algorithm(shifted=False), R.NaiveMPC()))
     assert m["all_safe"] and m["min_signed_distance"] >= -1e-3
+
+
+def test_exact_h_along_a_learned_run_finds_the_false_safe_state():
+    """The reproduction's diagnosis of the learned loops: the exact h along a trajectory
+    beside ĥ (here a surrogate that calls everything safe)."""
+    from balustrade.reproduce import obstacles as R
+
+    P = np.array([[-1.8, -1.0, 0.507, 3.0, 0.0],       # in S_PB (test_obstacles)
+                  [-0.9, -0.8, np.pi, 0.8, 0.0]])      # inside a disc, leaving it
+    run = {"start": [-1.8, -1.0], "states": P, "paths": ["certified"]}
+    out = R.exact_h_along([run], lambda X: -np.ones(len(X)))["(-1.8, -1)"]
+    assert out["first_step_h_positive"] == 1 and out["first_step_inside"] == 1
+    assert out["h_there"] > 1e-3 and out["h_hat_there"] == -1.0
+    assert out["path_before"] == "certified"
+    assert out["steps_h_positive"] == 1 and out["steps_false_safe"] == 1

@@ -195,6 +195,41 @@ def time_pcbf(states: np.ndarray, u_p: np.ndarray, target: str = "exact") -> dic
             "target": target}
 
 
+def exact_h_along(runs: list[dict], h_hat: object, target: str = "exact") -> dict:
+    """Where a learned loop leaves ``S_PB``: the exact ``h`` (2.24) at every state of each run
+    (the smaller of a cold and a warm solve; positive values are upper bounds, a local
+    optimum of the nonconvex (2.24) can only overestimate), beside ``ĥ`` (``h_hat(X)``).
+    Per run: the first step with ``h > 1e-6``, ``h`` and ``ĥ`` there, the path of Algorithm
+    7.5 at the step before, the first step inside a disc (``< −1e-3``) and how many states
+    have ``h > 0`` but ``ĥ <= 0`` (false safe)."""
+    system, s = obstacle_car(), obstacle_setup()
+    slack = compile(stopping_pcbf_problem(system, s.X, s.U, s.N, s.deltas, s.delta_N),
+                    target)
+    out = {}
+    for r in runs:
+        P, h, prev = r["states"], [], None
+        for x in P:
+            sols = [slack.solve({"x0": x})]
+            if prev is not None:
+                sols.append(slack.solve({"x0": x}, warm_start=prev))
+            ok = [c for c in sols if c.success]
+            prev = min(ok, key=lambda c: c.objective) if ok else None
+            h.append(np.nan if prev is None else max(float(prev.objective), 0.0))
+        h, hh = np.asarray(h), np.asarray(h_hat(P), float).reshape(-1)
+        d = signed_distance(P, s.obstacles).min(axis=1)
+        out_k = np.flatnonzero(h > 1e-6)
+        k = int(out_k[0]) if out_k.size else None
+        inside = np.flatnonzero(d < SAFE_TOL)
+        out[f"({r['start'][0]:g}, {r['start'][1]:g})"] = {
+            "first_step_h_positive": k, "h_there": None if k is None else float(h[k]),
+            "h_hat_there": None if k is None else float(hh[k]),
+            "path_before": None if not k else r["paths"][k - 1],
+            "first_step_inside": int(inside[0]) if inside.size else None,
+            "steps_h_positive": int(out_k.size),
+            "steps_false_safe": int(np.sum((h > 1e-6) & (hh <= 0.0)))}
+    return out
+
+
 # -- data and training (full variant) -----------------------------------------------------
 def sample_data(out: Path, config: Path = CONFIG, workers: int = 2) -> dict[str, Path]:
     """Algorithm 7.6 into ``out/<split>`` for the splits of ``config`` (resumable)."""
@@ -385,6 +420,8 @@ def run(out: Path, quick: bool = False) -> dict:
         metrics["c"]["max_state_difference_to_python"] = float(max(
             np.max(np.abs(a["states"] - b["states"])) for a, b in zip(runs, c_runs)))
         metrics["c"]["build"] = {k: v for k, v in c.accelerated.items() if k != "dir"}
+        # why the learned loops enter a disc: the exact h along them (slow: 2 solves/state)
+        metrics["exact_h_along_python_runs"] = exact_h_along(runs, model)
         # the reference: the PCBF algorithm [41] itself filtering the same MPC (slow)
         t = time.perf_counter()
         ref = closed_loops(pcbf_algorithm(), mpc)
