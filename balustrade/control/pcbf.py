@@ -57,7 +57,16 @@ whatever proposal it is given, ``u_p`` only enters its cost.
 
 The emitted C step (:func:`balustrade.codegen.emit_pcbf`) takes the same decisions, with
 the same warm starts (a converged solution: primal and multipliers; a certified
-``feasible`` (2.24): its primal only; (2.23) only from a converged solution).
+``feasible`` (2.24): its primal only; (2.23) only from a converged solution) — except the
+shifted-plan certificate below, which is not emitted (the C uses the solver's ``h_PB``).
+
+Shifted-plan certificate (``shifted_certificate=True``, :mod:`balustrade.control.shifted`):
+on a nonconvex (2.24) a local solver can end ``optimal`` at ``h_PB > 0`` although the shifted
+last plan meets (2.24) with zero slack, i.e. ``h_PB = 0`` (measured on the obstacle car of
+Section 8.3, docs/obstacles.md; the car then entered an obstacle). When (2.24) fails or
+reports ``h_PB > eps``, that candidate is checked exactly and, if it qualifies, used as the
+(2.24) point of the step (``values["shifted_certificate"] = 1``, the solver's cost in
+``values["h_PB_solver"]``).
 """
 
 from __future__ import annotations
@@ -77,6 +86,7 @@ from balustrade.control.fallbacks import (
     project,
     projected_proposal,
 )
+from balustrade.control.shifted import ShiftedCertificate
 from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError
@@ -90,12 +100,21 @@ class PCBFSafetyFilter:
     """Closed-loop PCBF filter over two compiled problems (any backend)."""
 
     def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6,
-                 warm_start: str = "last"):
+                 warm_start: str = "last", shifted_certificate: bool = True):
         """``warm_start``: ``"last"`` starts (2.24) from its last accepted solution;
         ``"shifted"`` from the last (2.23) plan shifted by one step (states ``x_1 … x_N, x_N``
         with the first replaced by the measured state, inputs ``u_1 … u_{N−1}, 0``) — the
         recursive-feasibility candidate of the theory. On nonconvex problems (obstacles)
-        the local solver can lose the plan from ``"last"`` (docs/obstacles.md)."""
+        the local solver can lose the plan from ``"last"`` (docs/obstacles.md).
+
+        ``shifted_certificate`` (default on): when (2.24) fails or reports ``h_PB`` above
+        ``eps`` (the relaxation (2.23) adds to every row anyway), the remaining inputs of
+        the last applied plan (then zeros), rolled out from ``x``, are checked exactly
+        (:class:`~balustrade.control.shifted.ShiftedCertificate`); if they meet (2.24) with
+        zero slack, ``h_PB(x) = 0`` is certified by the lower bound and this candidate
+        replaces the solver's (local, non-global) point — the invariance of ``S_PB`` then
+        holds on nonconvex problems too. Recorded as ``values["shifted_certificate"] = 1``
+        and the solver's cost ``values["h_PB_solver"]``."""
         check_instance(U, Set, "PCBFSafetyFilter: U")
         if warm_start not in ("last", "shifted"):
             raise BalustradeError(f"PCBFSafetyFilter: warm_start must be 'last' or 'shifted', "
@@ -109,6 +128,8 @@ class PCBFSafetyFilter:
         self.slack, self.filter, self.U = slack, filter, U
         self.eps = as_scalar(eps, "PCBFSafetyFilter: eps", low=0.0)
         self.nu = U.dim
+        self.certificate = ShiftedCertificate(slack, ZERO_TOL) if shifted_certificate \
+            else None
         self.reset()
 
     @classmethod
@@ -152,6 +173,12 @@ class PCBFSafetyFilter:
         info = StepInfo(solve_time=s1.solve_time, solutions={"slack": s1})
         if feasible_truncation(s1):  # real-time iterations: the next solve continues it
             self._last_slack = s1
+        shifted = self._shifted(x, s1)
+        if shifted is not None:  # the solver's point is not the global optimum h_PB = 0
+            info.values.update(shifted_certificate=1.0, h_PB_solver=float(
+                s1.objective) if s1.usable or feasible_truncation(s1) else float("nan"))
+            info.solve_time += shifted.solve_time
+            info.solutions["slack"] = s1 = shifted  # the (2.24) point the step uses
         if not (s1.usable or feasible_truncation(s1)):
             info.status = f"slack_{outcome(s1)}"
             return self._fallback(u_p, info, "shifted_plan")
@@ -174,8 +201,8 @@ class PCBFSafetyFilter:
             info.values["h_PB"] = value
         xi = np.maximum(np.asarray(s1["xi"]), 0.0)
         xi_N = max(float(np.asarray(s1["xi_N"]).reshape(-1)[0]), 0.0)
-        warm = self._last_filter if self._last_filter is not None else {
-            "x": s1["x"], "u": s1["u"]}
+        warm = self._last_filter if self._last_filter is not None and shifted is None \
+            else {"x": s1["x"], "u": s1["u"]}
         s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
@@ -197,6 +224,16 @@ class PCBFSafetyFilter:
             info.fallback = "feasible_slack"
         self._plan, self._plan_age = plan, 0
         return plan[:, 0].copy(), info
+
+    def _shifted(self, x: np.ndarray, s1: Solution) -> Solution | None:
+        """The shifted plan as a certified optimum of (2.24) when the solve did not certify
+        ``h_PB = 0`` itself (``None`` otherwise or when the plan does not qualify)."""
+        if self.certificate is None or self._plan is None:
+            return None
+        if (s1.usable or feasible_truncation(s1)) and float(s1.objective) <= max(
+                ZERO_TOL, self.eps):
+            return None  # h_PB = 0, or within the relaxation eps that (2.23) adds anyway
+        return self.certificate.check(x, self._plan[:, self._plan_age + 1:])
 
     def _has_shifted_plan(self) -> bool:
         """The last successful plan has an input left for the next step."""

@@ -97,10 +97,14 @@ class NaiveMPC:
 def pcbf_algorithm(target: str = "exact", shifted: bool = True) -> PCBFSafetyFilter:
     """The PCBF algorithm [41] for the car: (2.24) then (2.23), both with the hard
     terminal constraint (``ξ_N ≡ 0``); ``shifted``: (2.24) warm-started from the shifted last
-    plan (``PCBFSafetyFilter(warm_start="shifted")``): (2.24) of the car is nonconvex (the
-    disks), and from its own last solution the local solver lost the plan — measured from
-    (−2.0, 0.5): ``h_PB = 0`` for 32 steps, then 0.031 although the shifted plan is feasible
-    with zero slack, and the car entered a disk by 0.12 m."""
+    plan (``PCBFSafetyFilter(warm_start="shifted")``), else from its last solution.
+
+    (2.24) of the car is nonconvex (the disks) and the local solver can end ``optimal`` at a
+    point with ``h_PB > 0`` where the shifted plan has zero slack (measured from (−2.0, 0.5):
+    ``h_PB = 0`` for 32 steps, then 0.031; the car then entered a disk by 0.12 m). The
+    library's shifted-plan certificate (``PCBFSafetyFilter(shifted_certificate=True)``, the
+    default; :mod:`balustrade.control.shifted`) replaces such a point by the certified
+    ``h_PB = 0``, with either warm start (docs/obstacles.md)."""
     system, s = obstacle_car(), obstacle_setup()
     args = (system, s.X, s.U, s.N, s.deltas, s.delta_N)
     slack = compile(stopping_pcbf_problem(*args), target)
@@ -137,6 +141,9 @@ def closed_loops(filt: object, mpc: NaiveMPC, starts: tuple = STARTS,
                      "solve_times": np.asarray(tr.solve_times, float),
                      "min_distance_per_obstacle": d.min(axis=0),
                      "min_distance": float(d.min()), "changed": changed,
+                     # steps where the PCBF algorithm's shifted-plan certificate replaced a
+                     # local optimum of (2.24) (0 for Algorithm 7.5)
+                     "certificates": int(np.nansum(tr.values.get("shifted_certificate", []))),
                      "fallbacks": int(tr.n_fallbacks), "stopped": tr.stopped})
     return runs
 
@@ -153,6 +160,7 @@ def loop_metrics(runs: list[dict]) -> dict:
                                                  r["min_distance_per_obstacle"]],
             "safe": bool(r["min_distance"] >= SAFE_TOL),
             "steps": len(r["paths"]), "steps_input_changed": int(np.sum(r["changed"])),
+            "shifted_certificates": r["certificates"],
             "paths": dict(Counter(r["paths"])), "fallbacks": r["fallbacks"],
             "stopped": r["stopped"],
             "final_position": [float(v) for v in r["states"][-1, :2]],
@@ -185,6 +193,41 @@ def time_pcbf(states: np.ndarray, u_p: np.ndarray, target: str = "exact") -> dic
     return {"n": len(times), "median_ms": float(np.median(times)),
             "mean_ms": float(np.mean(times)), "h_PB": h, "statuses": statuses,
             "target": target}
+
+
+def exact_h_along(runs: list[dict], h_hat: object, target: str = "exact") -> dict:
+    """Where a learned loop leaves ``S_PB``: the exact ``h`` (2.24) at every state of each run
+    (the smaller of a cold and a warm solve; positive values are upper bounds, a local
+    optimum of the nonconvex (2.24) can only overestimate), beside ``ĥ`` (``h_hat(X)``).
+    Per run: the first step with ``h > 1e-6``, ``h`` and ``ĥ`` there, the path of Algorithm
+    7.5 at the step before, the first step inside a disc (``< −1e-3``) and how many states
+    have ``h > 0`` but ``ĥ <= 0`` (false safe)."""
+    system, s = obstacle_car(), obstacle_setup()
+    slack = compile(stopping_pcbf_problem(system, s.X, s.U, s.N, s.deltas, s.delta_N),
+                    target)
+    out = {}
+    for r in runs:
+        P, h, prev = r["states"], [], None
+        for x in P:
+            sols = [slack.solve({"x0": x})]
+            if prev is not None:
+                sols.append(slack.solve({"x0": x}, warm_start=prev))
+            ok = [c for c in sols if c.success]
+            prev = min(ok, key=lambda c: c.objective) if ok else None
+            h.append(np.nan if prev is None else max(float(prev.objective), 0.0))
+        h, hh = np.asarray(h), np.asarray(h_hat(P), float).reshape(-1)
+        d = signed_distance(P, s.obstacles).min(axis=1)
+        out_k = np.flatnonzero(h > 1e-6)
+        k = int(out_k[0]) if out_k.size else None
+        inside = np.flatnonzero(d < SAFE_TOL)
+        out[f"({r['start'][0]:g}, {r['start'][1]:g})"] = {
+            "first_step_h_positive": k, "h_there": None if k is None else float(h[k]),
+            "h_hat_there": None if k is None else float(hh[k]),
+            "path_before": None if not k else r["paths"][k - 1],
+            "first_step_inside": int(inside[0]) if inside.size else None,
+            "steps_h_positive": int(out_k.size),
+            "steps_false_safe": int(np.sum((h > 1e-6) & (hh <= 0.0)))}
+    return out
 
 
 # -- data and training (full variant) -----------------------------------------------------
@@ -377,6 +420,8 @@ def run(out: Path, quick: bool = False) -> dict:
         metrics["c"]["max_state_difference_to_python"] = float(max(
             np.max(np.abs(a["states"] - b["states"])) for a, b in zip(runs, c_runs)))
         metrics["c"]["build"] = {k: v for k, v in c.accelerated.items() if k != "dir"}
+        # why the learned loops enter a disc: the exact h along them (slow: 2 solves/state)
+        metrics["exact_h_along_python_runs"] = exact_h_along(runs, model)
         # the reference: the PCBF algorithm [41] itself filtering the same MPC (slow)
         t = time.perf_counter()
         ref = closed_loops(pcbf_algorithm(), mpc)
@@ -403,8 +448,11 @@ def summary_lines(m: dict) -> list[str]:
                      " ms)")
     lines.append(f"PCBF algorithm: {m['pcbf']['median_ms']:.3g} ms (thesis 500 ms)")
     if "pcbf_closed_loop" in m:
+        ref = m["pcbf_closed_loop"]
+        certs = sum(r["shifted_certificates"] for r in ref["runs"].values())
         lines.append("PCBF algorithm closed loops: min signed distance "
-                     f"{m['pcbf_closed_loop']['min_signed_distance']:.4f} m")
+                     f"{ref['min_signed_distance']:.4f} m; shifted-plan certificate used "
+                     f"in {certs}/{ref['steps']} steps")
     if "validation" in m:
         v = m["validation"]
         lines.append(f"validation ({v['n']} points): RMSE of cube root {v['rmse_cbrt']:.3g}, "
