@@ -8,7 +8,13 @@ every state all targets in turn, so load drifts hit every target alike):
   (5.15) solve, so every state is feasible);
 * the nonlinear bicycle (5.15), ``N = 20`` (Section 8.2 design);
 * the nonlinear lane-keeping slack problem (2.24), ``N = 50``, slack norms 1, 2, ∞ (the
-  problem of ``bench_norms.py``).
+  problem of ``bench_norms.py``);
+* the cart-pole PCBF pair (2.24) + (2.23), ``N = 20``, RK4 (:mod:`balustrade.examples.cartpole`):
+  (2.24) on seeded states of ``X``, (2.23) with the proposal of the closed-loop scenario and
+  the slacks of an exact (2.24) solve at the same state.
+
+``structured-ip`` refuses the 2-norm slack cost (a fatrop solve there never returned:
+:func:`balustrade.backends.casadi_backend._refuse_fatrop_hang`); that row says so.
 
 Targets: ``exact``, ``long-horizon`` (IPOPT), ``fast-sqp`` (sqpmethod + dense qrqp),
 ``structured-ip`` (fatrop), ``structured-sqp`` (sqpmethod + HPIPM), the last two on the
@@ -30,9 +36,10 @@ import numpy as np
 from balustrade.backends import compile
 from balustrade.backends.passes.stage_order import StructureError
 from balustrade.examples.bicycle import bicycle_design
+from balustrade.examples.cartpole import cartpole_design, destabilizing_proposal
 from balustrade.models.bicycle import DEG
 from balustrade.problems.multiobjective import multiobjective_pcbf_problem
-from balustrade.problems.pcbf import pcbf_slack_problem
+from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
 from balustrade.problems.robust import fuel_objective, robust_pcbf_slack_problem
 from balustrade.reproduce.rendezvous import design as rendezvous_design
 
@@ -77,18 +84,26 @@ def _bicycle_cases(n: int, rng: np.random.Generator) -> list[tuple]:
     return cases
 
 
-#: targets not run on a problem, and why (measured; docs/engines.md)
-EXCLUDED = {"structured-ip": ("nonlinear", "fatrop did not return within 60 s on the nonlinear "
-                              "bicycle (5.15), N = 8 (CasADi 3.8.2, fatrop 1.1.8)")}
+def _cartpole_cases(n: int, rng: np.random.Generator) -> list[tuple]:
+    d = cartpole_design()
+    args = (d.system, d.X, d.U, d.h_f, d.N, d.deltas)
+    slack = pcbf_slack_problem(*args, alpha_f=d.alpha_f, slack_norm=1)
+    xs = [np.array([rng.uniform(-0.8, 0.8), rng.uniform(-0.3, 0.3), rng.uniform(-1.5, 1.5),
+                    rng.uniform(-2, 2)]) for _ in range(n)]
+    exact = compile(slack, "exact")
+    filt_params = []
+    for k, x in enumerate(xs):
+        s = exact.solve({"x0": x})
+        filt_params.append({"x0": x, "u_p": destabilizing_proposal(x, k), "xi": s.primal["xi"],
+                            "xi_N": s.primal["xi_N"]})
+    return [("cart-pole (2.24) N=20", slack, [{"x0": x} for x in xs]),
+            ("cart-pole (2.23) N=20", pcbf_filter_problem(*args), filt_params)]
 
 
-def _measure(name: str, ocp: object, params: list[dict], nonlinear: bool = False
+def _measure(name: str, ocp: object, params: list[dict], targets: tuple = TARGETS
              ) -> list[dict]:
     compiled, rows = {}, []
-    for tgt in TARGETS:
-        if nonlinear and EXCLUDED.get(tgt, ("",))[0] == "nonlinear":
-            rows.append({"name": name, "target": tgt, "refused": "not run: " + EXCLUDED[tgt][1]})
-            continue
+    for tgt in targets:
         try:
             compiled[tgt] = compile(ocp, tgt)
         except StructureError as exc:
@@ -122,16 +137,24 @@ def _measure(name: str, ocp: object, params: list[dict], nonlinear: bool = False
     return rows
 
 
-def run(quick: bool = False, progress: bool = False, part: str | None = None) -> list[dict]:
+def run(quick: bool = False, progress: bool = False, part: str | None = None,
+        targets: tuple = TARGETS) -> list[dict]:
+    """``part``: ``"nonlinear"`` (bicycle, lane-keeping, cart-pole), ``"cartpole"``,
+    ``"rendezvous"`` or ``None`` (all); ``targets`` must start with ``"exact"`` (the
+    reference of ``off`` and ``× exact``)."""
     warnings.filterwarnings("ignore")
     n = 3 if quick else 8
     rng = np.random.default_rng(0)
+    cases = []
+    if part in (None, "nonlinear"):
+        cases += _bicycle_cases(n, rng)
+    if part in (None, "nonlinear", "cartpole"):
+        cases += _cartpole_cases(n, np.random.default_rng(2))
+    if part in (None, "rendezvous"):
+        cases += _rendezvous_cases(n, rng)
     rows = []
-    cases = ([(c, True) for c in _bicycle_cases(n, rng)] if part in (None, "nonlinear") else []) \
-        + ([(c, False) for c in _rendezvous_cases(n, rng)] if part in (None, "rendezvous")
-           else [])
-    for (name, ocp, params), nonlinear in cases:
-        rows += _measure(name, ocp, params, nonlinear)
+    for name, ocp, params in cases:
+        rows += _measure(name, ocp, params, targets)
         if progress:
             print(markdown(rows), file=sys.stderr, flush=True)
     return rows
@@ -153,6 +176,9 @@ def markdown(rows: list[dict]) -> str:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    parts = [a for a in sys.argv[1:] if a in ("nonlinear", "rendezvous")]
+    parts = [a for a in sys.argv[1:] if a in ("nonlinear", "cartpole", "rendezvous")]
+    chosen = tuple(a.split("=", 1)[1].split(",") for a in sys.argv[1:]
+                   if a.startswith("--targets="))
     print(markdown(run(quick="--quick" in sys.argv, progress=True,
-                       part=parts[0] if parts else None)))
+                       part=parts[0] if parts else None,
+                       targets=chosen[0] if chosen else TARGETS)))

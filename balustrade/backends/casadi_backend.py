@@ -62,7 +62,8 @@ from balustrade.backends.passes.stage_order import (
 )
 from balustrade.backends.solution import Solution, Status
 from balustrade.backends.targets import Budget
-from balustrade.dsl.ocp import OCP, BlockTag
+from balustrade.dsl.costs import TermKind
+from balustrade.dsl.ocp import OCP
 from balustrade.errors import SolverError
 
 DEFAULT_OPTIONS: dict[str, dict] = {
@@ -185,21 +186,30 @@ def row_scale(nlp: dict, x0: np.ndarray, solver: str) -> np.ndarray | None:
     return scale
 
 
-def _refuse_nonlinear_dynamics(ocp: OCP) -> None:
-    """fatrop is refused on nonlinear dynamics: on the kinematic bicycle (5.15) (N = 8)
-    a fatrop solve did not return within 60 s, even with ``max_iter`` 300 (CasADi 3.8.2,
-    fatrop 1.1.8; docs/engines.md), and it has no wall-time limit — a closed loop must
-    never hang. Linear dynamics (the rendezvous (5.15)) are where it was measured fast."""
-    w, p = ocp.decision_vector(), ocp.parameter_vector()
-    z = ca.vertcat(w, p)
-    for block in ocp.blocks:
-        if block.tag == BlockTag.DYNAMICS and ca.depends_on(
-                ca.jacobian(block.expr, z), z):
+def _refuse_fatrop_hang(ocp: OCP) -> None:
+    """fatrop (``structured-ip``) is refused on a cost with a 2-norm term: there a fatrop
+    solve can hang, and nothing bounds it.
+
+    Cause (CasADi 3.8.2, fatrop 1.1.8; docs/engines.md "Why fatrop hung"): fatrop's search
+    direction is computed in a loop that raises the primal regularization ``δ_w`` (×8 per
+    try) for as long as the linear solver reports an indefinite reduced Hessian, *without an
+    upper bound* (IPOPT gives up at ``δ_w > 1e40``). Once ``δ_w`` overflows to ``inf`` the
+    system is NaN and reported indefinite forever: one iteration never ends, so
+    ``max_iter`` (checked between iterations) cannot stop it, and fatrop has no time limit.
+    Seen on the nonlinear lane-keeping (2.24) with the 2-norm slack cost (11 115 solves of
+    the same iteration's system in 15 s, every one "indefinite"): CasADi hands variable
+    bounds to fatrop as inequality rows with slacks, so fatrop's iterates leave ``t >= 0``
+    and the perspective row ``aᵀa / max(t, ε) − t`` (``ε = 1e-12``) puts ``2/ε`` into the
+    Hessian. The 1-norm and ∞-norm forms (linear rows) did not hang on the bicycle (5.15),
+    the lane-keeping (2.24) or the cart-pole (2.24) (tests/test_structured.py)."""
+    for term in ocp.cost.terms:
+        if term.kind == TermKind.NORM2:
             raise StructureError(
-                f"{ocp.name}: block {block.name!r} has nonlinear dynamics; the fatrop target "
-                "('structured-ip') is refused there (a solve on the nonlinear bicycle did "
-                "not return within 60 s and fatrop has no time limit); use 'long-horizon' "
-                "or 'exact'")
+                f"{ocp.name}: the cost has a 2-norm term ({term.label or 'unnamed'}); the "
+                "fatrop target ('structured-ip') is refused there: its perspective row can "
+                "make a fatrop solve loop forever (an unbounded regularization loop inside "
+                "one iteration, no iteration or time limit applies); use 'long-horizon' or "
+                "'exact', or a 1-/inf-norm slack cost")
 
 
 def needs_stage_order(solver: str, opts: dict) -> bool:
@@ -278,7 +288,7 @@ class CasadiCompiled:
         self.stages: StageInverse | None = None
         if needs_stage_order(solver, opts):
             if solver == "fatrop":
-                _refuse_nonlinear_dynamics(ocp)
+                _refuse_fatrop_hang(ocp)
             if self.lowering != "expanded":
                 raise SolverError(f"{ocp.name}: the {self.lowering!r} lowering is not "
                                   f"available for the stage-ordered solver {solver!r}")
@@ -505,7 +515,7 @@ class CasadiCompiled:
         # the solver's own DM outputs (no numpy round trip on the closed-loop hot path)
         objective = self.inverse.objective(x_orig, p_dm) if np.all(np.isfinite(w)) \
             else np.nan
-        message = str(stats.get("return_status", ""))
+        message = _message(stats)
         why = _unbounded(message, objective)
         if why is not None:
             status, message = Status.FAILED, f"{message}: the problem appears unbounded ({why})"
@@ -665,8 +675,39 @@ _RETURN_STATUS = {
 }
 
 
+#: fatrop's own return flags (``stats()["fatrop"]["return_flag"]``, fatrop 1.1.8's
+#: ``IpSolverReturnFlag``; CasADi's ``return_status`` is only 0 = success / nonzero) → the
+#: message and status of the run. "Acceptable" is fatrop's counterpart of IPOPT's
+#: ``Solved_To_Acceptable_Level`` (``tol_acceptable`` held for ``acceptable_iter``
+#: iterations), reported as such — not optimal.
+_FATROP_FLAGS: dict[int, tuple[str, Status]] = {
+    0: ("fatrop: Success", Status.OPTIMAL),
+    1: ("fatrop: MaxIterExceeded", Status.MAX_ITERATIONS),
+    2: ("fatrop: StopAtAcceptablePoint", Status.OPTIMAL_INACCURATE),
+    3: ("fatrop: LocalInfeasibility", Status.INFEASIBLE),
+    4: ("fatrop: LineSearchFailed", Status.FAILED),
+    5: ("fatrop: ErrorInStepComputation", Status.FAILED),
+}
+
+
+def _fatrop_flag(stats: dict) -> tuple[str, Status] | None:
+    flag = stats.get("fatrop", {}).get("return_flag") if isinstance(
+        stats.get("fatrop"), dict) else None
+    return None if flag is None else _FATROP_FLAGS.get(int(flag),
+                                                       (f"fatrop: flag {flag}", Status.FAILED))
+
+
+def _message(stats: dict) -> str:
+    """The solver's return status as text (fatrop's numeric flag decoded)."""
+    fatrop = _fatrop_flag(stats)
+    return fatrop[0] if fatrop is not None else str(stats.get("return_status", ""))
+
+
 def _status(stats: dict) -> Status:
     """The :class:`Solution` status of one solver run from its ``stats()``."""
+    fatrop = _fatrop_flag(stats)
+    if fatrop is not None:
+        return fatrop[1]
     msg = str(stats.get("return_status", ""))
     if msg in _RETURN_STATUS:
         return _RETURN_STATUS[msg]

@@ -34,7 +34,10 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
 ``"structured-ip"``    CasADi ``fatrop`` (interior point, O(N) per iteration) on the stage-ordered
                        NLP (:mod:`~balustrade.backends.passes.stage_order`), one cold retry,
                        then IPOPT. Its C links libfatrop and libblasfeo (shipped in the casadi
-                       wheel). For horizon OCPs only (refused otherwise, naming the block).
+                       wheel). For horizon OCPs only (refused otherwise, naming the block),
+                       and not with a 2-norm cost term (a fatrop solve can hang there:
+                       :func:`~balustrade.backends.casadi_backend._refuse_fatrop_hang`).
+``"structured-ip-noretry"`` fatrop alone, no retry (what its emitted C runs; benchmarks, tests).
 ``"structured-sqp"``   ``sqpmethod`` with HPIPM (Riccati-based QP, O(N)) as QP solver on the
                        stage-ordered NLP; retries as ``fast-sqp``. C links libhpipm, libblasfeo.
 ``"cvxpy"``            cvxpy: PIQP for LPs/QPs, Clarabel for conic problems, tight tolerances.
@@ -350,6 +353,7 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", _IPOPT_SAMPLING, name="sampling-cold"),
     Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="sampling-warm"),
     Target("casadi", "fatrop", retries=(("fatrop", {}), ("ipopt", {})), name="structured-ip"),
+    Target("casadi", "fatrop", retries=(), name="structured-ip-noretry"),
     Target("casadi", "sqpmethod", {"qpsol": "hpipm"}, name="structured-sqp"),
     Target("cvxpy", None, name="cvxpy"),
     Target("cvxpy", "clarabel", name="conic"),
