@@ -135,3 +135,10 @@ def test_closed_loop_equals_every_row(chain):
     every = b._compiled[(st.N, 4)].program.A.shape[0]
     assert shared < every
     np.testing.assert_allclose(np.array(la.applied), np.array(lb.applied), atol=1e-6)
+
+
+def test_a_target_that_emits_c_keeps_every_row(chain):
+    """The C step takes any vertex data, so the emittable target keeps every row in Python
+    too (C = Python on the same problem); other targets share rows."""
+    assert _controller(chain, target="convex-qp")._shared_rows(4) is None
+    assert _controller(chain, target="exact")._shared_rows(4) is not None

@@ -119,6 +119,10 @@ class RAPSF:
         self.parametric = vertex_data == "parameters"
         self._n_compiled = len(Theta0.vertices())
         self._dependence = row_dependence(system, X0)
+        # a target that emits C (the C step takes any vertex data, so it keeps every row)
+        # solves the same problem in Python: C = Python (emit_rapsf, deployment_spec)
+        self._share = self.target.backend != "casadi" or \
+            self.target.emit_reason(allow_external=True) is not None
         self._shared: dict[int, np.ndarray | None] = {}
         self._X0_vertices = _small_vertices(X0)
         self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
@@ -206,7 +210,11 @@ class RAPSF:
         between vertices (:func:`~balustrade.problems.rapsf.shared_rows` of ``Θ₀``'s vertices
         padded by repetition; ``None`` when no row is shared): a box ``Θ_k`` keeps the
         vertex order of ``Θ₀``, so the same rows coincide at every step, which
-        :meth:`_solve` checks exactly before using that problem."""
+        :meth:`_solve` checks exactly before using that problem. ``None`` also on a target
+        that emits C (:meth:`deployment_spec`: the C step accepts any vertex data, so it
+        and the Python step keep every row)."""
+        if not self._share:
+            return None
         if n_th not in self._shared:
             V0 = np.atleast_2d(self.Theta0.vertices())
             rep = shared_rows(self._dependence, V0[np.arange(n_th) % len(V0)].T)
