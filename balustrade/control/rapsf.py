@@ -221,6 +221,19 @@ class RAPSF:
             self._shared[n_th] = None if np.all(rep == np.arange(n_th)[None, :]) else rep
         return self._shared[n_th]
 
+    def _data_share_rows(self, rep: np.ndarray, params: dict, n_th: int) -> bool:
+        """:func:`~balustrade.problems.rapsf.rows_shared` for the current vertex data, checked
+        again only when ``Θ_k`` (its vertex array or ``s_jr``, new objects on every change
+        in :meth:`_set_theta`) changed; the cache holds the arrays themselves, so an
+        identity test cannot be fooled by a reused address."""
+        last = getattr(self, "_checked", None)
+        if last is not None and last[0] is self.vertices and last[1] is self._s \
+                and last[2] == n_th:
+            return last[3]
+        ok = rows_shared(rep, self._dependence, params["theta"], params["s"])
+        self._checked = (self.vertices, self._s, n_th, ok)
+        return ok
+
     def _solve(self, x: np.ndarray, u_p: np.ndarray, horizon: int) -> Solution:
         params = {"x0": x, "u_p": u_p}
         if self.parametric:
@@ -229,8 +242,7 @@ class RAPSF:
             params["theta"] = self.vertices[idx].T
             params["s"] = self._s[:, idx]
             rep, key = self._shared_rows(n_th), (horizon, n_th)
-            if rep is not None and not rows_shared(rep, self._dependence, params["theta"],
-                                                   params["s"]):
+            if rep is not None and not self._data_share_rows(rep, params, n_th):
                 rep, key = None, (horizon, n_th, "all rows")  # these data repeat no rows
             if key not in self._compiled:
                 self._compiled[key] = compile(self._problem(horizon, n_vertices=n_th,

@@ -219,11 +219,9 @@ def rows_shared(rep: np.ndarray, dependence: np.ndarray, theta: np.ndarray, s: n
     rows = np.arange(rep.shape[0])[:, None]
     if not np.array_equal(s, s[rows, rep]):
         return False
-    for r in range(rep.shape[0]):
-        sub = theta[np.asarray(dependence[r], dtype=bool)]
-        if not np.array_equal(sub, sub[:, rep[r]]):
-            return False
-    return True
+    same = theta[:, None, :] == theta[:, rep]                    # (q, n_X, n_θ)
+    used = np.asarray(dependence, dtype=bool).T[:, :, None]       # (q, n_X, 1)
+    return bool(np.all(same | ~used))
 
 
 # -- the QP (4.5) of SPEC §2.20 -------------------------------------------------------------
