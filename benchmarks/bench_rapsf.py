@@ -10,6 +10,9 @@ Paths, timed interleaved on the same states in one run (blocks of 10 steps, path
 * ``fast-convex`` — :class:`~balustrade.control.rapsf.RAPSF` with the ``Θ_k``-vertex data as
   parameters: (4.5) compiled once, the direct backend updates the values of the constraint
   matrix ``A(p)`` per step;
+* ``fast-convex every row`` — the same with every row of (4.5c) written per vertex, as
+  before the exact row reductions of :func:`~balustrade.problems.rapsf.rapsf_problem`
+  (``shared``, ``factored``; :func:`every_row`);
 * ``fast-convex constants`` — the same with ``vertex_data="constants"``: (4.5) recompiled
   whenever ``Θ_k`` changes (the form before issue #15 item 1 on the convex targets);
 * ``exact`` — CasADi + IPOPT with the vertex data as parameters;
@@ -203,11 +206,23 @@ def _controller(d: dict, target: str, vertex_data: str) -> RAPSF:
                  vertex_data=vertex_data)
 
 
+def every_row(ctrl: RAPSF) -> RAPSF:
+    """``ctrl`` solving (4.5) with every tube row written per vertex (no rows shared between
+    vertices, not factored): the form before the row reductions, for comparison. Only the
+    controller's own bound methods are replaced (instance attributes)."""
+    problem = ctrl._problem
+    ctrl._shared_rows = lambda n_th: None
+    ctrl._problem = lambda horizon, **kw: problem(horizon, **{**kw, "factored": False})
+    return ctrl
+
+
 def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
     """The paths on ``steps`` states of ``d``'s chain (without the recompiling ``fast-convex
     constants`` path unless ``constants``)."""
     n = d["n"]
     paths = {"fast-convex": _controller(d, "fast-convex", "parameters"),
+             "fast-convex every row": every_row(_controller(d, "fast-convex",
+                                                            "parameters")),
              "fast-convex-conic": _controller(d, "fast-convex-conic", "parameters"),
              "fast-convex constants": _controller(d, "fast-convex", "constants"),
              "exact": _controller(d, "exact", "parameters")}
@@ -243,6 +258,10 @@ def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
         row.update(goal_s=GOAL_S[n], vs_thesis=THESIS_S[n] / times[k], steps=steps - 1,
                    n_vertices=int(len(d["setup"].Theta0.vertices())),
                    tube_rows=int(d["X0"].H.shape[0]), theta_changes=changes)
+        if k != BASELINE and paths[k].parametric:
+            program = getattr(next(iter(paths[k]._compiled.values())), "program", None)
+            if program is not None:
+                row.update(qp_rows=int(program.A.shape[0]), qp_nnz=int(program.A.nnz))
         rows.append(row)
     return rows
 
@@ -294,9 +313,46 @@ def step_split(d: dict, steps: int, target: str = "fast-convex") -> list[dict]:
              "steps": steps - 1} for p, v in per.items()]
 
 
+def reduced_vs_every_row(d: dict, steps: int, block: int = 10) -> list[dict]:
+    """CPU time (``time.process_time``: robust to the other jobs on a loaded machine) per
+    ``controller.step`` of ``fast-convex`` with the reduced rows of (4.5c) (the default) and
+    with every row (:func:`every_row`), two closed loops interleaved in blocks of ``block``
+    steps; raises :class:`BaselineMismatch` if their inputs differ by more than
+    :data:`U_ATOL`. For 8 masses pass the design of
+    :func:`balustrade.reproduce.msd_adaptive.design` (the parallelotope 𝕏₀)."""
+    ctrls = {"reduced rows": _controller(d, "fast-convex", "parameters"),
+             "every row": every_row(_controller(d, "fast-convex", "parameters"))}
+    loops = {k: Loop(d, c.step, steps) for k, c in ctrls.items()}
+    cpu: dict[str, list[float]] = {k: [] for k in ctrls}
+    for loop in loops.values():
+        loop(0)                                        # warm-up: compiles
+    for i in range(1, steps, block):
+        for k, loop in loops.items():
+            for j in range(i, min(i + block, steps)):
+                c0 = time.process_time()
+                loop(j)
+                cpu[k].append(time.process_time() - c0)
+    gap = float(np.max(np.abs(np.array(loops["reduced rows"].applied)
+                              - np.array(loops["every row"].applied))))
+    if gap > U_ATOL:
+        raise BaselineMismatch(f"reduced rows and every row differ by {gap:.3g}")
+    rows = []
+    for k, ctrl in ctrls.items():
+        program = getattr(next(iter(ctrl._compiled.values())), "program", None)
+        rows.append({"name": f"rapsf {d['n']} masses Alg 4.1 step CPU: fast-convex {k}",
+                     "median_s": float(np.median(cpu[k])),
+                     "p90_s": float(np.percentile(cpu[k], 90)),
+                     "wall_median_s": float(np.median(loops[k].times)), "steps": steps - 1,
+                     "max_du": gap, "fallbacks": loops[k].fallbacks,
+                     **({} if program is None else {"qp_rows": int(program.A.shape[0]),
+                                                    "qp_nnz": int(program.A.nnz)})})
+    return rows
+
+
 def run(quick: bool = False) -> list[dict]:
     d3 = design(3)
-    rows = bench_size(d3, 30 if quick else 150) + step_split(d3, 30 if quick else 150)
+    rows = bench_size(d3, 30 if quick else 150) + step_split(d3, 30 if quick else 150) \
+        + reduced_vs_every_row(d3, 60 if quick else 150)
     if quick:
         return rows
     d8, why = design_within(8, DESIGN_BUDGET_S)

@@ -57,7 +57,10 @@ from balustrade.problems.rapsf import (
     TerminalSet,
     check_parametric_system,
     rapsf_problem,
+    row_dependence,
+    rows_shared,
     s_constants,
+    shared_rows,
     tube_constants,
     unit_polytope,
 )
@@ -115,6 +118,12 @@ class RAPSF:
                                   f"got {vertex_data!r}")
         self.parametric = vertex_data == "parameters"
         self._n_compiled = len(Theta0.vertices())
+        self._dependence = row_dependence(system, X0)
+        # a target that emits C (the C step takes any vertex data, so it keeps every row)
+        # solves the same problem in Python: C = Python (emit_rapsf, deployment_spec)
+        self._share = self.target.backend != "casadi" or \
+            self.target.emit_reason(allow_external=True) is not None
+        self._shared: dict[int, np.ndarray | None] = {}
         self._X0_vertices = _small_vertices(X0)
         self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
         self._compiled: dict = {}
@@ -196,17 +205,48 @@ class RAPSF:
         self._set_theta(new)
 
     # -- (4.5) ------------------------------------------------------------------------------
+    def _shared_rows(self, n_th: int) -> np.ndarray | None:
+        """Which rows of (4.5c) the compiled problem with ``n_th`` vertex columns shares
+        between vertices (:func:`~balustrade.problems.rapsf.shared_rows` of ``Θ₀``'s vertices
+        padded by repetition; ``None`` when no row is shared): a box ``Θ_k`` keeps the
+        vertex order of ``Θ₀``, so the same rows coincide at every step, which
+        :meth:`_solve` checks exactly before using that problem. ``None`` also on a target
+        that emits C (:meth:`deployment_spec`: the C step accepts any vertex data, so it
+        and the Python step keep every row)."""
+        if not self._share:
+            return None
+        if n_th not in self._shared:
+            V0 = np.atleast_2d(self.Theta0.vertices())
+            rep = shared_rows(self._dependence, V0[np.arange(n_th) % len(V0)].T)
+            self._shared[n_th] = None if np.all(rep == np.arange(n_th)[None, :]) else rep
+        return self._shared[n_th]
+
+    def _data_share_rows(self, rep: np.ndarray, params: dict, n_th: int) -> bool:
+        """:func:`~balustrade.problems.rapsf.rows_shared` for the current vertex data, checked
+        again only when ``Θ_k`` (its vertex array or ``s_jr``, new objects on every change
+        in :meth:`_set_theta`) changed; the cache holds the arrays themselves, so an
+        identity test cannot be fooled by a reused address."""
+        last = getattr(self, "_checked", None)
+        if last is not None and last[0] is self.vertices and last[1] is self._s \
+                and last[2] == n_th:
+            return last[3]
+        ok = rows_shared(rep, self._dependence, params["theta"], params["s"])
+        self._checked = (self.vertices, self._s, n_th, ok)
+        return ok
+
     def _solve(self, x: np.ndarray, u_p: np.ndarray, horizon: int) -> Solution:
         params = {"x0": x, "u_p": u_p}
         if self.parametric:
             n_th = max(self._n_compiled, len(self.vertices))
-            key = (horizon, n_th)
-            if key not in self._compiled:
-                self._compiled[key] = compile(self._problem(horizon, n_vertices=n_th),
-                                              self.target)
             idx = np.arange(n_th) % len(self.vertices)         # pad by repetition
             params["theta"] = self.vertices[idx].T
             params["s"] = self._s[:, idx]
+            rep, key = self._shared_rows(n_th), (horizon, n_th)
+            if rep is not None and not self._data_share_rows(rep, params, n_th):
+                rep, key = None, (horizon, n_th, "all rows")  # these data repeat no rows
+            if key not in self._compiled:
+                self._compiled[key] = compile(self._problem(horizon, n_vertices=n_th,
+                                                            shared=rep), self.target)
             if self.enlargement is not None:
                 params["terminal_generators"] = self.enlargement.padded()
         else:
