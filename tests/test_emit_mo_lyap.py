@@ -121,14 +121,15 @@ def test_pieces_equal_the_design_on_1000_states(pair: dict, design) -> None:
 
 
 # -- the C step ----------------------------------------------------------------------------
-def test_c_equals_python_on_1000_random_steps(pair: dict, design) -> None:
-    """500 fresh starts, two steps each (the initialization (6.3) + (6.10), then the
-    switching rule and (6.10) again after a random disturbance): 1000 C steps equal Python."""
+def _random_steps(pair: dict, design, starts: int) -> dict[str, int]:
+    """``starts`` fresh starts, two steps each (the initialization (6.3) + (6.10), then the
+    switching rule and (6.10) again after a random disturbance): every C step equals
+    Python."""
     py, c = pair["py"], pair["c"]
     system, W = design.system, design.W
     rng = np.random.default_rng(1)
     seen: dict[str, int] = {}
-    for k in range(500):
+    for k in range(starts):
         x = rng.uniform([-0.3, -1.0], [0.3, 1.0]) * (0.1 if k % 3 == 0 else 1.0)
         py.reset()
         c.reset()
@@ -139,14 +140,26 @@ def test_c_equals_python_on_1000_random_steps(pair: dict, design) -> None:
             key = f"{out_py[1].status}/{out_py[1].values.get('switch')}"
             seen[key] = seen.get(key, 0) + 1
             x = system.step(x, out_py[0], W.sample(1, rng)[0])
+    return seen
+
+
+def test_c_equals_python_on_random_steps(pair: dict, design) -> None:
+    seen = _random_steps(pair, design, 100)
+    assert seen.get("ok/1.0", 0) >= 3 and seen.get("ok/0.0", 0) >= 100, seen
+
+
+@pytest.mark.slow
+def test_c_equals_python_on_1000_random_steps(pair: dict, design) -> None:
+    seen = _random_steps(pair, design, 500)
     assert seen.get("ok/1.0", 0) >= 20 and seen.get("ok/0.0", 0) >= 500, seen
 
 
 def test_closed_loops_switch_branches_and_forced_failures(pair: dict, design) -> None:
-    """Three closed loops of 120 steps with random proposals and disturbances; at a few steps
+    """Three closed loops of 60 steps with random proposals and disturbances; at a few steps
     the state is pushed out of X (|x_1| = 1.05 > 1), so (6.10) is infeasible and both apply
     the warm start ũ_0 (fallback ``"warm_start"``) and carry it on; the first loop starts
-    outside X, so its initialization fails (projected proposal) until the state is back."""
+    outside X, so its initialization fails (projected proposal) and runs again at the next
+    step."""
     py, c = pair["py"], pair["c"]
     system, W = design.system, design.W
     seen: dict[str, int] = {}
@@ -155,8 +168,10 @@ def test_closed_loops_switch_branches_and_forced_failures(pair: dict, design) ->
         py.reset()
         c.reset()
         x = np.array([1.05, 0.0]) if seed == 0 else np.array([0.05, -0.1])
-        for k in range(120):
-            if k in (30, 31, 70):
+        for k in range(60):
+            if seed == 0 and k == 1:                 # measured inside X again
+                x = np.array([0.05, -0.1])
+            if k in (20, 21, 45):
                 x = np.array([1.05 * np.sign(x[0] or 1.0), x[1]])
             u_p = rng.uniform(-3, 3, 1)
             out_py, out_c = py.step(x, u_p), c.step(x, u_p)
@@ -165,8 +180,8 @@ def test_closed_loops_switch_branches_and_forced_failures(pair: dict, design) ->
             key = str(info.fallback) if info.fallback else f"switch={info.values['switch']}"
             seen[key] = seen.get(key, 0) + 1
             x = system.step(x, out_py[0], W.sample(1, rng)[0] * 0.3)
-    assert seen.get("warm_start", 0) >= 9 and seen.get("projected_proposal", 0) >= 1, seen
-    assert seen.get("switch=1.0", 0) >= 10 and seen.get("switch=0.0", 0) >= 100, seen
+    assert seen.get("warm_start", 0) >= 6 and seen.get("projected_proposal", 0) >= 1, seen
+    assert seen.get("switch=1.0", 0) >= 5 and seen.get("switch=0.0", 0) >= 100, seen
 
 
 def test_bad_input_nan_proposal_and_refusals(pair: dict, design, tmp_path) -> None:
