@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from balustrade.codegen import build
+from balustrade.codegen import cfiles as C
 from balustrade.codegen.accelerate import registered
 from balustrade.codegen.build import build_executable
 from balustrade.codegen.emit_mo_lyap import (
@@ -200,6 +201,18 @@ def test_bad_input_nan_proposal_and_refusals(pair: dict, design, tmp_path) -> No
     with pytest.raises(CodegenError, match="expected a MultiobjectiveLyapunovController"):
         emit_mo_lyapunov(object(), "ml", tmp_path / "b")
     assert MultiobjectiveLyapunovController in registered()
+
+
+def test_entry_points_listed_and_exported(pair: dict) -> None:
+    """Every entry point of bal/multiobj_lyap.h (``cfiles.ENTRY_POINTS``) and of its two
+    problems is named in the generated header and exported by the built library."""
+    lib = pair["c"]._lib
+    header = (lib.path.parent / "ml.h").read_text()
+    for kind, prefix in (("multiobj_lyap", "ml"), ("problem", "ml_first"),
+                         ("problem", "ml_problem")):
+        for entry in C.ENTRY_POINTS[kind]:
+            sym = f"{prefix}_{entry}"
+            assert sym in header and hasattr(lib.lib, sym), sym
 
 
 VALGRIND_MAIN = r"""

@@ -22,9 +22,10 @@ Both problems must be compiled for an emittable target. :data:`EMITTABLE_TARGET`
 ``"convex-qp"`` (an SQP over a dual active-set QP solver: (6.10) is a QP with one convex
 quadratic row, solved in a few iterations); its C links that QP solver's library from the
 casadi wheel (:func:`~balustrade.codegen.emit_rapsf.link_flags`, also in the manifest's
-``link_flags``). The controller's default target ``"exact"`` (IPOPT) is not emittable:
-build the controller with ``target="convex-qp"``; Python on that target and the C run
-the same solver chain, so their answers agree.
+``link_flags``). The controller's default target ``"exact"`` (an interior-point NLP
+solver) is not emittable: build the controller with ``target="convex-qp"``; Python on that
+target and the C run the same solver chain (:func:`~balustrade.codegen.runtime.
+mirror_c_retries`), so their answers agree.
 """
 
 from __future__ import annotations
