@@ -16,7 +16,10 @@ registered class of the controller's MRO wins). Built in:
 :func:`~balustrade.codegen.emit_grid.emit_grid`), the robust filter of Algorithm 5.2
 (:func:`~balustrade.codegen.emit_robust.emit_robust`) and Algorithm 6.4
 (:func:`~balustrade.codegen.emit_robust.emit_multiobjective`), the last two when built on
-an emittable target, and Algorithm 4.1 (:class:`~balustrade.control.rapsf.RAPSF` built with
+an emittable target, Algorithm 6.3 (:class:`~balustrade.control.multiobjective.
+MultiobjectiveLyapunovController` built with ``target="convex-qp"``,
+:func:`~balustrade.codegen.emit_mo_lyap.emit_mo_lyapunov`) and Algorithm 4.1
+(:class:`~balustrade.control.rapsf.RAPSF` built with
 ``target="convex-qp"``, :func:`~balustrade.codegen.emit_rapsf.emit_rapsf`; its C links the
 target's QP solver library from the casadi wheel, the flags come from its manifest).
 Emitters of further controllers plug in with ``register(cls, emit, load)``.
@@ -41,14 +44,19 @@ from pathlib import Path
 from balustrade.codegen.build import BASE_FLAGS, THREAD_FLAGS, _flags, build
 from balustrade.codegen.emit import Emitted, emit_approximate, emit_pcbf
 from balustrade.codegen.emit_grid import emit_grid
+from balustrade.codegen.emit_mo_lyap import emit_mo_lyapunov
 from balustrade.codegen.emit_rapsf import emit_rapsf
 from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
 from balustrade.codegen.runtime import CApproximatePCBFFilter, CPCBFSafetyFilter
 from balustrade.codegen.runtime_grid import CGridPCBFFilter
+from balustrade.codegen.runtime_mo_lyap import CMultiobjectiveLyapunovController
 from balustrade.codegen.runtime_rapsf import CRAPSF
 from balustrade.codegen.runtime_robust import CMultiobjectivePCBFFilter, CRobustPCBFSafetyFilter
 from balustrade.control.approximate import ApproximatePCBFFilter, GridPCBFFilter
-from balustrade.control.multiobjective import MultiobjectivePCBFController
+from balustrade.control.multiobjective import (
+    MultiobjectiveLyapunovController,
+    MultiobjectivePCBFController,
+)
 from balustrade.control.pcbf import PCBFSafetyFilter
 from balustrade.control.rapsf import RAPSF
 from balustrade.control.robust import RobustPCBFSafetyFilter
@@ -189,6 +197,8 @@ register(RobustPCBFSafetyFilter, lambda c, n, d: emit_robust(c, n, d),
          CRobustPCBFSafetyFilter, "bal_robust")
 register(MultiobjectivePCBFController, lambda c, n, d: emit_multiobjective(c, n, d),
          CMultiobjectivePCBFFilter, "bal_multiobj")
+register(MultiobjectiveLyapunovController, lambda c, n, d: emit_mo_lyapunov(c, n, d),
+         CMultiobjectiveLyapunovController, "bal_mo_lyap")
 
 
 def _emit_rapsf(controller: RAPSF, name: str, out_dir: Path) -> Emitted:

@@ -24,8 +24,8 @@ projected proposal where Python would apply its candidate.
 
 :func:`emit_multiobjective` does the same for Algorithm 6.4 (``bal/multiobj.c``): the
 polished slacks of (5.15) and of (6.15) (``<name>_post_slack``, ``<name>_post_problem``),
-the candidate (6.14) (``<name>_cand``, the same function as (5.17)). Algorithm 6.3 has no
-C step (see :func:`emit_multiobjective`).
+the candidate (6.14) (``<name>_cand``, the same function as (5.17)). Algorithm 6.3:
+:mod:`~balustrade.codegen.emit_mo_lyap`.
 
 Both problems must be compiled for an emittable target. Build the controller with
 :data:`EMITTABLE_TARGET` for both: ``RobustPCBFSafetyFilter.build(..., target="robust-sqp",
@@ -341,11 +341,8 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
     (5.15) solve per step, for plots) is not emitted.
 
     Algorithm 6.3 (:class:`~balustrade.control.multiobjective.
-    MultiobjectiveLyapunovController`) has no C step: its warm start ``ũ_{k+1}`` comes
-    from the switching rule (6.6)/(6.7) of a
-    :class:`~balustrade.problems.multiobjective.LinearLyapunovDesign` (a Python method,
-    not part of its deployment spec); its two problems are emitted by
-    :func:`~balustrade.codegen.emit_problems`."""
+    MultiobjectiveLyapunovController`):
+    :func:`~balustrade.codegen.emit_mo_lyap.emit_mo_lyapunov`."""
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
     spec = _spec(controller, name, MultiobjectiveDeployment, "MultiobjectivePCBFController")

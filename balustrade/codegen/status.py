@@ -3,7 +3,7 @@ config headers (:mod:`~balustrade.codegen.cfiles`; the static C in ``codegen/c/`
 the macro names), the manifests written by :mod:`~balustrade.codegen.emit` and the Python
 names read by :mod:`~balustrade.codegen.runtime` are all generated from these tables.
 
-Seven families:
+Eight families:
 
 * :data:`SOLVE` — return value of ``<problem>_solve`` (one problem, e.g. (2.24));
 * :data:`PCBF` — return value of the PCBF step (2.24)+(2.23): which input it applied;
@@ -11,7 +11,8 @@ Seven families:
 * :data:`GRID` — return value of the Algorithm 8.7 step (grid filter, no solver);
 * :data:`ROBUST` — return value of the Algorithm 5.2 step (5.15)+(5.16);
 * :data:`MULTIOBJ` — return value of the Algorithm 6.4 step ((5.15) once, then (6.15));
-* :data:`RAPSF` — return value of the Algorithm 4.1 step ((4.5), stored plan, backup).
+* :data:`RAPSF` — return value of the Algorithm 4.1 step ((4.5), stored plan, backup);
+* :data:`MO_LYAP` — return value of the Algorithm 6.3 step ((6.3) once, then (6.10)).
 
 A problem emitted from a target with an iteration budget (real-time mode, issue #14 §5:
 ``Target.with_budget``, the ``"real-time"`` preset) reports a solve stopped by it as
@@ -167,9 +168,24 @@ RAPSF: tuple[Status, ...] = (
 )
 
 
+#: The Algorithm 6.3 step: ``fallback`` as in
+#: :class:`~balustrade.control.multiobjective.MultiobjectiveLyapunovController` (only
+#: ``BAL_OK`` is a success, as only ``optimal`` is in Python).
+MO_LYAP: tuple[Status, ...] = (
+    Status("BAL_MO_LYAP_OK", 0, "ok", None, "v*_0 of (6.10)"),
+    Status("BAL_MO_LYAP_WARM_START", 1, "warm_start", "warm_start",
+           "(6.10) failed: u~_0 of the warm start (6.6)/(6.7), feasible for (6.3b-h)"),
+    Status("BAL_MO_LYAP_INIT_FAILED", 2, "init_failed", "projected_proposal",
+           "first step and (6.3) without (6.3h) failed: u_p clipped to U"),
+    Status("BAL_MO_LYAP_BAD_INPUT", 3, "bad_input", "projected_proposal",
+           "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
+           "clipped to U"),
+)
+
+
 #: every family (the static C may use the macros of any of them)
 FAMILIES: tuple[tuple[Status, ...], ...] = (SOLVE, PCBF, APPROX, GRID, ROBUST, MULTIOBJ,
-                                            RAPSF)
+                                            RAPSF, MO_LYAP)
 
 
 def by_code(family: tuple[Status, ...]) -> dict[int, Status]:

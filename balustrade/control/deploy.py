@@ -179,6 +179,37 @@ class RAPSFDeployment(ProblemsDeployment):
     host: object = field(repr=False)
 
 
-__all__ = ["ApproximateDeployment", "GridDeployment", "MultiobjectiveDeployment",
+@dataclass(frozen=True)
+class LyapunovDeployment(ProblemsDeployment):
+    """Algorithm 6.3 (Section 6.3.2, linear design (6.10)): ``problems["init"]`` is (6.3)
+    without (6.3h) (parameters ``x0``, ``u_p``; variables ``z``, ``v``), solved on the first
+    step; ``problems["problem"]`` is (6.10) (parameters ``x0``, ``u_p``, ``bound``), solved
+    every step warm-started from the switching rule (6.6)/(6.7) with ``bound`` the right side
+    of (6.3h) plus ``bound_tol · max(1, |bound|)``; fallbacks of
+    :class:`~balustrade.control.multiobjective.MultiobjectiveLyapunovController`."""
+
+    #: the nominal model ``x⁺ = A x + B u`` (``w`` measured as ``x_{k+1} − A x_k − B u_k``)
+    A: np.ndarray = field(repr=False)
+    B: np.ndarray = field(repr=False)
+    #: the feedback of ``ξ_c`` (6.11) and ``ξ_f`` (6.12), and the weights of ``V`` (6.2)
+    K: np.ndarray = field(repr=False)
+    Q: np.ndarray = field(repr=False)
+    R: np.ndarray = field(repr=False)
+    P: np.ndarray = field(repr=False)
+    N: int
+    #: ``X_f`` (the switching rule's membership test) and, as ``(H, h)`` rows, the sets of
+    #: (6.3b–g): ``X ⊖ E_i``, ``U ⊖ K E_i`` (``i < N``) and ``X_f ⊖ E_N``
+    Xf: Polytope
+    Xs: tuple[Polytope, ...] = field(repr=False)
+    Us: tuple[Polytope, ...] = field(repr=False)
+    Xf_N: Polytope = field(repr=False)
+    #: input set of the projected-proposal fallback (a box for C)
+    U: Set
+    rho: float
+    bound_tol: float
+
+
+__all__ = ["ApproximateDeployment", "GridDeployment", "LyapunovDeployment",
+           "MultiobjectiveDeployment",
            "PCBFDeployment", "ProblemsDeployment", "RAPSFDeployment", "RobustDeployment",
            "TubeDeployment"]

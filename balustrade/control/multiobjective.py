@@ -33,7 +33,7 @@ import numpy as np
 from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, Target, companion, compile
 from balustrade.control.base import StepInfo, note_solve, outcome
-from balustrade.control.deploy import MultiobjectiveDeployment, ProblemsDeployment
+from balustrade.control.deploy import LyapunovDeployment, MultiobjectiveDeployment
 from balustrade.control.fallbacks import (
     finite_proposal,
     finite_state,
@@ -134,11 +134,17 @@ class MultiobjectiveLyapunovController:
         self._prev = (x, u, v)
         return u, info
 
-    def deployment_spec(self) -> ProblemsDeployment:
-        """The compiled problems of Algorithm 6.3, (6.10) and its initialization (6.3), for
-        :func:`balustrade.codegen.emit_problem` (the closed-loop step has no emitted C)."""
-        return ProblemsDeployment({"problem": self.problem, "init": self.init},
-                                  "Algorithm 6.3, the multiobjective Lyapunov controller")
+    def deployment_spec(self) -> LyapunovDeployment:
+        """Algorithm 6.3 for :func:`balustrade.codegen.emit_mo_lyap.emit_mo_lyapunov` (one C
+        call per step), also a :class:`~balustrade.control.deploy.ProblemsDeployment` of
+        (6.10) and its initialization (6.3) for :func:`balustrade.codegen.emit_problems`."""
+        d = self.design
+        return LyapunovDeployment(
+            {"problem": self.problem, "init": self.init},
+            "Algorithm 6.3, the multiobjective Lyapunov controller",
+            A=d.system.A, B=d.system.B, K=d.K, Q=d.Q, R=d.R, P=d.P, N=d.N, Xf=d.Xf,
+            Xs=tuple(d.Xs[:d.N]), Us=tuple(d.Us[:d.N]), Xf_N=d.Xf_N, U=d.U, rho=self.rho,
+            bound_tol=self.bound_tol)
 
 
 class MultiobjectivePCBFController:
