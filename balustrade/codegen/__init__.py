@@ -17,6 +17,8 @@ reading the controllers' typed deployment specs of :mod:`balustrade.control.depl
 (the static C shipped in ``codegen/c/`` and the generated config header that instantiates
 it), :mod:`~balustrade.codegen.status` (status codes, defined once),
 :mod:`~balustrade.codegen.build` (compiler), :mod:`~balustrade.codegen.runtime` (ctypes).
+Algorithm 6.3: :mod:`~balustrade.codegen.emit_mo_lyap` and
+:mod:`~balustrade.codegen.runtime_mo_lyap`.
 Algorithm 8.7 (grid filter): :mod:`~balustrade.codegen.emit_grid` and
 :mod:`~balustrade.codegen.runtime_grid`. :mod:`~balustrade.codegen.accelerate`: a
 controller's step emitted, built (cached) and loaded in one call, for Python closed loops
@@ -39,6 +41,7 @@ from balustrade.codegen.emit import (
     write_example,
 )
 from balustrade.codegen.emit_grid import emit_grid
+from balustrade.codegen.emit_mo_lyap import emit_mo_lyapunov
 from balustrade.codegen.emit_rapsf import emit_rapsf
 from balustrade.codegen.emit_robust import emit_multiobjective, emit_robust
 from balustrade.codegen.runtime import (
@@ -50,12 +53,13 @@ from balustrade.codegen.runtime import (
     mirror_c_retries,
 )
 from balustrade.codegen.runtime_grid import CGridPCBFFilter
+from balustrade.codegen.runtime_mo_lyap import CMultiobjectiveLyapunovController
 from balustrade.codegen.runtime_rapsf import CRAPSF
 from balustrade.codegen.runtime_robust import CMultiobjectivePCBFFilter, CRobustPCBFSafetyFilter
 from balustrade.codegen.support import SUPPORTED, check_no_callbacks, solver_libraries
 
 __all__ = [
-    "CRAPSF", "emit_rapsf",
+    "CRAPSF", "emit_rapsf", "CMultiobjectiveLyapunovController", "emit_mo_lyapunov",
     "SUPPORTED", "CApproximatePCBFFilter", "CFunction", "CPCBFSafetyFilter", "CProblem",
     "CMultiobjectivePCBFFilter", "CRobustPCBFSafetyFilter",
     "Emitted", "build", "build_executable", "check_no_callbacks", "emit_approximate",
