@@ -133,7 +133,6 @@ class ShiftedCertificate:
         last plan) padded with zeros (or cut) to ``N`` steps, states rolled out with the
         model, every other variable 0."""
         ocp = self.ocp
-        system, N = ocp.system, ocp.N
         U = self.padded(inputs)
         X = np.asarray(self._rollout()(x, U), float)
         if not np.all(np.isfinite(X)):
