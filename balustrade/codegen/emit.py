@@ -498,6 +498,12 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     Solves are accepted and retried as in :func:`emit_problem` (``accept_tol``), which
     mirrors :class:`~balustrade.backends.casadi_backend.CasadiCompiled` except for the
     final, non-emittable retry of the fast-sqp target's chain.
+
+    The controller's shifted-plan certificate (:mod:`balustrade.control.shifted`; on by
+    default) is emitted as ``<name>_shift_cert`` (its
+    :meth:`~balustrade.control.shifted.ShiftedCertificate.function`) and checked by the
+    step as the Python filter checks it; ``manifest["shifted_certificate"]`` says whether
+    it was emitted (not for a controller built with ``shifted_certificate=False``).
     """
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
