@@ -108,3 +108,61 @@ def test_certificate_off_is_emitted_off_and_said(tmp_path):
     assert not c.shifted_certificate
     t = _loops(system, c)[1]
     assert not _fired(t)
+
+
+DRIVER = r"""
+/* Replays the states and proposals of a Python loop through the emitted step. */
+#include <stdio.h>
+#include "certpcbf.h"
+#include "replay.h"
+
+int main(void) {
+  certpcbf_work* wk = certpcbf_alloc();
+  casadi_real u[certpcbf_NU], h;
+  int k, st, fired = 0;
+  if (!wk) return 1;
+  for (k = 0; k < REPLAY_K; ++k) {
+    certpcbf_step(REPLAY_X[k], REPLAY_U + k, u, &h, &st, wk);
+    fired += certpcbf_shift_certified(wk);
+    printf("%d %.17g\n", st, u[0]);
+  }
+  printf("fired %d\n", fired);
+  certpcbf_free(wk);
+  return 0;
+}
+"""
+
+
+def test_certificate_path_is_memory_clean_under_valgrind(cert_c):
+    """The C step replays a Python loop in which the certificate fires, from a driver
+    without Python (under valgrind when installed): the same inputs, no memory error."""
+    import shutil
+    import subprocess
+
+    from balustrade.codegen import build_executable
+
+    rng = np.random.default_rng(7)
+    rng.uniform(-3.0, 3.0, size=STEPS)  # the proposals of the first loop
+    proposals = rng.uniform(-3.0, 3.0, size=STEPS) + 1.5
+    py = cert_c["py"]
+    py.reset()
+    trace = simulate(cert_c["system"], py, STARTS[1], STEPS, keep_infos=True,
+                     proposal=lambda k, x: np.array([proposals[k]]))
+    assert _fired(trace)
+    out = cert_c["out"]
+    rows = ",\n".join("{" + ", ".join(f"{v:.17g}" for v in x) + "}"
+                      for x in np.asarray(trace.states)[:STEPS])
+    (out / "replay.h").write_text(
+        f"#define REPLAY_K {STEPS}\nstatic const casadi_real REPLAY_X[{STEPS}][2] = "
+        f"{{{rows}}};\nstatic const casadi_real REPLAY_U[{STEPS}] = "
+        f"{{{', '.join(f'{v:.17g}' for v in proposals)}}};\n")
+    (out / "driver.c").write_text(DRIVER)
+    cmd = [str(build_executable(out, main="driver.c", werror=True))]
+    if shutil.which("valgrind"):
+        cmd = ["valgrind", "--error-exitcode=9", "--leak-check=full", "-q", *cmd]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[-1] == f"fired {len(_fired(trace))}"
+    u_c = np.array([float(line.split()[1]) for line in lines[:-1]])
+    assert np.abs(u_c - np.asarray(trace.inputs).reshape(-1)).max() <= 1e-6
