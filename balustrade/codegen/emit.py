@@ -44,6 +44,7 @@ from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
 from balustrade.codegen.support import check_no_callbacks
 from balustrade.control.deploy import ApproximateDeployment, PCBFDeployment, ProblemsDeployment
+from balustrade.control.shifted import ShiftedCertificate
 from balustrade.dsl.sets import Box
 from balustrade.errors import CodegenError, NonFiniteError, ShapeError
 
@@ -497,6 +498,12 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     Solves are accepted and retried as in :func:`emit_problem` (``accept_tol``), which
     mirrors :class:`~balustrade.backends.casadi_backend.CasadiCompiled` except for the
     final, non-emittable retry of the fast-sqp target's chain.
+
+    The controller's shifted-plan certificate (:mod:`balustrade.control.shifted`; on by
+    default) is emitted as ``<name>_shift_cert`` (its
+    :meth:`~balustrade.control.shifted.ShiftedCertificate.function`) and checked by the
+    step as the Python filter checks it; ``manifest["shifted_certificate"]`` says whether
+    it was emitted (not for a controller built with ``shifted_certificate=False``).
     """
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
@@ -527,6 +534,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
               for vn, lay in f.vars.items()
               if vn in s.vars and s.vars[vn]["shape"] == lay["shape"]]
     functions = {**s.functions(), **f.functions()}
+    cert = _shift_certificate(controller, spec, name)
+    if cert is not None:
+        functions[f"{name}_shift_cert"] = cert.function(f"{name}_shift_cert")
     if dynamics is not None:
         functions[f"{name}_dynamics"] = dynamics
     files = _generate(functions, name, out_dir)
@@ -534,6 +544,12 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     s.config(cfg)
     f.config(cfg)
     cfg.comment(f"---- the PCBF control step {name}: (2.24) then (2.23) (bal/pcbf.h) ----")
+    cfg.define(f"{name}_SHIFT_CERT", int(cert is not None),
+               "the shifted-plan certificate of h_PB = 0 (balustrade.control.shifted)")
+    cfg.define(f"{name}_EPS", C.c_double(spec.eps), "the relaxation eps of (2.23)")
+    cfg.define(f"{name}_CERT_TOL", C.c_double(cert.tol if cert is not None
+                                               else FEASIBILITY_TOL),
+               "largest violation of (2.24) by a certified shifted plan")
     cfg.define(f"{name}_NX", nx)
     cfg.define(f"{name}_NU", nu)
     cfg.define(f"{name}_N", N)
@@ -550,10 +566,31 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
                 "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
                 "problems": {"slack": s.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
+                "shifted_certificate": cert is not None,
                 "pcbf_status": S.manifest(S.PCBF)}
     return _write_module(name, out_dir, "the PCBF safety filter (2.24)+(2.23)", cfg,
                          [("problem", s.P), ("problem", f.P), ("pcbf", name)], files,
                          manifest, tuple(sorted(set(libs))))
+
+
+def _shift_certificate(controller: object, spec: PCBFDeployment, name: str
+                       ) -> ShiftedCertificate | None:
+    """The shifted-plan certificate the emitted step evaluates: the controller's own
+    (``None`` when it was built with ``shifted_certificate=False``), or for a bare
+    :class:`PCBFDeployment` the default one of
+    :class:`~balustrade.control.pcbf.PCBFSafetyFilter`; ``None`` if the slack problem does
+    not admit one (:attr:`ShiftedCertificate.available`)."""
+    if hasattr(controller, "certificate"):
+        cert = controller.certificate
+    else:
+        cert = ShiftedCertificate(spec.slack, spec.zero_tol)
+    if cert is None or not cert.available:
+        return None
+    n_user, n_w = spec.slack.layout.user_size, cert.function(f"{name}_shift_cert").numel_out(0)
+    if n_w != n_user:
+        raise CodegenError(f"{name}: the shifted-plan candidate has {n_w} values, (2.24) "
+                           f"{n_user} declared variables")
+    return cert
 
 
 def write_example(emitted: Emitted, x_init: np.ndarray, u_p: np.ndarray | float,

@@ -407,6 +407,12 @@ class CPCBFSafetyFilter(_OwnsWork):
         self._hot_slack = (status, (wk, ctypes.c_int(0)))
         self._hot_filter = (status, (wk, ctypes.c_int(1)))
         self._hot_replaced = (self._lib.raw(f"{Q}_proposal_replaced", ctypes.c_int), (wk,))
+        # the shifted-plan certificate (balustrade.control.shifted), when it was emitted
+        self.shifted_certificate = bool(m.get("shifted_certificate", False))
+        self._hot_certified = ((self._lib.raw(f"{Q}_shift_certified", ctypes.c_int), (wk,))
+                               if self.shifted_certificate else None)
+        self._h_solver = self._lib.fn(f"{Q}_h_solver", ctypes.c_double, [vp]) \
+            if self.shifted_certificate else None
 
     def reset(self) -> None:
         """Forget the warm starts (primal and dual, kept in the C work struct across steps)
@@ -428,7 +434,8 @@ class CPCBFSafetyFilter(_OwnsWork):
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One C step, reported as :class:`~balustrade.control.pcbf.PCBFSafetyFilter`
         reports it (status, fallback, ``values["h_PB"]``/``["h_PB_upper"]``,
-        ``uncertified``; see :func:`_pcbf_info`). Wrong shapes raise
+        ``uncertified``; see :func:`_pcbf_info`; a step on the shifted-plan certificate
+        also ``values["shifted_certificate"] = 1`` and ``["h_PB_solver"]``). Wrong shapes raise
         :class:`~balustrade.errors.ShapeError`; a NaN or inf ``x`` is refused by the C
         (``BAL_PCBF_BAD_INPUT``: the proposal, non-finite entries as 0, clipped to ``U``;
         ``"non_finite_state"``); NaN or inf entries of ``u_p`` are read as 0 and the
@@ -443,7 +450,16 @@ class CPCBFSafetyFilter(_OwnsWork):
         s_code = fn(*args)
         fn, args = self._hot_filter
         f_code = fn(*args)
-        if code == self._PCBF_OK and s_code == _OK and f_code == _OK:  # _pcbf_info's "ok"
+        fired = 0
+        if self._hot_certified is not None:
+            fn, args = self._hot_certified
+            fired = fn(*args)
+        if fired:  # the shifted plan was the (2.24) point: an optimal one, as in Python
+            info = _pcbf_info(code, _OK, f_code, float(self._h[0]), float("nan"), False,
+                              f_code == _TRUNCATED and self.filter.truncated_feasible())
+            info.values.update(shifted_certificate=1.0,
+                               h_PB_solver=float(self._h_solver(self._work)))
+        elif code == self._PCBF_OK and s_code == _OK and f_code == _OK:  # _pcbf_info's "ok"
             info = StepInfo(values={"h_PB": float(self._h[0])})
         else:
             # the bound of a merely feasible (2.24) is only read when there is one

@@ -57,8 +57,9 @@ whatever proposal it is given, ``u_p`` only enters its cost.
 
 The emitted C step (:func:`balustrade.codegen.emit_pcbf`) takes the same decisions, with
 the same warm starts (a converged solution: primal and multipliers; a certified
-``feasible`` (2.24): its primal only; (2.23) only from a converged solution) — except the
-shifted-plan certificate below, which is not emitted (the C uses the solver's ``h_PB``).
+``feasible`` (2.24): its primal only; (2.23) only from a converged solution), including
+the shifted-plan certificate below (``<name>_shift_cert`` is
+:meth:`ShiftedCertificate.function <balustrade.control.shifted.ShiftedCertificate.function>`).
 
 Shifted-plan certificate (``shifted_certificate=True``, :mod:`balustrade.control.shifted`):
 on a nonconvex (2.24) a local solver can end ``optimal`` at ``h_PB > 0`` although the shifted

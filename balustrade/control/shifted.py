@@ -52,6 +52,7 @@ class ShiftedCertificate:
                               and "x0" in ocp.parameters and ocp.system.ntheta == 0)
         self._evaluate: ca.Function | None = None
         self._roll: ca.Function | None = None
+        self._certify: ca.Function | None = None
 
     def _function(self) -> ca.Function:
         """``(w, p) → (inequality rows, equality rows, cost)`` of the declared OCP."""
@@ -76,15 +77,63 @@ class ShiftedCertificate:
             self._roll = ca.Function("shifted_rollout", [x0, U], [ca.horzcat(*xs)])
         return self._roll
 
+    def function(self, name: str = "shift_cert") -> ca.Function:
+        """``(x, U) → (w, violation, cost)``: the candidate (decision vector ``w`` of the
+        declared OCP: the roll-out of ``U`` (``(nu, N)``) from ``x`` as the states, ``U`` as
+        the inputs, every other variable 0), its largest violation of a declared block or
+        bound (``max(le, |eq|, lb − w, w − ub)``) and its declared cost, with the parameter
+        ``x0 = x`` (others at their declared values). :meth:`check` decides with it and the
+        emitted C (:func:`balustrade.codegen.emit_pcbf`) evaluates the same function, so the
+        certificate has one definition. Requires :attr:`available`."""
+        if self._certify is not None and self._certify.name() == name:
+            return self._certify
+        if not self.available:
+            raise BalustradeError("ShiftedCertificate.function: the certificate needs an OCP "
+                                  "with a system, the parameter x0 and no theta")
+        ocp = self.ocp
+        system, N = ocp.system, ocp.N
+        x, U = ca.SX.sym("x", system.nx), ca.SX.sym("U", system.nu, N)
+        X = self._rollout()(x, U)
+        blocks = {ocp.state_name: X, ocp.input_name: U}
+        w = ca.vertcat(ca.SX(0, 1), *[
+            ca.vec(blocks[e.name]) if e.name in blocks else ca.SX.zeros(e.size, 1)
+            for e in ocp.variable_layout.entries])
+        chunks = []
+        for e in ocp.parameter_layout.entries:
+            if e.name == "x0":
+                chunks.append(x)
+            elif e.init is not None:
+                chunks.append(ca.SX(ca.DM(np.asarray(e.init, float).reshape(-1))))
+            else:
+                raise BalustradeError(f"ShiftedCertificate.function: parameter {e.name!r} "
+                                      "has no declared value")
+        p = ca.vertcat(ca.SX(0, 1), *chunks)
+        le, eq, cost = self._function()(w, p)
+        lb, ub = ocp.bounds()
+        rows = [le, ca.fabs(eq)]
+        lo, hi = np.isfinite(lb), np.isfinite(ub)
+        if lo.any():
+            rows.append(ca.DM(lb[lo]) - w[np.flatnonzero(lo).tolist()])
+        if hi.any():
+            rows.append(w[np.flatnonzero(hi).tolist()] - ca.DM(ub[hi]))
+        rows = ca.vertcat(ca.SX(-np.inf), *rows)
+        self._certify = ca.Function(name, [x, U], [w, ca.mmax(rows), cost],
+                                    ["x", "U"], ["w", "violation", "cost"])
+        return self._certify
+
+    def padded(self, inputs: np.ndarray) -> np.ndarray:
+        """``inputs`` (``(nu, m)``) padded with zeros (or cut) to ``(nu, N)``."""
+        U = np.zeros((self.ocp.system.nu, self.ocp.N))
+        m = min(self.ocp.N, inputs.shape[1])
+        U[:, :m] = inputs[:, :m]
+        return U
+
     def candidate(self, x: np.ndarray, inputs: np.ndarray) -> dict[str, np.ndarray]:
         """The shifted plan from ``x``: ``inputs`` (``(nu, m)``, the remaining inputs of the
         last plan) padded with zeros (or cut) to ``N`` steps, states rolled out with the
         model, every other variable 0."""
         ocp = self.ocp
-        system, N = ocp.system, ocp.N
-        U = np.zeros((system.nu, N))
-        m = min(N, inputs.shape[1])
-        U[:, :m] = inputs[:, :m]
+        U = self.padded(inputs)
         X = np.asarray(self._rollout()(x, U), float)
         if not np.all(np.isfinite(X)):
             raise BalustradeError("ShiftedCertificate: the roll-out is not finite")
@@ -100,18 +149,16 @@ class ShiftedCertificate:
             return None
         start = time.perf_counter()
         try:
-            values = self.candidate(np.asarray(x, float), np.asarray(inputs, float))
-            w = self.ocp.pack_variables(values)
             p = self.ocp.pack_parameters({"x0": x})
-        except BalustradeError:  # a non-finite roll-out, parameters without a value
+            w, violation, cost = (np.asarray(v, float).reshape(-1) for v in self.function().call(
+                [np.asarray(x, float), self.padded(np.asarray(inputs, float))]))
+        except BalustradeError:  # parameters without a value
             return None
-        le, eq, cost = (np.asarray(v, float).reshape(-1)
-                        for v in self._function().call([w, p]))
-        lb, ub = self.ocp.bounds()
-        cost = float(cost[0])
-        feasible = (np.all(le <= self.tol) and np.all(np.abs(eq) <= self.tol)
-                    and np.all(lb - w <= self.tol) and np.all(w - ub <= self.tol))
-        if not (feasible and abs(cost) <= self.zero_tol):
+        violation, cost = float(violation[0]), float(cost[0])
+        # a non-finite roll-out certifies nothing (NaN compares false everywhere)
+        if not (np.all(np.isfinite(w)) and np.isfinite(violation) and np.isfinite(cost)):
+            return None
+        if not (violation <= self.tol and abs(cost) <= self.zero_tol):
             return None
         return Solution(status="optimal", objective=max(cost, 0.0),
                         primal=self.ocp.unpack_variables(w), dual={},

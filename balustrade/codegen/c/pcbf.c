@@ -14,7 +14,72 @@
 static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
 static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
 
+#if BAL_QX(SHIFT_CERT)
+/* init/finalize: the two problems and the memory of Q_shift_cert */
+int BAL_QX(init)(BAL_QX(work)* wk) {
+  wk->ready = 0;
+  if (BAL_QX(slack_init)(&wk->slack)) return -1;
+  if (BAL_QX(filter_init)(&wk->filter)) {
+    BAL_QX(slack_finalize)(&wk->slack);
+    return -1;
+  }
+  BAL_QX(shift_cert_incref)();
+  wk->cmem = BAL_QX(shift_cert_checkout)();
+  if (wk->cmem < 0) {
+    BAL_QX(shift_cert_decref)();
+    BAL_QX(filter_finalize)(&wk->filter);
+    BAL_QX(slack_finalize)(&wk->slack);
+    return -1;
+  }
+  BAL_QX(reset)(wk);
+  wk->ready = 1;
+  return 0;
+}
+
+void BAL_QX(finalize)(BAL_QX(work)* wk) {
+  if (!wk->ready) return;
+  BAL_QX(shift_cert_release)(wk->cmem);
+  BAL_QX(shift_cert_decref)();
+  BAL_QX(filter_finalize)(&wk->filter);
+  BAL_QX(slack_finalize)(&wk->slack);
+  wk->ready = 0;
+}
+
+/* The shifted plan as the (2.24) point (PCBFSafetyFilter._shifted and
+   ShiftedCertificate.check): only when a plan exists and (2.24) did not give h_PB within
+   max(ZERO_TOL, EPS) itself (`usable`: converged, feasible or a feasible truncated iterate).
+   On success the candidate is in wk->slack.x (declared variables) and wk->slack.f. */
+static int BAL_QX(shift_check)(BAL_QX(work)* wk, const casadi_real* x, int usable) {
+  casadi_int m;
+  if (!wk->have_plan) return 0;
+  if (usable && wk->slack.f <= fmax(BAL_QX(ZERO_TOL), BAL_QX(EPS))) return 0;
+  memset(wk->cert_U, 0, sizeof(wk->cert_U));
+  m = BAL_QX(N) - wk->plan_age - 1; /* inputs u_{age+1} ... u_{N-1} of the plan, then 0 */
+  if (m > 0) {
+    memcpy(wk->cert_U, wk->plan + (wk->plan_age + 1) * BAL_QX(NU),
+           (size_t)(m * BAL_QX(NU)) * sizeof(casadi_real));
+  }
+  wk->cert_v = wk->cert_f = NAN;
+  wk->carg[0] = x;
+  wk->carg[1] = wk->cert_U;
+  wk->cres[0] = wk->cert_w;
+  wk->cres[1] = &wk->cert_v;
+  wk->cres[2] = &wk->cert_f;
+  if (BAL_QX(shift_cert)(wk->carg, wk->cres, wk->ciw, wk->cw, wk->cmem)) return 0;
+  /* a non-finite roll-out certifies nothing (fmax would skip a NaN row) */
+  if (!bal_finite(wk->cert_w, BAL_QX(slack_N_USER)) || !isfinite(wk->cert_v) ||
+      !isfinite(wk->cert_f)) {
+    return 0;
+  }
+  if (!(wk->cert_v <= BAL_QX(CERT_TOL) && fabs(wk->cert_f) <= BAL_QX(ZERO_TOL))) return 0;
+  wk->h_solver = usable ? wk->slack.f : NAN;
+  memcpy(wk->slack.x, wk->cert_w, BAL_QX(slack_N_USER) * sizeof(casadi_real));
+  wk->slack.f = wk->cert_f;
+  return 1;
+}
+#else
 BAL_DEFINE_PAIR_INIT_FINALIZE(BAL_QX, slack, filter)
+#endif
 
 BAL_DEFINE_ALLOC_FREE(BAL_QX)
 
@@ -26,6 +91,8 @@ void BAL_QX(reset)(BAL_QX(work)* wk) {
   wk->have_plan = wk->have_slack = wk->have_filter = wk->n_replaced = 0;
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_upper = NAN;
+  wk->shift_certified = 0;
+  wk->h_solver = NAN;
 }
 
 /* A failed (2.24): the next input of the last plan, or u_p clipped to U (proposal_fallback
@@ -50,7 +117,7 @@ static int BAL_QX(fallback)(BAL_QX(work)* wk, casadi_real* u_out, int* status) {
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk) {
   casadi_int i;
-  int certified, trunc_ok;
+  int certified, trunc_ok, fired = 0, kept = 0;
   const casadi_real* plan_src;
   if (!x || !u_p || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_PCBF_BAD_INPUT;
@@ -58,6 +125,8 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   }
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_upper = NAN;
+  wk->shift_certified = 0;
+  wk->h_solver = NAN;
   *h_out = NAN;
   wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
   if (!bal_finite(x, BAL_QX(NX))) {
@@ -75,12 +144,22 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
      the next solve and used as a merely feasible one; stopped infeasible it is a failure */
   trunc_ok = BAL_QX(slack_truncated_feasible)(&wk->slack, wk->slack_status);
   if (trunc_ok) BAL_QX(slack_warm_start)(&wk->slack);
-  if (!BAL_SOLVED(wk->slack_status) && !trunc_ok) return BAL_QX(fallback)(wk, u_out, status);
+#if BAL_QX(SHIFT_CERT)
+  /* the solver's point is not the global optimum h_PB = 0 that the shifted plan attains */
+  fired = BAL_QX(shift_check)(wk, x, BAL_SOLVED(wk->slack_status) || trunc_ok);
+  wk->shift_certified = fired;
+#endif
+  if (!fired && !BAL_SOLVED(wk->slack_status) && !trunc_ok) {
+    return BAL_QX(fallback)(wk, u_out, status);
+  }
   /* only an optimal (2.24) gives h_PB; a feasible point of cost <= ZERO_TOL is optimal
      (h_PB >= 0 is a lower bound it attains), a costlier one only bounds h_PB above */
-  certified = wk->slack_status == BAL_OK || fmax(wk->slack.f, 0.0) <= BAL_QX(ZERO_TOL);
+  certified = fired || wk->slack_status == BAL_OK ||
+              fmax(wk->slack.f, 0.0) <= BAL_QX(ZERO_TOL);
   if (certified) {
-    if (wk->slack_status == BAL_OK) {
+    if (fired) {
+      BAL_QX(slack_warm_start_primal)(&wk->slack); /* the candidate has no multipliers */
+    } else if (wk->slack_status == BAL_OK) {
       BAL_QX(slack_warm_start)(&wk->slack);
     } else if (!trunc_ok) {
       BAL_QX(slack_warm_start_primal)(&wk->slack);
@@ -99,12 +178,29 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     wk->p_filter[BAL_QX(filter_P_xi) + i] = fmax(wk->slack.x[BAL_QX(slack_W_xi) + i], 0.0);
   }
   wk->p_filter[BAL_QX(filter_P_xi_N)] = fmax(wk->slack.x[BAL_QX(slack_W_xi_N)], 0.0);
-  if (!wk->have_filter) {
+#if BAL_QX(SHIFT_CERT)
+  if (fired && wk->have_filter) { /* kept unless this (2.23) replaces it */
+    kept = 1;
+    memcpy(wk->keep_x0, wk->filter.x0, sizeof(wk->keep_x0));
+    memcpy(wk->keep_lam_x0, wk->filter.lam_x0, sizeof(wk->keep_lam_x0));
+    memcpy(wk->keep_lam_g0, wk->filter.lam_g0, sizeof(wk->keep_lam_g0));
+  }
+#endif
+  if (!wk->have_filter || fired) { /* a certified step: from the candidate's states, inputs */
     BAL_QX(filter_cold_start)(&wk->filter);
     BAL_QX(SHARED)(BAL_PCBF_COPY_SHARED)
   }
   wk->filter_status = BAL_QX(filter_solve)(&wk->filter, wk->p_filter);
   trunc_ok = BAL_QX(filter_truncated_feasible)(&wk->filter, wk->filter_status);
+#if BAL_QX(SHIFT_CERT)
+  if (kept && !(wk->filter_status == BAL_OK || trunc_ok)) {
+    memcpy(wk->filter.x0, wk->keep_x0, sizeof(wk->keep_x0));
+    memcpy(wk->filter.lam_x0, wk->keep_lam_x0, sizeof(wk->keep_lam_x0));
+    memcpy(wk->filter.lam_g0, wk->keep_lam_g0, sizeof(wk->keep_lam_g0));
+  }
+#else
+  (void)kept;
+#endif
   if (wk->filter_status == BAL_TRUNCATED && !trunc_ok) {
     wk->have_filter = 0; /* stopped infeasible: the next (2.23) starts from (2.24) */
   }
@@ -133,4 +229,6 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
 
 BAL_DEFINE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk) { return wk->h_upper; }
+int BAL_QX(shift_certified)(const BAL_QX(work)* wk) { return wk->shift_certified; }
+casadi_real BAL_QX(h_solver)(const BAL_QX(work)* wk) { return wk->h_solver; }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }

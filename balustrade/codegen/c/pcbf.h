@@ -27,6 +27,13 @@
  *                                   (nothing solved; both solve statuses BAL_BAD_INPUT)
  *   u_p NaN/inf (x finite)       -> those entries of u_p read as 0, the step runs as usual
  *                                   (Q_proposal_replaced counts them)
+ * Shifted-plan certificate (Q_SHIFT_CERT = 1, balustrade.control.shifted): when (2.24)
+ * fails or its cost exceeds max(Q_ZERO_TOL, Q_EPS) and a plan exists, the remaining inputs
+ * of the last plan (then zeros) are rolled out from x by the emitted Q_shift_cert (the
+ * function the Python certificate evaluates); if the candidate violates no row or bound of
+ * (2.24) by more than Q_CERT_TOL and its cost is <= Q_ZERO_TOL, it replaces the solver's
+ * point: h_PB = 0 (lower bound), (2.24) is warm-started from its primal and (2.23) from its
+ * states and inputs (Q_shift_certified = 1, Q_h_solver the solver's cost or NAN).
  * Warm starts as balustrade's backend: from a converged solution (primal and multipliers);
  * from the primal of a certified BAL_FEASIBLE (2.24) (zero multipliers); never from an
  * uncertified one; (2.23) only from BAL_OK solutions.
@@ -45,6 +52,20 @@ typedef struct BAL_QX(work) {
   casadi_real h_upper;         /* cost of an uncertified BAL_FEASIBLE (2.24), else NAN */
   int plan_age, have_plan, have_slack, have_filter, n_replaced;
   int slack_status, filter_status; /* BAL_* of the last step's solves */
+  int shift_certified;             /* the last step used the shifted-plan certificate */
+  casadi_real h_solver;            /* then: the solver's (2.24) cost (NAN if not usable) */
+#if BAL_QX(SHIFT_CERT)
+  casadi_real cert_U[BAL_QX(NU) * BAL_QX(N)], cert_w[BAL_QX(slack_N_USER) + 1];
+  casadi_real cert_v, cert_f;
+  /* the warm start of (2.23), kept while a certified step starts it from the candidate */
+  casadi_real keep_x0[BAL_QX(filter_NW)], keep_lam_x0[BAL_QX(filter_NW)];
+  casadi_real keep_lam_g0[BAL_QX(filter_NG) + 1];
+  const casadi_real* carg[BAL_QX(shift_cert_SZ_ARG)];
+  casadi_real* cres[BAL_QX(shift_cert_SZ_RES)];
+  casadi_int ciw[BAL_QX(shift_cert_SZ_IW) + 1];
+  casadi_real cw[BAL_QX(shift_cert_SZ_W) + 1];
+  int cmem;
+#endif
   int ready;
 } BAL_QX(work);
 
@@ -56,3 +77,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
 BAL_DECLARE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 /* The last step's upper bound on h_PB from a merely feasible (2.24) (NAN if none). */
 casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk);
+/* 1 if the last step used the shifted-plan certificate as its (2.24) point, else 0. */
+int BAL_QX(shift_certified)(const BAL_QX(work)* wk);
+/* The solver's (2.24) cost at a certified step (NAN if it was not usable or no step). */
+casadi_real BAL_QX(h_solver)(const BAL_QX(work)* wk);
