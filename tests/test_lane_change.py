@@ -174,3 +174,35 @@ def test_design_arguments_are_checked():
         robust_terminal_cbf(ldi, X, U, x_s[:3])
     with pytest.raises(BalustradeError, match="x_s"):
         incremental_rpi(ldi, W, X, U, np.array([[0.0], [1.0], [0.0], [0.0]]), x_s[:3])
+
+
+def test_seeded_runs_resume_from_saved_seeds(new, tmp_path, monkeypatch):
+    """The seeded runs of the reproduction are resumable: each seed is saved when done and
+    read back (not run again) for the same emitted controllers; other controllers (another
+    source hash) run again."""
+    from balustrade.control.robust import RobustPCBFSafetyFilter
+    from balustrade.reproduce import lane_change as L
+
+    monkeypatch.setattr(L, "STEPS", 3)
+    d = new
+    ctrl = RobustPCBFSafetyFilter.build(d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N,
+                                        d.deltas, d.error, d.alpha_f, target=L.TARGET,
+                                        slack_target=L.TARGET)
+    ctrl.accelerated = {"hash": "a" * 40}        # as accelerate() sets it
+    rows = L.seeded_runs({"robust": ctrl}, d, [0, 1], tmp_path, log=False)
+    assert [r["seed"] for r in rows] == [0, 1]
+    assert L.seed_file(tmp_path, 1).is_file() and len(rows[1]["robust"]["times"]) == 3
+
+    class Stale:
+        """A controller that must not run (its seeds are saved)."""
+
+        def __init__(self, digest: str):
+            self.accelerated = {"hash": digest}
+
+        def reset(self):
+            raise AssertionError("ran a saved seed again")
+
+    again = L.seeded_runs({"robust": Stale("a" * 40)}, d, [0, 1], tmp_path, log=False)
+    assert again == json.loads(json.dumps(rows, default=L._json))
+    with pytest.raises(AssertionError, match="ran a saved seed again"):
+        L.seeded_runs({"robust": Stale("b" * 40)}, d, [1], tmp_path, log=False)

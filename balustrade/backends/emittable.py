@@ -17,8 +17,10 @@ solver                         generated C
 ``sqpmethod`` + ``highs``      calls HiGHS: needs ``<interfaces/highs_c_api.h>``, ``libhighs``
 ``sqpmethod`` + ``hpipm``      calls HPIPM: needs ``libhpipm`` and ``libblasfeo``
 ``fatrop``                     calls FATROP: needs ``libfatrop`` and ``libblasfeo``
-``ipopt``                      refused: the C only wraps IPOPT's C interface (``libipopt``,
-                               MUMPS, dynamic memory) — nothing embeddable is generated
+``ipopt``                      calls IPOPT's C interface: needs ``<coin-or/IpStdCInterface.h>``
+                               and ``libipopt`` (with MUMPS; allocates memory, not for
+                               embedded targets). Used as the last retry of the sqpmethod
+                               chain, so the C runs the chain Python runs (issue #16)
 ``sqpmethod`` + ``qpoases``    refused: the generated file contains ``#error Code
                                generation not supported for QpoasesInterface``
 ``feasiblesqpmethod``          refused: its generated C does not compile (CasADi 3.8)
@@ -41,12 +43,18 @@ SUPPORTED: dict[tuple[str, str | None], tuple[str, ...]] = {
     ("sqpmethod", "highs"): ("highs",),
     ("sqpmethod", "hpipm"): ("hpipm", "blasfeo"),
     ("fatrop", None): ("fatrop", "blasfeo"),
+    ("ipopt", None): ("ipopt",),
 }
+
+#: options that make a plugin's generated C return the solver's own convergence verdict (0:
+#: converged, nonzero: not), for plugins whose C cannot be judged by the KKT residuals the
+#: emitted step computes: IPOPT converges on its internally scaled problem (dual
+#: infeasibility relative to the multipliers' size), so its unscaled dual residual can
+#: exceed sqpmethod's ``tol_du`` at a point IPOPT (and the backend) calls optimal.
+STATUS_OPTIONS: dict[str, dict] = {"ipopt": {"error_on_fail": True}}
 
 #: plugins known to have no usable code generation, with the reason shown to the user.
 REFUSED: dict[str, str] = {
-    "ipopt": "CasADi only emits a wrapper around IPOPT's C interface (libipopt with MUMPS "
-             "and dynamic memory), not a self-contained solver",
     "qpoases": "CasADi's qpOASES interface has no code generation (the generated file "
                "contains '#error Code generation not supported')",
     "feasiblesqpmethod": "the C that CasADi 3.8 generates for it does not compile",
@@ -109,22 +117,45 @@ def c_attempts(solver: str, options: Mapping) -> list[tuple[str, dict, str]]:
     """The cold-start retries emitted C runs after a failed first attempt, as
     ``(solver, options overrides, label)``: for ``sqpmethod`` the backend's other Hessian
     convexifications (:func:`~balustrade.backends.casadi_backend.sqp_retry_strategies`; the
-    backend's last resort, IPOPT, cannot be emitted), labelled by the strategy; for any other
-    solver the same solver again, labelled by its name."""
+    backend's last resort, IPOPT, links libipopt and is left out), labelled by the strategy;
+    for any other solver the same solver again, labelled by its name. The emitters run
+    :func:`c_retries` of the compiled problem's own chain instead."""
     if solver == _SQP:
         return [(_SQP, {"convexify_strategy": s}, s)
                 for s in sqp_retry_strategies(dict(options))]
     return [(solver, {}, solver)]
 
 
+def c_retries(solver: str, options: Mapping, retries: list[tuple[str, Mapping]],
+              allow_external: bool = False) -> list[tuple[str, dict, dict, str]]:
+    """The cold-start retries the C emitted for a compiled problem runs: the entries of its
+    retry chain ``retries`` (``(solver, option overrides)``, as the backend runs them after
+    a failed first attempt of ``solver`` with the full ``options``) whose C can be generated
+    (:func:`codegen_reason`; one that links an external library only with
+    ``allow_external``), in order, as ``(plugin, overrides, full nlpsol options, label)``.
+    The options are those the backend builds the retry with: ``options`` updated by the
+    overrides for the same plugin, the plugin's defaults updated by them for another
+    (:func:`~balustrade.backends.casadi_backend.solver_options`). With the whole chain
+    emittable, Python and its C run the same chain (no mirror needed)."""
+    out = []
+    for name, over in retries:
+        over = dict(over)
+        opts = {**options, **over} if name == solver else full_options(name, over)
+        if codegen_reason(name, opts, allow_external) is None:
+            label = str(over.get("convexify_strategy", name)) if name == _SQP else name
+            out.append((name, over, opts, label))
+    return out
+
+
 def c_retry_chain(solver: str, retries: list[tuple[str, dict]]) -> list[tuple[str, dict]]:
     """The part of a compiled problem's retry chain that its emitted C runs too: for
-    ``sqpmethod`` its ``sqpmethod`` entries (the IPOPT last resort has no code generation);
-    any other solver's chain unchanged (the same list object)."""
+    ``sqpmethod`` its ``sqpmethod`` entries (the IPOPT last resort links libipopt: this is
+    the chain of C emitted without ``allow_external``); any other solver's chain unchanged
+    (the same list object)."""
     if solver != _SQP:
         return retries
     return [(name, opts) for name, opts in retries if name == _SQP]
 
 
-__all__ = ["ADVICE", "REFUSED", "SUPPORTED", "c_attempts", "c_libraries", "c_retry_chain",
-           "codegen_reason", "full_options"]
+__all__ = ["ADVICE", "REFUSED", "STATUS_OPTIONS", "SUPPORTED", "c_attempts", "c_libraries",
+           "c_retries", "c_retry_chain", "codegen_reason", "full_options"]

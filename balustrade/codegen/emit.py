@@ -38,7 +38,7 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.backends.casadi_backend import CasadiCompiled
-from balustrade.backends.emittable import c_attempts
+from balustrade.backends.emittable import STATUS_OPTIONS, c_libraries, c_retries
 from balustrade.backends.solution import FEASIBILITY_TOL
 from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
@@ -237,7 +237,7 @@ class _Problem:
     """The C pieces of one compiled problem under the C prefix ``P``."""
 
     def __init__(self, c: CasadiCompiled, P: str, title: str, module: str,
-                 accept_tol: float | None = None):
+                 accept_tol: float | None = None, allow_external: bool = False):
         if getattr(c, "stages", None) is not None:  # issue #14 §2: not yet emitted
             raise CodegenError(f"{title}: problems compiled in stage order (the structured "
                                "targets) cannot be emitted yet: the C unpacks the layout order")
@@ -249,7 +249,10 @@ class _Problem:
         self.tol_du = float(c.options.get("tol_du", 1e-6))
         self.accept_tol = STALL_TOL if accept_tol is None else float(accept_tol)
         self.solvers = [(f"{P}_nlp", c.solver_name, dict(c.options))]
-        # the cold-start retries the emitted C runs (backends.emittable.c_attempts): the
+        #: per attempt: 1 when its C returns the solver's own verdict (STATUS_OPTIONS: the
+        #: interior-point last resort), which bal/problem.c uses in place of the KKT test
+        self.reports = [int(c.solver_name in STATUS_OPTIONS)]
+        # the cold-start retries the emitted C runs (backends.emittable.c_retries): the
         # same solver again reuses its function, other settings get their own
         self.retry_labels, self.retry_docs = [], []
         # an iteration budget (real-time mode): a stop by it is BAL_TRUNCATED, and no retry
@@ -257,11 +260,18 @@ class _Problem:
         budget = getattr(c, "budget", None)
         self.budget = 0 if budget is None or budget.iterations is None else \
             int(budget.iterations)
-        attempts = [] if self.budget else c_attempts(c.solver_name, c.options)
-        for k, (plugin, over, label) in enumerate(attempts):
+        # (the emittable entries of the compiled problem's own chain: with allow_external
+        # its interior-point last resort too, linking that library, as Python runs it)
+        attempts = [] if self.budget else c_retries(c.solver_name, c.options, c.retries,
+                                                    allow_external)
+        #: libraries the retries' C links (the first attempt's: ``c.target.c_libraries()``)
+        self.libraries = tuple(lib for plugin, _, opts, _ in attempts
+                               for lib in c_libraries(plugin, opts))
+        for k, (plugin, over, opts, label) in enumerate(attempts):
             sym = f"{P}_nlp" if plugin == c.solver_name and not over else \
                 f"{P}_nlp_retry{k + 1}"
-            self.solvers.append((sym, plugin, {**c.options, **over}))
+            self.solvers.append((sym, plugin, opts))
+            self.reports.append(int(plugin in STATUS_OPTIONS))
             self.retry_labels.append(label)
             self.retry_docs.append(" ".join([plugin, *(f"{o} {v!r}" for o, v in over.items())])
                                    if over else f"{plugin} again")
@@ -278,8 +288,9 @@ class _Problem:
         # compact lowering (EMIT_LOWERING: the dynamics' derivatives once, not per stage)
         c = self.c
         nlp, derivatives = c.lowered(EMIT_LOWERING)
-        out = {sym: ca.nlpsol(sym, plugin, nlp, c.with_derivatives(opts, derivatives)
-                              if plugin == c.solver_name else opts)
+        out = {sym: ca.nlpsol(sym, plugin, nlp, {**(c.with_derivatives(opts, derivatives)
+                                                    if plugin == c.solver_name else opts),
+                                                 **STATUS_OPTIONS.get(plugin, {})})
                for sym, plugin, opts in self.solvers}
         out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt", EMIT_LOWERING)
         return out
@@ -302,8 +313,9 @@ class _Problem:
             f"Parameters p (stacked, {self.np} values):{pdoc}\n"
             f"Decision vector x ({self.nw} values):{vdoc}\n"
             f"Constraint rows: {self.ng}. BAL_OK when max violation < {self.tol_pr:g} and "
-            f"inf-norm of the\nLagrangian gradient < {self.tol_du:g} (the solver's own tests). "
-            "An attempt that did not\nconverge is retried from a cold start with, in order: "
+            f"inf-norm of the\nLagrangian gradient < {self.tol_du:g} (the solver's own tests; "
+            "an attempt with P_REPORTS 1\nby its solver's own verdict). An attempt that did not"
+            "\nconverge is retried from a cold start with, in order: "
             f"{retries}.\nIf none converges, BAL_FEASIBLE with the last attempt whose violation "
             f"scaled by 1 + |g|\nis <= {self.accept_tol:g} (its point, value and multipliers in "
             "the work struct), as balustrade's backend.")
@@ -314,6 +326,8 @@ class _Problem:
         cfg.define(f"{P}_N_USER", self.layout.user_size, "declared variables (no epigraph)")
         cfg.define(f"{P}_N_SOLVERS", len(syms), "first attempt + retries")
         cfg.xmacro(f"{P}_SOLVERS", syms)
+        cfg.define(f"{P}_REPORTS", "{" + ", ".join(map(str, self.reports)) + "}",
+                   "per attempt: 1 if its solver returns its own verdict (0: converged)")
         uniq = list(dict.fromkeys(syms))
         for key in ("ARG", "RES", "IW", "W"):
             expr = f"{uniq[0]}_SZ_{key}"
@@ -429,8 +443,9 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
 
     ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``. Attempts that do not
     converge are retried from a cold start with the retries of the target that emitted C
-    runs (:func:`~balustrade.backends.emittable.c_attempts`; the backend's last resort of
-    the fast-sqp target cannot be emitted). If
+    runs (:func:`~balustrade.backends.emittable.c_retries`: the compiled problem's chain
+    without the entries needing an external library, such as the interior-point last resort of the
+    fast-sqp target, unless ``allow_external``). If
     none converges and the last attempt's scaled constraint violation is ``<= accept_tol``
     (default ``1e-8``) the status is ``BAL_FEASIBLE``: safe to apply, possibly suboptimal."""
     _check_identifier(name)

@@ -29,11 +29,20 @@ the candidate (6.14) (``<name>_cand``, the same function as (5.17)). Algorithm 6
 
 Both problems must be compiled for an emittable target. Build the controller with
 :data:`EMITTABLE_TARGET` for both: ``RobustPCBFSafetyFilter.build(..., target="robust-sqp",
-slack_target="robust-sqp")`` (the preset of :mod:`balustrade.backends.targets` whose C is
-self-contained, with room for the many iterations (5.15) needs when ``h_r > 0``). Its
-emittable retry chain does not always converge on these problems (docs/deploy_c.md,
-"Convergence on these problems"); the C then takes the fallbacks Python takes with the same
-chain (:func:`~balustrade.codegen.mirror_c_retries`).
+slack_target="robust-sqp")`` (the SQP preset of :mod:`balustrade.backends.targets`, with
+room for the many iterations (5.15) needs when ``h_r > 0``).
+
+Retry chain (issue #16): by default (``full_chain=True``) the C runs each problem's
+whole retry chain, as the Python backend does — for ``robust-sqp`` the other Hessian
+convexification, then the interior-point solver from a cold start — so the C decides as
+the Python controller without a mirror mode. That last retry calls the interior-point
+solver's C interface and links its library, shipped with the casadi wheel
+(``Emitted.libraries``, :data:`balustrade.backends.emittable.SUPPORTED`; the build flags
+are the manifest's ``link_flags``, which :func:`~balustrade.codegen.accelerate` uses). On
+the lane change (§8.2) the SQP attempts alone fail the cold (5.15) at ``x_0`` and a few
+(5.16)/(6.15) solves that the last retry solves. ``full_chain=False`` gives self-contained
+C (only ``libm``) without it; compare that with a Python controller that runs the same
+part of the chain (:func:`~balustrade.codegen.mirror_c_retries`).
 """
 
 from __future__ import annotations
@@ -57,6 +66,7 @@ from balustrade.codegen.emit import (
     _spec,
     _write_module,
 )
+from balustrade.codegen.emit_rapsf import link_flags
 from balustrade.control.deploy import (
     MultiobjectiveDeployment,
     RobustDeployment,
@@ -278,8 +288,10 @@ def _tube_module(name: str, out_dir: Path, spec: TubeDeployment, U: object,
         cfg.define(macro, value, doc)
     _work_sizes(cfg, name, list(steps))
     cfg.status(family, f"BAL_{step_file.upper()}_STATUS_CODES")
+    libs = [*libs, *(lib for p in probs.values() for lib in p.libraries)]
     manifest = {"kind": manifest_kind, "nx": spec.system.nx, "nu": spec.system.nu,
                 "N": len(spec.deltas), **extra,
+                "link_flags": list(link_flags(tuple(sorted(set(libs))))),
                 "U": {"lb": list(map(float, U.lb)), "ub": list(map(float, U.ub))},
                 "problems": {k: p.manifest() for k, p in probs.items()},
                 family_key: S.manifest(family)}
@@ -289,7 +301,8 @@ def _tube_module(name: str, out_dir: Path, spec: TubeDeployment, U: object,
 
 
 def emit_robust(controller: object, name: str, out_dir: str | Path,
-                allow_external: bool = False, accept_tol: float | None = None) -> Emitted:
+                allow_external: bool = False, accept_tol: float | None = None,
+                full_chain: bool = True) -> Emitted:
     """Emit Algorithm 5.2 of a :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`
     built with ``target="robust-sqp", slack_target="robust-sqp"`` (:data:`EMITTABLE_TARGET`)
     as one C call per control step: ``<name>_step(x, u_p, u_out, h_out, status, work)``
@@ -297,7 +310,10 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
     candidate (5.17). ``U`` must be a Box (the projected proposal clips), ``κ`` linear
     (``E.K``). Solves are accepted and retried as in
     :func:`~balustrade.codegen.emit_problem`; only ``BAL_OK`` counts as a success, as
-    only ``optimal`` does in Python."""
+    only ``optimal`` does in Python. ``allow_external``: admit a first attempt whose C links
+    a library. ``full_chain`` (default True): the retries whose C links a library (the
+    interior-point last resort) are emitted too, so the C runs the chain Python runs
+    (module docstring); False: self-contained C without them."""
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
     spec = _spec(controller, name, RobustDeployment, "RobustPCBFSafetyFilter")
@@ -310,9 +326,9 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
                            f"{_HINT.format('RobustPCBFSafetyFilter')}") from exc
     out_dir = _out_dir(out_dir, name)
     s = _Problem(slack, f"{name}_slack", f"robust slack problem (5.15) {slack.ocp.name!r}",
-                 name, accept_tol)
+                 name, accept_tol, allow_external or full_chain)
     f = _Problem(filt, f"{name}_filter", f"robust filter (5.16) {filt.ocp.name!r}", name,
-                 accept_tol)
+                 accept_tol, allow_external or full_chain)
     _require(name, {"(5.15) parameter": (s.params, ["x0"]),
                     "(5.15) variable": (s.vars, ["z", "v", "xi", "xi_N"]),
                     "(5.16) parameter": (f.params, ["x0", "u_p", "xi", "xi_N"]),
@@ -331,14 +347,15 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
 
 
 def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
-                        allow_external: bool = False, accept_tol: float | None = None
-                        ) -> Emitted:
+                        allow_external: bool = False, accept_tol: float | None = None,
+                        full_chain: bool = True) -> Emitted:
     """Emit Algorithm 6.4 of a
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` built with
     ``target="robust-sqp", slack_target="robust-sqp"`` as one C call per control step:
     ``<name>_step(x, u_p, u_out, status, work)`` (``bal/multiobj.h``); ``<name>_values``
     gives ``h_cand``, ``bound``, ``h_tilde`` of the last step. ``record_h_r`` (an extra
-    (5.15) solve per step, for plots) is not emitted.
+    (5.15) solve per step, for plots) is not emitted. ``allow_external`` and ``full_chain``
+    as in :func:`emit_robust`.
 
     Algorithm 6.3 (:class:`~balustrade.control.multiobjective.
     MultiobjectiveLyapunovController`):
@@ -359,9 +376,9 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
                            "plots) is not emitted; build the controller without it")
     out_dir = _out_dir(out_dir, name)
     s = _Problem(slack, f"{name}_slack", f"robust slack problem (5.15) {slack.ocp.name!r}",
-                 name, accept_tol)
+                 name, accept_tol, allow_external or full_chain)
     p = _Problem(prob, f"{name}_problem", f"multiobjective (6.15) {prob.ocp.name!r}", name,
-                 accept_tol)
+                 accept_tol, allow_external or full_chain)
     _require(name, {"(5.15) parameter": (s.params, ["x0"]),
                     "(5.15) variable": (s.vars, ["z", "v", "xi", "xi_N"]),
                     "(6.15) parameter": (p.params, ["x0", "u_p", "bound"]),

@@ -34,8 +34,11 @@ lane (final ``|p_y| <= 0.2`` and ``h = 0``), the multiobjective peak lateral acc
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -107,13 +110,15 @@ def closed_loop(ctrl: object, d: BicycleDesign, ws: np.ndarray) -> dict:
     """One closed loop from ``X0`` under the human proposal and the disturbances ``ws``."""
     ctrl.reset()
     x = X0.copy()
-    xs, us, h, ht, times, statuses, fallbacks, retried = [x], [], [], [], [], [], [], []
+    xs, us, h, ht, bounds, times = [x], [], [], [], [], []
+    statuses, fallbacks, retried = [], [], []
     for w in ws:
         start = time.perf_counter()
         u, info = ctrl.step(x, human(x))
         times.append(time.perf_counter() - start)
         h.append(info.values.get("h_r", np.nan))
         ht.append(info.values.get("h_tilde", np.nan))
+        bounds.append(info.values.get("bound", np.nan))
         statuses.append(info.status)
         fallbacks.append(info.fallback)
         retried.append(any("after retries" in getattr(sol, "message", "")
@@ -122,7 +127,8 @@ def closed_loop(ctrl: object, d: BicycleDesign, ws: np.ndarray) -> dict:
         xs.append(x)
         us.append(u)
     return {"states": np.array(xs), "inputs": np.array(us), "h_r": np.array(h),
-            "h_tilde": np.array(ht), "times": np.array(times), "statuses": statuses,
+            "h_tilde": np.array(ht), "bound": np.array(bounds), "times": np.array(times),
+            "statuses": statuses,
             "fallbacks": fallbacks, "retried": retried}
 
 
@@ -156,6 +162,11 @@ def run_metrics(r: dict, d: BicycleDesign, key: str) -> dict:
     zero = np.flatnonzero(np.isfinite(h) & (h <= H_ZERO))
     entry = int(zero[0]) if zero.size else -1
     alat = lateral_acceleration(r["states"])
+    rhs = r.get("bound", np.full(h.shape, np.nan))
+    has_bound = np.isfinite(rhs) & np.isfinite(r["h_tilde"])
+    # Algorithm 6.4: steps where (6.15g) is active, h̃(ξ*_k) = its right-hand side (the
+    # optimizer takes only the decrease ρ allows), out of the steps with one
+    active = np.abs(r["h_tilde"] - rhs) <= 1e-6 * np.maximum(1.0, np.abs(rhs))
     return {"non_increasing": bool(np.all(inc <= bound)),
             "largest_increase": float(inc.max()) if inc.size else 0.0,
             "nan_values": int(np.sum(~np.isfinite(h))),
@@ -169,14 +180,16 @@ def run_metrics(r: dict, d: BicycleDesign, key: str) -> dict:
             "peak_lateral_acceleration": float(np.max(np.abs(alat))),
             "fallbacks": int(sum(f is not None for f in r["fallbacks"])),
             "not_ok": int(sum(s != "ok" for s in r["statuses"])),
-            "median_step_ms": 1e3 * float(np.median(r["times"]))}
+            "median_step_ms": 1e3 * float(np.median(r["times"])),
+            "decrease_bound_active_steps": int(np.sum(active & has_bound)),
+            "steps_with_bound": int(np.sum(has_bound))}
 
 
 def compare(py: dict, c: dict) -> dict:
     """C = Python along the same closed loop (same seed): input/state differences, the
     first step where the inputs differ by more than 1e-6, statuses and fallbacks, and the
-    Python steps with a solve that needed the backend's retry chain (whose last member, an
-    interior-point solver, has no C: docs/deploy_c.md, "Convergence on these problems")."""
+    Python steps with a solve that needed the backend's retry chain (the emitted C runs the
+    same chain, its last member included: :func:`~balustrade.codegen.emit_robust`)."""
     du = np.max(np.abs(py["inputs"] - c["inputs"]), axis=1)
     dx = np.max(np.abs(py["states"] - c["states"]), axis=1)
     first = np.flatnonzero(du > 1e-6)
@@ -190,6 +203,61 @@ def compare(py: dict, c: dict) -> dict:
             "python_steps_after_retries": int(sum(py["retried"])),
             "c_not_ok": int(sum(s != "ok" for s in c["statuses"])),
             "equal": bool(du.max() <= 1e-6 and first.size == 0)}
+
+
+def _key(c_ctrls: dict) -> str:
+    """What a saved seed result belongs to: the source hashes of the emitted controllers
+    (the design, targets and options are in the C) and the number of steps."""
+    return "/".join(f"{k}:{c.accelerated['hash'][:20]}" for k, c in c_ctrls.items()) + \
+        f"/steps:{STEPS}"
+
+
+def seed_file(out: Path, seed: int) -> Path:
+    """Where :func:`seeded_runs` keeps the result of one seed (``out/seeds/seedNNN.json``)."""
+    return Path(out) / "seeds" / f"seed{seed:03d}.json"
+
+
+def seeded_run(c_ctrls: dict, d: BicycleDesign, seed: int,
+               done: dict | None = None) -> dict:
+    """Both controllers from ``X0`` under the disturbances of ``seed``: per controller the
+    must-show metrics (:func:`run_metrics`) and the per-step times (``done``: closed loops
+    already run for this seed, by controller)."""
+    ws = disturbances(d, seed, STEPS)
+    row: dict = {"seed": int(seed), "key": _key(c_ctrls)}
+    for k, c in c_ctrls.items():
+        r = (done or {}).get(k) or closed_loop(c, d, ws)
+        row[k] = {"metrics": run_metrics(r, d, "h_r" if k == "robust" else "h_tilde"),
+                  "times": r["times"].tolist()}
+    return row
+
+
+def seeded_runs(c_ctrls: dict, d: BicycleDesign, seeds: range | list[int], out: Path,
+                done: dict[int, dict] | None = None, log: bool = True) -> list[dict]:
+    """The seeded closed loops of the emitted controllers, resumable: each seed's result is
+    saved to :func:`seed_file` as soon as it is done (written atomically) and a saved
+    result of the same controllers (:func:`_key`) is read instead of run again, so an
+    interrupted run continues where it stopped, and several processes (:func:`main`,
+    ``--jobs``) can share one folder. ``done``: closed loops already run, by seed."""
+    key, rows = _key(c_ctrls), []
+    start = time.perf_counter()
+    for n, seed in enumerate(seeds):
+        path = seed_file(out, seed)
+        if path.is_file():
+            saved = json.loads(path.read_text())
+            if saved.get("key") == key:
+                rows.append(saved)
+                continue
+        row = seeded_run(c_ctrls, d, seed, (done or {}).get(seed))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(row, default=_json))
+        os.replace(tmp, path)
+        rows.append(row)
+        if log:
+            took = time.perf_counter() - start
+            print(f"lane-change: seed {seed} done ({n + 1}/{len(seeds)}, {took:.0f} s, "
+                  f"~{took / (n + 1) * (len(seeds) - n - 1):.0f} s left)", flush=True)
+    return rows
 
 
 def checks(d: BicycleDesign, quick: bool) -> dict:
@@ -242,14 +310,9 @@ def run(out: Path, quick: bool = False) -> dict:
     # record_h_r only adds (5.15) solves whose warm starts serve other (5.15) solves: the
     # decisions of Algorithm 6.4 are those of the plain controller the C was emitted from
     metrics["c_equals_python"] = {k: compare(runs_py[k], runs_c0[k]) for k in c_ctrls}
-    per_seed: dict[str, list[dict]] = {k: [] for k in c_ctrls}
-    times_c: dict[str, list[float]] = {k: [] for k in c_ctrls}
-    for seed in range(seeds):
-        ws = disturbances(d, seed, STEPS)
-        for k, c in c_ctrls.items():
-            r = runs_c0[k] if seed == 0 else closed_loop(c, d, ws)
-            per_seed[k].append(run_metrics(r, d, "h_r" if k == "robust" else "h_tilde"))
-            times_c[k].extend(r["times"].tolist())
+    rows = seeded_runs(c_ctrls, d, range(seeds), out, {0: runs_c0})
+    per_seed = {k: [row[k]["metrics"] for row in rows] for k in c_ctrls}
+    times_c = {k: [t for row in rows for t in row[k]["times"]] for k in c_ctrls}
     metrics["c_runs"] = {k: _aggregate(v) for k, v in per_seed.items()}
     metrics["c_step_ms"] = {k: {"median_ms": 1e3 * float(np.median(v)),
                                 "p90_ms": 1e3 * float(np.percentile(v, 90)),
@@ -302,7 +365,11 @@ def _aggregate(rows: list[dict]) -> dict:
             "not_ok": sum(r["not_ok"] for r in rows),
             "peak_lateral_acceleration_median": float(np.median(
                 [r["peak_lateral_acceleration"] for r in rows])),
-            "final_abs_p_y_max": max(abs(r["final_p_y"]) for r in rows)}
+            "final_abs_p_y_max": max(abs(r["final_p_y"]) for r in rows),
+            # Algorithm 6.4: share of steps at which (6.15g) was active
+            "decrease_bound_active_fraction": sum(r.get("decrease_bound_active_steps", 0)
+                                                  for r in rows) / max(1, sum(
+                r.get("steps_with_bound", 0) for r in rows))}
 
 
 def _figure(runs: dict, d: BicycleDesign, out: Path) -> str:
@@ -335,3 +402,50 @@ def _figure(runs: dict, d: BicycleDesign, out: Path) -> str:
     ax[0].legend(fontsize=7)
     ax[3].legend(fontsize=7)
     return save(fig, out / "fig8_1_lane_change.png")
+
+
+_WORKER: dict = {}
+
+
+def _worker_init() -> None:
+    """A worker of :func:`main`: the design and the emitted controllers (the C library is
+    cached by :func:`~balustrade.codegen.accelerate`: built once, loaded by each worker)."""
+    d = bicycle_design(N=20)
+    _WORKER.update(d=d, c={k: accelerate(c) for k, c in controllers(d).items()})
+
+
+def _worker_seeds(args: tuple[list[int], str]) -> int:
+    seeds, out = args
+    return len(seeded_runs(_WORKER["c"], _WORKER["d"], seeds, Path(out)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m balustrade.reproduce.lane_change --out DIR --seeds 50 --jobs 2``: only the
+    seeded C closed loops of the must-shows, resumable (:func:`seeded_runs`: per-seed JSON
+    in ``DIR/seeds``; rerun the same command after an interruption) and spread over
+    ``--jobs`` processes; prints a summary. ``balustrade reproduce lane-change --out DIR``
+    then reads these seeds instead of running them again."""
+    parser = argparse.ArgumentParser(prog="python -m balustrade.reproduce.lane_change")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--seeds", type=int, default=50, help="seeds 0 … SEEDS-1")
+    parser.add_argument("--first", type=int, default=0, help="first seed")
+    parser.add_argument("--jobs", type=int, default=1)
+    args = parser.parse_args(argv)
+    seeds = list(range(args.first, args.first + args.seeds))
+    jobs = max(1, min(args.jobs, len(seeds)))
+    chunks = [(seeds[j::jobs], str(args.out)) for j in range(jobs)]
+    if jobs == 1:
+        _worker_init()
+        _worker_seeds(chunks[0])
+    else:
+        with ProcessPoolExecutor(jobs, initializer=_worker_init) as pool:
+            list(pool.map(_worker_seeds, chunks))
+    rows = [json.loads(seed_file(args.out, s).read_text()) for s in seeds]
+    summary = {k: _aggregate([r[k]["metrics"] for r in rows])
+               for k in ("robust", "multiobjective")}
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

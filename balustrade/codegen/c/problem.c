@@ -5,7 +5,9 @@
  * tolerances P_TOL_PR, P_TOL_DU, P_ACCEPT_TOL, the objective scale P_F_SCALE, the
  * iteration budget P_BUDGET (0: none; else a first attempt that stops without converging is
  * BAL_TRUNCATED, never retried), and P_SOLVERS(X), the CasADi solvers of the
- * first attempt and of each retry (the same function twice shares its memory). P_kkt
+ * first attempt and of each retry (the same function twice shares its memory), P_REPORTS,
+ * per attempt 1 if its solver returns its own verdict (IPOPT: BAL_OK when it converged)
+ * instead of being judged by P_TOL_PR/P_TOL_DU. P_kkt
  * evaluates the solver's own convergence measures at a point.
  */
 #include <math.h>
@@ -19,6 +21,9 @@ static const casadi_real BAL_PX(ubg)[BAL_PX(NG1)] = BAL_PX(UBG);
 static const casadi_real BAL_PX(init_x)[BAL_PX(NW)] = BAL_PX(INIT_X);
 /* solver of attempt k: k = 0 from the warm start, k >= 1 the k-th cold-start retry */
 static const bal_casadi_fn BAL_PX(solvers)[BAL_PX(N_SOLVERS)] = {BAL_PX(SOLVERS)(BAL_CASADI_FN)};
+/* 1 if the solver of attempt k returns its own verdict (0: converged; IPOPT, whose
+   convergence test is on its internally scaled problem), else its KKT residuals decide */
+static const int BAL_PX(reports)[BAL_PX(N_SOLVERS)] = BAL_PX(REPORTS);
 
 /* the first attempt that uses the solver of attempt k (its memory is shared) */
 static int BAL_PX(first_use)(int k) {
@@ -117,7 +122,7 @@ static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which) {
   wk->attempts++;
   if (which < 0 || which >= BAL_PX(N_SOLVERS)) return BAL_EVAL_ERROR;
   flag = BAL_PX(solvers)[which].eval(wk->arg, wk->res, wk->iw, wk->w, wk->mem[which]);
-  if (flag) return BAL_EVAL_ERROR;
+  if (flag && !BAL_PX(reports)[which]) return BAL_EVAL_ERROR;
   wk->f /= BAL_PX(F_SCALE); /* the declared objective (casadi_backend.objective_scale) */
   wk->karg[0] = wk->x;
   wk->karg[1] = p;
@@ -131,7 +136,11 @@ static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which) {
   for (i = 0; i < BAL_PX(NW); ++i) {
     if (!isfinite(wk->x[i])) return BAL_NONFINITE;
   }
-  if (wk->pr_inf < BAL_PX(TOL_PR) && wk->du_inf < BAL_PX(TOL_DU)) return BAL_OK;
+  if (BAL_PX(reports)[which]) {
+    if (!flag) return BAL_OK; /* the solver's own test passed, as the backend reads it */
+  } else if (wk->pr_inf < BAL_PX(TOL_PR) && wk->du_inf < BAL_PX(TOL_DU)) {
+    return BAL_OK;
+  }
   return wk->feas <= BAL_PX(ACCEPT_TOL) ? BAL_FEASIBLE : BAL_NOT_CONVERGED;
 }
 

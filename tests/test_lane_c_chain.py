@@ -1,0 +1,71 @@
+"""The emitted Algorithm 5.2 runs the backend's whole retry chain (issue #16, §8.2: C = Python
+without a mirror mode). On the unstable 2-D example of Section 5.6, with the SQP attempts
+of ``robust-sqp`` capped at a few iterations so that they often fail, the last retry of the
+chain (the interior-point solver, whose C links a library of the casadi wheel) solves
+those problems: the default C (``full_chain=True``) decides there as the unmirrored Python
+controller, the self-contained C (``full_chain=False``) does not (negative control)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from test_emit_robust import HIGH, LOW, TOL, _design, _kind
+
+from balustrade.backends.targets import target
+from balustrade.codegen import CRobustPCBFSafetyFilter, accelerate, build, emit_robust
+
+STATES = 30
+#: SQP attempts stopped after this many iterations: most fail, the last retry is needed
+SQP_ITERATIONS = 3
+
+
+@pytest.fixture(scope="module")
+def chains(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    tgt = target("robust-sqp", options={"max_iter": SQP_ITERATIONS})
+    py, _ = _design(tgt)            # both problems on it, with the backend's own chain
+    full = accelerate(py, build_dir=tmp_path_factory.mktemp("full"))
+    out = tmp_path_factory.mktemp("self_contained")
+    emitted = emit_robust(py, "rsc", out, full_chain=False)
+    alone = CRobustPCBFSafetyFilter(build(out, emitted.name, werror=True))
+    manifest = json.loads((full.accelerated["dir"] / "bal_robust.json").read_text())
+    return {"py": py, "full": full, "alone": alone, "manifest": manifest,
+            "alone_manifest": emitted.manifest}
+
+
+def test_manifest_lists_the_whole_chain_and_its_library(chains: dict) -> None:
+    m, alone = chains["manifest"], chains["alone_manifest"]
+    py = chains["py"]
+    last = py.slack.retries[-1][0]              # the backend's last resort
+    assert m["problems"]["slack"]["retries"][-1] == last
+    assert m["libraries"] and m["link_flags"]    # the last retry's library, linked
+    assert last not in alone["problems"]["slack"]["retries"]
+    assert alone["libraries"] == [] and alone["link_flags"] == []
+
+
+def test_full_chain_c_equals_unmirrored_python(chains: dict) -> None:
+    py, full, alone = chains["py"], chains["full"], chains["alone"]
+    last = py.slack.retries[-1][0]
+    rng = np.random.default_rng(7)
+    rescued = differs_alone = boundary = 0
+    for k in range(STATES):
+        x, u_p = rng.uniform(LOW, HIGH), rng.uniform(-4, 4, 1)
+        outs = []
+        for ctrl in (py, full, alone):
+            ctrl.reset()
+            outs.append(ctrl.step(x, u_p))
+        (u1, i1), (u2, i2), (u3, i3) = outs
+        by_last = any(s.solver == last for s in i1.solutions.values())
+        rescued += by_last
+        if _kind(i1.status) != _kind(i2.status):
+            boundary += 1        # near tol_du (tests/test_emit_robust.py, _random_states)
+            continue
+        assert i1.fallback == i2.fallback, (k, x, i1.status, i2.status)
+        assert np.max(np.abs(u1 - u2)) <= TOL, (k, x, u1, u2, i1.status)
+        if by_last:
+            differs_alone += _kind(i1.status) != _kind(i3.status) or \
+                np.max(np.abs(u1 - u3)) > TOL
+    assert boundary <= 1, boundary
+    assert rescued >= 3, rescued           # the example exercises the last retry
+    assert differs_alone >= 1, (rescued, differs_alone)  # without it, the C differs
