@@ -195,9 +195,9 @@ def test_bad_input_nan_proposal_and_refusals(pair: dict, design, tmp_path) -> No
     out_py, out_c = py.step([0.1, 0.2], [np.inf]), c.step([0.1, 0.2], [np.inf])
     _same(out_py, out_c, "inf proposal")
     assert out_c[1].status == "non_finite_proposal"
-    exact = MultiobjectiveLyapunovController.build(design, target="exact")
+    conic = MultiobjectiveLyapunovController.build(design, target="cvxpy")
     with pytest.raises(CodegenError, match="convex-qp"):
-        emit_mo_lyapunov(exact, "ml", tmp_path / "a")
+        emit_mo_lyapunov(conic, "ml", tmp_path / "a")
     with pytest.raises(CodegenError, match="expected a MultiobjectiveLyapunovController"):
         emit_mo_lyapunov(object(), "ml", tmp_path / "b")
     assert MultiobjectiveLyapunovController in registered()
@@ -289,3 +289,21 @@ def test_valgrind_clean(pair: dict) -> None:
                           f"--suppressions={out / 'daqp.supp'}", str(exe)],
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
+
+
+def test_default_target_emits_with_the_interior_point_library(design, tmp_path) -> None:
+    """The controller's default target ``"exact"`` (interior point) emits too: its C links the
+    solver's library from the casadi wheel (manifest ``link_flags``) and equals Python on
+    the same chain along a disturbed 40-step loop with random proposals."""
+    py = MultiobjectiveLyapunovController.build(design, rho=0.5)
+    py.problem, py.init = mirror_c_retries(py.problem), mirror_c_retries(py.init)
+    em = emit_mo_lyapunov(py, "mle", tmp_path)
+    lib = build(tmp_path, em.name, werror=True, extra_flags=tuple(em.manifest["link_flags"]))
+    c = CMultiobjectiveLyapunovController(lib)
+    rng = np.random.default_rng(0)
+    x = np.array([0.5, -0.3])
+    for k in range(40):
+        u_p = rng.uniform(-3.0, 3.0, 1)
+        out_py, out_c = py.step(x, u_p), c.step(x, u_p)
+        _same(out_py, out_c, f"step {k}")
+        x = design.system.A @ x + design.system.B @ out_py[0] + rng.uniform(-0.01, 0.01, 2)
