@@ -146,3 +146,21 @@ def test_unpatched_feasible_problems_stay_optimal():
                         (_cone_feasible(), "fast-convex")):
         sol = compile(ocp, target).solve()
         assert sol.status == "optimal", sol.summary()
+
+
+def test_infeasible_rendezvous_problems_keep_their_verdict_with_a_checked_certificate():
+    """(6.15) with a negative bound on the slacks (6.15g) and (5.16) with negative fixed
+    slacks have no solution: Clarabel's certificate passes the check on the real data."""
+    from balustrade.reproduce.rendezvous import controllers, design
+
+    d = design(12, 10)
+    ctls = controllers(d, (0.9,), target="fast-convex", record_h_r=False)
+    x = np.array(d["setup"].x0, dtype=float)
+    r = ctls["robust"].X_E.H.shape[0]
+    for compiled, params in (
+            (ctls["mo_rho0.9"].problem, {"x0": x, "u_p": np.zeros(3), "bound": -1.0}),
+            (ctls["robust"].filter, {"x0": x, "u_p": np.zeros(3),
+                                     "xi": -50.0 * np.ones((r, 12)), "xi_N": 0.0})):
+        sol = compiled.solve(params)
+        assert sol.status == "infeasible", sol.summary()
+        assert "certificate checked" in sol.message, sol.message
