@@ -12,12 +12,15 @@ needed. No cvxpy canonicalization is run per solve. Every re-solve (the feasibil
 the unequilibrated and the rescaled retries, the solve with the large rows) gets the same
 ``A(p)``.
 
-Statuses follow :mod:`~balustrade.backends.cvxpy_backend`: an "infeasible" verdict is
-confirmed by the feasibility problem (same constraints, no cost); rows with large bounds are
-imposed by a second solve only when violated; a failed solve of a problem with weights above
-:data:`~balustrade.backends.cvxpy_backend.BIG_WEIGHT` is retried with the cost rescaled (then
-at best ``optimal_inaccurate``). Multipliers per block have the sign convention of the other
-backends (``≥ 0`` for ``g <= 0`` rows, ``∇f + Σ λ ∇g = 0``).
+Statuses follow :mod:`~balustrade.backends.cvxpy_backend`, with a stricter "infeasible": the
+verdict stands only if the solver's certificate passes a numerical Farkas check against the
+problem data (:mod:`~balustrade.backends.farkas`) or the constraints alone are found
+infeasible by the other engine (PIQP ↔ Clarabel for LPs/QPs; for cones, Clarabel with a
+certificate that passes the check); otherwise it becomes ``failed`` with the reason. Rows
+with large bounds are imposed by a second solve only when violated; a failed solve of a
+problem with weights above :data:`~balustrade.backends.cvxpy_backend.BIG_WEIGHT` is retried
+with the cost rescaled (then at best ``optimal_inaccurate``). Multipliers per block have the
+sign convention of the other backends (``≥ 0`` for ``g <= 0`` rows, ``∇f + Σ λ ∇g = 0``).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import scipy.sparse as sp
 
 from balustrade.backends.cvxpy_backend import BIG_WEIGHT, LARGE_BOUND
 from balustrade.backends.direct_engines import DIRECT_SOLVERS, RawResult, make_engine
+from balustrade.backends.farkas import check_farkas
 from balustrade.backends.passes import DIRECT_CHAIN, run_chain
 from balustrade.backends.passes.classify import Classify
 from balustrade.backends.passes.to_conic import (
@@ -74,7 +78,7 @@ class DirectCompiled:
         self.engine = make_engine(self.solver_name, program, self.options)
         self.cost_scale = program.cost_scale
         self._full: tuple[ConicProgram, object] | None = None  # with the large rows
-        self._feasibility = None  # built on the first "infeasible"
+        self._feasibility: dict = {}  # per program: the engine checking "infeasible"
         self._scaled = None  # built on the first failure with big weights
         # Clarabel without equilibration, built on the first inexact solve (False: none)
         self._second = None if self.solver_name == "clarabel" and \
@@ -93,14 +97,18 @@ class DirectCompiled:
         raw = _run(self.engine, q, b, A)
         message = raw.words
         if raw.status == Status.INFEASIBLE:
-            raw, message = self._check_infeasible(raw, b, A)
+            raw, message = self._check_infeasible(raw, prog, b, A)
         if prog.large is not None and raw.status != Status.INFEASIBLE \
                 and not self._within_large(raw, p):
             first = "violated them" if raw.status.success else raw.status
             full, engine = self._full_problem()
             prog = full
-            raw = _run(engine, full.q(p), full.b(p), full.A_data(p))
-            message = (f"{raw.words} (with the {self.program.large.c.size} large bounds/rows "
+            b_full, A_full = full.b(p), full.A_data(p)
+            raw = _run(engine, full.q(p), b_full, A_full)
+            words = raw.words
+            if raw.status == Status.INFEASIBLE:
+                raw, words = self._check_infeasible(raw, full, b_full, A_full)
+            message = (f"{words} (with the {self.program.large.c.size} large bounds/rows "
                        f"|b| >= {LARGE_BOUND:g}; the solve without them: {first})")
         if raw.status in _RETRY and prog is self.program and self._second is not False:
             raw, message = self._unequilibrated(raw, message, q, b, A)
@@ -117,21 +125,58 @@ class DirectCompiled:
                         iterations=raw.iterations, backend="direct", solver=self.solver_name,
                         p=p, message=message)
 
-    def _check_infeasible(self, raw: RawResult, b: np.ndarray, A: np.ndarray | None
-                          ) -> tuple[RawResult, str]:
-        """Confirm "infeasible" with the feasibility problem (no cost): badly scaled weights
-        can make a solver declare a feasible problem infeasible."""
-        prog = self.program
-        if self._feasibility is None:
-            self._feasibility = make_engine(self.solver_name, prog, self.options,
-                                            P=sp.csc_matrix(prog.P.shape), q=np.zeros(prog.n_y))
-        check = _run(self._feasibility, np.zeros(prog.n_y), b, A)
+    def _check_infeasible(self, raw: RawResult, prog: ConicProgram, b: np.ndarray,
+                          A: np.ndarray | None) -> tuple[RawResult, str]:
+        """An "infeasible" verdict stands only on evidence beyond the solver's word (a
+        tolerance, a badly scaled weight or a bug can make a solver declare a feasible
+        problem infeasible, and re-asking the same solver can repeat the mistake):
+
+        1. the solver's own certificate ``z`` passes the numerical Farkas check
+           (:func:`~balustrade.backends.farkas.check_farkas`: ``z ∈ K*``, ``Aᵀz ≈ 0``,
+           ``bᵀz < 0`` on the problem data, scaled); else
+        2. the constraints alone (no cost) are solved by the *other* engine for LPs/QPs
+           (PIQP ↔ Clarabel; Clarabel for cones): a feasible point overturns the verdict, an
+           "infeasible" with a certificate that passes the check, or (LP/QP) the other
+           engine's independent "infeasible", confirms it.
+
+        Anything else is ``failed`` with the reason — never ``infeasible``."""
+        A_mat = prog.A if A is None else sp.csc_matrix((A, prog.A.indices, prog.A.indptr),
+                                                       shape=prog.A.shape)
+        own = check_farkas(A_mat, b, prog.cones, raw.z)
+        if own.valid:
+            return raw, f"{raw.words}; certificate checked: {own}"
+        name, engine = self._checker(prog)
+        check = _run(engine, np.zeros(prog.n_y), b, A)
+        head = f"{raw.words}, but its certificate does not hold ({own})"
+        if check.status == Status.INFEASIBLE:
+            theirs = check_farkas(A_mat, b, prog.cones, check.z)
+            if theirs.valid:
+                return raw, (f"{head}; the {name} feasibility solve's certificate does: "
+                             f"{theirs}")
+            if name != self.solver_name:
+                return raw, (f"{head}; confirmed by {name} on the constraints alone "
+                             f"({check.words}; its certificate: {theirs})")
+        failed = RawResult(Status.FAILED, raw.words, None, None, raw.iterations)
         if check.status.success:
-            failed = RawResult(Status.FAILED, raw.words, None, None, raw.iterations)
-            return failed, (f"{raw.words}; but the constraints alone are feasible "
-                            f"(feasibility solve: {check.words}): the verdict is numerical, "
-                            "e.g. from badly scaled cost weights")
-        return raw, raw.words
+            return failed, (f"{head}, and the constraints alone are feasible ({name} "
+                            f"feasibility solve: {check.words}): the verdict is numerical")
+        return failed, (f"{head}; not confirmed by the {name} feasibility solve "
+                        f"({check.words}): infeasibility not established")
+
+    def _checker(self, prog: ConicProgram) -> tuple[str, object]:
+        """The engine of the feasibility check of ``prog`` (cost 0): the other solver for an
+        LP/QP, Clarabel for a conic problem; built once per program."""
+        if id(prog) not in self._feasibility:
+            if prog.conic:
+                name, options = "clarabel", (self.options if self.solver_name == "clarabel"
+                                             else {})
+            else:
+                name = "piqp" if self.solver_name == "clarabel" else "clarabel"
+                options = {}
+            engine = make_engine(name, prog, options, P=sp.csc_matrix(prog.P.shape),
+                                 q=np.zeros(prog.n_y))
+            self._feasibility[id(prog)] = (name, engine)
+        return self._feasibility[id(prog)]
 
     def _within_large(self, raw: RawResult, p: np.ndarray) -> bool:
         """The solution exists and satisfies the large rows left out of the problem."""

@@ -34,8 +34,7 @@ def slack_cost(xi: np.ndarray, xi_N: float, alpha_f: float, slack_norm: int | fl
     xi_N = as_scalar(xi_N, "slack_cost: xi_N")
     alpha_f = positive(alpha_f, "slack_cost: alpha_f")
     check_norm_order(slack_norm, "slack_cost: slack_norm")
-    return float(alpha_f * xi_N
-                 + sum(np.linalg.norm(xi[:, i], slack_norm) for i in range(xi.shape[1])))
+    return float(alpha_f * xi_N + np.linalg.norm(xi, slack_norm, axis=0).sum())
 
 
 @dataclass
