@@ -159,3 +159,25 @@ def test_factored_rows_are_chosen_where_they_halve_the_nonzeros(chain):
     keep8 = rep == np.arange(rep.shape[1])[None, :]
     assert 0.6 < keep8.mean() < 0.75                     # 2812 of 4096 rows kept
     assert factored_pays(d["system"], d["X0"], d["K"], keep8)
+
+
+def test_the_emitted_target_is_the_one_that_keeps_every_row(chain):
+    """``EMITTED_TARGETS`` names the target Algorithm 4.1's C is emitted from; a controller on
+    a row-sharing target hands the C every row all the same (its deployment spec), since the
+    C step cannot check that the vertex data repeat the shared rows."""
+    from balustrade.codegen.emit_rapsf import EMITTABLE_TARGET
+    from balustrade.control.rapsf import EMITTED_TARGETS
+    assert EMITTABLE_TARGET in EMITTED_TARGETS
+    ctl = _controller(chain, target="exact")
+    rep = ctl._shared_rows(4)
+    assert rep is not None
+
+    def rows(ocp):
+        return sum(b.rows for b in ocp.blocks)
+
+    shared = rows(ctl._problem(ctl.N, n_vertices=4, shared=rep))
+    ctl.step(np.zeros(ctl.n), np.zeros(ctl.K.shape[0]))     # caches the shared-row problem
+    assert rows(ctl._compiled[(ctl.N, 4)].ocp) == shared
+    emitted = rows(ctl.deployment_spec().problems["main"].ocp)
+    every = rows(_controller(chain, target="convex-qp").deployment_spec().problems["main"].ocp)
+    assert shared < emitted == every

@@ -68,6 +68,12 @@ from balustrade.problems.rapsf import (
 Backup = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
 
 
+
+#: the targets whose (4.5) keeps every tube row because Algorithm 4.1's C is emitted from
+#: them (:data:`balustrade.codegen.emit_rapsf.EMITTABLE_TARGET`)
+EMITTED_TARGETS = ("convex-qp",)
+
+
 class RAPSF:
     """Algorithm 4.1 (SPEC §2.21) as a controller: ``step(x, u_p) -> (u, StepInfo)``.
 
@@ -119,10 +125,11 @@ class RAPSF:
         self.parametric = vertex_data == "parameters"
         self._n_compiled = len(Theta0.vertices())
         self._dependence = row_dependence(system, X0)
-        # a target that emits C (the C step takes any vertex data, so it keeps every row)
-        # solves the same problem in Python: C = Python (emit_rapsf, deployment_spec)
-        self._share = self.target.backend != "casadi" or \
-            self.target.emit_reason(allow_external=True) is not None
+        # the target Algorithm 4.1's C is emitted from (the C step takes any vertex data, so
+        # it keeps every row) solves the same problem in Python: C = Python (emit_rapsf,
+        # deployment_spec). Since interior-point NLP targets emit C too (linking their
+        # library), "emits C" no longer singles it out: the QP path is named.
+        self._share = self.target.name not in EMITTED_TARGETS
         self._shared: dict[int, np.ndarray | None] = {}
         self._X0_vertices = _small_vertices(X0)
         self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
@@ -210,9 +217,10 @@ class RAPSF:
         between vertices (:func:`~balustrade.problems.rapsf.shared_rows` of ``Θ₀``'s vertices
         padded by repetition; ``None`` when no row is shared): a box ``Θ_k`` keeps the
         vertex order of ``Θ₀``, so the same rows coincide at every step, which
-        :meth:`_solve` checks exactly before using that problem. ``None`` also on a target
-        that emits C (:meth:`deployment_spec`: the C step accepts any vertex data, so it
-        and the Python step keep every row)."""
+        :meth:`_solve` checks exactly before using that problem. ``None`` also on the target
+        Algorithm 4.1's C is emitted from (:data:`EMITTED_TARGETS`: the C step accepts any
+        vertex data, so it and the Python step keep every row); :meth:`deployment_spec` hands
+        the C every row on any target."""
         if not self._share:
             return None
         if n_th not in self._shared:
@@ -273,10 +281,11 @@ class RAPSF:
             horizons.update({f"shrunk{h}": h for h in range(1, self.N)})
         problems = {}
         for label, h in horizons.items():
-            if (h, n_th) not in self._compiled:
-                self._compiled[(h, n_th)] = compile(self._problem(h, n_vertices=n_th),
-                                                    self.target)
-            problems[label] = self._compiled[(h, n_th)]
+            # every row: the C step cannot check that the vertex data repeat shared rows
+            key = (h, n_th, "all rows") if self._share else (h, n_th)
+            if key not in self._compiled:
+                self._compiled[key] = compile(self._problem(h, n_vertices=n_th), self.target)
+            problems[label] = self._compiled[key]
         return RAPSFDeployment(problems, "Algorithm 4.1, the RAPSF",
                                K=self.K, N=self.N, n_vertices=n_th,
                                shrinking=self.shrinking, default_backup=self.default_backup,
