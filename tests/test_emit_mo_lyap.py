@@ -307,3 +307,17 @@ def test_default_target_emits_with_the_interior_point_library(design, tmp_path) 
         out_py, out_c = py.step(x, u_p), c.step(x, u_p)
         _same(out_py, out_c, f"step {k}")
         x = design.system.A @ x + design.system.B @ out_py[0] + rng.uniform(-0.01, 0.01, 2)
+
+
+def test_the_c_runs_the_retries_the_mirrored_python_runs(pair: dict) -> None:
+    """One rule for both sides: the emitted (6.10)/(6.3) run the retries of the mirrored
+    Python problems (``convex-qp``: its eigen-reflect retry over the same QP library the
+    first attempt links). Dropping the retries whose C links a library made the C run none
+    while the mirrored Python kept one (review of session 9)."""
+    problems = pair["emitted"].manifest["problems"]
+    for key, compiled in (("first", pair["py"].init), ("problem", pair["py"].problem)):
+        labels = [str(o.get("convexify_strategy", n)) if n == "sqpmethod" else n
+                  for n, o in compiled.retries]
+        entry = next(v for k, v in problems.items() if k.endswith(key) or v["prefix"]
+                     .endswith(key))
+        assert entry["retries"] == labels and labels, (key, entry["retries"], labels)

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from balustrade.backends.casadi_backend import solver_options, sqp_retry_strategies
+from balustrade.backends.casadi_backend import solver_options
 
 #: (nlpsol plugin, qpsol plugin or None) -> libraries the generated C must be linked with
 #: (empty: self-contained, needs only libm).
@@ -113,19 +113,6 @@ def full_options(solver: str, options: Mapping | None = None) -> dict:
     return solver_options(solver, dict(options or {}))
 
 
-def c_attempts(solver: str, options: Mapping) -> list[tuple[str, dict, str]]:
-    """The cold-start retries emitted C runs after a failed first attempt, as
-    ``(solver, options overrides, label)``: for ``sqpmethod`` the backend's other Hessian
-    convexifications (:func:`~balustrade.backends.casadi_backend.sqp_retry_strategies`; the
-    backend's last resort, IPOPT, links libipopt and is left out), labelled by the strategy;
-    for any other solver the same solver again, labelled by its name. The emitters run
-    :func:`c_retries` of the compiled problem's own chain instead."""
-    if solver == _SQP:
-        return [(_SQP, {"convexify_strategy": s}, s)
-                for s in sqp_retry_strategies(dict(options))]
-    return [(solver, {}, solver)]
-
-
 def c_retries(solver: str, options: Mapping, retries: list[tuple[str, Mapping]],
               allow_external: bool = False) -> list[tuple[str, dict, dict, str]]:
     """The cold-start retries the C emitted for a compiled problem runs: the entries of its
@@ -147,15 +134,28 @@ def c_retries(solver: str, options: Mapping, retries: list[tuple[str, Mapping]],
     return out
 
 
-def c_retry_chain(solver: str, retries: list[tuple[str, dict]]) -> list[tuple[str, dict]]:
-    """The part of a compiled problem's retry chain that its emitted C runs too: for
-    ``sqpmethod`` its ``sqpmethod`` entries (the IPOPT last resort links libipopt: this is
-    the chain of C emitted without ``allow_external``); any other solver's chain unchanged
-    (the same list object)."""
-    if solver != _SQP:
-        return retries
-    return [(name, opts) for name, opts in retries if name == _SQP]
+def retries_link_libraries(solver: str, options: Mapping) -> bool:
+    """The default rule for which retries emitted C runs: retries that link an external
+    library are emitted when the first attempt links one (the user already links
+    libraries for this problem), else only self-contained ones."""
+    return bool(c_libraries(solver, options))
 
 
-__all__ = ["ADVICE", "REFUSED", "STATUS_OPTIONS", "SUPPORTED", "c_attempts", "c_libraries",
-           "c_retries", "c_retry_chain", "codegen_reason", "full_options"]
+def c_retry_chain(solver: str, options: Mapping, retries: list[tuple[str, dict]],
+                  allow_external: bool | None = None) -> list[tuple[str, dict]]:
+    """The part of a compiled problem's retry chain that its emitted C runs too, as
+    ``(solver, overrides)``: :func:`c_retries` with ``allow_external`` (default
+    :func:`retries_link_libraries`), the rule the emitters use. The same list object when
+    the whole chain is emitted."""
+    if allow_external is None:
+        allow_external = retries_link_libraries(solver, options)
+    kept = [(name, over) for name, over, _, _ in c_retries(solver, options, retries,
+                                                           allow_external)]
+    same = len(kept) == len(retries) and all(
+        a == b and dict(x) == dict(y) for (a, x), (b, y) in zip(kept, retries))
+    return retries if same else kept
+
+
+__all__ = ["ADVICE", "REFUSED", "STATUS_OPTIONS", "SUPPORTED", "c_libraries",
+           "c_retries", "c_retry_chain", "codegen_reason", "full_options",
+           "retries_link_libraries"]

@@ -38,7 +38,12 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.backends.casadi_backend import CasadiCompiled
-from balustrade.backends.emittable import STATUS_OPTIONS, c_libraries, c_retries
+from balustrade.backends.emittable import (
+    STATUS_OPTIONS,
+    c_libraries,
+    c_retries,
+    retries_link_libraries,
+)
 from balustrade.backends.solution import FEASIBILITY_TOL
 from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
@@ -237,7 +242,7 @@ class _Problem:
     """The C pieces of one compiled problem under the C prefix ``P``."""
 
     def __init__(self, c: CasadiCompiled, P: str, title: str, module: str,
-                 accept_tol: float | None = None, allow_external: bool = False):
+                 accept_tol: float | None = None, allow_external: bool | None = None):
         if getattr(c, "stages", None) is not None:  # issue #14 §2: not yet emitted
             raise CodegenError(f"{title}: problems compiled in stage order (the structured "
                                "targets) cannot be emitted yet: the C unpacks the layout order")
@@ -260,8 +265,11 @@ class _Problem:
         budget = getattr(c, "budget", None)
         self.budget = 0 if budget is None or budget.iterations is None else \
             int(budget.iterations)
-        # (the emittable entries of the compiled problem's own chain: with allow_external
-        # its interior-point last resort too, linking that library, as Python runs it)
+        # (the emittable entries of the compiled problem's own chain; retries that link a
+        # library only with allow_external, by default when the first attempt links one —
+        # the rule of runtime.mirror_c_retries, so a mirrored Python runs the C's chain)
+        if allow_external is None:
+            allow_external = retries_link_libraries(c.solver_name, c.options)
         attempts = [] if self.budget else c_retries(c.solver_name, c.options, c.retries,
                                                     allow_external)
         #: libraries the retries' C links (the first attempt's: ``c.target.c_libraries()``)
@@ -443,9 +451,10 @@ def emit_problem(compiled: CasadiCompiled, name: str, out_dir: str | Path,
 
     ``BAL_OK`` uses the solver's own tolerances ``tol_pr``/``tol_du``. Attempts that do not
     converge are retried from a cold start with the retries of the target that emitted C
-    runs (:func:`~balustrade.backends.emittable.c_retries`: the compiled problem's chain
-    without the entries needing an external library, such as the interior-point last resort of the
-    fast-sqp target, unless ``allow_external``). If
+    runs (:func:`~balustrade.backends.emittable.c_retry_chain`: the compiled problem's chain
+    without the entries needing an external library, such as the interior-point last resort
+    of the fast-sqp target, unless the first attempt links one itself — the rule of
+    :func:`~balustrade.codegen.mirror_c_retries`). If
     none converges and the last attempt's scaled constraint violation is ``<= accept_tol``
     (default ``1e-8``) the status is ``BAL_FEASIBLE``: safe to apply, possibly suboptimal."""
     _check_identifier(name)

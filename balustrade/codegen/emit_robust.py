@@ -326,9 +326,9 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
                            f"{_HINT.format('RobustPCBFSafetyFilter')}") from exc
     out_dir = _out_dir(out_dir, name)
     s = _Problem(slack, f"{name}_slack", f"robust slack problem (5.15) {slack.ocp.name!r}",
-                 name, accept_tol, allow_external or full_chain)
+                 name, accept_tol, full_chain)
     f = _Problem(filt, f"{name}_filter", f"robust filter (5.16) {filt.ocp.name!r}", name,
-                 accept_tol, allow_external or full_chain)
+                 accept_tol, full_chain)
     _require(name, {"(5.15) parameter": (s.params, ["x0"]),
                     "(5.15) variable": (s.vars, ["z", "v", "xi", "xi_N"]),
                     "(5.16) parameter": (f.params, ["x0", "u_p", "xi", "xi_N"]),
@@ -376,9 +376,9 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
                            "plots) is not emitted; build the controller without it")
     out_dir = _out_dir(out_dir, name)
     s = _Problem(slack, f"{name}_slack", f"robust slack problem (5.15) {slack.ocp.name!r}",
-                 name, accept_tol, allow_external or full_chain)
+                 name, accept_tol, full_chain)
     p = _Problem(prob, f"{name}_problem", f"multiobjective (6.15) {prob.ocp.name!r}", name,
-                 accept_tol, allow_external or full_chain)
+                 accept_tol, full_chain)
     _require(name, {"(5.15) parameter": (s.params, ["x0"]),
                     "(5.15) variable": (s.vars, ["z", "v", "xi", "xi_N"]),
                     "(6.15) parameter": (p.params, ["x0", "u_p", "bound"]),

@@ -519,13 +519,17 @@ def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float,
     return info
 
 
-def mirror_c_retries(compiled: object) -> object:
+def mirror_c_retries(compiled: object, allow_external: bool | None = None) -> object:
     """A copy of a compiled CasADi problem that retries failed solves exactly as its emitted
     C does: the part of its retry chain that has code generation
-    (:func:`~balustrade.backends.emittable.c_retry_chain`), so Python and the deployed C can
-    be compared step by step. ``compiled`` itself is not changed (it is returned as is when
-    its whole chain is emitted)."""
-    kept = c_retry_chain(compiled.solver_name, compiled.retries)
+    (:func:`~balustrade.backends.emittable.c_retry_chain`, the emitters' rule: retries that
+    link a library only when the first attempt links one, unless ``allow_external`` says
+    otherwise — pass the value the problem was emitted with, e.g. ``full_chain`` of
+    :func:`~balustrade.codegen.emit_robust`), so Python and the deployed C can be compared
+    step by step. ``compiled`` itself is not changed (it is returned as is when its whole
+    chain is emitted)."""
+    kept = c_retry_chain(compiled.solver_name, compiled.options, compiled.retries,
+                         allow_external)
     return compiled if kept is compiled.retries else compiled.with_retries(kept)
 
 
