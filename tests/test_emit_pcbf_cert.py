@@ -108,6 +108,11 @@ def test_certificate_off_is_emitted_off_and_said(tmp_path):
     assert not c.shifted_certificate
     t = _loops(system, c)[1]
     assert not _fired(t)
+    # the bare deployment spec carries the choice (review: it always got a certificate)
+    spec = py.deployment_spec()
+    assert spec.shifted_certificate is False
+    emitted_spec = emit_pcbf(spec, "nocert2", tmp_path / "spec")
+    assert emitted_spec.manifest["shifted_certificate"] is False
 
 
 DRIVER = r"""

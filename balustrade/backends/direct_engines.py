@@ -30,12 +30,13 @@ DIRECT_SOLVERS = ("clarabel", "piqp")
 
 #: tolerances. PIQP: tight, as :data:`balustrade.backends.cvxpy_backend.SOLVER_OPTIONS`.
 #: Clarabel: the feasibility tolerance stays tight (1e-10: the rows, e.g. the decrease bound
-#: (6.15g) with its 1e-9 margin, hold to it), the duality gap is Clarabel's own default 1e-8
-#: (was 1e-10). Measured on the rendezvous (N = 200, the 13 states of ``bench_robust``,
-#: ``docs/engines.md``): the gap alone sets the iteration count — 1e-10 → 1e-8 takes (5.15)
-#: from 13 to 12, (5.16) from 10 to 9 and (6.15) from 16 to 11 median iterations, while the
-#: feasibility and KKT-ratio tolerances change none — and costs at most 1.7e-6 relative in
-#: the optimal value (h_r) with the same row violations (<= 7e-8, as at 1e-10).
+#: (6.15g) with its 1e-9 margin, hold to it), the duality gap 1e-9 (was 1e-10). Measured on
+#: the rendezvous (N = 200, the states of ``bench_robust``, ``docs/engines.md``): the gap
+#: alone sets the iteration count (1e-10 / 1e-9: 13/10/16 vs 12/9/12 median iterations for
+#: (5.15)/(5.16)/(6.15); the feasibility and KKT-ratio tolerances change none). Clarabel's
+#: own default 1e-8 would match the hand-written baseline's iterations but breaks the 1e-6
+#: agreement with cvxpy of ``test_rendezvous_robust_pair_agrees_with_cvxpy`` (α_f = 1e6
+#: times a 1e-12 bound violation), so it is not used.
 DEFAULT_OPTIONS: dict[str, dict] = {
     "clarabel": {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-10,
                  "tol_ktratio": 1e-8, "max_iter": 300},

@@ -601,13 +601,14 @@ def _shift_certificate(controller: object, spec: PCBFDeployment, name: str
                        ) -> ShiftedCertificate | None:
     """The shifted-plan certificate the emitted step evaluates: the controller's own
     (``None`` when it was built with ``shifted_certificate=False``), or for a bare
-    :class:`PCBFDeployment` the default one of
-    :class:`~balustrade.control.pcbf.PCBFSafetyFilter`; ``None`` if the slack problem does
-    not admit one (:attr:`ShiftedCertificate.available`)."""
+    :class:`PCBFDeployment` the one its ``shifted_certificate`` field asks for; ``None`` if
+    the slack problem does not admit one (:attr:`ShiftedCertificate.available`)."""
     if hasattr(controller, "certificate"):
         cert = controller.certificate
-    else:
+    elif spec.shifted_certificate:
         cert = ShiftedCertificate(spec.slack, spec.zero_tol)
+    else:
+        cert = None
     if cert is None or not cert.available:
         return None
     n_user, n_w = spec.slack.layout.user_size, cert.function(f"{name}_shift_cert").numel_out(0)

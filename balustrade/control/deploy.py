@@ -38,6 +38,9 @@ class PCBFDeployment:
     eps: float
     #: a merely feasible (2.24) point of cost ``<= zero_tol`` is optimal (``h_PB >= 0``)
     zero_tol: float
+    #: whether the step certifies ``h_PB = 0`` by the shifted plan
+    #: (:mod:`balustrade.control.shifted`; the filter's ``shifted_certificate``)
+    shifted_certificate: bool = True
 
 
 @dataclass(frozen=True)

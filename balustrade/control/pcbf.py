@@ -257,4 +257,5 @@ class PCBFSafetyFilter:
                                   "from its last solution; build the filter with "
                                   "warm_start='last' to emit it")
         return PCBFDeployment(slack=self.slack, filter=self.filter, U=self.U,
-                              eps=float(self.eps), zero_tol=ZERO_TOL)
+                              eps=float(self.eps), zero_tol=ZERO_TOL,
+                              shifted_certificate=self.certificate is not None)

@@ -6,7 +6,8 @@
  * iteration budget P_BUDGET (0: none; else a first attempt that stops without converging is
  * BAL_TRUNCATED, never retried), and P_SOLVERS(X), the CasADi solvers of the
  * first attempt and of each retry (the same function twice shares its memory), P_REPORTS,
- * per attempt 1 if its solver returns its own verdict (IPOPT: BAL_OK when it converged)
+ * per attempt 1 if its solver returns its own verdict (the interior-point
+ * solver: BAL_OK when it converged)
  * instead of being judged by P_TOL_PR/P_TOL_DU. P_kkt
  * evaluates the solver's own convergence measures at a point.
  */
@@ -21,8 +22,8 @@ static const casadi_real BAL_PX(ubg)[BAL_PX(NG1)] = BAL_PX(UBG);
 static const casadi_real BAL_PX(init_x)[BAL_PX(NW)] = BAL_PX(INIT_X);
 /* solver of attempt k: k = 0 from the warm start, k >= 1 the k-th cold-start retry */
 static const bal_casadi_fn BAL_PX(solvers)[BAL_PX(N_SOLVERS)] = {BAL_PX(SOLVERS)(BAL_CASADI_FN)};
-/* 1 if the solver of attempt k returns its own verdict (0: converged; IPOPT, whose
-   convergence test is on its internally scaled problem), else its KKT residuals decide */
+/* 1 if the solver of attempt k returns its own verdict (0: converged; the interior-point
+   solver, whose convergence test is on its internally scaled problem), else its KKT residuals decide */
 static const int BAL_PX(reports)[BAL_PX(N_SOLVERS)] = BAL_PX(REPORTS);
 
 /* the first attempt that uses the solver of attempt k (its memory is shared) */
