@@ -37,6 +37,10 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
                        wheel). For horizon OCPs only (refused otherwise, naming the block),
                        and not with a 2-norm cost term (a fatrop solve can hang there:
                        :func:`~balustrade.backends.casadi_backend._refuse_fatrop_hang`).
+                       The hang's mechanism (an unbounded regularization loop on an
+                       indefinite KKT matrix) is general and fatrop has no time limit:
+                       on nonlinear dynamics its safety rests on the states measured
+                       (docs/engines.md), not on a guarantee — not a closed-loop default.
 ``"structured-ip-noretry"`` fatrop alone, no retry (what its emitted C runs; benchmarks, tests).
 ``"structured-sqp"``   ``sqpmethod`` with HPIPM (Riccati-based QP, O(N)) as QP solver on the
                        stage-ordered NLP; retries as ``fast-sqp``. C links libhpipm, libblasfeo.

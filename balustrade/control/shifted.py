@@ -128,19 +128,6 @@ class ShiftedCertificate:
         U[:, :m] = inputs[:, :m]
         return U
 
-    def candidate(self, x: np.ndarray, inputs: np.ndarray) -> dict[str, np.ndarray]:
-        """The shifted plan from ``x``: ``inputs`` (``(nu, m)``, the remaining inputs of the
-        last plan) padded with zeros (or cut) to ``N`` steps, states rolled out with the
-        model, every other variable 0."""
-        ocp = self.ocp
-        U = self.padded(inputs)
-        X = np.asarray(self._rollout()(x, U), float)
-        if not np.all(np.isfinite(X)):
-            raise BalustradeError("ShiftedCertificate: the roll-out is not finite")
-        values = {name: np.zeros(v.shape) for name, v in ocp.variables.items()}
-        values[ocp.state_name], values[ocp.input_name] = X, U
-        return values
-
     def check(self, x: np.ndarray, inputs: np.ndarray | None) -> Solution | None:
         """The shifted plan as an ``optimal`` :class:`Solution` of (2.24) at ``x`` if it
         meets every declared block and bound within ``tol`` with cost ``<= zero_tol``
