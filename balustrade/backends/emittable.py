@@ -51,7 +51,12 @@ SUPPORTED: dict[tuple[str, str | None], tuple[str, ...]] = {
 #: emitted step computes: IPOPT converges on its internally scaled problem (dual
 #: infeasibility relative to the multipliers' size), so its unscaled dual residual can
 #: exceed sqpmethod's ``tol_du`` at a point IPOPT (and the backend) calls optimal.
-STATUS_OPTIONS: dict[str, dict] = {"ipopt": {"error_on_fail": True}}
+#: ``error_on_fail`` counts IPOPT's "solved to acceptable level" as converged, which the
+#: backend reports ``optimal_inaccurate`` (never used as optimal): the emitted IPOPT
+#: therefore never stops at the acceptable level (``acceptable_iter`` 0), so a converged C
+#: attempt is one IPOPT solved to its full tolerance.
+STATUS_OPTIONS: dict[str, dict] = {"ipopt": {"error_on_fail": True,
+                                             "ipopt.acceptable_iter": 0}}
 
 #: plugins known to have no usable code generation, with the reason shown to the user.
 REFUSED: dict[str, str] = {
