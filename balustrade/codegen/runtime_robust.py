@@ -156,14 +156,22 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
     return info
 
 
-class CMultiobjectivePCBFFilter(_OwnsWork):
-    """The emitted Algorithm 6.4 step ((5.15) once, then (6.15)) as a closed-loop
-    controller (fallbacks computed in C); ``values["candidate_exact"] = 0`` as in
-    :class:`CRobustPCBFSafetyFilter`."""
+class _TwoProblemStep(_OwnsWork):
+    """The ctypes plumbing shared by the emitted steps over two problems whose first one
+    runs once or as a fallback (Algorithm 6.4: (5.15) then (6.15); Algorithm 6.3: (6.3) then
+    (6.10)): ``<Q>_step(x, u_p, u_out, &status, work)``, the two solve statuses, three
+    recorded values, the replaced-proposal flag and a view of each problem. Subclasses set
+    :attr:`_LABEL` (error messages), :attr:`_BAD`, :attr:`_INFO` (codes → StepInfo) and may
+    add to a StepInfo in :meth:`_annotate`."""
 
-    def __init__(self, lib_path: str | Path, manifest: dict | None = None):
-        m = self._open(lib_path, manifest, "multiobjective",
-                       "multiobjective PCBF controller")
+    _LABEL = "two-problem step"
+    _BAD = -1
+
+    def _load(self, lib_path: str | Path, manifest: dict | None, kind: str, what: str,
+              first: tuple[str, str, str, str]) -> str:
+        """Open the library; ``first`` = (attribute, C prefix suffix, manifest key, getter
+        suffix) of the first problem's view. Returns the C prefix ``Q``."""
+        m = self._open(lib_path, manifest, kind, what)
         Q = m["name"]
         self.nx, self.nu, self.N = m["nx"], m["nu"], m["N"]
         vp, ci = ctypes.c_void_p, ctypes.c_int
@@ -172,10 +180,10 @@ class CMultiobjectivePCBFFilter(_OwnsWork):
         self._status_fn = self._lib.fn(f"{Q}_solve_status", ci, [vp, ci])
         self._values_fn = self._lib.fn(f"{Q}_values", None, [vp, _dbl_p])
         self._replaced = self._lib.fn(f"{Q}_proposal_replaced", ci, [vp])
-        self._exact = self._lib.fn(f"{Q}_candidate_exact", ci, [vp])
         self._allocate(Q)
-        self.slack = _CProblemView(self._lib, f"{Q}_slack", m["problems"]["slack"],
-                                   self._lib.fn(f"{Q}_slack_problem", vp, [vp])(self._work))
+        attr, suffix, key, getter = first
+        setattr(self, attr, _CProblemView(self._lib, f"{Q}_{suffix}", m["problems"][key],
+                                          self._lib.fn(f"{Q}_{getter}", vp, [vp])(self._work)))
         self.problem = _CProblemView(self._lib, f"{Q}_problem", m["problems"]["problem"],
                                      self._lib.fn(f"{Q}_main_problem", vp, [vp])(self._work))
         self._x, self._u_p, self._u = np.zeros(self.nx), np.zeros(self.nu), np.zeros(self.nu)
@@ -183,11 +191,10 @@ class CMultiobjectivePCBFFilter(_OwnsWork):
         self._status = ci(0)
         self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u),
                       ctypes.byref(self._status), self._work)
+        return Q
 
     def reset(self) -> None:
         self._reset(self._work)
-
-    _BAD = S.code_of(S.MULTIOBJ, "bad_input")
 
     def step_raw(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, int]:
         """One C step without a StepInfo: ``(u, status code)`` (``u`` is a view)."""
@@ -196,23 +203,51 @@ class CMultiobjectivePCBFFilter(_OwnsWork):
         code = self._step(*self._args)
         return self._u, code
 
+    def _info(self, code: int, s_code: int, p_code: int, values: np.ndarray) -> StepInfo:
+        raise NotImplementedError
+
+    def _annotate(self, info: StepInfo) -> None:
+        """Additions to the StepInfo of a step that read its input (none by default)."""
+
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
-        """One C step, reported as the Python controller reports it
-        (:func:`multiobjective_info`)."""
-        u_p = _proposal(u_p, self.nu, "CMultiobjectivePCBFFilter.step: u_p")
-        x = as_vector(x, "CMultiobjectivePCBFFilter.step: x", self.nx, finite=False)
+        """One C step, reported as the Python controller reports it. Wrong shapes raise
+        :class:`~balustrade.errors.ShapeError`; a NaN or inf ``x`` gives the projected
+        proposal (``"non_finite_state"``); NaN or inf entries of ``u_p`` are read as 0
+        (``"non_finite_proposal[_<status>]"``)."""
+        u_p = _proposal(u_p, self.nu, f"{self._LABEL}.step: u_p")
+        x = as_vector(x, f"{self._LABEL}.step: x", self.nx, finite=False)
         start = time.perf_counter()
         u, code = self.step_raw(x, u_p)
         elapsed = time.perf_counter() - start
         self._values_fn(self._work, _ptr(self._values))
-        info = multiobjective_info(code, self._status_fn(self._work, 0),
-                                   self._status_fn(self._work, 1), self._values)
+        info = self._info(code, self._status_fn(self._work, 0),
+                          self._status_fn(self._work, 1), self._values)
         info.solve_time = elapsed
         if code != self._BAD:
             note_proposal(info, int(self._replaced(self._work)))
-            if not self._exact(self._work):
-                info.values["candidate_exact"] = 0.0
+            self._annotate(info)
         return u.copy(), info
+
+
+class CMultiobjectivePCBFFilter(_TwoProblemStep):
+    """The emitted Algorithm 6.4 step ((5.15) once, then (6.15)) as a closed-loop
+    controller (fallbacks computed in C); ``values["candidate_exact"] = 0`` as in
+    :class:`CRobustPCBFSafetyFilter`."""
+
+    _LABEL = "CMultiobjectivePCBFFilter"
+    _BAD = S.code_of(S.MULTIOBJ, "bad_input")
+
+    def __init__(self, lib_path: str | Path, manifest: dict | None = None):
+        Q = self._load(lib_path, manifest, "multiobjective", "multiobjective PCBF controller",
+                       ("slack", "slack", "slack", "slack_problem"))
+        self._exact = self._lib.fn(f"{Q}_candidate_exact", ctypes.c_int, [ctypes.c_void_p])
+
+    def _info(self, code: int, s_code: int, p_code: int, values: np.ndarray) -> StepInfo:
+        return multiobjective_info(code, s_code, p_code, values)
+
+    def _annotate(self, info: StepInfo) -> None:
+        if not self._exact(self._work):
+            info.values["candidate_exact"] = 0.0
 
 
 __all__ = ["CMultiobjectivePCBFFilter", "CRobustPCBFSafetyFilter", "multiobjective_info",
