@@ -31,7 +31,7 @@ from collections.abc import Callable
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_count, as_scalar, as_vector, check_instance
+from balustrade._checks import as_count, as_float_array, as_scalar, as_vector, check_instance
 from balustrade.backends import Compiled, Solution, Target, compile
 from balustrade.backends.casadi_fast import Buffered, FastNLP
 from balustrade.control.base import StepInfo, note_solve
@@ -316,7 +316,13 @@ def _checked_rows(h_rows: object, h: ca.Function, nx: int
                               f"{type(h_rows).__name__}")
     X = np.random.default_rng(0).uniform(-1.0, 1.0, (4, nx))
     want = np.array([float(h(x)) for x in X])
-    got = np.asarray(h_rows(X), dtype=float).reshape(-1)
+    try:
+        out = h_rows(X)
+    except Exception as exc:  # noqa: BLE001 — any failure of the user's callable
+        raise BalustradeError(f"GridPCBFFilter: h_rows failed on a (4, {nx}) array of test "
+                              f"states ({type(exc).__name__}: {exc}); it must map the rows "
+                              f"of an (M, {nx}) array to (M,) values of h_hat") from exc
+    got = as_float_array(out, "GridPCBFFilter: h_rows(X) (values of h_hat)").reshape(-1)
     if got.shape != want.shape or not np.allclose(got, want, rtol=1e-9, atol=1e-12,
                                                          equal_nan=True):
         raise BalustradeError(f"GridPCBFFilter: h_rows must equal h_hat on the rows of an "

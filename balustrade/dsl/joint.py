@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_matrix, as_vector, check_name
+from balustrade._checks import as_float_array, as_matrix, as_vector, check_name
 from balustrade.dsl.sets import Polytope, Set
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
@@ -64,10 +64,11 @@ class JointPolytope(Polytope):
             raise ShapeError(f"{name}: G", "at least one column (p × m, the input "
                              "dimension m)", G.shape)
         if h is not None:
-            h_arr = np.asarray(h, dtype=float).reshape(-1) if np.ndim(h) <= 2 else None
-            if h_arr is None or h_arr.size != F.shape[0]:
+            h_arr = as_float_array(h, f"{name}: h (one bound per row of F and G)")
+            if h_arr.ndim > 2 or h_arr.size != F.shape[0]:
                 raise ShapeError(f"{name}: h (one bound per row of F and G)",
-                                 (F.shape[0],), np.shape(h))
+                                 (F.shape[0],), h_arr.shape)
+            h_arr = h_arr.reshape(-1)
             if not np.all(np.isfinite(h_arr)):
                 raise NonFiniteError(f"{name}: h contains NaN or inf: {h_arr}")
             if np.any(h_arr <= 0):
@@ -159,22 +160,31 @@ class JointPolytope(Polytope):
         for a polytope), or ``max_v [F + G K]_r e^v`` over given ``vertices`` of ``S``
         (rows; same values, one matrix product)."""
         D = self.F if K is None else self.closed_loop(K)
-        if not isinstance(S, Set):
-            raise BalustradeError(f"{self.name}.feedback_support: S must be a balustrade Set, "
-                                  f"got {type(S).__name__}")
-        if S.dim != self.nx:
+        if isinstance(S, Set) and S.dim != self.nx:
             raise ShapeError(f"{self.name}.feedback_support: S ({S.name})",
                              f"dimension {self.nx} (the state dimension)", f"dimension {S.dim}")
-        if vertices is not None:
-            V = as_matrix(vertices, f"{self.name}.feedback_support: vertices",
-                          (None, self.nx))
-            return np.max(D @ V.T, axis=1)
-        t = np.array([S.support(row) for row in D])
-        if not np.all(np.isfinite(t)):
-            raise BalustradeError(f"{self.name}.feedback_support: {S.name} is unbounded "
-                                  f"along rows {np.flatnonzero(~np.isfinite(t)).tolist()} of "
-                                  "F + G K: no tightening keeps the constraints")
-        return t
+        return row_supports(D, S, vertices, f"{self.name}.feedback_support")
+
+
+def row_supports(D: object, S: Set, vertices: np.ndarray | None = None,
+                 where: str = "row_supports") -> np.ndarray:
+    """``max_{e∈S} d_r e`` for every row ``d_r`` of ``D`` (``t`` of SPEC §2.20 for
+    ``D = F + G K``, ``s`` for ``D = H_X A_cl(θ^j)``): one support evaluation per row
+    (closed form for a box or an ellipsoid, an LP for a polytope), or ``max_v d_r e^v`` over
+    given ``vertices`` of ``S`` (rows; same values, one matrix product). ``S`` unbounded
+    along a row → :class:`BalustradeError` (no finite tightening exists)."""
+    if not isinstance(S, Set):
+        raise BalustradeError(f"{where}: S must be a balustrade Set, got {type(S).__name__}")
+    D = as_matrix(D, f"{where}: rows", (None, S.dim))
+    if vertices is not None:
+        V = as_matrix(vertices, f"{where}: vertices", (None, S.dim))
+        return np.max(D @ V.T, axis=1)
+    t = np.array([S.support(row) for row in D])
+    if not np.all(np.isfinite(t)):
+        raise BalustradeError(f"{where}: {S.name} is unbounded along rows "
+                              f"{np.flatnonzero(~np.isfinite(t)).tolist()}: no tightening "
+                              "keeps the constraints")
+    return t
 
 
 def as_joint(Z: object, G: object | None, where: str) -> JointPolytope:
@@ -205,12 +215,19 @@ def _tube(tube: object, cols: int, where: str) -> tuple[ca.SX | None, Set | None
                               f"(alpha, S) (x ∈ z_i ⊕ alpha_i S), got {type(tube).__name__}")
     alpha = tube[0]
     if not isinstance(alpha, (ca.SX, ca.DM)):
-        alpha = ca.DM(np.asarray(alpha, dtype=float))
+        alpha = ca.DM(as_float_array(alpha, f"{where}: tube dilations alpha"))
     alpha = ca.SX(alpha)
     if alpha.numel() < cols or 1 not in alpha.shape:
         raise ShapeError(f"{where}: tube dilations alpha", f"a row of at least {cols} entries "
                          "(one per step)", alpha.shape)
-    return ca.vec(alpha).T, tube[1]
+    alpha = ca.vec(alpha).T
+    const = [(i, float(alpha[i])) for i in range(alpha.numel()) if alpha[i].is_constant()]
+    bad = [(i, a) for i, a in const if not np.isfinite(a) or a < 0]
+    if bad:  # the rows α_i t are exact for α_i >= 0 only (module docstring)
+        raise BalustradeError(f"{where}: tube dilations alpha (shape {alpha.shape}) must be "
+                              f"finite and >= 0 (z_i ⊕ α_i S; the rows are exact only for "
+                              f"α_i >= 0), got {bad[0][1]} at step {bad[0][0]}")
+    return alpha, tube[1]
 
 
 def joint_constraint(ocp: OCP, Z: JointPolytope, x: ca.SX | None = None,
@@ -267,4 +284,4 @@ def _symbolic(value: object, where: str) -> ca.SX:
                           f"one column per step), got {type(value).__name__}")
 
 
-__all__ = ["JointPolytope", "as_joint", "joint_constraint"]
+__all__ = ["JointPolytope", "as_joint", "joint_constraint", "row_supports"]

@@ -40,9 +40,9 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_matrix, check_horizon, check_instance
+from balustrade._checks import as_float_array, as_matrix, check_horizon, check_instance
 from balustrade.dsl import OCP, Polytope, squared_norm
-from balustrade.dsl.joint import JointPolytope, as_joint
+from balustrade.dsl.joint import JointPolytope, as_joint, row_supports
 from balustrade.dsl.synthesis import SynthesisProblem, bmat, trace
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
@@ -142,11 +142,9 @@ def support_rows(X0: Polytope, D: np.ndarray, X0_vertices: np.ndarray | None = N
     """``max_{x∈𝕏₀} d_r x`` for every row ``d_r`` of ``D``: one LP per row, in closed form
     for a :class:`~balustrade.dsl.sets.Box`, or as ``max_v d_r x^v`` over the vertices of
     ``𝕏₀`` when they were enumerated once (``X0_vertices``, rows; same values, a matrix
-    product instead of LPs — the per-step update of ``s`` for small ``n``)."""
-    D = np.atleast_2d(np.asarray(D, dtype=float))
-    if X0_vertices is not None:
-        return np.max(D @ np.asarray(X0_vertices, dtype=float).T, axis=1)
-    return np.array([X0.support(row) for row in D])
+    product instead of LPs — the per-step update of ``s`` for small ``n``). The same
+    computation as ``t`` of (4.5d): :func:`balustrade.dsl.joint.row_supports`."""
+    return row_supports(D, X0, X0_vertices, "support_rows")
 
 
 def s_constants(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarray,
@@ -341,8 +339,8 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
     with ``M_k = [A_k + B_k K, B_k]`` (the same rows, exactly: ``y`` is defined by
     equalities). Each of the ``n_X n_θ N`` rows then has ``3 + |c|`` nonzeros instead of
     those of ``[H_X]_r [A_cl(θ), B(θ), −I]`` (8 masses, a dense ``H_X``: 11 instead of
-    ~42). ``None`` (default): factored when that makes ``Σ nnz²`` over the rows smaller
-    (:func:`factored_pays`).
+    ~42). ``None`` (default): factored when the factored rows, with those defining ``y``,
+    have at most half the nonzeros of the plain ones (:func:`factored_pays`).
     """
     n, m, q = check_parametric_system(system, name)
     N = check_horizon(N, name)
@@ -370,9 +368,7 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
         if shared is None:
             keep = np.ones((HX.shape[0], n_th), dtype=bool)
         else:
-            shared = np.asarray(shared)
-            if shared.shape != (HX.shape[0], n_th):
-                raise ShapeError(f"{name}: shared", (HX.shape[0], n_th), shared.shape)
+            shared = _checked_shared(shared, (HX.shape[0], n_th), name)
             keep = shared == np.arange(n_th)[None, :]
     else:
         V = np.atleast_2d(np.asarray(vertices, dtype=float))
@@ -412,6 +408,35 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
     _terminal(ocp, z[:, N], alpha[N], terminal, n, name)                                 # (4.5e)
     ocp.minimize(squared_norm(u_p - (ca.mtimes(Kd, x0) + v[:, 0]), label="filter"))
     return ocp
+
+
+def _checked_shared(shared: object, shape: tuple[int, int], name: str) -> np.ndarray:
+    """``shared`` of :func:`rapsf_problem` as an integer array of ``shape`` (``n_X × n_θ``)
+    whose entries name a representative that is not later than the vertex and is its own
+    representative (``0 <= shared[r, j] <= j``, ``shared[r, shared[r, j]] == shared[r, j]``),
+    as :func:`shared_rows` returns; anything else would silently drop rows of (4.5c), so it
+    is a :class:`BalustradeError` naming the first offending ``(r, j)`` and the shape."""
+    arr = np.asarray(shared)
+    if arr.shape != shape:
+        raise ShapeError(f"{name}: shared", shape, arr.shape)
+    if arr.dtype.kind not in "iu":
+        flt = as_float_array(arr, f"{name}: shared")
+        if not np.all(np.isfinite(flt)) or np.any(flt != np.round(flt)):
+            raise BalustradeError(f"{name}: shared (shape {arr.shape}) must hold integer "
+                                  f"vertex indices, got dtype {arr.dtype}")
+    rep = arr.astype(np.int64)
+    cols = np.arange(shape[1])[None, :]
+    bad = (rep < 0) | (rep > cols)
+    if not np.any(bad):
+        bad = np.take_along_axis(rep, rep, axis=1) != rep
+    if np.any(bad):
+        r, j = (int(i) for i in np.argwhere(bad)[0])
+        raise BalustradeError(f"{name}: shared (shape {arr.shape}) at (r, j) = ({r}, {j}) is "
+                              f"{rep[r, j]}: each entry must be a vertex index "
+                              f"0 <= shared[r, j] <= j whose own entry is itself "
+                              f"(shared[r, shared[r, j]] == shared[r, j], as shared_rows "
+                              "returns); else rows of (4.5c) would be dropped")
+    return rep
 
 
 def _theta_parts(system: object, K: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
