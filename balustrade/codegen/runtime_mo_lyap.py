@@ -42,14 +42,12 @@ class CMultiobjectiveLyapunovController(_TwoProblemStep):
 
     _LABEL = "CMultiobjectiveLyapunovController"
     _BAD = S.code_of(S.MO_LYAP, "bad_input")
+    _INFO = staticmethod(mo_lyapunov_info)
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
         self._load(lib_path, manifest, "mo_lyapunov",
                    "multiobjective Lyapunov controller (Algorithm 6.3)",
                    ("init", "first", "init", "init_problem"))
-
-    def _info(self, code: int, s_code: int, p_code: int, values: np.ndarray) -> StepInfo:
-        return mo_lyapunov_info(code, s_code, p_code, values)
 
 
 __all__ = ["CMultiobjectiveLyapunovController", "mo_lyapunov_info"]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -161,11 +162,13 @@ class _TwoProblemStep(_OwnsWork):
     runs once or as a fallback (Algorithm 6.4: (5.15) then (6.15); Algorithm 6.3: (6.3) then
     (6.10)): ``<Q>_step(x, u_p, u_out, &status, work)``, the two solve statuses, three
     recorded values, the replaced-proposal flag and a view of each problem. Subclasses set
-    :attr:`_LABEL` (error messages), :attr:`_BAD`, :attr:`_INFO` (codes → StepInfo) and may
+    :attr:`_LABEL` (error messages), :attr:`_BAD`, :attr:`_INFO` (a static function: codes and
+    values → StepInfo) and may
     add to a StepInfo in :meth:`_annotate`."""
 
     _LABEL = "two-problem step"
     _BAD = -1
+    _INFO: Callable[[int, int, int, np.ndarray], StepInfo]
 
     def _load(self, lib_path: str | Path, manifest: dict | None, kind: str, what: str,
               first: tuple[str, str, str, str]) -> str:
@@ -203,9 +206,6 @@ class _TwoProblemStep(_OwnsWork):
         code = self._step(*self._args)
         return self._u, code
 
-    def _info(self, code: int, s_code: int, p_code: int, values: np.ndarray) -> StepInfo:
-        raise NotImplementedError
-
     def _annotate(self, info: StepInfo) -> None:
         """Additions to the StepInfo of a step that read its input (none by default)."""
 
@@ -220,7 +220,7 @@ class _TwoProblemStep(_OwnsWork):
         u, code = self.step_raw(x, u_p)
         elapsed = time.perf_counter() - start
         self._values_fn(self._work, _ptr(self._values))
-        info = self._info(code, self._status_fn(self._work, 0),
+        info = self._INFO(code, self._status_fn(self._work, 0),
                           self._status_fn(self._work, 1), self._values)
         info.solve_time = elapsed
         if code != self._BAD:
@@ -236,14 +236,12 @@ class CMultiobjectivePCBFFilter(_TwoProblemStep):
 
     _LABEL = "CMultiobjectivePCBFFilter"
     _BAD = S.code_of(S.MULTIOBJ, "bad_input")
+    _INFO = staticmethod(multiobjective_info)
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
         Q = self._load(lib_path, manifest, "multiobjective", "multiobjective PCBF controller",
                        ("slack", "slack", "slack", "slack_problem"))
         self._exact = self._lib.fn(f"{Q}_candidate_exact", ctypes.c_int, [ctypes.c_void_p])
-
-    def _info(self, code: int, s_code: int, p_code: int, values: np.ndarray) -> StepInfo:
-        return multiobjective_info(code, s_code, p_code, values)
 
     def _annotate(self, info: StepInfo) -> None:
         if not self._exact(self._work):
