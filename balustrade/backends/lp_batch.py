@@ -80,10 +80,14 @@ def _linprog_status(lp: BatchLP, lo: np.ndarray, hi: np.ndarray) -> int:
 
 
 def feasible_many(lp: BatchLP, row_lb: np.ndarray, row_ub: np.ndarray,
-                  progress: Callable[[int], None] | None = None) -> np.ndarray:
+                  progress: Callable[[int], None] | None = None,
+                  time_limit: float | None = None) -> np.ndarray:
     """Outcome per sample (``FEASIBLE``/``INFEASIBLE``/``UNDECIDED``, an ``int8`` array) of
     ``{y : row_lb[s] <= A y <= row_ub[s], col bounds}``; ``row_lb``, ``row_ub`` are
-    ``S × m`` (``±inf`` allowed). ``progress(s)`` is called after every sample."""
+    ``S × m`` (``±inf`` allowed). ``progress(s)`` is called after every sample.
+    ``time_limit`` (seconds per sample, default none): an LP stopped by it is
+    ``UNDECIDED`` (not re-solved without a limit) — a large degenerate LP can take HiGHS'
+    dual simplex tens of minutes (the 8-mass (4.5) feasibility LP, session 9)."""
     import highspy
 
     row_lb = np.atleast_2d(np.asarray(row_lb, dtype=float))
@@ -99,10 +103,14 @@ def feasible_many(lp: BatchLP, row_lb: np.ndarray, row_ub: np.ndarray,
         lo = np.where(np.isfinite(row_lb[s]), row_lb[s], -inf)
         hi = np.where(np.isfinite(row_ub[s]), row_ub[s], inf)
         solver.changeRowsBounds(m, rows, lo, hi)
+        if time_limit is not None:   # HiGHS compares it with the object's cumulative clock
+            solver.setOptionValue("time_limit", solver.getRunTime() + float(time_limit))
         solver.run()
-        status = _HIGHS_STATUS.get(str(solver.getModelStatus()).rsplit(".", 1)[-1],
-                                   Status.FAILED)
-        if status is Status.OPTIMAL:
+        word = str(solver.getModelStatus()).rsplit(".", 1)[-1]
+        status = _HIGHS_STATUS.get(word, Status.FAILED)
+        if word == "kTimeLimit":
+            out[s] = UNDECIDED
+        elif status is Status.OPTIMAL:
             out[s] = FEASIBLE
         elif status is Status.INFEASIBLE:
             out[s] = INFEASIBLE
@@ -111,6 +119,8 @@ def feasible_many(lp: BatchLP, row_lb: np.ndarray, row_ub: np.ndarray,
         if progress is not None:
             progress(s)
     solver.clearModel()
+    if time_limit is not None:
+        solver.setOptionValue("time_limit", inf)
     return out
 
 

@@ -61,15 +61,21 @@ class FeasibilityLP:
         shift = np.atleast_2d(xs) @ self.C.T
         return self.lb0[None, :] - shift, self.ub0[None, :] - shift
 
-    def feasible(self, xs: np.ndarray, progress: Callable[[int], None] | None = None
-                 ) -> np.ndarray:
-        """Outcome per row of ``xs`` (``1`` feasible, ``0`` infeasible, ``−1`` undecided)."""
+    def feasible(self, xs: np.ndarray, progress: Callable[[int], None] | None = None,
+                 time_limit: float | None = None) -> np.ndarray:
+        """Outcome per row of ``xs`` (``1`` feasible, ``0`` infeasible, ``−1`` undecided;
+        also undecided: an LP stopped by ``time_limit`` seconds)."""
         xs = np.atleast_2d(np.asarray(xs, dtype=float))
         if xs.shape[1] != self.dim:
             raise ShapeError(f"{self.name}.feasible: xs", f"rows of length {self.dim}",
                              xs.shape)
         lo, hi = self.row_bounds(xs)
-        return feasible_many(self.lp, lo, hi, progress)
+        return feasible_many(self.lp, lo, hi, progress, time_limit)
+
+
+#: seconds per LP when samples the compiled solver left undecided are re-checked by the
+#: feasibility LP; one stopped by it stays undecided (counted apart in the estimate)
+RECHECK_TIME_LIMIT = 60.0
 
 
 def feasibility_lp(ocp: OCP, state: str = "x0", values: Mapping[str, object] | None = None,
@@ -165,7 +171,10 @@ class CompiledFeasibility:
         if np.any(out == UNDECIDED):
             if self._lp is None:
                 self._lp = feasibility_lp(self.ocp, self.state, self.values, self.name)
-            out[out == UNDECIDED] = self._lp.feasible(xs[out == UNDECIDED])
+            todo = np.flatnonzero(out == UNDECIDED)
+            recheck = None if progress is None else (
+                lambda k: progress(int(todo[k])))   # keeps the progress line alive
+            out[todo] = self._lp.feasible(xs[todo], recheck, RECHECK_TIME_LIMIT)
         return out
 
 
