@@ -30,6 +30,7 @@ from balustrade.problems.baseline_psf import (
 )
 from balustrade.problems.rapsf import model_matrices
 from balustrade.reproduce import msd_adaptive as M
+from balustrade.reproduce import msd_seeded as S
 
 
 # -- the estimator on sets of known volume ----------------------------------------------------
@@ -174,15 +175,9 @@ def test_quick_reproduction_metrics_are_consistent(quick):
 
 
 def _seeded_run(seed: int, steps: int, d: dict) -> dict:
-    """θ* at a vertex of Θ₀ (cycled) or uniform, vertex disturbances every other run."""
-    s = d["setup"]
-    rng = np.random.default_rng(500 + seed)
-    corners = s.Theta0.vertices()
-    theta = corners[seed % len(corners)] if seed % 2 == 0 else s.sample_theta(rng)
-    ws = (rng.choice([-1.0, 1.0], (steps, 2 * d["n"])) * s.W.ub if seed % 3 != 1
-          else rng.uniform(s.W.lb, s.W.ub, (steps, 2 * d["n"])))
-    ctrl = M.adaptive_controller(d)
-    return M.closed_loop(ctrl, d, theta, ws)
+    """θ* at a vertex of Θ₀ (cycled) or uniform, vertex disturbances every other run
+    (:func:`~balustrade.reproduce.msd_seeded.seeded_case`)."""
+    return S.seeded_run(d, seed, steps)
 
 
 @pytest.fixture(scope="module")
@@ -255,3 +250,31 @@ def test_closed_loop_progress_line():
     line = M.step_line("rapsf", 3, 10, [0.1, 0.2, 0.3])
     assert line == "rapsf: step 3/10, 200 ms/step, 1 s left"
     assert M.step_line("rapsf", 10, 10, [0.1]).endswith("\n")
+
+
+def test_seeded_runs_resume_and_count_every_check(msd3, tmp_path, monkeypatch):
+    """``run_seeds`` writes one file per seed, skips finished seeds on a rerun and counts the
+    must-show checks over all files; a run whose record fails a check lowers its count."""
+    assert S.main(["--masses", "3", "--seeds", "2", "--steps", "5",
+                   "--out", str(tmp_path / "cli")]) == 0
+    assert json.loads((tmp_path / "cli" / "3" / "summary.json").read_text())["runs"] == 2
+    total = S.run_seeds(3, 2, tmp_path, steps=5)
+    assert (total["runs"], total["z_ok"], total["theta_in"], total["nested"]) == (2, 2, 2, 2)
+    calls = []
+    monkeypatch.setattr(S, "seeded_run", lambda *a, **k: calls.append(a))
+    rec = json.loads((tmp_path / "seed_001.json").read_text())
+    rec["nested"] = False
+    (tmp_path / "seed_001.json").write_text(json.dumps(rec))
+    again = S.run_seeds(3, 2, tmp_path, steps=5)
+    assert calls == [] and again["nested"] == 1 and again["z_ok"] == 2
+
+
+@pytest.mark.slow
+def test_eight_mass_seeded_runs_keep_constraints_and_assumption_4_2():
+    """8 masses, two short seeded runs (θ* at a vertex and uniform): the same checks; the 50
+    full runs are ``python -m balustrade.reproduce.msd_seeded --masses 8`` (docs/adaptive.md)."""
+    d = M.design(8, steps=30)
+    ctrl = M.adaptive_controller(d)
+    for seed in (0, 1):
+        r = S.seeded_run(d, seed, 30, ctrl)
+        assert r["z_ok"] and r["theta_in"] and r["nested"], (seed, r["worst_z"])
