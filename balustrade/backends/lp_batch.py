@@ -7,6 +7,9 @@ changes the row bounds, and the dual simplex restarts from the previous basis (n
 samples share most of it). A sample HiGHS cannot decide (presolve's "unbounded or
 infeasible", an iteration limit) is retried once from scratch through
 :func:`scipy.optimize.linprog`; what stays undecided is reported as such, never as feasible.
+An ``infeasible`` verdict is re-decided once without presolve (HiGHS' presolve has called
+a thin, non-empty set empty: :mod:`balustrade.backends.lp`); a sample the two runs disagree on
+takes the second run's verdict.
 """
 
 from __future__ import annotations
@@ -79,6 +82,19 @@ def _linprog_status(lp: BatchLP, lo: np.ndarray, hi: np.ndarray) -> int:
     return {0: FEASIBLE, 2: INFEASIBLE}.get(res.status, UNDECIDED)
 
 
+def _without_presolve(solver: object) -> int:
+    """The current sample solved again from scratch with presolve off: its verdict
+    (``FEASIBLE``/``INFEASIBLE``, anything else ``UNDECIDED``)."""
+    solver.setOptionValue("presolve", "off")
+    try:
+        solver.clearSolver()
+        solver.run()
+        word = str(solver.getModelStatus()).rsplit(".", 1)[-1]
+    finally:
+        solver.setOptionValue("presolve", "choose")
+    return {"kOptimal": FEASIBLE, "kInfeasible": INFEASIBLE}.get(word, UNDECIDED)
+
+
 def feasible_many(lp: BatchLP, row_lb: np.ndarray, row_ub: np.ndarray,
                   progress: Callable[[int], None] | None = None,
                   time_limit: float | None = None) -> np.ndarray:
@@ -113,7 +129,7 @@ def feasible_many(lp: BatchLP, row_lb: np.ndarray, row_ub: np.ndarray,
         elif status is Status.OPTIMAL:
             out[s] = FEASIBLE
         elif status is Status.INFEASIBLE:
-            out[s] = INFEASIBLE
+            out[s] = _without_presolve(solver)
         else:
             out[s] = _linprog_status(lp, row_lb[s], row_ub[s])
         if progress is not None:
