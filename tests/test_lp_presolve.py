@@ -7,11 +7,13 @@ presolve-free solve and a valid Farkas ray; these tests fail on the presolve-onl
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.optimize
 
 from balustrade.backends.lp import is_feasible, solve_lp, solve_lps, solve_lps_joint
 from balustrade.backends.lp_batch import FEASIBLE, INFEASIBLE, BatchLP, feasible_many
 from balustrade.backends.solution import Status
+from balustrade.errors import EmptySetError
 
 
 def _thin_sets(count: int, seed: int = 0, shift: float = 0.0):
@@ -78,3 +80,17 @@ def test_batch_feasibility_rechecks_infeasible_samples():
            for _, H, h in sets]
     assert all(o == FEASIBLE for o in out[:300])
     assert all(o == INFEASIBLE for o in out[300:])
+
+
+def test_polytope_layer_does_not_call_thin_sets_empty():
+    """The set layer (:class:`~balustrade.dsl.sets.Polytope`) uses the same re-decided
+    verdict: ``is_empty`` and ``support`` on the thin sets above."""
+    from balustrade.dsl.sets import Polytope
+
+    for theta, H, h in _thin_sets(300):
+        P = Polytope(H, h)
+        assert not P.is_empty()
+        assert P.support(np.ones(7)) >= float(np.sum(theta)) - 1e-7
+    for _, H, h in _thin_sets(20, seed=1, shift=1e-6):
+        with pytest.raises(EmptySetError):       # the constructor refuses an empty set
+            Polytope(H, h)

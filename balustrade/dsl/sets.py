@@ -40,7 +40,6 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
-import scipy.optimize
 
 from balustrade._checks import as_count, as_matrix, as_vector, check_name, check_psd
 from balustrade.dsl import sets_geometry as geo
@@ -117,14 +116,13 @@ class Polytope(Set):
 
     def is_empty(self) -> bool:
         """Whether ``{Hx <= h}`` is empty (one LP)."""
-        res = scipy.optimize.linprog(np.zeros(self.dim), A_ub=self.H, b_ub=self.h,
-                                     bounds=[(None, None)] * self.dim, method="highs")
+        res = geo.linprog(np.zeros(self.dim), self.H, self.h,
+                                    [(None, None)] * self.dim)
         return res.status == 2
 
     def support(self, a: np.ndarray) -> float:
         a = as_vector(a, f"{self.name}.support(a)", self.dim)
-        res = scipy.optimize.linprog(-a, A_ub=self.H, b_ub=self.h,
-                                     bounds=[(None, None)] * self.dim, method="highs")
+        res = geo.linprog(-a, self.H, self.h, [(None, None)] * self.dim)
         if res.status == 3:
             return float("inf")
         if res.status != 0:

@@ -19,10 +19,22 @@ from balustrade.errors import BalustradeError
 MAX_VERTEX_DIM = 6
 
 
+def linprog(c: np.ndarray, A_ub: np.ndarray, b_ub: np.ndarray, bounds: list) -> object:
+    """:func:`scipy.optimize.linprog` (HiGHS) whose ``infeasible`` verdict (status 2) is
+    re-decided once without presolve: HiGHS' presolve has called thin, non-empty polytopes
+    empty (see :mod:`balustrade.backends.lp`, which also checks a Farkas ray; the set layer
+    imports no backend, so here the presolve-free verdict decides)."""
+    res = scipy.optimize.linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
+    if res.status == 2:
+        res = scipy.optimize.linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs",
+                                     options={"presolve": False})
+    return res
+
+
 def lp_max(H: np.ndarray, h: np.ndarray, a: np.ndarray, block: str) -> tuple[float, np.ndarray]:
     """``max aᵀx`` over ``{Hx <= h}``: value (``+inf`` if unbounded) and maximiser."""
     n = a.size
-    res = scipy.optimize.linprog(-a, A_ub=H, b_ub=h, bounds=[(None, None)] * n, method="highs")
+    res = linprog(-a, H, h, [(None, None)] * n)
     if res.status == 3:
         return float("inf"), np.full(n, np.nan)
     if res.status != 0:
@@ -40,8 +52,7 @@ def chebyshev_center(H: np.ndarray, h: np.ndarray, block: str) -> tuple[np.ndarr
     norms = np.linalg.norm(H, axis=1)
     c = np.zeros(n + 1)
     c[-1] = -1.0
-    res = scipy.optimize.linprog(c, A_ub=np.hstack([H, norms[:, None]]), b_ub=h,
-                                 bounds=[(None, None)] * n + [(0.0, None)], method="highs")
+    res = linprog(c, np.hstack([H, norms[:, None]]), h, [(None, None)] * n + [(0.0, None)])
     if res.status == 3:
         raise BalustradeError(f"{block}: the set contains balls of any radius (unbounded); "
                               "Chebyshev centre undefined")
