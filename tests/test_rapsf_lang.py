@@ -246,3 +246,104 @@ def test_block_bad_input(toy) -> None:
     with pytest.raises(BalustradeError, match="SX"):
         ocp.joint_constraint(Z, x=np.zeros((2, 3)), u=ocp.u)
     assert not [b for b in ocp.blocks if b.tag == "state"]       # nothing half-added
+
+
+# -- the offline design takes 𝒵 as a set too (issue #15 §3) -----------------------------------
+def test_design_functions_take_the_set(toy) -> None:
+    """Every design function of Chapter 4 (tube shape, the checks of Assumption 4.11 with the
+    default, an H-representation and a hull terminal set) gives the same result with 𝒵 as
+    ``(F, G)`` and as a ``JointPolytope``."""
+    from balustrade.design.rapsf import (
+        check_assumption_4_11,
+        check_constraints,
+        contractive_parallelotope,
+        contractive_polytope,
+    )
+    from balustrade.design.rapsf_enlarge import check_enlarged_terminal
+    from balustrade.problems.rapsf import TerminalSet
+
+    Z = _Z(toy)
+    a = contractive_polytope(toy.sys, toy.K, toy.V, toy.W, toy.F, toy.G)
+    b = contractive_polytope(toy.sys, toy.K, toy.V, toy.W, Z)
+    np.testing.assert_array_equal(a.H, b.H)
+    np.testing.assert_array_equal(a.h, b.h)
+    a = contractive_parallelotope(toy.sys, toy.K, toy.V, toy.W, toy.F, toy.G)
+    b = contractive_parallelotope(toy.sys, toy.K, toy.V, toy.W, Z)
+    np.testing.assert_array_equal(a.H, b.H)
+    ra, rb = check_constraints(toy.X0, toy.F, toy.G, toy.K), check_constraints(toy.X0, Z, None,
+                                                                                toy.K)
+    assert ra.ok and rb.ok and ra.worst == rb.worst
+    np.testing.assert_array_equal(ra.details["t"], rb.details["t"])
+    H_T = np.vstack([np.eye(2), -np.eye(2)])          # |z| <= 0.05 (1 − α): a small cone
+    terminals = [None, TerminalSet(H_T / 0.05, np.ones(4)),
+                 TerminalSet.from_generators(np.zeros((2, 1)), np.array([0.5]))]
+    for terminal in terminals:
+        ra = check_assumption_4_11(toy.sys, toy.X0, toy.W, toy.K, toy.V, toy.F, toy.G, terminal)
+        rb = check_assumption_4_11(toy.sys, toy.X0, toy.W, toy.K, toy.V, Z, terminal=terminal)
+        assert ra.ok == rb.ok and ra.worst == rb.worst, terminal
+    ta = check_enlarged_terminal(toy.sys, toy.X0, toy.W, toy.K, toy.V, toy.F, toy.G,
+                                 terminals[2])
+    tb = check_enlarged_terminal(toy.sys, toy.X0, toy.W, toy.K, toy.V, Z, None, terminals[2])
+    assert ta.ok and tb.ok
+    np.testing.assert_array_equal(ta.details["violations"], tb.details["violations"])
+
+
+def test_design_functions_bad_joint_constraints(toy) -> None:
+    """A 𝒵 that does not fit the system, or half of the matrix spelling, is refused with a
+    BalustradeError naming the argument (and the shapes) before any LP."""
+    from balustrade.design.rapsf import (
+        check_assumption_4_11,
+        check_constraints,
+        contractive_box,
+        contractive_polytope,
+    )
+    from balustrade.design.rapsf_enlarge import check_enlarged_terminal
+    from balustrade.problems.rapsf import TerminalSet
+
+    Z3 = JointPolytope(np.ones((4, 3)), np.ones((4, 1)))
+    with pytest.raises(ShapeError, match=r"contractive_polytope.*F.*2 columns.*\(4, 3\)"):
+        contractive_polytope(toy.sys, toy.K, toy.V, toy.W, Z3)
+    with pytest.raises(ShapeError, match=r"contractive_box.*G.*\(6, n\).*\(4, 1\)"):
+        contractive_box(toy.sys, toy.K, toy.V, toy.W, toy.F, toy.G[:4])
+    with pytest.raises(BalustradeError, match="G is missing"):
+        check_constraints(toy.X0, toy.F, None, toy.K)
+    with pytest.raises(BalustradeError, match="not both"):
+        check_assumption_4_11(toy.sys, toy.X0, toy.W, toy.K, toy.V, _Z(toy), toy.G)
+    with pytest.raises(ShapeError, match=r"check_constraints.*G.*1 columns.*\(6, 2\)"):
+        check_constraints(toy.X0, JointPolytope(toy.F, np.ones((6, 2))), None, toy.K)
+    with pytest.raises(ShapeError, match=r"check_assumption_4_11: K"):
+        check_assumption_4_11(toy.sys, toy.X0, toy.W, np.ones((2, 2)), toy.V, _Z(toy))
+    with pytest.raises(ShapeError, match=r"check_enlarged_terminal.*F.*2 columns"):
+        check_enlarged_terminal(toy.sys, toy.X0, toy.W, toy.K, toy.V, Z3, None,
+                                TerminalSet.from_generators(np.zeros((2, 1)), np.ones(1)))
+
+
+def test_msd_adaptive_takes_the_set_or_the_matrices() -> None:
+    """``reproduce msd-adaptive``'s design holds 𝒵 as a ``JointPolytope`` (``d["Z"]``); a design
+    with only the matrices ``F, G`` (the older spelling) runs the same closed loop and the
+    same feasibility sets, and matrices that do not fit the system are refused naming them."""
+    from balustrade.reproduce import msd_adaptive as M
+
+    d = M.design(2, steps=6)
+    assert isinstance(d["Z"], JointPolytope)
+    np.testing.assert_array_equal(d["F"], d["Z"].F)
+    only_z = {k: v for k, v in d.items() if k not in ("F", "G")}
+    only_fg = {k: v for k, v in d.items() if k != "Z"}
+    rng = np.random.default_rng(0)
+    s = d["setup"]
+    theta = s.sample_theta(rng)
+    ws = rng.uniform(s.W.lb, s.W.ub, size=(6, 4))
+    runs = [M.closed_loop(M.adaptive_controller(dd), dd, theta, ws) for dd in (only_z, only_fg)]
+    np.testing.assert_array_equal(runs[0]["inputs"], runs[1]["inputs"])
+    assert runs[0]["worst_z"] == runs[1]["worst_z"] and runs[0]["z_ok"]
+    xs = rng.uniform(s.X.lb, s.X.ub, size=(5, 4))
+    outs = [M.feasibility_sets(dd, None, s.Theta0, None)["F_theta0"].feasible(xs)
+            for dd in (only_z, only_fg)]
+    np.testing.assert_array_equal(outs[0], outs[1])
+    with pytest.raises(ShapeError, match=r"d\['F'\], d\['G'\].*G.*\(6, n\)|G.*\(\d+, n\)"):
+        M.adaptive_controller({**only_fg, "G": only_fg["G"][:3]})
+    with pytest.raises(ShapeError, match=r"d\['Z'\].*F.*4 columns"):
+        M.closed_loop(None, {**only_z, "Z": JointPolytope(np.ones((2, 3)), np.ones((2, 2)))},
+                      theta, ws)
+    with pytest.raises(BalustradeError, match="no joint constraints"):
+        M.adaptive_controller({k: v for k, v in only_fg.items() if k not in ("F",)})

@@ -21,7 +21,14 @@ and ``s_jr`` of the new vertices (:func:`~balustrade.problems.rapsf.s_constants`
 change the QP's parameters only, never its structure. :class:`~balustrade.codegen.CRAPSF`
 runs them in Python (on a copy of the controller) and passes the data to the C step.
 
-Not emitted (:class:`~balustrade.errors.CodegenError`): a user's backup policy, the
+The backup policy ``π_Cf`` (:mod:`balustrade.control.rapsf_backup`) is the default ``K x``, an
+affine law ``K_b x + k_b`` (``<name>_KB``, ``<name>_KB0`` in the config header) or a
+``casadi.Function`` of ``x`` emitted as ``<name>_backup_policy`` (expanded to scalar
+operations), selected by ``<name>_BACKUP`` (0, 1, 2); the C applies it where
+:class:`~balustrade.control.rapsf.RAPSF` does (``k_inf > N − 1``, a falsified model, a
+non-finite state with its NaN entries read as 0).
+
+Not emitted (:class:`~balustrade.errors.CodegenError`): a Python callable as backup, the
 terminal-set enlargement. The controller must be built on a CasADi target that can be
 emitted; the QP (4.5) needs :data:`EMITTABLE_TARGET` (``"convex-qp"``, a dual active-set QP
 solver inside the SQP; the self-contained ``"fast-sqp"`` cycles on this QP's degenerate
@@ -51,8 +58,10 @@ from balustrade.codegen.emit import (
     _spec,
     _write_module,
 )
+from balustrade.codegen.support import check_no_callbacks
 from balustrade.control.deploy import RAPSFDeployment
-from balustrade.errors import CodegenError
+from balustrade.control.rapsf_backup import AffineBackup, FunctionBackup
+from balustrade.errors import BalustradeError, CodegenError
 
 #: the target to build :class:`~balustrade.control.rapsf.RAPSF` with for C
 EMITTABLE_TARGET = "convex-qp"
@@ -88,9 +97,7 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
         raise CodegenError(f"{name}: the terminal-set enlargement (enlarge=True) records its "
                            "generators in Python and is not emitted; build the RAPSF without "
                            "enlarge")
-    if not spec.default_backup:
-        raise CodegenError(f"{name}: a user's backup policy is Python; the C applies the "
-                           "default backup K x (build the RAPSF without backup=...)")
+    backup = _backup_law(spec, name)
     compiled = spec.problems["main"]
     try:
         libs = _check_compiled(compiled, f"{name}: the QP (4.5)", allow_external)
@@ -116,6 +123,8 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
     functions = P.functions()
     for Ph in shrunk.values():
         functions.update(Ph.functions())
+    if isinstance(backup, FunctionBackup):
+        functions[f"{name}_backup_policy"] = backup.emittable(name)
     files = _generate(functions, name, out_dir)
     cfg = C.Config()
     P.config(cfg)
@@ -133,10 +142,11 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
                "Remark 4.6: (4.5) with the horizon N - k_inf before the stored plan")
     cfg.comment("the problems (4.5) with the shrunk horizons: X(member of the work struct, h)")
     cfg.xmacro(f"{name}_SHRUNK", [f"{key}, {key.removeprefix('shrunk')}" for key in shrunk])
+    backup_kind = _backup_config(cfg, name, backup, nu, nx)
     cfg.status(S.RAPSF, "BAL_RAPSF_STATUS_CODES")
     manifest = {"kind": "rapsf", "nx": nx, "nu": nu, "N": spec.N, "nq": nq,
                 "n_vertices": nth, "n_rows": nxr, "shrinking": bool(shrunk),
-                "K": K.tolist(), "link_flags": list(link_flags(libs)),
+                "K": K.tolist(), "backup": backup_kind, "link_flags": list(link_flags(libs)),
                 "problems": {"main": P.manifest(),
                              **{key: Ph.manifest() for key, Ph in shrunk.items()}},
                 "rapsf_status": S.manifest(S.RAPSF)}
@@ -144,6 +154,40 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
              ("rapsf", name)]
     return _write_module(name, out_dir, "Algorithm 4.1, the RAPSF (4.5)", cfg, parts, files,
                          manifest, tuple(sorted(set(libs))))
+
+
+def _backup_law(spec: RAPSFDeployment, name: str) -> AffineBackup | FunctionBackup | None:
+    """The emittable backup law of the controller (``None``: the default ``K x``); a Python
+    callable → :class:`CodegenError` naming ``backup`` (nothing written yet)."""
+    if spec.default_backup:
+        return None
+    law = getattr(spec.host, "backup_law", None)
+    if not isinstance(law, (AffineBackup, FunctionBackup)):
+        raise CodegenError(f"{name}: backup is a Python callable "
+                           f"({type(getattr(spec.host, 'backup', None)).__name__}); its body "
+                           "cannot be emitted as C. Give the RAPSF backup=(K_b, k_b) (the "
+                           "affine law K_b x + k_b) or backup=<casadi.Function of x>, or no "
+                           "backup (K x)")
+    if isinstance(law, FunctionBackup):
+        check_no_callbacks(law.fn, f"{name}: backup (casadi.Function {law.fn.name()!r})")
+        try:
+            law.emittable(name)
+        except BalustradeError as exc:
+            raise CodegenError(str(exc)) from exc
+    return law
+
+
+def _backup_config(cfg: C.Config, name: str, law: AffineBackup | FunctionBackup | None,
+                   nu: int, nx: int) -> str:
+    """``<name>_BACKUP`` (0: ``K x``, 1: ``K_b x + k_b``, 2: ``<name>_backup_policy(x)``)
+    and the affine law's data; returns the manifest word."""
+    kind = 0 if law is None else 1 if isinstance(law, AffineBackup) else 2
+    cfg.define(f"{name}_BACKUP", kind, "the backup policy: 0 K x, 1 K_b x + k_b, 2 the "
+               f"emitted function {name}_backup_policy(x)")
+    if isinstance(law, AffineBackup):
+        cfg.array(f"{name}_KB", law.K_b.T.reshape(-1), nu * nx)
+        cfg.array(f"{name}_KB0", law.k_b, nu)
+    return ("default", "affine", "function")[kind]
 
 
 def _shrunk_problems(spec: RAPSFDeployment, name: str, P: _Problem, nu: int,

@@ -11,7 +11,9 @@ Per step: update ``Θ_k`` with the estimator (``k >= 1``), solve (4.5)
   otherwise, or if that fails, the stored plan with tube feedback on the current state,
   ``K x_k + v*_{k_inf | k − k_inf}`` (``"stored_plan"``);
 * else the backup policy ``π_Cf(x, u_p, k)`` (``"backup"``; default ``K x``, safe on the §4.7
-  terminal set ``z = 0, α <= 1``, i.e. on ``𝕏₀``).
+  terminal set ``z = 0, α <= 1``, i.e. on ``𝕏₀``; or an affine law ``(K_b, k_b)``, a
+  ``casadi.Function`` of ``x`` — both emitted as C — or a Python callable:
+  :mod:`balustrade.control.rapsf_backup`).
 
 ``k_inf`` starts at ``N − 1``, so a state in ``C_f \\ F_feas(Θ₀)`` uses the backup at once.
 Only a solve that ended ``optimal`` is used; any other status is recorded in
@@ -50,6 +52,7 @@ from balustrade._checks import as_matrix, check_horizon, check_instance
 from balustrade.backends import Solution, compile, resolve_target
 from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import RAPSFDeployment
+from balustrade.control.rapsf_backup import backup_policy
 from balustrade.control.rapsf_enlarge import TerminalEnlargement
 from balustrade.dsl.sets import Polytope
 from balustrade.errors import BalustradeError, EmptySetError
@@ -96,7 +99,7 @@ class RAPSF:
 
     def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
                  W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
-                 estimator: object | None = None, backup: Backup | None = None,
+                 estimator: object | None = None, backup: Backup | object | None = None,
                  target: object = "exact", shrinking: bool = False,
                  terminal: TerminalSet | None = None, tol: float = 1e-7,
                  enlarge: bool | TerminalEnlargement = False, name: str = "rapsf",
@@ -111,12 +114,10 @@ class RAPSF:
         if estimator is not None and not callable(getattr(estimator, "update", None)):
             raise BalustradeError(f"{name}: estimator must have a method "
                                   "update(x_prev, u_prev, x) -> Θ")
-        if backup is not None and not callable(backup):
-            raise BalustradeError(f"{name}: backup must be callable as backup(x, u_p, k)")
         self.system, self.X0, self.F, self.G, self.W = system, X0, F, G, W
         self.Theta0, self.estimator, self.terminal, self.name = Theta0, estimator, terminal, name
-        self.default_backup = backup is None
-        self.backup = backup if backup is not None else (lambda x, u_p, k: self.K @ x)
+        self.default_backup = backup is None        # π_Cf: None, (K_b, k_b), Function, callable
+        self.backup, self.backup_law = backup_policy(backup, self.n, self.m, self.K, name)
         self.shrinking = bool(shrinking)
         self.target = resolve_target(target)
         if vertex_data not in ("parameters", "constants"):

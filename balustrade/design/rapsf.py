@@ -8,6 +8,12 @@ Assumption 4.11 as public functions users call in their own tests:
 * :func:`check_assumption_4_11` — for every generator ``(z, α)`` of the terminal set there is
   ``(v, z⁺, α⁺)`` meeting (4.5c)–(4.5e) (one LP per generator; the default ``z = 0,
   0 <= α <= 1`` reduces to the two checks above).
+
+The joint constraints ``𝒵 = {Fx + Gu <= 1}`` (4.5d) are the language's
+:class:`~balustrade.dsl.joint.JointPolytope` passed as ``F`` with ``G=None`` (e.g.
+``JointPolytope.product(X, U)``), or the two matrices ``F, G`` (the older spelling): both go
+through :func:`joint_set`, so the same shape checks apply and bad shapes raise a
+:class:`~balustrade.errors.ShapeError` naming ``F``/``G`` and both shapes.
 """
 
 from __future__ import annotations
@@ -18,9 +24,11 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from balustrade._checks import as_matrix
 from balustrade.backends import solve_synthesis
 from balustrade.backends.lp import solve_lps
 from balustrade.backends.solution import Status
+from balustrade.dsl.joint import JointPolytope, as_joint
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.sets_geometry import vertices as polytope_vertices
 from balustrade.errors import BalustradeError
@@ -34,6 +42,20 @@ from balustrade.problems.rapsf import (
     tube_constants,
     unit_polytope,
 )
+
+
+def joint_set(F: np.ndarray | JointPolytope, G: np.ndarray | None, n: int, m: int,
+              where: str) -> JointPolytope:
+    """``𝒵`` of (4.5d) for a system with ``n`` states and ``m`` inputs: ``F`` itself when it
+    is a :class:`~balustrade.dsl.joint.JointPolytope` (``G`` must be ``None``), else
+    ``JointPolytope(F, G)`` (:func:`~balustrade.dsl.joint.as_joint`); blocks that do not fit
+    ``n``/``m`` raise :class:`~balustrade.errors.ShapeError` naming ``F`` or ``G``."""
+    return as_joint(F, G, where).check_dims(n, m, where)
+
+
+def _gain(K: object, n: int, where: str) -> np.ndarray:
+    """``K`` as an ``m × n`` matrix (``m`` its rows)."""
+    return as_matrix(K, f"{where}: K (m × n, n = {n} states)", (None, n))
 
 
 @dataclass
@@ -134,15 +156,19 @@ def contraction_factor(X0: Polytope, system: object, K: np.ndarray,
 
 
 def contractive_box(system: object, K: np.ndarray, vertices: np.ndarray, W: Polytope,
-                    F: np.ndarray, G: np.ndarray, iterations: int = 500) -> Box:
+                    F: np.ndarray | JointPolytope, G: np.ndarray | None = None,
+                    iterations: int = 500) -> Box:
     """A λ-contractive box ``𝕏₀ = {|x| <= c b}`` for all vertices, RPI for ``W`` and inside
     ``𝒵`` (SPEC §2.20 [Default]).
 
     The shape ``b`` is the Perron vector of ``M = max_j |A_cl(θ^j)|`` (elementwise), found by
     power iteration; then ``λ = ρ(M) < 1`` is required, and the scale ``c`` is the largest
     with ``t_r <= 1``, which must exceed the smallest with ``λ + w̄_r/(c b_r) <= 1``.
-    Raises when ``ρ(M) >= 1`` (no contractive box for this ``K``: use a polytope)."""
-    n, _, _ = check_parametric_system(system, "contractive_box")
+    Raises when ``ρ(M) >= 1`` (no contractive box for this ``K``: use a polytope). ``𝒵``: a
+    :class:`~balustrade.dsl.joint.JointPolytope` ``F`` (``G=None``) or the matrices ``F, G``."""
+    n, m, _ = check_parametric_system(system, "contractive_box")
+    K = _gain(K, n, "contractive_box")
+    Z = joint_set(F, G, n, m, "contractive_box")
     M = np.max(np.abs(np.stack(closed_loop_matrices(system, K, vertices))), axis=0)
     M = M + 1e-9                                        # irreducible: a positive Perron vector
     b = np.ones(n)
@@ -157,7 +183,7 @@ def contractive_box(system: object, K: np.ndarray, vertices: np.ndarray, W: Poly
     E = disturbance_map(system, n)
     w_bar = np.array([W.support(E[i]) for i in range(n)])
     c_min = float(np.max(w_bar / ((1 - lam) * b)))
-    FGK = F + G @ K
+    FGK = Z.closed_loop(K)
     t_unit = np.abs(FGK) @ b
     c_max = float(1.0 / np.max(t_unit)) if np.max(t_unit) > 0 else np.inf
     if c_min > c_max:
@@ -234,7 +260,8 @@ def parallelotope_bases(system: object, K: np.ndarray, vertices: np.ndarray
 
 
 def contractive_parallelotope(system: object, K: np.ndarray, vertices: np.ndarray,
-                              W: Polytope, F: np.ndarray, G: np.ndarray,
+                              W: Polytope, F: np.ndarray | JointPolytope,
+                              G: np.ndarray | None = None,
                               bases: list[np.ndarray] | None = None,
                               iterations: int = 500) -> Parallelotope:
     """A λ-contractive parallelotope ``𝕏₀ = {|Tx| <= c b}`` for all vertices, RPI for ``W``
@@ -250,11 +277,13 @@ def contractive_parallelotope(system: object, K: np.ndarray, vertices: np.ndarra
     Why (8 masses): no box in the original coordinates is contractive for any ``K`` (the
     position row ``p⁺ = p + T_s v`` has ``|A_cl|`` row sum ``> 1``: ``u`` does not act on
     it), and the contractive polytope has 104 rows, i.e. ``104·128`` LPs for ``s_jr`` per
-    update of ``Θ_k``."""
-    n, _, _ = check_parametric_system(system, "contractive_parallelotope")
+    update of ``Θ_k``. ``𝒵``: a :class:`~balustrade.dsl.joint.JointPolytope` ``F``
+    (``G=None``) or the matrices ``F, G``."""
+    n, m, _ = check_parametric_system(system, "contractive_parallelotope")
+    K = _gain(K, n, "contractive_parallelotope")
+    FGK = joint_set(F, G, n, m, "contractive_parallelotope").closed_loop(K)
     Acls = closed_loop_matrices(system, K, vertices)
     E = disturbance_map(system, n)
-    FGK = np.asarray(F + G @ K, dtype=float)
     best, errors = None, []
     for T in bases if bases is not None else parallelotope_bases(system, K, vertices):
         T = np.asarray(T, dtype=float)
@@ -285,7 +314,8 @@ def contractive_parallelotope(system: object, K: np.ndarray, vertices: np.ndarra
 
 
 def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W: Polytope,
-                         F: np.ndarray, G: np.ndarray, lam: float | None = None,
+                         F: np.ndarray | JointPolytope, G: np.ndarray | None = None,
+                         lam: float | None = None,
                          max_sweeps: int = 100, tol: float = 1e-9) -> Polytope:
     """A λ-contractive polytope ``𝕏₀ = {H_X x <= 1}`` for all vertices, RPI for ``W`` and
     inside ``𝒵`` (SPEC §2.20 [Default]): start from ``{(F + GK)x <= 1}`` and add the rows
@@ -298,14 +328,17 @@ def contractive_polytope(system: object, K: np.ndarray, vertices: np.ndarray, W:
     first, screened by the bounding box of the current polytope (``support`` over the box
     ``>=`` over the polytope, so a row the box already satisfies is redundant without its
     LP), and the rest solved on one warm-started LP model (:func:`_supports`); the rows
-    added are those of the plain loop (one ``linprog`` per candidate)."""
-    n, _, _ = check_parametric_system(system, "contractive_polytope")
+    added are those of the plain loop (one ``linprog`` per candidate). ``𝒵``: a
+    :class:`~balustrade.dsl.joint.JointPolytope` ``F`` (``G=None``) or the matrices ``F, G``."""
+    n, m, _ = check_parametric_system(system, "contractive_polytope")
+    K = _gain(K, n, "contractive_polytope")
+    Z = joint_set(F, G, n, m, "contractive_polytope")
     Acls = closed_loop_matrices(system, K, vertices)
     if lam is None:
         lam = 0.5 * (1.0 + max(float(np.max(np.abs(np.linalg.eigvals(A)))) for A in Acls))
     if not 0 < lam < 1:
         raise BalustradeError(f"contractive_polytope: lam must lie in (0, 1), got {lam}")
-    H = np.asarray(F + G @ K, dtype=float)
+    H = Z.closed_loop(K)
     H = H[np.linalg.norm(H, axis=1) > 1e-12]
     fresh = H
     for _ in range(max_sweeps):
@@ -394,34 +427,41 @@ def check_rpi(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarray,
     return CheckReport(worst <= tol, worst, {"s": c.s, "w_bar": c.w_bar})
 
 
-def check_constraints(X0: Polytope, F: np.ndarray, G: np.ndarray, K: np.ndarray,
-                      tol: float = 1e-9) -> CheckReport:
-    """``(x, Kx) ∈ 𝒵`` for all ``x ∈ 𝕏₀`` (``t_r <= 1``; one LP per row of ``𝒵``)."""
+def check_constraints(X0: Polytope, F: np.ndarray | JointPolytope, G: np.ndarray | None,
+                      K: np.ndarray, tol: float = 1e-9) -> CheckReport:
+    """``(x, Kx) ∈ 𝒵`` for all ``x ∈ 𝕏₀`` (``t_r <= 1``; one LP per row of ``𝒵``). ``𝒵``:
+    a :class:`~balustrade.dsl.joint.JointPolytope` ``F`` (``G=None``) or the matrices
+    ``F, G``."""
     unit_polytope(X0, "check_constraints")
-    t = np.array([X0.support(row) for row in F + G @ K])
+    K = _gain(K, X0.dim, "check_constraints")
+    Z = joint_set(F, G, X0.dim, K.shape[0], "check_constraints")
+    t = np.array([X0.support(row) for row in Z.closed_loop(K)])
     worst = float((t - 1.0).max())
     return CheckReport(worst <= tol, worst, {"t": t})
 
 
 def check_assumption_4_11(system: object, X0: Polytope, W: Polytope, K: np.ndarray,
-                          vertices: np.ndarray, F: np.ndarray, G: np.ndarray,
-                          terminal: TerminalSet | None = None, tol: float = 1e-7
-                          ) -> CheckReport:
+                          vertices: np.ndarray, F: np.ndarray | JointPolytope,
+                          G: np.ndarray | None = None, terminal: TerminalSet | None = None,
+                          tol: float = 1e-7) -> CheckReport:
     """Assumption 4.11 for ``𝕏_f`` and the vertices ``θ^j`` of ``Θ``: at every generator
     ``(z, α)`` of ``𝕏_f`` an LP finds ``v`` and ``(z⁺, α⁺) ∈ 𝕏_f`` with (4.5c), (4.5d). The
     feasible ``(z, α, v, z⁺, α⁺)`` form a polyhedron, so the generators suffice. The default
     terminal set ``z = 0, 0 <= α <= 1`` is checked at ``α = 1`` with ``v = 0, z⁺ = 0, α⁺ = 1``
-    (:func:`check_rpi` and :func:`check_constraints`)."""
+    (:func:`check_rpi` and :func:`check_constraints`). ``𝒵``: a
+    :class:`~balustrade.dsl.joint.JointPolytope` ``F`` (``G=None``) or the matrices ``F, G``."""
     n, m, _ = check_parametric_system(system, "check_assumption_4_11")
+    K = as_matrix(K, "check_assumption_4_11: K", (m, n))
+    Z = joint_set(F, G, n, m, "check_assumption_4_11")
     if terminal is not None and terminal.has_generators:   # a hull (4.10): its own LPs
         from balustrade.design.rapsf_enlarge import check_enlarged_terminal
-        return check_enlarged_terminal(system, X0, W, K, vertices, F, G, terminal, tol)
+        return check_enlarged_terminal(system, X0, W, K, vertices, Z, None, terminal, tol)
     if terminal is None or terminal.H_T is None:
         rpi = check_rpi(X0, system, K, vertices, W, tol=tol)
-        cons = check_constraints(X0, F, G, K, tol=tol)
+        cons = check_constraints(X0, Z, None, K, tol=tol)
         return CheckReport(rpi.ok and cons.ok, max(rpi.worst, cons.worst),
                            {"rpi": rpi, "constraints": cons})
-    c = tube_constants(X0, W, system, K, vertices, F, G)
+    c = tube_constants(X0, W, system, K, vertices, Z, None)
     H_T, h_T = np.asarray(terminal.H_T, float), np.asarray(terminal.h_T, float).ravel()
     Hz = np.hstack([H_T, h_T[:, None]])
     gens = polytope_vertices(np.vstack([Hz, -np.eye(n + 1)[n:]]),
@@ -429,13 +469,13 @@ def check_assumption_4_11(system: object, X0: Polytope, W: Polytope, K: np.ndarr
                              "check_assumption_4_11: terminal set")
     worst = -np.inf
     for gen in gens:
-        worst = max(worst, _terminal_lp(system, c, K, vertices, F, G, H_T, h_T, gen[:n],
+        worst = max(worst, _terminal_lp(system, c, K, vertices, Z, H_T, h_T, gen[:n],
                                         gen[n], n, m))
     return CheckReport(worst <= tol, float(worst), {"generators": gens})
 
 
 def _terminal_lp(system: object, c: object, K: np.ndarray, vertices: np.ndarray,
-                 F: np.ndarray, G: np.ndarray, H_T: np.ndarray, h_T: np.ndarray,
+                 Z: JointPolytope, H_T: np.ndarray, h_T: np.ndarray,
                  z: np.ndarray, a: float, n: int, m: int) -> float:
     """The smallest uniform violation ``ε`` of (4.5c)–(4.5e) over ``(v, z⁺, α⁺)`` at the
     generator ``(z, α)`` (variables ``[v, z⁺, α⁺, ε]``, ``min ε``)."""
@@ -447,8 +487,9 @@ def _terminal_lp(system: object, c: object, K: np.ndarray, vertices: np.ndarray,
         rows.append(np.hstack([HX @ B, -HX, -np.ones((HX.shape[0], 1)),
                                -np.ones((HX.shape[0], 1))]))
         rhs.append(-(HX @ Acl @ z + a * c.s[:, j] + c.w_bar))
+    G = Z.G
     rows.append(np.hstack([G, np.zeros((G.shape[0], n + 1)), -np.ones((G.shape[0], 1))]))
-    rhs.append(1.0 - (F + G @ K) @ z - a * c.t)
+    rhs.append(1.0 - Z.closed_loop(K) @ z - a * c.t)
     rows.append(np.hstack([np.zeros((H_T.shape[0], m)), H_T, h_T[:, None],
                            -np.ones((H_T.shape[0], 1))]))
     rhs.append(np.ones(H_T.shape[0]))
@@ -465,5 +506,5 @@ def _terminal_lp(system: object, c: object, K: np.ndarray, vertices: np.ndarray,
 
 __all__ = ["LMI_MAX_VERTICES", "CheckReport", "centre_lqr_gain", "check_assumption_4_11",
            "check_constraints", "check_rpi", "contraction_factor", "contractive_box",
-           "contractive_parallelotope", "contractive_polytope", "Parallelotope",
+           "contractive_parallelotope", "contractive_polytope", "joint_set", "Parallelotope",
            "parallelotope_bases", "quadratic_contraction", "robust_gain"]

@@ -22,8 +22,10 @@ from collections.abc import Iterable
 import numpy as np
 import scipy.optimize
 
+from balustrade._checks import as_matrix
 from balustrade.backends.hull import extreme_points, hull_distances
-from balustrade.design.rapsf import CheckReport
+from balustrade.design.rapsf import CheckReport, joint_set
+from balustrade.dsl.joint import JointPolytope
 from balustrade.errors import BalustradeError, ShapeError
 from balustrade.problems.rapsf import (
     TerminalSet,
@@ -72,15 +74,20 @@ def _base_of(terminal: TerminalSet) -> TerminalSet | None:
 
 
 def check_enlarged_terminal(system: object, X0: object, W: object, K: np.ndarray,
-                            vertices: np.ndarray, F: np.ndarray, G: np.ndarray,
-                            terminal: TerminalSet, tol: float = 1e-7) -> CheckReport:
+                            vertices: np.ndarray, F: np.ndarray | JointPolytope,
+                            G: np.ndarray | None, terminal: TerminalSet,
+                            tol: float = 1e-7) -> CheckReport:
     """Assumption 4.11 for the hull terminal set ``terminal`` and the vertices ``θ^j`` of
     ``Θ`` (rows of ``vertices``): at every generator ``(z, α)`` (and every vertex of the
     base set) an LP minimizes the uniform violation ``ε`` of (4.5c), (4.5d) over ``v`` and
     ``(z⁺, α⁺) = Σλ_g(Z_g, a_g) + (z', α')`` in the hull (perspective form). ``ok`` when the
     largest ``ε`` is ``<= tol``; ``details["violations"]`` has one ``ε`` per generator (the
-    recorded ones first, then the base vertices)."""
+    recorded ones first, then the base vertices). ``𝒵``: a
+    :class:`~balustrade.dsl.joint.JointPolytope` ``F`` (``G=None``) or the matrices
+    ``F, G``."""
     n, m, _ = check_parametric_system(system, "check_enlarged_terminal")
+    K = as_matrix(K, "check_enlarged_terminal: K", (m, n))
+    Z = joint_set(F, G, n, m, "check_enlarged_terminal")
     if not isinstance(terminal, TerminalSet) or terminal.Z is None:
         raise BalustradeError("check_enlarged_terminal: terminal must be a TerminalSet with "
                               "numeric generators (TerminalSet.from_generators)")
@@ -88,13 +95,13 @@ def check_enlarged_terminal(system: object, X0: object, W: object, K: np.ndarray
     if V.shape[0] != n + 1:
         raise ShapeError("check_enlarged_terminal: terminal generators Z", f"{n} rows",
                          (V.shape[0] - 1, V.shape[1]))
-    c = tube_constants(X0, W, system, K, np.atleast_2d(vertices), F, G)
+    c = tube_constants(X0, W, system, K, np.atleast_2d(vertices), Z, None)
     base = base_generators(terminal, n)
     if base is None:
         raise BalustradeError("check_enlarged_terminal: the vertices of the base terminal set "
                               "could not be enumerated (dimension n + 1 > 6 or unbounded)")
     at = np.hstack([V, base])
-    eps = np.array([_successor_lp(system, c, K, np.atleast_2d(vertices), F, G, terminal,
+    eps = np.array([_successor_lp(system, c, K, np.atleast_2d(vertices), Z, terminal,
                                   at[:n, g], float(at[n, g]), n, m) for g in
                     range(at.shape[1])])
     worst = float(eps.max())
@@ -102,7 +109,7 @@ def check_enlarged_terminal(system: object, X0: object, W: object, K: np.ndarray
 
 
 def _successor_lp(system: object, c: object, K: np.ndarray, vertices: np.ndarray,
-                  F: np.ndarray, G: np.ndarray, terminal: TerminalSet, z: np.ndarray,
+                  Z: JointPolytope, terminal: TerminalSet, z: np.ndarray,
                   a: float, n: int, m: int) -> float:
     """``min ε`` over ``[v, λ, λ_f, z', α', ε]`` (``z'`` only for an H-representation base)
     s.t. (4.5c) at every vertex and (4.5d) relaxed by ``ε``, ``(z⁺, α⁺)`` in the hull."""
@@ -129,11 +136,11 @@ def _successor_lp(system: object, c: object, K: np.ndarray, vertices: np.ndarray
         R[:, ie] = -1.0
         rows.append(R)
         rhs.append(-(HX @ Acl @ z + a * c.s[:, j] + c.w_bar))
-    R = np.zeros((G.shape[0], nv))
-    R[:, iv:il] = G
+    R = np.zeros((Z.G.shape[0], nv))
+    R[:, iv:il] = Z.G
     R[:, ie] = -1.0
     rows.append(R)
-    rhs.append(1.0 - (F + G @ K) @ z - a * c.t)
+    rhs.append(1.0 - Z.closed_loop(K) @ z - a * c.t)
     if has_zb:                                   # H_T z' + h_T α' <= λ_f
         H_T = np.asarray(terminal.H_T, float)
         R = np.zeros((H_T.shape[0], nv))

@@ -54,9 +54,11 @@ from balustrade.design.rapsf import (
     LMI_MAX_VERTICES,
     contractive_parallelotope,
     contractive_polytope,
+    joint_set,
     robust_gain,
 )
 from balustrade.design.rapsf_enlarge import enlarged_terminal_set
+from balustrade.dsl.joint import JointPolytope
 from balustrade.dsl.sets import Box
 from balustrade.errors import BalustradeError
 from balustrade.estimate import BoxUpdate
@@ -66,7 +68,7 @@ from balustrade.problems.baseline_psf import (
     enlarged_disturbance,
     nominal_parameter,
 )
-from balustrade.problems.rapsf import joint_constraints, rapsf_problem
+from balustrade.problems.rapsf import check_parametric_system, rapsf_problem
 from balustrade.reproduce._plotting import figure, save
 
 NAMES = ("msd-adaptive",)
@@ -92,32 +94,54 @@ def design(n: int = 3, steps: int = 150, input_gain: float = 1.0) -> dict:
     and ``𝕏₀``: the contractive polytope up to ``LMI_MAX_VERTICES`` vertices of ``Θ₀`` (3
     masses), above it (8 masses) the contractive parallelotope (32 rows, closed-form
     supports; the polytope has 104 rows and ``104·128`` LPs per update of ``s_jr``);
-    ``input_gain`` of :func:`~balustrade.models.msd.msd_chain` (``T_s``: the variant)."""
+    ``input_gain`` of :func:`~balustrade.models.msd.msd_chain` (``T_s``: the variant).
+
+    The joint constraints ``𝒵 = X × U`` are the :class:`~balustrade.dsl.joint.JointPolytope`
+    ``d["Z"]``; ``d["F"]``, ``d["G"]`` are its blocks (for callers of the matrix spelling).
+    Every function below that takes ``d`` reads ``𝒵`` through :func:`joint`."""
     system, setup = msd_chain(n, input_gain=input_gain), msd_setup(n, steps=steps)
     V = setup.Theta0.vertices()
-    F, G = joint_constraints(setup.X, setup.U)
+    Z = JointPolytope.product(setup.X, setup.U)
     start = time.perf_counter()
     K = robust_gain(system, V, contraction=0.95)
     if len(V) > LMI_MAX_VERTICES:       # 8 masses: 32 rows instead of 104, no LPs for s_jr
-        X0 = contractive_parallelotope(system, K, V, setup.W, F, G)
+        X0 = contractive_parallelotope(system, K, V, setup.W, Z)
     else:
-        X0 = contractive_polytope(system, K, V, setup.W, F, G)
-    return {"n": n, "system": system, "setup": setup, "V": V, "F": F, "G": G, "K": K,
-            "X0": X0, "design_s": time.perf_counter() - start}
+        X0 = contractive_polytope(system, K, V, setup.W, Z)
+    return {"n": n, "system": system, "setup": setup, "V": V, "Z": Z, "F": Z.F, "G": Z.G,
+            "K": K, "X0": X0, "design_s": time.perf_counter() - start}
+
+
+def joint(d: dict) -> JointPolytope:
+    """``𝒵`` of a design ``d``: ``d["Z"]`` (a :class:`~balustrade.dsl.joint.JointPolytope`)
+    when present, else the matrices ``d["F"]``, ``d["G"]`` (the older spelling) through the
+    same checks (:func:`~balustrade.design.rapsf.joint_set`): blocks that do not fit the
+    system raise :class:`~balustrade.errors.ShapeError` naming ``F``/``G`` and the shapes."""
+    n, m, _ = check_parametric_system(d.get("system"), "msd_adaptive: d['system']")
+    if d.get("Z") is not None:
+        if not isinstance(d["Z"], JointPolytope):
+            raise BalustradeError(f"msd_adaptive: d['Z'] must be a JointPolytope (build it "
+                                  f"with JointPolytope.product(X, U)), got "
+                                  f"{type(d['Z']).__name__}")
+        return d["Z"].check_dims(n, m, "msd_adaptive: d['Z']")
+    if d.get("F") is None:
+        raise BalustradeError("msd_adaptive: the design d has no joint constraints: give "
+                              "d['Z'] (a JointPolytope) or the matrices d['F'], d['G']")
+    return joint_set(d["F"], d.get("G"), n, m, "msd_adaptive: d['F'], d['G']")
 
 
 def baseline_design(d: dict) -> dict:
     """The enlarged disturbance ``W̃``, ``θ_c`` and the baseline's ``K``, ``𝕏₀``: the first
     pair of :data:`BASELINE_DESIGNS` (LMI contraction at ``θ_c``, polytope λ) whose
     contractive polytope is robustly invariant for ``W̃``."""
-    system, s, F, G = d["system"], d["setup"], d["F"], d["G"]
+    system, s, Z = d["system"], d["setup"], joint(d)
     Wt = enlarged_disturbance(system, s.Theta0, s.W, s.X, s.U)
     tc = nominal_parameter(s.Theta0)[None, :]
     errors = []
     for c, lam in BASELINE_DESIGNS:
         K = robust_gain(system, tc, contraction=c)
         try:
-            X0 = contractive_polytope(system, K, tc, Wt, F, G, lam=lam)
+            X0 = contractive_polytope(system, K, tc, Wt, Z, lam=lam)
         except BalustradeError as e:
             errors.append(f"contraction {c}, lam {lam}: {str(e)[:80]}")
             continue
@@ -131,7 +155,7 @@ def adaptive_controller(d: dict) -> RAPSF:
     """Algorithm 4.1 with the box update and the §4.7 terminal set (the enlargement of
     ``𝓕_f(Θ₁₅₀)`` is computed after the run from all solved tubes, as in the thesis)."""
     s = d["setup"]
-    return RAPSF(d["system"], d["X0"], d["F"], d["G"], s.W, d["K"], s.N, s.Theta0,
+    return RAPSF(d["system"], d["X0"], joint(d), None, s.W, d["K"], s.N, s.Theta0,
                  estimator=BoxUpdate(d["system"], s.W, s.Theta0), target=TARGET)
 
 
@@ -139,7 +163,7 @@ def baseline_controller(d: dict, b: dict) -> RAPSF:
     """The baseline as Algorithm 4.1 on ``{θ_c}`` and ``W̃`` without estimator (its problem is
     :func:`~balustrade.problems.baseline_psf.baseline_psf_problem`)."""
     s, tc = d["setup"], b["theta_c"]
-    return RAPSF(d["system"], b["X0"], d["F"], d["G"], b["W"], b["K"], s.N,
+    return RAPSF(d["system"], b["X0"], joint(d), None, b["W"], b["K"], s.N,
                  Box(tc, tc, name="theta_c"), target=TARGET, name="baseline_psf")
 
 
@@ -152,7 +176,7 @@ def closed_loop(ctrl: RAPSF, d: dict, theta: np.ndarray, ws: np.ndarray,
     contains ``θ*``). ``progress`` (a sink such as
     :func:`~balustrade.design.admissible_volume.print_progress`) gets a line after every
     step: steps done, ms per step (median so far) and the time left at that rate."""
-    system, s, F, G, n = d["system"], d["setup"], d["F"], d["G"], d["n"]
+    system, s, Z, n = d["system"], d["setup"], joint(d), d["n"]
     ctrl.reset()
     x = np.array(s.x0, dtype=float)
     xs, us, ups, lbs, ubs, times = [x], [], [], [], [], []
@@ -164,7 +188,7 @@ def closed_loop(ctrl: RAPSF, d: dict, theta: np.ndarray, ws: np.ndarray,
         start = time.perf_counter()
         u, info = ctrl.step(x, u_p)
         times.append(time.perf_counter() - start)
-        worst_z = max(worst_z, float(np.max(F @ x + G @ u - 1.0)))
+        worst_z = max(worst_z, float(np.max(Z.F @ x + Z.G @ u - 1.0)))
         T = ctrl.Theta
         theta_in &= bool(T.contains(theta, tol=1e-7))
         nested &= bool(np.all(prev.contains_many(np.atleast_2d(T.vertices()), tol=1e-9)))
@@ -217,7 +241,8 @@ def feasibility_sets(d: dict, b: dict | None, Theta_final: Box, terminal: object
                      ) -> dict:
     """The admissible sets of Table 4.1 as feasibility deciders on ``fast-convex``."""
     s, sysm = d["setup"], d["system"]
-    common = (sysm, d["X0"], d["F"], d["G"], s.W, d["K"], s.N)
+    Z = joint(d)
+    common = (sysm, d["X0"], Z, None, s.W, d["K"], s.N)
 
     def deciding(ocp: object, name: str) -> CompiledFeasibility:
         return CompiledFeasibility(ocp, TARGET, values={"u_p": np.zeros(d["n"])}, name=name)
@@ -230,7 +255,7 @@ def feasibility_sets(d: dict, b: dict | None, Theta_final: Box, terminal: object
                                                      terminal=terminal), "Ff_theta150")
     if b is not None:
         sets["F_psf"] = deciding(baseline_psf_problem(sysm, s.Theta0, b["W"], b["X0"],
-                                                      d["F"], d["G"], b["K"], s.N),
+                                                      Z, None, b["K"], s.N),
                                  "F_psf")
     return sets
 

@@ -3,7 +3,8 @@
  * Q_main. From <name>_config.h: Q_NX, Q_NU, Q_N, Q_NQ, Q_NTH, Q_NXR, the tube gain Q_K
  * (NU x NX, column-major), the offsets of Q_main (Q_main_P_x0, ..., Q_main_W_v) and, for
  * Remark 4.6, Q_SHRINKING with the X-macro Q_SHRUNK(X) = X(shrunk1, 1) ... of the problems
- * (4.5) with the horizons 1 ... N-1 (same parameter layout as Q_main).
+ * (4.5) with the horizons 1 ... N-1 (same parameter layout as Q_main), and the backup
+ * policy Q_BACKUP (0: K x; 1: Q_KB, Q_KB0 of K_b x + k_b; 2: the function Q_backup_policy).
  */
 #include <math.h>
 #include <stdlib.h>
@@ -12,6 +13,10 @@
 #include "step_common.c"
 
 static const casadi_real BAL_QX(gain)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
+#if BAL_QX(BACKUP) == 1
+static const casadi_real BAL_QX(backup_gain)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(KB);
+static const casadi_real BAL_QX(backup_offset)[BAL_QX(NU)] = BAL_QX(KB0);
+#endif
 
 int BAL_QX(init)(BAL_QX(work)* wk) {
   int failed = 0; /* the horizon whose init failed (0: none) */
@@ -21,6 +26,16 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
   if (!failed && BAL_QX(tag##_init)(&wk->tag)) failed = h;
   BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_INIT)
 #undef BAL_RAPSF_SHRUNK_INIT
+#if BAL_QX(BACKUP) == 2
+  if (!failed) { /* the backup function's memory; on failure undo every horizon */
+    BAL_QX(backup_policy_incref)();
+    wk->bmem = BAL_QX(backup_policy_checkout)();
+    if (wk->bmem < 0) {
+      BAL_QX(backup_policy_decref)();
+      failed = BAL_QX(N);
+    }
+  }
+#endif
   if (failed) { /* give back what was taken */
 #define BAL_RAPSF_SHRUNK_UNDO(tag, h) \
   if (h < failed) BAL_QX(tag##_finalize)(&wk->tag);
@@ -36,6 +51,10 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
 
 void BAL_QX(finalize)(BAL_QX(work)* wk) {
   if (!wk->ready) return;
+#if BAL_QX(BACKUP) == 2
+  BAL_QX(backup_policy_release)(wk->bmem);
+  BAL_QX(backup_policy_decref)();
+#endif
 #define BAL_RAPSF_SHRUNK_FINALIZE(tag, h) BAL_QX(tag##_finalize)(&wk->tag);
   BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_FINALIZE)
 #undef BAL_RAPSF_SHRUNK_FINALIZE
@@ -69,6 +88,34 @@ static void BAL_QX(feedback)(const casadi_real* x, const casadi_real* v, casadi_
   }
 }
 
+/* the backup policy pi_Cf at x, NaN entries of x as 0 (RAPSF._backup): Q_BACKUP 0 the
+   default K x, 1 the affine law K_b x + k_b, 2 the function Q_backup_policy(x) (NaN outputs
+   when it fails or there is no work memory) */
+static void BAL_QX(apply_backup)(const casadi_real* x, casadi_real* u, BAL_QX(work)* wk) {
+#if BAL_QX(BACKUP) == 0
+  (void) wk;
+  BAL_QX(feedback)(x, 0, u);
+#elif BAL_QX(BACKUP) == 1
+  casadi_int i, j;
+  (void) wk;
+  for (i = 0; i < BAL_QX(NU); ++i) {
+    u[i] = BAL_QX(backup_offset)[i];
+    for (j = 0; j < BAL_QX(NX); ++j) {
+      u[i] += BAL_QX(backup_gain)[i + j * BAL_QX(NU)] * (isfinite(x[j]) ? x[j] : 0.0);
+    }
+  }
+#else
+  casadi_int i;
+  if (wk && wk->ready) {
+    for (i = 0; i < BAL_QX(NX); ++i) wk->bx[i] = isfinite(x[i]) ? x[i] : 0.0;
+    wk->barg[0] = wk->bx;
+    wk->bres[0] = u;
+    if (!BAL_QX(backup_policy)(wk->barg, wk->bres, wk->biw, wk->bw, wk->bmem)) return;
+  }
+  for (i = 0; i < BAL_QX(NU); ++i) u[i] = NAN;
+#endif
+}
+
 #if BAL_QX(SHRINKING)
 /* Remark 4.6: (4.5) with the horizon h (1 <= h <= N - 1) at the parameters wk->p, from a
    cold start as every solve; BAL_OK -> u_out = K x + v^_0 of it. Returns its status. */
@@ -94,7 +141,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   casadi_int i;
   if (!x || !u_p || !theta || !s || !u_out || !status || !wk) {
     if (status) *status = BAL_RAPSF_BAD_INPUT;
-    if (x && u_out) BAL_QX(feedback)(x, 0, u_out);
+    if (x && u_out) BAL_QX(apply_backup)(x, u_out, wk);
     return BAL_RAPSF_BAD_INPUT;
   }
   wk->main_status = BAL_NOT_RUN;
@@ -103,7 +150,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
   if (falsified || !bal_finite(x, BAL_QX(NX))) {
     /* nothing solved: the backup policy; k_inf and the plan are kept */
-    BAL_QX(feedback)(x, 0, u_out);
+    BAL_QX(apply_backup)(x, u_out, wk);
     *status = falsified ? BAL_RAPSF_FALSIFIED : BAL_RAPSF_BAD_INPUT;
     return *status;
   }
@@ -135,7 +182,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
     BAL_QX(feedback)(x, wk->plan + wk->k_inf * BAL_QX(NU), u_out);
     *status = BAL_RAPSF_STORED_PLAN;
   } else {
-    BAL_QX(feedback)(x, 0, u_out);
+    BAL_QX(apply_backup)(x, u_out, wk);
     *status = BAL_RAPSF_BACKUP;
   }
   return *status;

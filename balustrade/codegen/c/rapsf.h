@@ -23,9 +23,11 @@
  *       horizon N - k_inf (cold start); BAL_OK -> u = K x + v^_0 of that solve, the
  *       stored plan and k_inf kept                                BAL_RAPSF_SHRUNK_HORIZON
  *     k_inf <= N - 1 and a stored plan -> u = K x + v*_{k_inf}    BAL_RAPSF_STORED_PLAN
- *     otherwise the backup policy u = K x                          BAL_RAPSF_BACKUP
- *   falsified                       -> u = K x, nothing solved     BAL_RAPSF_FALSIFIED
- *   x NaN/inf, NULL args            -> u = K x (NaN entries of x as 0)   BAL_RAPSF_BAD_INPUT
+ *     otherwise the backup policy u = pi_Cf(x)                     BAL_RAPSF_BACKUP
+ *   falsified                       -> u = pi_Cf(x), nothing solved  BAL_RAPSF_FALSIFIED
+ *   x NaN/inf, NULL args            -> u = pi_Cf(x) (NaN entries of x as 0) BAL_RAPSF_BAD_INPUT
+ * pi_Cf by Q_BACKUP: 0 the default K x, 1 the affine law K_b x + k_b (Q_KB, Q_KB0), 2 the
+ * emitted CasADi function Q_backup_policy(x) (NaN outputs if it fails or work is NULL).
  *   u_p NaN/inf (x finite)          -> those entries read as 0, the step runs as usual
  * k_inf starts at N - 1 (Q_reset): without a stored plan a failed solve uses the backup.
  */
@@ -43,6 +45,15 @@ typedef struct BAL_QX(work) {
   casadi_real u_p[BAL_QX(NU)];              /* the proposal used (non-finite -> 0) */
   casadi_real objective;                    /* of the last converged (4.5), else NAN */
   int have_plan, k_inf, main_status, shrunk_status, n_replaced, ready;
+#if BAL_QX(BACKUP) == 2
+  /* the backup policy Q_backup_policy(x): its arguments, work and memory */
+  const casadi_real* barg[BAL_QX(backup_policy_SZ_ARG)];
+  casadi_real* bres[BAL_QX(backup_policy_SZ_RES)];
+  casadi_int biw[BAL_QX(backup_policy_SZ_IW) + 1];
+  casadi_real bw[BAL_QX(backup_policy_SZ_W) + 1];
+  casadi_real bx[BAL_QX(NX)];
+  int bmem;
+#endif
 } BAL_QX(work);
 
 /* reset: forget the stored plan, k_inf := N - 1 (a new closed loop) */
