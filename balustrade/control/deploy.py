@@ -176,7 +176,8 @@ class RAPSFDeployment(ProblemsDeployment):
     #: Remark 4.6 (a shrunk-horizon solve before the stored plan): then ``problems`` also
     #: holds (4.5) with the horizon ``h`` as ``"shrunk<h>"`` for ``h = 1 … N−1``
     shrinking: bool
-    #: the backup policy is the default ``K x`` (a user's callable is not emitted)
+    #: the backup policy is the default ``K x``; otherwise the emitter takes the host's
+    #: ``backup_law`` (an affine law or a CasADi function; a Python callable is refused)
     default_backup: bool
     #: the Python controller whose estimator and ``s`` feed the C (never solves there)
     host: object = field(repr=False)
