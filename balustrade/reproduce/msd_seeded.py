@@ -69,17 +69,22 @@ def summary(seed: int, r: dict) -> dict:
 
 
 def run_seeds(n: int, seeds: int, out: Path, steps: int = 150,
-              progress: object | None = None) -> dict:
+              progress: object | None = None, first: int = 0) -> dict:
     """Runs seeds ``0 … seeds−1`` of ``n`` masses not yet in ``out`` (``seed_XXX.json``), then
     writes and returns ``summary.json``: how many runs passed each check, over all files.
+    ``first`` starts the work at that seed (then wraps around), so a second process on the
+    same ``out`` can take the other half; a seed whose file appeared meanwhile is skipped.
     ``θ*`` lies in ``Θ₀`` in every run, so a run with a ``model_falsified`` step is a wrong
     verdict of the estimator (``falsified_runs`` must be 0)."""
     out.mkdir(parents=True, exist_ok=True)
-    todo = [k for k in range(seeds) if not (out / f"seed_{k:03d}.json").exists()]
+    order = [(first + k) % seeds for k in range(seeds)] if seeds else []
+    todo = [k for k in order if not (out / f"seed_{k:03d}.json").exists()]
     if todo:
         d = M.design(n, steps=steps)
         ctrl = M.adaptive_controller(d)
         for k in todo:
+            if (out / f"seed_{k:03d}.json").exists():      # another process finished it
+                continue
             start = time.perf_counter()
             rec = summary(k, seeded_run(d, k, steps, ctrl))
             rec["wall_s"] = time.perf_counter() - start
@@ -109,9 +114,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, default=50)
     p.add_argument("--steps", type=int, default=150)
     p.add_argument("--out", default="out/msd-seeds")
+    p.add_argument("--first", type=int, default=0,
+                   help="start at this seed (a second process on the same --out)")
     a = p.parse_args(argv)
     total = run_seeds(a.masses, a.seeds, Path(a.out) / f"{a.masses}", a.steps,
-                      progress=lambda line: print(line, end="", flush=True))
+                      progress=lambda line: print(line, end="", flush=True), first=a.first)
     print(json.dumps(total, indent=1))
     ok = total["z_ok"] == total["theta_in"] == total["nested"] == total["runs"]
     return 0 if ok and total["falsified_runs"] == 0 else 1   # θ* ∈ Θ₀: never falsified
