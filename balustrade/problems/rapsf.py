@@ -343,6 +343,13 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
     those of ``[H_X]_r [A_cl(θ), B(θ), −I]`` (8 masses, a dense ``H_X``: 11 instead of
     ~42). ``None`` (default): factored when the factored rows, with those defining ``y``,
     have at most half the nonzeros of the plain ones (:func:`factored_pays`).
+
+    ``staged`` writes (4.5) in stage order (:func:`_staged_variables`): ``(ẑ_{i+1},
+    α̂_{i+1})`` become variables of stage ``i`` (``z_next``, ``alpha_next``) tied to
+    ``(z_{i+1}, α_{i+1})`` by equality rows tagged ``dynamics``, so that every row of
+    (4.5c) is local to one stage and the structure-exploiting targets (the stage-order
+    pass) accept the problem; same feasible set and optimum. Measured slower than
+    ``"fast-convex"`` on the chain (docs/adaptive.md), so :class:`RAPSF` does not use it.
     """
     n, m, q = check_parametric_system(system, name)
     N = check_horizon(N, name)
@@ -517,7 +524,7 @@ def _staged_variables(system: object, n: int, m: int, N: int, name: str) -> tupl
     dynamics ``z_{i+1} = ẑ_{i+1}``, ``α_{i+1} = α̂_{i+1}`` (tag ``dynamics``). Every row of
     (4.5c) then reads ``(z_i, α_i, v_i, ẑ_{i+1}, α̂_{i+1})`` only — a general constraint of
     stage ``i`` — so the problem has the stage structure of the stage-order pass
-    (:mod:`balustrade.backends.passes.stage_order`, HPIPM's Riccati recursion) with the
+    (:mod:`balustrade.backends.passes.stage_order`, the structured targets) with the
     same feasible set and optimum as the plain form. The OCP's system is the nominal model
     (only a horizon OCP is stage-ordered; its own dynamics ``f`` are not used)."""
     nominal = LinearSystem(np.asarray(system.A0, dtype=float),
