@@ -162,3 +162,43 @@ def test_vertex_supports_equal_the_lps_and_fall_back_when_they_must(monkeypatch)
     monkeypatch.setattr(updates, "VERTEX_MAX_DIM", 0)
     est.update(x, u, xn)
     assert est.history[-1].lps == 2 * sys_.q
+
+
+def test_warm_start_follows_the_rule_of_the_emitted_c(toy):
+    """``RAPSF(warm_start=True)``: (4.5) starts from the previous step's solution exactly
+    when that step solved it optimally (``k_inf == 0``), else cold — the rule of the C
+    (``BAL_RAPSF_WARM_START``); the inputs stay those of the cold controller (within the
+    solver's accuracy); the default passes no start."""
+    sys_, Theta0, W, F, G, K, X0 = toy
+    ctrls = {w: RAPSF(sys_, X0, F, G, W, K, N, Theta0, target="convex-qp", warm_start=w)
+             for w in (False, True)}
+    starts: dict[bool, list] = {False: [], True: []}
+    for w, ctrl in ctrls.items():
+        ctrl._solve(np.zeros(2), np.zeros(1), N)                     # compile
+        ctrl.reset()
+        compiled = next(iter(ctrl._compiled.values()))
+        solve = compiled.solve
+
+        def spy(params, warm_start=None, _solve=solve, _w=w):
+            starts[_w].append(warm_start)
+            return _solve(params, warm_start=warm_start)
+        compiled.solve = spy
+    A, B = model_matrices(sys_, np.array([1.0, 0.25]))
+    rng = np.random.default_rng(2)
+    x, far = np.array([0.5, 0.1]), np.array([5.0, 5.0])              # far: (4.5) infeasible
+    optimal, compared = [], 0
+    for k in range(14):
+        x_k = far if k == 6 else x
+        u_p = np.array([3.0 * np.sin(0.5 * k)])
+        (u_cold, i_cold), (u_warm, i_warm) = (c.step(x_k, u_p) for c in ctrls.values())
+        optimal.append(i_warm.fallback is None)
+        if i_cold.fallback is None and i_warm.fallback is None:
+            compared += 1
+            np.testing.assert_allclose(u_warm, u_cold, rtol=0, atol=1e-6)
+        x = A @ x + B @ u_cold + 0.004 * rng.uniform(-1, 1, 2)
+    assert all(s is None for s in starts[False])
+    warm = [s is not None for s in starts[True]]
+    assert len(warm) == 14 and not optimal[6] and compared >= 8
+    assert warm == [False] + optimal[:-1]                # warm exactly after an optimal solve
+    ctrls[True].reset()
+    assert ctrls[True]._last is None
