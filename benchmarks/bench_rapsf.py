@@ -36,7 +36,8 @@ vertices of ``Θ₀``; 20 steps, without the recompiling path) are run only when
 :data:`DESIGN_BUDGET_S`; else the row says "not measured" and why. ``quick``: 3 masses,
 30 steps; the full run: 3 masses, 150 steps (the thesis' run length). :func:`step_split`
 adds where the ``fast-convex`` step's time goes (estimator update, ``s_jr``, QP solver,
-backend, bookkeeping).
+backend, bookkeeping); :func:`staged_hpipm` the stage-ordered (4.5) on HPIPM
+(``"structured-sqp"``) against ``fast-convex``'s PIQP on the same states.
 """
 
 from __future__ import annotations
@@ -349,10 +350,63 @@ def reduced_vs_every_row(d: dict, steps: int, block: int = 10) -> list[dict]:
     return rows
 
 
+def staged_hpipm(d: dict, steps: int = 20, every: int = 4, repeats: int = 3) -> list[dict]:
+    """(4.5) in stage order (``rapsf_problem(staged=True)``) on ``"structured-sqp"``
+    (``sqpmethod`` with HPIPM's Riccati-based interior point, the stage-order pass) against
+    the ``fast-convex`` controller's own compiled problem (PIQP), both with the same rows
+    (shared, factored as the controller builds them) and the same vertex data (Θ₀), on
+    every ``every``-th state of a ``steps``-step closed loop of ``fast-convex``; the two
+    solves interleaved ``repeats`` times per state (wall time, medians). ``max_du``: the
+    largest difference of the applied input ``K x + v₀`` where both report optimal."""
+    from balustrade.backends import compile as compile_problem
+
+    ctrl = _controller(d, "fast-convex", "parameters")
+    loop = Loop(d, ctrl.step, steps)
+    states = []
+    for k in range(steps):
+        states.append((k, loop.x.copy()))
+        loop(k)
+    n_th = ctrl._n_compiled
+    rep = ctrl._shared_rows(n_th)
+    fast = next(iter(ctrl._compiled.values()))
+    t0 = time.perf_counter()
+    staged = compile_problem(ctrl._problem(d["setup"].N, n_vertices=n_th, shared=rep,
+                                           staged=True), "structured-sqp")
+    compile_s = time.perf_counter() - t0
+    ctrl.reset()
+    idx = np.arange(n_th) % len(ctrl.vertices)
+    times: dict[str, list[float]] = {"fast-convex": [], "structured-sqp staged": []}
+    gaps, both_optimal, staged_optimal = [], 0, 0
+    for k, x in states[::every]:
+        params = {"x0": x, "u_p": msd_performance(k, x, d["n"]),
+                  "theta": ctrl.vertices[idx].T, "s": ctrl._s[:, idx]}
+        for _ in range(repeats):
+            t = time.perf_counter()
+            a = fast.solve(params)
+            times["fast-convex"].append(time.perf_counter() - t)
+            t = time.perf_counter()
+            b = staged.solve(params)
+            times["structured-sqp staged"].append(time.perf_counter() - t)
+        staged_optimal += b.status == "optimal"
+        if a.status == "optimal" and b.status == "optimal":
+            both_optimal += 1
+            gaps.append(float(np.max(np.abs(np.asarray(a["v"])[:, 0]
+                                            - np.asarray(b["v"])[:, 0]))))
+    qp = staged.options["qpsol_options"]
+    return [{"name": f"rapsf {d['n']} masses (4.5) solve: {k}",
+             "median_s": float(np.median(v)), "states": len(states[::every]),
+             "max_du": max(gaps) if gaps else None, "both_optimal": both_optimal,
+             "staged_optimal": staged_optimal,
+             **({"compile_s": compile_s, "stage_nx": qp["nx"][0], "stage_nu": qp["nu"][0],
+                 "stage_ng": max(qp["ng"])} if k != "fast-convex" else {})}
+            for k, v in times.items()]
+
+
 def run(quick: bool = False) -> list[dict]:
     d3 = design(3)
     rows = bench_size(d3, 30 if quick else 150) + step_split(d3, 30 if quick else 150) \
-        + reduced_vs_every_row(d3, 60 if quick else 150)
+        + reduced_vs_every_row(d3, 60 if quick else 150) \
+        + staged_hpipm(d3, 8 if quick else 20)
     if quick:
         return rows
     d8, why = design_within(8, DESIGN_BUDGET_S)

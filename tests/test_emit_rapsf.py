@@ -170,6 +170,34 @@ def test_c_equals_python_along_a_closed_loop(design3: dict, emitted3: dict) -> N
 
 
 @pytest.mark.slow
+def test_warm_started_c_equals_warm_started_python(design3: dict,
+                                                   tmp_path_factory: pytest.TempPathFactory
+                                                   ) -> None:
+    """``RAPSF(warm_start=True)``: (4.5) starts from the previous step's solution after a
+    converged solve, in C (``<name>_WARM_START``) as in Python; 150 steps of the closed loop
+    give the same inputs, fallbacks and values (one more ~100 s build)."""
+    d, st = design3, design3["st"]
+    py = _controller(d, warm_start=True)
+    out = tmp_path_factory.mktemp("rapsf_c_warm")
+    em = emit_rapsf(py, "rw", out)
+    assert em.manifest["warm_start"] is True
+    assert "#define rw_WARM_START 1" in (out / "rw_config.h").read_text()
+    c = CRAPSF(build(out, em.name, werror=True, extra_flags=link_flags(em.libraries)),
+               host=py)
+    py.reset()
+    rng = np.random.default_rng(3)
+    theta = st.sample_theta(rng)
+    x, paths = st.x0.copy(), Counter()
+    for k in range(150):
+        u_p = msd_performance(k, x, 3)
+        out_py, out_c = py.step(x, u_p), c.step(x, u_p)
+        _same(out_py, out_c, k)
+        paths[out_py[1].fallback] += 1
+        x = d["sys"].step(x, out_py[0], theta, rng.uniform(-1e-3, 1e-3, 6))
+    assert paths[None] >= 100, paths
+
+
+@pytest.mark.slow
 def test_bad_input_and_falsified_model(design3: dict, emitted3: dict) -> None:
     """A NaN state: nothing solved, the backup ``K x`` with NaN read as 0, status
     ``"non_finite_state"`` in both; a falsified model (the estimator excluded every θ):

@@ -69,6 +69,7 @@ def _loop(toy, estimator_cls, old: bool, monkeypatch, steps=25, target="fast-con
         if old:
             mp.setattr(updates, "solve_lps_joint", solve_lps)  # one warm-started run per row
             mp.setattr(updates, "_box_inside", lambda *a: False)  # LPs on every step
+            mp.setattr(updates, "vertex_supports", lambda *a: None)  # ... and no vertices
         ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=estimator_cls(sys_, W, Theta0),
                      target=target)
         if old:
@@ -114,8 +115,9 @@ def test_uninformative_transition_keeps_the_set_without_lps(toy):
     assert est.history[-1].status == "updated"
     A, B = model_matrices(sys_, np.array([1.0, 0.25]))
     x = np.array([0.9, 0.2])
-    cut = est.update(x, u + 1.0, A @ x + B @ (u + 1.0))  # informative: 2q LPs, a smaller box
-    assert est.history[-1].lps == 2 * sys_.q
+    cut = est.update(x, u + 1.0, A @ x + B @ (u + 1.0))  # informative: a smaller box, from
+    assert est.history[-1].lps == 0                     # the vertices of Θ₀ ∩ Δ₁ (q = 2)
+    assert "vertices" in est.history[-1].reason
     assert np.prod(cut.ub - cut.lb) < np.prod(Theta0.ub - Theta0.lb)
     assert cut.contains(np.array([1.0, 0.25]), tol=1e-9)
     ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=BoxUpdate(sys_, W, Theta0),
@@ -124,3 +126,79 @@ def test_uninformative_transition_keeps_the_set_without_lps(toy):
     s_before = ctrl._s
     ctrl.step(np.zeros(2), np.zeros(1))                    # x⁺ = 0 again: nothing learned
     assert ctrl.Theta is Theta0 and ctrl._s is s_before     # no recomputation of s
+
+
+def test_vertex_supports_equal_the_lps_and_fall_back_when_they_must(monkeypatch):
+    """The box update's ``2q`` support LPs replaced by the vertices of ``Θ_{k−1} ∩ Δ_k``
+    (:func:`~balustrade.estimate.updates.vertex_supports`, small ``q``): the same bounds
+    on random transitions of the 3-mass chain (vertex disturbances included), θ* kept;
+    ``None`` (the LPs decide) for an empty set and above the dimension limit; with the
+    vertices switched off the update solves its ``2q`` LPs again."""
+    from balustrade.estimate.nonfalsified import nonfalsified_set
+    from balustrade.models.msd import msd_chain, msd_setup
+
+    sys_, st = msd_chain(3), msd_setup(3)
+    C = np.vstack([np.eye(2), -np.eye(2)])
+    rng = np.random.default_rng(1)
+    for trial in range(60):
+        th = st.sample_theta(rng)
+        box = Box(rng.uniform(st.Theta0.lb, th), rng.uniform(th, st.Theta0.ub))
+        x, u = rng.uniform(-2, 2, 6), rng.uniform(-3.5, 3.5, 3)
+        w = rng.uniform(-1e-3, 1e-3, 6)
+        w = np.sign(w) * 1e-3 if trial % 3 == 0 else w
+        both = nonfalsified_set(sys_, st.W, x, u, sys_.step(x, u, th, w)).intersect(box)
+        v = updates.vertex_supports(C, both.H, both.h)
+        lp = np.array([r.value for r in solve_lps_joint(C, both.H, both.h)])
+        assert v is not None
+        np.testing.assert_allclose(v, lp, rtol=0, atol=1e-11)
+        assert np.all(C @ th <= v + 1e-12)                     # θ* inside the bounds
+    empty = np.vstack([C, [[1.0, 0.0]]]), np.array([1.0, 1.0, 1.0, 1.0, -2.0])
+    assert updates.vertex_supports(C, *empty) is None          # empty: the LP says so
+    H4 = np.vstack([np.eye(4), -np.eye(4)])
+    assert updates.vertex_supports(H4, H4, np.ones(8)) is None  # q = 4 > VERTEX_MAX_DIM
+    est = BoxUpdate(sys_, st.W, st.Theta0)
+    x, u = np.array([1.0, -1.0, 0.5, 0.3, -0.2, 0.1]), np.ones(3)
+    xn = sys_.step(x, u, np.array([0.1, 0.2]))
+    monkeypatch.setattr(updates, "VERTEX_MAX_DIM", 0)
+    est.update(x, u, xn)
+    assert est.history[-1].lps == 2 * sys_.q
+
+
+def test_warm_start_follows_the_rule_of_the_emitted_c(toy):
+    """``RAPSF(warm_start=True)``: (4.5) starts from the previous step's solution exactly
+    when that step solved it optimally (``k_inf == 0``), else cold — the rule of the C
+    (``BAL_RAPSF_WARM_START``); the inputs stay those of the cold controller (within the
+    solver's accuracy); the default passes no start."""
+    sys_, Theta0, W, F, G, K, X0 = toy
+    ctrls = {w: RAPSF(sys_, X0, F, G, W, K, N, Theta0, target="convex-qp", warm_start=w)
+             for w in (False, True)}
+    starts: dict[bool, list] = {False: [], True: []}
+    for w, ctrl in ctrls.items():
+        ctrl._solve(np.zeros(2), np.zeros(1), N)                     # compile
+        ctrl.reset()
+        compiled = next(iter(ctrl._compiled.values()))
+        solve = compiled.solve
+
+        def spy(params, warm_start=None, _solve=solve, _w=w):
+            starts[_w].append(warm_start)
+            return _solve(params, warm_start=warm_start)
+        compiled.solve = spy
+    A, B = model_matrices(sys_, np.array([1.0, 0.25]))
+    rng = np.random.default_rng(2)
+    x, far = np.array([0.5, 0.1]), np.array([5.0, 5.0])              # far: (4.5) infeasible
+    optimal, compared = [], 0
+    for k in range(14):
+        x_k = far if k == 6 else x
+        u_p = np.array([3.0 * np.sin(0.5 * k)])
+        (u_cold, i_cold), (u_warm, i_warm) = (c.step(x_k, u_p) for c in ctrls.values())
+        optimal.append(i_warm.fallback is None)
+        if i_cold.fallback is None and i_warm.fallback is None:
+            compared += 1
+            np.testing.assert_allclose(u_warm, u_cold, rtol=0, atol=1e-6)
+        x = A @ x + B @ u_cold + 0.004 * rng.uniform(-1, 1, 2)
+    assert all(s is None for s in starts[False])
+    warm = [s is not None for s in starts[True]]
+    assert len(warm) == 14 and not optimal[6] and compared >= 8
+    assert warm == [False] + optimal[:-1]                # warm exactly after an optimal solve
+    ctrls[True].reset()
+    assert ctrls[True]._last is None

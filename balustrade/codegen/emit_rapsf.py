@@ -138,6 +138,9 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
     cfg.define(f"{name}_NTH", nth, "vertex columns of theta and s")
     cfg.define(f"{name}_NXR", nxr, "rows of H_X (rows of s)")
     cfg.array(f"{name}_K", K.T.reshape(-1), nu * nx)
+    warm = bool(getattr(spec.host, "warm_start", False))
+    cfg.define(f"{name}_WARM_START", int(warm),
+               "(4.5) from the previous step's solution after a converged solve")
     cfg.define(f"{name}_SHRINKING", int(bool(shrunk)),
                "Remark 4.6: (4.5) with the horizon N - k_inf before the stored plan")
     cfg.comment("the problems (4.5) with the shrunk horizons: X(member of the work struct, h)")
@@ -146,7 +149,8 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
     cfg.status(S.RAPSF, "BAL_RAPSF_STATUS_CODES")
     manifest = {"kind": "rapsf", "nx": nx, "nu": nu, "N": spec.N, "nq": nq,
                 "n_vertices": nth, "n_rows": nxr, "shrinking": bool(shrunk),
-                "K": K.tolist(), "backup": backup_kind, "link_flags": list(link_flags(libs)),
+                "warm_start": warm, "K": K.tolist(), "backup": backup_kind,
+                "link_flags": list(link_flags(libs)),
                 "problems": {"main": P.manifest(),
                              **{key: Ph.manifest() for key, Ph in shrunk.items()}},
                 "rapsf_status": S.manifest(S.RAPSF)}

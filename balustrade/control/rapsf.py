@@ -95,7 +95,14 @@ class RAPSF:
     replaces (4.5e); ``terminal_set`` is the set in use, ``values["n_generators"]`` its size.
     With ``vertex_data="parameters"`` the generators are a parameter of fixed ``capacity``
     (no recompile, on every target); with ``"constants"`` the problem is recompiled when they
-    change."""
+    change.
+
+    ``warm_start=True`` starts (4.5) from the previous step's solution after a step that
+    solved it optimally (``k_inf == 0``, same compiled problem), else cold; the emitted C
+    follows the same rule (``<name>_WARM_START``), so C = Python holds with it. It takes
+    effect on targets that accept a starting point (the CasADi ones, e.g. ``"convex-qp"``,
+    where it shortened the C step several-fold, docs/adaptive.md); ``"fast-convex"``
+    ignores it. The inputs equal the cold ones only within the solver's accuracy."""
 
     def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
                  W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
@@ -103,7 +110,7 @@ class RAPSF:
                  target: object = "exact", shrinking: bool = False,
                  terminal: TerminalSet | None = None, tol: float = 1e-7,
                  enlarge: bool | TerminalEnlargement = False, name: str = "rapsf",
-                 vertex_data: str = "parameters"):
+                 vertex_data: str = "parameters", warm_start: bool = False):
         self.n, self.m, self.q = check_parametric_system(system, name)
         self.N = check_horizon(N, name)
         self.K = as_matrix(K, f"{name}: K", (self.m, self.n))
@@ -119,6 +126,10 @@ class RAPSF:
         self.default_backup = backup is None        # π_Cf: None, (K_b, k_b), Function, callable
         self.backup, self.backup_law = backup_policy(backup, self.n, self.m, self.K, name)
         self.shrinking = bool(shrinking)
+        if not isinstance(warm_start, bool):
+            raise BalustradeError(f"{name}: warm_start must be a bool, got "
+                                  f"{type(warm_start).__name__}")
+        self.warm_start = warm_start
         self.target = resolve_target(target)
         if vertex_data not in ("parameters", "constants"):
             raise BalustradeError(f"{name}: vertex_data must be 'parameters' or 'constants', "
@@ -165,6 +176,7 @@ class RAPSF:
         self.k = 0
         self.k_inf = self.N - 1
         self.plan: np.ndarray | None = None
+        self._last: tuple[object, Solution] | None = None   # (compiled key, optimal solve)
         self.falsified = False
         self._set_theta(self.Theta0)
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
@@ -244,6 +256,10 @@ class RAPSF:
         return ok
 
     def _solve(self, x: np.ndarray, u_p: np.ndarray, horizon: int) -> Solution:
+        """(4.5) with ``horizon`` at ``(x, Θ_k)``; with ``warm_start`` the main horizon starts
+        from the previous step's solution when that step solved it optimally (``k_inf ==
+        0``) with the same compiled problem — the rule of the emitted C
+        (``BAL_RAPSF_WARM_START``), so that C and Python start alike."""
         params = {"x0": x, "u_p": u_p}
         if self.parametric:
             n_th = max(self._n_compiled, len(self.vertices))
@@ -266,7 +282,14 @@ class RAPSF:
                                   if k[1] == key[1]}               # keep the current Θ only
                 self._compiled[key] = compile(self._problem(horizon, vertices=self.vertices),
                                               self.target)
-        return self._compiled[key].solve(params)
+        warm = None
+        if self.warm_start and horizon == self.N and self.k_inf == 0 \
+                and self._last is not None and self._last[0] == key:
+            warm = self._last[1]
+        sol = self._compiled[key].solve(params, warm_start=warm)
+        if horizon == self.N:
+            self._last = (key, sol) if outcome(sol) == "optimal" else None
+        return sol
 
     def deployment_spec(self) -> RAPSFDeployment:
         """Algorithm 4.1 for :func:`balustrade.codegen.emit_rapsf` (one C call per step):

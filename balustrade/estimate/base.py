@@ -20,7 +20,12 @@ from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.system_parametric import ParametricLinearSystem
 from balustrade.errors import BalustradeError, ShapeError
 from balustrade.estimate.containment import bounding_box, contained_in
-from balustrade.estimate.nonfalsified import HalfSpaces, disturbance_rows, nonfalsified_set
+from balustrade.estimate.nonfalsified import (
+    HalfSpaces,
+    delta_rows,
+    disturbance_rows,
+    model_stack,
+)
 from balustrade.estimate.records import UpdateRecord, UpdateStatus
 
 
@@ -71,6 +76,7 @@ class SetEstimator(ABC):
         self.name = name
         self.system, self.W, self.Theta0 = system, W, Theta0
         self._Hw = disturbance_rows(system, W)
+        self._stack = model_stack(system)          # A₀x + B₀u and D(x, u) in one product
         self.Theta: Polytope = Theta0
         self.k = 0
         self.history: list[UpdateRecord] = []
@@ -90,7 +96,7 @@ class SetEstimator(ABC):
         x_next = as_vector(x_next, f"{self.name}.update: x_next", sys.nx)
         theta_true = (None if check_true is None
                       else as_vector(check_true, f"{self.name}.update: check_true", sys.q))
-        delta = nonfalsified_set(sys, self.W, x_prev, u_prev, x_next, Hw=self._Hw)
+        delta = delta_rows(self._stack, self._Hw, self.W.h, x_prev, u_prev, x_next)  # (4.7)
         prev = self.Theta
         prop = self.propose(prev, Transition(x_prev, u_prev, x_next, delta))
         lps, status, reason = prop.lps, prop.status, prop.reason

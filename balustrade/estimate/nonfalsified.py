@@ -65,6 +65,15 @@ def disturbance_rows(system: ParametricLinearSystem, W: Polytope) -> np.ndarray:
     return np.linalg.solve(E.T, W.H.T).T
 
 
+def model_stack(system: ParametricLinearSystem) -> np.ndarray:
+    """``[A_j, B_j]`` for ``j = 0 … q`` stacked as rows, shape ``((q + 1) n, n + m)``: one
+    product with ``(x, u)`` gives the affine part ``A₀x + B₀u`` and the regressor
+    ``D(x, u) = [A₁x + B₁u, …]`` of (4.7) at once (:func:`delta_rows`)."""
+    return np.vstack([np.hstack([A, B]) for A, B in
+                      zip((system.A0, *system.A_list), (system.B0, *system.B_list),
+                          strict=True)])
+
+
 def nonfalsified_set(system: ParametricLinearSystem, W: Polytope, x_prev: object,
                      u_prev: object, x_next: object,
                      Hw: np.ndarray | None = None) -> HalfSpaces:
@@ -73,15 +82,26 @@ def nonfalsified_set(system: ParametricLinearSystem, W: Polytope, x_prev: object
     x_prev = as_vector(x_prev, f"{system.name}: x_prev", system.nx)
     u_prev = as_vector(u_prev, f"{system.name}: u_prev", system.nu)
     x_next = as_vector(x_next, f"{system.name}: x_next", system.nx)
-    D = system.D(x_prev, u_prev)
-    r0 = x_next - system.affine_part(x_prev, u_prev)
+    return delta_rows(model_stack(system), Hw, W.h, x_prev, u_prev, x_next)
+
+
+def delta_rows(stack: np.ndarray, Hw: np.ndarray, hw: np.ndarray, x_prev: np.ndarray,
+               u_prev: np.ndarray, x_next: np.ndarray) -> HalfSpaces:
+    """Δ_k of (4.7) on checked vectors, with :func:`model_stack`'s ``stack``,
+    ``Hw`` = :func:`disturbance_rows` and ``hw`` the bounds of ``W``: the per-step path of
+    the estimators (one product for ``A₀x + B₀u`` and ``D(x, u)``, no repeated checks)."""
+    n = x_prev.shape[0]
+    parts = (stack @ np.concatenate([x_prev, u_prev])).reshape(-1, n)   # (q + 1, n)
+    D = parts[1:].T
+    r0 = x_next - parts[0]
     H = -Hw @ D
-    h = W.h - Hw @ r0
+    Hw_r0 = Hw @ r0
+    h = hw - Hw_r0
     scale = max(1.0, float(np.abs(Hw).max()) * max(1.0, float(np.abs(D).max())))
     informative = np.abs(H).max(axis=1) > _ZERO_ROW * scale
     # an uninformative row only matters if the data violate W there beyond rounding (a
     # vertex disturbance leaves h = ±1e-19 on the rows θ does not enter)
-    rounding = _ROUNDING * max(1.0, float(np.abs(W.h).max()), float(np.abs(Hw @ r0).max()))
+    rounding = _ROUNDING * max(1.0, float(np.abs(hw).max()), float(np.abs(Hw_r0).max()))
     keep = informative | (h < -rounding)
     H, h = H[keep], h[keep]
     # rows scaled to unit ∞-norm (the same half-spaces): the LPs over the intersection of many
@@ -91,4 +111,4 @@ def nonfalsified_set(system: ParametricLinearSystem, W: Polytope, x_prev: object
     return HalfSpaces(H / norms[:, None], h / norms)
 
 
-__all__ = ["HalfSpaces", "disturbance_rows", "nonfalsified_set"]
+__all__ = ["HalfSpaces", "delta_rows", "disturbance_rows", "model_stack", "nonfalsified_set"]

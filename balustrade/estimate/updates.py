@@ -15,6 +15,10 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+from itertools import combinations
+from math import comb
+
 import numpy as np
 
 from balustrade._checks import as_scalar
@@ -92,17 +96,25 @@ class FixedShapeUpdate(SetEstimator):
         super().__init__(system, W, Theta0, name=name)
         self.margin = as_scalar(margin, f"{name}: margin", low=0.0)
 
-    def _support_bounds(self, Theta_prev: Polytope,
-                        data: Transition) -> tuple[np.ndarray | None, Proposal | None]:
-        """``max H_θ[r] θ`` over ``Θ_{k−1} ∩ Δ_k`` for every row of Θ₀ (or a refusal)."""
+    def _support_bounds(self, Theta_prev: Polytope, data: Transition
+                        ) -> tuple[np.ndarray | None, Proposal | None, int]:
+        """``max H_θ[r] θ`` over ``Θ_{k−1} ∩ Δ_k`` for every row of Θ₀ (or a refusal):
+        for a box ``Θ_{k−1}`` from the vertices of ``Θ_{k−1} ∩ Δ_k`` when they are few
+        (:func:`vertex_supports`), else by the joint LPs; the last entry is the number of
+        LPs solved."""
         both = data.delta.intersect(Theta_prev)
+        values = (vertex_supports(self.Theta0.H, both.H, both.h)
+                  if isinstance(Theta_prev, Box) else None)
+        if values is not None:
+            return values, None, 0
         results = solve_lps_joint(self.Theta0.H, both.H, both.h)
         last = results[-1]
         if last.status is Status.INFEASIBLE:
-            return None, _falsified(len(results))
+            return None, _falsified(len(results)), len(results)
         if last.status is not Status.OPTIMAL:
-            return None, _failed(len(results), last.status, f"the LP of row {len(results) - 1}")
-        return np.array([r.value for r in results]), None
+            return None, _failed(len(results), last.status,
+                                 f"the LP of row {len(results) - 1}"), len(results)
+        return np.array([r.value for r in results]), None, len(results)
 
     def _previous_h(self, Theta_prev: Polytope) -> np.ndarray:
         """``h_{θ,k−1}`` in the row order of Θ₀ (Θ_{k−1} has the same rows)."""
@@ -112,14 +124,68 @@ class FixedShapeUpdate(SetEstimator):
         if _box_inside(Theta_prev, data.delta):
             return Proposal(Theta_prev, 0, reason="Θ_{k−1} ⊆ Δ_k (its vertices satisfy "
                             "every row): the transition excludes nothing, no LP")
-        bounds, refusal = self._support_bounds(Theta_prev, data)
+        bounds, refusal, lps = self._support_bounds(Theta_prev, data)
         if refusal is not None:
             return refusal
         h = np.minimum(bounds + self.margin, self._previous_h(Theta_prev))
-        return Proposal(self._make(h), lps=len(bounds))
+        return Proposal(self._make(h), lps=lps, reason="" if lps else _BY_VERTICES)
 
     def _make(self, h: np.ndarray) -> Polytope:
         return Polytope(self.Theta0.H, h, name=f"Theta_{self.k + 1}")
+
+
+#: :func:`vertex_supports` enumerates vertices only up to this dimension and this many
+#: candidate row subsets (else the LPs run)
+VERTEX_MAX_DIM = 3
+VERTEX_MAX_SUBSETS = 5000
+#: a candidate vertex satisfies every row within this (relative to the row's size)
+VERTEX_FEAS_TOL = 1e-10
+#: row subsets (rows scaled to unit ∞-norm) with a smaller ``|det|`` are near-singular: a
+#: feasible candidate from one is not trusted (its rounding is not bounded), the LPs decide
+VERTEX_MIN_DET = 1e-8
+
+
+_BY_VERTICES = "bounds from the vertices of Θ_{k−1} ∩ Δ_k (vertex_supports), no LP"
+
+
+@lru_cache(maxsize=64)
+def _subsets(m: int, q: int) -> np.ndarray:
+    """All ``q``-subsets of ``range(m)`` as rows (cached: the row count repeats per step)."""
+    return np.array(list(combinations(range(m), q)), dtype=np.intp).reshape(-1, q)
+
+
+def vertex_supports(C: np.ndarray, H: np.ndarray, h: np.ndarray) -> np.ndarray | None:
+    """``max {C[r] θ : Hθ <= h}`` for every row of ``C`` from the vertices of the bounded
+    polytope ``{Hθ <= h}`` (a linear function attains its maximum over a polytope at a
+    vertex): every ``q``-subset of rows with a nonsingular matrix gives a candidate
+    ``θ``, kept if it satisfies every row within :data:`VERTEX_FEAS_TOL`. For ``q <=``
+    :data:`VERTEX_MAX_DIM` with few rows (the 2-parameter chain: ``2q + 2n`` rows, at most
+    a few hundred 2 × 2 systems in one batched solve) this replaces the ``2q`` LPs of the
+    box and hypercube updates by one small array computation, exactly (the LPs' answers
+    within rounding; ``tests/test_rapsf_speed.py``). ``None`` — the caller runs the LPs —
+    when the dimension or the number of subsets is larger, when no candidate is feasible
+    (possibly an empty set: the LP decides whether the model is falsified), or when a
+    feasible candidate comes from an ill-conditioned subset (near-parallel rows: its
+    rounding is not bounded by the tolerance)."""
+    m, q = H.shape
+    if q > VERTEX_MAX_DIM or m < q or comb(m, q) > VERTEX_MAX_SUBSETS:
+        return None
+    scale = np.abs(H).max(axis=1)
+    if np.any(scale == 0):                           # a row without θ: the LPs decide
+        return None
+    Hn, hn = H / scale[:, None], h / scale           # the same rows, unit ∞-norm
+    idx = _subsets(m, q)
+    M = Hn[idx]                                      # (S, q, q)
+    det = np.abs(np.linalg.det(M))
+    regular = det > 1e-13                            # exactly parallel rows: no vertex
+    M, b, det = M[regular], hn[idx[regular]], det[regular]
+    if not len(M):
+        return None
+    theta = np.linalg.solve(M, b[:, :, None])[:, :, 0]                     # (S', q)
+    feasible = np.all(theta @ Hn.T - hn <= VERTEX_FEAS_TOL * (1.0 + np.abs(hn)), axis=1)
+    if not np.any(feasible) or np.min(det[feasible]) < VERTEX_MIN_DET:
+        return None
+    return (theta[feasible] @ C.T).max(axis=0)
 
 
 def _box_inside(Theta: Polytope, delta: object) -> bool:
@@ -131,8 +197,10 @@ def _box_inside(Theta: Polytope, delta: object) -> bool:
     without enumeration); on the §4.7 chain most steps are such uninformative ones."""
     if not isinstance(Theta, Box) or delta.H.shape[0] == 0:
         return isinstance(Theta, Box)
-    V = Theta.vertices()
-    return bool(np.all(delta.H @ V.T <= delta.h[:, None]))
+    # max over the box of each row, attained at a vertex: Σ_j max(H_rj ub_j, H_rj lb_j)
+    # (the vertex test without enumerating the 2^q vertices)
+    top = np.maximum(delta.H * Theta.ub, delta.H * Theta.lb).sum(axis=1)
+    return bool(np.all(top <= delta.h))
 
 
 class BoxUpdate(FixedShapeUpdate):
@@ -201,21 +269,25 @@ class HypercubeUpdate(SetEstimator):
         prev = require_box(Theta_prev, self.name)
         both = data.delta.intersect(prev)
         q = self.system.q
-        results = solve_lps_joint(np.vstack([np.eye(q), -np.eye(q)]), both.H, both.h)
-        lps, last = len(results), results[-1]
-        if last.status is Status.INFEASIBLE:
-            return _falsified(lps)
-        if last.status is not Status.OPTIMAL:
-            return _failed(lps, last.status, "a bound LP")
-        values = np.array([r.value for r in results])
+        C = np.vstack([np.eye(q), -np.eye(q)])
+        values, lps = vertex_supports(C, both.H, both.h), 0
+        if values is None:
+            results = solve_lps_joint(C, both.H, both.h)
+            lps, last = len(results), results[-1]
+            if last.status is Status.INFEASIBLE:
+                return _falsified(lps)
+            if last.status is not Status.OPTIMAL:
+                return _failed(lps, last.status, "a bound LP")
+            values = np.array([r.value for r in results])
         hi, lo = values[:q], -values[q:]
         lo = np.maximum(lo - self.margin, prev.lb)
         hi = np.minimum(hi + self.margin, prev.ub)
         centre_prev = 0.5 * (prev.lb + prev.ub)
         eta_prev = float(np.max(prev.ub - prev.lb)) / 2.0
         c, eta = hypercube_centre(lo, hi, centre_prev, eta_prev, rule=self.centre)
-        return Proposal(Box(c - eta, c + eta, name=f"Theta_{self.k + 1}"), lps)
+        return Proposal(Box(c - eta, c + eta, name=f"Theta_{self.k + 1}"), lps,
+                        reason="" if lps else _BY_VERTICES)
 
 
 __all__ = ["BoxUpdate", "ExactUpdate", "FixedShapeUpdate", "HypercubeUpdate",
-           "hypercube_centre", "remove_redundant"]
+           "hypercube_centre", "remove_redundant", "vertex_supports"]

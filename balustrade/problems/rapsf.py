@@ -44,6 +44,7 @@ from balustrade._checks import as_float_array, as_matrix, check_horizon, check_i
 from balustrade.dsl import OCP, Polytope, squared_norm
 from balustrade.dsl.joint import JointPolytope, as_joint, row_supports
 from balustrade.dsl.synthesis import SynthesisProblem, bmat, trace
+from balustrade.dsl.system import LinearSystem
 from balustrade.errors import BalustradeError, NonFiniteError, ShapeError
 
 
@@ -307,7 +308,8 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
                   K: np.ndarray, N: int, n_vertices: int | None = None,
                   vertices: np.ndarray | None = None, terminal: TerminalSet | None = None,
                   X0_vertices: np.ndarray | None = None, shared: np.ndarray | None = None,
-                  factored: bool | None = None, name: str = "rapsf") -> OCP:
+                  factored: bool | None = None, staged: bool = False,
+                  name: str = "rapsf") -> OCP:
     """(4.5) with homothetic tubes (SPEC §2.20):
 
     ``min ‖u_p − (K x_k + v_0)‖²`` over ``z (n × N+1)``, ``alpha (1 × N+1) >= 0``, ``v (m × N)``
@@ -341,6 +343,13 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
     those of ``[H_X]_r [A_cl(θ), B(θ), −I]`` (8 masses, a dense ``H_X``: 11 instead of
     ~42). ``None`` (default): factored when the factored rows, with those defining ``y``,
     have at most half the nonzeros of the plain ones (:func:`factored_pays`).
+
+    ``staged`` writes (4.5) in stage order (:func:`_staged_variables`): ``(ẑ_{i+1},
+    α̂_{i+1})`` become variables of stage ``i`` (``z_next``, ``alpha_next``) tied to
+    ``(z_{i+1}, α_{i+1})`` by equality rows tagged ``dynamics``, so that every row of
+    (4.5c) is local to one stage and the structure-exploiting targets (the stage-order
+    pass) accept the problem; same feasible set and optimum. Measured slower than
+    ``"fast-convex"`` on the chain (docs/adaptive.md), so :class:`RAPSF` does not use it.
     """
     n, m, q = check_parametric_system(system, name)
     N = check_horizon(N, name)
@@ -352,10 +361,14 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
     if W.dim != E.shape[1]:
         raise ShapeError(f"{name}: W", f"dimension {E.shape[1]}", f"dimension {W.dim}")
     w_bar = np.array([W.support(row @ E) for row in HX])                 # w̄_r
-    ocp = OCP(None, N, name=name)
-    z = ocp.variable("z", n, N + 1, role="state")
-    alpha = ocp.variable("alpha", 1, N + 1, lb=0.0)
-    v = ocp.variable("v", m, N, role="input")
+    if staged:
+        ocp, z, alpha, v, z_next, a_next = _staged_variables(system, n, m, N, name)
+    else:
+        ocp = OCP(None, N, name=name)
+        z = ocp.variable("z", n, N + 1, role="state")
+        alpha = ocp.variable("alpha", 1, N + 1, lb=0.0)
+        v = ocp.variable("v", m, N, role="input")
+        z_next, a_next = z[:, 1:], alpha[:, 1:]
     x0 = ocp.parameter("x0", n)
     u_p = ocp.parameter("u_p", m)
     if vertices is None:
@@ -391,7 +404,8 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
     if factored is None:
         factored = factored_pays(system, X0, K, keep)
     if factored:
-        _tube_rows_factored(ocp, system, HX, K, thetas, s, w_bar, keep, z, alpha, v, N)
+        _tube_rows_factored(ocp, system, HX, K, thetas, s, w_bar, keep, z, alpha, v, N,
+                            z_next, a_next)
     for j, (A, B) in enumerate(zip(A_j, B_j, strict=True)):                             # (4.5c)
         if factored:
             break
@@ -400,8 +414,8 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
             continue
         Acl = A + ca.mtimes(B, Kd)
         Hj, one_j, wb_j = ca.DM(HX[r_j]), ca.DM.ones(len(r_j), 1), ca.DM(w_bar[r_j])
-        rows = [ca.mtimes(Hj, ca.mtimes(Acl, z[:, i]) + ca.mtimes(B, v[:, i]) - z[:, i + 1])
-                + alpha[i] * s[r_j, j] + wb_j - alpha[i + 1] * one_j for i in range(N)]
+        rows = [ca.mtimes(Hj, ca.mtimes(Acl, z[:, i]) + ca.mtimes(B, v[:, i]) - z_next[:, i])
+                + alpha[i] * s[r_j, j] + wb_j - a_next[i] * one_j for i in range(N)]
         ocp.le(ca.vertcat(*rows), name=f"tube_vertex_{j}", tag="tube")
     ocp.joint_constraint(Z, z, v, feedback=K, tube=(alpha, X0), tube_vertices=X0_vertices,
                          name="tube_constraints")                                       # (4.5d)
@@ -474,8 +488,10 @@ def factored_pays(system: object, X0: Polytope, K: np.ndarray, keep: np.ndarray)
 
 def _tube_rows_factored(ocp: OCP, system: object, HX: np.ndarray, K: np.ndarray,
                         thetas: list, s: object, w_bar: np.ndarray, keep: np.ndarray,
-                        z: ca.SX, alpha: ca.SX, v: ca.SX, N: int) -> None:
-    """(4.5c) in the factored form of :func:`rapsf_problem` (``factored=True``)."""
+                        z: ca.SX, alpha: ca.SX, v: ca.SX, N: int, z_next: ca.SX,
+                        a_next: ca.SX) -> None:
+    """(4.5c) in the factored form of :func:`rapsf_problem` (``factored=True``);
+    ``z_next``, ``a_next`` are ``z[:, 1:]``, ``alpha[1:]`` or their stage copies."""
     M0, Ms = _theta_parts(system, K)
     HM = [HX @ M for M in Ms]                                  # [H_X]_r M_k, per k
     used = np.flatnonzero(np.any([M != 0 for M in HM], axis=(0, 1))) if HM \
@@ -485,7 +501,7 @@ def _tube_rows_factored(ocp: OCP, system: object, HX: np.ndarray, K: np.ndarray,
     y = ocp.variable("tube_offset", n_x, N)
     H0 = ca.DM(HX @ M0)
     w = [ca.vertcat(z[:, i], v[:, i]) for i in range(N)]
-    ocp.eq(ca.vertcat(*[y[:, i] - (ca.mtimes(H0, w[i]) - ca.mtimes(ca.DM(HX), z[:, i + 1]))
+    ocp.eq(ca.vertcat(*[y[:, i] - (ca.mtimes(H0, w[i]) - ca.mtimes(ca.DM(HX), z_next[:, i]))
                         for i in range(N)]), 0.0, name="tube_offset", tag="tube")
     for j, th in enumerate(thetas):
         r_j = np.flatnonzero(keep[:, j]).tolist()
@@ -498,8 +514,29 @@ def _tube_rows_factored(ocp: OCP, system: object, HX: np.ndarray, K: np.ndarray,
                 coef = coef + th[k] * ca.DM(block)
         one_j, wb_j = ca.DM.ones(len(r_j), 1), ca.DM(w_bar[r_j])
         rows = [y[r_j, i] + (ca.mtimes(coef, w[i][cols]) if cols else 0)
-                + alpha[i] * s[r_j, j] + wb_j - alpha[i + 1] * one_j for i in range(N)]
+                + alpha[i] * s[r_j, j] + wb_j - a_next[i] * one_j for i in range(N)]
         ocp.le(ca.vertcat(*rows), name=f"tube_vertex_{j}", tag="tube")
+
+
+def _staged_variables(system: object, n: int, m: int, N: int, name: str) -> tuple:
+    """The variables of (4.5) in stage order (``rapsf_problem(staged=True)``): the state of
+    stage ``i`` is ``(z_i, α_i)``, its controls ``(v_i, ẑ_{i+1}, α̂_{i+1})`` with the
+    dynamics ``z_{i+1} = ẑ_{i+1}``, ``α_{i+1} = α̂_{i+1}`` (tag ``dynamics``). Every row of
+    (4.5c) then reads ``(z_i, α_i, v_i, ẑ_{i+1}, α̂_{i+1})`` only — a general constraint of
+    stage ``i`` — so the problem has the stage structure of the stage-order pass
+    (:mod:`balustrade.backends.passes.stage_order`, the structured targets) with the
+    same feasible set and optimum as the plain form. The OCP's system is the nominal model
+    (only a horizon OCP is stage-ordered; its own dynamics ``f`` are not used)."""
+    nominal = LinearSystem(np.asarray(system.A0, dtype=float),
+                           np.asarray(system.B0, dtype=float), name=f"{name}_nominal")
+    ocp = OCP(nominal, N, name=name, state_name="z", input_name="v")
+    z, v = ocp.x, ocp.u
+    alpha = ocp.variable("alpha", 1, N + 1, lb=0.0, role="state")
+    z_next = ocp.variable("z_next", n, N, role="input")
+    a_next = ocp.variable("alpha_next", 1, N, role="input")
+    ocp.eq(ca.horzcat(*[ca.vertcat(z[:, i + 1] - z_next[:, i], alpha[i + 1] - a_next[i])
+                        for i in range(N)]), 0.0, name="stage_copies", tag="dynamics")
+    return ocp, z, alpha, v, z_next, a_next
 
 
 def _symbolic_models(system: object, thetas: Sequence[ca.SX | ca.DM]

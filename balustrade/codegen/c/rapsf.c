@@ -1,7 +1,8 @@
 /* bal/rapsf.c: the Algorithm 4.1 control step Q = BAL_STEP (bal/rapsf.h) with the fallbacks
  * of balustrade.control.rapsf.RAPSF. Included by the generated <name>.c after the problem
  * Q_main. From <name>_config.h: Q_NX, Q_NU, Q_N, Q_NQ, Q_NTH, Q_NXR, the tube gain Q_K
- * (NU x NX, column-major), the offsets of Q_main (Q_main_P_x0, ..., Q_main_W_v) and, for
+ * (NU x NX, column-major), Q_WARM_START (1: (4.5) starts from the previous step's solution
+ * after a converged solve), the offsets of Q_main (Q_main_P_x0, ..., Q_main_W_v) and, for
  * Remark 4.6, Q_SHRINKING with the X-macro Q_SHRUNK(X) = X(shrunk1, 1) ... of the problems
  * (4.5) with the horizons 1 ... N-1 (same parameter layout as Q_main), and the backup
  * policy Q_BACKUP (0: K x; 1: Q_KB, Q_KB0 of K_b x + k_b; 2: the function Q_backup_policy).
@@ -159,8 +160,15 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   memcpy(wk->p + BAL_QX(main_P_theta), theta,
          BAL_QX(NQ) * BAL_QX(NTH) * sizeof(casadi_real));
   memcpy(wk->p + BAL_QX(main_P_s), s, BAL_QX(NXR) * BAL_QX(NTH) * sizeof(casadi_real));
+#if BAL_QX(WARM_START)
+  /* RAPSF(warm_start=True): from the previous step's solution after a converged (4.5)
+     (k_inf == 0), else cold; the Python controller's rule */
+  if (wk->have_plan && wk->k_inf == 0) BAL_QX(main_warm_start)(&wk->main);
+  else BAL_QX(main_cold_start)(&wk->main);
+#else
   /* every solve starts cold, as the Python controller's */
   BAL_QX(main_cold_start)(&wk->main);
+#endif
   wk->main_status = BAL_QX(main_solve)(&wk->main, wk->p);
   if (wk->main_status == BAL_OK) {
     memcpy(wk->plan, wk->main.x + BAL_QX(main_W_v), sizeof(wk->plan));
