@@ -56,7 +56,10 @@ SUPPORTED: dict[tuple[str, str | None], tuple[str, ...]] = {
 #: therefore never stops at the acceptable level (``acceptable_iter`` 0), so a converged C
 #: attempt is one IPOPT solved to its full tolerance.
 STATUS_OPTIONS: dict[str, dict] = {"ipopt": {"error_on_fail": True,
-                                             "ipopt.acceptable_iter": 0}}
+                                             "ipopt.acceptable_iter": 0},
+                                    # fatrop: its generated C returns nonzero unless fatrop
+                                    # itself ended with Success (an acceptable stop included)
+                                    "fatrop": {"error_on_fail": True}}
 
 #: plugins known to have no usable code generation, with the reason shown to the user.
 REFUSED: dict[str, str] = {
