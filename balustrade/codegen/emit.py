@@ -322,10 +322,15 @@ class _Problem:
         lowering = None if self.take is not None else EMIT_LOWERING
         nlp, derivatives = (c.nlp, c.derivatives) if lowering is None \
             else c.lowered(lowering)
-        out = {sym: ca.nlpsol(sym, plugin, nlp, {**(c.with_derivatives(opts, derivatives)
-                                                    if plugin == c.solver_name else opts),
-                                                 **STATUS_OPTIONS.get(plugin, {})})
-               for sym, plugin, opts in self.solvers}
+        out: dict[str, ca.Function] = {}
+        for sym, plugin, opts in self.solvers:
+            if sym in out:
+                continue
+            opts = {**(c.with_derivatives(opts, derivatives) if plugin == c.solver_name
+                       else opts), **STATUS_OPTIONS.get(plugin, {})}
+            if self.take is not None and out:  # a retry of another plugin: shared functions
+                opts = {**opts, "cache": _shared_oracle(next(iter(out.values())))}
+            out[sym] = ca.nlpsol(sym, plugin, nlp, opts)
         out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt", lowering)
         if self.take is not None:
             out[f"{self.P}_obj"] = c.inverse.cost
@@ -412,6 +417,18 @@ class _Problem:
                     "take": self.take.tolist(),
                     "lbx_layout": list(map(float, self.c._layout_bounds[0])),
                     "ubx_layout": list(map(float, self.c._layout_bounds[1]))})}
+
+
+#: the derivative functions of an NLP that fatrop and IPOPT build with the same name and
+#: signature (their Hessians differ: fatrop's full with the Lagrangian gradient, IPOPT's upper
+#: triangle); a retry of another plugin on the same NLP takes the first solver's (CasADi looks
+#: them up by name in the ``cache`` option), so the C holds them once
+SHARED_ORACLE = ("nlp_jac_g", "nlp_grad", "nlp_g", "nlp_f")
+
+
+def _shared_oracle(solver: ca.Function) -> dict[str, ca.Function]:
+    return {name: solver.get_function(name) for name in SHARED_ORACLE
+            if solver.has_function(name)}
 
 
 def _staged_take(c: CasadiCompiled, title: str, staged_ok: bool) -> np.ndarray | None:
