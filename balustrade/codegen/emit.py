@@ -176,14 +176,18 @@ def _once(text: str, block: str) -> str:
 EMIT_LOWERING = "compact"
 
 
-def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None) -> ca.Function:
+def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None,
+                  lowered: tuple[dict, dict] | None = None) -> ca.Function:
     """The solver's own convergence measures at a point, as a C-emittable function:
     ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``,
     ``feas`` = largest violation with constraint rows scaled by ``1 + |g|`` (the test for
     ``BAL_FEASIBLE`` after all retries); on the NLP of ``lowering`` (default: the
-    solver's own)."""
-    nlp, derivatives = (c.nlp, getattr(c, "derivatives", {})) if lowering is None \
-        else c.lowered(lowering)
+    solver's own), or on ``lowered`` = ``(nlp, derivatives)`` when given."""
+    if lowered is not None:  # given: (nlp, derivatives), e.g. the staged compact lowering
+        nlp, derivatives = lowered
+    else:
+        nlp, derivatives = (c.nlp, getattr(c, "derivatives", {})) if lowering is None \
+            else c.lowered(lowering)
     w, p, f, g = nlp["x"], nlp["p"], nlp["f"], nlp["g"]
     jac_fg = derivatives.get("jac_fg")
     if jac_fg is not None:  # reuse the solvers' Jacobian (its C exists once already)
@@ -319,21 +323,21 @@ class _Problem:
         # (a stage-ordered problem keeps its own, expanded NLP: the structure options
         # describe that vector; its declared cost at the layout's point is P_obj)
         c = self.c
-        lowering = None if self.take is not None else EMIT_LOWERING
-        nlp, derivatives = (c.nlp, c.derivatives) if lowering is None \
-            else c.lowered(lowering)
-        out: dict[str, ca.Function] = {}
-        for sym, plugin, opts in self.solvers:
-            if sym in out:
-                continue
-            opts = {**(c.with_derivatives(opts, derivatives) if plugin == c.solver_name
-                       else opts), **STATUS_OPTIONS.get(plugin, {})}
-            if self.take is not None and out:  # a retry of another plugin: shared functions
-                opts = {**opts, "cache": _shared_oracle(next(iter(out.values())))}
-            out[sym] = ca.nlpsol(sym, plugin, nlp, opts)
-        out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt", lowering)
-        if self.take is not None:
+        if self.take is not None:  # stage order: the compact lowering permuted, per plugin
+            nlp, caches = c.staged_compact()
+            out = {sym: ca.nlpsol(sym, plugin, nlp, {**opts, **STATUS_OPTIONS.get(plugin, {}),
+                                                     "cache": caches.get(plugin, {})})
+                   for sym, plugin, opts in self.solvers}
+            out[f"{self.P}_kkt"] = _kkt_function(c, f"{self.P}_kkt",
+                                                 lowered=(nlp, _staged_jac_fg(caches)))
             out[f"{self.P}_obj"] = c.inverse.cost
+            return out
+        nlp, derivatives = c.lowered(EMIT_LOWERING)
+        out = {sym: ca.nlpsol(sym, plugin, nlp, {**(c.with_derivatives(opts, derivatives)
+                                                    if plugin == c.solver_name else opts),
+                                                 **STATUS_OPTIONS.get(plugin, {})})
+               for sym, plugin, opts in self.solvers}
+        out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt", EMIT_LOWERING)
         return out
 
     def config(self, cfg: C.Config) -> None:
@@ -419,16 +423,16 @@ class _Problem:
                     "ubx_layout": list(map(float, self.c._layout_bounds[1]))})}
 
 
-#: the derivative functions of an NLP that fatrop and IPOPT build with the same name and
-#: signature (their Hessians differ: fatrop's full with the Lagrangian gradient, IPOPT's upper
-#: triangle); a retry of another plugin on the same NLP takes the first solver's (CasADi looks
-#: them up by name in the ``cache`` option), so the C holds them once
-SHARED_ORACLE = ("nlp_jac_g", "nlp_grad", "nlp_g", "nlp_f")
-
-
-def _shared_oracle(solver: ca.Function) -> dict[str, ca.Function]:
-    return {name: solver.get_function(name) for name in SHARED_ORACLE
-            if solver.has_function(name)}
+def _staged_jac_fg(caches: dict[str, dict[str, ca.Function]]) -> dict[str, ca.Function]:
+    """``{"jac_fg": (x, p) -> (f, ∇f, g, ∂g/∂x)}`` from the staged compact functions of
+    fatrop (the KKT check then reuses their C)."""
+    fns = caches["fatrop"]
+    x, p = fns["nlp_jac_g"].mx_in()
+    g, jac_g = fns["nlp_jac_g"](x, p)
+    jac_fg = ca.Function("nlp_jac_fg", [x, p], [fns["nlp_f"](x, p), fns["nlp_grad_f"](x, p),
+                                                g, jac_g],
+                         ["x", "p"], ["f", "grad_f_x", "g", "jac_g_x"])
+    return {"jac_fg": jac_fg}
 
 
 def _staged_take(c: CasadiCompiled, title: str, staged_ok: bool) -> np.ndarray | None:
