@@ -19,6 +19,9 @@ step of the same filter (:func:`~balustrade.codegen.emit_pcbf`: one call per ste
 libfatrop/libblasfeo/libipopt of the casadi wheel) at each state of the Python loop,
 interleaved: step times, fatrop iterations per solve, C = Python, source size and build
 time; ``--sqp`` adds the ``fast-sqp`` loop from Python (interleaved, its own loop).
+
+:func:`run_warm_starts` (``python -m benchmarks.bench_cartpole warm [steps]``): fatrop's
+iterations per solve under warm-start rules and options (Python, interleaved).
 """
 
 from __future__ import annotations
@@ -163,12 +166,86 @@ def run_structured(steps: int = 100, with_sqp: bool = False) -> list[dict]:
     return rows
 
 
+#: fatrop options tried as warm-start settings by :func:`run_warm_starts` (libfatrop 1.1.8 has
+#: no ``warm_start_init_point``; its option registry has ``mu_init``, ``bound_push``,
+#: ``bound_frac``)
+WARM_VARIANTS: dict[str, dict] = {
+    "mu_init 1e-3": {"mu_init": 1e-3},
+    "mu_init 1e-4, bound_push/frac 1e-4": {"mu_init": 1e-4, "bound_push": 1e-4,
+                                           "bound_frac": 1e-4},
+    "mu_init 1e-6, bound_push/frac 1e-8": {"mu_init": 1e-6, "bound_push": 1e-8,
+                                           "bound_frac": 1e-8},
+}
+
+
+class _ColdStarts(PCBFSafetyFilter):
+    """Every solve from the declared initial point (no warm start)."""
+
+    def _slack_start(self, x: np.ndarray) -> None:
+        return None
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple:
+        self._last_filter = None
+        return super()._step(x, u_p)
+
+
+def run_warm_starts(steps: int = 40) -> list[dict]:
+    """fatrop's iterations and step times on the closed loop under warm-start rules, from
+    Python, interleaved step by step (each rule its own loop): the last solution (the
+    default, what the emitted C does), the shifted last plan (``warm_start="shifted"``),
+    cold starts, and the default rule with the fatrop options of :data:`WARM_VARIANTS`
+    (first attempt only; the cold retry keeps the defaults). fatrop takes no dual warm
+    start through CasADi (its OCP interface asks only for initial ``x_k``/``u_k``)."""
+    from balustrade.backends import Target
+
+    d = cartpole_design()
+    x0, proposal = cartpole_scenario()
+    problems = cartpole_problems("structured-ip", design=d)
+    loops = {"last solution (default)": PCBFSafetyFilter(*problems, d.U),
+             "shifted plan": PCBFSafetyFilter(*problems, d.U, warm_start="shifted"),
+             "cold": _ColdStarts(*problems, d.U)}
+    base = {"print_level": 0, "max_iter": 300}
+    for label, extra in WARM_VARIANTS.items():
+        target = Target("casadi", "fatrop", {"fatrop": {**base, **extra}},
+                        retries=(("fatrop", {"fatrop": base}), ("ipopt", {})), name=label)
+        loops[label] = PCBFSafetyFilter(*cartpole_problems(target, design=d), d.U)
+    state = {k: x0.copy() for k in loops}
+    rec: dict[str, list] = {k: [] for k in loops}
+    for k in range(steps):
+        for label, filt in loops.items():
+            x = state[label]
+            start = time.perf_counter()
+            u, info = filt.step(x, proposal(x, k))
+            rec[label].append((time.perf_counter() - start, _iterations(info), _failure(info),
+                               float(u[0])))
+            state[label] = d.system.step(x, u)
+    u_ref = np.array([r[3] for r in rec["last solution (default)"]])
+    rows = []
+    for label, r in rec.items():
+        its = np.array([x[1] for x in r])
+        du = float(np.max(np.abs(np.array([x[3] for x in r]) - u_ref)))
+        rows.append({"name": f"warm start: {label} ({steps} steps)",
+                     "median_ms": round(1e3 * float(np.median([x[0] for x in r])), 1),
+                     "worst_ms": round(1e3 * max(x[0] for x in r), 1),
+                     "slack_iters_median": float(np.median(its[:, 0])),
+                     "slack_iters_max": int(its[:, 0].max()),
+                     "filter_iters_median": float(np.median(its[:, 1])),
+                     "filter_iters_max": int(its[:, 1].max()),
+                     "failures": sum(x[2] for x in r),
+                     "max_du_vs_default": float(f"{du:.3g}")})
+    return rows
+
+
 if __name__ == "__main__":  # pragma: no cover
     import sys
 
     args = sys.argv[1:]
     steps = next((int(a) for a in args if a.isdigit()), 100)
-    rows = run_structured(steps, with_sqp="--sqp" in args) if "structured" in args \
-        else run()
+    if "structured" in args:
+        rows = run_structured(steps, with_sqp="--sqp" in args)
+    elif "warm" in args:
+        rows = run_warm_starts(next((int(a) for a in args if a.isdigit()), 40))
+    else:
+        rows = run()
     for row in rows:
         print(row)
