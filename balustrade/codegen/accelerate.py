@@ -189,7 +189,7 @@ def accelerate(controller: object, build_dir: str | Path | None = None,
     return loaded
 
 
-# (allow_external: a filter on the fatrop target links libfatrop/libblasfeo of the casadi
+# (allow_external: a filter on a structured target links solver libraries of the casadi
 # wheel, with the flags of the manifest's link_flags; self-contained targets link nothing)
 register(PCBFSafetyFilter, lambda c, n, d: emit_pcbf(c, n, d, allow_external=True),
          CPCBFSafetyFilter, "bal_pcbf")

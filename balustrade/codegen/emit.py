@@ -42,6 +42,8 @@ from balustrade.backends.emittable import (
     STATUS_OPTIONS,
     c_libraries,
     c_retries,
+    include_subdirs,
+    once_per_file,
     retries_link_libraries,
 )
 from balustrade.backends.solution import FEASIBILITY_TOL
@@ -148,25 +150,8 @@ def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> li
     except RuntimeError as exc:  # pragma: no cover - CasADi-internal failures
         raise CodegenError(f"{name}: CasADi code generation failed: {exc}") from exc
     c_path, h_path = out_dir / f"{cg_name}.c", out_dir / f"{cg_name}.h"
-    text = _once(c_path.read_text(), _FATROP_CALLBACKS)
-    c_path.write_text(C.static_text("casadi_prologue.h") + text)
+    c_path.write_text(C.static_text("casadi_prologue.h") + once_per_file(c_path.read_text()))
     return [c_path, h_path]
-
-
-#: the print callbacks CasADi 3.8 writes with every fatrop solver it generates: with two
-#: fatrop solvers in one file (the PCBF pair) the C redefined them and did not compile
-_FATROP_CALLBACKS = ("void casadi_fatrop_cb_write(const char* msg, int num) {\n"
-                     "  CASADI_PRINTF(\"%.*s\", num, msg);\n}\n"
-                     "void casadi_fatrop_cb_flush(void) {\n}\n")
-
-
-def _once(text: str, block: str) -> str:
-    """``text`` with every occurrence of ``block`` after the first removed."""
-    first = text.find(block)
-    if first < 0:
-        return text
-    head, tail = text[: first + len(block)], text[first + len(block):]
-    return head + tail.replace(block, "")
 
 
 #: the NLP lowering the C is generated from (:data:`~balustrade.backends.casadi_backend.
@@ -328,8 +313,8 @@ class _Problem:
             out = {sym: ca.nlpsol(sym, plugin, nlp, {**opts, **STATUS_OPTIONS.get(plugin, {}),
                                                      "cache": caches.get(plugin, {})})
                    for sym, plugin, opts in self.solvers}
-            out[f"{self.P}_kkt"] = _kkt_function(c, f"{self.P}_kkt",
-                                                 lowered=(nlp, _staged_jac_fg(caches)))
+            jac_fg = _staged_jac_fg(caches[c.solver_name])
+            out[f"{self.P}_kkt"] = _kkt_function(c, f"{self.P}_kkt", lowered=(nlp, jac_fg))
             out[f"{self.P}_obj"] = c.inverse.cost
             return out
         nlp, derivatives = c.lowered(EMIT_LOWERING)
@@ -423,10 +408,9 @@ class _Problem:
                     "ubx_layout": list(map(float, self.c._layout_bounds[1]))})}
 
 
-def _staged_jac_fg(caches: dict[str, dict[str, ca.Function]]) -> dict[str, ca.Function]:
-    """``{"jac_fg": (x, p) -> (f, ∇f, g, ∂g/∂x)}`` from the staged compact functions of
-    fatrop (the KKT check then reuses their C)."""
-    fns = caches["fatrop"]
+def _staged_jac_fg(fns: dict[str, ca.Function]) -> dict[str, ca.Function]:
+    """``{"jac_fg": (x, p) -> (f, ∇f, g, ∂g/∂x)}`` from the staged compact functions of the
+    first attempt's solver (the KKT check then reuses their C)."""
     x, p = fns["nlp_jac_g"].mx_in()
     g, jac_g = fns["nlp_jac_g"](x, p)
     jac_fg = ca.Function("nlp_jac_fg", [x, p], [fns["nlp_f"](x, p), fns["nlp_grad_f"](x, p),
@@ -683,8 +667,8 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
                 "dynamics": dynamics is not None,
                 "shifted_certificate": cert is not None,
                 "pcbf_status": S.manifest(S.PCBF),
-                # the solver libraries of the casadi wheel the C links (fatrop, ...): the
-                # flags accelerate() and build() need
+                # the solver libraries of the casadi wheel the C links (the structured
+                # target's): the flags accelerate() and build() need
                 "link_flags": list(_link_flags(tuple(sorted(set(libs)))))}
     return _write_module(name, out_dir, "the PCBF safety filter (2.24)+(2.23)", cfg,
                          [("problem", s.P), ("problem", f.P), ("pcbf", name)], files,
@@ -692,15 +676,12 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
 
 
 def _link_flags(libs: tuple[str, ...]) -> tuple[str, ...]:
-    """:func:`~balustrade.codegen.emit_rapsf.link_flags`, plus fatrop's own include folder
-    (its CasADi-generated C includes ``<fatrop/ocp/OCPCInterface.h>``, whose headers
-    include each other relative to it)."""
+    """:func:`~balustrade.codegen.emit_rapsf.link_flags`, plus the include folders the
+    libraries' generated C needs (:func:`~balustrade.backends.emittable.include_subdirs`)."""
     from balustrade.codegen.emit_rapsf import casadi_dir, link_flags
 
-    flags = link_flags(libs)
-    if "fatrop" in libs:
-        flags = (f"-I{casadi_dir() / 'include' / 'fatrop'}", *flags)
-    return flags
+    extra = tuple(f"-I{casadi_dir() / 'include' / d}" for d in include_subdirs(libs))
+    return (*extra, *link_flags(libs))
 
 
 def _shift_certificate(controller: object, spec: PCBFDeployment, name: str
