@@ -210,22 +210,29 @@ def test_replayed_loop_is_memory_clean_under_valgrind(staged):
     assert np.abs(u_c - np.asarray(trace.inputs).reshape(-1)).max() <= 1e-6
 
 
-@pytest.mark.slow
-def test_cartpole_closed_loop_c_equals_python(tmp_path):
-    """The cart-pole pair (RK4, N = 20) on fatrop: 100 steps of examples/cartpole.py, the
-    C step at every state of the Python loop: the same statuses and inputs, no failure,
-    the state stays in X."""
+@pytest.fixture(scope="module")
+def cartpole_c(tmp_path_factory):
     from balustrade.codegen import accelerate
-    from balustrade.examples.cartpole import (
-        cartpole_design,
-        cartpole_problems,
-        cartpole_scenario,
-    )
+    from balustrade.examples.cartpole import cartpole_design, cartpole_problems
 
     d = cartpole_design()
     py = PCBFSafetyFilter(*cartpole_problems(TARGET, design=d), d.U)
-    c = accelerate(py, build_dir=tmp_path, name="cpst", werror=True)
+    c = accelerate(py, build_dir=tmp_path_factory.mktemp("cartpole_st"), name="cpst",
+                   werror=True)
+    return d, py, c
+
+
+@pytest.mark.slow
+def test_cartpole_closed_loop_c_equals_python(cartpole_c):
+    """The cart-pole pair (RK4, N = 20) on fatrop: 100 steps of examples/cartpole.py, the
+    C step at every state of the Python loop: the same statuses and inputs, no failure,
+    the state stays in X."""
+    from balustrade.examples.cartpole import cartpole_scenario
+
+    d, py, c = cartpole_c
     x, proposal = cartpole_scenario()
+    py.reset()
+    c.reset()
     for k in range(100):
         u_p = proposal(x, k)
         (u, i_py), (u_c, i_c) = py.step(x, u_p), c.step(x, u_p)
@@ -234,3 +241,23 @@ def test_cartpole_closed_loop_c_equals_python(tmp_path):
         np.testing.assert_allclose(u_c, u, atol=1e-6)
         x = d.system.step(x, u)
         assert np.all(np.abs(x) <= d.X.h[:4] + 1e-9), (k, x)
+
+
+@pytest.mark.slow
+def test_cartpole_1000_states_c_equals_python(cartpole_c):
+    """1000 states of the cart-pole's X (scaled by 0.5, as tests/test_cartpole.py), each
+    from a reset filter with the scenario's proposal: the same decisions and inputs."""
+    from balustrade.examples.cartpole import destabilizing_proposal
+
+    d, py, c = cartpole_c
+    rng = np.random.default_rng(0)
+    ok = 0
+    for x in d.X.sample(1000, rng) * 0.5:
+        u_p = destabilizing_proposal(x, 0)
+        py.reset()
+        c.reset()
+        (u_py, i_py), (u_c, i_c) = py.step(x, u_p), c.step(x, u_p)
+        _same_step(i_py, i_c)
+        np.testing.assert_allclose(u_c, u_py, atol=1e-6)
+        ok += i_py.status == "ok"
+    assert ok >= 500
