@@ -157,6 +157,17 @@ def test_a_stage_order_that_lifts_variables_is_refused():
     assert _staged_take(py.slack, "slack", staged_ok=True) is not None
 
 
+def test_the_noretry_target_emits_fatrop_alone(tmp_path):
+    """``structured-ip-noretry``: the C runs fatrop only (no IPOPT to link), as Python."""
+    from balustrade.codegen import emit_pcbf
+
+    _, _, py = _filter("structured-ip-noretry")
+    m = emit_pcbf(py, "noretry", tmp_path, allow_external=True).manifest
+    assert set(m["libraries"]) == {"fatrop", "blasfeo"}
+    assert all(m["problems"][k]["retries"] == [] for k in ("slack", "filter"))
+    assert "noretry_slack_nlp_retry" not in (tmp_path / "noretry_config.h").read_text()
+
+
 @pytest.mark.slow
 def test_1000_states_c_equals_python(staged):
     assert _states_agree(staged, 1000, 2) >= 500
