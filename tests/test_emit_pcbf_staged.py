@@ -168,6 +168,22 @@ def test_the_noretry_target_emits_fatrop_alone(tmp_path):
     assert "noretry_slack_nlp_retry" not in (tmp_path / "noretry_config.h").read_text()
 
 
+def test_the_staged_c_is_generated_from_the_compact_lowering(tmp_path, monkeypatch):
+    """By default the solvers' derivatives are the compact lowering's (one stage function,
+    mapped); with ``EMIT_LOWERING = "expanded"`` each solver derives its own from the
+    expanded NLP (larger C, no stage map)."""
+    import balustrade.codegen.emit as E
+
+    _, _, py = _filter()
+    E.emit_pcbf(py, "cmp", tmp_path / "c", allow_external=True)
+    compact = (tmp_path / "c" / "cmp_casadi.c").read_text()
+    monkeypatch.setattr(E, "EMIT_LOWERING", "expanded")
+    E.emit_pcbf(py, "exp", tmp_path / "e", allow_external=True)
+    expanded = (tmp_path / "e" / "exp_casadi.c").read_text()
+    assert "/* rest_jac:(" in compact and "/* rest_jac:(" not in expanded
+    assert expanded.count("/* nlp_jac_g:(") == 4 and compact.count("/* nlp_jac_g:(") == 2
+
+
 @pytest.mark.slow
 def test_1000_states_c_equals_python(staged):
     assert _states_agree(staged, 1000, 2) >= 500
