@@ -13,30 +13,28 @@ Reported, not asserted (goals of the issue: C median <= 5 ms, worst <= 20 ms, 0 
 
 Times are taken on a shared machine: under load; ratios come from one interleaved run.
 
-:func:`run_structured` (``python -m benchmarks.bench_cartpole structured``): the same closed
-loop from Python with ``fast-sqp`` and ``structured-ip`` (fatrop) interleaved step by step
-(each target its own loop), and fatrop's CasADi-generated C (``nlpsol.generate``, linked to
-libfatrop/libblasfeo of the casadi wheel) for (2.24) and (2.23) at the states of the
-``structured-ip`` loop: one solve in C against the same solve from Python, interleaved.
+:func:`run_structured` (``python -m benchmarks.bench_cartpole structured [steps] [--sqp]``):
+the same closed loop on the ``structured-ip`` target (fatrop) from Python and the emitted C
+step of the same filter (:func:`~balustrade.codegen.emit_pcbf`: one call per step, linked to
+libfatrop/libblasfeo/libipopt of the casadi wheel) at each state of the Python loop,
+interleaved: step times, fatrop iterations per solve, C = Python, source size and build
+time; ``--sqp`` adds the ``fast-sqp`` loop from Python (interleaved, its own loop).
+
+:func:`run_warm_starts` (``python -m benchmarks.bench_cartpole warm [steps]``): fatrop's
+iterations per solve under warm-start rules and options (Python, interleaved).
 """
 
 from __future__ import annotations
 
-import os
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
-import casadi as ca
 import numpy as np
 
-from balustrade.backends import compile as compile_problem
-from balustrade.backends import resolve_target
 from balustrade.codegen import CPCBFSafetyFilter, build, emit_pcbf
 from balustrade.control import PCBFSafetyFilter
 from balustrade.examples.cartpole import cartpole_design, cartpole_problems, cartpole_scenario
-from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
 
 
 def _failure(info: object) -> bool:
@@ -90,88 +88,164 @@ def _loop_row(name: str, times: list[float], fails: int, inside: bool) -> dict:
             "worst_ms": round(1e3 * max(times), 1), "failures": fails, "stays_in_X": inside}
 
 
-def _fatrop_c(ocp: object, tmp: Path, tag: str) -> tuple:
-    """``(python solver, C solver, build s, source bytes)`` for fatrop alone on ``ocp``: the
-    solver's CasADi C (``generate``) compiled ``-O2`` against the casadi wheel's libfatrop
-    and libblasfeo, loaded with ``casadi.external``."""
-    c = compile_problem(ocp, "structured-ip-noretry")
-    libs = resolve_target("structured-ip").c_libraries()
-    cdir = Path(ca.__file__).parent
-    src = tmp / f"{tag}.c"
-    cwd = os.getcwd()
-    os.chdir(tmp)
-    try:
-        c.solver.generate(src.name, {"with_header": False})
-    finally:
-        os.chdir(cwd)
-    lib = tmp / f"lib{tag}.so"
-    t0 = time.perf_counter()
-    subprocess.run(["gcc", "-shared", "-fPIC", "-O2", "-o", str(lib), str(src),
-                    f"-I{cdir / 'include'}", f"-I{cdir / 'include' / 'fatrop'}", f"-L{cdir}",
-                    f"-Wl,-rpath,{cdir}", *[f"-l{x}" for x in libs], "-lm"], check=True,
-                   capture_output=True, timeout=600)
-    build_s = time.perf_counter() - t0
-    return c, ca.external(c.solver.name(), str(lib)), build_s, src.stat().st_size
+def _iterations(info: object) -> tuple[int, int]:
+    """Solver iterations of the step's (2.24) and (2.23) (0 when not solved)."""
+    sols = info.solutions or {}
+    return tuple(int(getattr(sols.get(k), "iterations", 0) or 0) for k in ("slack", "filter"))
 
 
-def run_structured(steps: int = 100) -> list[dict]:
-    """Python closed loops (``fast-sqp``, ``structured-ip``) and fatrop in C (module doc)."""
+def run_structured(steps: int = 100, with_sqp: bool = False) -> list[dict]:
+    """The closed loop of :func:`~balustrade.examples.cartpole.cartpole_scenario` on the
+    ``structured-ip`` target (fatrop) from Python, and its emitted C step
+    (:func:`~balustrade.codegen.emit_pcbf`, one call per step through ctypes, linked to
+    the casadi wheel's libfatrop/libblasfeo/libipopt) at every state of the Python loop,
+    interleaved step by step: median and worst step, fatrop iterations per solve (the C
+    runs the same solver from the same warm starts: its iterations are Python's),
+    failures, max ``|u_C − u_Py|``, status mismatches; the C's source size and build time.
+    ``with_sqp``: also the ``fast-sqp`` loop from Python, interleaved (its own loop)."""
     d = cartpole_design()
-    loops = {t: PCBFSafetyFilter(*cartpole_problems(t, design=d), d.U)
-             for t in ("fast-sqp", "structured-ip")}
     x0, proposal = cartpole_scenario()
-    state = {t: x0.copy() for t in loops}
-    times = {t: [] for t in loops}
-    fails, inside = dict.fromkeys(loops, 0), dict.fromkeys(loops, True)
-    visited = []
+    py = PCBFSafetyFilter(*cartpole_problems("structured-ip", design=d), d.U)
+    sqp = PCBFSafetyFilter(*cartpole_problems("fast-sqp", design=d), d.U) if with_sqp \
+        else None
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "cartpole_st"
+        t0 = time.perf_counter()
+        emitted = emit_pcbf(py, "cartpole_st", out, allow_external=True)
+        emit_s = time.perf_counter() - t0
+        size = sum(p.stat().st_size for p in emitted.sources + emitted.headers)
+        t0 = time.perf_counter()
+        lib = build(out, emitted.name, werror=True,
+                    extra_flags=tuple(emitted.manifest["link_flags"]))
+        build_s = time.perf_counter() - t0
+        c = CPCBFSafetyFilter(lib)
+        x, x_sqp = x0.copy(), x0.copy()
+        t_py, t_c, t_sqp, its = [], [], [], []
+        fail_py = fail_c = fail_sqp = mismatch = 0
+        diff, inside, inside_sqp = 0.0, True, True
+        for k in range(steps):
+            u_p = proposal(x, k)
+            start = time.perf_counter()
+            u, info = py.step(x, u_p)
+            t_py.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            u_c, info_c = c.step(x, u_p)
+            t_c.append(time.perf_counter() - start)
+            its.append(_iterations(info))
+            fail_py += _failure(info)
+            fail_c += _failure(info_c)
+            mismatch += (info.status, info.fallback) != (info_c.status, info_c.fallback)
+            diff = max(diff, float(np.max(np.abs(u_c - u))))
+            x = d.system.step(x, u)
+            inside = inside and bool(np.all(np.abs(x) <= d.X.h[:4] + 1e-9))
+            if sqp is not None:
+                start = time.perf_counter()
+                u_s, info_s = sqp.step(x_sqp, proposal(x_sqp, k))
+                t_sqp.append(time.perf_counter() - start)
+                fail_sqp += _failure(info_s)
+                x_sqp = d.system.step(x_sqp, u_s)
+                inside_sqp = inside_sqp and bool(np.all(np.abs(x_sqp) <= d.X.h[:4] + 1e-9))
+    its = np.asarray(its)
+    row = _loop_row(f"cartpole pcbf step, Python structured-ip ({steps} steps)", t_py,
+                    fail_py, inside)
+    row.update(slack_iters_median=float(np.median(its[:, 0])), slack_iters_max=int(its[:, 0].max()),
+               filter_iters_median=float(np.median(its[:, 1])),
+               filter_iters_max=int(its[:, 1].max()))
+    rows.append(row)
+    row = _loop_row(f"cartpole pcbf step, C structured-ip via ctypes ({steps} steps)", t_c,
+                    fail_c, inside)
+    row.update(max_du_vs_python=float(f"{diff:.3g}"), status_mismatches=mismatch)
+    rows.append(row)
+    if sqp is not None:
+        rows.append(_loop_row(f"cartpole pcbf step, Python fast-sqp ({steps} steps)", t_sqp,
+                              fail_sqp, inside_sqp))
+    rows.append({"name": "cartpole pcbf structured-ip C module", "emit_s": round(emit_s, 1),
+                 "build_s": round(build_s, 1), "source_bytes": size,
+                 "note": "cc -O3 -Werror, linked to libfatrop/libblasfeo/libipopt"})
+    return rows
+
+
+#: fatrop options tried as warm-start settings by :func:`run_warm_starts` (libfatrop 1.1.8 has
+#: no ``warm_start_init_point``; its option registry has ``mu_init``, ``bound_push``,
+#: ``bound_frac``)
+WARM_VARIANTS: dict[str, dict] = {
+    "mu_init 1e-3": {"mu_init": 1e-3},
+    "mu_init 1e-4, bound_push/frac 1e-4": {"mu_init": 1e-4, "bound_push": 1e-4,
+                                           "bound_frac": 1e-4},
+    "mu_init 1e-6, bound_push/frac 1e-8": {"mu_init": 1e-6, "bound_push": 1e-8,
+                                           "bound_frac": 1e-8},
+}
+
+
+class _ColdStarts(PCBFSafetyFilter):
+    """Every solve from the declared initial point (no warm start)."""
+
+    def _slack_start(self, x: np.ndarray) -> None:
+        return None
+
+    def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple:
+        self._last_filter = None
+        return super()._step(x, u_p)
+
+
+def run_warm_starts(steps: int = 40) -> list[dict]:
+    """fatrop's iterations and step times on the closed loop under warm-start rules, from
+    Python, interleaved step by step (each rule its own loop): the last solution (the
+    default, what the emitted C does), the shifted last plan (``warm_start="shifted"``),
+    cold starts, and the default rule with the fatrop options of :data:`WARM_VARIANTS`
+    (first attempt only; the cold retry keeps the defaults). fatrop takes no dual warm
+    start through CasADi (its OCP interface asks only for initial ``x_k``/``u_k``)."""
+    from balustrade.backends import Target
+
+    d = cartpole_design()
+    x0, proposal = cartpole_scenario()
+    problems = cartpole_problems("structured-ip", design=d)
+    loops = {"last solution (default)": PCBFSafetyFilter(*problems, d.U),
+             "shifted plan": PCBFSafetyFilter(*problems, d.U, warm_start="shifted"),
+             "cold": _ColdStarts(*problems, d.U)}
+    base = {"print_level": 0, "max_iter": 300}
+    for label, extra in WARM_VARIANTS.items():
+        target = Target("casadi", "fatrop", {"fatrop": {**base, **extra}},
+                        retries=(("fatrop", {"fatrop": base}), ("ipopt", {})), name=label)
+        loops[label] = PCBFSafetyFilter(*cartpole_problems(target, design=d), d.U)
+    state = {k: x0.copy() for k in loops}
+    rec: dict[str, list] = {k: [] for k in loops}
     for k in range(steps):
-        for t, filt in loops.items():
-            x = state[t]
-            if t == "structured-ip":
-                visited.append((x.copy(), proposal(x, k)))
+        for label, filt in loops.items():
+            x = state[label]
             start = time.perf_counter()
             u, info = filt.step(x, proposal(x, k))
-            times[t].append(time.perf_counter() - start)
-            fails[t] += _failure(info)
-            state[t] = d.system.step(x, u)
-            inside[t] = inside[t] and bool(np.all(np.abs(state[t]) <= d.X.h[:4] + 1e-9))
-    rows = [_loop_row(f"cartpole pcbf step, Python {t} ({steps} steps)", times[t], fails[t],
-                      inside[t]) for t in loops]
-    args = (d.system, d.X, d.U, d.h_f, d.N, d.deltas)
-    slack_ocp = pcbf_slack_problem(*args, alpha_f=d.alpha_f, slack_norm=1)
-    exact = compile_problem(slack_ocp, "exact")
-    with tempfile.TemporaryDirectory() as tmp:
-        for tag, ocp in (("slack", slack_ocp), ("filter", pcbf_filter_problem(*args))):
-            py, cf, build_s, size = _fatrop_c(ocp, Path(tmp), f"cartpole_{tag}")
-            t_py, t_c, diff, failed = [], [], 0.0, 0
-            for x, u_p in visited:
-                par = {"x0": x}
-                if tag == "filter":
-                    sol = exact.solve(par)
-                    par = {**par, "u_p": u_p, "xi": sol.primal["xi"], "xi_N": sol.primal["xi_N"]}
-                pv = ocp.pack_parameters(par)
-                kw = {"x0": py._initial_guess(None, pv)[0], "p": pv, "lbx": py.lbx,
-                      "ubx": py.ubx, "lbg": py.lbg, "ubg": py.ubg}
-                start = time.perf_counter()
-                r_py = py.solver(**kw)
-                t_py.append(time.perf_counter() - start)
-                failed += not py.solver.stats()["success"]
-                start = time.perf_counter()
-                r_c = cf(**kw)
-                t_c.append(time.perf_counter() - start)
-                diff = max(diff, float(np.max(np.abs(np.asarray(r_c["x"] - r_py["x"])))))
-            rows.append({"name": f"cartpole ({'2.24' if tag == 'slack' else '2.23'}) fatrop, "
-                         f"Python vs C ({len(visited)} states)",
-                         "py_median_ms": round(1e3 * float(np.median(t_py)), 2),
-                         "c_median_ms": round(1e3 * float(np.median(t_c)), 2),
-                         "c_worst_ms": round(1e3 * max(t_c), 1),
-                         "fatrop_unconverged": failed, "max_dx_c_vs_py": float(f"{diff:.3g}"),
-                         "build_s": round(build_s, 1), "source_bytes": size})
+            rec[label].append((time.perf_counter() - start, _iterations(info), _failure(info),
+                               float(u[0])))
+            state[label] = d.system.step(x, u)
+    u_ref = np.array([r[3] for r in rec["last solution (default)"]])
+    rows = []
+    for label, r in rec.items():
+        its = np.array([x[1] for x in r])
+        du = float(np.max(np.abs(np.array([x[3] for x in r]) - u_ref)))
+        rows.append({"name": f"warm start: {label} ({steps} steps)",
+                     "median_ms": round(1e3 * float(np.median([x[0] for x in r])), 1),
+                     "worst_ms": round(1e3 * max(x[0] for x in r), 1),
+                     "slack_iters_median": float(np.median(its[:, 0])),
+                     "slack_iters_max": int(its[:, 0].max()),
+                     "filter_iters_median": float(np.median(its[:, 1])),
+                     "filter_iters_max": int(its[:, 1].max()),
+                     "failures": sum(x[2] for x in r),
+                     "max_du_vs_default": float(f"{du:.3g}")})
     return rows
 
 
 if __name__ == "__main__":  # pragma: no cover
     import sys
 
-    for row in (run_structured() if "structured" in sys.argv[1:] else run()):
+    args = sys.argv[1:]
+    steps = next((int(a) for a in args if a.isdigit()), 100)
+    if "structured" in args:
+        rows = run_structured(steps, with_sqp="--sqp" in args)
+    elif "warm" in args:
+        rows = run_warm_starts(next((int(a) for a in args if a.isdigit()), 40))
+    else:
+        rows = run()
+    for row in rows:
         print(row)

@@ -59,6 +59,7 @@ from balustrade.backends.passes.stage_order import (
     StageInverse,
     StructureError,
     stage_order,
+    staged_compact,
 )
 from balustrade.backends.solution import Solution, Status
 from balustrade.backends.targets import Budget
@@ -293,6 +294,7 @@ class CasadiCompiled:
                 raise SolverError(f"{ocp.name}: the {self.lowering!r} lowering is not "
                                   f"available for the stage-ordered solver {solver!r}")
             self._layout_bounds = (data.lbx, data.ubx)
+            self._layout_data = data  # for the compact lowering of the C (staged_compact)
             staged, self.stages = stage_order(ocp, data, last_controls=solver == "fatrop")
             opts = with_structure(solver, opts, staged)
             self.lbx, self.ubx, self.lbg, self.ubg = (staged.lbx, staged.ubx, staged.lbg,
@@ -342,6 +344,19 @@ class CasadiCompiled:
                                   f"{self.solver_name!r}")
             self._lowered[lowering] = self._lower(_lowering(self.ocp.name, lowering))
         return self._lowered[lowering]
+
+    def staged_compact(self) -> tuple[dict, dict[str, dict[str, ca.Function]]]:
+        """For a problem compiled in stage order: the compact lowering in stage order and
+        the derivative functions per solver plugin (``nlpsol``'s ``cache`` option), built
+        once (:func:`~balustrade.backends.passes.stage_order.staged_compact`; what the C
+        emitters generate fatrop's and its IPOPT retry's code from). The Python solver
+        keeps the expanded NLP; the values are the same."""
+        if self.stages is None:
+            raise SolverError(f"{self.ocp.name}: not compiled in stage order")
+        if "staged_compact" not in self._lowered:
+            self._lowered["staged_compact"] = staged_compact(
+                compact_nlp(self._layout_data, self.ocp), self.stages)
+        return self._lowered["staged_compact"]
 
     def _lower(self, lowering: str) -> tuple[dict, dict[str, ca.Function]]:
         if lowering == "expanded":

@@ -56,7 +56,40 @@ SUPPORTED: dict[tuple[str, str | None], tuple[str, ...]] = {
 #: therefore never stops at the acceptable level (``acceptable_iter`` 0), so a converged C
 #: attempt is one IPOPT solved to its full tolerance.
 STATUS_OPTIONS: dict[str, dict] = {"ipopt": {"error_on_fail": True,
-                                             "ipopt.acceptable_iter": 0}}
+                                             "ipopt.acceptable_iter": 0},
+                                    # fatrop: its generated C returns nonzero unless fatrop
+                                    # itself ended with Success (an acceptable stop
+                                    # included: the C then retries it, never uses it)
+                                    "fatrop": {"error_on_fail": True}}
+
+#: blocks of C that CasADi 3.8 writes with *every* solver of a plugin it generates (fatrop's
+#: print callbacks): with two such solvers in one file (a PCBF pair) the C redefines them and
+#: does not compile, so the emitters keep the first copy (:func:`once_per_file`)
+ONCE_PER_FILE: tuple[str, ...] = (
+    "void casadi_fatrop_cb_write(const char* msg, int num) {\n"
+    "  CASADI_PRINTF(\"%.*s\", num, msg);\n}\n"
+    "void casadi_fatrop_cb_flush(void) {\n}\n",)
+
+#: include folders (under the casadi wheel's ``include/``) that a library's generated C needs
+#: besides ``include/`` itself: fatrop's headers include each other relative to their folder
+INCLUDE_SUBDIRS: dict[str, tuple[str, ...]] = {"fatrop": ("fatrop",)}
+
+
+def once_per_file(text: str) -> str:
+    """Generated C ``text`` with every block of :data:`ONCE_PER_FILE` kept once (its first
+    occurrence)."""
+    for block in ONCE_PER_FILE:
+        first = text.find(block)
+        if first >= 0:
+            cut = first + len(block)
+            text = text[:cut] + text[cut:].replace(block, "")
+    return text
+
+
+def include_subdirs(libraries: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """The extra include folders (:data:`INCLUDE_SUBDIRS`) of ``libraries``."""
+    return tuple(d for lib in libraries for d in INCLUDE_SUBDIRS.get(lib, ()))
+
 
 #: plugins known to have no usable code generation, with the reason shown to the user.
 REFUSED: dict[str, str] = {
@@ -161,6 +194,6 @@ def c_retry_chain(solver: str, options: Mapping, retries: list[tuple[str, dict]]
     return retries if same else kept
 
 
-__all__ = ["ADVICE", "REFUSED", "STATUS_OPTIONS", "SUPPORTED", "c_libraries",
-           "c_retries", "c_retry_chain", "codegen_reason", "full_options",
-           "retries_link_libraries"]
+__all__ = ["ADVICE", "INCLUDE_SUBDIRS", "ONCE_PER_FILE", "REFUSED", "STATUS_OPTIONS",
+           "SUPPORTED", "c_libraries", "c_retries", "c_retry_chain", "codegen_reason",
+           "full_options", "include_subdirs", "once_per_file", "retries_link_libraries"]

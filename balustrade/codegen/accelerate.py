@@ -189,7 +189,10 @@ def accelerate(controller: object, build_dir: str | Path | None = None,
     return loaded
 
 
-register(PCBFSafetyFilter, lambda c, n, d: emit_pcbf(c, n, d), CPCBFSafetyFilter, "bal_pcbf")
+# (allow_external: a filter on a structured target links solver libraries of the casadi
+# wheel, with the flags of the manifest's link_flags; self-contained targets link nothing)
+register(PCBFSafetyFilter, lambda c, n, d: emit_pcbf(c, n, d, allow_external=True),
+         CPCBFSafetyFilter, "bal_pcbf")
 register(ApproximatePCBFFilter, lambda c, n, d: emit_approximate(c, n, d),
          CApproximatePCBFFilter, "bal_approx")
 register(GridPCBFFilter, lambda c, n, d: emit_grid(c, n, d), CGridPCBFFilter, "bal_grid")

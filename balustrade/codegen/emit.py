@@ -42,6 +42,8 @@ from balustrade.backends.emittable import (
     STATUS_OPTIONS,
     c_libraries,
     c_retries,
+    include_subdirs,
+    once_per_file,
     retries_link_libraries,
 )
 from balustrade.backends.solution import FEASIBILITY_TOL
@@ -148,7 +150,7 @@ def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> li
     except RuntimeError as exc:  # pragma: no cover - CasADi-internal failures
         raise CodegenError(f"{name}: CasADi code generation failed: {exc}") from exc
     c_path, h_path = out_dir / f"{cg_name}.c", out_dir / f"{cg_name}.h"
-    c_path.write_text(C.static_text("casadi_prologue.h") + c_path.read_text())
+    c_path.write_text(C.static_text("casadi_prologue.h") + once_per_file(c_path.read_text()))
     return [c_path, h_path]
 
 
@@ -159,14 +161,18 @@ def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> li
 EMIT_LOWERING = "compact"
 
 
-def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None) -> ca.Function:
+def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None,
+                  lowered: tuple[dict, dict] | None = None) -> ca.Function:
     """The solver's own convergence measures at a point, as a C-emittable function:
     ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``,
     ``feas`` = largest violation with constraint rows scaled by ``1 + |g|`` (the test for
     ``BAL_FEASIBLE`` after all retries); on the NLP of ``lowering`` (default: the
-    solver's own)."""
-    nlp, derivatives = (c.nlp, getattr(c, "derivatives", {})) if lowering is None \
-        else c.lowered(lowering)
+    solver's own), or on ``lowered`` = ``(nlp, derivatives)`` when given."""
+    if lowered is not None:  # given: (nlp, derivatives), e.g. the staged compact lowering
+        nlp, derivatives = lowered
+    else:
+        nlp, derivatives = (c.nlp, getattr(c, "derivatives", {})) if lowering is None \
+            else c.lowered(lowering)
     w, p, f, g = nlp["x"], nlp["p"], nlp["f"], nlp["g"]
     jac_fg = derivatives.get("jac_fg")
     if jac_fg is not None:  # reuse the solvers' Jacobian (its C exists once already)
@@ -242,10 +248,11 @@ class _Problem:
     """The C pieces of one compiled problem under the C prefix ``P``."""
 
     def __init__(self, c: CasadiCompiled, P: str, title: str, module: str,
-                 accept_tol: float | None = None, allow_external: bool | None = None):
-        if getattr(c, "stages", None) is not None:  # issue #14 §2: not yet emitted
-            raise CodegenError(f"{title}: problems compiled in stage order (the structured "
-                               "targets) cannot be emitted yet: the C unpacks the layout order")
+                 accept_tol: float | None = None, allow_external: bool | None = None,
+                 staged_ok: bool = False):
+        #: for a problem compiled in stage order (the structured targets, issue #14 §2):
+        #: ``take[i]`` = the position of layout element ``i`` in the solver's vector
+        self.take = _staged_take(c, title, staged_ok)
         self.c, self.P, self.title, self.module = c, P, title, module
         self.nw = int(c.nlp["x"].numel())
         self.np = int(c.nlp["p"].numel())
@@ -288,13 +295,34 @@ class _Problem:
         self.params = c.ocp.parameter_layout.to_dict()  # with declared values as "default"
         init = self.layout.initial()
         self.init = np.where(np.isfinite(init), init, 0.0)
+        if self.take is not None:  # the cold start in the solver's (stage) order
+            staged = np.empty_like(self.init)
+            staged[self.take] = self.init
+            self.init = staged
 
     def functions(self) -> dict[str, ca.Function]:
         # every attempt on the compiled problem's own plugin shares its derivative
         # functions, so their C is generated once (backends.casadi_backend.
         # shared_derivatives: most of the C of a nonlinear horizon problem), built on the
         # compact lowering (EMIT_LOWERING: the dynamics' derivatives once, not per stage)
+        # (a stage-ordered problem keeps its own, expanded NLP: the structure options
+        # describe that vector; its declared cost at the layout's point is P_obj)
         c = self.c
+        if self.take is not None:  # stage order: the compact lowering permuted, per plugin
+            # (EMIT_LOWERING "expanded": the solver's own NLP, each solver deriving its own
+            # functions — on the cart-pole pair 6x the C, 11-15x the build time, a 20 %
+            # faster step; docs/engines.md)
+            if EMIT_LOWERING == "compact":
+                nlp, caches = c.staged_compact()
+                jac_fg = _staged_jac_fg(caches[c.solver_name])
+            else:
+                nlp, caches, jac_fg = c.nlp, {}, {}
+            out = {sym: ca.nlpsol(sym, plugin, nlp, {**opts, **STATUS_OPTIONS.get(plugin, {}),
+                                                     "cache": caches.get(plugin, {})})
+                   for sym, plugin, opts in self.solvers}
+            out[f"{self.P}_kkt"] = _kkt_function(c, f"{self.P}_kkt", lowered=(nlp, jac_fg))
+            out[f"{self.P}_obj"] = c.inverse.cost
+            return out
         nlp, derivatives = c.lowered(EMIT_LOWERING)
         out = {sym: ca.nlpsol(sym, plugin, nlp, {**(c.with_derivatives(opts, derivatives)
                                                     if plugin == c.solver_name else opts),
@@ -360,6 +388,17 @@ class _Problem:
         cfg.array(f"{P}_LBG", self.c.lbg, 1)
         cfg.array(f"{P}_UBG", self.c.ubg, 1)
         cfg.array(f"{P}_INIT_X", self.init, self.nw)
+        cfg.define(f"{P}_STAGED", int(self.take is not None),
+                   "1: x is in stage order (P_TAKE), the offsets P_W_* are the layout's")
+        if self.take is not None:
+            lb, ub = self.c._layout_bounds
+            cfg.comment("layout element i of the solution is x[P_TAKE[i]], projected onto "
+                        "[P_LBX_L[i], P_UBX_L[i]]\n(the backend's StageInverse.primal, "
+                        "then its projection onto the bounds)")
+            cfg._braced(f"{P}_TAKE", [", ".join(map(str, self.take[k: k + 12]))
+                                      for k in range(0, self.nw, 12)])
+            cfg.array(f"{P}_LBX_L", lb, self.nw)
+            cfg.array(f"{P}_UBX_L", ub, self.nw)
         cfg.blank()
 
     def manifest(self) -> dict:
@@ -368,7 +407,48 @@ class _Problem:
                 "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
                 "accept_tol": self.accept_tol, "budget": self.budget,
                 "retries": list(self.retry_labels),
-                "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol")}
+                "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol"),
+                **({} if self.take is None else {
+                    "take": self.take.tolist(),
+                    "lbx_layout": list(map(float, self.c._layout_bounds[0])),
+                    "ubx_layout": list(map(float, self.c._layout_bounds[1]))})}
+
+
+def _staged_jac_fg(fns: dict[str, ca.Function]) -> dict[str, ca.Function]:
+    """``{"jac_fg": (x, p) -> (f, ∇f, g, ∂g/∂x)}`` from the staged compact functions of the
+    first attempt's solver (the KKT check then reuses their C)."""
+    x, p = fns["nlp_jac_g"].mx_in()
+    g, jac_g = fns["nlp_jac_g"](x, p)
+    jac_fg = ca.Function("nlp_jac_fg", [x, p], [fns["nlp_f"](x, p), fns["nlp_grad_f"](x, p),
+                                                g, jac_g],
+                         ["x", "p"], ["f", "grad_f_x", "g", "jac_g_x"])
+    return {"jac_fg": jac_fg}
+
+
+def _staged_take(c: CasadiCompiled, title: str, staged_ok: bool) -> np.ndarray | None:
+    """``None`` for a problem in the layout's order; for one compiled in stage order
+    (:mod:`~balustrade.backends.passes.stage_order`) the positions ``take`` of the layout's
+    elements in the solver's vector, when the emitter maps them (``staged_ok``, the PCBF
+    step) and the stage order is a permutation (no lifted copies or running sums: a warm
+    start is then a scatter, as the backend's ``StageInverse.staged``); else a
+    CodegenError saying why."""
+    stages = getattr(c, "stages", None)
+    if stages is None:
+        return None
+    if not staged_ok:
+        raise CodegenError(f"{title}: problems compiled in stage order (the structured "
+                           "targets) are emitted only inside the PCBF step (emit_pcbf), which "
+                           "maps the stage order; this emitter unpacks the layout order")
+    take = np.asarray(stages.take, dtype=int)
+    n = int(c.nlp["x"].numel())
+    rows = np.asarray(stages.row_take, dtype=int)
+    if take.size != n or not np.array_equal(np.sort(take), np.arange(n)) \
+            or rows.size != int(c.nlp["g"].numel()):
+        raise CodegenError(f"{title}: its stage order lifts variables (per-stage copies or "
+                           f"running sums: {n} staged values for {take.size} layout "
+                           "values); the emitted step maps only a stage order that permutes "
+                           "the layout")
+    return take
 
 
 def _write_module(name: str, out_dir: Path, what: str, config: C.Config,
@@ -538,9 +618,10 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
         name, spec.slack, spec.filter, spec.U,
         ("slack problem (2.24)", "filter problem (2.23)"), allow_external)
     s = _Problem(slack, f"{name}_slack", f"slack problem (2.24) {slack.ocp.name!r}", name,
-                 accept_tol)
+                 accept_tol, staged_ok=True)
     f = _Problem(filt, f"{name}_filter", f"filter problem (2.23) {filt.ocp.name!r}", name,
-                 accept_tol)
+                 accept_tol, staged_ok=True)
+    libs += s.libraries + f.libraries
     _require(name, {"slack parameter": (s.params, ["x0"]),
                     "slack variable": (s.vars, ["u", "xi", "xi_N"]),
                     "filter parameter": (f.params, ["x0", "u_p", "xi", "xi_N"]),
@@ -591,10 +672,22 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
                 "problems": {"slack": s.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
                 "shifted_certificate": cert is not None,
-                "pcbf_status": S.manifest(S.PCBF)}
+                "pcbf_status": S.manifest(S.PCBF),
+                # the solver libraries of the casadi wheel the C links (the structured
+                # target's): the flags accelerate() and build() need
+                "link_flags": list(_link_flags(tuple(sorted(set(libs)))))}
     return _write_module(name, out_dir, "the PCBF safety filter (2.24)+(2.23)", cfg,
                          [("problem", s.P), ("problem", f.P), ("pcbf", name)], files,
                          manifest, tuple(sorted(set(libs))))
+
+
+def _link_flags(libs: tuple[str, ...]) -> tuple[str, ...]:
+    """:func:`~balustrade.codegen.emit_rapsf.link_flags`, plus the include folders the
+    libraries' generated C needs (:func:`~balustrade.backends.emittable.include_subdirs`)."""
+    from balustrade.codegen.emit_rapsf import casadi_dir, link_flags
+
+    extra = tuple(f"-I{casadi_dir() / 'include' / d}" for d in include_subdirs(libs))
+    return (*extra, *link_flags(libs))
 
 
 def _shift_certificate(controller: object, spec: PCBFDeployment, name: str

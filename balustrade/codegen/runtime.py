@@ -248,10 +248,15 @@ class _CProblemView:
         return bool(self.residuals()[0] <= FEASIBILITY_TOL)
 
     def unpack(self, w: np.ndarray) -> dict[str, np.ndarray]:
-        """The user's variables (copies) from the solver's ``x`` (epigraph blocks after)."""
+        """The user's variables (copies) from the solver's ``x`` (epigraph blocks after; a
+        problem in stage order is read through its ``take`` and projected onto the
+        layout's bounds, as the backend reports it)."""
         if self._layout is None:
             self._layout = Layout.from_dict(self.info["variables"], self.info["prefix"],
                                             "variable")
+        if "take" in self.info:
+            w = np.clip(np.asarray(w)[self.info["take"]], self.info["lbx_layout"],
+                        self.info["ubx_layout"])
         return {k: np.array(v) for k, v in self._layout.unpack(w[: self._layout.size]).items()}
 
 

@@ -327,6 +327,60 @@ def stage_order(ocp: OCP, data: NLPData, last_controls: bool = True
     return staged_nlp, StageInverse(take, row_take, lift)
 
 
+def staged_compact(compact: object, inverse: StageInverse
+                   ) -> tuple[dict, dict[str, dict[str, ca.Function]]]:
+    """The compact lowering (:class:`~balustrade.backends.passes.casadi_nlp.CompactNLP`:
+    each dynamics block one stage function mapped over the horizon, its derivatives written
+    once) of a problem whose stage order *permutes* the layout (no lifted copies or running
+    sums: ``inverse.take`` and ``inverse.row_take`` are permutations): ``(nlp, caches)``
+    with the MX ``{x, p, f, g}`` in stage order and, per solver plugin (``fatrop``,
+    ``ipopt``), the derivative functions its ``nlpsol`` looks up by name in the ``cache``
+    option, built from the compact ones and permuted (same values as the expanded NLP's).
+
+    Why (issue #14): in the expanded SX NLP fatrop's Hessian, Jacobian and Lagrangian
+    gradient are every stage's RK4 derivative written out (the cart-pole pair: 4.7 MB of
+    C with the IPOPT retries)."""
+    take = np.asarray(inverse.take, dtype=int)
+    rows = np.asarray(inverse.row_take, dtype=int)
+    n, m = take.size, rows.size
+    if not (np.array_equal(np.sort(take), np.arange(n))
+            and np.array_equal(np.sort(rows), np.arange(m))):
+        raise StructureError("the compact lowering of a stage-ordered problem needs a stage "
+                             "order that permutes the layout (no lifted copies or sums)")
+    inv_x, inv_g = np.empty(n, dtype=int), np.empty(m, dtype=int)
+    inv_x[take], inv_g[rows] = np.arange(n), np.arange(m)
+    d = compact.derivatives()
+    jac_fg, hess_lag, grad = d["jac_fg"], d["hess_lag"], d["cache"]["nlp_grad"]
+    ws, ps = ca.MX.sym("x", n), ca.MX.sym("p", compact.P.numel())
+    lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", m)
+    wl, lg = ws[ca.DM(take)], lam_g[ca.DM(rows)]
+    ix, ig = ca.DM(inv_x), ca.DM(inv_g)
+    f, grad_f, g, jac_g = jac_fg(wl, ps)
+    grad_f, g, jac_g = grad_f[ix], g[ig], jac_g[ig, ix]
+    hess = hess_lag(wl, ps, lam_f, lg)[ix, ix]
+    _, _, grad_x, grad_p = grad(wl, ps, lam_f, lg)
+    grad_x = grad_x[ix]
+    xp, xpl = ["x", "p"], ["x", "p", "lam_f", "lam_g"]
+    common = {
+        "nlp_f": ca.Function("nlp_f", [ws, ps], [f], xp, ["f"]),
+        "nlp_g": ca.Function("nlp_g", [ws, ps], [g], xp, ["g"]),
+        "nlp_jac_g": ca.Function("nlp_jac_g", [ws, ps], [g, jac_g], xp, ["g", "jac_g_x"]),
+        "nlp_grad": ca.Function("nlp_grad", [ws, ps, lam_f, lam_g], [f, g, grad_x, grad_p],
+                                xpl, ["f", "g", "grad_gamma_x", "grad_gamma_p"]),
+    }
+    fatrop = {**common,
+              "nlp_grad_f": ca.Function("nlp_grad_f", [ws, ps], [grad_f], xp, ["grad_f_x"]),
+              "nlp_hess_l": ca.Function("nlp_hess_l", [ws, ps, lam_f, lam_g], [grad_x, hess],
+                                        xpl, ["grad_gamma_x", "hess_gamma_x_x"])}
+    ipopt = {**common,
+             "nlp_grad_f": ca.Function("nlp_grad_f", [ws, ps], [f, grad_f], xp,
+                                       ["f", "grad_f_x"]),
+             "nlp_hess_l": ca.Function("nlp_hess_l", [ws, ps, lam_f, lam_g], [ca.triu(hess)],
+                                       xpl, ["triu_hess_gamma_x_x"])}
+    nlp = {"x": ws, "p": ps, "f": f, "g": g}
+    return nlp, {"fatrop": fatrop, "ipopt": ipopt}
+
+
 def _orig_parts(expr: ca.SX, wel: list, staged: dict, stage_arr: np.ndarray, N: int
                 ) -> tuple[list[ca.SX], ca.SX]:
     idx = list(staged)
@@ -395,4 +449,4 @@ def _block_name(data: NLPData, i: int) -> str:
     return "w"
 
 
-__all__ = ["StageInverse", "StagedNLP", "StructureError", "stage_order"]
+__all__ = ["StageInverse", "StagedNLP", "StructureError", "stage_order", "staged_compact"]

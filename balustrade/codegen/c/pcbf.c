@@ -14,6 +14,71 @@
 static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
 static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
 
+/* Layout element i of a problem's x (stage order: x[take[i]], projected onto the layout's
+   bounds unless `raw`, as the backend reports the point) */
+static casadi_real BAL_QX(layout_at)(const casadi_real* x, const casadi_int* take,
+                                     const casadi_real* lb, const casadi_real* ub,
+                                     casadi_int i, int raw) {
+  casadi_real v;
+  if (!take) return x[i];
+  v = x[take[i]];
+  return raw ? v : fmin(fmax(v, lb[i]), ub[i]);
+}
+#if BAL_QX(slack_STAGED)
+static const casadi_int BAL_QX(s_take)[BAL_QX(slack_NW)] = BAL_QX(slack_TAKE);
+static const casadi_real BAL_QX(s_lbl)[BAL_QX(slack_NW)] = BAL_QX(slack_LBX_L);
+static const casadi_real BAL_QX(s_ubl)[BAL_QX(slack_NW)] = BAL_QX(slack_UBX_L);
+#define BAL_PCBF_S_MAP BAL_QX(s_take), BAL_QX(s_lbl), BAL_QX(s_ubl)
+#else
+#define BAL_PCBF_S_MAP 0, 0, 0
+#endif
+#if BAL_QX(filter_STAGED)
+static const casadi_int BAL_QX(f_take)[BAL_QX(filter_NW)] = BAL_QX(filter_TAKE);
+static const casadi_real BAL_QX(f_lbl)[BAL_QX(filter_NW)] = BAL_QX(filter_LBX_L);
+static const casadi_real BAL_QX(f_ubl)[BAL_QX(filter_NW)] = BAL_QX(filter_UBX_L);
+#define BAL_PCBF_F_MAP BAL_QX(f_take), BAL_QX(f_lbl), BAL_QX(f_ubl)
+#else
+#define BAL_PCBF_F_MAP 0, 0, 0
+#endif
+/* layout element i of (2.24)'s point (a certified shifted plan is used as it is, as the
+   Python filter uses the candidate) and of (2.23)'s */
+#define BAL_PCBF_SLACK(i) \
+  BAL_QX(layout_at)(wk->slack.x, BAL_PCBF_S_MAP, (i), wk->shift_certified)
+#define BAL_PCBF_FILTER(i) BAL_QX(layout_at)(wk->filter.x, BAL_PCBF_F_MAP, (i), 0)
+
+/* (2.24)'s warm start := the primal of its point, zero multipliers (the backend's warm
+   start from a Solution that did not converge, or from the certificate's candidate) */
+static void BAL_QX(pcbf_slack_keep)(BAL_QX(work)* wk) {
+#if BAL_QX(slack_STAGED)
+  casadi_int i;
+  BAL_QX(slack_cold_start)(&wk->slack);
+  for (i = 0; i < BAL_QX(slack_N_USER); ++i) {
+    wk->slack.x0[BAL_QX(s_take)[i]] = BAL_PCBF_SLACK(i);
+  }
+#else
+  BAL_QX(slack_warm_start_primal)(&wk->slack);
+#endif
+}
+
+/* (2.24) in stage order: h_PB is its declared cost at the projected layout point, as the
+   backend reports Solution.objective (not the solver's value at its relaxed point) */
+static void BAL_QX(pcbf_slack_cost)(BAL_QX(work)* wk) {
+#if BAL_QX(slack_STAGED)
+  casadi_int i;
+  casadi_real f = NAN;
+  if (!bal_finite(wk->slack.x, BAL_QX(slack_NW))) return;
+  for (i = 0; i < BAL_QX(slack_NW); ++i) wk->s_lay[i] = BAL_QX(layout_at)(
+      wk->slack.x, BAL_PCBF_S_MAP, i, 0);
+  wk->oarg[0] = wk->s_lay;
+  wk->oarg[1] = wk->p_slack;
+  wk->ores[0] = &f;
+  if (BAL_QX(slack_obj)(wk->oarg, wk->ores, wk->oiw, wk->ow, 0)) f = NAN;
+  wk->slack.f = f;
+#else
+  (void)wk;
+#endif
+}
+
 #if BAL_QX(SHIFT_CERT)
 /* init/finalize: the two problems and the memory of Q_shift_cert */
 int BAL_QX(init)(BAL_QX(work)* wk) {
@@ -73,7 +138,11 @@ static int BAL_QX(shift_check)(BAL_QX(work)* wk, const casadi_real* x, int usabl
   }
   if (!(wk->cert_v <= BAL_QX(CERT_TOL) && fabs(wk->cert_f) <= BAL_QX(ZERO_TOL))) return 0;
   wk->h_solver = usable ? wk->slack.f : NAN;
+#if BAL_QX(slack_STAGED)
+  for (m = 0; m < BAL_QX(slack_N_USER); ++m) wk->slack.x[BAL_QX(s_take)[m]] = wk->cert_w[m];
+#else
   memcpy(wk->slack.x, wk->cert_w, BAL_QX(slack_N_USER) * sizeof(casadi_real));
+#endif
   wk->slack.f = wk->cert_f;
   return 1;
 }
@@ -110,15 +179,30 @@ static int BAL_QX(fallback)(BAL_QX(work)* wk, casadi_real* u_out, int* status) {
   return *status;
 }
 
-/* (2.23) before its first success: warm start from the variables shared with (2.24) */
+/* (2.23) before its first success: warm start from the variables shared with (2.24)
+   (layout offsets src in (2.24), dst in (2.23); stage order through the maps) */
+#if BAL_QX(slack_STAGED) || BAL_QX(filter_STAGED)
+/* the position of (2.23)'s layout element j in its x */
+static casadi_int BAL_QX(f_pos)(casadi_int j) {
+#if BAL_QX(filter_STAGED)
+  return BAL_QX(f_take)[j];
+#else
+  return j;
+#endif
+}
+#define BAL_PCBF_COPY_SHARED(src, dst, n) \
+  for (i = 0; i < (n); ++i) { \
+    wk->filter.x0[BAL_QX(f_pos)((dst) + i)] = BAL_PCBF_SLACK((src) + i); \
+  }
+#else
 #define BAL_PCBF_COPY_SHARED(src, dst, n) \
   memcpy(wk->filter.x0 + (dst), wk->slack.x + (src), (n) * sizeof(casadi_real));
+#endif
 
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk) {
   casadi_int i;
   int certified, trunc_ok, fired = 0, kept = 0;
-  const casadi_real* plan_src;
   if (!x || !u_p || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_PCBF_BAD_INPUT;
     return BAL_PCBF_BAD_INPUT;
@@ -140,6 +224,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   /* (2.24): h_PB(x_k) and the slacks xi* */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
   wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
+  BAL_QX(pcbf_slack_cost)(wk);
   /* a truncated (2.24) at a feasible iterate (real-time mode) is continued primal-dual by
      the next solve and used as a merely feasible one; stopped infeasible it is a failure */
   trunc_ok = BAL_QX(slack_truncated_feasible)(&wk->slack, wk->slack_status);
@@ -158,11 +243,11 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
               fmax(wk->slack.f, 0.0) <= BAL_QX(ZERO_TOL);
   if (certified) {
     if (fired) {
-      BAL_QX(slack_warm_start_primal)(&wk->slack); /* the candidate has no multipliers */
+      BAL_QX(pcbf_slack_keep)(wk); /* the candidate has no multipliers */
     } else if (wk->slack_status == BAL_OK) {
       BAL_QX(slack_warm_start)(&wk->slack);
     } else if (!trunc_ok) {
-      BAL_QX(slack_warm_start_primal)(&wk->slack);
+      BAL_QX(pcbf_slack_keep)(wk);
     }
     wk->have_slack = 1;
     *h_out = fmax(wk->slack.f, 0.0);
@@ -175,9 +260,9 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_filter[BAL_QX(filter_P_x0) + i] = x[i];
   for (i = 0; i < BAL_QX(NU); ++i) wk->p_filter[BAL_QX(filter_P_u_p) + i] = wk->u_p[i];
   for (i = 0; i < BAL_QX(N_XI); ++i) {
-    wk->p_filter[BAL_QX(filter_P_xi) + i] = fmax(wk->slack.x[BAL_QX(slack_W_xi) + i], 0.0);
+    wk->p_filter[BAL_QX(filter_P_xi) + i] = fmax(BAL_PCBF_SLACK(BAL_QX(slack_W_xi) + i), 0.0);
   }
-  wk->p_filter[BAL_QX(filter_P_xi_N)] = fmax(wk->slack.x[BAL_QX(slack_W_xi_N)], 0.0);
+  wk->p_filter[BAL_QX(filter_P_xi_N)] = fmax(BAL_PCBF_SLACK(BAL_QX(slack_W_xi_N)), 0.0);
 #if BAL_QX(SHIFT_CERT)
   if (fired && wk->have_filter) { /* kept unless this (2.23) replaces it */
     kept = 1;
@@ -211,14 +296,17 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
       BAL_QX(filter_warm_start)(&wk->filter);
       wk->have_filter = 1;
     }
-    plan_src = wk->filter.x + BAL_QX(filter_W_u);
+    for (i = 0; i < BAL_QX(NU) * BAL_QX(N); ++i) {
+      wk->plan[i] = BAL_PCBF_FILTER(BAL_QX(filter_W_u) + i);
+    }
     *status = BAL_PCBF_OK;
   } else {
-    plan_src = wk->slack.x + BAL_QX(slack_W_u);
+    for (i = 0; i < BAL_QX(NU) * BAL_QX(N); ++i) {
+      wk->plan[i] = BAL_PCBF_SLACK(BAL_QX(slack_W_u) + i);
+    }
     *status = BAL_PCBF_SLACK_SOLUTION;
   }
   if (!certified) *status = BAL_PCBF_FEASIBLE_SLACK;
-  memcpy(wk->plan, plan_src, sizeof(wk->plan));
   wk->plan_age = 0;
   wk->have_plan = 1;
   for (i = 0; i < BAL_QX(NU); ++i) u_out[i] = wk->plan[i];

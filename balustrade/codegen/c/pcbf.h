@@ -38,6 +38,12 @@
  * from the primal of a certified BAL_FEASIBLE (2.24) (zero multipliers); never from an
  * uncertified one; (2.23) only from BAL_OK solutions.
  * The solutions stay in work->slack / work->filter (x: full primal, f: optimum).
+ * A problem compiled in stage order (Q_slack_STAGED / Q_filter_STAGED, the fatrop target,
+ * issue #14): its x, warm start and multipliers are in the solver's stage order; the step
+ * reads layout element i as x[P_TAKE[i]] projected onto the layout's bounds (as the
+ * backend's StageInverse.primal and its projection), writes warm starts by the same map,
+ * and takes h_PB from Q_slack_obj, the declared cost at that projected point (the
+ * solver's own value reads fatrop's ~1e-8 bound relaxation times the slack weights).
  */
 #ifndef BAL_STEP
 #error "bal/pcbf.h: define BAL_STEP (the step's symbol prefix) first"
@@ -54,6 +60,14 @@ typedef struct BAL_QX(work) {
   int slack_status, filter_status; /* BAL_* of the last step's solves */
   int shift_certified;             /* the last step used the shifted-plan certificate */
   casadi_real h_solver;            /* then: the solver's (2.24) cost (NAN if not usable) */
+#if BAL_QX(slack_STAGED)
+  /* (2.24) in stage order: its layout point (projected) and the work of Q_slack_obj */
+  casadi_real s_lay[BAL_QX(slack_NW)];
+  const casadi_real* oarg[BAL_QX(slack_obj_SZ_ARG)];
+  casadi_real* ores[BAL_QX(slack_obj_SZ_RES)];
+  casadi_int oiw[BAL_QX(slack_obj_SZ_IW) + 1];
+  casadi_real ow[BAL_QX(slack_obj_SZ_W) + 1];
+#endif
 #if BAL_QX(SHIFT_CERT)
   casadi_real cert_U[BAL_QX(NU) * BAL_QX(N)], cert_w[BAL_QX(slack_N_USER) + 1];
   casadi_real cert_v, cert_f;
