@@ -31,6 +31,7 @@ from collections.abc import Mapping
 import numpy as np
 import scipy.sparse as sp
 
+from balustrade.backends.casadi_fast import Buffered
 from balustrade.backends.cvxpy_backend import BIG_WEIGHT, LARGE_BOUND
 from balustrade.backends.direct_engines import DIRECT_SOLVERS, RawResult, make_engine
 from balustrade.backends.farkas import check_farkas
@@ -79,6 +80,7 @@ class DirectCompiled:
         self.cost_scale = program.cost_scale
         self._full: tuple[ConicProgram, object] | None = None  # with the large rows
         self._feasibility: dict = {}  # per program: the engine checking "infeasible"
+        self._objective: dict = {}  # per program: its cost through preallocated buffers
         self._scaled = None  # built on the first failure with big weights
         # Clarabel without equilibration, built on the first inexact solve (False: none)
         self._second = None if self.solver_name == "clarabel" and \
@@ -118,7 +120,7 @@ class DirectCompiled:
         n = prog.n_w
         usable = raw.status.success and raw.y is not None and np.all(np.isfinite(raw.y))
         w = raw.y[:n].copy() if usable else np.full(n, np.nan)
-        objective = float(prog.objective(w, p)) if usable else np.nan
+        objective = self._cost(prog, w, p) if usable else np.nan
         dual = self._duals(prog, raw.z) if usable else {}
         return Solution(status=raw.status, objective=objective,
                         primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
@@ -162,6 +164,16 @@ class DirectCompiled:
                             f"feasibility solve: {check.words}): the verdict is numerical")
         return failed, (f"{head}; not confirmed by the {name} feasibility solve "
                         f"({check.words}): infeasibility not established")
+
+    def _cost(self, prog: ConicProgram, w: np.ndarray, p: np.ndarray) -> float:
+        """The OCP's own cost at ``(w, p)`` (:attr:`ConicProgram.objective`), evaluated
+        through :class:`~balustrade.backends.casadi_fast.Buffered` (the same CasADi function
+        and the same value; a plain call converts ``w`` and ``p`` to ``DM`` first, ~0.2 ms
+        at N = 200)."""
+        if id(prog) not in self._objective:
+            self._objective[id(prog)] = Buffered(prog.objective)
+        value = self._objective[id(prog)](w, p)[0]
+        return float(value[0]) if value.size else 0.0  # a structurally zero cost: no entry
 
     def _checker(self, prog: ConicProgram) -> tuple[str, object]:
         """The engine of the feasibility check of ``prog`` (cost 0): the other solver for an
