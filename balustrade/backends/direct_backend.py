@@ -127,8 +127,24 @@ class DirectCompiled:
                         iterations=raw.iterations, backend="direct", solver=self.solver_name,
                         p=p, message=message)
 
+    def confirm_infeasible(self, p: np.ndarray, said_by: str, words: str
+                           ) -> tuple[bool, str]:
+        """Whether the verdict "infeasible" that another solve of this OCP's constraints at
+        the parameters ``p`` gave (the solver ``said_by``, e.g. the cvxpy backend's, with
+        the message ``words``, no certificate of its own) is established by independent
+        evidence: the checks of :meth:`_check_infeasible` with ``said_by`` in the place of
+        this backend's solver (a Farkas certificate of the feasibility solve that passes
+        :func:`~balustrade.backends.farkas.check_farkas`, or for an LP/QP the "infeasible"
+        of an engine other than ``said_by``). ``(confirmed, message)``."""
+        prog = self.program
+        b, A = prog.b(p), prog.A_data(p)
+        raw = RawResult(Status.INFEASIBLE, words, None, None, 0)
+        raw, message = self._check_infeasible(raw, prog, b, A, said_by)
+        return raw.status == Status.INFEASIBLE, message
+
     def _check_infeasible(self, raw: RawResult, prog: ConicProgram, b: np.ndarray,
-                          A: np.ndarray | None) -> tuple[RawResult, str]:
+                          A: np.ndarray | None, said_by: str | None = None
+                          ) -> tuple[RawResult, str]:
         """An "infeasible" verdict stands only on evidence beyond the solver's word (a
         tolerance, a badly scaled weight or a bug can make a solver declare a feasible
         problem infeasible, and re-asking the same solver can repeat the mistake):
@@ -141,7 +157,10 @@ class DirectCompiled:
            "infeasible" with a certificate that passes the check, or (LP/QP) the other
            engine's independent "infeasible", confirms it.
 
+        ``said_by`` names the solver that gave the verdict (default: this backend's); its
+        verdict without a certificate (``raw.z`` ``None``) rests on step 2 alone.
         Anything else is ``failed`` with the reason — never ``infeasible``."""
+        said_by = said_by or self.solver_name
         A_mat = prog.A if A is None else sp.csc_matrix((A, prog.A.indices, prog.A.indptr),
                                                        shape=prog.A.shape)
         own = check_farkas(A_mat, b, prog.cones, raw.z)
@@ -149,13 +168,14 @@ class DirectCompiled:
             return raw, f"{raw.words}; certificate checked: {own}"
         name, engine = self._checker(prog)
         check = _run(engine, np.zeros(prog.n_y), b, A)
-        head = f"{raw.words}, but its certificate does not hold ({own})"
+        head = f"{raw.words}, but its certificate does not hold ({own})" if raw.z is not None \
+            else f"{raw.words} (no certificate of its own to check)"
         if check.status == Status.INFEASIBLE:
             theirs = check_farkas(A_mat, b, prog.cones, check.z)
             if theirs.valid:
                 return raw, (f"{head}; the {name} feasibility solve's certificate does: "
                              f"{theirs}")
-            if name != self.solver_name:
+            if name != said_by:
                 return raw, (f"{head}; confirmed by {name} on the constraints alone "
                              f"({check.words}; its certificate: {theirs})")
         failed = RawResult(Status.FAILED, raw.words, None, None, raw.iterations)
