@@ -75,8 +75,8 @@ def run(quick: bool = False) -> list[dict]:
         t = np.array([by_n[n] for n in Ns])
         rows.append({"name": f"horizon Alg {alg}: {label} t ∝ N^a",
                      "exponent": round(fitted_exponent(np.array(Ns), t), 2),
-                     "N": Ns, "median_ms": [round(1e3 * v, 2) for v in t],
-                     "x_handwritten": [round(by_n[n] / base[n], 2) for n in Ns]})
+                     "N": Ns, "median_ms": [round(1e3 * float(v), 2) for v in t],
+                     "x_handwritten": [round(float(by_n[n] / base[n]), 2) for n in Ns]})
     for label, reason in missing.items():
         rows.append({"name": f"horizon: {label}", "status": reason})
     return rows
