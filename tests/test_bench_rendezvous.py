@@ -13,9 +13,11 @@ from benchmarks.bench_horizon import fitted_exponent
 from benchmarks.bench_robust import (
     BaselineMismatch,
     Check,
+    PathTimes,
     build_paths,
     closed_loop_states,
     measure,
+    paired_ratio,
     verify,
 )
 
@@ -78,3 +80,17 @@ def test_fitted_exponent():
     assert fitted_exponent(N, 3e-4 * N ** 1.2) == pytest.approx(1.2)
     assert fitted_exponent(N, 1e-6 * N ** 3.0) == pytest.approx(3.0)
     assert np.isnan(fitted_exponent(N[:1], np.array([1.0])))
+
+
+def test_paired_ratio_is_the_median_of_per_state_ratios():
+    """States of very different cost (here 10 vs 100) cancel in the paired ratio; the
+    warm-up sample is left out; misaligned samples raise."""
+    base, path = PathTimes(), PathTimes()
+    for j, (tb, tp) in enumerate([(1.0, 50.0), (10.0, 11.0), (100.0, 90.0), (10.0, 9.5)]):
+        base.add(tb, True, warmup=j == 0)
+        path.add(tp, True, warmup=j == 0)
+    assert paired_ratio(path, base) == pytest.approx(0.95)
+    short = PathTimes()
+    short.add(1.0, True, warmup=False)
+    with pytest.raises(BaselineMismatch, match="aligned"):
+        paired_ratio(short, base)

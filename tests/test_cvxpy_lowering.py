@@ -207,6 +207,66 @@ def test_a_numerical_infeasibility_verdict_is_not_reported():
                 assert sol.objective == pytest.approx(1e12 * xi_ref @ xi_ref + 1, rel=1e-6)
 
 
+def _feasible_cone() -> OCP:
+    """Feasible with a second-order cone: min ‖u − 3‖₂ s.t. u0 + u1 <= 1, |u| <= 5."""
+    from balustrade.dsl.costs import norm
+
+    ocp = OCP(name="cone_feasible")
+    u = ocp.variable("u", 2, lb=-5.0, ub=5.0)
+    ocp.le(u[0] + u[1] - 1.0, 0, name="sum")
+    ocp.minimize(norm(u - 3.0, 2))
+    return ocp
+
+
+def _always_infeasible(problem, solver, options, warm_start):
+    """A solver that answers "infeasible" to everything it is asked, re-checks included."""
+    return cb.Status.INFEASIBLE, "infeasible (patched: always infeasible)"
+
+
+@pytest.mark.parametrize("solver", ["PIQP", "CLARABEL"])
+@pytest.mark.parametrize("name", ["huge_weight_quadratic", "cone"])
+def test_a_solver_always_saying_infeasible_is_caught(monkeypatch, solver, name):
+    """The verdict needs evidence beyond the solver's word: the old re-check asked the same
+    solver again, which repeated it, and reported ``infeasible`` for a feasible problem; the
+    independent check (the direct lowering's feasibility solve) finds a feasible point, so
+    the status is ``failed`` with the reason."""
+    ocp = _feasible_cone() if name == "cone" else _named(name)[0]
+    if name == "cone" and solver == "PIQP":
+        pytest.skip("PIQP takes no cones")
+    compiled = compile(ocp, "cvxpy", solver)
+    monkeypatch.setattr(cb, "_run", _always_infeasible)
+    sol = compiled.solve()
+    assert sol.status == "failed", sol.summary()
+    assert "patched" in sol.message and "constraints alone are feasible" in sol.message, \
+        sol.message
+    assert np.all(np.isnan(sol.w)) and np.isnan(sol.objective)
+
+
+@pytest.mark.parametrize("solver", ["PIQP", "CLARABEL"])
+def test_a_real_infeasibility_is_confirmed_independently(solver):
+    """A truly infeasible problem stays ``infeasible``, and the message says what confirmed
+    it (a checked certificate or the other engine on the constraints alone)."""
+    sol = compile(_named("infeasible")[0], "cvxpy", solver).solve()
+    assert sol.status == "infeasible", sol.summary()
+    assert "certificate" in sol.message or "confirmed by" in sol.message, sol.message
+
+
+def test_without_an_independent_check_infeasible_becomes_failed(monkeypatch):
+    """An OCP the direct chain cannot lower has no independent check: ``failed``, saying
+    why, never an unconfirmed ``infeasible``."""
+    from balustrade.backends import direct_backend
+    from balustrade.errors import ConvexityError
+
+    def refuse(self, *args, **kwargs):
+        raise ConvexityError("refused for the test")
+
+    monkeypatch.setattr(direct_backend.DirectCompiled, "__init__", refuse)
+    sol = compile(_named("infeasible")[0], "cvxpy", "CLARABEL").solve()
+    assert sol.status == "failed", sol.summary()
+    assert "infeasibility not established" in sol.message and "refused for the test" in \
+        sol.message, sol.message
+
+
 def test_solver_options_are_valid_settings():
     """Every default option of PIQP and Clarabel names a real setting of the solver."""
     import clarabel

@@ -33,7 +33,7 @@ from balustrade.backends.passes.to_cvxpy import (  # noqa: F401 - re-exported li
 )
 from balustrade.backends.solution import Solution, Status
 from balustrade.dsl.ocp import OCP
-from balustrade.errors import SolverError
+from balustrade.errors import BalustradeError, SolverError
 
 #: a cost coefficient above this makes a failed solve be retried with the cost rescaled
 BIG_WEIGHT = 1e6
@@ -70,7 +70,9 @@ class CvxpyCompiled:
         self._full: cp.Problem | None = None  # with the large rows, built when needed
         self.solver_name = self._choose_solver(solver)
         self.solver_options = {**SOLVER_OPTIONS.get(self.solver_name, {}), **(options or {})}
-        self._feasibility: cp.Problem | None = None  # built on the first "infeasible"
+        #: the direct lowering that checks "infeasible" (built on the first such verdict;
+        #: a str: why this OCP has none)
+        self._infeasibility: object | str | None = None
         self._scaled: cp.Problem | None = None  # built on the first failure, see _rescaled
         self._last: Solution | None = None  # what the solver cache of OSQP/SCS holds
 
@@ -108,7 +110,7 @@ class CvxpyCompiled:
         status, message = _run(self.problem, self.solver_name, self.solver_options, warm)
         first_message = message
         if status == Status.INFEASIBLE:
-            status, message = self._check_infeasible(message)
+            status, message = self._check_infeasible(message, p)
         if self.large is not None and not (status == Status.INFEASIBLE or self._within_large()):
             first = "violated them" if status.success else status
             status, message = _run(self._full_problem(), self.solver_name,
@@ -151,18 +153,41 @@ class CvxpyCompiled:
         self.W.value = w
         return True
 
-    def _check_infeasible(self, message: str) -> tuple[Status, str]:
-        """Confirm an "infeasible" verdict by solving the feasibility problem (the same
-        constraints, no objective): a badly scaled objective (a 1e12 weight) can make a
-        solver declare a feasible problem infeasible."""
-        if self._feasibility is None:
-            self._feasibility = cp.Problem(cp.Minimize(0), self.problem.constraints)
-        status, check = _run(self._feasibility, self.solver_name, self.solver_options, False)
-        if status in (Status.OPTIMAL, Status.OPTIMAL_INACCURATE):
-            return Status.FAILED, (f"{message}; but the constraints alone are feasible "
-                              f"(feasibility solve: {check}): the verdict is numerical, "
-                              "e.g. from badly scaled cost weights")
-        return Status.INFEASIBLE, message
+    def _check_infeasible(self, message: str, p: np.ndarray) -> tuple[Status, str]:
+        """An "infeasible" verdict stands only on evidence beyond the word of the solver that
+        gave it (a badly scaled cost weight, a tolerance or a bug can make a solver declare
+        a feasible problem infeasible, and asking it again can repeat the mistake): the same
+        constraints, lowered once by the direct chain, are checked by
+        :meth:`DirectCompiled.confirm_infeasible
+        <balustrade.backends.direct_backend.DirectCompiled.confirm_infeasible>` — a
+        feasibility solve whose Farkas certificate passes
+        :func:`~balustrade.backends.farkas.check_farkas`, or for an LP/QP the "infeasible" of
+        an engine other than this solver; a feasible point overturns the verdict. Anything
+        else (also an OCP the direct chain cannot lower) is ``failed`` with the reason."""
+        checker = self._infeasibility_checker()
+        if isinstance(checker, str):
+            return Status.FAILED, (f"{message}; infeasibility not established: no independent "
+                                   f"check ({checker})")
+        confirmed, words = checker.confirm_infeasible(p, self.solver_name.lower(), message)
+        return (Status.INFEASIBLE if confirmed else Status.FAILED), words
+
+    def _infeasibility_checker(self) -> object | str:
+        """The :class:`~balustrade.backends.direct_backend.DirectCompiled` of this OCP that
+        checks "infeasible" verdicts (built once; its engine for LPs/QPs is this solver when
+        the direct backend has it, so that its checker is the *other* engine), or why there
+        is none."""
+        if self._infeasibility is None:
+            # imported here: the direct backend imports this module (BIG_WEIGHT, LARGE_BOUND)
+            from balustrade.backends.direct_backend import DirectCompiled
+            from balustrade.backends.direct_engines import DIRECT_SOLVERS
+
+            own = self.solver_name.lower()
+            solver = own if own in DIRECT_SOLVERS and not self.conic else None
+            try:
+                self._infeasibility = DirectCompiled(self.ocp, solver)
+            except BalustradeError as exc:
+                self._infeasibility = f"the direct lowering refuses this OCP: {exc}"
+        return self._infeasibility
 
     def _within_large(self) -> bool:
         """The solution exists and satisfies the large rows left out of the problem."""

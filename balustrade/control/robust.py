@@ -133,12 +133,19 @@ class RobustPCBFSafetyFilter:
     def h_r(self, x: np.ndarray) -> tuple[float, Solution]:
         """Solve (5.15) at ``x``: ``(h_r(x), solution)`` (``nan`` if the solve failed); the
         value is ``h̃`` of the polished slacks (:func:`polished_slacks`)."""
+        h_r, s, _ = self._solve_slack(x)
+        return h_r, s
+
+    def _solve_slack(self, x: np.ndarray
+                     ) -> tuple[float, Solution, tuple[np.ndarray, float] | None]:
+        """:meth:`h_r` and the polished slacks ``(ξ, ξ_N)`` it was computed from (``None``
+        if the solve failed), so that a step polishes them once."""
         s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=self._last_slack)
         if not s.success:
-            return float("nan"), s
+            return float("nan"), s, None
         xi, xi_N = polished_slacks(s, self.X_E, self.h_f, self.deltas)
         return min(max(float(s.objective), 0.0),
-                   slack_cost(xi, xi_N, self.alpha_f, self.slack_norm)), s
+                   slack_cost(xi, xi_N, self.alpha_f, self.slack_norm)), s, (xi, xi_N)
 
     def _applied(self, x: np.ndarray, z0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         return np.asarray(v0, dtype=float).reshape(-1) + self.error.kappa(x - z0)
@@ -161,7 +168,7 @@ class RobustPCBFSafetyFilter:
         if self.candidate is not None:
             c = self.candidate
             info.values["h_cand"] = slack_cost(c.xi, c.xi_N, self.alpha_f, self.slack_norm)
-        h_r, s1 = self.h_r(x)
+        h_r, s1, polished = self._solve_slack(x)
         info.solve_time, info.solutions["slack"] = s1.solve_time, s1
         if not s1.success:
             info.status = f"slack_{outcome(s1)}"
@@ -172,7 +179,7 @@ class RobustPCBFSafetyFilter:
         self._last_slack = s1
         note_solve(info, "slack", s1.status)   # optimal_inaccurate: h_r flagged, not certified
         info.values["h_r"] = h_r
-        xi, xi_N = polished_slacks(s1, self.X_E, self.h_f, self.deltas)
+        xi, xi_N = polished
         warm = self._last_filter if self._last_filter is not None else {"z": s1["z"],
                                                                          "v": s1["v"]}
         s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
