@@ -490,8 +490,7 @@ class CPCBFSafetyFilter(_OwnsWork):
             if replaced:
                 note_proposal(info, replaced)
         if self.keep_solutions:
-            info.solutions = {"certificate" if first else "slack":
-                              self.slack.unpack(self.slack.x.copy()),
+            info.solutions = {"slack": self.slack.unpack(self.slack.x.copy()),
                               "filter": self.filter.unpack(self.filter.x.copy())}
         return self._u.copy(), info
 

@@ -77,10 +77,11 @@ global optimum (the lower bound) and ``ξ* = 0``, so the (2.24) solve is skipped
 (2.23) runs with ``ξ* = 0`` from its usual warm start, and the next (2.24) starts from the
 candidate's primal. The skipped solve is never reported as a solver result: the step's
 ``StepInfo.status`` is ``"certified"`` (``"certified_filter_<status>"`` when (2.23) did not
-end optimal), ``values["certificate_first"] = 1``, ``values["h_PB"] = 0`` and the candidate
-is in ``solutions["certificate"]`` (status ``feasible``, solver ``shifted_plan``; there is
-no ``solutions["slack"]``). A candidate that misses a row (e.g. after a step with
-``ξ* > 0``, or without a plan) certifies nothing and (2.24) is solved as usual.
+end optimal), ``values["certificate_first"] = 1``, ``values["h_PB"] = 0``, and
+``solutions["slack"]`` is the candidate, a point of (2.24) and not a solver's result: status
+``feasible`` (never ``optimal``), solver ``shifted_plan``, 0 iterations. A candidate that
+misses a row (e.g. after a step with ``ξ* > 0``, or without a plan) certifies nothing and
+(2.24) is solved as usual.
 """
 
 from __future__ import annotations
@@ -272,7 +273,7 @@ class PCBFSafetyFilter:
         """A step whose (2.24) is skipped: ``h_PB = 0``, ``ξ* = 0``; (2.23) from its usual
         warm start (its last accepted solution, else the candidate's states and inputs);
         the next (2.24) starts from the candidate's primal."""
-        info = StepInfo(solve_time=cand.solve_time, solutions={"certificate": cand})
+        info = StepInfo(solve_time=cand.solve_time, solutions={"slack": cand})
         info.values.update(h_PB=max(float(cand.objective), 0.0), certificate_first=1.0)
         self._last_slack = cand
         xi = np.maximum(np.asarray(cand["xi"]), 0.0)
