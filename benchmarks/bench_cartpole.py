@@ -18,7 +18,11 @@ the same closed loop on the ``structured-ip`` target (fatrop) from Python and th
 step of the same filter (:func:`~balustrade.codegen.emit_pcbf`: one call per step, linked to
 libfatrop/libblasfeo/libipopt of the casadi wheel) at each state of the Python loop,
 interleaved: step times, fatrop iterations per solve, C = Python, source size and build
-time; ``--sqp`` adds the ``fast-sqp`` loop from Python (interleaved, its own loop).
+time; ``--sqp`` adds the ``fast-sqp`` loop from Python (interleaved, its own loop);
+``--certificate-first`` adds the same pair built with ``certificate_first=True`` (Python and
+its own emitted C, its own closed loop, interleaved step by step with the default one):
+median/worst, steps whose (2.24) was skipped, failures, max ``|Δu|``/``|Δx|`` against the
+default loop and whether X is kept.
 
 :func:`run_warm_starts` (``python -m benchmarks.bench_cartpole warm [steps]``): fatrop's
 iterations per solve under warm-start rules and options (Python, interleaved).
@@ -38,7 +42,8 @@ from balustrade.examples.cartpole import cartpole_design, cartpole_problems, car
 
 
 def _failure(info: object) -> bool:
-    return bool(info.fallback) or info.status != "ok"
+    """A fallback or a step that is neither ``ok`` nor skipped-and-``certified``."""
+    return bool(info.fallback) or info.status not in ("ok", "certified")
 
 
 def run(quick: bool = False) -> list[dict]:
@@ -94,7 +99,23 @@ def _iterations(info: object) -> tuple[int, int]:
     return tuple(int(getattr(sols.get(k), "iterations", 0) or 0) for k in ("slack", "filter"))
 
 
-def run_structured(steps: int = 100, with_sqp: bool = False) -> list[dict]:
+def _emit_structured(py: PCBFSafetyFilter, name: str, tmp: str
+                     ) -> tuple[CPCBFSafetyFilter, float, float, int]:
+    """``py``'s emitted C step (fatrop), built: the runtime, emit and build seconds, and the
+    source bytes."""
+    out = Path(tmp) / name
+    t0 = time.perf_counter()
+    emitted = emit_pcbf(py, name, out, allow_external=True)
+    emit_s = time.perf_counter() - t0
+    size = sum(p.stat().st_size for p in emitted.sources + emitted.headers)
+    t0 = time.perf_counter()
+    lib = build(out, emitted.name, werror=True,
+                extra_flags=tuple(emitted.manifest["link_flags"]))
+    return CPCBFSafetyFilter(lib), emit_s, time.perf_counter() - t0, size
+
+
+def run_structured(steps: int = 100, with_sqp: bool = False,
+                   certificate_first: bool = False) -> list[dict]:
     """The closed loop of :func:`~balustrade.examples.cartpole.cartpole_scenario` on the
     ``structured-ip`` target (fatrop) from Python, and its emitted C step
     (:func:`~balustrade.codegen.emit_pcbf`, one call per step through ctypes, linked to
@@ -102,24 +123,24 @@ def run_structured(steps: int = 100, with_sqp: bool = False) -> list[dict]:
     interleaved step by step: median and worst step, fatrop iterations per solve (the C
     runs the same solver from the same warm starts: its iterations are Python's),
     failures, max ``|u_C − u_Py|``, status mismatches; the C's source size and build time.
-    ``with_sqp``: also the ``fast-sqp`` loop from Python, interleaved (its own loop)."""
+    ``with_sqp``: also the ``fast-sqp`` loop from Python, interleaved (its own loop).
+    ``certificate_first``: also the pair with ``certificate_first=True`` in Python and C
+    (its own loop, the C at the states of that Python loop), interleaved step by step."""
     d = cartpole_design()
     x0, proposal = cartpole_scenario()
     py = PCBFSafetyFilter(*cartpole_problems("structured-ip", design=d), d.U)
     sqp = PCBFSafetyFilter(*cartpole_problems("fast-sqp", design=d), d.U) if with_sqp \
         else None
+    cf = PCBFSafetyFilter(py.slack, py.filter, d.U, certificate_first=True) \
+        if certificate_first else None
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "cartpole_st"
-        t0 = time.perf_counter()
-        emitted = emit_pcbf(py, "cartpole_st", out, allow_external=True)
-        emit_s = time.perf_counter() - t0
-        size = sum(p.stat().st_size for p in emitted.sources + emitted.headers)
-        t0 = time.perf_counter()
-        lib = build(out, emitted.name, werror=True,
-                    extra_flags=tuple(emitted.manifest["link_flags"]))
-        build_s = time.perf_counter() - t0
-        c = CPCBFSafetyFilter(lib)
+        c, emit_s, build_s, size = _emit_structured(py, "cartpole_st", tmp)
+        c_cf = _emit_structured(cf, "cartpole_cf", tmp)[0] if cf is not None else None
+        x_cf = x0.copy()
+        cf_rec: dict[str, list] = {"py": [], "c": [], "skipped": [], "fail_py": [],
+                                   "fail_c": [], "du": [], "dx": [], "du_c": [], "its": []}
+        inside_cf = True
         x, x_sqp = x0.copy(), x0.copy()
         t_py, t_c, t_sqp, its = [], [], [], []
         fail_py = fail_c = fail_sqp = mismatch = 0
@@ -146,6 +167,24 @@ def run_structured(steps: int = 100, with_sqp: bool = False) -> list[dict]:
                 fail_sqp += _failure(info_s)
                 x_sqp = d.system.step(x_sqp, u_s)
                 inside_sqp = inside_sqp and bool(np.all(np.abs(x_sqp) <= d.X.h[:4] + 1e-9))
+            if cf is not None:
+                u_pc = proposal(x_cf, k)
+                start = time.perf_counter()
+                u_f, info_f = cf.step(x_cf, u_pc)
+                cf_rec["py"].append(time.perf_counter() - start)
+                start = time.perf_counter()
+                u_fc, info_fc = c_cf.step(x_cf, u_pc)
+                cf_rec["c"].append(time.perf_counter() - start)
+                cf_rec["skipped"].append(bool(info_f.values.get("certificate_first")))
+                cf_rec["fail_py"].append(_failure(info_f))
+                cf_rec["fail_c"].append(_failure(info_fc) or (info_f.status, info_f.fallback)
+                                        != (info_fc.status, info_fc.fallback))
+                cf_rec["du"].append(float(np.max(np.abs(u_f - u))))
+                cf_rec["du_c"].append(float(np.max(np.abs(u_fc - u_f))))
+                cf_rec["its"].append(_iterations(info_f))
+                x_cf = d.system.step(x_cf, u_f)
+                cf_rec["dx"].append(float(np.max(np.abs(x_cf - x))))
+                inside_cf = inside_cf and bool(np.all(np.abs(x_cf) <= d.X.h[:4] + 1e-9))
     its = np.asarray(its)
     row = _loop_row(f"cartpole pcbf step, Python structured-ip ({steps} steps)", t_py,
                     fail_py, inside)
@@ -160,6 +199,20 @@ def run_structured(steps: int = 100, with_sqp: bool = False) -> list[dict]:
     if sqp is not None:
         rows.append(_loop_row(f"cartpole pcbf step, Python fast-sqp ({steps} steps)", t_sqp,
                               fail_sqp, inside_sqp))
+    if cf is not None:
+        its_cf = np.asarray(cf_rec["its"])
+        common = {"skipped_slack_solves": int(sum(cf_rec["skipped"])),
+                  "max_du_vs_default_loop": float(f"{max(cf_rec['du']):.3g}"),
+                  "max_dx_vs_default_loop": float(f"{max(cf_rec['dx']):.3g}")}
+        row = _loop_row(f"cartpole pcbf step, Python structured-ip certificate_first "
+                        f"({steps} steps)", cf_rec["py"], sum(cf_rec["fail_py"]), inside_cf)
+        row.update(common, slack_iters_median=float(np.median(its_cf[:, 0])),
+                   filter_iters_median=float(np.median(its_cf[:, 1])))
+        rows.append(row)
+        row = _loop_row(f"cartpole pcbf step, C structured-ip certificate_first via ctypes "
+                        f"({steps} steps)", cf_rec["c"], sum(cf_rec["fail_c"]), inside_cf)
+        row.update(common, max_du_vs_python=float(f"{max(cf_rec['du_c']):.3g}"))
+        rows.append(row)
     rows.append({"name": "cartpole pcbf structured-ip C module", "emit_s": round(emit_s, 1),
                  "build_s": round(build_s, 1), "source_bytes": size,
                  "note": "cc -O3 -Werror, linked to libfatrop/libblasfeo/libipopt"})
@@ -242,7 +295,8 @@ if __name__ == "__main__":  # pragma: no cover
     args = sys.argv[1:]
     steps = next((int(a) for a in args if a.isdigit()), 100)
     if "structured" in args:
-        rows = run_structured(steps, with_sqp="--sqp" in args)
+        rows = run_structured(steps, with_sqp="--sqp" in args,
+                              certificate_first="--certificate-first" in args)
     elif "warm" in args:
         rows = run_warm_starts(next((int(a) for a in args if a.isdigit()), 40))
     else:

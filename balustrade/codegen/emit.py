@@ -608,6 +608,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     :meth:`~balustrade.control.shifted.ShiftedCertificate.function`) and checked by the
     step as the Python filter checks it; ``manifest["shifted_certificate"]`` says whether
     it was emitted (not for a controller built with ``shifted_certificate=False``).
+    With ``certificate_first`` (the controller's or the spec's) the step checks it before
+    (2.24) and skips the solve when it certifies ``h_PB = 0`` (``<name>_CERT_FIRST``,
+    ``manifest["certificate_first"]``), as the Python filter does.
     """
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
@@ -651,6 +654,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     cfg.comment(f"---- the PCBF control step {name}: (2.24) then (2.23) (bal/pcbf.h) ----")
     cfg.define(f"{name}_SHIFT_CERT", int(cert is not None),
                "the shifted-plan certificate of h_PB = 0 (balustrade.control.shifted)")
+    first = bool(spec.certificate_first) and cert is not None
+    cfg.define(f"{name}_CERT_FIRST", int(first),
+               "certificate first: skip (2.24) when the shifted plan certifies h_PB = 0")
     cfg.define(f"{name}_EPS", C.c_double(spec.eps), "the relaxation eps of (2.23)")
     cfg.define(f"{name}_CERT_TOL", C.c_double(cert.tol if cert is not None
                                                else FEASIBILITY_TOL),
@@ -672,6 +678,7 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
                 "problems": {"slack": s.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
                 "shifted_certificate": cert is not None,
+                "certificate_first": first,
                 "pcbf_status": S.manifest(S.PCBF),
                 # the solver libraries of the casadi wheel the C links (the structured
                 # target's): the flags accelerate() and build() need

@@ -418,6 +418,10 @@ class CPCBFSafetyFilter(_OwnsWork):
                                if self.shifted_certificate else None)
         self._h_solver = self._lib.fn(f"{Q}_h_solver", ctypes.c_double, [vp]) \
             if self.shifted_certificate else None
+        # certificate first: (2.24) skipped when the shifted plan certifies h_PB = 0
+        self.certificate_first = bool(m.get("certificate_first", False))
+        self._hot_first = ((self._lib.raw(f"{Q}_cert_first", ctypes.c_int), (wk,))
+                           if self.certificate_first else None)
 
     def reset(self) -> None:
         """Forget the warm starts (primal and dual, kept in the C work struct across steps)
@@ -455,11 +459,17 @@ class CPCBFSafetyFilter(_OwnsWork):
         s_code = fn(*args)
         fn, args = self._hot_filter
         f_code = fn(*args)
-        fired = 0
-        if self._hot_certified is not None:
+        first = fired = 0
+        if self._hot_first is not None:
+            fn, args = self._hot_first
+            first = fn(*args)
+        if self._hot_certified is not None and not first:
             fn, args = self._hot_certified
             fired = fn(*args)
-        if fired:  # the shifted plan was the (2.24) point: an optimal one, as in Python
+        if first:  # (2.24) skipped: "certified", as PCBFSafetyFilter._certified_step
+            info = _certified_info(code, f_code, float(self._h[0]),
+                                   f_code == _TRUNCATED and self.filter.truncated_feasible())
+        elif fired:  # the shifted plan was the (2.24) point: an optimal one, as in Python
             info = _pcbf_info(code, _OK, f_code, float(self._h[0]), float("nan"), False,
                               f_code == _TRUNCATED and self.filter.truncated_feasible())
             info.values.update(shifted_certificate=1.0,
@@ -483,6 +493,22 @@ class CPCBFSafetyFilter(_OwnsWork):
             info.solutions = {"slack": self.slack.unpack(self.slack.x.copy()),
                               "filter": self.filter.unpack(self.filter.x.copy())}
         return self._u.copy(), info
+
+
+def _certified_info(code: int, f_code: int, h: float, f_trunc_ok: bool) -> StepInfo:
+    """The :class:`StepInfo` of a step whose (2.24) was skipped on the shifted-plan
+    certificate (``certificate_first``), as
+    :meth:`~balustrade.control.pcbf.PCBFSafetyFilter._certified_step` records it:
+    ``"certified"`` (``"certified_filter_<f>"`` when (2.23) did not end optimal),
+    ``values["h_PB"]`` and ``["certificate_first"] = 1``, never a solver status for (2.24)."""
+    known = _PCBF_CODES.get(code)
+    info = StepInfo(fallback=known.fallback if known is not None else "unknown",
+                    values={"h_PB": h, "certificate_first": 1.0})
+    f = _PY_STATUS.get(f_code, str(f_code))
+    info.status = "certified" if f_code == _OK else f"certified_filter_{f}"
+    if (f_code in _SOLVED or f_trunc_ok) and f_code != _OK:
+        info.uncertified["filter"] = f
+    return info
 
 
 def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float,

@@ -41,6 +41,9 @@ class PCBFDeployment:
     #: whether the step certifies ``h_PB = 0`` by the shifted plan
     #: (:mod:`balustrade.control.shifted`; the filter's ``shifted_certificate``)
     shifted_certificate: bool = True
+    #: whether the step checks that certificate before (2.24) and skips the solve when it
+    #: certifies ``h_PB = 0`` (the filter's ``certificate_first``; needs the certificate)
+    certificate_first: bool = False
 
 
 @dataclass(frozen=True)

@@ -68,6 +68,20 @@ Section 8.3, docs/obstacles.md; the car then entered an obstacle). When (2.24) f
 reports ``h_PB > eps``, that candidate is checked exactly and, if it qualifies, used as the
 (2.24) point of the step (``values["shifted_certificate"] = 1``, the solver's cost in
 ``values["h_PB_solver"]``).
+
+Certificate first (``certificate_first=True``, issue #14): the same candidate is checked
+*before* (2.24) at every step with a plan. The cost of (2.24), ``α_f ξ_N + Σ_i ‖ξ_i‖`` with
+``α_f > 0`` and ``ξ >= 0``, is 0 only with every slack 0, and the candidate (slacks set to
+0) meets every row of (2.24) within the certificate's tolerance: ``h_PB(x) = 0`` is then the
+global optimum (the lower bound) and ``ξ* = 0``, so the (2.24) solve is skipped exactly.
+(2.23) runs with ``ξ* = 0`` from its usual warm start, and the next (2.24) starts from the
+candidate's primal. The skipped solve is never reported as a solver result: the step's
+``StepInfo.status`` is ``"certified"`` (``"certified_filter_<status>"`` when (2.23) did not
+end optimal), ``values["certificate_first"] = 1``, ``values["h_PB"] = 0``, and
+``solutions["slack"]`` is the candidate, a point of (2.24) and not a solver's result: status
+``feasible`` (never ``optimal``), solver ``shifted_plan``, 0 iterations. A candidate that
+misses a row (e.g. after a step with ``ξ* > 0``, or without a plan) certifies nothing and
+(2.24) is solved as usual.
 """
 
 from __future__ import annotations
@@ -101,7 +115,8 @@ class PCBFSafetyFilter:
     """Closed-loop PCBF filter over two compiled problems (any backend)."""
 
     def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6,
-                 warm_start: str = "last", shifted_certificate: bool = True):
+                 warm_start: str = "last", shifted_certificate: bool = True,
+                 certificate_first: bool = False):
         """``warm_start``: ``"last"`` starts (2.24) from its last accepted solution;
         ``"shifted"`` from the last (2.23) plan shifted by one step (states ``x_1 … x_N, x_N``
         with the first replaced by the measured state, inputs ``u_1 … u_{N−1}, 0``) — the
@@ -115,8 +130,16 @@ class PCBFSafetyFilter:
         zero slack, ``h_PB(x) = 0`` is certified by the lower bound and this candidate
         replaces the solver's (local, non-global) point — the invariance of ``S_PB`` then
         holds on nonconvex problems too. Recorded as ``values["shifted_certificate"] = 1``
-        and the solver's cost ``values["h_PB_solver"]``."""
+        and the solver's cost ``values["h_PB_solver"]``.
+
+        ``certificate_first`` (default off): check that candidate *before* (2.24) and skip
+        the solve when it certifies ``h_PB = 0`` (module docstring, "Certificate first");
+        needs ``shifted_certificate``."""
         check_instance(U, Set, "PCBFSafetyFilter: U")
+        if certificate_first and not shifted_certificate:
+            raise BalustradeError("PCBFSafetyFilter: certificate_first=True checks the "
+                                  "shifted-plan certificate; it needs "
+                                  "shifted_certificate=True")
         if warm_start not in ("last", "shifted"):
             raise BalustradeError(f"PCBFSafetyFilter: warm_start must be 'last' or 'shifted', "
                                   f"got {warm_start!r}")
@@ -131,6 +154,7 @@ class PCBFSafetyFilter:
         self.nu = U.dim
         self.certificate = ShiftedCertificate(slack, ZERO_TOL) if shifted_certificate \
             else None
+        self.certificate_first = bool(certificate_first)
         self.reset()
 
     @classmethod
@@ -170,6 +194,9 @@ class PCBFSafetyFilter:
         return {"x": Xs, "u": np.hstack([U[:, 1:], np.zeros((U.shape[0], 1))])}
 
     def _step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
+        first = self._first(x)
+        if first is not None:
+            return self._certified_step(x, u_p, first)
         s1 = self.slack.solve({"x0": x}, warm_start=self._slack_start(x))
         info = StepInfo(solve_time=s1.solve_time, solutions={"slack": s1})
         if feasible_truncation(s1):  # real-time iterations: the next solve continues it
@@ -226,6 +253,51 @@ class PCBFSafetyFilter:
         self._plan, self._plan_age = plan, 0
         return plan[:, 0].copy(), info
 
+    def _first(self, x: np.ndarray) -> Solution | None:
+        """Certificate first: the shifted plan as the (2.24) point *before* solving, when
+        it certifies ``h_PB = 0`` (then a ``feasible`` :class:`Solution`: a point, not a
+        solver's result); ``None`` when the option is off, without a plan or when the
+        candidate misses a row or bound of (2.24)."""
+        if not self.certificate_first or self.certificate is None or self._plan is None:
+            return None
+        cand = self.certificate.check(x, self._plan[:, self._plan_age + 1:])
+        if cand is None:
+            return None
+        cand.status = "feasible"
+        cand.message = "certificate first: the shifted plan meets (2.24) with zero slack, " \
+                       "h_PB = 0 (lower bound); (2.24) not solved"
+        return cand
+
+    def _certified_step(self, x: np.ndarray, u_p: np.ndarray, cand: Solution
+                        ) -> tuple[np.ndarray, StepInfo]:
+        """A step whose (2.24) is skipped: ``h_PB = 0``, ``ξ* = 0``; (2.23) from its usual
+        warm start (its last accepted solution, else the candidate's states and inputs);
+        the next (2.24) starts from the candidate's primal."""
+        info = StepInfo(solve_time=cand.solve_time, solutions={"slack": cand})
+        info.values.update(h_PB=max(float(cand.objective), 0.0), certificate_first=1.0)
+        self._last_slack = cand
+        xi = np.maximum(np.asarray(cand["xi"]), 0.0)
+        xi_N = max(float(np.asarray(cand["xi_N"]).reshape(-1)[0]), 0.0)
+        warm = self._last_filter if self._last_filter is not None \
+            else {"x": cand["x"], "u": cand["u"]}
+        s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
+        info.solve_time += s2.solve_time
+        info.solutions["filter"] = s2
+        if s2.success or feasible_truncation(s2):
+            self._last_filter = s2
+        elif s2.truncated:
+            self._last_filter = None
+        info.status = "certified" if s2.status == "optimal" and not s2.truncated \
+            else f"certified_filter_{outcome(s2)}"
+        if s2.usable or feasible_truncation(s2):
+            note_solve(info, "filter", outcome(s2))
+            plan = np.asarray(s2["u"]).reshape(self.nu, -1)
+        else:  # the candidate is feasible for (2.23) (its slacks are 0 <= xi* + eps)
+            info.fallback = "slack_solution"
+            plan = np.asarray(cand["u"]).reshape(self.nu, -1)
+        self._plan, self._plan_age = plan, 0
+        return plan[:, 0].copy(), info
+
     def _shifted(self, x: np.ndarray, s1: Solution) -> Solution | None:
         """The shifted plan as a certified optimum of (2.24) when the solve did not certify
         ``h_PB = 0`` itself (``None`` otherwise or when the plan does not qualify)."""
@@ -258,4 +330,5 @@ class PCBFSafetyFilter:
                                   "warm_start='last' to emit it")
         return PCBFDeployment(slack=self.slack, filter=self.filter, U=self.U,
                               eps=float(self.eps), zero_tol=ZERO_TOL,
-                              shifted_certificate=self.certificate is not None)
+                              shifted_certificate=self.certificate is not None,
+                              certificate_first=self.certificate_first)

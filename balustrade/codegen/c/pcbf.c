@@ -43,7 +43,7 @@ static const casadi_real BAL_QX(f_ubl)[BAL_QX(filter_NW)] = BAL_QX(filter_UBX_L)
 /* layout element i of (2.24)'s point (a certified shifted plan is used as it is, as the
    Python filter uses the candidate) and of (2.23)'s */
 #define BAL_PCBF_SLACK(i) \
-  BAL_QX(layout_at)(wk->slack.x, BAL_PCBF_S_MAP, (i), wk->shift_certified)
+  BAL_QX(layout_at)(wk->slack.x, BAL_PCBF_S_MAP, (i), wk->shift_certified || wk->cert_first)
 #define BAL_PCBF_FILTER(i) BAL_QX(layout_at)(wk->filter.x, BAL_PCBF_F_MAP, (i), 0)
 
 /* (2.24)'s warm start := the primal of its point, zero multipliers (the backend's warm
@@ -110,14 +110,12 @@ void BAL_QX(finalize)(BAL_QX(work)* wk) {
   wk->ready = 0;
 }
 
-/* The shifted plan as the (2.24) point (PCBFSafetyFilter._shifted and
-   ShiftedCertificate.check): only when a plan exists and (2.24) did not give h_PB within
-   max(ZERO_TOL, EPS) itself (`usable`: converged, feasible or a feasible truncated iterate).
-   On success the candidate is in wk->slack.x (declared variables) and wk->slack.f. */
-static int BAL_QX(shift_check)(BAL_QX(work)* wk, const casadi_real* x, int usable) {
+/* The shifted plan (ShiftedCertificate.check): the remaining inputs of the plan, then 0,
+   rolled out from x; 1 if it meets every row and bound of (2.24) within CERT_TOL with cost
+   <= ZERO_TOL, and then the candidate is in wk->slack.x (declared variables) and
+   wk->slack.f; 0 (wk->slack untouched) otherwise. Needs a plan. */
+static int BAL_QX(shift_eval)(BAL_QX(work)* wk, const casadi_real* x) {
   casadi_int m;
-  if (!wk->have_plan) return 0;
-  if (usable && wk->slack.f <= fmax(BAL_QX(ZERO_TOL), BAL_QX(EPS))) return 0;
   memset(wk->cert_U, 0, sizeof(wk->cert_U));
   m = BAL_QX(N) - wk->plan_age - 1; /* inputs u_{age+1} ... u_{N-1} of the plan, then 0 */
   if (m > 0) {
@@ -137,13 +135,24 @@ static int BAL_QX(shift_check)(BAL_QX(work)* wk, const casadi_real* x, int usabl
     return 0;
   }
   if (!(wk->cert_v <= BAL_QX(CERT_TOL) && fabs(wk->cert_f) <= BAL_QX(ZERO_TOL))) return 0;
-  wk->h_solver = usable ? wk->slack.f : NAN;
 #if BAL_QX(slack_STAGED)
   for (m = 0; m < BAL_QX(slack_N_USER); ++m) wk->slack.x[BAL_QX(s_take)[m]] = wk->cert_w[m];
 #else
   memcpy(wk->slack.x, wk->cert_w, BAL_QX(slack_N_USER) * sizeof(casadi_real));
 #endif
   wk->slack.f = wk->cert_f;
+  return 1;
+}
+
+/* The shifted plan as the (2.24) point (PCBFSafetyFilter._shifted): only when a plan exists
+   and (2.24) did not give h_PB within max(ZERO_TOL, EPS) itself (`usable`: converged,
+   feasible or a feasible truncated iterate). */
+static int BAL_QX(shift_check)(BAL_QX(work)* wk, const casadi_real* x, int usable) {
+  casadi_real h = wk->slack.f;
+  if (!wk->have_plan) return 0;
+  if (usable && h <= fmax(BAL_QX(ZERO_TOL), BAL_QX(EPS))) return 0;
+  if (!BAL_QX(shift_eval)(wk, x)) return 0;
+  wk->h_solver = usable ? h : NAN;
   return 1;
 }
 #else
@@ -160,7 +169,7 @@ void BAL_QX(reset)(BAL_QX(work)* wk) {
   wk->have_plan = wk->have_slack = wk->have_filter = wk->n_replaced = 0;
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_upper = NAN;
-  wk->shift_certified = 0;
+  wk->shift_certified = wk->cert_first = 0;
   wk->h_solver = NAN;
 }
 
@@ -209,7 +218,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   }
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_upper = NAN;
-  wk->shift_certified = 0;
+  wk->shift_certified = wk->cert_first = 0;
   wk->h_solver = NAN;
   *h_out = NAN;
   wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
@@ -221,6 +230,20 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     *status = BAL_PCBF_BAD_INPUT;
     return *status;
   }
+#if BAL_QX(SHIFT_CERT) && BAL_QX(CERT_FIRST)
+  /* certificate first (PCBFSafetyFilter._first): the shifted plan meets (2.24) with zero
+     slack -> h_PB = 0, xi* = 0 (the global optimum, cost 0 forces every slack to 0); (2.24)
+     is not solved (its status stays BAL_NOT_RUN), the next one starts from the candidate's
+     primal, (2.23) from its usual warm start */
+  if (wk->have_plan && BAL_QX(shift_eval)(wk, x)) {
+    wk->cert_first = 1;
+    BAL_QX(pcbf_slack_keep)(wk);
+    wk->have_slack = 1;
+    *h_out = fmax(wk->slack.f, 0.0);
+    certified = 1;
+    goto filter;
+  }
+#endif
   /* (2.24): h_PB(x_k) and the slacks xi* */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
   wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
@@ -256,6 +279,9 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     wk->h_upper = fmax(wk->slack.f, 0.0);
     if (wk->have_plan && wk->plan_age + 1 < BAL_QX(N)) return BAL_QX(fallback)(wk, u_out, status);
   }
+#if BAL_QX(SHIFT_CERT) && BAL_QX(CERT_FIRST)
+filter:
+#endif
   /* (2.23) with the slacks fixed: clip slightly negative solver slacks to 0 */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_filter[BAL_QX(filter_P_x0) + i] = x[i];
   for (i = 0; i < BAL_QX(NU); ++i) wk->p_filter[BAL_QX(filter_P_u_p) + i] = wk->u_p[i];
@@ -319,4 +345,5 @@ BAL_DEFINE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk) { return wk->h_upper; }
 int BAL_QX(shift_certified)(const BAL_QX(work)* wk) { return wk->shift_certified; }
 casadi_real BAL_QX(h_solver)(const BAL_QX(work)* wk) { return wk->h_solver; }
+int BAL_QX(cert_first)(const BAL_QX(work)* wk) { return wk->cert_first; }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }

@@ -34,6 +34,12 @@
  * (2.24) by more than Q_CERT_TOL and its cost is <= Q_ZERO_TOL, it replaces the solver's
  * point: h_PB = 0 (lower bound), (2.24) is warm-started from its primal and (2.23) from its
  * states and inputs (Q_shift_certified = 1, Q_h_solver the solver's cost or NAN).
+ * Certificate first (Q_CERT_FIRST = 1, needs Q_SHIFT_CERT; PCBFSafetyFilter(
+ * certificate_first=True)): with a plan, the same candidate is checked BEFORE (2.24); if it
+ * qualifies, (2.24) is not solved (Q_solve_status 0 stays BAL_NOT_RUN): h_PB = 0, xi* = 0
+ * ((2.24)'s cost is 0 only with every slack 0), (2.23) runs from its usual warm start, the
+ * next (2.24) starts from the candidate's primal (Q_cert_first = 1; status BAL_PCBF_OK or a
+ * (2.23) fallback as usual).
  * Warm starts as balustrade's backend: from a converged solution (primal and multipliers);
  * from the primal of a certified BAL_FEASIBLE (2.24) (zero multipliers); never from an
  * uncertified one; (2.23) only from BAL_OK solutions.
@@ -59,6 +65,7 @@ typedef struct BAL_QX(work) {
   int plan_age, have_plan, have_slack, have_filter, n_replaced;
   int slack_status, filter_status; /* BAL_* of the last step's solves */
   int shift_certified;             /* the last step used the shifted-plan certificate */
+  int cert_first;                  /* the last step skipped (2.24): certificate first */
   casadi_real h_solver;            /* then: the solver's (2.24) cost (NAN if not usable) */
 #if BAL_QX(slack_STAGED)
   /* (2.24) in stage order: its layout point (projected) and the work of Q_slack_obj */
@@ -95,3 +102,5 @@ casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk);
 int BAL_QX(shift_certified)(const BAL_QX(work)* wk);
 /* The solver's (2.24) cost at a certified step (NAN if it was not usable or no step). */
 casadi_real BAL_QX(h_solver)(const BAL_QX(work)* wk);
+/* 1 if the last step skipped (2.24) on the certificate (Q_CERT_FIRST), else 0. */
+int BAL_QX(cert_first)(const BAL_QX(work)* wk);
