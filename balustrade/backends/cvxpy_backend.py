@@ -117,6 +117,8 @@ class CvxpyCompiled:
                                    self.solver_options, False)
             message += (f" (with the {self.large.c.size} large bounds/rows |b| >= "
                         f"{LARGE_BOUND:g}; the solve without them: {first})")
+            if status == Status.INFEASIBLE:         # the full problem's verdict needs evidence
+                status, message = self._check_infeasible(message, p, full=True)
         if status in (Status.FAILED, Status.MAX_ITERATIONS, Status.OPTIMAL_INACCURATE) \
                 and self.cost_scale > BIG_WEIGHT:
             status, message = self._rescaled(status, message)
@@ -153,7 +155,8 @@ class CvxpyCompiled:
         self.W.value = w
         return True
 
-    def _check_infeasible(self, message: str, p: np.ndarray) -> tuple[Status, str]:
+    def _check_infeasible(self, message: str, p: np.ndarray,
+                          full: bool = False) -> tuple[Status, str]:
         """An "infeasible" verdict stands only on evidence beyond the word of the solver that
         gave it (a badly scaled cost weight, a tolerance or a bug can make a solver declare
         a feasible problem infeasible, and asking it again can repeat the mistake): the same
@@ -163,12 +166,14 @@ class CvxpyCompiled:
         feasibility solve whose Farkas certificate passes
         :func:`~balustrade.backends.farkas.check_farkas`, or for an LP/QP the "infeasible" of
         an engine other than this solver; a feasible point overturns the verdict. Anything
-        else (also an OCP the direct chain cannot lower) is ``failed`` with the reason."""
+        else (also an OCP the direct chain cannot lower) is ``failed`` with the reason.
+        ``full``: the verdict is about the problem with its large bounds/rows."""
         checker = self._infeasibility_checker()
         if isinstance(checker, str):
             return Status.FAILED, (f"{message}; infeasibility not established: no independent "
                                    f"check ({checker})")
-        confirmed, words = checker.confirm_infeasible(p, self.solver_name.lower(), message)
+        confirmed, words = checker.confirm_infeasible(p, self.solver_name.lower(), message,
+                                                      full=full)
         return (Status.INFEASIBLE if confirmed else Status.FAILED), words
 
     def _infeasibility_checker(self) -> object | str:

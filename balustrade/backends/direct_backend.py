@@ -127,16 +127,18 @@ class DirectCompiled:
                         iterations=raw.iterations, backend="direct", solver=self.solver_name,
                         p=p, message=message)
 
-    def confirm_infeasible(self, p: np.ndarray, said_by: str, words: str
-                           ) -> tuple[bool, str]:
+    def confirm_infeasible(self, p: np.ndarray, said_by: str, words: str,
+                           full: bool = False) -> tuple[bool, str]:
         """Whether the verdict "infeasible" that another solve of this OCP's constraints at
         the parameters ``p`` gave (the solver ``said_by``, e.g. the cvxpy backend's, with
         the message ``words``, no certificate of its own) is established by independent
         evidence: the checks of :meth:`_check_infeasible` with ``said_by`` in the place of
         this backend's solver (a Farkas certificate of the feasibility solve that passes
         :func:`~balustrade.backends.farkas.check_farkas`, or for an LP/QP the "infeasible"
-        of an engine other than ``said_by``). ``(confirmed, message)``."""
-        prog = self.program
+        of an engine other than ``said_by``). ``full=True`` checks the constraints with the
+        large bounds/rows too (a verdict of the full problem, which :attr:`program` leaves
+        out). ``(confirmed, message)``."""
+        prog = self._full_problem()[0] if full else self.program
         b, A = prog.b(p), prog.A_data(p)
         raw = RawResult(Status.INFEASIBLE, words, None, None, 0)
         raw, message = self._check_infeasible(raw, prog, b, A, said_by)
