@@ -94,3 +94,17 @@ def test_polytope_layer_does_not_call_thin_sets_empty():
     for _, H, h in _thin_sets(20, seed=1, shift=1e-6):
         with pytest.raises(EmptySetError):       # the constructor refuses an empty set
             Polytope(H, h)
+
+
+def test_without_highspy_the_verdicts_do_not_recurse(monkeypatch):
+    """``solve_lp`` re-decides an infeasible verdict without going back through itself (the
+    review found ``solve_lp → is_feasible → solve_lps → solve_lp`` without highspy)."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "highspy", None)
+    H, h = np.array([[1.0], [-1.0]]), np.array([0.0, -1e-3])
+    assert solve_lp(np.ones(1), H, h).status is Status.INFEASIBLE
+    assert is_feasible(H, h) is Status.INFEASIBLE
+    assert solve_lps_joint(np.eye(1), H, h)[-1].status is Status.INFEASIBLE
+    theta, H, h = next(_thin_sets(1))
+    assert solve_lp(np.ones(7), H, h).status is Status.OPTIMAL

@@ -261,6 +261,7 @@ def test_seeded_runs_resume_and_count_every_check(msd3, tmp_path, monkeypatch):
     assert json.loads((tmp_path / "cli" / "3" / "summary.json").read_text())["runs"] == 2
     total = S.run_seeds(3, 2, tmp_path, steps=5)
     assert (total["runs"], total["z_ok"], total["theta_in"], total["nested"]) == (2, 2, 2, 2)
+    assert total["estimator_failed_updates"] == 0 == total["estimator_not_nested_updates"]
     calls = []
     monkeypatch.setattr(S, "seeded_run", lambda *a, **k: calls.append(a))
     rec = json.loads((tmp_path / "seed_001.json").read_text())

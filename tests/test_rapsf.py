@@ -22,7 +22,7 @@ from balustrade.design.rapsf import (
     robust_gain,
 )
 from balustrade.dsl.sets import Box, Polytope
-from balustrade.errors import BalustradeError, ShapeError
+from balustrade.errors import BalustradeError, EmptySetError, ShapeError
 from balustrade.estimate import BoxUpdate
 from balustrade.models.msd import msd_chain, msd_performance, msd_setup
 from balustrade.problems.rapsf import (
@@ -338,3 +338,31 @@ def test_nan_state_mid_run_takes_the_backup_and_learns_on(toy):
         assert np.all(np.isfinite(u)) and not ctrl.falsified
         assert ctrl.Theta.contains(theta_star, tol=1e-7)
         x = A @ x + B @ u
+
+
+def test_an_empty_set_error_inside_a_set_estimator_is_not_a_falsification(toy, monkeypatch):
+    """A :class:`SetEstimator` certifies "empty" and records ``falsified``; an
+    :class:`EmptySetError` escaping it (a set it builds, an uncertified LP verdict) keeps
+    Θ_{k−1} with ``theta_update_failed`` instead of running the backup for the rest of the run
+    (review, session 10). A plain estimator that raises keeps the documented contract."""
+    est = BoxUpdate(toy.sys, toy.W, toy.Theta0)
+
+    def raising(*args, **kwargs):
+        raise EmptySetError("a set built inside the update is empty")
+
+    monkeypatch.setattr(est, "update", raising)
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0, estimator=est)
+    ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    u, info = ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    assert info.status == "theta_update_failed" and not ctrl.falsified
+    assert info.fallback is None and ctrl.Theta is toy.Theta0
+
+    class _Raising:
+        def update(self, xp, up, x):
+            raise EmptySetError("no θ explains the data")
+
+    ctrl = RAPSF(toy.sys, toy.X0, toy.F, toy.G, toy.W, toy.K, N, toy.Theta0,
+                 estimator=_Raising())
+    ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    u, info = ctrl.step(np.array([0.5, 0.1]), np.array([1.0]))
+    assert info.status == "model_falsified" and ctrl.falsified

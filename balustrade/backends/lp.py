@@ -62,7 +62,7 @@ def solve_lp(c: np.ndarray, H: np.ndarray, h: np.ndarray, maximize: bool = True)
                                  bounds=[(None, None)] * c.size, method="highs")
     status = _STATUS.get(res.status, Status.FAILED)
     if status is Status.INFEASIBLE and H.shape[0]:   # linprog presolves too: re-decide
-        checked = is_feasible(H, h)
+        checked = _decide_empty(H, h)
         if checked is Status.OPTIMAL:                 # not empty after all: solve without
             res = scipy.optimize.linprog(sign * c, A_ub=H, b_ub=h,  # presolve
                                          bounds=[(None, None)] * c.size, method="highs",
@@ -95,21 +95,9 @@ def solve_lps(C: np.ndarray, H: np.ndarray, h: np.ndarray,
                 break
         return out
     solver = _highs(highspy)
-    m, n = H.shape
-    lp = highspy.HighsLp()
-    lp.num_col_, lp.num_row_ = n, m
-    lp.col_cost_ = np.zeros(n)
-    lp.col_lower_ = np.full(n, -highspy.kHighsInf)
-    lp.col_upper_ = np.full(n, highspy.kHighsInf)
-    lp.row_lower_ = np.full(m, -highspy.kHighsInf)
-    lp.row_upper_ = np.asarray(h, dtype=float)
+    n = H.shape[1]
+    lp = _dense_model(highspy, H, h)
     lp.sense_ = highspy.ObjSense.kMaximize if maximize else highspy.ObjSense.kMinimize
-    A = lp.a_matrix_
-    A.format_ = highspy.MatrixFormat.kRowwise
-    A.start_ = np.arange(0, m * n + 1, n, dtype=np.int32)
-    A.index_ = np.tile(np.arange(n, dtype=np.int32), m)
-    A.value_ = np.ascontiguousarray(H, dtype=float).ravel()
-    lp.a_matrix_ = A
     solver.clearModel()
     solver.passModel(lp)
     cols = np.arange(n, dtype=np.int32)
@@ -120,7 +108,7 @@ def solve_lps(C: np.ndarray, H: np.ndarray, h: np.ndarray,
         status = _HIGHS_STATUS.get(str(solver.getModelStatus()).rsplit(".", 1)[-1],
                                    Status.FAILED)
         if status is Status.FAILED and "UnboundedOrInfeasible" in str(solver.getModelStatus()):
-            # presolve could not tell: decide with linprog (no presolve shortcut there)
+            # presolve could not tell: decide with linprog (its infeasible is re-decided)
             res = solve_lp(c, H, h, maximize)
             out.append(res)
             if res.status is not Status.OPTIMAL:
@@ -134,6 +122,45 @@ def solve_lps(C: np.ndarray, H: np.ndarray, h: np.ndarray,
         x = np.asarray(solver.getSolution().col_value, dtype=float)
         out.append(LPResult(status, float(c @ x), x))
     return out
+
+
+def _decide_empty(H: np.ndarray, h: np.ndarray) -> Status:
+    """Whether ``{Hθ <= h}`` is empty, decided without presolve (never through
+    :func:`solve_lp`/:func:`solve_lps`, which call this: no recursion): ``OPTIMAL`` (not
+    empty), ``INFEASIBLE`` (HiGHS' dual ray passes the Farkas check) or ``FAILED``. Without
+    ``highspy`` the presolve-free ``linprog`` verdict decides (no ray to check)."""
+    try:
+        import highspy
+    except ImportError:  # pragma: no cover - highspy ships with the test environment
+        highspy = None
+    if highspy is None:
+        res = scipy.optimize.linprog(np.zeros(H.shape[1]), A_ub=H, b_ub=h,
+                                     bounds=[(None, None)] * H.shape[1], method="highs",
+                                     options={"presolve": False})
+        return _STATUS.get(res.status, Status.FAILED)
+    solver = _highs(highspy)
+    solver.clearModel()
+    solver.passModel(_dense_model(highspy, H, h))
+    return _recheck_infeasible(solver, highspy, H, h)
+
+
+def _dense_model(highspy: object, H: np.ndarray, h: np.ndarray) -> object:
+    """The HiGHS model of ``{θ : Hθ <= h}``, θ free, zero cost (rows stored densely)."""
+    m, n = H.shape
+    lp = highspy.HighsLp()
+    lp.num_col_, lp.num_row_ = n, m
+    lp.col_cost_ = np.zeros(n)
+    lp.col_lower_ = np.full(n, -highspy.kHighsInf)
+    lp.col_upper_ = np.full(n, highspy.kHighsInf)
+    lp.row_lower_ = np.full(m, -highspy.kHighsInf)
+    lp.row_upper_ = np.asarray(h, dtype=float)
+    A = lp.a_matrix_
+    A.format_ = highspy.MatrixFormat.kRowwise
+    A.start_ = np.arange(0, m * n + 1, n, dtype=np.int32)
+    A.index_ = np.tile(np.arange(n, dtype=np.int32), m)
+    A.value_ = np.ascontiguousarray(H, dtype=float).ravel()
+    lp.a_matrix_ = A
+    return lp
 
 
 def _recheck_infeasible(solver: object, highspy: object, H: np.ndarray,
@@ -202,7 +229,7 @@ def solve_lps_joint(C: np.ndarray, H: np.ndarray, h: np.ndarray,
     solver.run()
     status = _HIGHS_STATUS.get(str(solver.getModelStatus()).rsplit(".", 1)[-1], Status.FAILED)
     if status is Status.INFEASIBLE:     # presolve's word is not enough: decide the set alone
-        checked = is_feasible(H, h)
+        checked = _decide_empty(H, h)
         if checked is not Status.OPTIMAL:
             return [LPResult(checked, float("nan"), None)]
         return solve_lps(C, H, h, maximize)

@@ -64,7 +64,7 @@ def _model(highspy: object, lp: BatchLP) -> object:
 
 
 def _linprog_status(lp: BatchLP, lo: np.ndarray, hi: np.ndarray) -> int:
-    """One sample from scratch (no presolve shortcut), as equality/inequality rows."""
+    """One sample from scratch without presolve, as equality/inequality rows."""
     eq = np.isfinite(lo) & np.isfinite(hi) & (lo == hi)
     up = ~eq & np.isfinite(hi)
     dn = ~eq & np.isfinite(lo)
@@ -78,7 +78,7 @@ def _linprog_status(lp: BatchLP, lo: np.ndarray, hi: np.ndarray) -> int:
                                                           None),
                                                  np.where(np.isfinite(lp.col_ub), lp.col_ub,
                                                           None), strict=True)),
-                                 method="highs")
+                                 method="highs", options={"presolve": False})
     return {0: FEASIBLE, 2: INFEASIBLE}.get(res.status, UNDECIDED)
 
 

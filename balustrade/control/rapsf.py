@@ -26,7 +26,10 @@ nested in the current one (its vertices inside ``Θ_{k−1}``; else ``"theta_not
 ``Θ_{k−1}`` is kept). An estimator that raises :class:`~balustrade.errors.EmptySetError`,
 returns ``None`` or records the status ``"falsified"`` as the last entry of its ``history``
 (:class:`balustrade.estimate.SetEstimator`) has falsified every model in ``Θ``: the status
-``"model_falsified"`` is recorded and the backup policy is applied from then on.
+``"model_falsified"`` is recorded and the backup policy is applied from then on. A
+:class:`~balustrade.estimate.SetEstimator` decides "empty" with a certificate and records it;
+an :class:`~balustrade.errors.EmptySetError` escaping one is not such a verdict: the step
+records ``"theta_update_failed"`` and keeps ``Θ_{k−1}``.
 
 An estimator that returns the current set itself (e.g. :class:`~balustrade.estimate.BoxUpdate`
 when ``Θ_{k−1} ⊆ Δ_k``) costs nothing more: ``Θ_k`` and ``s_jr`` are kept. With the vertices
@@ -56,6 +59,7 @@ from balustrade.control.rapsf_backup import backup_policy
 from balustrade.control.rapsf_enlarge import TerminalEnlargement
 from balustrade.dsl.sets import Polytope
 from balustrade.errors import BalustradeError, EmptySetError
+from balustrade.estimate.base import SetEstimator
 from balustrade.problems.rapsf import (
     TerminalSet,
     check_parametric_system,
@@ -211,6 +215,11 @@ class RAPSF:
         try:
             new = self.estimator.update(self._prev[0], self._prev[1], x)
         except EmptySetError:
+            if isinstance(self.estimator, SetEstimator):
+                # its "empty" is certified and recorded as ``falsified`` in its history; an
+                # EmptySetError escaping it (a set it builds) is not: Θ_{k−1} is kept
+                info.status = "theta_update_failed"
+                return
             new = None
         history = getattr(self.estimator, "history", None)
         if new is None or (history and str(getattr(history[-1], "status", "")) == "falsified"):

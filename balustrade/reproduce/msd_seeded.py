@@ -47,6 +47,8 @@ def seeded_run(d: dict, seed: int, steps: int, ctrl: object | None = None) -> di
     ctrl = M.adaptive_controller(d) if ctrl is None else ctrl
     r = M.closed_loop(ctrl, d, theta, ws)
     r["theta_star"] = theta
+    history = getattr(ctrl.estimator, "history", [])
+    r["estimator_statuses"] = [str(rec.status) for rec in history]
     return r
 
 
@@ -63,6 +65,10 @@ def summary(seed: int, r: dict) -> dict:
             "fallbacks": sum(1 for f in r["fallbacks"] if f),
             "not_ok": sum(1 for s in statuses if s != "ok"),
             "falsified": sum(1 for s in statuses if s == "model_falsified"),
+            # a stalled estimator passes every other check: count its refusals
+            "estimator_failed": r.get("estimator_statuses", []).count("failed"),
+            "estimator_not_nested": r.get("estimator_statuses", []).count("not_nested"),
+            "theta_update_failed": sum(1 for s in statuses if s == "theta_update_failed"),
             "final_widths": [float(w) for w in r["theta_ub"][-1] - r["theta_lb"][-1]],
             "step_ms_median": float(np.median(r["step_ms"])),
             "step_ms_max": float(np.max(r["step_ms"]))}
@@ -102,10 +108,19 @@ def run_seeds(n: int, seeds: int, out: Path, steps: int = 150,
              "fallback_steps": sum(r["fallbacks"] for r in recs),
              "not_ok_steps": sum(r["not_ok"] for r in recs),
              "falsified_runs": sum(1 for r in recs if r["falsified"]),
+             # records written before these counts existed have none (None: not recorded)
+             "estimator_failed_updates": _total(recs, "estimator_failed"),
+             "estimator_not_nested_updates": _total(recs, "estimator_not_nested"),
              "vertex_theta_runs": sum(1 for r in recs if r["seed"] % 2 == 0),
              "step_ms_median": float(np.median([r["step_ms_median"] for r in recs]))}
     (out / "summary.json").write_text(json.dumps(total, indent=1))
     return total
+
+
+def _total(recs: list[dict], key: str) -> int | None:
+    """``Σ rec[key]`` over the records that have ``key`` (``None`` if none has it)."""
+    values = [r[key] for r in recs if key in r]
+    return sum(values) if values else None
 
 
 def main(argv: list[str] | None = None) -> int:
