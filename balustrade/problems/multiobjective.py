@@ -267,8 +267,8 @@ def _running_sum_decrease(ocp: OCP, xi: ca.SX, xi_N: ca.SX, alpha_f: float,
     ``σ``.
 
     Why: the single row has a nonzero for every slack (``n_X N + 1`` of them). In the KKT
-    matrix that ``sqpmethod``'s QP solver (qrqp) factorizes by sparse QR at each of its
-    iterations, that row couples every stage and fills the factor in. On the lane change
+    matrix that the SQP's QP solver of the ``robust-sqp`` target factorizes by sparse QR
+    at each of its iterations, that row couples every stage and fills the factor in. On the lane change
     (§8.2, ``N = 20``, 285 variables) a (6.15) solve took a median of 36 ms with the single
     row and 1.9 ms with the running sums (under load, 22 closed-loop states of seed 0,
     the same SQP iterations, inputs equal to 5e-9): ``benchmarks/bench_lane.py``. Each
