@@ -411,6 +411,32 @@ def _figure(runs: dict, d: BicycleDesign, out: Path) -> str:
     return save(fig, out / "fig8_1_lane_change.png")
 
 
+#: ρ of the convergence sweep (:func:`rho_sweep`, ``main --rho-sweep``)
+RHO_SWEEP = (0.5, 0.7, 0.9, 0.95, 0.99)
+
+
+def rho_sweep(d: BicycleDesign, rhos: tuple[float, ...] = RHO_SWEEP,
+              seeds: tuple[int, ...] = (0, 1, 2), steps: int = STEPS) -> list[dict]:
+    """Algorithm 6.4 (Python, ``robust-sqp``) for each ``ρ`` and seed: ``h̃`` and ``p_y``
+    at the last step, the step ``h̃`` reached 0 (``S_r``; -1: never), whether the run
+    converged to the lane (:func:`run_metrics`), the peak lateral acceleration and the
+    steps at which (6.15g) was active. (6.15g) demands ``(1 − ρ)`` times the candidate's
+    decrease, so the rate at which ``h̃`` can fall depends on ``ρ``."""
+    rows = []
+    for rho in rhos:
+        ctrl = multiobjective(d, rho, record_h_r=False)
+        for seed in seeds:
+            r = closed_loop(ctrl, d, disturbances(d, seed, steps))
+            m = run_metrics(r, d, "h_tilde")
+            rows.append({"rho": float(rho), "seed": int(seed),
+                         "final_h_tilde": m["final_h"], "final_p_y": m["final_p_y"],
+                         "entered_S_r_at": m["entered_S_r_at"], "converged": m["converged"],
+                         "peak_lateral_acceleration": m["peak_lateral_acceleration"],
+                         "decrease_bound_active_steps": m["decrease_bound_active_steps"],
+                         "not_ok": m["not_ok"], "median_step_ms": m["median_step_ms"]})
+    return rows
+
+
 _WORKER: dict = {}
 
 
@@ -437,8 +463,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=50, help="seeds 0 … SEEDS-1")
     parser.add_argument("--first", type=int, default=0, help="first seed")
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--rho-sweep", action="store_true",
+                        help="instead: Algorithm 6.4 in Python for each rho of RHO_SWEEP on "
+                             "seeds FIRST … FIRST+SEEDS-1 (rho_sweep), JSON to OUT")
     args = parser.parse_args(argv)
     seeds = list(range(args.first, args.first + args.seeds))
+    if args.rho_sweep:
+        rows = rho_sweep(bicycle_design(N=20), seeds=tuple(seeds))
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "rho_sweep.json").write_text(json.dumps(rows, indent=1))
+        print(json.dumps(rows, indent=1))
+        return 0
     jobs = max(1, min(args.jobs, len(seeds)))
     chunks = [(seeds[j::jobs], str(args.out)) for j in range(jobs)]
     if jobs == 1:
