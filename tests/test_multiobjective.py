@@ -230,16 +230,14 @@ def test_running_sum_6_15g_same_minimizer_as_the_single_row(d):
     assert active >= 1     # the bound is hit, so the row form matters
 
 
-def test_running_sum_is_the_default_on_casadi_only(d):
+def test_running_sum_is_opt_in(d):
     system, s, error, cbf = d["system"], d["s"], d["error"], d["cbf"]
     args = (system, s.X, s.U, cbf, cbf.policy, N, s.deltas(), error, s.alpha_f)
     sqp = MultiobjectivePCBFController.build(*args, target="robust-sqp",
-                                             slack_target="robust-sqp")
-    conic = MultiobjectivePCBFController.build(*args, target="cvxpy")
+                                             slack_target="robust-sqp", running_sum=True)
     single = MultiobjectivePCBFController.build(*args, target="robust-sqp",
-                                                slack_target="robust-sqp", running_sum=False)
+                                                slack_target="robust-sqp")
     assert "xi_sum" in sqp.problem.ocp.variables
-    assert "xi_sum" not in conic.problem.ocp.variables
     assert "xi_sum" not in single.problem.ocp.variables
     # the candidate start of (6.15) carries the candidate's running sums
     c = robust_candidate(system, d["X_E"], cbf, cbf.policy, s.deltas(),

@@ -31,14 +31,7 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, check_instance
-from balustrade.backends import (
-    Compiled,
-    Solution,
-    Target,
-    companion,
-    compile,
-    resolve_target,
-)
+from balustrade.backends import Compiled, Solution, Target, companion, compile
 from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import LyapunovDeployment, MultiobjectiveDeployment
 from balustrade.control.fallbacks import (
@@ -180,25 +173,25 @@ class MultiobjectivePCBFController:
               rho: float = 0.9, objective: Objective | None = None,
               target: Target | str = "auto", slack_target: Target | str | None = None,
               U_tight: Polytope | None = None, record_h_r: bool = False,
-              running_sum: bool | None = None) -> MultiobjectivePCBFController:
+              running_sum: bool = False) -> MultiobjectivePCBFController:
         """Build and compile (5.15) (ℓ1 slack norm) for ``slack_target`` and (6.15) for
         ``target`` (targets or preset names; default ``"auto"``: the direct conic backend
         for convex problems, else ``exact``; ``slack_target=None``: ``"exact"`` on
         CasADi, ``target`` on any other backend, see
         :func:`~balustrade.backends.companion`).
 
-        ``running_sum``: write (6.15g) through running sums of the slacks
+        ``running_sum=True``: write (6.15g) through running sums of the slacks
         (:func:`~balustrade.problems.multiobjective.multiobjective_pcbf_problem`; the same
-        minimizers, no row touching every slack); ``None`` (default): on a CasADi target,
-        whose SQP factorizes a sparse KKT matrix that the single row fills in (≈ 18× faster
-        (6.15) solves on the lane change), and not on the others."""
-        if running_sum is None:
-            running_sum = resolve_target(target).backend == "casadi"
+        minimizers, no row touching every slack). On the SQP target (``robust-sqp``) of the
+        lane change it makes a (6.15) solve ≈ 18× faster (docs/vehicles.md); on the 2-D
+        example of §5.6 the SQP alone then converges less often from far-off states at
+        ``k = 0`` (5 of 49 instead of 40; the retry chain's last resort solves them), so it
+        is not the default."""
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                   1, U_tight), companion(slack_target, target))
         prob = compile(multiobjective_pcbf_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                    objective, U_tight,
-                                                   running_sum=bool(running_sum)), target)
+                                                   running_sum=running_sum), target)
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, prob, system, sets.X_E, U, sets.U_E, error, h_f, pi_f, deltas,
                    alpha_f, rho, record_h_r=record_h_r)
