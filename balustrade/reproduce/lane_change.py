@@ -16,8 +16,8 @@ Runs (the closed loops all use the emittable target ``robust-sqp`` for both prob
 Python and C run the same algorithm):
 
 * **Python**, seed 0: both controllers, Algorithm 6.4 with ``record_h_r`` (an extra (5.15)
-  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with ``ρ = 0.5``
-  (:data:`EXTRA_RHOS`); per-step wall times of the two controllers
+  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with ``ρ = 0.5`` and
+  ``ρ = 0`` (:data:`EXTRA_RHOS`); per-step wall times of the two controllers
   interleaved step by step, on ``robust-sqp`` and on ``exact`` (the solver of the thesis);
 * **C** (:func:`~balustrade.codegen.accelerate`): the same seed-0 closed loops compared with
   Python step by step (``C = Python``: largest input and state difference, statuses and
