@@ -206,3 +206,17 @@ def test_seeded_runs_resume_from_saved_seeds(new, tmp_path, monkeypatch):
     assert again == json.loads(json.dumps(rows, default=L._json))
     with pytest.raises(AssertionError, match="ran a saved seed again"):
         L.seeded_runs({"robust": Stale("b" * 40)}, d, [1], tmp_path, log=False)
+
+
+@pytest.mark.slow
+def test_algorithm_6_4_reaches_S_r_at_rho_0_not_at_0_9(new):
+    """Session 10 ρ sweep (docs/vehicles.md): seed 0, 200 steps, Python. ρ = 0 (the whole
+    candidate decrease) reaches S_r and the lane edge; ρ = 0.9 (SPEC default) does not,
+    with (6.15g) active at every step; every step ok."""
+    from balustrade.reproduce.lane_change import rho_sweep
+
+    rows = {r["rho"]: r for r in rho_sweep(new, rhos=(0.0, 0.9), seeds=(0,))}
+    assert rows[0.0]["converged"] and 0 <= rows[0.0]["entered_S_r_at"] < 200
+    assert not rows[0.9]["converged"] and rows[0.9]["entered_S_r_at"] == -1
+    assert rows[0.9]["decrease_bound_active_steps"] == 200
+    assert rows[0.0]["not_ok"] == rows[0.9]["not_ok"] == 0

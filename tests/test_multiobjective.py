@@ -196,3 +196,54 @@ def test_lyapunov_decrease_6_3h_is_V_of_the_shifted_candidate(d):
         z1 = z[:, 1]
         expected = des.V(z1, des.xi_c(z1, v, np.zeros(2)))
         assert float(row(z, v, 0.0)) == pytest.approx(expected, rel=1e-12)
+
+
+# -- the running-sum form of (6.15g) (session 10) --------------------------------------------
+def test_running_sum_6_15g_same_minimizer_as_the_single_row(d):
+    """(6.15g) through running sums ``σ_i = Σ_{j<=i} 1ᵀξ_j`` has the minimizers of the single
+    row: the same objective and applied input on states of D_r at tight bounds (where
+    (6.15g) is active), and ``σ`` equals the partial sums of the returned slacks."""
+    system, s, error, cbf = d["system"], d["s"], d["error"], d["cbf"]
+    ocp = multiobjective_pcbf_problem(system, s.X, s.U, cbf, N, s.deltas(), error,
+                                      s.alpha_f, running_sum=True)
+    assert "xi_sum" in ocp.variables and "xi_sum" not in d["mo"].variables
+    run = compile(ocp, "casadi", "ipopt")
+    rng, active = np.random.default_rng(21), 0
+    for x, s1 in _in_D_r(d, 5, 13):
+        h = s1.objective
+        for rho in (0.0, 0.9):
+            bound = decrease_bound(h, h * 1.2, rho) + 1e-6
+            u_p = rng.uniform(-2.5, 2.5, 1)
+            p = {"x0": x, "u_p": u_p, "bound": bound}
+            a, b = d["mo_ip"].solve(p), run.solve(p)
+            assert a.success and b.success
+            assert b.objective == pytest.approx(a.objective, rel=1e-6, abs=1e-8)
+            ua = a["v"].reshape(1, -1)[:, 0] + error.K @ (x - a["z"][:, 0])
+            ub = b["v"].reshape(1, -1)[:, 0] + error.K @ (x - b["z"][:, 0])
+            assert ub == pytest.approx(ua, abs=1e-6)
+            xi = np.asarray(b["xi"]).reshape(-1, N)
+            assert np.asarray(b["xi_sum"]).reshape(-1) == pytest.approx(
+                np.cumsum(xi.sum(axis=0)), abs=1e-8)
+            h_b = s.alpha_f * float(b["xi_N"][0]) + xi.sum()
+            active += h_b >= bound - 1e-6 * max(1.0, bound)
+            assert verify(ocp, b, tol=1e-6).max_violation <= 1e-6
+    assert active >= 1     # the bound is hit, so the row form matters
+
+
+def test_running_sum_is_opt_in(d):
+    system, s, error, cbf = d["system"], d["s"], d["error"], d["cbf"]
+    args = (system, s.X, s.U, cbf, cbf.policy, N, s.deltas(), error, s.alpha_f)
+    sqp = MultiobjectivePCBFController.build(*args, target="robust-sqp",
+                                             slack_target="robust-sqp", running_sum=True)
+    single = MultiobjectivePCBFController.build(*args, target="robust-sqp",
+                                                slack_target="robust-sqp")
+    assert "xi_sum" in sqp.problem.ocp.variables
+    assert "xi_sum" not in single.problem.ocp.variables
+    # the candidate start of (6.15) carries the candidate's running sums
+    c = robust_candidate(system, d["X_E"], cbf, cbf.policy, s.deltas(),
+                         np.zeros((2, N + 1)), np.zeros((1, N)),
+                         np.arange(d["X_E"].n_rows * N, dtype=float).reshape(-1, N),
+                         d["U_E"])
+    start = sqp._candidate_start(c)
+    assert start["xi_sum"].reshape(-1) == pytest.approx(np.cumsum(c.xi.sum(axis=0)))
+    assert "xi_sum" not in single._candidate_start(c)

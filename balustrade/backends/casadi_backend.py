@@ -522,6 +522,13 @@ class CasadiCompiled:
         layout = self.layout
         w = np.asarray(x_orig).reshape(-1)[: layout.user_size]
         status = _status(stats)
+        # sqpmethod can return Solve_Succeeded at a point far off its constraints (seen on
+        # the lane change (6.15) after a failed first attempt: residual 8e7); the C emitted
+        # for it tests its own KKT residuals and rejects such a point, so Python must too
+        flagged = status == Status.OPTIMAL and solver.class_name() == "Sqpmethod" \
+            and not self._primal_feasible(w_all, p, SQP_FEASIBILITY_TOL)
+        if flagged:
+            status = Status.FAILED
         dual = {name: lam_g[s] for name, s in self.block_slices.items()}
         for name, arr in layout.unpack(lam_x, user_only=True).items():
             dual[f"bound:{name}"] = arr
@@ -531,6 +538,9 @@ class CasadiCompiled:
         objective = self.inverse.objective(x_orig, p_dm) if np.all(np.isfinite(w)) \
             else np.nan
         message = _message(stats)
+        if flagged:
+            message += (f": reported converged at a point violating its constraints by "
+                        f"{self._primal_residual(w_all, p):.3g}")
         why = _unbounded(message, objective)
         if why is not None:
             status, message = Status.FAILED, f"{message}: the problem appears unbounded ({why})"
@@ -601,6 +611,10 @@ def _lowering(name: str, value: object) -> str:
                           f"{', '.join(map(repr, LOWERINGS))}, got {value!r}")
     return str(value)
 
+
+#: a solve that sqpmethod reports converged is ``failed`` when a constraint row (relative to
+#: ``1 + |g|``) or a bound is violated by more than this (:meth:`CasadiCompiled._solve_with`)
+SQP_FEASIBILITY_TOL = 1e-6
 
 #: an objective below this (IPOPT's default ``diverging_iterates_tol`` is 1e20) is taken as
 #: evidence that the problem is unbounded below

@@ -394,7 +394,9 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
         f"Algorithm 6.4, the multiobjective robust PCBF step {name}",
         "Algorithm 6.4, the multiobjective robust PCBF controller (5.15)+(6.15)",
         [(f"{name}_RHO", C.c_double(spec.rho), "rho of (6.15g)"),
-         (f"{name}_BOUND_TOL", C.c_double(spec.bound_tol), None)],
+         (f"{name}_BOUND_TOL", C.c_double(spec.bound_tol), None),
+         (f"{name}_XI_SUM", int("xi_sum" in p.vars),
+          "1: (6.15g) in running-sum form, variable xi_sum")],
         {"rho": float(spec.rho), "bound_tol": float(spec.bound_tol)})
 
 

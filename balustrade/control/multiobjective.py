@@ -172,17 +172,26 @@ class MultiobjectivePCBFController:
               N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
               rho: float = 0.9, objective: Objective | None = None,
               target: Target | str = "auto", slack_target: Target | str | None = None,
-              U_tight: Polytope | None = None, record_h_r: bool = False
-              ) -> MultiobjectivePCBFController:
+              U_tight: Polytope | None = None, record_h_r: bool = False,
+              running_sum: bool = False) -> MultiobjectivePCBFController:
         """Build and compile (5.15) (ℓ1 slack norm) for ``slack_target`` and (6.15) for
         ``target`` (targets or preset names; default ``"auto"``: the direct conic backend
         for convex problems, else ``exact``; ``slack_target=None``: ``"exact"`` on
         CasADi, ``target`` on any other backend, see
-        :func:`~balustrade.backends.companion`)."""
+        :func:`~balustrade.backends.companion`).
+
+        ``running_sum=True``: write (6.15g) through running sums of the slacks
+        (:func:`~balustrade.problems.multiobjective.multiobjective_pcbf_problem`; the same
+        minimizers, no row touching every slack). On the SQP target (``robust-sqp``) of the
+        lane change it makes a (6.15) solve ≈ 18× faster (docs/vehicles.md); on the 2-D
+        example of §5.6 the SQP alone then converges less often from far-off states at
+        ``k = 0`` (5 of 49 instead of 40; the retry chain's last resort solves them), so it
+        is not the default."""
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                   1, U_tight), companion(slack_target, target))
         prob = compile(multiobjective_pcbf_problem(system, X, U, h_f, N, deltas, error, alpha_f,
-                                                   objective, U_tight), target)
+                                                   objective, U_tight,
+                                                   running_sum=running_sum), target)
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, prob, system, sets.X_E, U, sets.U_E, error, h_f, pi_f, deltas,
                    alpha_f, rho, record_h_r=record_h_r)
@@ -205,6 +214,17 @@ class MultiobjectivePCBFController:
     def _make_candidate(self, z: np.ndarray, v: np.ndarray, xi: np.ndarray) -> Candidate:
         return robust_candidate(self.system, self.X_E, self.h_f, self.pi_f, self.deltas, z, v,
                                 xi, self.U_E)
+
+    def _candidate_start(self, c: Candidate) -> dict[str, np.ndarray]:
+        """The candidate (6.14) as a starting point of (6.15); with the running-sum form of
+        (6.15g) also its running sums ``σ_i = Σ_{j<=i} 1ᵀξ̃_j`` (the emitted C computes the
+        same, ``bal/multiobj.c``)."""
+        start = c.as_dict()
+        ocp = getattr(self.problem, "ocp", None)
+        if ocp is not None and "xi_sum" in ocp.variables:
+            xi = np.asarray(c.xi, dtype=float).reshape(self.X_E.H.shape[0], -1, order="F")
+            start["xi_sum"] = np.cumsum(xi.sum(axis=0)).reshape(1, -1)
+        return start
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of Algorithm 6.4 (module docstring); never raises for runtime data."""
@@ -243,7 +263,7 @@ class MultiobjectivePCBFController:
         bound = decrease_bound(h_cand, float(self.h_prev), self.rho)
         bound += self.bound_tol * max(1.0, abs(bound))
         info.values.update({"h_cand": h_cand, "bound": bound})
-        warm = self._last if self._last is not None else c.as_dict()
+        warm = self._last if self._last is not None else self._candidate_start(c)
         sol = self.problem.solve({"x0": x, "u_p": u_p, "bound": bound}, warm_start=warm)
         info.solve_time += sol.solve_time
         info.solutions["problem"] = sol

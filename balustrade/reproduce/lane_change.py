@@ -16,8 +16,8 @@ Runs (the closed loops all use the emittable target ``robust-sqp`` for both prob
 Python and C run the same algorithm):
 
 * **Python**, seed 0: both controllers, Algorithm 6.4 with ``record_h_r`` (an extra (5.15)
-  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with ``ρ = 0.5``
-  (:data:`EXTRA_RHOS`); per-step wall times of the two controllers
+  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with ``ρ = 0.5`` and
+  ``ρ = 0`` (:data:`EXTRA_RHOS`); per-step wall times of the two controllers
   interleaved step by step, on ``robust-sqp`` and on ``exact`` (the solver of the thesis);
 * **C** (:func:`~balustrade.codegen.accelerate`): the same seed-0 closed loops compared with
   Python step by step (``C = Python``: largest input and state difference, statuses and
@@ -65,11 +65,15 @@ THESIS = {"step_ms": {"robust": 140, "multiobjective": 116}, "N": 20, "steps": 2
 X0 = np.array([0.4, 0.0, 1.1, 0.0])
 RHO = 0.9
 #: further ρ of Algorithm 6.4 run in Python (seed 0): with ρ = 0.9 the required decrease
-#: is a tenth of the candidate's and the lane is not reached within 200 steps
-EXTRA_RHOS = (0.5,)
+#: is a tenth of the candidate's and the lane is not reached within 200 steps; ρ = 0 (the
+#: candidate's whole decrease) reached S_r on seeds 0–2 (docs/vehicles.md, rho_sweep)
+EXTRA_RHOS = (0.5, 0.0)
 STEPS = 200
 #: target of both problems of both controllers in the closed loops (emittable: C = Python)
 TARGET = "robust-sqp"
+#: (6.15g) of Algorithm 6.4 in running-sum form (same minimizers, ≈ 7× faster C step:
+#: :func:`balustrade.problems.multiobjective.multiobjective_pcbf_problem`, bench_lane)
+RUNNING_SUM = True
 #: the thesis' solver, for the Python timing only
 TIMING_TARGET = "exact"
 #: h below this counts as 0 (S_r); tolerance of the monotonicity tests
@@ -89,14 +93,16 @@ def controllers(d: BicycleDesign, target: str = TARGET, record_h_r: bool = False
     return {"robust": RobustPCBFSafetyFilter.build(*common, slack_norm=1, target=target,
                                                    slack_target=target),
             "multiobjective": MultiobjectivePCBFController.build(
-                *common, rho=rho, target=target, slack_target=target, record_h_r=record_h_r)}
+                *common, rho=rho, target=target, slack_target=target, record_h_r=record_h_r,
+                running_sum=RUNNING_SUM)}
 
 
 def multiobjective(d: BicycleDesign, rho: float, target: str = TARGET,
                    record_h_r: bool = True) -> MultiobjectivePCBFController:
     common = (d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N, d.deltas, d.error, d.alpha_f)
     return MultiobjectivePCBFController.build(*common, rho=rho, target=target,
-                                              slack_target=target, record_h_r=record_h_r)
+                                              slack_target=target, record_h_r=record_h_r,
+                                              running_sum=RUNNING_SUM)
 
 
 def disturbances(d: BicycleDesign, seed: int, steps: int) -> np.ndarray:
@@ -411,6 +417,32 @@ def _figure(runs: dict, d: BicycleDesign, out: Path) -> str:
     return save(fig, out / "fig8_1_lane_change.png")
 
 
+#: ρ of the convergence sweep (:func:`rho_sweep`, ``main --rho-sweep``)
+RHO_SWEEP = (0.0, 0.5, 0.7, 0.9, 0.95, 0.99)
+
+
+def rho_sweep(d: BicycleDesign, rhos: tuple[float, ...] = RHO_SWEEP,
+              seeds: tuple[int, ...] = (0, 1, 2), steps: int = STEPS) -> list[dict]:
+    """Algorithm 6.4 (Python, ``robust-sqp``) for each ``ρ`` and seed: ``h̃`` and ``p_y``
+    at the last step, the step ``h̃`` reached 0 (``S_r``; -1: never), whether the run
+    converged to the lane (:func:`run_metrics`), the peak lateral acceleration and the
+    steps at which (6.15g) was active. (6.15g) demands ``(1 − ρ)`` times the candidate's
+    decrease, so the rate at which ``h̃`` can fall depends on ``ρ``."""
+    rows = []
+    for rho in rhos:
+        ctrl = multiobjective(d, rho, record_h_r=False)
+        for seed in seeds:
+            r = closed_loop(ctrl, d, disturbances(d, seed, steps))
+            m = run_metrics(r, d, "h_tilde")
+            rows.append({"rho": float(rho), "seed": int(seed),
+                         "final_h_tilde": m["final_h"], "final_p_y": m["final_p_y"],
+                         "entered_S_r_at": m["entered_S_r_at"], "converged": m["converged"],
+                         "peak_lateral_acceleration": m["peak_lateral_acceleration"],
+                         "decrease_bound_active_steps": m["decrease_bound_active_steps"],
+                         "not_ok": m["not_ok"], "median_step_ms": m["median_step_ms"]})
+    return rows
+
+
 _WORKER: dict = {}
 
 
@@ -437,8 +469,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=50, help="seeds 0 … SEEDS-1")
     parser.add_argument("--first", type=int, default=0, help="first seed")
     parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--rho-sweep", action="store_true",
+                        help="instead: Algorithm 6.4 in Python for each rho of RHO_SWEEP on "
+                             "seeds FIRST … FIRST+SEEDS-1 (rho_sweep), JSON to OUT")
     args = parser.parse_args(argv)
     seeds = list(range(args.first, args.first + args.seeds))
+    if args.rho_sweep:
+        rows = rho_sweep(bicycle_design(N=20), seeds=tuple(seeds))
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "rho_sweep.json").write_text(json.dumps(rows, indent=1))
+        print(json.dumps(rows, indent=1))
+        return 0
     jobs = max(1, min(args.jobs, len(seeds)))
     chunks = [(seeds[j::jobs], str(args.out)) for j in range(jobs)]
     if jobs == 1:

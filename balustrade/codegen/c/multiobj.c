@@ -103,6 +103,17 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     BAL_MO_COPY(v, wk->cv, BAL_QX(NU) * BAL_QX(N))
     BAL_MO_COPY(xi, wk->cxi, BAL_QX(N_XI))
     BAL_MO_COPY(xi_N, &wk->cxi_N, 1)
+#if BAL_QX(XI_SUM)
+    /* the running sums of the candidate's slacks (the running-sum form of (6.15g)) */
+    {
+      casadi_int j, nr = BAL_QX(N_XI) / BAL_QX(N);
+      casadi_real acc = 0;
+      for (i = 0; i < BAL_QX(N); ++i) {
+        for (j = 0; j < nr; ++j) acc += wk->cxi[i * nr + j];
+        wk->problem.x0[BAL_QX(problem_W_xi_sum) + i] = acc;
+      }
+    }
+#endif
   }
   wk->problem_status = BAL_QX(problem_solve)(&wk->problem, wk->p_problem);
   if (wk->problem_status == BAL_OK &&
