@@ -274,7 +274,10 @@ def paired_ratio(path: PathTimes, base: PathTimes) -> float:
     pass (samples are appended state by state in both, a ``slow`` path's being the first
     pass): the state-to-state spread (60–500 ms per step at ``N = 200``) cancels in each
     ratio, which a ratio of medians keeps."""
-    keep = [i for i in range(min(len(path.times), len(base.times))) if not path.warmup[i]]
+    if len(path.times) > len(base.times):
+        raise BaselineMismatch(f"paired_ratio: the path has {len(path.times)} samples, the "
+                               f"baseline only {len(base.times)}")
+    keep = [i for i in range(len(path.times)) if not path.warmup[i]]
     if any(path.warmup[i] != base.warmup[i] for i in range(len(path.times))):
         raise BaselineMismatch("paired_ratio: the samples of the path and the baseline are "
                                "not aligned state by state")

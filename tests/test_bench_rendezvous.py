@@ -94,3 +94,5 @@ def test_paired_ratio_is_the_median_of_per_state_ratios():
     short.add(1.0, True, warmup=False)
     with pytest.raises(BaselineMismatch, match="aligned"):
         paired_ratio(short, base)
+    with pytest.raises(BaselineMismatch, match="only 1"):     # more samples than the baseline
+        paired_ratio(base, short)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from balustrade.dsl.error_sets import is_rpi
-from balustrade.errors import NonFiniteError
+from balustrade.errors import BalustradeError, NonFiniteError
 from balustrade.reproduce.rendezvous import closed_loop, controllers, design
 
 
@@ -44,17 +44,20 @@ def test_rendezvous_full_reproduction(tmp_path: Path):
 
 def test_candidate_and_membership_shortcuts_match_their_definitions():
     """The vectorized slack shift of the candidate (5.17) equals the entrywise formula
-    ``ξ̃_i = max(0, ξ_{i+1} + Δ_i − Δ_{i+1})`` exactly, and the NumPy membership test of
-    ``π_f(z_N)`` in ``U ⊖ κ(E)`` agrees with ``Polytope.contains`` (CasADi), also at points on
-    the boundary and outside."""
-    from balustrade.control.robust_steps import _contains, _rows, robust_candidate
+    ``ξ̃_i = max(0, ξ_{i+1} + Δ_i − Δ_{i+1})`` exactly, and the NumPy ``Polytope.contains`` /
+    ``n_rows`` agree with the set's CasADi definition (``c(x) <= tol``, the rows of ``c``),
+    also at points on the boundary and outside; a non-finite point is refused."""
+    import casadi as ca
+
+    from balustrade.control.robust_steps import robust_candidate
+    from balustrade.dsl.sets_base import Set
 
     d = design(N=8, T=10)
     system, s, error, cbf = d["system"], d["setup"], d["error"], d["cbf"]
     X_E, U_E = error.tighten_state(s.X), error.tighten_input(s.U)
     rng = np.random.default_rng(3)
     N, r = s.N, X_E.H.shape[0]
-    assert _rows(X_E) == X_E.n_rows == r
+    assert X_E.n_rows == Set.n_rows.fget(X_E) == r
     deltas = np.sort(rng.uniform(0.0, 0.5, N))
     z, v = rng.normal(size=(6, N + 1)), rng.normal(size=(3, N))
     xi = np.maximum(rng.normal(size=(r, N)), 0.0)
@@ -64,9 +67,12 @@ def test_candidate_and_membership_shortcuts_match_their_definitions():
                               np.maximum(0.0, xi[:, i + 1] + (deltas[i] - deltas[i + 1])))
     assert np.array_equal(cand.xi[:, N - 1], np.maximum(0.0, X_E.H @ z[:, N] - X_E.h
                                                         + deltas[N - 1]))
+    with pytest.raises(BalustradeError, match="xi of shape"):
+        robust_candidate(system, X_E, cbf, cbf.policy, deltas, z, v, xi[:, :-1], U_E)
     a = U_E.H[0]
     corner = U_E.h[0] * a / (a @ a)                       # on the first row's hyperplane
     for u in [np.zeros(3), 1e3 * np.ones(3), corner, *rng.normal(scale=20.0, size=(50, 3))]:
-        assert _contains(U_E, u, 1e-12) == U_E.contains(u, tol=1e-12)
-    with pytest.raises(NonFiniteError):  # refused, as by Polytope.contains
-        _contains(U_E, np.array([np.nan, 0.0, 0.0]), 1e-12)
+        by_c = bool(np.all(np.asarray(ca.evalf(U_E.c(ca.DM(u)))).ravel() <= 1e-12))
+        assert U_E.contains(u, tol=1e-12) == by_c
+    with pytest.raises(NonFiniteError):
+        U_E.contains(np.array([np.nan, 0.0, 0.0]), tol=1e-12)

@@ -142,8 +142,11 @@ def accelerate(controller: object, build_dir: str | Path | None = None,
     in its reset state, with ``accelerated``, a dict: ``dir`` (sources and library),
     ``hash``, ``cached`` (the library was already built), ``emit_s``, ``build_s``.
     A controller without a registered emitter, or whose problems cannot be emitted (e.g.
-    compiled for cvxpy or an external solver), raises
-    :class:`~balustrade.errors.CodegenError` saying why."""
+    compiled for cvxpy), raises :class:`~balustrade.errors.CodegenError` saying why. A
+    solver chain that needs a library of the casadi wheel (the interior-point last resort,
+    the structured targets' solver) is emitted linked to it: the manifest's ``link_flags``
+    go into the build (for a PCBF filter this is always allowed; the other emitters follow
+    their own rules, e.g. ``emit_robust(full_chain=...)``)."""
     acc = _accelerator(controller)
     name = acc.name if name is None else name
     if build_dir is not None and not isinstance(build_dir, (str, os.PathLike)):
@@ -189,8 +192,9 @@ def accelerate(controller: object, build_dir: str | Path | None = None,
     return loaded
 
 
-# (allow_external: a filter on a structured target links solver libraries of the casadi
-# wheel, with the flags of the manifest's link_flags; self-contained targets link nothing)
+# (allow_external: a filter whose chain needs a solver library of the casadi wheel — a
+# structured target, the interior-point last resort — links it with the manifest's
+# link_flags; self-contained targets link nothing)
 register(PCBFSafetyFilter, lambda c, n, d: emit_pcbf(c, n, d, allow_external=True),
          CPCBFSafetyFilter, "bal_pcbf")
 register(ApproximatePCBFFilter, lambda c, n, d: emit_approximate(c, n, d),

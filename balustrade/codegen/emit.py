@@ -314,6 +314,10 @@ class _Problem:
             # faster step; docs/engines.md)
             if EMIT_LOWERING == "compact":
                 nlp, caches = c.staged_compact()
+                if c.solver_name not in caches:
+                    raise CodegenError(f"{self.title}: the stage-ordered solver "
+                                       f"{c.solver_name!r} has no compact derivatives to "
+                                       f"emit (those exist for {sorted(caches)})")
                 jac_fg = _staged_jac_fg(caches[c.solver_name])
             else:
                 nlp, caches, jac_fg = c.nlp, {}, {}

@@ -27,24 +27,6 @@ from balustrade.errors import BalustradeError
 from balustrade.problems._args import positive
 
 
-def _rows(X_E: Polytope) -> int:
-    """The number of rows of ``X_E`` (``H`` of a polytope; :attr:`Set.n_rows` builds a CasADi
-    expression to count them, ~0.1 ms per call in the filters' step)."""
-    H = getattr(X_E, "H", None)
-    return int(H.shape[0]) if isinstance(H, np.ndarray) else X_E.n_rows
-
-
-def _contains(U: Polytope, u: np.ndarray, tol: float) -> bool:
-    """``U.contains(u, tol)`` for a finite point of a polytope evaluated with NumPy
-    (``H u − h <= tol``, the rows of :meth:`Polytope.c`) instead of a CasADi evaluation;
-    anything else (a non-finite point, another set) goes to ``U.contains`` itself."""
-    H, h = getattr(U, "H", None), getattr(U, "h", None)
-    if isinstance(H, np.ndarray) and isinstance(h, np.ndarray) and u.shape == (H.shape[1],) \
-            and np.all(np.isfinite(u)):
-        return bool(np.all(H @ u - h <= tol))
-    return U.contains(u, tol=tol)
-
-
 def slack_cost(xi: np.ndarray, xi_N: float, alpha_f: float, slack_norm: int | float = 1
                ) -> float:
     """``h̃(ξ) = α_f ξ_N + Σ_i ‖ξ_i‖`` (SPEC §1.12); ``xi`` has one column per step."""
@@ -83,12 +65,13 @@ def robust_candidate(system: System, X_E: Polytope, h_f: Callable, pi_f: Callabl
     """
     z = np.asarray(z, dtype=float)
     v = np.asarray(v, dtype=float).reshape(system.nu, -1)
-    xi = np.asarray(xi, dtype=float).reshape(_rows(X_E), -1)
+    xi = np.asarray(xi, dtype=float).reshape(X_E.n_rows, -1)
     N = v.shape[1]
     deltas = np.asarray(deltas, dtype=float).reshape(-1)
-    if deltas.size != N or z.shape != (system.nx, N + 1):
-        raise BalustradeError(f"robust_candidate: expected z of shape {(system.nx, N + 1)} and "
-                              f"{N} tightenings, got {z.shape} and {deltas.size}")
+    if deltas.size != N or z.shape != (system.nx, N + 1) or xi.shape != (X_E.n_rows, N):
+        raise BalustradeError(f"robust_candidate: expected z of shape {(system.nx, N + 1)}, "
+                              f"{N} tightenings and xi of shape {(X_E.n_rows, N)}, got "
+                              f"{z.shape}, {deltas.size} and {xi.shape}")
     zN = z[:, N]
     u_f = terminal_input(system, h_f, pi_f, zN, U_E)
     z_next = np.asarray(system.step(zN, u_f, np.zeros(system.nw) if system.nw else None),
@@ -109,7 +92,7 @@ def terminal_input(system: System, h_f: Callable, pi_f: Callable, z_N: np.ndarra
     Assumption 6.14), otherwise ``argmin_{v ∈ U ⊖ κ(E)} h_f(f(z_N, v, 0))`` — the largest
     decrease of ``h_f`` any admissible input achieves (a small SLSQP problem)."""
     u_f = np.asarray(pi_f(z_N), dtype=float).reshape(-1)
-    if U_E is None or _contains(U_E, u_f, 1e-12):
+    if U_E is None or U_E.contains(u_f, tol=1e-12):
         return u_f
     w0 = np.zeros(system.nw) if system.nw else None
 
@@ -147,7 +130,7 @@ def minimal_slacks(X_E: Polytope, h_f: Callable, deltas: np.ndarray, z: np.ndarr
 def polished_slacks(solution, X_E: Polytope, h_f: Callable, deltas: np.ndarray
                     ) -> tuple[np.ndarray, float]:
     """Elementwise minimum of a solution's slacks and :func:`minimal_slacks` of its ``z``."""
-    xi = np.maximum(np.asarray(solution["xi"], dtype=float).reshape(_rows(X_E), -1), 0.0)
+    xi = np.maximum(np.asarray(solution["xi"], dtype=float).reshape(X_E.n_rows, -1), 0.0)
     xi_N = max(float(np.asarray(solution["xi_N"]).reshape(-1)[0]), 0.0)
     xi_min, xi_N_min = minimal_slacks(X_E, h_f, deltas, solution["z"])
     return np.minimum(xi, xi_min), min(xi_N, xi_N_min)

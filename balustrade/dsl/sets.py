@@ -106,6 +106,17 @@ class Polytope(Set):
         self._check_point_dim(x, "c(x)")
         return ca.mtimes(ca.DM(self.H), x) - ca.DM(self.h)
 
+    @property
+    def n_rows(self) -> int:
+        """Number of rows of ``H`` (counted, not by building the CasADi expression ``c``)."""
+        return int(self.H.shape[0])
+
+    def contains(self, x: np.ndarray, tol: float = 1e-9) -> bool:
+        """``Hx − h <= tol`` row-wise, with NumPy (the filters call it every step)."""
+        x = as_vector(x, f"{self.name}.contains(x)", self.dim)
+        tol = check_tol(tol, f"{self.name}.contains")
+        return bool(np.all(self.H @ x - self.h <= tol))
+
     def contains_many(self, X: np.ndarray, tol: float = 1e-9) -> np.ndarray:
         X = self._points(X, "contains_many(X)")
         tol = check_tol(tol, f"{self.name}.contains_many")
@@ -116,8 +127,7 @@ class Polytope(Set):
 
     def is_empty(self) -> bool:
         """Whether ``{Hx <= h}`` is empty (one LP)."""
-        res = geo.linprog(np.zeros(self.dim), self.H, self.h,
-                                    [(None, None)] * self.dim)
+        res = geo.linprog(np.zeros(self.dim), self.H, self.h, [(None, None)] * self.dim)
         return res.status == 2
 
     def support(self, a: np.ndarray) -> float:

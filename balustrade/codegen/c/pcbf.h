@@ -44,12 +44,12 @@
  * from the primal of a certified BAL_FEASIBLE (2.24) (zero multipliers); never from an
  * uncertified one; (2.23) only from BAL_OK solutions.
  * The solutions stay in work->slack / work->filter (x: full primal, f: optimum).
- * A problem compiled in stage order (Q_slack_STAGED / Q_filter_STAGED, the fatrop target,
+ * A problem compiled in stage order (Q_slack_STAGED / Q_filter_STAGED, the structured-ip targets,
  * issue #14): its x, warm start and multipliers are in the solver's stage order; the step
  * reads layout element i as x[P_TAKE[i]] projected onto the layout's bounds (as the
  * backend's StageInverse.primal and its projection), writes warm starts by the same map,
  * and takes h_PB from Q_slack_obj, the declared cost at that projected point (the
- * solver's own value reads fatrop's ~1e-8 bound relaxation times the slack weights).
+ * solver's own value reads the interior-point solver's ~1e-8 bound relaxation times the slack weights).
  */
 #ifndef BAL_STEP
 #error "bal/pcbf.h: define BAL_STEP (the step's symbol prefix) first"
