@@ -69,7 +69,7 @@ def _loop(toy, estimator_cls, old: bool, monkeypatch, steps=25, target="fast-con
         if old:
             mp.setattr(updates, "solve_lps_joint", solve_lps)  # one warm-started run per row
             mp.setattr(updates, "_box_inside", lambda *a: False)  # LPs on every step
-            mp.setattr(updates, "vertex_supports", lambda *a: None)  # ... and no vertices
+            mp.setattr(updates, "vertex_supports", lambda *a, **k: None)  # ... and no vertices
         ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=estimator_cls(sys_, W, Theta0),
                      target=target)
         if old:

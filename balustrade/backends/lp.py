@@ -45,11 +45,15 @@ _STATUS = {0: Status.OPTIMAL, 1: Status.MAX_ITERATIONS, 2: Status.INFEASIBLE,
 @dataclass(frozen=True)
 class LPResult:
     """``status``; ``value`` the optimal objective and ``x`` a maximiser/minimiser (``nan``
-    and ``None`` unless ``status`` is optimal)."""
+    and ``None`` unless ``status`` is optimal); ``dual`` the row multipliers ``y`` of the
+    rows ``Hθ <= h`` when the solver gave them (``Hᵀy ≈ c``, ``y >= 0`` up to its
+    tolerances, for a maximisation; used to verify a bound, see
+    :func:`balustrade.estimate.updates.verified_upper`), else ``None``."""
 
     status: Status
     value: float
     x: np.ndarray | None
+    dual: np.ndarray | None = None
 
 
 def solve_lp(c: np.ndarray, H: np.ndarray, h: np.ndarray, maximize: bool = True) -> LPResult:
@@ -119,8 +123,9 @@ def solve_lps(C: np.ndarray, H: np.ndarray, h: np.ndarray,
         if status is not Status.OPTIMAL:
             out.append(LPResult(status, float("nan"), None))
             break
-        x = np.asarray(solver.getSolution().col_value, dtype=float)
-        out.append(LPResult(status, float(c @ x), x))
+        sol = solver.getSolution()
+        x = np.asarray(sol.col_value, dtype=float)
+        out.append(LPResult(status, float(c @ x), x, np.asarray(sol.row_dual, dtype=float)))
     return out
 
 
@@ -235,8 +240,10 @@ def solve_lps_joint(C: np.ndarray, H: np.ndarray, h: np.ndarray,
         return solve_lps(C, H, h, maximize)
     if status is not Status.OPTIMAL:
         return solve_lps(C, H, h, maximize)
-    X = np.asarray(solver.getSolution().col_value, dtype=float).reshape(k, n)
-    return [LPResult(status, float(c @ x), x) for c, x in zip(C, X, strict=True)]
+    sol = solver.getSolution()
+    X = np.asarray(sol.col_value, dtype=float).reshape(k, n)
+    Y = np.asarray(sol.row_dual, dtype=float).reshape(k, m)
+    return [LPResult(status, float(c @ x), x, y) for c, x, y in zip(C, X, Y, strict=True)]
 
 
 #: HiGHS model statuses (by name) -> Status; everything else is FAILED

@@ -27,6 +27,9 @@ from balustrade.errors import BalustradeError, ShapeError
 _ZERO_ROW = 1e-13
 #: relative size of the rounding of ``h_w − H_w E⁻¹ r₀`` on rows without θ
 _ROUNDING = 1e-12
+#: a row of Δ_k is relaxed by this times the magnitude of the terms its ``h`` and ``Hθ`` are
+#: computed from (16 machine epsilons: a bound on their floating-point rounding)
+_ROW_ROUNDING = 16 * float(np.finfo(float).eps)
 
 
 @dataclass(frozen=True)
@@ -103,6 +106,15 @@ def delta_rows(stack: np.ndarray, Hw: np.ndarray, hw: np.ndarray, x_prev: np.nda
     # vertex disturbance leaves h = ±1e-19 on the rows θ does not enter)
     rounding = _ROUNDING * max(1.0, float(np.abs(hw).max()), float(np.abs(Hw_r0).max()))
     keep = informative | (h < -rounding)
+    # every informative row is relaxed by a bound on its own floating-point rounding before
+    # the rows are scaled: a row whose θ-coefficients are tiny (~1e-12) would otherwise turn
+    # the ~1e-19 rounding of its h into ~1e-7 after scaling, enough to put θ* outside Δ_k —
+    # the 3-mass seeded runs then "falsified" the true model (session 10). Relaxing only
+    # enlarges Δ_k (sound); on rows with ordinary coefficients it is ~1e-15 in θ.
+    absHw = np.abs(Hw)
+    terms = np.abs(hw) + absHw @ (np.abs(x_next) + np.abs(parts[0])) \
+        + absHw @ np.abs(D).sum(axis=1)
+    h = np.where(informative, h + _ROW_ROUNDING * terms, h)
     H, h = H[keep], h[keep]
     # rows scaled to unit ∞-norm (the same half-spaces): the LPs over the intersection of many
     # steps' rows (bounding boxes, support functions) are then equally conditioned per row

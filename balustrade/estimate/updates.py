@@ -103,10 +103,16 @@ class FixedShapeUpdate(SetEstimator):
         (:func:`vertex_supports`), else by the joint LPs; the last entry is the number of
         LPs solved."""
         both = data.delta.intersect(Theta_prev)
-        values = (vertex_supports(self.Theta0.H, both.H, both.h)
-                  if isinstance(Theta_prev, Box) else None)
-        if values is not None:
-            return values, None, 0
+        if isinstance(Theta_prev, Box):             # verified bounds (box_supports)
+            values, results = box_supports(self.Theta0.H, both.H, both.h, Theta_prev.lb,
+                                           Theta_prev.ub)
+            if values is not None:
+                return values, None, 0 if results is None else len(results)
+            last = results[-1]
+            if last.status is Status.INFEASIBLE:
+                return None, _falsified(len(results)), len(results)
+            return None, _failed(len(results), last.status,
+                                 f"the LP of row {len(results) - 1}"), len(results)
         results = solve_lps_joint(self.Theta0.H, both.H, both.h)
         last = results[-1]
         if last.status is Status.INFEASIBLE:
@@ -154,7 +160,8 @@ def _subsets(m: int, q: int) -> np.ndarray:
     return np.array(list(combinations(range(m), q)), dtype=np.intp).reshape(-1, q)
 
 
-def vertex_supports(C: np.ndarray, H: np.ndarray, h: np.ndarray) -> np.ndarray | None:
+def vertex_supports(C: np.ndarray, H: np.ndarray, h: np.ndarray, duals: bool = False
+                    ) -> np.ndarray | tuple[np.ndarray, np.ndarray] | None:
     """``max {C[r] θ : Hθ <= h}`` for every row of ``C`` from the vertices of the bounded
     polytope ``{Hθ <= h}`` (a linear function attains its maximum over a polytope at a
     vertex): every ``q``-subset of rows with a nonsingular matrix gives a candidate
@@ -166,7 +173,10 @@ def vertex_supports(C: np.ndarray, H: np.ndarray, h: np.ndarray) -> np.ndarray |
     when the dimension or the number of subsets is larger, when no candidate is feasible
     (possibly an empty set: the LP decides whether the model is falsified), or when a
     feasible candidate comes from an ill-conditioned subset (near-parallel rows: its
-    rounding is not bounded by the tolerance)."""
+    rounding is not bounded by the tolerance). ``duals=True`` also returns, per row of
+    ``C``, multipliers ``y`` on the rows of ``H`` from the maximizing vertex's subset
+    (``Hᵀy = C[r]``; negative entries where that subset is not an optimal basis), for
+    :func:`verified_upper`."""
     m, q = H.shape
     if q > VERTEX_MAX_DIM or m < q or comb(m, q) > VERTEX_MAX_SUBSETS:
         return None
@@ -185,7 +195,59 @@ def vertex_supports(C: np.ndarray, H: np.ndarray, h: np.ndarray) -> np.ndarray |
     feasible = np.all(theta @ Hn.T - hn <= VERTEX_FEAS_TOL * (1.0 + np.abs(hn)), axis=1)
     if not np.any(feasible) or np.min(det[feasible]) < VERTEX_MIN_DET:
         return None
-    return (theta[feasible] @ C.T).max(axis=0)
+    values = theta[feasible] @ C.T                                          # (F, rows of C)
+    best = values.max(axis=0)
+    if not duals:
+        return best
+    subsets, Mf = idx[regular][feasible], M[feasible]
+    Y = np.zeros((C.shape[0], m))
+    for r, at in enumerate(values.argmax(axis=0)):  # Mᵀ y_S = C[r] on the unit-norm rows
+        y_s = np.linalg.solve(Mf[at].T, C[r])
+        Y[r, subsets[at]] = y_s / scale[subsets[at]]
+    return best, Y
+
+
+#: a bound from the vertices is used only if its weak-duality verification
+#: (:func:`verified_upper`) is within this (relative) of it; else the LPs decide
+VERIFY_GAP = 1e-9
+
+
+def verified_upper(c: np.ndarray, H: np.ndarray, h: np.ndarray, lb: np.ndarray,
+                   ub: np.ndarray, y: np.ndarray) -> float:
+    """An upper bound of ``max {cᵀθ : Hθ <= h}`` that holds whatever the accuracy of the
+    solver that produced ``y``, when the feasible set lies in the box ``[lb, ub]`` (weak
+    duality): for ``y⁺ = max(y, 0)`` and ``r = c − Hᵀy⁺``, every feasible θ has
+    ``cᵀθ = y⁺ᵀHθ + rᵀθ <= y⁺ᵀh + Σ_j max(r_j lb_j, r_j ub_j)``. A solver's optimum can sit
+    below the true maximum by its optimality tolerance divided by a small coefficient of
+    ``H`` (the §4.7 chain's regressors are ~1e-3 near the origin): the box update then cut
+    θ* off by up to ~1e-6 and a later transition "falsified" the true model (3-mass seeded
+    runs, session 10); with this bound it cannot."""
+    y = np.maximum(np.asarray(y, dtype=float), 0.0)
+    r = np.asarray(c, dtype=float) - H.T @ y
+    return float(y @ h + np.maximum(r * lb, r * ub).sum())
+
+
+def box_supports(C: np.ndarray, H: np.ndarray, h: np.ndarray, lb: np.ndarray,
+                 ub: np.ndarray) -> tuple[np.ndarray | None, list | None]:
+    """``max {C[r]θ : Hθ <= h}`` for every row of ``C``, each raised to its verified bound
+    (:func:`verified_upper` over the box ``[lb, ub] ⊇ {Hθ <= h}``): from the vertices
+    (:func:`vertex_supports`, no LP) when their multipliers verify the values within
+    :data:`VERIFY_GAP`, else from the joint LPs and their duals. Returns ``(values,
+    results)``: ``results`` the LP results (``None`` when no LP ran); ``values`` is ``None``
+    when an LP did not end optimal (its status is in ``results[-1]``)."""
+    got = vertex_supports(C, H, h, duals=True)
+    if got is not None:
+        values, Y = got
+        ver = np.array([verified_upper(c, H, h, lb, ub, y) for c, y in zip(C, Y, strict=True)])
+        if np.all(ver - values <= VERIFY_GAP * (1.0 + np.abs(values))):
+            return np.maximum(values, ver), None
+    results = solve_lps_joint(C, H, h)
+    if results[-1].status is not Status.OPTIMAL:
+        return None, results
+    values = np.array([r.value for r in results])
+    ver = np.array([verified_upper(c, H, h, lb, ub, r.dual) if r.dual is not None else v
+                    for c, r, v in zip(C, results, values, strict=True)])
+    return np.maximum(values, ver), results
 
 
 def _box_inside(Theta: Polytope, delta: object) -> bool:
@@ -270,15 +332,13 @@ class HypercubeUpdate(SetEstimator):
         both = data.delta.intersect(prev)
         q = self.system.q
         C = np.vstack([np.eye(q), -np.eye(q)])
-        values, lps = vertex_supports(C, both.H, both.h), 0
+        values, results = box_supports(C, both.H, both.h, prev.lb, prev.ub)
+        lps = 0 if results is None else len(results)
         if values is None:
-            results = solve_lps_joint(C, both.H, both.h)
-            lps, last = len(results), results[-1]
+            last = results[-1]
             if last.status is Status.INFEASIBLE:
                 return _falsified(lps)
-            if last.status is not Status.OPTIMAL:
-                return _failed(lps, last.status, "a bound LP")
-            values = np.array([r.value for r in results])
+            return _failed(lps, last.status, "a bound LP")
         hi, lo = values[:q], -values[q:]
         lo = np.maximum(lo - self.margin, prev.lb)
         hi = np.minimum(hi + self.margin, prev.ub)
