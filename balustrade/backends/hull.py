@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from balustrade.backends.lp import _highs, solve_lps
+from balustrade.backends.lp import _dense_model, _highs, solve_lps
 from balustrade.backends.solution import Status
 from balustrade.errors import BalustradeError, ShapeError
 
@@ -112,25 +112,13 @@ def _prune_warm(V: np.ndarray, F: np.ndarray, todo: np.ndarray, tol: float
     d, G = V.shape
     H, h = _separation_set(np.hstack([V, F]))
     solver = _highs(highspy)
-    m, nc = H.shape
-    lp = highspy.HighsLp()
-    lp.num_col_, lp.num_row_ = nc, m
-    lp.col_cost_ = np.zeros(nc)
-    lp.col_lower_ = np.full(nc, -highspy.kHighsInf)
-    lp.col_upper_ = np.full(nc, highspy.kHighsInf)
-    lp.row_lower_ = np.full(m, -highspy.kHighsInf)
+    nc = H.shape[1]
     upper = np.asarray(h, dtype=float).copy()
     active = np.zeros(G, dtype=bool)
     active[todo] = True
     upper[:G][~active] = highspy.kHighsInf
-    lp.row_upper_ = upper
+    lp = _dense_model(highspy, H, upper)
     lp.sense_ = highspy.ObjSense.kMaximize
-    A = lp.a_matrix_
-    A.format_ = highspy.MatrixFormat.kRowwise
-    A.start_ = np.arange(0, m * nc + 1, nc, dtype=np.int32)
-    A.index_ = np.tile(np.arange(nc, dtype=np.int32), m)
-    A.value_ = np.ascontiguousarray(H, dtype=float).ravel()
-    lp.a_matrix_ = A
     solver.clearModel()
     solver.passModel(lp)
     cols = np.arange(nc, dtype=np.int32)

@@ -168,6 +168,19 @@ def _dense_model(highspy: object, H: np.ndarray, h: np.ndarray) -> object:
     return lp
 
 
+def run_without_presolve(solver: object) -> str:
+    """Solve the model in ``solver`` again from scratch with presolve off (restored after) and
+    return HiGHS' model-status word (``"kOptimal"``, ``"kInfeasible"``, …): how an
+    ``infeasible`` verdict is re-decided here and in :mod:`~balustrade.backends.lp_batch`."""
+    solver.setOptionValue("presolve", "off")
+    try:
+        solver.clearSolver()
+        solver.run()
+        return str(solver.getModelStatus()).rsplit(".", 1)[-1]
+    finally:
+        solver.setOptionValue("presolve", "choose")
+
+
 def _recheck_infeasible(solver: object, highspy: object, H: np.ndarray,
                         h: np.ndarray) -> Status:
     """The model in ``solver`` (rows ``Hθ <= h``, θ free) was called infeasible: solve it again
@@ -175,18 +188,12 @@ def _recheck_infeasible(solver: object, highspy: object, H: np.ndarray,
     ``solver``); ``INFEASIBLE`` only if HiGHS' dual ray is a valid Farkas certificate for
     ``{Hθ <= h}`` (:func:`~balustrade.backends.farkas.check_farkas`, either sign of the ray:
     the check is sound for any vector); otherwise ``FAILED``."""
-    solver.setOptionValue("presolve", "off")
-    try:
-        solver.clearSolver()
-        solver.run()
-        word = str(solver.getModelStatus()).rsplit(".", 1)[-1]
-        if word == "kOptimal":
-            return Status.OPTIMAL
-        if word != "kInfeasible":
-            return Status.FAILED
-        _, has_ray, ray = solver.getDualRay()
-    finally:
-        solver.setOptionValue("presolve", "choose")
+    word = run_without_presolve(solver)
+    if word == "kOptimal":
+        return Status.OPTIMAL
+    if word != "kInfeasible":
+        return Status.FAILED
+    _, has_ray, ray = solver.getDualRay()
     if not has_ray:
         return Status.FAILED
     cones = [("nonneg", H.shape[0])]

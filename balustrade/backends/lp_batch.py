@@ -21,7 +21,7 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse
 
-from balustrade.backends.lp import _HIGHS_STATUS, _highs
+from balustrade.backends.lp import _HIGHS_STATUS, _highs, run_without_presolve
 from balustrade.backends.solution import Status
 
 #: per-sample outcome codes of :func:`feasible_many`
@@ -82,19 +82,6 @@ def _linprog_status(lp: BatchLP, lo: np.ndarray, hi: np.ndarray) -> int:
     return {0: FEASIBLE, 2: INFEASIBLE}.get(res.status, UNDECIDED)
 
 
-def _without_presolve(solver: object) -> int:
-    """The current sample solved again from scratch with presolve off: its verdict
-    (``FEASIBLE``/``INFEASIBLE``, anything else ``UNDECIDED``)."""
-    solver.setOptionValue("presolve", "off")
-    try:
-        solver.clearSolver()
-        solver.run()
-        word = str(solver.getModelStatus()).rsplit(".", 1)[-1]
-    finally:
-        solver.setOptionValue("presolve", "choose")
-    return {"kOptimal": FEASIBLE, "kInfeasible": INFEASIBLE}.get(word, UNDECIDED)
-
-
 def feasible_many(lp: BatchLP, row_lb: np.ndarray, row_ub: np.ndarray,
                   progress: Callable[[int], None] | None = None,
                   time_limit: float | None = None) -> np.ndarray:
@@ -129,7 +116,8 @@ def feasible_many(lp: BatchLP, row_lb: np.ndarray, row_ub: np.ndarray,
         elif status is Status.OPTIMAL:
             out[s] = FEASIBLE
         elif status is Status.INFEASIBLE:
-            out[s] = _without_presolve(solver)
+            word = run_without_presolve(solver)     # presolve's word is not enough
+            out[s] = {"kOptimal": FEASIBLE, "kInfeasible": INFEASIBLE}.get(word, UNDECIDED)
         else:
             out[s] = _linprog_status(lp, row_lb[s], row_ub[s])
         if progress is not None:
