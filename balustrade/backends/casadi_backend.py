@@ -706,13 +706,22 @@ _RETURN_STATUS = {
 
 #: fatrop's own return flags (``stats()["fatrop"]["return_flag"]``, fatrop 1.1.8's
 #: ``IpSolverReturnFlag``; CasADi's ``return_status`` is only 0 = success / nonzero) → the
-#: message and status of the run. "Acceptable" is fatrop's counterpart of IPOPT's
-#: ``Solved_To_Acceptable_Level`` (``tol_acceptable`` held for ``acceptable_iter``
-#: iterations), reported as such — not optimal.
+#: message and status of the run.
+#:
+#: "Acceptable" (``tol_acceptable`` held for ``acceptable_iter`` iterations, fatrop's own
+#: ``tolerance`` not met; note ``acceptable_iter`` 0 stops at the first acceptable iterate,
+#: unlike IPOPT's 0 = never) is *not* a success here (issue #14, "C = Python"): the
+#: emitted C cannot tell it from a failure (its fatrop returns nonzero unless fatrop ended
+#: with ``Success``: ``backends.emittable.STATUS_OPTIONS``), retries it and, if no retry
+#: converges, reports the point ``BAL_FEASIBLE`` when it is primal feasible. So the run is
+#: ``failed`` here: :meth:`CasadiCompiled.solve` retries it with the same chain and, if
+#: nothing converges, rescues it as ``feasible`` by the same primal test — the status the C
+#: reports, and an honest one (a point, not a certified optimum: the PCBF step then takes
+#: its cost only as an upper bound on ``h_PB``; tests/test_status_mapping.py).
 _FATROP_FLAGS: dict[int, tuple[str, Status]] = {
     0: ("fatrop: Success", Status.OPTIMAL),
     1: ("fatrop: MaxIterExceeded", Status.MAX_ITERATIONS),
-    2: ("fatrop: StopAtAcceptablePoint", Status.OPTIMAL_INACCURATE),
+    2: ("fatrop: StopAtAcceptablePoint", Status.FAILED),
     3: ("fatrop: LocalInfeasibility", Status.INFEASIBLE),
     4: ("fatrop: LineSearchFailed", Status.FAILED),
     5: ("fatrop: ErrorInStepComputation", Status.FAILED),
