@@ -1,6 +1,14 @@
 """Solver return codes → :class:`~balustrade.backends.Status`, the same in Python and in
 the emitted C (issue #14, "no wrong answers").
 
+sqpmethod with HPIPM (``structured-sqp``) stopped inside its QPs. sqpmethod declares
+convergence on primal infeasibility and ``‖∇L‖`` at its last QP's multipliers and never tests
+complementarity; HPIPM (interior point) stopped at ``iter_max`` returns central-path
+multipliers, and sqpmethod then reported ``optimal`` with ``v_0`` of the RAPSF QP (4.5) up
+to 3.8e-3 off the optimum. The backend now fails such a run
+(``casadi_backend.SQP_COMPLEMENTARITY_TOL``); HPIPM's own status is no usable signal (at the
+default tolerances it reports failure on every QP of these cases, accurate or not).
+
 fatrop's acceptable stop (``StopAtAcceptablePoint``: its acceptable tolerance held for
 ``acceptable_iter`` iterations, the requested one not met). The emitted C cannot tell it
 from a failure (its fatrop returns nonzero unless fatrop ended with ``Success``,
@@ -20,9 +28,11 @@ import pytest
 from balustrade.backends import compile
 from balustrade.backends.targets import Target
 from balustrade.control import PCBFSafetyFilter
+from balustrade.dsl.sets import Box
 from balustrade.examples.pendulum import pendulum_terminal_cbf
 from balustrade.models.pendulum import pendulum, pendulum_setup
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
+from balustrade.problems.rapsf import rapsf_problem, s_constants
 
 #: fatrop stopping at its acceptable level (fatrop 1.1.8 option names), no retry: the
 #: acceptable stop is the final answer of each solve, in Python and in C
@@ -87,3 +97,40 @@ def test_fatrop_acceptable_stop_c_equals_python(pair):
                                            equal_nan=True)
         np.testing.assert_allclose(u_c, u_py, atol=1e-6)
     assert stops >= 3
+
+
+def _rapsf_cases(t, count: int, seed: int = 11):
+    """States and boxes inside Θ₀ (vertex data as parameters) for the RAPSF toy."""
+    rng = np.random.default_rng(seed)
+    for _ in range(count):
+        lo = rng.uniform(t.Theta0.lb, t.Theta0.ub)
+        hi = rng.uniform(lo, t.Theta0.ub)
+        V = Box(lo, hi).vertices()
+        yield {"x0": rng.uniform(-1.5, 1.5, 2), "u_p": rng.uniform(-3, 3, 1),
+               "theta": V.T, "s": s_constants(t.X0, t.sys, t.K, V)}
+
+
+def test_sqp_with_hpipm_stopped_early_is_never_a_false_optimal(rapsf_toy):
+    """HPIPM capped at 6 or 10 iterations per QP (no retry): every ``optimal`` run has the
+    optimum's ``v_0`` to sqpmethod's dual tolerance (1e-6; old mapping: 3.8e-3 and 2.8e-4
+    off), and at least one run is refused for its multipliers, never reported optimal."""
+    t, N = rapsf_toy, 6
+    exact = compile(rapsf_problem(t.sys, t.X0, t.F, t.G, t.W, t.K, N), "exact")
+    cases = list(_rapsf_cases(t, 18))
+    refs = [exact.solve(c) for c in cases]
+    refused = solved = 0
+    for iters in (6, 10):
+        capped = Target("casadi", "sqpmethod",
+                        {"qpsol": "hpipm", "qpsol_options": {"hpipm": {"iter_max": iters}}},
+                        retries=(), name=f"hpipm-{iters}")
+        hp = compile(rapsf_problem(t.sys, t.X0, t.F, t.G, t.W, t.K, N, staged=True), capped)
+        for params, ref in zip(cases, refs):
+            assert ref.status == "optimal"
+            sol = hp.solve(params)
+            refused += "not complementary" in sol.message
+            if sol.status == "optimal":
+                solved += 1
+                assert abs(sol["v"][0, 0] - ref["v"][0, 0]) <= 2e-6, (iters, params["x0"])
+            else:
+                assert not sol.success
+    assert refused >= 1 and solved >= 5

@@ -527,7 +527,14 @@ class CasadiCompiled:
         # for it tests its own KKT residuals and rejects such a point, so Python must too
         flagged = status == Status.OPTIMAL and solver.class_name() == "Sqpmethod" \
             and not self._primal_feasible(w_all, p, SQP_FEASIBILITY_TOL)
-        if flagged:
+        # sqpmethod's own test has no complementarity: an interior-point QP solver stopped
+        # at its iteration limit hands it multipliers of a central-path point, not of the
+        # optimum (sqp_complementarity)
+        noncomplementary = status == Status.OPTIMAL and not flagged \
+            and solver.class_name() == "Sqpmethod" \
+            and self._qpsol_of(solver) in _INEXACT_QPSOLS \
+            and self._complementarity(w_all, res, p) > SQP_COMPLEMENTARITY_TOL
+        if flagged or noncomplementary:
             status = Status.FAILED
         dual = {name: lam_g[s] for name, s in self.block_slices.items()}
         for name, arr in layout.unpack(lam_x, user_only=True).items():
@@ -541,6 +548,10 @@ class CasadiCompiled:
         if flagged:
             message += (f": reported converged at a point violating its constraints by "
                         f"{self._primal_residual(w_all, p):.3g}")
+        if noncomplementary:
+            message += (f": reported converged, but its multipliers are not complementary "
+                        f"(largest |lambda_i| * gap_i {self._complementarity(w_all, res, p):.3g}"
+                        f" > {SQP_COMPLEMENTARITY_TOL:g}; the QP solver stopped early)")
         why = _unbounded(message, objective)
         if why is not None:
             status, message = Status.FAILED, f"{message}: the problem appears unbounded ({why})"
@@ -564,6 +575,38 @@ class CasadiCompiled:
         scale = 1.0 + np.abs(g)
         return bool(np.all(g - self.ubg <= tol * scale) and np.all(self.lbg - g <= tol * scale)
                     and np.all(w_all - self.ubx <= tol) and np.all(self.lbx - w_all <= tol))
+
+    def _qpsol_of(self, solver: ca.Function) -> str:
+        """sqpmethod's QP solver plugin in ``solver`` (the first attempt or a retry)."""
+        if solver is self.solver:
+            return str(self.options.get("qpsol", "qrqp"))
+        for (name, over), fn in zip(self.retries, self._retry or []):
+            if fn is solver:
+                opts = {**self.options, **over} if name == self.solver_name else \
+                    solver_options(name, over)
+                return str(opts.get("qpsol", "qrqp"))
+        return "qrqp"
+
+    def _complementarity(self, w_all: np.ndarray, res: dict, p: np.ndarray) -> float:
+        """The largest complementarity error of the solver's own primal-dual point, in its
+        own (scaled) units: ``|λ_i| · gap_i`` over the rows and bounds, ``gap_i`` the distance
+        to the bound that the sign of ``λ_i`` points to (CasADi: ``λ > 0`` upper, ``λ < 0``
+        lower); a multiplier pointing to an infinite bound counts as ``inf`` unless it is 0
+        (its row cannot be active). ``inf`` for a non-finite point."""
+        lam_g = np.asarray(res["lam_g"], dtype=float).reshape(-1)
+        lam_x = np.asarray(res["lam_x"], dtype=float).reshape(-1)
+        if not (np.all(np.isfinite(w_all)) and np.all(np.isfinite(lam_g))
+                and np.all(np.isfinite(lam_x))):
+            return float("inf")
+        worst = 0.0
+        for lam, val, lo, up in ((lam_g, self._g(w_all, p), self.lbg, self.ubg),
+                                 (lam_x, w_all, self.lbx, self.ubx)):
+            bound = np.where(lam > 0, up, np.where(lam < 0, lo, val))
+            with np.errstate(invalid="ignore"):
+                gap = np.abs(np.where(np.isfinite(bound), val - bound, np.inf))
+                err = np.where(lam == 0, 0.0, np.abs(lam) * gap)
+            worst = max(worst, float(np.max(err, initial=0.0)))
+        return worst
 
     def _initial_guess(self, warm: Solution | dict | None, p: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray | float, np.ndarray | float]:
@@ -615,6 +658,25 @@ def _lowering(name: str, value: object) -> str:
 #: a solve that sqpmethod reports converged is ``failed`` when a constraint row (relative to
 #: ``1 + |g|``) or a bound is violated by more than this (:meth:`CasadiCompiled._solve_with`)
 SQP_FEASIBILITY_TOL = 1e-6
+
+#: a solve that sqpmethod reports converged is ``failed`` when, with a QP solver that can
+#: return an unconverged primal-dual point (:data:`_INEXACT_QPSOLS`), the largest
+#: complementarity error ``|λ_i| · gap_i`` of its point (solver units) exceeds this
+#: (:meth:`CasadiCompiled._complementarity`). Why (issue #14): sqpmethod stops when the
+#: primal infeasibility is below ``tol_pr`` and ``‖∇L‖`` below ``tol_du`` at the multipliers
+#: of its last QP, and never tests complementarity; HPIPM (``structured-sqp``), an interior
+#: point method, stopped at its ``iter_max`` returns a central-path point whose multipliers
+#: are positive on inactive rows. Measured on the staged RAPSF QP (4.5) (toy of
+#: tests/conftest.py, N = 6, 30 states, HPIPM ``iter_max`` 4–15): "optimal" with ``v_0`` up
+#: to 3.8e-3 off IPOPT's optimum (``tol_du`` 1e-6; 5.9e-2 with ``tol_du`` 1e-4), at
+#: complementarity errors 7e-8 … 1.5e-4; at the default ``iter_max`` 200 the errors stayed
+#: <= 1.3e-9 (tests/test_status_mapping.py)
+SQP_COMPLEMENTARITY_TOL = 1e-8
+
+#: sqpmethod's QP solvers whose returned point can be an unconverged interior/ADMM iterate
+#: (HPIPM; the active-set qrqp returns exact complementarity by construction and keeps the
+#: C = Python equality of the emitted fast-sqp chain untouched)
+_INEXACT_QPSOLS = ("hpipm",)
 
 #: an objective below this (IPOPT's default ``diverging_iterates_tol`` is 1e20) is taken as
 #: evidence that the problem is unbounded below
