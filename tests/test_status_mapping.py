@@ -134,3 +134,25 @@ def test_sqp_with_hpipm_stopped_early_is_never_a_false_optimal(rapsf_toy):
             else:
                 assert not sol.success
     assert refused >= 1 and solved >= 5
+
+
+def test_sqp_with_osqp_stopped_early_is_never_a_false_optimal(rapsf_toy):
+    """The same with OSQP (ADMM) capped at 25 iterations on the plain (4.5) (old mapping:
+    "optimal" 4.5e-2 off)."""
+    t, N = rapsf_toy, 6
+    ocp = rapsf_problem(t.sys, t.X0, t.F, t.G, t.W, t.K, N)
+    exact = compile(ocp, "exact")
+    capped = compile(ocp, Target("casadi", "sqpmethod",
+                                 {"qpsol": "osqp", "qpsol_options": {"osqp": {"max_iter": 25}}},
+                                 retries=(), name="osqp-25"))
+    refused = solved = 0
+    for params in _rapsf_cases(t, 18):
+        ref, sol = exact.solve(params), capped.solve(params)
+        assert ref.status == "optimal"
+        refused += "not complementary" in sol.message
+        if sol.status == "optimal":
+            solved += 1
+            assert abs(sol["v"][0, 0] - ref["v"][0, 0]) <= 2e-6, params["x0"]
+        else:
+            assert not sol.success
+    assert refused >= 1 and solved >= 5
