@@ -532,7 +532,7 @@ class CasadiCompiled:
         # optimum (sqp_complementarity)
         noncomplementary = status == Status.OPTIMAL and not flagged \
             and solver.class_name() == "Sqpmethod" \
-            and self._qpsol_of(solver) in _INEXACT_QPSOLS \
+            and self._qpsol_of(solver) in INEXACT_QPSOLS \
             and self._complementarity(w_all, res, p) > SQP_COMPLEMENTARITY_TOL
         if flagged or noncomplementary:
             status = Status.FAILED
@@ -575,6 +575,15 @@ class CasadiCompiled:
         scale = 1.0 + np.abs(g)
         return bool(np.all(g - self.ubg <= tol * scale) and np.all(self.lbg - g <= tol * scale)
                     and np.all(w_all - self.ubx <= tol) and np.all(self.lbx - w_all <= tol))
+
+    def complementarity_weight(self) -> float | None:
+        """For an sqpmethod whose QP solver is one of :data:`INEXACT_QPSOLS`: ``tol_du /
+        SQP_COMPLEMENTARITY_TOL``, the weight by which the emitted C's KKT function
+        (:mod:`balustrade.codegen.emit`) adds the complementarity error to its ``du_inf``,
+        so its test ``du_inf < tol_du`` includes :meth:`_complementarity`'s; else ``None``."""
+        if self.solver_name != "sqpmethod" or self._qpsol_of(self.solver) not in INEXACT_QPSOLS:
+            return None
+        return float(self.options.get("tol_du", 1e-6)) / SQP_COMPLEMENTARITY_TOL
 
     def _qpsol_of(self, solver: ca.Function) -> str:
         """sqpmethod's QP solver plugin in ``solver`` (the first attempt or a retry)."""
@@ -660,7 +669,7 @@ def _lowering(name: str, value: object) -> str:
 SQP_FEASIBILITY_TOL = 1e-6
 
 #: a solve that sqpmethod reports converged is ``failed`` when, with a QP solver that can
-#: return an unconverged primal-dual point (:data:`_INEXACT_QPSOLS`), the largest
+#: return an unconverged primal-dual point (:data:`INEXACT_QPSOLS`), the largest
 #: complementarity error ``|λ_i| · gap_i`` of its point (solver units) exceeds this
 #: (:meth:`CasadiCompiled._complementarity`). Why (issue #14): sqpmethod stops when the
 #: primal infeasibility is below ``tol_pr`` and ``‖∇L‖`` below ``tol_du`` at the multipliers
@@ -679,7 +688,7 @@ SQP_COMPLEMENTARITY_TOL = 1e-8
 #: iterate (HPIPM, OSQP). Not qrqp: active set, its points are complementary by
 #: construction, and its emitted C (the fast-sqp chain, C = Python on 1000 states) has no
 #: complementarity test
-_INEXACT_QPSOLS = ("hpipm", "osqp")
+INEXACT_QPSOLS = ("hpipm", "osqp")
 
 #: an objective below this (IPOPT's default ``diverging_iterates_tol`` is 1e20) is taken as
 #: evidence that the problem is unbounded below
