@@ -527,7 +527,14 @@ class CasadiCompiled:
         # for it tests its own KKT residuals and rejects such a point, so Python must too
         flagged = status == Status.OPTIMAL and solver.class_name() == "Sqpmethod" \
             and not self._primal_feasible(w_all, p, SQP_FEASIBILITY_TOL)
-        if flagged:
+        # sqpmethod's own test has no complementarity: an interior-point QP solver stopped
+        # at its iteration limit hands it multipliers of a central-path point, not of the
+        # optimum (sqp_complementarity)
+        noncomplementary = status == Status.OPTIMAL and not flagged \
+            and solver.class_name() == "Sqpmethod" \
+            and self._qpsol_of(solver) in INEXACT_QPSOLS \
+            and self._complementarity(w_all, res, p) > SQP_COMPLEMENTARITY_TOL
+        if flagged or noncomplementary:
             status = Status.FAILED
         dual = {name: lam_g[s] for name, s in self.block_slices.items()}
         for name, arr in layout.unpack(lam_x, user_only=True).items():
@@ -541,6 +548,10 @@ class CasadiCompiled:
         if flagged:
             message += (f": reported converged at a point violating its constraints by "
                         f"{self._primal_residual(w_all, p):.3g}")
+        if noncomplementary:
+            message += (f": reported converged, but its multipliers are not complementary "
+                        f"(largest |lambda_i| * gap_i {self._complementarity(w_all, res, p):.3g}"
+                        f" > {SQP_COMPLEMENTARITY_TOL:g}; the QP solver stopped early)")
         why = _unbounded(message, objective)
         if why is not None:
             status, message = Status.FAILED, f"{message}: the problem appears unbounded ({why})"
@@ -564,6 +575,47 @@ class CasadiCompiled:
         scale = 1.0 + np.abs(g)
         return bool(np.all(g - self.ubg <= tol * scale) and np.all(self.lbg - g <= tol * scale)
                     and np.all(w_all - self.ubx <= tol) and np.all(self.lbx - w_all <= tol))
+
+    def complementarity_weight(self) -> float | None:
+        """For an sqpmethod whose QP solver is one of :data:`INEXACT_QPSOLS`: ``tol_du /
+        SQP_COMPLEMENTARITY_TOL``, the weight by which the emitted C's KKT function
+        (:mod:`balustrade.codegen.emit`) adds the complementarity error to its ``du_inf``,
+        so its test ``du_inf < tol_du`` includes :meth:`_complementarity`'s; else ``None``."""
+        if self.solver_name != "sqpmethod" or self._qpsol_of(self.solver) not in INEXACT_QPSOLS:
+            return None
+        return float(self.options.get("tol_du", 1e-6)) / SQP_COMPLEMENTARITY_TOL
+
+    def _qpsol_of(self, solver: ca.Function) -> str:
+        """sqpmethod's QP solver plugin in ``solver`` (the first attempt or a retry)."""
+        if solver is self.solver:
+            return str(self.options.get("qpsol", "qrqp"))
+        for (name, over), fn in zip(self.retries, self._retry or []):
+            if fn is solver:
+                opts = {**self.options, **over} if name == self.solver_name else \
+                    solver_options(name, over)
+                return str(opts.get("qpsol", "qrqp"))
+        return "qrqp"
+
+    def _complementarity(self, w_all: np.ndarray, res: dict, p: np.ndarray) -> float:
+        """The largest complementarity error of the solver's own primal-dual point, in its
+        own (scaled) units: ``|λ_i| · gap_i`` over the rows and bounds, ``gap_i`` the distance
+        to the bound that the sign of ``λ_i`` points to (CasADi: ``λ > 0`` upper, ``λ < 0``
+        lower); a multiplier pointing to an infinite bound (its row cannot be active: a
+        sign error) counts as ``|λ_i|``. ``inf`` for a non-finite point."""
+        lam_g = np.asarray(res["lam_g"], dtype=float).reshape(-1)
+        lam_x = np.asarray(res["lam_x"], dtype=float).reshape(-1)
+        if not (np.all(np.isfinite(w_all)) and np.all(np.isfinite(lam_g))
+                and np.all(np.isfinite(lam_x))):
+            return float("inf")
+        worst = 0.0
+        for lam, val, lo, up in ((lam_g, self._g(w_all, p), self.lbg, self.ubg),
+                                 (lam_x, w_all, self.lbx, self.ubx)):
+            bound = np.where(lam > 0, up, np.where(lam < 0, lo, val))
+            with np.errstate(invalid="ignore"):
+                gap = np.abs(np.where(np.isfinite(bound), val - bound, 1.0))
+                err = np.where(lam == 0, 0.0, np.abs(lam) * gap)
+            worst = max(worst, float(np.max(err, initial=0.0)))
+        return worst
 
     def _initial_guess(self, warm: Solution | dict | None, p: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray | float, np.ndarray | float]:
@@ -615,6 +667,28 @@ def _lowering(name: str, value: object) -> str:
 #: a solve that sqpmethod reports converged is ``failed`` when a constraint row (relative to
 #: ``1 + |g|``) or a bound is violated by more than this (:meth:`CasadiCompiled._solve_with`)
 SQP_FEASIBILITY_TOL = 1e-6
+
+#: a solve that sqpmethod reports converged is ``failed`` when, with a QP solver that can
+#: return an unconverged primal-dual point (:data:`INEXACT_QPSOLS`), the largest
+#: complementarity error ``|λ_i| · gap_i`` of its point (solver units) exceeds this
+#: (:meth:`CasadiCompiled._complementarity`). Why (issue #14): sqpmethod stops when the
+#: primal infeasibility is below ``tol_pr`` and ``‖∇L‖`` below ``tol_du`` at the multipliers
+#: of its last QP, and never tests complementarity; HPIPM (``structured-sqp``), an interior
+#: point method, stopped at its ``iter_max`` returns a central-path point whose multipliers
+#: are positive on inactive rows. Measured on the staged RAPSF QP (4.5) (toy of
+#: tests/conftest.py, N = 6, 30 states, HPIPM ``iter_max`` 4–15): "optimal" with ``v_0`` up
+#: to 3.8e-3 off IPOPT's optimum (``tol_du`` 1e-6; 5.9e-2 with ``tol_du`` 1e-4), at
+#: complementarity errors 7e-8 … 1.5e-4; at the default ``iter_max`` 200 the errors stayed
+#: <= 3.5e-9. The same with OSQP (ADMM) capped at ``max_iter`` 25/50 on the plain (4.5):
+#: "optimal" 4.5e-2/9e-3 off at 9.4e-3/3.7e-4; at its default (20 000) <= 7.1e-10
+#: (tests/test_status_mapping.py)
+SQP_COMPLEMENTARITY_TOL = 1e-8
+
+#: sqpmethod's QP solvers whose returned point can be an unconverged interior-point or ADMM
+#: iterate (HPIPM, OSQP). Not qrqp: active set, its points are complementary by
+#: construction, and its emitted C (the fast-sqp chain, C = Python on 1000 states) has no
+#: complementarity test
+INEXACT_QPSOLS = ("hpipm", "osqp")
 
 #: an objective below this (IPOPT's default ``diverging_iterates_tol`` is 1e20) is taken as
 #: evidence that the problem is unbounded below
@@ -706,13 +780,22 @@ _RETURN_STATUS = {
 
 #: fatrop's own return flags (``stats()["fatrop"]["return_flag"]``, fatrop 1.1.8's
 #: ``IpSolverReturnFlag``; CasADi's ``return_status`` is only 0 = success / nonzero) → the
-#: message and status of the run. "Acceptable" is fatrop's counterpart of IPOPT's
-#: ``Solved_To_Acceptable_Level`` (``tol_acceptable`` held for ``acceptable_iter``
-#: iterations), reported as such — not optimal.
+#: message and status of the run.
+#:
+#: "Acceptable" (``tol_acceptable`` held for ``acceptable_iter`` iterations, fatrop's own
+#: ``tolerance`` not met; note ``acceptable_iter`` 0 stops at the first acceptable iterate,
+#: unlike IPOPT's 0 = never) is *not* a success here (issue #14, "C = Python"): the
+#: emitted C cannot tell it from a failure (its fatrop returns nonzero unless fatrop ended
+#: with ``Success``: ``backends.emittable.STATUS_OPTIONS``), retries it and, if no retry
+#: converges, reports the point ``BAL_FEASIBLE`` when it is primal feasible. So the run is
+#: ``failed`` here: :meth:`CasadiCompiled.solve` retries it with the same chain and, if
+#: nothing converges, rescues it as ``feasible`` by the same primal test — the status the C
+#: reports, and an honest one (a point, not a certified optimum: the PCBF step then takes
+#: its cost only as an upper bound on ``h_PB``; tests/test_status_mapping.py).
 _FATROP_FLAGS: dict[int, tuple[str, Status]] = {
     0: ("fatrop: Success", Status.OPTIMAL),
     1: ("fatrop: MaxIterExceeded", Status.MAX_ITERATIONS),
-    2: ("fatrop: StopAtAcceptablePoint", Status.OPTIMAL_INACCURATE),
+    2: ("fatrop: StopAtAcceptablePoint", Status.FAILED),
     3: ("fatrop: LocalInfeasibility", Status.INFEASIBLE),
     4: ("fatrop: LineSearchFailed", Status.FAILED),
     5: ("fatrop: ErrorInStepComputation", Status.FAILED),

@@ -164,7 +164,10 @@ EMIT_LOWERING = "compact"
 def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None,
                   lowered: tuple[dict, dict] | None = None) -> ca.Function:
     """The solver's own convergence measures at a point, as a C-emittable function:
-    ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``,
+    ``pr_inf`` = largest bound/constraint violation, ``du_inf`` = ``‖∇f + Jᵀλ_g + λ_x‖∞``
+    (where :meth:`~balustrade.backends.casadi_backend.CasadiCompiled.complementarity_weight`
+    is not ``None``, at least the complementarity error times that weight, so the C's
+    ``du_inf < P_TOL_DU`` also requires the backend's complementarity test),
     ``feas`` = largest violation with constraint rows scaled by ``1 + |g|`` (the test for
     ``BAL_FEASIBLE`` after all retries); on the NLP of ``lowering`` (default: the
     solver's own), or on ``lowered`` = ``(nlp, derivatives)`` when given."""
@@ -186,6 +189,9 @@ def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None,
     else:
         grad_lag = ca.gradient(f + ca.dot(lam_g, g) if g.numel() else f, w)
     du = ca.norm_inf(grad_lag + lam_x)
+    weight = c.complementarity_weight()
+    if weight is not None:  # P_TOL_DU also bounds the complementarity (scaled): as the backend
+        du = ca.fmax(du, weight * _complementarity(c, w, g, lam_x, lam_g))
     viol = [ca.fmax(w - ca.DM(c.ubx), 0), ca.fmax(ca.DM(c.lbx) - w, 0)]
     if g.numel():
         viol += [ca.fmax(g - ca.DM(c.ubg), 0), ca.fmax(ca.DM(c.lbg) - g, 0)]
@@ -196,6 +202,23 @@ def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None,
     feas = ca.mmax(ca.vertcat(*scaled, 0))
     return ca.Function(sym, [w, p, lam_x, lam_g], [pr, du, feas],
                        ["x", "p", "lam_x", "lam_g"], ["pr_inf", "du_inf", "feas"])
+
+
+def _complementarity(c: CasadiCompiled, w: object, g: object, lam_x: object,
+                     lam_g: object) -> object:
+    """``max |λ_i| · gap_i`` as :meth:`CasadiCompiled._complementarity` computes it (gap to
+    the bound the sign of ``λ_i`` points to; ``|λ_i|`` where that bound is infinite)."""
+    parts = [ca.DM(0)]
+    for lam, val, lo, up in ((lam_x, w, c.lbx, c.ubx), (lam_g, g, c.lbg, c.ubg)):
+        if not np.size(lo):
+            continue
+        for bound, mult in ((np.asarray(up, dtype=float), ca.fmax(lam, 0)),
+                            (np.asarray(lo, dtype=float), ca.fmax(-lam, 0))):
+            finite = np.isfinite(bound)
+            mask = ca.DM(finite.astype(float))
+            gap = mask * ca.fabs(val - ca.DM(np.where(finite, bound, 0.0))) + (1 - mask)
+            parts.append(ca.mmax(mult * gap))
+    return ca.mmax(ca.vertcat(*parts))
 
 
 def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ...]:
