@@ -66,7 +66,10 @@ X0 = np.array([0.4, 0.0, 1.1, 0.0])
 RHO = 0.9
 #: further ρ of Algorithm 6.4 run in Python (seed 0): with ρ = 0.9 the required decrease
 #: is a tenth of the candidate's and the lane is not reached within 200 steps; ρ = 0 (the
-#: candidate's whole decrease) reached S_r on seeds 0–2 (docs/vehicles.md, rho_sweep)
+#: candidate's whole decrease) reached S_r on seeds 0–2 (docs/vehicles.md, rho_sweep).
+#: Session 11 traced the rate: h̃ falls by (1 − ρ)·‖ξ*_0‖ per step while the nominal state is
+#: outside X ⊖ E, then by (1 − ρ)·(positive slacks)·(Δ_{i+1} − Δ_i); with Δ_i = i·1e-3 and
+#: ρ = 0.5 both algorithms converge within 200 steps (a decision left open, SPEC unchanged)
 EXTRA_RHOS = (0.5, 0.0)
 STEPS = 200
 #: target of both problems of both controllers in the closed loops (emittable: C = Python)
