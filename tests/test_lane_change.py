@@ -220,3 +220,57 @@ def test_algorithm_6_4_reaches_S_r_at_rho_0_not_at_0_9(new):
     assert not rows[0.9]["converged"] and rows[0.9]["entered_S_r_at"] == -1
     assert rows[0.9]["decrease_bound_active_steps"] == 200
     assert rows[0.0]["not_ok"] == rows[0.9]["not_ok"] == 0
+    # session 11 (docs/vehicles.md): (6.15g) passes on exactly 1 − ρ of the candidate's
+    # decrease, which is ≈ 13 % of h̃ (mostly ‖ξ*_0‖): h̃ falls ≈ 1.3 % per step and the
+    # car is still outside the lane after 200 steps
+    assert rows[0.9]["decrease_realized_over_candidate"] == pytest.approx(0.1, abs=1e-3)
+    assert 0.10 <= rows[0.9]["decrease_candidate_share"] <= 0.16
+    assert rows[0.9]["first_step_in_lane"] == -1 and rows[0.9]["delta_step"] == 1e-4
+
+
+def test_decrease_rates_split_candidate_and_realized_decrease():
+    """:func:`decrease_rates` on a made-up Algorithm 6.4 trace: the candidate offers 13 % of
+    h̃ per step and (6.15g) with ρ = 0.9 passes on a tenth of it; steps at h̃ = 0 and a
+    run without candidate values (Algorithm 5.2) are left out."""
+    from balustrade.reproduce.lane_change import _holds_from, decrease_rates
+
+    ht, hc = [2.0], [2.0]
+    for _ in range(30):
+        cand = ht[-1] * (1 - 0.13)
+        hc.append(cand)
+        ht.append(0.1 * cand + 0.9 * ht[-1])
+    ht += [0.0, 0.0]
+    hc += [0.0, 0.0]
+    rates = decrease_rates({"h_tilde": np.array(ht), "h_cand": np.array(hc)})
+    assert rates["candidate_share"] == pytest.approx(0.13)
+    assert rates["realized_over_candidate"] == pytest.approx(0.1)
+    none = decrease_rates({"h_tilde": np.array(ht), "h_cand": np.full(len(ht), np.nan)})
+    assert none == {"candidate_share": None, "realized_over_candidate": None}
+    assert [_holds_from(np.array(m, bool)) for m in ([0, 1, 0, 1, 1], [1, 1], [1, 0], [])] \
+        == [3, 0, -1, -1]
+
+
+def test_rho_sweep_cli_passes_its_options(tmp_path):
+    """``--rho-sweep --rhos --delta-step --steps --record-h-r`` reach :func:`rho_sweep`."""
+    from balustrade.reproduce.lane_change import main
+
+    assert main(["--rho-sweep", "--rhos", "0.5", "--delta-step", "2e-4", "--steps", "2",
+                 "--seeds", "1", "--first", "3", "--record-h-r", "--out", str(tmp_path)]) == 0
+    (row,) = json.loads((tmp_path / "rho_sweep.json").read_text())
+    assert (row["rho"], row["seed"], row["steps"]) == (0.5, 3, 2)
+    assert row["delta_step"] == pytest.approx(2e-4)
+    assert row["h_r_zero_at"] == -1 and row["final_h_r"] > 0      # 2 steps: still outside
+    with pytest.raises(SystemExit):
+        main(["--rho-sweep", "--rhos", "a,b", "--out", str(tmp_path)])
+
+
+@pytest.mark.slow
+def test_algorithm_6_4_reaches_S_r_at_rho_0_5_with_larger_delta_steps():
+    """Session 11 (docs/vehicles.md): with Δ_i = i·1e-3 (the thesis' Δ of §6.5) instead of
+    SPEC's i·1e-4 for the lane change, ρ = 0.5 reaches the lane and h̃ = 0 within 200
+    steps on seed 0; with i·1e-4 it does not (the ρ sweep)."""
+    from balustrade.reproduce.lane_change import rho_sweep
+
+    (row,) = rho_sweep(bicycle_design(delta_step=1e-3), rhos=(0.5,), seeds=(0,))
+    assert row["converged"] and 0 <= row["entered_S_r_at"] < 150, row
+    assert 0 <= row["first_step_in_lane"] < 80 and row["not_ok"] == 0, row

@@ -66,7 +66,10 @@ X0 = np.array([0.4, 0.0, 1.1, 0.0])
 RHO = 0.9
 #: further ρ of Algorithm 6.4 run in Python (seed 0): with ρ = 0.9 the required decrease
 #: is a tenth of the candidate's and the lane is not reached within 200 steps; ρ = 0 (the
-#: candidate's whole decrease) reached S_r on seeds 0–2 (docs/vehicles.md, rho_sweep)
+#: candidate's whole decrease) reached S_r on seeds 0–2 (docs/vehicles.md, rho_sweep).
+#: Session 11 traced the rate: h̃ falls by (1 − ρ)·‖ξ*_0‖ per step while the nominal state is
+#: outside X ⊖ E, then by (1 − ρ)·(positive slacks)·(Δ_{i+1} − Δ_i); with Δ_i = i·1e-3 and
+#: ρ = 0.5 both algorithms converge within 200 steps (a decision left open, SPEC unchanged)
 EXTRA_RHOS = (0.5, 0.0)
 STEPS = 200
 #: target of both problems of both controllers in the closed loops (emittable: C = Python)
@@ -118,7 +121,7 @@ def closed_loop(ctrl: object, d: BicycleDesign, ws: np.ndarray) -> dict:
     """One closed loop from ``X0`` under the human proposal and the disturbances ``ws``."""
     ctrl.reset()
     x = X0.copy()
-    xs, us, h, ht, bounds, times = [x], [], [], [], [], []
+    xs, us, h, ht, bounds, cands, times = [x], [], [], [], [], [], []
     statuses, fallbacks, retried = [], [], []
     for w in ws:
         start = time.perf_counter()
@@ -127,6 +130,7 @@ def closed_loop(ctrl: object, d: BicycleDesign, ws: np.ndarray) -> dict:
         h.append(info.values.get("h_r", np.nan))
         ht.append(info.values.get("h_tilde", np.nan))
         bounds.append(info.values.get("bound", np.nan))
+        cands.append(info.values.get("h_cand", np.nan))
         statuses.append(info.status)
         fallbacks.append(info.fallback)
         retried.append(any("after retries" in getattr(sol, "message", "")
@@ -135,7 +139,8 @@ def closed_loop(ctrl: object, d: BicycleDesign, ws: np.ndarray) -> dict:
         xs.append(x)
         us.append(u)
     return {"states": np.array(xs), "inputs": np.array(us), "h_r": np.array(h),
-            "h_tilde": np.array(ht), "bound": np.array(bounds), "times": np.array(times),
+            "h_tilde": np.array(ht), "bound": np.array(bounds), "h_cand": np.array(cands),
+            "times": np.array(times),
             "statuses": statuses,
             "fallbacks": fallbacks, "retried": retried}
 
@@ -159,9 +164,34 @@ def interleaved_times(ctrls: dict, d: BicycleDesign, ws: np.ndarray) -> dict:
         for k, v in times.items()}
 
 
+def decrease_rates(r: dict) -> dict:
+    """Where the decrease of ``h̃`` under Algorithm 6.4 comes from (docs/vehicles.md, "Why
+    Algorithm 6.4 at ρ = 0.9 does not reach the lane"), over the steps ``k >= 1`` with
+    ``h̃(ξ*_{k−1}) > H_ZERO``:
+
+    * ``candidate_share`` — median of ``Δh̃(ξ*_{k−1}, ξ̃_k) / h̃(ξ*_{k−1})``, the decrease the
+      candidate (6.14) offers, as a share of ``h̃`` (``= h̃(ξ*_{k−1}) − h̃(ξ̃_k)``);
+    * ``realized_over_candidate`` — median of ``(h̃(ξ*_{k−1}) − h̃(ξ*_k)) / Δh̃(ξ*_{k−1}, ξ̃_k)``
+      over the steps where the candidate decreases: ``1 − ρ`` when (6.15g) is active.
+
+    ``None`` for a run without candidate values (Algorithm 5.2)."""
+    ht, hc = np.asarray(r["h_tilde"], float), np.asarray(r.get("h_cand", []), float)
+    if hc.size != ht.size or ht.size < 2:
+        return {"candidate_share": None, "realized_over_candidate": None}
+    prev, cand, now = ht[:-1], hc[1:], ht[1:]
+    ok = np.isfinite(prev) & np.isfinite(cand) & np.isfinite(now) & (prev > H_ZERO)
+    offered = prev - cand
+    dec = ok & (offered > 1e-12)
+    return {"candidate_share": float(np.median(offered[ok] / prev[ok])) if ok.any() else None,
+            "realized_over_candidate": float(np.median((prev[dec] - now[dec]) / offered[dec]))
+            if dec.any() else None}
+
+
 def run_metrics(r: dict, d: BicycleDesign, key: str) -> dict:
     """The must-show quantities of one run; ``key`` is the decreasing value (``h_r`` for
-    Algorithm 5.2, ``h_tilde`` for 6.4)."""
+    Algorithm 5.2, ``h_tilde`` for 6.4). ``first_step_in_lane``: the first step with
+    ``|p_y| <= 0.2`` (-1: none); Theorem 6.15 gives convergence to ``S_r`` without a rate,
+    and Algorithm 6.4 can be in the lane long before ``h`` is 0."""
     h = r[key]
     finite = h[np.isfinite(h)]
     inc = np.diff(finite)
@@ -182,6 +212,7 @@ def run_metrics(r: dict, d: BicycleDesign, key: str) -> dict:
             # vacuous (True) for a run that never entered S_r; "entered_S_r_at" tells
             "X_kept_after_S_r": bool(entry < 0 or inside_X[entry:].all()),
             "final_p_y": float(r["states"][-1, 0]),
+            "first_step_in_lane": _first(np.abs(r["states"][:, 0]) <= 0.2 + STATE_TOL),
             "final_h": float(h[-1]) if np.isfinite(h[-1]) else None,
             "converged": bool(abs(r["states"][-1, 0]) <= 0.2 + STATE_TOL and entry >= 0
                               and np.isfinite(h[-1]) and h[-1] <= H_ZERO),
@@ -191,7 +222,21 @@ def run_metrics(r: dict, d: BicycleDesign, key: str) -> dict:
             "median_step_ms": 1e3 * float(np.median(r["times"])),
             # inside S_r (bound ≈ 0) the row is trivially tight: count steps outside only
             "decrease_bound_active_steps": int(np.sum(active & has_bound & (rhs > 1e-6))),
-            "steps_with_bound": int(np.sum(has_bound))}
+            "steps_with_bound": int(np.sum(has_bound)),
+            **{f"decrease_{k}": v for k, v in decrease_rates(r).items()}}
+
+
+def _first(mask: np.ndarray) -> int:
+    hits = np.flatnonzero(mask)
+    return int(hits[0]) if hits.size else -1
+
+
+def _holds_from(mask: np.ndarray) -> int:
+    """The first step from which ``mask`` holds to the end (-1: not at the last step)."""
+    misses = np.flatnonzero(~np.asarray(mask, dtype=bool))
+    if mask.size == 0 or (misses.size and misses[-1] == mask.size - 1):
+        return -1
+    return int(misses[-1] + 1) if misses.size else 0
 
 
 def compare(py: dict, c: dict) -> dict:
@@ -422,24 +467,45 @@ RHO_SWEEP = (0.0, 0.5, 0.7, 0.9, 0.95, 0.99)
 
 
 def rho_sweep(d: BicycleDesign, rhos: tuple[float, ...] = RHO_SWEEP,
-              seeds: tuple[int, ...] = (0, 1, 2), steps: int = STEPS) -> list[dict]:
+              seeds: tuple[int, ...] = (0, 1, 2), steps: int = STEPS,
+              record_h_r: bool = False) -> list[dict]:
     """Algorithm 6.4 (Python, ``robust-sqp``) for each ``ρ`` and seed: ``h̃`` and ``p_y``
     at the last step, the step ``h̃`` reached 0 (``S_r``; -1: never), whether the run
-    converged to the lane (:func:`run_metrics`), the peak lateral acceleration and the
-    steps at which (6.15g) was active. (6.15g) demands ``(1 − ρ)`` times the candidate's
-    decrease, so the rate at which ``h̃`` can fall depends on ``ρ``."""
+    converged to the lane (:func:`run_metrics`), the first step in the lane, the peak lateral
+    acceleration, the steps at which (6.15g) was active and where the decrease came from
+    (:func:`decrease_rates`). (6.15g) demands ``(1 − ρ)`` times the candidate's decrease, so
+    the rate at which ``h̃`` can fall depends on ``ρ``, and on ``Δ_{i+1} − Δ_i`` (the
+    design's ``d.deltas``, recorded as ``delta_step``). ``record_h_r``: also solve (5.15)
+    at every step (not timed) and give the first step with ``h_r(x_k) = 0``, the thesis'
+    ``x_k ∈ S_r`` (Theorem 6.15), which can come long before ``h̃ = 0``, and the step from
+    which ``h_r`` stays 0."""
     rows = []
+    delta_step = float(d.deltas[1] - d.deltas[0]) if d.deltas.size > 1 else 0.0
     for rho in rhos:
-        ctrl = multiobjective(d, rho, record_h_r=False)
+        ctrl = multiobjective(d, rho, record_h_r=record_h_r)
         for seed in seeds:
             r = closed_loop(ctrl, d, disturbances(d, seed, steps))
             m = run_metrics(r, d, "h_tilde")
-            rows.append({"rho": float(rho), "seed": int(seed),
-                         "final_h_tilde": m["final_h"], "final_p_y": m["final_p_y"],
-                         "entered_S_r_at": m["entered_S_r_at"], "converged": m["converged"],
-                         "peak_lateral_acceleration": m["peak_lateral_acceleration"],
-                         "decrease_bound_active_steps": m["decrease_bound_active_steps"],
-                         "not_ok": m["not_ok"], "median_step_ms": m["median_step_ms"]})
+            row = {"rho": float(rho), "seed": int(seed), "delta_step": delta_step,
+                   "steps": int(steps),
+                   "final_h_tilde": m["final_h"], "final_p_y": m["final_p_y"],
+                   "entered_S_r_at": m["entered_S_r_at"], "converged": m["converged"],
+                   "first_step_in_lane": m["first_step_in_lane"],
+                   "peak_lateral_acceleration": m["peak_lateral_acceleration"],
+                   "decrease_bound_active_steps": m["decrease_bound_active_steps"],
+                   "decrease_candidate_share": m["decrease_candidate_share"],
+                   "decrease_realized_over_candidate":
+                       m["decrease_realized_over_candidate"],
+                   "not_ok": m["not_ok"], "median_step_ms": m["median_step_ms"]}
+            if record_h_r:
+                h_r = r["h_r"]
+                zero = np.isfinite(h_r) & (h_r <= H_ZERO)
+                row["h_r_zero_at"] = _first(zero)
+                # from this step on h_r stays 0 (-1: not at the end); under Algorithm 6.4
+                # x_k can leave S_r again while h̃ > 0 (only h̃ = 0 makes S_r invariant)
+                row["h_r_zero_from"] = _holds_from(zero)
+                row["final_h_r"] = float(h_r[-1]) if np.isfinite(h_r[-1]) else None
+            rows.append(row)
     return rows
 
 
@@ -458,6 +524,14 @@ def _worker_seeds(args: tuple[list[int], str]) -> int:
     return len(seeded_runs(_WORKER["c"], _WORKER["d"], seeds, Path(out)))
 
 
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(t) for t in text.split(",") if t.strip())
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--rhos: comma-separated numbers, got {text!r}"
+                                         ) from exc
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m balustrade.reproduce.lane_change --out DIR --seeds 50 --jobs 2``: only the
     seeded C closed loops of the must-shows, resumable (:func:`seeded_runs`: per-seed JSON
@@ -470,12 +544,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--first", type=int, default=0, help="first seed")
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--rho-sweep", action="store_true",
-                        help="instead: Algorithm 6.4 in Python for each rho of RHO_SWEEP on "
+                        help="instead: Algorithm 6.4 in Python for each rho of --rhos on "
                              "seeds FIRST … FIRST+SEEDS-1 (rho_sweep), JSON to OUT")
+    parser.add_argument("--rhos", type=_floats, default=RHO_SWEEP,
+                        help="with --rho-sweep: comma-separated rho values")
+    parser.add_argument("--delta-step", type=float, default=1e-4,
+                        help="with --rho-sweep: Δ_i = i·DELTA_STEP (SPEC default 1e-4)")
+    parser.add_argument("--steps", type=int, default=STEPS,
+                        help="with --rho-sweep: closed-loop steps")
+    parser.add_argument("--record-h-r", action="store_true",
+                        help="with --rho-sweep: also solve (5.15) each step (h_r(x_k))")
     args = parser.parse_args(argv)
     seeds = list(range(args.first, args.first + args.seeds))
     if args.rho_sweep:
-        rows = rho_sweep(bicycle_design(N=20), seeds=tuple(seeds))
+        rows = rho_sweep(bicycle_design(N=20, delta_step=args.delta_step), rhos=args.rhos,
+                         seeds=tuple(seeds), steps=args.steps, record_h_r=args.record_h_r)
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "rho_sweep.json").write_text(json.dumps(rows, indent=1))
         print(json.dumps(rows, indent=1))
