@@ -23,6 +23,25 @@ static int BAL_QX(in_box)(const casadi_real* u, casadi_real tol) {
   return 1;
 }
 
+/* h^(f(x, u_p)) for this step's proposal u_p = wk->u_p, evaluated once per step: the same
+   function at the same arguments, so reusing it changes no value (only the time) */
+static casadi_real BAL_QX(h_up)(BAL_QX(work)* wk, const casadi_real* x) {
+  if (!wk->h_up_ready) {
+    wk->h_up = BAL_QX(eval_h_next)(wk, x, wk->u_p);
+    wk->h_up_ready = 1;
+  }
+  return wk->h_up;
+}
+
+/* 1 if a equals b entry by entry (==, as numpy's (a == b).all()) */
+static int BAL_QX(same_input)(const casadi_real* a, const casadi_real* b) {
+  casadi_int i;
+  for (i = 0; i < BAL_QX(NU); ++i) {
+    if (!(a[i] == b[i])) return 0;
+  }
+  return 1;
+}
+
 int BAL_QX(init)(BAL_QX(work)* wk) {
   wk->ready = 0;
   if (BAL_QX(dec_init)(&wk->dec)) return -1;
@@ -84,7 +103,10 @@ static int BAL_QX(max_decrease)(BAL_QX(work)* wk, const casadi_real* x,
     for (i = 0; i < BAL_QX(NU); ++i) wk->cand[k * BAL_QX(NU) + i] = BAL_QX(grid)[k - 2][i];
   }
   for (k = 0; k < BAL_QX(NC); ++k) {
-    v = BAL_QX(eval_h_next)(wk, x, wk->cand + k * BAL_QX(NU));
+    c = wk->cand + k * BAL_QX(NU);
+    /* candidate 1 is clip(u_p): when it is u_p itself, h^(f(x, u_p)) of this step */
+    v = k == 1 && BAL_QX(same_input)(c, u_p) ? BAL_QX(h_up)(wk, x)
+                                             : BAL_QX(eval_h_next)(wk, x, c);
     wk->values[k] = isfinite(v) ? v : INFINITY;
   }
   /* stable insertion sort of the candidate indices by value */
@@ -138,6 +160,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u
   wk->n_steps++;
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->dh = NAN;
+  wk->h_up_ready = 0;
   *h_out = NAN;
   wk->n_replaced = bal_read_proposal(u_p_in, wk->u_p, BAL_QX(NU));
   u_p = wk->u_p;
@@ -151,7 +174,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u
     return *status;
   }
   /* line 4: certification by one evaluation */
-  if (wk->certify && BAL_QX(in_box)(u_p, 1e-9) && BAL_QX(eval_h_next)(wk, x, u_p) <= 0.0) {
+  if (wk->certify && BAL_QX(in_box)(u_p, 1e-9) && BAL_QX(h_up)(wk, x) <= 0.0) {
     wk->n_certified++;
     for (i = 0; i < BAL_QX(NU); ++i) u_out[i] = u_p[i];
     *status = BAL_APPROX_CERTIFIED;
@@ -169,7 +192,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u
   wk->dh = wk->h_x - wk->best_v;
   /* exact shortcut: u_p feasible in (7.5), bound max(-rho dh, -dh), is its minimizer */
   if (BAL_QX(EXACT_SHORTCUT) && BAL_QX(in_box)(u_p, 1e-9)
-      && BAL_QX(eval_h_next)(wk, x, u_p) - wk->h_x
+      && BAL_QX(h_up)(wk, x) - wk->h_x
              <= fmax(-BAL_QX(RHO) * wk->dh, -wk->dh)) {
     wk->n_proposal_feasible++;
     for (i = 0; i < BAL_QX(NU); ++i) u_out[i] = u_p[i];

@@ -34,6 +34,10 @@ typedef struct BAL_QX(work) {
   casadi_real u_p[BAL_QX(NU)]; /* the proposal used (non-finite entries replaced by 0) */
   int order[BAL_QX(NC)], tried[BAL_QX(NC)];
   casadi_real h_x, dh, best_v;
+  /* h^(f(x, u_p)) of this step, evaluated at most once (certification, screening of
+     clip(u_p) when it equals u_p, exact shortcut); h_up_ready = 0 until evaluated */
+  casadi_real h_up;
+  int h_up_ready;
   const casadi_real* harg[BAL_APPROX_HSZ(ARG)];
   casadi_real* hres[BAL_APPROX_HSZ(RES)];
   casadi_int hiw[BAL_APPROX_HSZ(IW) + 1];
