@@ -23,8 +23,14 @@
 #error "bal/approx.h: define BAL_STEP (the step's symbol prefix) first"
 #endif
 
-/* work vectors shared by A_h and A_h_next */
+/* work vectors shared by A_h and A_h_next (and the model A_f when A_NET: h^ is evaluated
+   from its network's weights, bal/approx_net.c) */
+#if BAL_QX(NET)
+#define BAL_APPROX_HSZ(k) \
+  BAL_MAX2(BAL_MAX2(BAL_QX(h_SZ_##k), BAL_QX(h_next_SZ_##k)), BAL_QX(f_SZ_##k))
+#else
 #define BAL_APPROX_HSZ(k) BAL_MAX2(BAL_QX(h_SZ_##k), BAL_QX(h_next_SZ_##k))
+#endif
 
 typedef struct BAL_QX(work) {
   BAL_QX(dec_work) dec;
@@ -42,7 +48,7 @@ typedef struct BAL_QX(work) {
   casadi_real* hres[BAL_APPROX_HSZ(RES)];
   casadi_int hiw[BAL_APPROX_HSZ(IW) + 1];
   casadi_real hw[BAL_APPROX_HSZ(W) + 1];
-  int hmem, nmem;
+  int hmem, nmem, fmem; /* fmem: A_f's memory (A_NET only) */
   int dec_status, filter_status, certify, ready, n_replaced;
   long n_steps, n_certified, n_solved, n_fallbacks, n_proposal_feasible;
 } BAL_QX(work);
