@@ -136,9 +136,9 @@ def test_approximate_refuses_a_vector_h_the_c_cannot_hold(approx: dict, tmp_path
         emit_approximate(bad, "apv", tmp_path)
 
 
-def _random_network(seed: int = 4) -> object:
-    """A 2 → 8 → 8 → 1 softplus network, ĥ = output³, scaled inputs (a stand-in for a
-    trained ĥ: the C must compute the same values, whatever the weights)."""
+def _random_network(seed: int = 4, transform: str | None = "cbrt") -> object:
+    """A 2 → 8 → 8 → 1 softplus network, ĥ = output³ (or the output), scaled inputs (a
+    stand-in for a trained ĥ: the C must compute the same values, whatever the weights)."""
     from balustrade.learn.train import MLPModel
 
     rng = np.random.default_rng(seed)
@@ -147,10 +147,11 @@ def _random_network(seed: int = 4) -> object:
     b = [rng.normal(0, 0.5, n) for n in sizes[1:]]
     b[-1] = b[-1] - 2.5  # ĥ <= 0 on part of the states: both certified and solved steps
     return MLPModel(W, b, np.array([0.05, -0.1]), np.array([0.4, 1.3]),
-                    output_transform="cbrt")
+                    output_transform=transform)
 
 
-def test_approximate_network_loops_equal_the_casadi_code(tmp_path) -> None:
+@pytest.mark.parametrize("transform", ["cbrt", None])
+def test_approximate_network_loops_equal_the_casadi_code(tmp_path, transform) -> None:
     """``network=``: the emitted C evaluates ĥ from the weights (bal/approx_net.c) and
     takes exactly the decisions of the CasADi-generated ĥ (same inputs, bit for bit) and
     of Python (1e-6), on certified and solved steps."""
@@ -158,7 +159,7 @@ def test_approximate_network_loops_equal_the_casadi_code(tmp_path) -> None:
     from balustrade.learn.export import to_casadi
     from balustrade.models.pendulum import pendulum_setup
 
-    system, s, net = pendulum(), pendulum_setup(), _random_network()
+    system, s, net = pendulum(), pendulum_setup(), _random_network(transform=transform)
     py = ApproximatePCBFFilter(system, s.U, to_casadi(net), rho=0.5, target="fast-sqp",
                                network=net)
     py.decrease.compiled = mirror_c_retries(py.decrease.compiled)

@@ -765,7 +765,11 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     multi-start (candidates ``clip(0)``, ``clip(u_p)`` and the controller's grid; local
     solves from the ``n_local`` best distinct ones), then the filter (7.5) warm-started
     at the (7.6) minimizer, with the controller's fallbacks. ``ĥ`` and ``ĥ(f(x, u))`` are
-    emitted as ``<name>_h`` and ``<name>_h_next``; ``U`` must be a Box."""
+    emitted as ``<name>_h`` and ``<name>_h_next``; ``U`` must be a Box. A controller built
+    with ``network=`` (the MLP ``ĥ`` came from) has the step evaluate ``ĥ`` from the weights
+    instead (``bal/approx_net.c``, the model as ``<name>_f``): the same operations in the
+    same order, compact code (the CasADi functions stay in the library, unused by the
+    step). The solvers of (7.6) and (7.5) keep CasADi's code either way."""
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
     _check_dynamics(name, dynamics)

@@ -10,7 +10,10 @@
  *   3. if u_p in U meets the decrease of (7.5) it is its minimizer (cost 0): apply it
  *      (exact shortcut, BAL_APPROX_PROPOSAL_FEASIBLE; A_EXACT_SHORTCUT = 0 disables it);
  *      else the filter (7.5) with (x, u_p, dh, rho), warm-started at the (7.6) minimizer.
- *   h_out = h^(x_k). Fallbacks, as balustrade.control.approximate:
+ *   h_out = h^(x_k). With A_NET = 1 (emit_approximate of a filter built with network=) h^ is
+ *   evaluated from the network's weights (bal/approx_net.c, the same values) instead of
+ *   A_h / A_h_next, and h^(f(x, u_p)) once per step.
+ *   Fallbacks, as balustrade.control.approximate:
  *   (7.5) fails or leaves U      -> the (7.6) minimizer       BAL_APPROX_MAX_DECREASE
  *   (7.5) only BAL_FEASIBLE      -> its point (in U, meets the decrease: safe)
  *                                                             BAL_APPROX_FILTER_FEASIBLE
