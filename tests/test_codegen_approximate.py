@@ -3,6 +3,8 @@ the Python controller on 1000 random states and in closed loop."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -132,3 +134,66 @@ def test_approximate_refuses_a_vector_h_the_c_cannot_hold(approx: dict, tmp_path
     bad = dataclasses.replace(spec, h=lambda x: ca.vertcat(ca.sumsqr(x), x[0]))
     with pytest.raises(CodegenError, match="scalar.*apv_h"):
         emit_approximate(bad, "apv", tmp_path)
+
+
+def _random_network(seed: int = 4, transform: str | None = "cbrt") -> object:
+    """A 2 → 8 → 8 → 1 softplus network, ĥ = output³ (or the output), scaled inputs (a
+    stand-in for a trained ĥ: the C must compute the same values, whatever the weights)."""
+    from balustrade.learn.train import MLPModel
+
+    rng = np.random.default_rng(seed)
+    sizes = (2, 8, 8, 1)
+    W = [rng.normal(0, 1.0, (b, a)) for a, b in zip(sizes[:-1], sizes[1:])]
+    b = [rng.normal(0, 0.5, n) for n in sizes[1:]]
+    b[-1] = b[-1] - 2.5  # ĥ <= 0 on part of the states: both certified and solved steps
+    return MLPModel(W, b, np.array([0.05, -0.1]), np.array([0.4, 1.3]),
+                    output_transform=transform)
+
+
+@pytest.mark.parametrize("transform", ["cbrt", None])
+def test_approximate_network_loops_equal_the_casadi_code(tmp_path, transform) -> None:
+    """``network=``: the emitted C evaluates ĥ from the weights (bal/approx_net.c) and
+    takes exactly the decisions of the CasADi-generated ĥ (same inputs, bit for bit) and
+    of Python (1e-6), on certified and solved steps."""
+    from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.learn.export import to_casadi
+    from balustrade.models.pendulum import pendulum_setup
+
+    system, s, net = pendulum(), pendulum_setup(), _random_network(transform=transform)
+    py = ApproximatePCBFFilter(system, s.U, to_casadi(net), rho=0.5, target="fast-sqp",
+                               network=net)
+    py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
+    py.filter = mirror_c_retries(py.filter)
+    loops = emit_approximate(py, "apn", tmp_path / "loops")
+    assert loops.manifest["network"] and "apn_NET_W" in \
+        (loops.out_dir / "apn_config.h").read_text()
+    spec = dataclasses.replace(py.deployment_spec(), network=None)
+    plain = emit_approximate(spec, "apc", tmp_path / "plain")
+    c_net = CApproximatePCBFFilter(build(loops.out_dir, werror=True))
+    c_sx = CApproximatePCBFFilter(build(plain.out_dir, werror=True))
+    rng = np.random.default_rng(2)
+    for x, u_p in zip(rng.uniform([-0.7, -2.0], [0.7, 2.0], size=(300, 2)),
+                      rng.uniform(-4, 4, size=(300, 1))):
+        u0, i0 = py.step(x, u_p)
+        u1, i1 = c_net.step(x, u_p)
+        u2, i2 = c_sx.step(x, u_p)
+        assert i1.status == i2.status and np.array_equal(u1, u2), (x, u_p, u1, u2)
+        assert i0.status == i1.status and np.abs(u0 - u1).max() <= 1e-6, (x, u_p)
+        if "h_hat" in i1.values:
+            assert i1.values["h_hat"] == i2.values["h_hat"]
+    assert 0 < c_net.n_certified < 300 and c_net.n_solved > 0
+
+
+def test_approximate_network_must_be_the_one_h_came_from() -> None:
+    from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.errors import BalustradeError
+    from balustrade.learn.export import to_casadi
+    from balustrade.models.pendulum import pendulum_setup
+
+    system, s = pendulum(), pendulum_setup()
+    with pytest.raises(BalustradeError, match="network must be the MLP"):
+        ApproximatePCBFFilter(system, s.U, to_casadi(_random_network(4)), target="fast-sqp",
+                              network=_random_network(5))
+    with pytest.raises(BalustradeError, match="network must be the MLP"):
+        ApproximatePCBFFilter(system, s.U, to_casadi(_random_network(4)), target="fast-sqp",
+                              network=np.zeros(3))

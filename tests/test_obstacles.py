@@ -230,3 +230,37 @@ def test_pcbf_algorithm_with_shifted_start_keeps_the_car_outside():
 
     runs = R.closed_loops(R.pcbf_algorithm(), R.NaiveMPC(), starts=((-2.0, 0.5),), steps=45)
     assert runs[0]["min_distance"] >= -1e-3
+
+
+@pytest.mark.slow
+def test_emitted_filter_with_network_equals_python(tmp_path):
+    """The reproduction's Algorithm 7.5 (the committed 5 × 32 network, ``network=``: ĥ
+    evaluated from the weights in C) emitted and built: the C takes Python's decisions on
+    states of a closed loop and on random states (the Python reference runs the C's retry
+    chain). Slow: the C of the two problems takes minutes to compile."""
+    from balustrade.codegen import CApproximatePCBFFilter, build, emit_approximate
+    from balustrade.codegen.runtime import mirror_c_retries
+    from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.learn.export import to_casadi
+    from balustrade.learn.train import MLPModel
+    from balustrade.reproduce import obstacles as R
+
+    model = MLPModel.load(R.NET)
+    system, s = obstacle_car(), obstacle_setup()
+    py = ApproximatePCBFFilter(system, s.U, to_casadi(model), rho=R.RHO,
+                               target=R.FILTER_TARGET, network=model)
+    runs = R.closed_loops(py, R.NaiveMPC(), starts=R.STARTS[:1], steps=20)
+    py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
+    py.filter = mirror_c_retries(py.filter)
+    emitted = emit_approximate(py, "obsnet", tmp_path)
+    assert emitted.manifest["network"]
+    c = CApproximatePCBFFilter(build(emitted.out_dir, werror=True))
+    rng = np.random.default_rng(0)
+    X = np.vstack([runs[0]["states"][:20],
+                   rng.uniform([-2, -1.5, -np.pi, 0, -0.75], [2, 1.5, np.pi, 4, 0.75], (40, 5))])
+    P = np.vstack([runs[0]["proposed"], rng.uniform(s.U.lb, s.U.ub, (40, 2))])
+    for x, u_p in zip(X, P):
+        u1, i1 = py.step(x, u_p)
+        u2, i2 = c.step(x, u_p)
+        assert i1.status == i2.status and np.abs(u1 - u2).max() <= 1e-6, (x, u_p, u1, u2)
+    assert 0 < c.n_certified < len(X) and c.n_solved > 0

@@ -29,7 +29,7 @@ from balustrade.codegen import status as S
 SUBDIR = "bal"
 #: the static files copied into ``<out_dir>/bal/`` (``#include``\\ d by the glue)
 STATIC = ("common.h", "problem.h", "problem.c", "step_common.c", "pcbf.h", "pcbf.c",
-          "h_common.c", "approx.h", "approx.c", "grid.h", "grid.c",
+          "h_common.c", "approx.h", "approx.c", "approx_net.c", "grid.h", "grid.c",
           "tube_common.c", "robust.h", "robust.c", "multiobj.h", "multiobj.c", "rapsf.h",
           "rapsf.c", "multiobj_lyap.h", "multiobj_lyap.c")
 #: the entry points each static header declares (``<prefix>_<entry>``), listed by their real

@@ -788,7 +788,11 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     multi-start (candidates ``clip(0)``, ``clip(u_p)`` and the controller's grid; local
     solves from the ``n_local`` best distinct ones), then the filter (7.5) warm-started
     at the (7.6) minimizer, with the controller's fallbacks. ``ĥ`` and ``ĥ(f(x, u))`` are
-    emitted as ``<name>_h`` and ``<name>_h_next``; ``U`` must be a Box."""
+    emitted as ``<name>_h`` and ``<name>_h_next``; ``U`` must be a Box. A controller built
+    with ``network=`` (the MLP ``ĥ`` came from) has the step evaluate ``ĥ`` from the weights
+    instead (``bal/approx_net.c``, the model as ``<name>_f``): the same operations in the
+    same order, compact code (the CasADi functions stay in the library, unused by the
+    step). The solvers of (7.6) and (7.5) keep CasADi's code either way."""
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
     _check_dynamics(name, dynamics)
@@ -818,6 +822,10 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
                                f"{functions[key].size_out(0)}")
     if dynamics is not None:
         functions[f"{name}_dynamics"] = dynamics
+    net = spec.network
+    if net is not None:  # ĥ from the network's weights (bal/approx_net.c): f alone from CasADi
+        functions[f"{name}_f"] = ca.Function(f"{name}_f", [x, u], [system(x, u)],
+                                             ["x", "u"], ["x_next"])
     files = _generate(functions, name, out_dir)
     nc = len(grid) + 2
     cfg = C.Config()
@@ -831,6 +839,7 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
     cfg.define(f"{name}_RHO", C.c_double(spec.rho))
     cfg.define(f"{name}_CERTIFY", int(bool(spec.certify)), "line 4 (initial value)")
     cfg.define(f"{name}_EXACT_SHORTCUT", int(bool(spec.exact_shortcut)))
+    _network_config(cfg, name, net, functions[f"{name}_h"], system.nx)
     cfg.array(f"{name}_U_LB", U.lb)
     cfg.array(f"{name}_U_UB", U.ub)
     cfg.matrix(f"{name}_GRID", grid)
@@ -842,8 +851,56 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
                 "problems": {"dec": d.manifest(), "filter": f.manifest()},
                 "dynamics": dynamics is not None,
                 "exact_shortcut": bool(spec.exact_shortcut),
+                "network": net is not None,
                 "approx_status": S.manifest(S.APPROX)}
     return _write_module(name, out_dir, "Algorithm 7.5, the approximate PCBF filter "
                          "(7.5)+(7.6)", cfg,
                          [("problem", d.P), ("problem", f.P), ("approx", name)], files,
                          manifest, tuple(sorted(set(libs))))
+
+
+def _network_forward(net: object, X: np.ndarray) -> np.ndarray:
+    """What bal/approx_net.c computes, in numpy, on the rows of ``X``."""
+    z = (np.atleast_2d(X) - np.asarray(net.mean, float)) / np.asarray(net.scale, float)
+    n = len(net.weights)
+    for k, (W, b) in enumerate(zip(net.weights, net.biases)):
+        z = z @ np.asarray(W, float).T + np.asarray(b, float).reshape(-1)
+        if k < n - 1:
+            z = np.where(z > 20.0, z, np.log1p(np.exp(np.minimum(z, 20.0))))
+    return z[:, 0] ** 3 if net.output_transform == "cbrt" else z[:, 0]
+
+
+def _network_config(cfg: C.Config, name: str, net: object | None, h: ca.Function,
+                    nx: int) -> None:
+    """``<name>_NET`` and, for a network, its layers for bal/approx_net.c; a network whose
+    shapes do not chain, or that does not compute ``ĥ`` (relative 1e-9 on a few states),
+    raises a CodegenError naming it."""
+    cfg.define(f"{name}_NET", int(net is not None), "h^ from the network's weights")
+    if net is None:
+        return
+    W = [np.asarray(w, float) for w in net.weights]
+    b = [np.asarray(v, float).reshape(-1) for v in net.biases]
+    sizes = [nx] + [w.shape[0] if w.ndim == 2 else -1 for w in W]
+    ok = (len(W) == len(b) and sizes[-1] == 1 and net.output_transform in (None, "cbrt")
+          and np.shape(net.mean) == (nx,) and np.shape(net.scale) == (nx,)
+          and all(w.shape == (sizes[k + 1], sizes[k]) and len(v) == sizes[k + 1]
+                  for k, (w, v) in enumerate(zip(W, b))))
+    if not ok:
+        raise CodegenError(f"{name}: the network's layers do not chain from {nx} states to "
+                           f"one value (weights {[w.shape for w in W]}, biases "
+                           f"{[v.shape for v in b]}, output_transform "
+                           f"{net.output_transform!r})")
+    X = np.random.default_rng(2).uniform(-1.0, 1.0, (4, nx))
+    want = np.array([float(h(x)) for x in X])
+    got = _network_forward(net, X)
+    if not np.allclose(got, want, rtol=1e-9, atol=1e-12):
+        raise CodegenError(f"{name}: the network does not compute h^ (softplus layers, "
+                           f"threshold 20): {got} where h^ gives {want} on 4 test states")
+    cfg.define(f"{name}_NET_NL", len(W), "layers")
+    cfg.define(f"{name}_NET_SIZES", "{" + ", ".join(map(str, sizes)) + "}", "widths")
+    cfg.define(f"{name}_NET_MAXW", max(sizes))
+    cfg.define(f"{name}_NET_CUBE", int(net.output_transform == "cbrt"), "h^ = output cubed")
+    cfg.array(f"{name}_NET_W", np.concatenate([w.reshape(-1) for w in W]))
+    cfg.array(f"{name}_NET_B", np.concatenate(b))
+    cfg.array(f"{name}_NET_MEAN", np.asarray(net.mean, float))
+    cfg.array(f"{name}_NET_SCALE", np.asarray(net.scale, float))

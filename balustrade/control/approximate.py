@@ -73,12 +73,19 @@ class ApproximatePCBFFilter:
     (7.6). ``StepInfo.solve_time`` is the wall time of (7.6) and
     (7.5) including screening; ``StepInfo.solutions`` holds the :class:`Solution` objects
     of solves that went through ``Compiled.solve`` (none on the fast path).
+
+    ``network`` (optional): the network ``ĥ`` was exported from
+    (:class:`~balustrade.learn.train.MLPModel`, ``h_hat = to_casadi(network)``), checked
+    to equal ``h_hat`` on a few states. The Python step does not use it; the emitted C
+    (:func:`~balustrade.codegen.emit_approximate`) then evaluates ``ĥ`` as loops over the
+    weights (the same operations, a few kB of code instead of ~100 kB: several times faster
+    when the caches are cold, docs/obstacles.md).
     """
 
     def __init__(self, system: System, U: Set, h_hat: HHat, rho: float = 1.0,
                  target: Target | str | None = None, certify: bool = True,
                  grid_points: int = 5, n_local: int = 1, eps: float = 1e-6,
-                 exact_shortcut: bool = True):
+                 exact_shortcut: bool = True, network: object | None = None):
         check_instance(system, System, "ApproximatePCBFFilter: system")
         check_instance(U, Set, "ApproximatePCBFFilter: U")
         rho = as_scalar(rho, "ApproximatePCBFFilter: rho", 0.0, 1.0, low_open=True)
@@ -89,6 +96,8 @@ class ApproximatePCBFFilter:
         self.exact_shortcut = bool(exact_shortcut)
         self.nu = system.nu
         self.h = as_h_function(h_hat, system.nx)
+        self.network = None if network is None else _checked_network(network, self.h,
+                                                                     system.nx)
         self.target = local_target(target, "ApproximatePCBFFilter")
         self.decrease = MaximalDecrease(system, U, self.h, self.target, grid_points, n_local)
         self.filter: Compiled = compile(approximate_filter_problem(system, U, self.h, eps),
@@ -195,7 +204,7 @@ class ApproximatePCBFFilter:
             decrease=dec.compiled, filter=self.filter, U=self.U, system=self.system,
             h=self.h, grid=np.atleast_2d(np.asarray(dec.grid, dtype=float)),
             n_local=int(dec.n_local), rho=float(self.rho), certify=bool(self.certify),
-            exact_shortcut=bool(self.exact_shortcut))
+            exact_shortcut=bool(self.exact_shortcut), network=self.network)
 
 
 class GridPCBFFilter:
@@ -305,6 +314,30 @@ class GridPCBFFilter:
         return GridDeployment(system=self.system, U=self.U, h=self.h,
                               offsets=self.offsets.copy(), scale=self.scale.copy(),
                               rho=float(self.rho), u_init=self.u_init.copy())
+
+
+def _checked_network(network: object, h: ca.Function, nx: int) -> object:
+    """``network`` if it has the attributes of an MLP (``weights``, ``biases``, ``mean``,
+    ``scale``, ``output_transform``), takes ``nx`` inputs and equals ``h`` on a few fixed
+    states (its own evaluation, relative 1e-9), else a BalustradeError naming the argument."""
+    missing = [a for a in ("weights", "biases", "mean", "scale", "output_transform")
+               if not hasattr(network, a)]
+    if missing or not callable(network):
+        raise BalustradeError(f"ApproximatePCBFFilter: network must be the MLP h_hat was "
+                              f"exported from (balustrade.learn.train.MLPModel); "
+                              f"{type(network).__name__} lacks {missing or ['__call__']}")
+    shapes = [np.shape(W) for W in network.weights]
+    if not shapes or len(shapes[0]) != 2 or shapes[0][1] != nx or shapes[-1][0] != 1:
+        raise BalustradeError(f"ApproximatePCBFFilter: network must map {nx} states to one "
+                              f"value; its weight shapes are {shapes}")
+    X = np.random.default_rng(1).uniform(-1.0, 1.0, (4, nx))
+    want = np.array([float(h(x)) for x in X])
+    got = np.asarray(network(X), float).reshape(-1)
+    if got.shape != want.shape or not np.allclose(got, want, rtol=1e-9, atol=1e-12):
+        raise BalustradeError(f"ApproximatePCBFFilter: network must be the MLP h_hat was "
+                              f"exported from; on 4 test states it gave {got} where h_hat "
+                              f"gives {want}")
+    return network
 
 
 def _checked_rows(h_rows: object, h: ca.Function, nx: int

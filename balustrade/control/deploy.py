@@ -72,6 +72,10 @@ class ApproximateDeployment:
     certify: bool
     #: apply ``u_p`` when it meets the decrease of (7.5) (its exact minimizer)
     exact_shortcut: bool
+    #: the network ``ĥ`` is made of (``weights``, ``biases``, ``mean``, ``scale``,
+    #: ``output_transform``: a :class:`~balustrade.learn.train.MLPModel`), or ``None``; the
+    #: emitted C then evaluates ``ĥ`` from its weights in loops (bal/approx_net.c)
+    network: object | None = None
 
 
 @dataclass(frozen=True)

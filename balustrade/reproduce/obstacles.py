@@ -398,7 +398,9 @@ def run(out: Path, quick: bool = False) -> dict:
         plot_learning_curve(curve, out / "learning_curve.png")
     system, s = obstacle_car(), obstacle_setup()
     h_fn = to_casadi(model)
-    filt = ApproximatePCBFFilter(system, s.U, h_fn, rho=RHO, target=FILTER_TARGET)
+    # network=: the emitted C evaluates ĥ from the weights (same values, compact code)
+    filt = ApproximatePCBFFilter(system, s.U, h_fn, rho=RHO, target=FILTER_TARGET,
+                                 network=model)
     mpc = NaiveMPC()
     t = time.perf_counter()
     runs = closed_loops(filt, mpc)

@@ -10,6 +10,31 @@
 
 #include "step_common.c"
 #include "h_common.c"
+#if BAL_QX(NET)
+#include "approx_net.c"
+#endif
+
+/* h^(x) and h^(f(x, u)): from the network's weights when A_NET (bal/approx_net.c, the same
+   values), else the CasADi functions A_h, A_h_next */
+static casadi_real BAL_QX(value_h)(BAL_QX(work)* wk, const casadi_real* x) {
+#if BAL_QX(NET)
+  (void) wk;
+  (void) &BAL_QX(eval_h); /* the CasADi functions stay in the library, unused here */
+  (void) &BAL_QX(eval_h_next);
+  return BAL_QX(net_eval)(x);
+#else
+  return BAL_QX(eval_h)(wk, x);
+#endif
+}
+
+static casadi_real BAL_QX(value_h_next)(BAL_QX(work)* wk, const casadi_real* x,
+                                        const casadi_real* u) {
+#if BAL_QX(NET)
+  return BAL_QX(net_eval_next)(wk, x, u);
+#else
+  return BAL_QX(eval_h_next)(wk, x, u);
+#endif
+}
 
 static const casadi_real BAL_QX(u_lb)[BAL_QX(NU)] = BAL_QX(U_LB);
 static const casadi_real BAL_QX(u_ub)[BAL_QX(NU)] = BAL_QX(U_UB);
@@ -19,6 +44,25 @@ static int BAL_QX(in_box)(const casadi_real* u, casadi_real tol) {
   casadi_int i;
   for (i = 0; i < BAL_QX(NU); ++i) {
     if (!(u[i] >= BAL_QX(u_lb)[i] - tol && u[i] <= BAL_QX(u_ub)[i] + tol)) return 0;
+  }
+  return 1;
+}
+
+/* h^(f(x, u_p)) for this step's proposal u_p = wk->u_p, evaluated once per step: the same
+   function at the same arguments, so reusing it changes no value (only the time) */
+static casadi_real BAL_QX(h_up)(BAL_QX(work)* wk, const casadi_real* x) {
+  if (!wk->h_up_ready) {
+    wk->h_up = BAL_QX(value_h_next)(wk, x, wk->u_p);
+    wk->h_up_ready = 1;
+  }
+  return wk->h_up;
+}
+
+/* 1 if a equals b entry by entry (==, as numpy's (a == b).all()) */
+static int BAL_QX(same_input)(const casadi_real* a, const casadi_real* b) {
+  casadi_int i;
+  for (i = 0; i < BAL_QX(NU); ++i) {
+    if (!(a[i] == b[i])) return 0;
   }
   return 1;
 }
@@ -35,6 +79,17 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
     BAL_QX(dec_finalize)(&wk->dec);
     return -1;
   }
+#if BAL_QX(NET)
+  BAL_QX(f_incref)();
+  wk->fmem = BAL_QX(f_checkout)();
+  if (wk->fmem < 0) {
+    BAL_QX(f_decref)();
+    BAL_QX(h_release_all)(wk);
+    BAL_QX(filter_finalize)(&wk->filter);
+    BAL_QX(dec_finalize)(&wk->dec);
+    return -1;
+  }
+#endif
   wk->certify = BAL_QX(CERTIFY);
   BAL_QX(reset)(wk);
   wk->ready = 1;
@@ -43,6 +98,10 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
 
 void BAL_QX(finalize)(BAL_QX(work)* wk) {
   if (!wk->ready) return;
+#if BAL_QX(NET)
+  BAL_QX(f_release)(wk->fmem);
+  BAL_QX(f_decref)();
+#endif
   BAL_QX(h_release_all)(wk);
   BAL_QX(filter_finalize)(&wk->filter);
   BAL_QX(dec_finalize)(&wk->dec);
@@ -84,7 +143,10 @@ static int BAL_QX(max_decrease)(BAL_QX(work)* wk, const casadi_real* x,
     for (i = 0; i < BAL_QX(NU); ++i) wk->cand[k * BAL_QX(NU) + i] = BAL_QX(grid)[k - 2][i];
   }
   for (k = 0; k < BAL_QX(NC); ++k) {
-    v = BAL_QX(eval_h_next)(wk, x, wk->cand + k * BAL_QX(NU));
+    c = wk->cand + k * BAL_QX(NU);
+    /* candidate 1 is clip(u_p): when it is u_p itself, h^(f(x, u_p)) of this step */
+    v = k == 1 && BAL_QX(same_input)(c, u_p) ? BAL_QX(h_up)(wk, x)
+                                             : BAL_QX(value_h_next)(wk, x, c);
     wk->values[k] = isfinite(v) ? v : INFINITY;
   }
   /* stable insertion sort of the candidate indices by value */
@@ -118,7 +180,7 @@ static int BAL_QX(max_decrease)(BAL_QX(work)* wk, const casadi_real* x,
     u_loc = wk->dec.x + BAL_QX(dec_W_u);
     if (!BAL_QX(in_box)(u_loc, 1e-7)) continue;
     found = 1;
-    v = BAL_QX(eval_h_next)(wk, x, u_loc);
+    v = BAL_QX(value_h_next)(wk, x, u_loc);
     if (v < wk->best_v) {
       wk->best_v = v;
       for (i = 0; i < BAL_QX(NU); ++i) wk->best_u[i] = u_loc[i];
@@ -138,6 +200,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u
   wk->n_steps++;
   wk->dec_status = wk->filter_status = BAL_NOT_RUN;
   wk->dh = NAN;
+  wk->h_up_ready = 0;
   *h_out = NAN;
   wk->n_replaced = bal_read_proposal(u_p_in, wk->u_p, BAL_QX(NU));
   u_p = wk->u_p;
@@ -151,14 +214,14 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u
     return *status;
   }
   /* line 4: certification by one evaluation */
-  if (wk->certify && BAL_QX(in_box)(u_p, 1e-9) && BAL_QX(eval_h_next)(wk, x, u_p) <= 0.0) {
+  if (wk->certify && BAL_QX(in_box)(u_p, 1e-9) && BAL_QX(h_up)(wk, x) <= 0.0) {
     wk->n_certified++;
     for (i = 0; i < BAL_QX(NU); ++i) u_out[i] = u_p[i];
     *status = BAL_APPROX_CERTIFIED;
     return *status;
   }
   wk->n_solved++;
-  wk->h_x = BAL_QX(eval_h)(wk, x);
+  wk->h_x = BAL_QX(value_h)(wk, x);
   *h_out = wk->h_x;
   if (!BAL_QX(max_decrease)(wk, x, u_p)) {
     wk->n_fallbacks++;
@@ -169,7 +232,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p_in, casadi_real* u
   wk->dh = wk->h_x - wk->best_v;
   /* exact shortcut: u_p feasible in (7.5), bound max(-rho dh, -dh), is its minimizer */
   if (BAL_QX(EXACT_SHORTCUT) && BAL_QX(in_box)(u_p, 1e-9)
-      && BAL_QX(eval_h_next)(wk, x, u_p) - wk->h_x
+      && BAL_QX(h_up)(wk, x) - wk->h_x
              <= fmax(-BAL_QX(RHO) * wk->dh, -wk->dh)) {
     wk->n_proposal_feasible++;
     for (i = 0; i < BAL_QX(NU); ++i) u_out[i] = u_p[i];

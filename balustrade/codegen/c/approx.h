@@ -10,7 +10,10 @@
  *   3. if u_p in U meets the decrease of (7.5) it is its minimizer (cost 0): apply it
  *      (exact shortcut, BAL_APPROX_PROPOSAL_FEASIBLE; A_EXACT_SHORTCUT = 0 disables it);
  *      else the filter (7.5) with (x, u_p, dh, rho), warm-started at the (7.6) minimizer.
- *   h_out = h^(x_k). Fallbacks, as balustrade.control.approximate:
+ *   h_out = h^(x_k). With A_NET = 1 (emit_approximate of a filter built with network=) h^ is
+ *   evaluated from the network's weights (bal/approx_net.c, the same values) instead of
+ *   A_h / A_h_next, and h^(f(x, u_p)) once per step.
+ *   Fallbacks, as balustrade.control.approximate:
  *   (7.5) fails or leaves U      -> the (7.6) minimizer       BAL_APPROX_MAX_DECREASE
  *   (7.5) only BAL_FEASIBLE      -> its point (in U, meets the decrease: safe)
  *                                                             BAL_APPROX_FILTER_FEASIBLE
@@ -23,8 +26,14 @@
 #error "bal/approx.h: define BAL_STEP (the step's symbol prefix) first"
 #endif
 
-/* work vectors shared by A_h and A_h_next */
+/* work vectors shared by A_h and A_h_next (and the model A_f when A_NET: h^ is evaluated
+   from its network's weights, bal/approx_net.c) */
+#if BAL_QX(NET)
+#define BAL_APPROX_HSZ(k) \
+  BAL_MAX2(BAL_MAX2(BAL_QX(h_SZ_##k), BAL_QX(h_next_SZ_##k)), BAL_QX(f_SZ_##k))
+#else
 #define BAL_APPROX_HSZ(k) BAL_MAX2(BAL_QX(h_SZ_##k), BAL_QX(h_next_SZ_##k))
+#endif
 
 typedef struct BAL_QX(work) {
   BAL_QX(dec_work) dec;
@@ -34,11 +43,15 @@ typedef struct BAL_QX(work) {
   casadi_real u_p[BAL_QX(NU)]; /* the proposal used (non-finite entries replaced by 0) */
   int order[BAL_QX(NC)], tried[BAL_QX(NC)];
   casadi_real h_x, dh, best_v;
+  /* h^(f(x, u_p)) of this step, evaluated at most once (certification, screening of
+     clip(u_p) when it equals u_p, exact shortcut); h_up_ready = 0 until evaluated */
+  casadi_real h_up;
+  int h_up_ready;
   const casadi_real* harg[BAL_APPROX_HSZ(ARG)];
   casadi_real* hres[BAL_APPROX_HSZ(RES)];
   casadi_int hiw[BAL_APPROX_HSZ(IW) + 1];
   casadi_real hw[BAL_APPROX_HSZ(W) + 1];
-  int hmem, nmem;
+  int hmem, nmem, fmem; /* fmem: A_f's memory (A_NET only) */
   int dec_status, filter_status, certify, ready, n_replaced;
   long n_steps, n_certified, n_solved, n_fallbacks, n_proposal_feasible;
 } BAL_QX(work);
