@@ -2,13 +2,14 @@
 (2.24); when it meets every row of (2.24) with zero slack, ``h_PB = 0`` is the global
 optimum (the cost ``α_f ξ_N + Σ‖ξ_i‖`` is 0 only with every slack 0) and the solve is
 skipped: (2.23) runs with ``ξ* = 0`` (:class:`~balustrade.control.pcbf.PCBFSafetyFilter`
-``certificate_first=True``; bal/pcbf.c ``<name>_CERT_FIRST``).
+``certificate_first``, on by default since session 11; bal/pcbf.c ``<name>_CERT_FIRST``).
 
 Fast: the stable linear system of tests/test_emit_pcbf_cert.py on the ``real-time`` target
-(the certificate fires at some steps and not at others: C = Python at both) and the
-pendulum pair on fatrop (``structured-ip``, stage-ordered C); the negative control (a
-shifted plan that needs a positive slack never skips (2.24)); the option in the
-deployment spec, manifest and config header. Slow: the cart-pole closed loop C = Python,
+(the certificate fires at some steps and not at others: C = Python at both; and with the
+option off, C = Python with no skip) and the pendulum pair on fatrop (``structured-ip``,
+stage-ordered C); the negative control (a shifted plan that needs a positive slack never
+skips (2.24)); the default and the option in the deployment spec, manifest and config
+header. Slow: the cart-pole closed loop C = Python,
 and a replayed loop under valgrind."""
 
 from __future__ import annotations
@@ -245,8 +246,8 @@ def cartpole_c(tmp_path_factory):
     from balustrade.examples.cartpole import cartpole_design, cartpole_problems
 
     d = cartpole_design()
-    py = PCBFSafetyFilter(*cartpole_problems("structured-ip", design=d), d.U,
-                          certificate_first=True)
+    py = PCBFSafetyFilter(*cartpole_problems("structured-ip", design=d), d.U)  # default: on
+    assert py.certificate_first
     c = accelerate(py, build_dir=tmp_path_factory.mktemp("cfcart"), name="cfcart",
                    werror=True)
     return d, py, c
