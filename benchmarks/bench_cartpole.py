@@ -5,7 +5,8 @@
 Reported, not asserted (goals of the issue: C median <= 5 ms, worst <= 20 ms, 0 failures in
 100 steps, C = Python within 1e-6, build in seconds):
 
-* Python: median and worst step, steps with a fallback or a non-``ok`` status ("failures");
+* Python: median and worst step, steps with a fallback or a status that is not a success
+  (:func:`~balustrade.control.base.step_succeeded`: ``ok`` or ``certified``) ("failures");
 * C through ctypes (:class:`~balustrade.codegen.runtime.CPCBFSafetyFilter`), on the same
   closed loop run by the C itself: median and worst step, failures, max ``|u_C − u_Py|`` at
   the Python loop's states (C and Python interleaved state by state);
@@ -19,13 +20,15 @@ step of the same filter (:func:`~balustrade.codegen.emit_pcbf`: one call per ste
 libfatrop/libblasfeo/libipopt of the casadi wheel) at each state of the Python loop,
 interleaved: step times, fatrop iterations per solve, C = Python, source size and build
 time; ``--sqp`` adds the ``fast-sqp`` loop from Python (interleaved, its own loop);
-``--certificate-first`` adds the same pair built with ``certificate_first=True`` (Python and
-its own emitted C, its own closed loop, interleaved step by step with the default one):
-median/worst, steps whose (2.24) was skipped, failures, max ``|Δu|``/``|Δx|`` against the
-default loop and whether X is kept.
+the default pair checks the shifted-plan certificate first (``certificate_first``, the
+default since session 11); ``--no-certificate-first`` adds the same pair built with
+``certificate_first=False`` (Python and its own emitted C, its own closed loop, interleaved
+step by step with the default one): median/worst, steps whose (2.24) was skipped, failures,
+max ``|Δu|``/``|Δx|`` against the default loop and whether X is kept.
 
 :func:`run_warm_starts` (``python -m benchmarks.bench_cartpole warm [steps]``): fatrop's
-iterations per solve under warm-start rules and options (Python, interleaved).
+iterations per solve under warm-start rules and options (Python, interleaved; every
+(2.24) solved, ``certificate_first=False``, so that its iterations are measured).
 """
 
 from __future__ import annotations
@@ -38,12 +41,14 @@ import numpy as np
 
 from balustrade.codegen import CPCBFSafetyFilter, build, emit_pcbf
 from balustrade.control import PCBFSafetyFilter
+from balustrade.control.base import step_succeeded
 from balustrade.examples.cartpole import cartpole_design, cartpole_problems, cartpole_scenario
 
 
 def _failure(info: object) -> bool:
-    """A fallback or a step that is neither ``ok`` nor skipped-and-``certified``."""
-    return bool(info.fallback) or info.status not in ("ok", "certified")
+    """A fallback or a step that did not succeed (``ok``, or (2.24) skipped and
+    ``certified``: :func:`~balustrade.control.base.step_succeeded`)."""
+    return bool(info.fallback) or not step_succeeded(info.status)
 
 
 def run(quick: bool = False) -> list[dict]:
@@ -115,7 +120,7 @@ def _emit_structured(py: PCBFSafetyFilter, name: str, tmp: str
 
 
 def run_structured(steps: int = 100, with_sqp: bool = False,
-                   certificate_first: bool = False) -> list[dict]:
+                   compare_off: bool = False) -> list[dict]:
     """The closed loop of :func:`~balustrade.examples.cartpole.cartpole_scenario` on the
     ``structured-ip`` target (fatrop) from Python, and its emitted C step
     (:func:`~balustrade.codegen.emit_pcbf`, one call per step through ctypes, linked to
@@ -124,25 +129,27 @@ def run_structured(steps: int = 100, with_sqp: bool = False,
     runs the same solver from the same warm starts: its iterations are Python's),
     failures, max ``|u_C − u_Py|``, status mismatches; the C's source size and build time.
     ``with_sqp``: also the ``fast-sqp`` loop from Python, interleaved (its own loop).
-    ``certificate_first``: also the pair with ``certificate_first=True`` in Python and C
-    (its own loop, the C at the states of that Python loop), interleaved step by step."""
+    The default pair checks the shifted-plan certificate first (``certificate_first``, the
+    filter's default): ``skipped_slack_solves`` counts the steps whose (2.24) it skipped.
+    ``compare_off``: also the pair with ``certificate_first=False`` in Python and C (its own
+    loop, the C at the states of that Python loop), interleaved step by step."""
     d = cartpole_design()
     x0, proposal = cartpole_scenario()
     py = PCBFSafetyFilter(*cartpole_problems("structured-ip", design=d), d.U)
     sqp = PCBFSafetyFilter(*cartpole_problems("fast-sqp", design=d), d.U) if with_sqp \
         else None
-    cf = PCBFSafetyFilter(py.slack, py.filter, d.U, certificate_first=True) \
-        if certificate_first else None
+    off_py = PCBFSafetyFilter(py.slack, py.filter, d.U, certificate_first=False) \
+        if compare_off else None
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         c, emit_s, build_s, size = _emit_structured(py, "cartpole_st", tmp)
-        c_cf = _emit_structured(cf, "cartpole_cf", tmp)[0] if cf is not None else None
-        x_cf = x0.copy()
-        cf_rec: dict[str, list] = {"py": [], "c": [], "skipped": [], "fail_py": [],
+        c_off = _emit_structured(off_py, "cartpole_off", tmp)[0] if off_py is not None else None
+        x_off = x0.copy()
+        off_rec: dict[str, list] = {"py": [], "c": [], "skipped": [], "fail_py": [],
                                    "fail_c": [], "du": [], "dx": [], "du_c": [], "its": []}
-        inside_cf = True
+        inside_off = True
         x, x_sqp = x0.copy(), x0.copy()
-        t_py, t_c, t_sqp, its = [], [], [], []
+        t_py, t_c, t_sqp, its, skipped = [], [], [], [], 0
         fail_py = fail_c = fail_sqp = mismatch = 0
         diff, inside, inside_sqp = 0.0, True, True
         for k in range(steps):
@@ -154,6 +161,7 @@ def run_structured(steps: int = 100, with_sqp: bool = False,
             u_c, info_c = c.step(x, u_p)
             t_c.append(time.perf_counter() - start)
             its.append(_iterations(info))
+            skipped += bool(info.values.get("certificate_first"))
             fail_py += _failure(info)
             fail_c += _failure(info_c)
             mismatch += (info.status, info.fallback) != (info_c.status, info_c.fallback)
@@ -167,28 +175,29 @@ def run_structured(steps: int = 100, with_sqp: bool = False,
                 fail_sqp += _failure(info_s)
                 x_sqp = d.system.step(x_sqp, u_s)
                 inside_sqp = inside_sqp and bool(np.all(np.abs(x_sqp) <= d.X.h[:4] + 1e-9))
-            if cf is not None:
-                u_pc = proposal(x_cf, k)
+            if off_py is not None:
+                u_pc = proposal(x_off, k)
                 start = time.perf_counter()
-                u_f, info_f = cf.step(x_cf, u_pc)
-                cf_rec["py"].append(time.perf_counter() - start)
+                u_f, info_f = off_py.step(x_off, u_pc)
+                off_rec["py"].append(time.perf_counter() - start)
                 start = time.perf_counter()
-                u_fc, info_fc = c_cf.step(x_cf, u_pc)
-                cf_rec["c"].append(time.perf_counter() - start)
-                cf_rec["skipped"].append(bool(info_f.values.get("certificate_first")))
-                cf_rec["fail_py"].append(_failure(info_f))
-                cf_rec["fail_c"].append(_failure(info_fc) or (info_f.status, info_f.fallback)
+                u_fc, info_fc = c_off.step(x_off, u_pc)
+                off_rec["c"].append(time.perf_counter() - start)
+                off_rec["skipped"].append(bool(info_f.values.get("certificate_first")))
+                off_rec["fail_py"].append(_failure(info_f))
+                off_rec["fail_c"].append(_failure(info_fc) or (info_f.status, info_f.fallback)
                                         != (info_fc.status, info_fc.fallback))
-                cf_rec["du"].append(float(np.max(np.abs(u_f - u))))
-                cf_rec["du_c"].append(float(np.max(np.abs(u_fc - u_f))))
-                cf_rec["its"].append(_iterations(info_f))
-                x_cf = d.system.step(x_cf, u_f)
-                cf_rec["dx"].append(float(np.max(np.abs(x_cf - x))))
-                inside_cf = inside_cf and bool(np.all(np.abs(x_cf) <= d.X.h[:4] + 1e-9))
+                off_rec["du"].append(float(np.max(np.abs(u_f - u))))
+                off_rec["du_c"].append(float(np.max(np.abs(u_fc - u_f))))
+                off_rec["its"].append(_iterations(info_f))
+                x_off = d.system.step(x_off, u_f)
+                off_rec["dx"].append(float(np.max(np.abs(x_off - x))))
+                inside_off = inside_off and bool(np.all(np.abs(x_off) <= d.X.h[:4] + 1e-9))
     its = np.asarray(its)
     row = _loop_row(f"cartpole pcbf step, Python structured-ip ({steps} steps)", t_py,
                     fail_py, inside)
-    row.update(slack_iters_median=float(np.median(its[:, 0])), slack_iters_max=int(its[:, 0].max()),
+    row.update(skipped_slack_solves=skipped,
+               slack_iters_median=float(np.median(its[:, 0])), slack_iters_max=int(its[:, 0].max()),
                filter_iters_median=float(np.median(its[:, 1])),
                filter_iters_max=int(its[:, 1].max()))
     rows.append(row)
@@ -199,19 +208,19 @@ def run_structured(steps: int = 100, with_sqp: bool = False,
     if sqp is not None:
         rows.append(_loop_row(f"cartpole pcbf step, Python fast-sqp ({steps} steps)", t_sqp,
                               fail_sqp, inside_sqp))
-    if cf is not None:
-        its_cf = np.asarray(cf_rec["its"])
-        common = {"skipped_slack_solves": int(sum(cf_rec["skipped"])),
-                  "max_du_vs_default_loop": float(f"{max(cf_rec['du']):.3g}"),
-                  "max_dx_vs_default_loop": float(f"{max(cf_rec['dx']):.3g}")}
-        row = _loop_row(f"cartpole pcbf step, Python structured-ip certificate_first "
-                        f"({steps} steps)", cf_rec["py"], sum(cf_rec["fail_py"]), inside_cf)
-        row.update(common, slack_iters_median=float(np.median(its_cf[:, 0])),
-                   filter_iters_median=float(np.median(its_cf[:, 1])))
+    if off_py is not None:
+        its_off = np.asarray(off_rec["its"])
+        common = {"skipped_slack_solves": int(sum(off_rec["skipped"])),
+                  "max_du_vs_default_loop": float(f"{max(off_rec['du']):.3g}"),
+                  "max_dx_vs_default_loop": float(f"{max(off_rec['dx']):.3g}")}
+        row = _loop_row(f"cartpole pcbf step, Python structured-ip certificate_first=False "
+                        f"({steps} steps)", off_rec["py"], sum(off_rec["fail_py"]), inside_off)
+        row.update(common, slack_iters_median=float(np.median(its_off[:, 0])),
+                   filter_iters_median=float(np.median(its_off[:, 1])))
         rows.append(row)
-        row = _loop_row(f"cartpole pcbf step, C structured-ip certificate_first via ctypes "
-                        f"({steps} steps)", cf_rec["c"], sum(cf_rec["fail_c"]), inside_cf)
-        row.update(common, max_du_vs_python=float(f"{max(cf_rec['du_c']):.3g}"))
+        row = _loop_row(f"cartpole pcbf step, C structured-ip certificate_first=False via ctypes "
+                        f"({steps} steps)", off_rec["c"], sum(off_rec["fail_c"]), inside_off)
+        row.update(common, max_du_vs_python=float(f"{max(off_rec['du_c']):.3g}"))
         rows.append(row)
     rows.append({"name": "cartpole pcbf structured-ip C module", "emit_s": round(emit_s, 1),
                  "build_s": round(build_s, 1), "source_bytes": size,
@@ -254,14 +263,15 @@ def run_warm_starts(steps: int = 40) -> list[dict]:
     d = cartpole_design()
     x0, proposal = cartpole_scenario()
     problems = cartpole_problems("structured-ip", design=d)
-    loops = {"last solution (default)": PCBFSafetyFilter(*problems, d.U),
-             "shifted plan": PCBFSafetyFilter(*problems, d.U, warm_start="shifted"),
-             "cold": _ColdStarts(*problems, d.U)}
+    off = {"certificate_first": False}  # every (2.24) solved: its iterations are measured
+    loops = {"last solution (default)": PCBFSafetyFilter(*problems, d.U, **off),
+             "shifted plan": PCBFSafetyFilter(*problems, d.U, warm_start="shifted", **off),
+             "cold": _ColdStarts(*problems, d.U, **off)}
     base = {"print_level": 0, "max_iter": 300}
     for label, extra in WARM_VARIANTS.items():
         target = Target("casadi", "fatrop", {"fatrop": {**base, **extra}},
                         retries=(("fatrop", {"fatrop": base}), ("ipopt", {})), name=label)
-        loops[label] = PCBFSafetyFilter(*cartpole_problems(target, design=d), d.U)
+        loops[label] = PCBFSafetyFilter(*cartpole_problems(target, design=d), d.U, **off)
     state = {k: x0.copy() for k in loops}
     rec: dict[str, list] = {k: [] for k in loops}
     for k in range(steps):
@@ -296,7 +306,7 @@ if __name__ == "__main__":  # pragma: no cover
     steps = next((int(a) for a in args if a.isdigit()), 100)
     if "structured" in args:
         rows = run_structured(steps, with_sqp="--sqp" in args,
-                              certificate_first="--certificate-first" in args)
+                              compare_off="--no-certificate-first" in args)
     elif "warm" in args:
         rows = run_warm_starts(next((int(a) for a in args if a.isdigit()), 40))
     else:

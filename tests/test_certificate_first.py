@@ -2,13 +2,14 @@
 (2.24); when it meets every row of (2.24) with zero slack, ``h_PB = 0`` is the global
 optimum (the cost ``α_f ξ_N + Σ‖ξ_i‖`` is 0 only with every slack 0) and the solve is
 skipped: (2.23) runs with ``ξ* = 0`` (:class:`~balustrade.control.pcbf.PCBFSafetyFilter`
-``certificate_first=True``; bal/pcbf.c ``<name>_CERT_FIRST``).
+``certificate_first``, on by default since session 11; bal/pcbf.c ``<name>_CERT_FIRST``).
 
 Fast: the stable linear system of tests/test_emit_pcbf_cert.py on the ``real-time`` target
-(the certificate fires at some steps and not at others: C = Python at both) and the
-pendulum pair on fatrop (``structured-ip``, stage-ordered C); the negative control (a
-shifted plan that needs a positive slack never skips (2.24)); the option in the
-deployment spec, manifest and config header. Slow: the cart-pole closed loop C = Python,
+(the certificate fires at some steps and not at others: C = Python at both; and with the
+option off, C = Python with no skip) and the pendulum pair on fatrop (``structured-ip``,
+stage-ordered C); the negative control (a shifted plan that needs a positive slack never
+skips (2.24)); the default and the option in the deployment spec, manifest and config
+header. Slow: the cart-pole closed loop C = Python,
 and a replayed loop under valgrind."""
 
 from __future__ import annotations
@@ -38,21 +39,26 @@ STARTS = ([0.5, -1.0], [-0.8, 0.6])
 STEPS = 40
 
 
-def _linear(first: bool = True) -> tuple[LinearSystem, PCBFSafetyFilter]:
+def _option(first: bool | None) -> dict:
+    """``certificate_first`` as given, or not passed at all (``None``: the default)."""
+    return {} if first is None else {"certificate_first": first}
+
+
+def _linear(first: bool | None = None) -> tuple[LinearSystem, PCBFSafetyFilter]:
     system = LinearSystem(A, B, name="stable2")
     X, U = Box([-1.0, -1.5], [1.0, 1.5]), Box([-2.0], [2.0])
     ctl = PCBFSafetyFilter.build(system, X, U, lambda x: x.T @ P @ x - LEVEL, N,
                                  1e-3 * np.arange(N), target="real-time")
-    return system, PCBFSafetyFilter(ctl.slack, ctl.filter, U, certificate_first=first)
+    return system, PCBFSafetyFilter(ctl.slack, ctl.filter, U, **_option(first))
 
 
-def _pendulum(first: bool = True) -> tuple[object, PCBFSafetyFilter]:
+def _pendulum(first: bool | None = None) -> tuple[object, PCBFSafetyFilter]:
     system, s = pendulum(), pendulum_setup()
     args = (system, s.X, s.U, pendulum_terminal_cbf(), s.N, s.deltas)
     slack = compile(pcbf_slack_problem(*args, alpha_f=s.alpha_f, slack_norm=1),
                     "structured-ip")
     filt = compile(pcbf_filter_problem(*args), "structured-ip")
-    return system, PCBFSafetyFilter(slack, filt, s.U, certificate_first=first)
+    return system, PCBFSafetyFilter(slack, filt, s.U, **_option(first))
 
 
 def _loops(system, ctl, low: float, high: float, shift: float, seed: int, steps: int):
@@ -116,11 +122,23 @@ def linear_c(tmp_path_factory):
 
 
 def test_option_needs_the_certificate():
-    _, ctl = _linear()
+    """On by default (session 11, issue #14 "defaults must be right") wherever the
+    certificate is; off by default without it (and then the filter runs as before: no
+    step skips (2.24)); asked for explicitly without it, refused."""
+    system, ctl = _linear()
     with pytest.raises(BalustradeError, match="shifted_certificate"):
         PCBFSafetyFilter(ctl.slack, ctl.filter, ctl.U, shifted_certificate=False,
                          certificate_first=True)
-    assert PCBFSafetyFilter(ctl.slack, ctl.filter, ctl.U).certificate_first is False
+    assert PCBFSafetyFilter(ctl.slack, ctl.filter, ctl.U).certificate_first is True
+    assert PCBFSafetyFilter.build(system, Box([-1.0, -1.5], [1.0, 1.5]), ctl.U,
+                                  lambda x: x.T @ P @ x - LEVEL, N, 1e-3 * np.arange(N),
+                                  target="real-time").certificate_first is True
+    bare = PCBFSafetyFilter(ctl.slack, ctl.filter, ctl.U, shifted_certificate=False)
+    assert bare.certificate_first is False
+    assert bare.deployment_spec().certificate_first is False
+    runs = _loops(system, bare, -3.0, 3.0, 1.5, 7, 15)
+    assert not any(_first(t) for t in runs)
+    assert not any(i.status.startswith("certified") for t in runs for i in t.infos)
 
 
 def test_spec_manifest_and_config_carry_the_option(linear_c, tmp_path):
@@ -149,6 +167,24 @@ def test_linear_c_equals_python_where_it_fires_and_where_not(linear_c):
     assert fired >= 5 and solved >= 2, (fired, solved)
     for t in runs_py:
         _skipped_steps_are_reported_certified(t)
+
+
+def test_linear_c_equals_python_with_the_option_off(tmp_path):
+    """``certificate_first=False`` (explicit, no longer the default): the same loops as
+    above, every (2.24) solved in C and in Python, the same statuses (``"ok"``, never
+    ``"certified"``), values and inputs. Fails if the off path skips anywhere or C and
+    Python part."""
+    from balustrade.codegen import CPCBFSafetyFilter, build, emit_pcbf
+
+    system, off = _linear(first=False)
+    emitted = emit_pcbf(off, "cfoff", tmp_path)
+    c_off = CPCBFSafetyFilter(build(tmp_path, emitted.name, werror=True))
+    assert not c_off.certificate_first
+    runs_py = _loops(system, off, -3.0, 3.0, 1.5, 7, STEPS)
+    runs_c = _loops(system, c_off, -3.0, 3.0, 1.5, 7, STEPS)
+    assert _same_loops(runs_py, runs_c) == 0
+    statuses = {i.status for t in runs_py for i in t.infos}
+    assert "ok" in statuses and not any(st.startswith("certified") for st in statuses)
 
 
 def test_skip_only_when_the_candidate_meets_every_row():
@@ -210,8 +246,8 @@ def cartpole_c(tmp_path_factory):
     from balustrade.examples.cartpole import cartpole_design, cartpole_problems
 
     d = cartpole_design()
-    py = PCBFSafetyFilter(*cartpole_problems("structured-ip", design=d), d.U,
-                          certificate_first=True)
+    py = PCBFSafetyFilter(*cartpole_problems("structured-ip", design=d), d.U)  # default: on
+    assert py.certificate_first
     c = accelerate(py, build_dir=tmp_path_factory.mktemp("cfcart"), name="cfcart",
                    werror=True)
     return d, py, c

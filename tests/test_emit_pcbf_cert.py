@@ -33,9 +33,10 @@ def _controller(certificate: bool = True) -> tuple[LinearSystem, PCBFSafetyFilte
     X, U = Box([-1.0, -1.5], [1.0, 1.5]), Box([-2.0], [2.0])
     ctl = PCBFSafetyFilter.build(system, X, U, lambda x: x.T @ P @ x - LEVEL, N,
                                        1e-3 * np.arange(N), target="real-time")
-    if not certificate:
-        ctl = PCBFSafetyFilter(ctl.slack, ctl.filter, U,
-                                     shifted_certificate=False)
+    # the certificate checked after (2.24) (this file's subject), not before it as by
+    # default (certificate_first: tests/test_certificate_first.py)
+    ctl = PCBFSafetyFilter(ctl.slack, ctl.filter, U, shifted_certificate=certificate,
+                           certificate_first=False)
     return system, ctl
 
 

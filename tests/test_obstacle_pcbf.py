@@ -52,10 +52,14 @@ class LocalOptimum:
                         sol.solve_time, sol.iterations, sol.backend, sol.solver, p=sol.p)
 
 
-def _two_steps(car, certificate: bool, spoil: bool | str = True):
+def _two_steps(car, certificate: bool, spoil: bool | str = True, first: bool = False):
+    """Two steps, the second on the spoilt (2.24); ``first``: ``certificate_first`` (the
+    default; off here unless asked, so that (2.24) is solved and the certificate checked
+    after it, the path these tests are about)."""
     system, s, slack, filt = car
     spoilt = LocalOptimum(slack)
-    pcbf = PCBFSafetyFilter(spoilt, filt, s.U, shifted_certificate=certificate)
+    pcbf = PCBFSafetyFilter(spoilt, filt, s.U, shifted_certificate=certificate,
+                            certificate_first=first and certificate)
     u0, info0 = pcbf.step(X0, FULL_THROTTLE)
     assert info0.status == "ok" and info0.values["h_PB"] <= 1e-9   # X0 is in S_PB
     x1 = system.step(X0, u0)
@@ -89,6 +93,23 @@ def test_failed_2_24_with_a_certified_shift_runs_the_filter(car):
     assert info.values["h_PB"] == 0.0 and info.fallback is None and info.status == "ok"
     _, _, old = _two_steps(car, certificate=False, spoil="failed")
     assert old.fallback == "shifted_plan"
+
+
+def test_default_skips_the_spoilt_2_24_on_the_certificate(car):
+    """With the default ``certificate_first`` the shifted plan is checked before (2.24):
+    the local optimum (or failure) is never solved for, the step is ``"certified"`` with
+    ``h_PB = 0`` and its (2.23) plan stays outside the discs. Fails if the default does not
+    check the certificate first."""
+    system, s, slack, filt = car
+    assert PCBFSafetyFilter(slack, filt, s.U).certificate_first
+    for spoil in (True, "failed"):
+        _, _, info = _two_steps(car, certificate=True, spoil=spoil, first=True)
+        assert info.values["certificate_first"] == 1.0 and info.values["h_PB"] == 0.0
+        assert info.status == "certified" and info.fallback is None
+        assert "shifted_certificate" not in info.values
+        assert info.solutions["slack"].solver == "shifted_plan"
+        plan = np.asarray(info.solutions["filter"]["x"])
+        assert signed_distance(plan.T).min() >= 0.0
 
 
 def test_certificate_is_exact_and_refuses_what_it_cannot_prove(car):

@@ -635,9 +635,10 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     :meth:`~balustrade.control.shifted.ShiftedCertificate.function`) and checked by the
     step as the Python filter checks it; ``manifest["shifted_certificate"]`` says whether
     it was emitted (not for a controller built with ``shifted_certificate=False``).
-    With ``certificate_first`` (the controller's or the spec's) the step checks it before
-    (2.24) and skips the solve when it certifies ``h_PB = 0`` (``<name>_CERT_FIRST``,
-    ``manifest["certificate_first"]``), as the Python filter does.
+    With ``certificate_first`` (the controller's or the spec's; on by default wherever the
+    certificate is emitted) the step checks it before (2.24) and skips the solve when it
+    certifies ``h_PB = 0`` (``<name>_CERT_FIRST``, ``manifest["certificate_first"]``), as
+    the Python filter does; without the certificate it is off.
     """
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)

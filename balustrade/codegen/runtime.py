@@ -418,7 +418,9 @@ class CPCBFSafetyFilter(_OwnsWork):
                                if self.shifted_certificate else None)
         self._h_solver = self._lib.fn(f"{Q}_h_solver", ctypes.c_double, [vp]) \
             if self.shifted_certificate else None
-        # certificate first: (2.24) skipped when the shifted plan certifies h_PB = 0
+        # certificate first: (2.24) skipped when the shifted plan certifies h_PB = 0 (on by
+        # default in emit_pcbf, which always records it; a manifest without the key comes
+        # from a library emitted before the option, whose C cannot skip (2.24))
         self.certificate_first = bool(m.get("certificate_first", False))
         self._hot_first = ((self._lib.raw(f"{Q}_cert_first", ctypes.c_int), (wk,))
                            if self.certificate_first else None)

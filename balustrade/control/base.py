@@ -48,6 +48,21 @@ class StepInfo:
 TRUNCATED = "truncated"
 
 
+#: the status words of a step that did what its algorithm prescribes on solves that ended
+#: ``optimal`` (or on none): ``"ok"``, and ``"certified"`` — the PCBF filter's (2.24) skipped
+#: on the shifted-plan certificate (``certificate_first``, a certified ``h_PB = 0``), or
+#: Algorithm 7.5's certification shortcut (line 4). Any other word names a solve that did
+#: not end optimal, a fallback or bad data.
+SUCCEEDED = frozenset({"ok", "certified"})
+
+
+def step_succeeded(status: str) -> bool:
+    """Whether a step with this ``StepInfo.status`` succeeded (:data:`SUCCEEDED`): what
+    failure counters of closed loops count as a success; counters of solved (2.24)
+    problems separate ``"certified"`` (nothing was solved) from ``"ok"``."""
+    return status in SUCCEEDED
+
+
 def outcome(sol: Solution) -> str:
     """How a solve ended, as a controller records it: :data:`TRUNCATED` for a solve stopped
     by its budget, else its status."""

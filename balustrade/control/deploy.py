@@ -42,8 +42,9 @@ class PCBFDeployment:
     #: (:mod:`balustrade.control.shifted`; the filter's ``shifted_certificate``)
     shifted_certificate: bool = True
     #: whether the step checks that certificate before (2.24) and skips the solve when it
-    #: certifies ``h_PB = 0`` (the filter's ``certificate_first``; needs the certificate)
-    certificate_first: bool = False
+    #: certifies ``h_PB = 0`` (the filter's ``certificate_first``; on by default as in the
+    #: filter; without the certificate the emitter turns it off)
+    certificate_first: bool = True
 
 
 @dataclass(frozen=True)

@@ -69,8 +69,9 @@ reports ``h_PB > eps``, that candidate is checked exactly and, if it qualifies, 
 (2.24) point of the step (``values["shifted_certificate"] = 1``, the solver's cost in
 ``values["h_PB_solver"]``).
 
-Certificate first (``certificate_first=True``, issue #14): the same candidate is checked
-*before* (2.24) at every step with a plan. The cost of (2.24), ``α_f ξ_N + Σ_i ‖ξ_i‖`` with
+Certificate first (``certificate_first``, on by default since session 11 whenever the
+shifted-plan certificate is, issue #14): the same candidate is checked *before* (2.24) at
+every step with a plan. The cost of (2.24), ``α_f ξ_N + Σ_i ‖ξ_i‖`` with
 ``α_f > 0`` and ``ξ >= 0``, is 0 only with every slack 0, and the candidate (slacks set to
 0) meets every row of (2.24) within the certificate's tolerance: ``h_PB(x) = 0`` is then the
 global optimum (the lower bound) and ``ξ* = 0``, so the (2.24) solve is skipped exactly.
@@ -116,7 +117,7 @@ class PCBFSafetyFilter:
 
     def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6,
                  warm_start: str = "last", shifted_certificate: bool = True,
-                 certificate_first: bool = False):
+                 certificate_first: bool | None = None):
         """``warm_start``: ``"last"`` starts (2.24) from its last accepted solution;
         ``"shifted"`` from the last (2.23) plan shifted by one step (states ``x_1 … x_N, x_N``
         with the first replaced by the measured state, inputs ``u_1 … u_{N−1}, 0``) — the
@@ -132,9 +133,12 @@ class PCBFSafetyFilter:
         holds on nonconvex problems too. Recorded as ``values["shifted_certificate"] = 1``
         and the solver's cost ``values["h_PB_solver"]``.
 
-        ``certificate_first`` (default off): check that candidate *before* (2.24) and skip
-        the solve when it certifies ``h_PB = 0`` (module docstring, "Certificate first");
-        needs ``shifted_certificate``."""
+        ``certificate_first`` (default: on whenever ``shifted_certificate`` is, issue #14
+        "defaults must be right"): check that candidate *before* (2.24) and skip the solve
+        when it certifies ``h_PB = 0`` (module docstring, "Certificate first"); such a step
+        reports the status ``"certified"``, a successful step
+        (:func:`~balustrade.control.base.step_succeeded`). ``False`` solves (2.24) at
+        every step; ``True`` needs ``shifted_certificate``."""
         check_instance(U, Set, "PCBFSafetyFilter: U")
         if certificate_first and not shifted_certificate:
             raise BalustradeError("PCBFSafetyFilter: certificate_first=True checks the "
@@ -154,7 +158,8 @@ class PCBFSafetyFilter:
         self.nu = U.dim
         self.certificate = ShiftedCertificate(slack, ZERO_TOL) if shifted_certificate \
             else None
-        self.certificate_first = bool(certificate_first)
+        self.certificate_first = bool(shifted_certificate) if certificate_first is None \
+            else bool(certificate_first)
         self.reset()
 
     @classmethod

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from balustrade.control.base import step_succeeded
 from balustrade.control.pcbf import PCBFSafetyFilter
 from balustrade.control.robust import RobustPCBFSafetyFilter
 from balustrade.design.rpi import ellipsoidal_rpi
@@ -85,7 +86,7 @@ def run_case(controller, system, x0: np.ndarray, w: np.ndarray, steps: int,
         fallbacks.append(info.fallback)
         x = system.step(x, u, w)
         xs.append(x)
-        streak = streak + 1 if info.status != "ok" else 0
+        streak = streak + 1 if not step_succeeded(info.status) else 0
         if not np.all(np.isfinite(x)) or np.max(np.abs(x)) > DIVERGED:
             diverged = True
             break
@@ -98,7 +99,7 @@ def run_case(controller, system, x0: np.ndarray, w: np.ndarray, steps: int,
     return {"states": X, "h": np.array(hs), "diverged": diverged, "stopped_on_failures": failed,
             "max_violation": float(viol.max()), "final_violation": float(tail.max()),
             "final_h": float(hs[-1]) if hs else float("nan"),
-            "solver_failures": int(sum(st != "ok" for st in statuses)),
+            "solver_failures": int(sum(not step_succeeded(st) for st in statuses)),
             "fallbacks": int(sum(f is not None for f in fallbacks)),
             "median_step_s": float(np.median(times)) if times else float("nan")}
 

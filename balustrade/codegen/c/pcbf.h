@@ -34,8 +34,8 @@
  * (2.24) by more than Q_CERT_TOL and its cost is <= Q_ZERO_TOL, it replaces the solver's
  * point: h_PB = 0 (lower bound), (2.24) is warm-started from its primal and (2.23) from its
  * states and inputs (Q_shift_certified = 1, Q_h_solver the solver's cost or NAN).
- * Certificate first (Q_CERT_FIRST = 1, needs Q_SHIFT_CERT; PCBFSafetyFilter(
- * certificate_first=True)): with a plan, the same candidate is checked BEFORE (2.24); if it
+ * Certificate first (Q_CERT_FIRST = 1, needs Q_SHIFT_CERT; PCBFSafetyFilter's
+ * certificate_first, on by default wherever the certificate is emitted): with a plan, the same candidate is checked BEFORE (2.24); if it
  * qualifies, (2.24) is not solved (Q_solve_status 0 stays BAL_NOT_RUN): h_PB = 0, xi* = 0
  * ((2.24)'s cost is 0 only with every slack 0), (2.23) runs from its usual warm start, the
  * next (2.24) starts from the candidate's primal (Q_cert_first = 1; status BAL_PCBF_OK or a
