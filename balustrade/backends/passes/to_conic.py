@@ -111,7 +111,9 @@ class ConicProgram:
         return any(kind == "soc" for kind, _ in self.cones)
 
     def q(self, p: np.ndarray) -> np.ndarray:
-        return self.q0 + self.Q @ p if self.Q.shape[1] else self.q0.copy()
+        # no nonzero in Q (e.g. the ℓ1 costs of the rendezvous): q0 itself, without a
+        # sparse product of zeros (~30 µs per solve)
+        return self.q0 + self.Q @ p if self.Q.nnz else self.q0.copy()
 
     def A_data(self, p: np.ndarray) -> np.ndarray | None:
         """The values of ``A(p)`` on the pattern of :attr:`A` (``None`` if constant)."""
