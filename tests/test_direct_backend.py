@@ -90,6 +90,29 @@ def test_history_independence(pair):
     assert fresh.objective == again.objective and fresh.iterations == again.iterations
 
 
+def test_parametric_vectors_equal_the_full_products(pair):
+    """``b(p)`` multiplies only the rows of ``B`` with entries and ``q(p)`` skips an empty
+    ``Q``: both equal the full ``b0 + B p + D φ(p)`` and ``q0 + Q p`` exactly, and repeated
+    calls neither share nor change their results."""
+    ocp, compiled = pair["filter"]
+    prog = compiled["fast-convex"].program
+    assert 0 < np.count_nonzero(np.diff(prog.B.tocsr().indptr)) < prog.B.shape[0]
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        p = rng.normal(size=prog.B.shape[1])
+        full = prog.b0 + prog.B @ p
+        if prog.derived:
+            full = full + prog.D @ np.array([float(f(p)) for f in prog.derived])
+        got = prog.b(p)
+        np.testing.assert_array_equal(got, full)
+        got[:] = np.nan                      # a result of b(p) is the caller's to change
+        np.testing.assert_array_equal(prog.b(p), full)
+        np.testing.assert_array_equal(prog.q(p), prog.q0 + prog.Q @ p)
+    q = prog.q(p)
+    q[:] = np.nan
+    assert np.all(np.isfinite(prog.q0))
+
+
 # -- the rendezvous (§6.5), small N: Algorithm 5.2 (5.15)/(5.16) and Algorithm 6.4 (6.15) ---
 
 @pytest.fixture(scope="module")
