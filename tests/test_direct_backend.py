@@ -90,6 +90,29 @@ def test_history_independence(pair):
     assert fresh.objective == again.objective and fresh.iterations == again.iterations
 
 
+def test_parametric_vectors_equal_the_full_products(pair):
+    """``b(p)`` multiplies only the rows of ``B`` with entries and ``q(p)`` skips an empty
+    ``Q``: both equal the full ``b0 + B p + D φ(p)`` and ``q0 + Q p`` exactly, and repeated
+    calls neither share nor change their results."""
+    ocp, compiled = pair["filter"]
+    prog = compiled["fast-convex"].program
+    assert 0 < np.count_nonzero(np.diff(prog.B.tocsr().indptr)) < prog.B.shape[0]
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        p = rng.normal(size=prog.B.shape[1])
+        full = prog.b0 + prog.B @ p
+        if prog.derived:
+            full = full + prog.D @ np.array([float(f(p)) for f in prog.derived])
+        got = prog.b(p)
+        np.testing.assert_array_equal(got, full)
+        got[:] = np.nan                      # a result of b(p) is the caller's to change
+        np.testing.assert_array_equal(prog.b(p), full)
+        np.testing.assert_array_equal(prog.q(p), prog.q0 + prog.Q @ p)
+    q = prog.q(p)
+    q[:] = np.nan
+    assert np.all(np.isfinite(prog.q0))
+
+
 # -- the rendezvous (§6.5), small N: Algorithm 5.2 (5.15)/(5.16) and Algorithm 6.4 (6.15) ---
 
 @pytest.fixture(scope="module")
@@ -325,6 +348,54 @@ def test_a_nonfinite_optimal_answer_is_failed_not_optimal(monkeypatch):
         sol = compiled.solve()
         assert sol.status == "failed" and "not finite" in sol.message, (field, sol.summary())
         assert np.all(np.isnan(sol.w)) and np.isnan(sol.objective)
+
+
+def test_nonfinite_multipliers_as_a_list_are_caught_without_an_array():
+    """Clarabel's multipliers arrive as a Python list and are checked by their sum
+    (:func:`~balustrade.backends.direct_engines.all_finite`): a NaN, an infinity or opposite
+    infinities anywhere make a "solved" verdict ``failed``; a sum that overflows from finite
+    entries is checked entry by entry and passes; the list becomes an array when read."""
+    from balustrade.backends.direct_engines import RawResult, all_finite
+    from balustrade.backends.solution import Status
+
+    y = np.zeros(3)
+    for bad in ([1.0, np.nan, 2.0], [np.inf, 1.0], [1.0, np.inf, -np.inf], [-np.inf]):
+        r = RawResult(Status.OPTIMAL, "solved", y, list(bad), 4)
+        assert r.status == Status.FAILED and "not finite" in r.words, bad
+        assert not all_finite(bad) and not all_finite(np.array(bad))
+    huge = [1e308, 1e308, -1e308]          # finite entries, overflowing sum
+    assert all_finite(huge)
+    r = RawResult(Status.OPTIMAL, "solved", y, huge, 4)
+    assert r.status == Status.OPTIMAL
+    assert isinstance(r.z, np.ndarray) and r.z.tolist() == huge
+    assert all_finite([]) and not all_finite(None)
+
+
+def test_block_duals_are_computed_on_read_and_copy_as_dicts():
+    """The multipliers per block of a direct solve are computed when first read; they equal
+    the eager computation, and a copy or a pickle of them is a plain dict."""
+    import copy
+    import pickle
+
+    from balustrade.backends.direct_backend import BlockDuals
+
+    ocp = OCP(name="box")
+    u = ocp.variable("u", 2, lb=-1.0, ub=1.0)
+    ocp.le(u[0] + u[1] - 0.5, 0, name="sum")
+    ocp.minimize(u[0] ** 2 + (u[1] - 3.0) ** 2)
+    compiled = compile(ocp, "fast-convex-conic")
+    sol = compiled.solve()
+    assert isinstance(sol.dual, BlockDuals) and sol.dual._blocks is None  # not yet read
+    raw = compiled.engine.run(compiled.program.q(np.zeros(0)), compiled.program.b(np.zeros(0)))
+    eager = compiled._duals(compiled.program, raw.z)
+    assert set(sol.dual) == set(eager) and len(sol.dual) == len(eager)
+    for name, values in eager.items():
+        np.testing.assert_array_equal(sol.dual[name], values)
+    assert sol.dual["sum"][0] > 0.1
+    for twin in (copy.copy(sol.dual), copy.deepcopy(sol.dual), pickle.loads(pickle.dumps(sol))
+                 .dual):
+        assert type(twin) is dict and set(twin) == set(eager)
+        np.testing.assert_array_equal(twin["sum"], eager["sum"])
 
 
 @pytest.mark.parametrize("target", ["fast-convex-qp", "fast-convex-conic"])
