@@ -223,3 +223,16 @@ def test_s_from_l1_equals_s_constants_for_a_parallelotope():
     np.testing.assert_allclose(_s_from_l1(ctrl._s_l1, V),
                                s_constants(d["X0"], d["system"], d["K"], V),
                                rtol=0, atol=1e-13)
+
+
+def test_split_benchmark_parts_and_baseline():
+    """``benchmarks/rapsf_split.py`` (the per-part profile in docs/adaptive.md): the timers
+    nest as documented (every part found by subtraction is >= 0, the QP solve is inside the
+    step) and the step's inputs equal the rebuilt cvxpy transcription's."""
+    from benchmarks.rapsf_split import PARTS, split
+
+    r = split(3, 6)
+    assert r["steps"] == 5 and r["fallbacks"] == 0
+    assert 0 < r["mean"]["QP solve"] < r["mean"]["step"] and r["baseline_median"] > 0
+    assert all(r["mean"][p] >= -1e-6 for p in PARTS), r["mean"]
+    assert r["max_du_vs_baseline"] <= 1e-5
