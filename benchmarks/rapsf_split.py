@@ -71,9 +71,9 @@ def split(masses: int, steps: int) -> dict:
             compiled.engine.run = _timed(compiled.engine.run, acc, "QP solve")
         per: dict[str, list[float]] = {k: [] for k in ["step", *PARTS]}
         for k in range(1, steps):
+            base(k)                 # its own BoxUpdate's LPs are not the controller's
             acc.clear()
             loop(k)
-            base(k)
             g = acc.get
             acc["estimator, rest"] = g("estimator", 0.0) - g("estimator LPs", 0.0)
             acc["nesting check"] = g("theta update", 0.0) - g("estimator", 0.0) \
