@@ -202,3 +202,37 @@ def test_warm_start_follows_the_rule_of_the_emitted_c(toy):
     assert warm == [False] + optimal[:-1]                # warm exactly after an optimal solve
     ctrls[True].reset()
     assert ctrls[True]._last is None
+
+
+def test_s_from_l1_equals_s_constants_for_a_parallelotope():
+    """The 8-mass design's 𝕏₀ is a parallelotope (closed-form supports ``‖aᵀT⁻¹diag(d)‖₁``):
+    ``s_jr`` of a new ``Θ_k`` comes from one tensor product (``_s_l1``), the same numbers as
+    :func:`~balustrade.problems.rapsf.s_constants`' support per row and vertex."""
+    from balustrade.control.rapsf import _s_from_l1
+    from balustrade.reproduce import msd_adaptive
+
+    d = msd_adaptive.design(8)
+    ctrl = msd_adaptive.adaptive_controller(d)
+    assert ctrl._s_affine is None and ctrl._s_l1 is not None  # 16 states: no vertex list
+    V0 = d["setup"].Theta0.vertices()
+    np.testing.assert_allclose(ctrl._s, s_constants(d["X0"], d["system"], d["K"], V0),
+                               rtol=0, atol=1e-13)
+    rng = np.random.default_rng(1)
+    lo = rng.uniform(d["setup"].Theta0.lb, d["setup"].Theta0.ub)
+    V = Box(lo, rng.uniform(lo, d["setup"].Theta0.ub)).vertices()
+    np.testing.assert_allclose(_s_from_l1(ctrl._s_l1, V),
+                               s_constants(d["X0"], d["system"], d["K"], V),
+                               rtol=0, atol=1e-13)
+
+
+def test_split_benchmark_parts_and_baseline():
+    """``benchmarks/rapsf_split.py`` (the per-part profile in docs/adaptive.md): the timers
+    nest as documented (every part found by subtraction is >= 0, the QP solve is inside the
+    step) and the step's inputs equal the rebuilt cvxpy transcription's."""
+    from benchmarks.rapsf_split import PARTS, split
+
+    r = split(3, 6)
+    assert r["steps"] == 5 and r["fallbacks"] == 0
+    assert 0 < r["mean"]["QP solve"] < r["mean"]["step"] and r["baseline_median"] > 0
+    assert all(r["mean"][p] >= -1e-6 for p in PARTS), r["mean"]
+    assert r["max_du_vs_baseline"] <= 1e-5

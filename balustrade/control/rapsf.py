@@ -149,6 +149,7 @@ class RAPSF:
         self._shared: dict[int, np.ndarray | None] = {}
         self._X0_vertices = _small_vertices(X0)
         self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
+        self._s_l1 = None if self._s_affine is not None else _s_l1(system, X0, self.K)
         self._compiled: dict = {}
         if terminal is None or terminal.H_T is None:
             self._check_default_terminal(tol)
@@ -200,11 +201,13 @@ class RAPSF:
     def _set_theta(self, Theta: Polytope) -> None:
         self.Theta = Theta
         self.vertices = np.atleast_2d(Theta.vertices())
-        if self._s_affine is None:
+        if self._s_affine is not None:
+            self._s = _s_from_affine(self._s_affine, self.vertices)
+        elif self._s_l1 is not None:
+            self._s = _s_from_l1(self._s_l1, self.vertices)
+        else:
             self._s = s_constants(self.X0, self.system, self.K, self.vertices,
                                   self._X0_vertices)
-        else:
-            self._s = _s_from_affine(self._s_affine, self.vertices)
 
     def _update_theta(self, x: np.ndarray, info: StepInfo) -> None:
         """Line 4 of Algorithm 4.1 with the nesting check of Assumption 4.2."""
@@ -434,11 +437,38 @@ def _s_affine(system: object, X0: Polytope, K: np.ndarray,
     if X0_vertices is None:
         return None
     HX = unit_polytope(X0, "rapsf")
-    A0, B0 = (np.asarray(M, dtype=float) for M in (system.A0, system.B0))
-    parts = [A0 + B0 @ K] + [np.asarray(Ai, dtype=float) + np.asarray(Bi, dtype=float) @ K
-                             for Ai, Bi in zip(system.A_list, system.B_list, strict=True)]
     V = np.asarray(X0_vertices, dtype=float).T
-    return np.stack([HX @ P @ V for P in parts])
+    return np.stack([HX @ P @ V for P in _closed_loop_parts(system, K)])
+
+
+def _closed_loop_parts(system: object, K: np.ndarray) -> list[np.ndarray]:
+    """``A_cl,0 = A₀ + B₀K`` and ``A_cl,i = A_i + B_i K``: ``A_cl(θ) = A_cl,0 + Σ θ_i A_cl,i``
+    ((4.6) is affine in θ)."""
+    A0, B0 = (np.asarray(M, dtype=float) for M in (system.A0, system.B0))
+    return [A0 + B0 @ K] + [np.asarray(Ai, dtype=float) + np.asarray(Bi, dtype=float) @ K
+                            for Ai, Bi in zip(system.A_list, system.B_list, strict=True)]
+
+
+def _s_l1(system: object, X0: Polytope, K: np.ndarray) -> np.ndarray | None:
+    """For a ``𝕏₀`` whose support is ``‖aᵀM‖₁`` (a parallelotope ``{|Tx| <= d}``,
+    ``M = T⁻¹ diag(d)``, its ``support_l1_map``): ``L[i] = H_X A_cl,i M`` stacked
+    ``(q + 1, n_X, n)``, so that ``s_jr = ‖(L[0] + Σ_i θ^j_i L[i])_r‖₁`` (SPEC §2.20) for all
+    vertices of a new ``Θ_k`` is one tensor product (:func:`_s_from_l1`) instead of
+    ``n_X · n_θ`` support calls. ``None`` for any other ``𝕏₀``."""
+    l1_map = getattr(X0, "support_l1_map", None)
+    if not callable(l1_map):
+        return None
+    M = np.asarray(l1_map(), dtype=float)
+    if M.shape != (X0.dim, X0.dim):
+        return None
+    HX = unit_polytope(X0, "rapsf")
+    return np.stack([HX @ P @ M for P in _closed_loop_parts(system, K)])
+
+
+def _s_from_l1(L: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """``s[r, j]`` for the vertices ``θ^j`` (rows) from :func:`_s_l1`'s ``L``."""
+    weights = np.column_stack([np.ones(len(vertices)), vertices])       # (n_θ, q + 1)
+    return np.abs(np.tensordot(weights, L, axes=1)).sum(axis=2).T
 
 
 def _s_from_affine(T: np.ndarray, vertices: np.ndarray) -> np.ndarray:

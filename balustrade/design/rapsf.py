@@ -224,6 +224,13 @@ class Parallelotope(Polytope):
                                   f"has dimension {self.dim}")
         return float(np.abs(a @ self.T_inv) @ self.d)
 
+    def support_l1_map(self) -> np.ndarray:
+        """``M = T⁻¹ diag(d)`` with ``support(a) = ‖aᵀM‖₁`` for every ``a`` (the closed form
+        above): a batch of supports — ``s_jr`` of SPEC §2.20 for all rows and vertices of
+        ``Θ_k`` at once — is one matrix product and an absolute sum
+        (:class:`balustrade.control.rapsf.RAPSF` reads it by this name)."""
+        return self.T_inv * self.d[None, :]
+
 
 def parallelotope_bases(system: object, K: np.ndarray, vertices: np.ndarray
                         ) -> list[np.ndarray]:
