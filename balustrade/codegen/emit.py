@@ -37,7 +37,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_vector
-from balustrade.backends.casadi_backend import CasadiCompiled
+from balustrade.backends.casadi_backend import COMPLEMENTARITY_SLACK_ROUNDING, CasadiCompiled
 from balustrade.backends.emittable import (
     STATUS_OPTIONS,
     c_libraries,
@@ -206,18 +206,25 @@ def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None,
 
 def _complementarity(c: CasadiCompiled, w: object, g: object, lam_x: object,
                      lam_g: object) -> object:
-    """``max |λ_i| · gap_i`` as :meth:`CasadiCompiled._complementarity` computes it (gap to
-    the bound the sign of ``λ_i`` points to; ``|λ_i|`` where that bound is infinite)."""
+    """``max |λ_i| · gap_i`` as :meth:`CasadiCompiled._complementarity` computes it (the
+    feasible-side slack to the bound the sign of ``λ_i`` points to, less
+    :data:`~balustrade.backends.casadi_backend.COMPLEMENTARITY_SLACK_ROUNDING` ``· (1 +
+    |bound|)``; ``|λ_i|`` where that bound is infinite; equality rows skipped)."""
     parts = [ca.DM(0)]
     for lam, val, lo, up in ((lam_x, w, c.lbx, c.ubx), (lam_g, g, c.lbg, c.ubg)):
         if not np.size(lo):
             continue
-        for bound, mult in ((np.asarray(up, dtype=float), ca.fmax(lam, 0)),
-                            (np.asarray(lo, dtype=float), ca.fmax(-lam, 0))):
+        lo_a, up_a = np.asarray(lo, dtype=float), np.asarray(up, dtype=float)
+        inequality = ca.DM((lo_a != up_a).astype(float))
+        for bound, mult, sign in ((up_a, ca.fmax(lam, 0), 1.0),
+                                  (lo_a, ca.fmax(-lam, 0), -1.0)):
             finite = np.isfinite(bound)
             mask = ca.DM(finite.astype(float))
-            gap = mask * ca.fabs(val - ca.DM(np.where(finite, bound, 0.0))) + (1 - mask)
-            parts.append(ca.mmax(mult * gap))
+            safe = np.where(finite, bound, 0.0)
+            slack = sign * (ca.DM(safe) - val)
+            rounding = ca.DM(COMPLEMENTARITY_SLACK_ROUNDING * (1.0 + np.abs(safe)))
+            gap = mask * ca.fmax(slack - rounding, 0) + (1 - mask)
+            parts.append(ca.mmax(inequality * mult * gap))
     return ca.mmax(ca.vertcat(*parts))
 
 
