@@ -6,19 +6,27 @@ Model and sets: :mod:`balustrade.models.bicycle` (SPEC §2.31, ``l = 0.09``); de
 Lyapunov function over all Jacobians and the terminal CBF robust to them (proved RPI /
 invariant for the nonlinear model in :mod:`balustrade.design.incremental_rpi`; both checks,
 sampled and worst-case NLP, are run and recorded here). SPEC §3.6 defaults: ``N = 20``,
-``α_f = 1e6``, ``Δ_i = i·1e-4``, ``ρ = 0.9``, ``x_0 = (0.4, 0, 1.1, 0)`` (the adjacent lane),
+``α_f = 1e6``, ``x_0 = (0.4, 0, 1.1, 0)`` (the adjacent lane),
 the human ``Δδ_p = 0.5 p_y + 0.5 ψ``, ``τ_p = 0``, 200 steps, ``w`` i.i.d. uniform in
 ``|w| <= 0.5°`` (seeded). Slack norm: ℓ1 for both (Algorithm 6.4's ``h̃`` is ℓ1; with the
 SPEC's Euclidean norm the robust slack problem took ~4 s per step on the SQP with many
 failed solves, so it is not used). Cost: ``‖v_0 + κ(x − z_0) − u_p‖²``.
 
+``ρ`` and ``Δ_i``: a named configuration (:data:`CONFIGS`, recorded in
+``metrics["config"]``). The default, ``converging``, is ``ρ = 0.5``, ``Δ_i = i·1e-3`` (the
+thesis' Δ of §6.5), a deviation from SPEC §3.6: with SPEC's ``ρ = 0.9``, ``Δ_i = i·1e-4``
+Algorithm 6.4 converges only asymptotically (≈ 1300 steps), so "both converge" cannot hold in
+200 steps (docs/vehicles.md, "Deviation from SPEC §3.6"). ``spec`` keeps SPEC's values:
+``python -m balustrade.reproduce.lane_change --config spec --full --out DIR``.
+
 Runs (the closed loops all use the emittable target ``robust-sqp`` for both problems, so
 Python and C run the same algorithm):
 
 * **Python**, seed 0: both controllers, Algorithm 6.4 with ``record_h_r`` (an extra (5.15)
-  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with ``ρ = 0.5`` and
-  ``ρ = 0`` (:data:`EXTRA_RHOS`); per-step wall times of the two controllers
-  interleaved step by step, on ``robust-sqp`` and on ``exact`` (the solver of the thesis);
+  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with the configuration's
+  further ``ρ`` (``extra_rhos``: 0.9 and 0 for ``converging``, 0.5 and 0 for ``spec``);
+  per-step wall times of the two controllers interleaved step by step, on ``robust-sqp``
+  and on ``exact`` (the solver of the thesis);
 * **C** (:func:`~balustrade.codegen.accelerate`): the same seed-0 closed loops compared with
   Python step by step (``C = Python``: largest input and state difference, statuses and
   fallbacks that differ — counted, not hidden; no mirror mode), then the seeded runs
@@ -96,12 +104,13 @@ CONFIGS = {
 DEFAULT_CONFIG = "converging"
 #: ρ of SPEC §3.6 (the ``spec`` configuration)
 RHO = CONFIGS["spec"].rho
-#: further ρ of Algorithm 6.4 run in Python (seed 0): with ρ = 0.9 the required decrease
-#: is a tenth of the candidate's and the lane is not reached within 200 steps; ρ = 0 (the
-#: candidate's whole decrease) reached S_r on seeds 0–2 (docs/vehicles.md, rho_sweep).
+#: further ρ of Algorithm 6.4 run in Python (seed 0) in the ``spec`` configuration: with
+#: ρ = 0.9 the required decrease is a tenth of the candidate's and the lane is not reached
+#: within 200 steps; ρ = 0 (the candidate's whole decrease) reached S_r on seeds 0–2
+#: (docs/vehicles.md, rho_sweep).
 #: Session 11 traced the rate: h̃ falls by (1 − ρ)·‖ξ*_0‖ per step while the nominal state is
 #: outside X ⊖ E, then by (1 − ρ)·(positive slacks)·(Δ_{i+1} − Δ_i); with Δ_i = i·1e-3 and
-#: ρ = 0.5 both algorithms converge within 200 steps (a decision left open, SPEC unchanged)
+#: ρ = 0.5 both algorithms converge within 200 steps (the ``converging`` configuration)
 EXTRA_RHOS = CONFIGS["spec"].extra_rhos
 STEPS = 200
 #: target of both problems of both controllers in the closed loops (emittable: C = Python)
