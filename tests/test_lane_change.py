@@ -144,6 +144,11 @@ def test_quick_reproduction(tmp_path):
     assert ms["h_tilde_non_increasing_every_multiobjective_run"]
     assert ms["X_kept_once_in_S_r_every_run"]
     assert m["c_runs"]["robust"]["runs"] == 5
+    # session 11: the default configuration (ρ = 0.5, Δ_i = i·1e-3) is recorded and both
+    # algorithms converge on the 5 seeds, the multiobjective one the gentler
+    assert saved["config"]["name"] == "converging" and saved["rho"] == 0.5
+    assert saved["delta_step"] == pytest.approx(1e-3)
+    assert ms["both_converge_every_run"] and ms["mo_peak_lat_acc_le_robust_every_seed"]
     for name in ("robust", "multiobjective"):
         assert m["python_seed0"][name]["fallbacks"] == 0
     assert (tmp_path / "fig8_1_lane_change.png").is_file()
