@@ -144,6 +144,11 @@ def test_quick_reproduction(tmp_path):
     assert ms["h_tilde_non_increasing_every_multiobjective_run"]
     assert ms["X_kept_once_in_S_r_every_run"]
     assert m["c_runs"]["robust"]["runs"] == 5
+    # session 11: the default configuration (ρ = 0.5, Δ_i = i·1e-3) is recorded and both
+    # algorithms converge on the 5 seeds, the multiobjective one the gentler
+    assert saved["config"]["name"] == "converging" and saved["rho"] == 0.5
+    assert saved["delta_step"] == pytest.approx(1e-3)
+    assert ms["both_converge_every_run"] and ms["mo_peak_lat_acc_le_robust_every_seed"]
     for name in ("robust", "multiobjective"):
         assert m["python_seed0"][name]["fallbacks"] == 0
     assert (tmp_path / "fig8_1_lane_change.png").is_file()
@@ -274,3 +279,35 @@ def test_algorithm_6_4_reaches_S_r_at_rho_0_5_with_larger_delta_steps():
     (row,) = rho_sweep(bicycle_design(delta_step=1e-3), rhos=(0.5,), seeds=(0,))
     assert row["converged"] and 0 <= row["entered_S_r_at"] < 150, row
     assert 0 <= row["first_step_in_lane"] < 80 and row["not_ok"] == 0, row
+
+
+def test_configs_are_wired(tmp_path):
+    """Session 11: the two configurations of the lane change are defined in one place and
+    reach the design, the controllers, the metrics header and the ρ-sweep CLI; the default
+    is ``converging`` (ρ = 0.5, Δ_i = i·1e-3), ``spec`` keeps SPEC §3.6's ρ = 0.9, i·1e-4."""
+    from balustrade.reproduce import lane_change as L
+
+    assert L.DEFAULT_CONFIG == "converging"
+    conv, spec = L.config("converging"), L.config("spec")
+    assert (conv.rho, conv.delta_step) == (0.5, 1e-3)
+    assert (spec.rho, spec.delta_step) == (0.9, 1e-4) and L.RHO == 0.9
+    with pytest.raises(BalustradeError, match="config"):
+        L.config("thesis")
+    for cfg in (conv, spec):
+        d = L.design(cfg)
+        assert np.allclose(d.deltas, cfg.delta_step * np.arange(d.N))
+        ctrls = L.controllers(d, rho=cfg.rho)
+        assert ctrls["multiobjective"].rho == cfg.rho
+        assert np.allclose(ctrls["robust"].deltas, d.deltas)
+        head = json.loads(json.dumps(L.header(cfg, d, 5), default=L._json))
+        assert head["config"]["name"] == cfg.name and head["rho"] == cfg.rho
+        assert head["delta_step"] == pytest.approx(cfg.delta_step)
+    # the CLI: --config sets the sweep's Δ step (unless --delta-step is given)
+    for name, step in (("converging", 1e-3), ("spec", 1e-4)):
+        out = tmp_path / name
+        assert L.main(["--rho-sweep", "--config", name, "--rhos", "0.5", "--steps", "1",
+                       "--seeds", "1", "--out", str(out)]) == 0
+        (row,) = json.loads((out / "rho_sweep.json").read_text())
+        assert row["delta_step"] == pytest.approx(step)
+    with pytest.raises(SystemExit):
+        L.main(["--config", "thesis", "--out", str(tmp_path)])

@@ -6,19 +6,27 @@ Model and sets: :mod:`balustrade.models.bicycle` (SPEC §2.31, ``l = 0.09``); de
 Lyapunov function over all Jacobians and the terminal CBF robust to them (proved RPI /
 invariant for the nonlinear model in :mod:`balustrade.design.incremental_rpi`; both checks,
 sampled and worst-case NLP, are run and recorded here). SPEC §3.6 defaults: ``N = 20``,
-``α_f = 1e6``, ``Δ_i = i·1e-4``, ``ρ = 0.9``, ``x_0 = (0.4, 0, 1.1, 0)`` (the adjacent lane),
+``α_f = 1e6``, ``x_0 = (0.4, 0, 1.1, 0)`` (the adjacent lane),
 the human ``Δδ_p = 0.5 p_y + 0.5 ψ``, ``τ_p = 0``, 200 steps, ``w`` i.i.d. uniform in
 ``|w| <= 0.5°`` (seeded). Slack norm: ℓ1 for both (Algorithm 6.4's ``h̃`` is ℓ1; with the
 SPEC's Euclidean norm the robust slack problem took ~4 s per step on the SQP with many
 failed solves, so it is not used). Cost: ``‖v_0 + κ(x − z_0) − u_p‖²``.
 
+``ρ`` and ``Δ_i``: a named configuration (:data:`CONFIGS`, recorded in
+``metrics["config"]``). The default, ``converging``, is ``ρ = 0.5``, ``Δ_i = i·1e-3`` (the
+thesis' Δ of §6.5), a deviation from SPEC §3.6: with SPEC's ``ρ = 0.9``, ``Δ_i = i·1e-4``
+Algorithm 6.4 converges only asymptotically (≈ 1300 steps), so "both converge" cannot hold in
+200 steps (docs/vehicles.md, "Deviation from SPEC §3.6"). ``spec`` keeps SPEC's values:
+``python -m balustrade.reproduce.lane_change --config spec --full --out DIR``.
+
 Runs (the closed loops all use the emittable target ``robust-sqp`` for both problems, so
 Python and C run the same algorithm):
 
 * **Python**, seed 0: both controllers, Algorithm 6.4 with ``record_h_r`` (an extra (5.15)
-  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with ``ρ = 0.5`` and
-  ``ρ = 0`` (:data:`EXTRA_RHOS`); per-step wall times of the two controllers
-  interleaved step by step, on ``robust-sqp`` and on ``exact`` (the solver of the thesis);
+  solve per step, not timed) for Figure 8.1, and Algorithm 6.4 with the configuration's
+  further ``ρ`` (``extra_rhos``: 0.9 and 0 for ``converging``, 0.5 and 0 for ``spec``);
+  per-step wall times of the two controllers interleaved step by step, on ``robust-sqp``
+  and on ``exact`` (the solver of the thesis);
 * **C** (:func:`~balustrade.codegen.accelerate`): the same seed-0 closed loops compared with
   Python step by step (``C = Python``: largest input and state difference, statuses and
   fallbacks that differ — counted, not hidden; no mirror mode), then the seeded runs
@@ -41,6 +49,7 @@ import json
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +63,7 @@ from balustrade.design.incremental_rpi import (
     worst_case_rpi_check,
     worst_case_terminal_check,
 )
+from balustrade.errors import BalustradeError
 from balustrade.examples.bicycle import BicycleDesign, bicycle_design
 from balustrade.models.bicycle import WHEELBASE
 from balustrade.reproduce._plotting import figure, save
@@ -63,14 +73,45 @@ THESIS = {"step_ms": {"robust": 140, "multiobjective": 116}, "N": 20, "steps": 2
           "reported": "both converge to the lane; rho gives a less abrupt manoeuvre; the car "
                       "then follows the road edge"}
 X0 = np.array([0.4, 0.0, 1.1, 0.0])
-RHO = 0.9
-#: further ρ of Algorithm 6.4 run in Python (seed 0): with ρ = 0.9 the required decrease
-#: is a tenth of the candidate's and the lane is not reached within 200 steps; ρ = 0 (the
-#: candidate's whole decrease) reached S_r on seeds 0–2 (docs/vehicles.md, rho_sweep).
+
+
+@dataclass(frozen=True)
+class LaneConfig:
+    """The two tuning knobs of Algorithm 6.4 that the thesis leaves open for §8.2: ``ρ`` of
+    (6.15g) and the tightening step, ``Δ_i = i·delta_step``; ``extra_rhos``: further ``ρ`` of
+    Algorithm 6.4 run in Python on seed 0 beside the main one (Figure 8.1)."""
+
+    name: str
+    rho: float
+    delta_step: float
+    extra_rhos: tuple[float, ...]
+    note: str
+
+
+#: the configurations of the lane change, in one place (docs/vehicles.md, "Deviation from
+#: SPEC §3.6"): ``spec`` is SPEC §3.6's default (ρ = 0.9, Δ_i = i·1e-4), under which Algorithm
+#: 6.4 converges only asymptotically (≈ 1300 steps); ``converging`` takes the thesis' own Δ of
+#: §6.5 (i·1e-3) and ρ = 0.5, under which both algorithms converge within the 200 steps
+CONFIGS = {
+    "converging": LaneConfig("converging", 0.5, 1e-3, (0.9, 0.0),
+                             "rho = 0.5, Delta_i = i*1e-3 (thesis §6.5); deviates from SPEC "
+                             "§3.6 so that both algorithms converge within 200 steps"),
+    "spec": LaneConfig("spec", 0.9, 1e-4, (0.5, 0.0),
+                       "SPEC §3.6 defaults rho = 0.9, Delta_i = i*1e-4; Algorithm 6.4 "
+                       "converges only asymptotically (not within 200 steps)"),
+}
+#: the reproduction's default (``spec`` is one flag away: ``--config spec``)
+DEFAULT_CONFIG = "converging"
+#: ρ of SPEC §3.6 (the ``spec`` configuration)
+RHO = CONFIGS["spec"].rho
+#: further ρ of Algorithm 6.4 run in Python (seed 0) in the ``spec`` configuration: with
+#: ρ = 0.9 the required decrease is a tenth of the candidate's and the lane is not reached
+#: within 200 steps; ρ = 0 (the candidate's whole decrease) reached S_r on seeds 0–2
+#: (docs/vehicles.md, rho_sweep).
 #: Session 11 traced the rate: h̃ falls by (1 − ρ)·‖ξ*_0‖ per step while the nominal state is
 #: outside X ⊖ E, then by (1 − ρ)·(positive slacks)·(Δ_{i+1} − Δ_i); with Δ_i = i·1e-3 and
-#: ρ = 0.5 both algorithms converge within 200 steps (a decision left open, SPEC unchanged)
-EXTRA_RHOS = (0.5, 0.0)
+#: ρ = 0.5 both algorithms converge within 200 steps (the ``converging`` configuration)
+EXTRA_RHOS = CONFIGS["spec"].extra_rhos
 STEPS = 200
 #: target of both problems of both controllers in the closed loops (emittable: C = Python)
 TARGET = "robust-sqp"
@@ -259,6 +300,19 @@ def compare(py: dict, c: dict) -> dict:
             "equal": bool(du.max() <= 1e-6 and first.size == 0)}
 
 
+def config(name: str) -> LaneConfig:
+    """The configuration ``name`` of :data:`CONFIGS` (a bad name is a BalustradeError)."""
+    if name not in CONFIGS:
+        raise BalustradeError(f"lane change: config must be one of {sorted(CONFIGS)}, got "
+                              f"{name!r}")
+    return CONFIGS[name]
+
+
+def design(cfg: LaneConfig) -> BicycleDesign:
+    """The design of ``cfg``: :func:`bicycle_design` with ``N = 20`` and its ``Δ`` step."""
+    return bicycle_design(N=20, delta_step=cfg.delta_step)
+
+
 def _key(c_ctrls: dict) -> str:
     """What a saved seed result belongs to: the source hashes of the emitted controllers
     (the design, targets and options are in the C) and the number of steps."""
@@ -281,7 +335,8 @@ def seeded_run(c_ctrls: dict, d: BicycleDesign, seed: int,
     must-show metrics (:func:`run_metrics`) and the per-step times (``done``: closed loops
     already run for this seed, by controller)."""
     ws = disturbances(d, seed, STEPS)
-    row: dict = {"seed": int(seed), "key": _key(c_ctrls)}
+    row: dict = {"seed": int(seed), "key": _key(c_ctrls),
+                 "delta_step": float(d.deltas[1] - d.deltas[0]) if d.deltas.size > 1 else 0.0}
     for k, c in c_ctrls.items():
         r = (done or {}).get(k) or closed_loop(c, d, ws)
         row[k] = {"metrics": run_metrics(r, d, "h_r" if k == "robust" else "h_tilde"),
@@ -331,25 +386,35 @@ def checks(d: BicycleDesign, quick: bool) -> dict:
                                                              starts).summary()}
 
 
-def run(out: Path, quick: bool = False) -> dict:
+def header(cfg: LaneConfig, d: BicycleDesign, seeds: int) -> dict:
+    """The head of ``metrics.json``: which configuration ran (``config``; ``rho`` and
+    ``delta_step`` as the design and controllers used them) and the design."""
+    return {"config": asdict(cfg), "N": d.N, "steps": STEPS, "rho": cfg.rho,
+            "delta_step": float(d.deltas[1] - d.deltas[0]), "x0": X0.tolist(),
+            "seeds": seeds, "target": TARGET, "design": {
+                "method": d.method, "lambda": d.error.info["lambda"],
+                "domain": d.error.info["domain"], "gamma_f": d.cbf.gamma_f,
+                "E_semi_axes": np.sqrt(np.diag(np.linalg.inv(d.error.E.P))).tolist(),
+                "K": d.error.K.tolist()}}
+
+
+def run(out: Path, quick: bool = False, config_name: str = DEFAULT_CONFIG) -> dict:
+    """The reproduction in the configuration ``config_name`` (:data:`CONFIGS`; default
+    :data:`DEFAULT_CONFIG`), recorded in ``metrics["config"]``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    cfg = config(config_name)
     seeds = 5 if quick else 50
     timing_steps = 30 if quick else STEPS
     start = time.perf_counter()
-    d = bicycle_design(N=20)
-    metrics: dict = {"N": d.N, "steps": STEPS, "rho": RHO, "x0": X0.tolist(), "seeds": seeds,
-                     "target": TARGET, "design": {
-                         "method": d.method, "lambda": d.error.info["lambda"],
-                         "domain": d.error.info["domain"], "gamma_f": d.cbf.gamma_f,
-                         "E_semi_axes": np.sqrt(np.diag(np.linalg.inv(d.error.E.P))).tolist(),
-                         "K": d.error.K.tolist()}}
+    d = design(cfg)
+    metrics = header(cfg, d, seeds)
     metrics["checks"] = checks(d, quick)
     ws0 = disturbances(d, 0, STEPS)
-    py = controllers(d, record_h_r=True)
+    py = controllers(d, record_h_r=True, rho=cfg.rho)
     runs_py = {k: closed_loop(c, d, ws0) for k, c in py.items()}
     extra = {f"multiobjective_rho{r:g}": closed_loop(multiobjective(d, r), d, ws0)
-             for r in EXTRA_RHOS}
+             for r in cfg.extra_rhos}
     metrics["python_seed0"] = {
         "robust": run_metrics(runs_py["robust"], d, "h_r"),
         "multiobjective": run_metrics(runs_py["multiobjective"], d, "h_tilde"),
@@ -357,10 +422,11 @@ def run(out: Path, quick: bool = False) -> dict:
         **{k: run_metrics(r, d, "h_tilde") for k, r in extra.items()}}
     ws_t = ws0[:timing_steps]
     metrics["python_step_ms"] = {
-        TARGET: interleaved_times(controllers(d), d, ws_t),
-        TIMING_TARGET: interleaved_times(controllers(d, TIMING_TARGET), d, ws_t)}
+        TARGET: interleaved_times(controllers(d, rho=cfg.rho), d, ws_t),
+        TIMING_TARGET: interleaved_times(controllers(d, TIMING_TARGET, rho=cfg.rho), d,
+                                         ws_t)}
     # -- C: the same controllers (without the recording solve) emitted and built
-    py_plain = controllers(d)
+    py_plain = controllers(d, rho=cfg.rho)
     build_start = time.perf_counter()
     c_ctrls = {k: accelerate(c) for k, c in py_plain.items()}
     metrics["c_build_s"] = time.perf_counter() - build_start
@@ -393,7 +459,7 @@ def run(out: Path, quick: bool = False) -> dict:
         "c_median_step_le_10ms": {k: v["median_ms"] <= 10.0
                                   for k, v in metrics["c_step_ms"].items()}}
     metrics["thesis"] = THESIS
-    metrics["plots"] = [_figure(runs_py | extra, d, out)]
+    metrics["plots"] = [_figure(runs_py | extra, d, out, cfg)]
     metrics["wall_time_s"] = time.perf_counter() - start
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_json))
     return metrics
@@ -430,13 +496,13 @@ def _aggregate(rows: list[dict]) -> dict:
                 r.get("steps_with_bound", 0) for r in rows))}
 
 
-def _figure(runs: dict, d: BicycleDesign, out: Path) -> str:
+def _figure(runs: dict, d: BicycleDesign, out: Path, cfg: LaneConfig) -> str:
     """Figure 8.1: lateral position, heading, steering and h over time, both methods."""
     fig, ax = figure(4, 1, (8, 10))
     t = np.arange(STEPS + 1) * 0.05
     deg = 180 / np.pi
     for name, r in runs.items():
-        rho = name.removeprefix("multiobjective_rho") if "rho" in name else f"{RHO:g}"
+        rho = name.removeprefix("multiobjective_rho") if "rho" in name else f"{cfg.rho:g}"
         label = "robust PCBF (Alg. 5.2)" if name == "robust" else \
             f"multiobjective PCBF (Alg. 6.4, rho={rho})"
         ax[0].plot(t, r["states"][:, 0], label=label)
@@ -456,7 +522,8 @@ def _figure(runs: dict, d: BicycleDesign, out: Path) -> str:
     ax[2].set_ylabel("steering delta [deg]")
     ax[3].set_ylabel("h (log)")
     ax[3].set_xlabel("t [s]")
-    ax[0].set_title("lane change under a destabilizing driver (Figure 8.1)")
+    ax[0].set_title("lane change under a destabilizing driver (Figure 8.1), config "
+                    f"{cfg.name}: Delta_i = i*{cfg.delta_step:g}")
     ax[0].legend(fontsize=7)
     ax[3].legend(fontsize=7)
     return save(fig, out / "fig8_1_lane_change.png")
@@ -512,11 +579,13 @@ def rho_sweep(d: BicycleDesign, rhos: tuple[float, ...] = RHO_SWEEP,
 _WORKER: dict = {}
 
 
-def _worker_init() -> None:
-    """A worker of :func:`main`: the design and the emitted controllers (the C library is
-    cached by :func:`~balustrade.codegen.accelerate`: built once, loaded by each worker)."""
-    d = bicycle_design(N=20)
-    _WORKER.update(d=d, c={k: accelerate(c) for k, c in controllers(d).items()})
+def _worker_init(config_name: str = DEFAULT_CONFIG) -> None:
+    """A worker of :func:`main`: the design and the emitted controllers of the configuration
+    (the C library is cached by :func:`~balustrade.codegen.accelerate`: built once, loaded
+    by each worker)."""
+    cfg = config(config_name)
+    d = design(cfg)
+    _WORKER.update(d=d, c={k: accelerate(c) for k, c in controllers(d, rho=cfg.rho).items()})
 
 
 def _worker_seeds(args: tuple[list[int], str]) -> int:
@@ -542,22 +611,37 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seeds", type=int, default=50, help="seeds 0 … SEEDS-1")
     parser.add_argument("--first", type=int, default=0, help="first seed")
+    parser.add_argument("--config", choices=sorted(CONFIGS), default=DEFAULT_CONFIG,
+                        help="rho and Δ step of the lane change (CONFIGS; default "
+                             f"{DEFAULT_CONFIG}; 'spec': SPEC §3.6's rho = 0.9, Δ_i = i·1e-4)")
+    parser.add_argument("--full", action="store_true",
+                        help="instead: the whole reproduction (run(); metrics.json and "
+                             "Figure 8.1 in OUT, seeds read from OUT/seeds when saved)")
+    parser.add_argument("--quick", action="store_true", help="with --full: the quick run")
     parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--rho-sweep", action="store_true",
                         help="instead: Algorithm 6.4 in Python for each rho of --rhos on "
                              "seeds FIRST … FIRST+SEEDS-1 (rho_sweep), JSON to OUT")
     parser.add_argument("--rhos", type=_floats, default=RHO_SWEEP,
                         help="with --rho-sweep: comma-separated rho values")
-    parser.add_argument("--delta-step", type=float, default=1e-4,
-                        help="with --rho-sweep: Δ_i = i·DELTA_STEP (SPEC default 1e-4)")
+    parser.add_argument("--delta-step", type=float, default=None,
+                        help="with --rho-sweep: Δ_i = i·DELTA_STEP (default: the config's; "
+                             "SPEC 1e-4)")
     parser.add_argument("--steps", type=int, default=STEPS,
                         help="with --rho-sweep: closed-loop steps")
     parser.add_argument("--record-h-r", action="store_true",
                         help="with --rho-sweep: also solve (5.15) each step (h_r(x_k))")
     args = parser.parse_args(argv)
+    cfg = config(args.config)
     seeds = list(range(args.first, args.first + args.seeds))
+    if args.full:
+        m = run(args.out, quick=args.quick, config_name=cfg.name)
+        print(json.dumps({"config": m["config"], "must_show": m["must_show"]}, indent=1,
+                         default=_json))
+        return 0
     if args.rho_sweep:
-        rows = rho_sweep(bicycle_design(N=20, delta_step=args.delta_step), rhos=args.rhos,
+        step = cfg.delta_step if args.delta_step is None else args.delta_step
+        rows = rho_sweep(bicycle_design(N=20, delta_step=step), rhos=args.rhos,
                          seeds=tuple(seeds), steps=args.steps, record_h_r=args.record_h_r)
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "rho_sweep.json").write_text(json.dumps(rows, indent=1))
@@ -566,14 +650,15 @@ def main(argv: list[str] | None = None) -> int:
     jobs = max(1, min(args.jobs, len(seeds)))
     chunks = [(seeds[j::jobs], str(args.out)) for j in range(jobs)]
     if jobs == 1:
-        _worker_init()
+        _worker_init(cfg.name)
         _worker_seeds(chunks[0])
     else:
-        with ProcessPoolExecutor(jobs, initializer=_worker_init) as pool:
+        with ProcessPoolExecutor(jobs, initializer=_worker_init,
+                                 initargs=(cfg.name,)) as pool:
             list(pool.map(_worker_seeds, chunks))
     rows = [json.loads(seed_file(args.out, s).read_text()) for s in seeds]
-    summary = {k: _aggregate([r[k]["metrics"] for r in rows])
-               for k in ("robust", "multiobjective")}
+    summary = {"config": asdict(cfg)} | {k: _aggregate([r[k]["metrics"] for r in rows])
+                                         for k in ("robust", "multiobjective")}
     print(json.dumps(summary, indent=1))
     return 0
 
