@@ -330,3 +330,41 @@ def test_accelerate_runs_the_robust_filter_on_its_c(pair: dict, tmp_path) -> Non
     pair["c"].reset()
     for x in np.random.default_rng(3).uniform(LOW, HIGH, size=(5, 2)):
         _same(acc.step(x, np.array([0.5])), pair["c"].step(x, np.array([0.5])), f"x = {x}")
+
+
+def test_the_c_above_candidate_code_reads_as_python_records_it():
+    """``BAL_ROBUST_ABOVE_CANDIDATE`` (a converged (5.15) above the candidate's ``h̃``) is
+    recorded as :class:`~balustrade.control.robust.RobustPCBFSafetyFilter` records it: status
+    ``slack_above_candidate``, fallback ``candidate``, the value as ``h_r_local`` only."""
+    from balustrade.codegen import status as S
+    from balustrade.codegen.runtime_robust import robust_info
+
+    code = S.code_of(S.ROBUST, "above_candidate")
+    ok = S.code_of(S.SOLVE, "ok")
+    info = robust_info(code, ok, S.code_of(S.SOLVE, "not_converged"), 102.6, 0.05)
+    assert (info.status, info.fallback) == ("slack_above_candidate", "candidate")
+    assert info.values == {"h_cand": 0.05, "h_r_local": 102.6}
+
+
+@pytest.mark.slow
+def test_lane_change_seed_26_c_never_takes_a_slack_solve_above_the_candidate():
+    """Seed 26 of the lane change (configuration ``converging``): the emitted (5.15) converged
+    at step 8 to a local solution with ``h_r`` 102.6 while the candidate had ``h̃`` 0.050; the
+    C now applies the candidate there, as Python does for such a solve, and ``h_r`` is
+    non-increasing (issue #16)."""
+    from balustrade.codegen import accelerate
+    from balustrade.reproduce import lane_change as L
+
+    cfg = L.config("converging")
+    d = L.design(cfg)
+    c = accelerate(L.controllers(d, rho=cfg.rho)["robust"])
+    x, last = L.X0.copy(), np.inf
+    for w in L.disturbances(d, 26, 12):
+        u, info = c.step(x, L.human(x))
+        h = info.values.get("h_r", info.values.get("h_cand", np.nan))
+        if "h_r" in info.values and "h_cand" in info.values:
+            assert info.values["h_r"] <= info.values["h_cand"] + 1e-5
+        if np.isfinite(h):
+            assert h <= last + 1e-5
+            last = h
+        x = d.system.step(x, u, w)

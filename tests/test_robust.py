@@ -199,3 +199,36 @@ def test_ch5_reproduction_writes_metrics_and_plots(tmp_path):
     assert (tmp_path / "metrics.json").exists() and len(m["plots"]) == 2
     assert all(c["max_violation"] == 0.0 for c in m["cases"]["robust"].values())
     assert "thesis" in m["summary_table"]
+
+
+def test_a_slack_solve_above_the_candidate_is_a_failed_slack_solve(d, monkeypatch):
+    """A converged (5.15) with ``h_r`` above the candidate's ``h̃`` is a worse local solution
+    of the NLP (the candidate is feasible for (5.15), Theorem 5.15): Algorithm 5.2 applies the
+    candidate (fallback 2), records the value as ``h_r_local``, never as ``h_r``, and keeps the
+    warm start of the next (5.15) (issue #16: ``h_r`` 0.118 → 102.6 on a seeded lane change in
+    C). Forced here by raising the value the solve reports at the second step."""
+    from balustrade.control.robust import ABOVE_CANDIDATE_TOL
+
+    system, s, error, cbf = d["system"], d["s"], d["error"], d["cbf"]
+    ctl = RobustPCBFSafetyFilter(d["slack_ip"], d["filter_ca"], system, d["X_E"], s.U, error,
+                                 cbf, cbf.policy, s.deltas(), s.alpha_f)
+    x, u_p = np.array([0.9, -1.2]), np.array([2.5])
+    u0, first = ctl.step(x, u_p)
+    assert first.status == "ok"
+    x = system.step(x, u0, np.zeros(system.nx))
+    cand, warm = ctl.candidate, ctl._last_slack
+    real = ctl._solve_slack
+
+    def above(xk):
+        h_r, sol, pol = real(xk)
+        return h_r + 10.0 * ABOVE_CANDIDATE_TOL * (1.0 + h_r) + 1.0, sol, pol
+
+    monkeypatch.setattr(ctl, "_solve_slack", above)
+    u, info = ctl.step(x, u_p)
+    assert info.status == "slack_above_candidate" and info.fallback == "candidate"
+    assert "h_r" not in info.values and info.values["h_r_local"] > info.values["h_cand"]
+    np.testing.assert_allclose(u, cand.v[:, 0] + error.kappa(x - cand.z[:, 0]))
+    assert ctl._last_slack is warm
+    monkeypatch.setattr(ctl, "_solve_slack", real)
+    _, after = ctl.step(system.step(x, u, np.zeros(system.nx)), u_p)
+    assert after.status == "ok" and after.values["h_r"] <= info.values["h_cand"] + 1e-5

@@ -72,6 +72,7 @@ from balustrade.control.deploy import (
     RobustDeployment,
     TubeDeployment,
 )
+from balustrade.control.robust import ABOVE_CANDIDATE_TOL
 from balustrade.errors import CodegenError
 
 #: the target to build both problems of Algorithm 5.2 with for C (module docstring)
@@ -242,6 +243,8 @@ def _tube_config(cfg: C.Config, name: str, spec: TubeDeployment, U: object) -> N
     cfg.define(f"{name}_NU", nu)
     cfg.define(f"{name}_N", N)
     cfg.define(f"{name}_N_XI", spec.X_E.H.shape[0] * N, "slacks xi")
+    cfg.define(f"{name}_ABOVE_CAND_TOL", repr(float(ABOVE_CANDIDATE_TOL)),
+               "(5.15) above the candidate's h~ by more: a failed (5.15)")
     cfg.array(f"{name}_U_LB", U.lb)
     cfg.array(f"{name}_U_UB", U.ub)
     cfg.array(f"{name}_K", np.asarray(spec.K, dtype=float).reshape(nu, nx).T.reshape(-1),

@@ -59,6 +59,9 @@ def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float,
         return info
     if np.isfinite(h_cand):
         info.values["h_cand"] = h_cand
+    if known.name == "above_candidate":  # robust.py: a failed (5.15), its value kept apart
+        info.status, info.values["h_r_local"] = "slack_above_candidate", h_r
+        return info
     if known.name in ("candidate", "projected_proposal"):
         info.status = f"slack_{_PY_STATUS.get(s_code, str(s_code))}"
         if np.isfinite(h_r_upper):

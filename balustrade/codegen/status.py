@@ -133,6 +133,9 @@ ROBUST: tuple[Status, ...] = (
     Status("BAL_ROBUST_BAD_INPUT", 4, "bad_input", "projected_proposal",
            "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
            "clipped to U"),
+    Status("BAL_ROBUST_ABOVE_CANDIDATE", 5, "above_candidate", "candidate",
+           "(5.15) converged above the candidate's h~ (a worse local solution): as "
+           "BAL_ROBUST_CANDIDATE"),
 )
 
 

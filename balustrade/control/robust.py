@@ -12,6 +12,13 @@ Fallbacks (never raise in the loop; each is recorded in ``StepInfo.fallback``):
    ``"candidate"``; the next candidate is built from it;
 3. no candidate → the proposed input projected onto ``U``: ``"projected_proposal"``.
 
+A (5.15) that converged to a point whose ``h_r`` is above the candidate's ``h̃`` (beyond
+:data:`ABOVE_CANDIDATE_TOL` relative) ended at a worse local solution of the nonconvex NLP
+(the candidate is feasible for (5.15), Theorem 5.15): it is treated as a failed (5.15) —
+fallback 2, status ``"slack_above_candidate"``, its value recorded as ``values["h_r_local"]``
+(never as ``h_r``), the next (5.15) warm-started as before it. Without this, ``h_r`` rose
+from 0.118 to 102.6 on one seeded lane-change run in C (issue #16, session 11).
+
 NaN or inf entries of ``u_p`` are read as 0 and the step runs as usual (status
 ``"non_finite_proposal[_<status>]"``): (5.16) certifies whatever it is given; a non-finite
 state → the projected proposal (``"non_finite_state"``) (:mod:`balustrade.control.fallbacks`).
@@ -73,6 +80,13 @@ from balustrade.problems.robust import (
     robust_pcbf_slack_problem,
     robust_sets,
 )
+
+#: a converged (5.15) whose ``h_r`` exceeds the candidate's ``h̃`` by more than this times
+#: ``1 + h̃`` is a worse local solution: a failed (5.15) (module docstring); the emitted C
+#: uses the same value (``<name>_ABOVE_CAND_TOL``, :mod:`balustrade.codegen.emit_robust`).
+#: 1e-5: IPOPT's accuracy on (5.15), the tolerance tests/test_robust.py allows ``h_r`` above
+#: ``h_cand`` by
+ABOVE_CANDIDATE_TOL = 1e-5
 
 
 class RobustPCBFSafetyFilter:
@@ -175,6 +189,10 @@ class RobustPCBFSafetyFilter:
             if feasible_truncation(s1):  # continued next step; its cost bounds h_r only
                 self._last_slack = s1
                 info.values["h_r_upper"] = max(float(s1.objective), 0.0)
+            return self._fallback(x, u_p, info)
+        h_cand = info.values.get("h_cand")
+        if h_cand is not None and h_r > h_cand + ABOVE_CANDIDATE_TOL * (1.0 + h_cand):
+            info.status, info.values["h_r_local"] = "slack_above_candidate", h_r
             return self._fallback(x, u_p, info)
         self._last_slack = s1
         note_solve(info, "slack", s1.status)   # optimal_inaccurate: h_r flagged, not certified

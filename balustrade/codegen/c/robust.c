@@ -75,8 +75,6 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     }
     return BAL_QX(fallback)(wk, x, u_out, status);
   }
-  BAL_QX(slack_warm_start)(&wk->slack);
-  wk->have_slack = 1;
   /* polished slacks and h_r (Q_post) */
   wk->arg[0] = wk->slack.x;
   wk->arg[1] = &wk->slack.f;
@@ -85,11 +83,23 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   wk->res[2] = &wk->h_r;
   wk->res[3] = 0; /* h~ of the polished slacks: not needed here */
   if (BAL_QX(post)(wk->arg, wk->res, wk->iw, wk->w, 0)) {
+    BAL_QX(slack_warm_start)(&wk->slack);
+    wk->have_slack = 1;
     wk->slack_status = BAL_EVAL_ERROR;
     wk->h_r = NAN;
     return BAL_QX(fallback)(wk, x, u_out, status);
   }
   *h_out = wk->h_r;
+  /* converged above the candidate's h~: a worse local solution, a failed (5.15) whose
+     point does not warm-start the next one (balustrade.control.robust) */
+  if (wk->have_cand &&
+      wk->h_r > wk->ch + BAL_QX(ABOVE_CAND_TOL) * (1.0 + wk->ch)) {
+    BAL_QX(fallback)(wk, x, u_out, status);
+    *status = BAL_ROBUST_ABOVE_CANDIDATE;
+    return *status;
+  }
+  BAL_QX(slack_warm_start)(&wk->slack);
+  wk->have_slack = 1;
   /* (5.16) with the polished slacks fixed */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_filter[BAL_QX(filter_P_x0) + i] = x[i];
   for (i = 0; i < BAL_QX(NU); ++i) wk->p_filter[BAL_QX(filter_P_u_p) + i] = wk->u_p[i];
