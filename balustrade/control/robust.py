@@ -84,8 +84,8 @@ from balustrade.problems.robust import (
 #: a converged (5.15) whose ``h_r`` exceeds the candidate's ``h̃`` by more than this times
 #: ``1 + h̃`` is a worse local solution: a failed (5.15) (module docstring); the emitted C
 #: uses the same value (``<name>_ABOVE_CAND_TOL``, :mod:`balustrade.codegen.emit_robust`).
-#: 1e-5: IPOPT's accuracy on (5.15), the tolerance tests/test_robust.py allows ``h_r`` above
-#: ``h_cand`` by
+#: 1e-5: the interior-point solver's accuracy on (5.15), the tolerance by which
+#: tests/test_robust.py allows ``h_r`` above ``h_cand``
 ABOVE_CANDIDATE_TOL = 1e-5
 
 
