@@ -40,6 +40,7 @@ import inspect
 import json
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -526,10 +527,37 @@ def _worker_seeds(args: tuple[list[int], str]) -> int:
 
 def _floats(text: str) -> tuple[float, ...]:
     try:
-        return tuple(float(t) for t in text.split(",") if t.strip())
+        values = tuple(float(t) for t in text.split(",") if t.strip())
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"--rhos: comma-separated numbers, got {text!r}"
                                          ) from exc
+    if not values:
+        raise argparse.ArgumentTypeError(f"--rhos: at least one number, got {text!r}")
+    return values
+
+
+def _count(name: str, low: int) -> Callable[[str], int]:
+    """An argparse type: an integer ``>= low`` (a clear error naming ``name`` otherwise:
+    ``--steps 0`` used to end in an IndexError of an empty closed loop)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"{name}: an integer, got {text!r}") from exc
+        if value < low:
+            raise argparse.ArgumentTypeError(f"{name}: must be >= {low}, got {value}")
+        return value
+    return parse
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--delta-step: a number, got {text!r}") from exc
+    if not value > 0 or not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"--delta-step: must be positive, got {value}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -540,17 +568,17 @@ def main(argv: list[str] | None = None) -> int:
     then reads these seeds instead of running them again."""
     parser = argparse.ArgumentParser(prog="python -m balustrade.reproduce.lane_change")
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--seeds", type=int, default=50, help="seeds 0 … SEEDS-1")
-    parser.add_argument("--first", type=int, default=0, help="first seed")
-    parser.add_argument("--jobs", type=int, default=1)
+    parser.add_argument("--seeds", type=_count("--seeds", 1), default=50, help="seeds 0 … SEEDS-1")
+    parser.add_argument("--first", type=_count("--first", 0), default=0, help="first seed")
+    parser.add_argument("--jobs", type=_count("--jobs", 1), default=1)
     parser.add_argument("--rho-sweep", action="store_true",
                         help="instead: Algorithm 6.4 in Python for each rho of --rhos on "
                              "seeds FIRST … FIRST+SEEDS-1 (rho_sweep), JSON to OUT")
     parser.add_argument("--rhos", type=_floats, default=RHO_SWEEP,
                         help="with --rho-sweep: comma-separated rho values")
-    parser.add_argument("--delta-step", type=float, default=1e-4,
+    parser.add_argument("--delta-step", type=_positive, default=1e-4,
                         help="with --rho-sweep: Δ_i = i·DELTA_STEP (SPEC default 1e-4)")
-    parser.add_argument("--steps", type=int, default=STEPS,
+    parser.add_argument("--steps", type=_count("--steps", 1), default=STEPS,
                         help="with --rho-sweep: closed-loop steps")
     parser.add_argument("--record-h-r", action="store_true",
                         help="with --rho-sweep: also solve (5.15) each step (h_r(x_k))")
