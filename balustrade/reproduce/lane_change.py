@@ -40,7 +40,6 @@ import inspect
 import json
 import os
 import time
-from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -536,28 +535,24 @@ def _floats(text: str) -> tuple[float, ...]:
     return values
 
 
-def _count(name: str, low: int) -> Callable[[str], int]:
-    """An argparse type: an integer ``>= low`` (a clear error naming ``name`` otherwise:
-    ``--steps 0`` used to end in an IndexError of an empty closed loop)."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError as exc:
-            raise argparse.ArgumentTypeError(f"{name}: an integer, got {text!r}") from exc
-        if value < low:
-            raise argparse.ArgumentTypeError(f"{name}: must be >= {low}, got {value}")
-        return value
-    return parse
+class _CountsParser(argparse.ArgumentParser):
+    """The CLI's parser: after parsing, every count is checked (``--steps``, ``--seeds``,
+    ``--jobs`` >= 1, ``--first`` >= 0, ``--delta-step`` > 0) with an error naming the
+    argument (``--rho-sweep --steps 0`` used to end in an IndexError of an empty loop)."""
 
+    LOWEST = {"steps": 1, "seeds": 1, "jobs": 1, "first": 0}
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"--delta-step: a number, got {text!r}") from exc
-    if not value > 0 or not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"--delta-step: must be positive, got {value}")
-    return value
+    def parse_args(self, args: list[str] | None = None,  # type: ignore[override]
+                   namespace: argparse.Namespace | None = None) -> argparse.Namespace:
+        ns = super().parse_args(args, namespace)
+        for name, low in self.LOWEST.items():
+            value = getattr(ns, name, None)
+            if value is not None and value < low:
+                self.error(f"--{name}: must be >= {low}, got {value}")
+        step = getattr(ns, "delta_step", None)
+        if step is not None and not (np.isfinite(step) and step > 0):
+            self.error(f"--delta-step: must be positive and finite, got {step}")
+        return ns
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -566,19 +561,19 @@ def main(argv: list[str] | None = None) -> int:
     in ``DIR/seeds``; rerun the same command after an interruption) and spread over
     ``--jobs`` processes; prints a summary. ``balustrade reproduce lane-change --out DIR``
     then reads these seeds instead of running them again."""
-    parser = argparse.ArgumentParser(prog="python -m balustrade.reproduce.lane_change")
+    parser = _CountsParser(prog="python -m balustrade.reproduce.lane_change")
     parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--seeds", type=_count("--seeds", 1), default=50, help="seeds 0 … SEEDS-1")
-    parser.add_argument("--first", type=_count("--first", 0), default=0, help="first seed")
-    parser.add_argument("--jobs", type=_count("--jobs", 1), default=1)
+    parser.add_argument("--seeds", type=int, default=50, help="seeds 0 … SEEDS-1")
+    parser.add_argument("--first", type=int, default=0, help="first seed")
+    parser.add_argument("--jobs", type=int, default=1)
     parser.add_argument("--rho-sweep", action="store_true",
                         help="instead: Algorithm 6.4 in Python for each rho of --rhos on "
                              "seeds FIRST … FIRST+SEEDS-1 (rho_sweep), JSON to OUT")
     parser.add_argument("--rhos", type=_floats, default=RHO_SWEEP,
                         help="with --rho-sweep: comma-separated rho values")
-    parser.add_argument("--delta-step", type=_positive, default=1e-4,
+    parser.add_argument("--delta-step", type=float, default=1e-4,
                         help="with --rho-sweep: Δ_i = i·DELTA_STEP (SPEC default 1e-4)")
-    parser.add_argument("--steps", type=_count("--steps", 1), default=STEPS,
+    parser.add_argument("--steps", type=int, default=STEPS,
                         help="with --rho-sweep: closed-loop steps")
     parser.add_argument("--record-h-r", action="store_true",
                         help="with --rho-sweep: also solve (5.15) each step (h_r(x_k))")
