@@ -14,7 +14,8 @@ per part, inside C and as seen from Python (docs/obstacles.md, "Timing").
 3. Replays every recorded step in C (``clock_gettime``), the two variants taking turns
    (twice): the median per path, warm (the step repeated) and cold (64 MB written between
    calls, as when other work runs between control steps), and the parts of a solved step;
-   checks that both chose the same inputs.
+   checks that both chose the same inputs, and that the library (through ctypes) chose the
+   driver's: a difference above :data:`SAME_TOL` raises after the table is printed.
 4. Replays them through the Python filter and both C libraries
    (:class:`~balustrade.codegen.CApproximatePCBFFilter`, ctypes) taking turns: the medians
    a closed loop sees.
@@ -113,6 +114,11 @@ def through_ctypes(ctls: dict, X: np.ndarray, P: np.ndarray, repeats: int) -> di
     return {"median_us": med, "u": {k: np.asarray(v) for k, v in inputs.items()}}
 
 
+#: the largest input difference between the C variants (and the library and the driver)
+#: accepted: the same decisions (tests/test_codegen_approximate.py: bit for bit without
+#: extra flags; flags such as -march=native may contract operations differently)
+SAME_TOL = 1e-6
+
 PATHS = {"certified": "certified", "kept": "decrease_solved_proposal_kept",
          "both": "both_solves"}
 
@@ -135,7 +141,8 @@ def main(build_dir: str | None = None, repeats: int = 7, flags: tuple[str, ...] 
     via = through_ctypes(ctls, X, P, max(1, repeats // 2))
     same = float(np.max(np.abs(runs["casadi"][0]["u"] - runs["loops"][0]["u"])))
     lib_same = float(np.max(np.abs(via["u"]["casadi"] - runs["casadi"][0]["u"])))
-    print(f"{len(X)} recorded steps; flags {' '.join((*BASE_FLAGS, *flags))}; inputs: "
+    print(f"{len(X)} recorded steps; flags {' '.join((*BASE_FLAGS, *THREAD_FLAGS, *flags))}; "
+          "inputs: "
           f"loops vs casadi max difference {same:.3g}, library vs driver {lib_same:.3g}")
     print("path (n)               | variant | C warm (us) | C cold (us) | C via ctypes (us) "
           "| Python (us)")
@@ -154,6 +161,10 @@ def main(build_dir: str | None = None, repeats: int = 7, flags: tuple[str, ...] 
               f"screening of {runs[k][0]['candidates']} candidates + 1 local (7.6) "
               f"{parts['screening'][1]:.1f} us; one (7.6) solve {parts['dec_solve'][1]:.1f} "
               f"us; one (7.5) solve {parts['filter_solve'][1]:.1f} us")
+    if not (same <= SAME_TOL and lib_same <= SAME_TOL):
+        raise RuntimeError(f"obstacles_c_step: the C variants chose different inputs (loops "
+                           f"vs casadi {same:.3g}, library vs driver {lib_same:.3g}; "
+                           f"tolerance {SAME_TOL:g})")
     return {"c": runs, "ctypes": via}
 
 

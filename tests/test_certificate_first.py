@@ -330,3 +330,21 @@ def test_replayed_loop_is_memory_clean_under_valgrind(pendulum_c):
     assert lines[-1] == f"fired {len(_first(trace))}"
     u_c = np.array([float(line.split()[1]) for line in lines[:-1]])
     assert np.abs(u_c - np.asarray(trace.inputs).reshape(-1)).max() <= 1e-6
+
+
+def test_build_passes_the_certificate_options():
+    """``PCBFSafetyFilter.build`` passes ``certificate_first``, ``shifted_certificate`` and
+    ``warm_start`` to the constructor (it could not set them before)."""
+    system = LinearSystem(A, B, name="stable2")
+    X, U = Box([-1.0, -1.5], [1.0, 1.5]), Box([-2.0], [2.0])
+    args = (system, X, U, lambda x: x.T @ P @ x - LEVEL, N, 1e-3 * np.arange(N))
+    off = PCBFSafetyFilter.build(*args, target="real-time", certificate_first=False,
+                                 warm_start="shifted")
+    assert off.certificate_first is False and off.certificate is not None
+    assert off.warm_start == "shifted"
+    assert not any(_first(t) for t in _loops(system, off, -3.0, 3.0, 1.5, 7, 15))
+    bare = PCBFSafetyFilter.build(*args, target="real-time", shifted_certificate=False)
+    assert bare.certificate is None and bare.certificate_first is False
+    with pytest.raises(BalustradeError, match="shifted_certificate"):
+        PCBFSafetyFilter.build(*args, target="real-time", shifted_certificate=False,
+                               certificate_first=True)

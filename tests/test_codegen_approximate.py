@@ -197,3 +197,32 @@ def test_approximate_network_must_be_the_one_h_came_from() -> None:
     with pytest.raises(BalustradeError, match="network must be the MLP"):
         ApproximatePCBFFilter(system, s.U, to_casadi(_random_network(4)), target="fast-sqp",
                               network=np.zeros(3))
+
+
+def test_network_softplus_threshold_is_emitted_from_the_learn_constant(tmp_path) -> None:
+    """bal/approx_net.c's softplus threshold is ``<name>_NET_THRESHOLD``, emitted from
+    ``balustrade.learn.train.SOFTPLUS_THRESHOLD`` (it was a literal 20.0 in the C and in
+    the emitter's numpy mirror)."""
+    import re
+
+    from balustrade.codegen.emit import _network_forward
+    from balustrade.control.approximate import ApproximatePCBFFilter
+    from balustrade.learn.export import to_casadi
+    from balustrade.learn.train import SOFTPLUS_THRESHOLD
+    from balustrade.models.pendulum import pendulum_setup
+
+    net = _random_network()
+    py = ApproximatePCBFFilter(pendulum(), pendulum_setup().U, to_casadi(net), rho=0.5,
+                               target="fast-sqp", network=net)
+    cfg = (emit_approximate(py, "apt", tmp_path).out_dir / "apt_config.h").read_text()
+    (value,) = re.findall(r"#define apt_NET_THRESHOLD \(?([-0-9.e+]+)", cfg)
+    assert float(value) == SOFTPLUS_THRESHOLD == net.softplus_threshold
+    # the emitter's numpy mirror follows the network's threshold
+    X = np.random.default_rng(0).uniform(-1, 1, (5, 2))
+    big = _random_network()
+    big.weights = [20.0 * W for W in big.weights]   # pre-activations well above 3
+    big.softplus_threshold = 3.0
+    lin = _random_network()
+    lin.weights = big.weights
+    assert not np.allclose(_network_forward(big, X), _network_forward(lin, X))
+    assert np.allclose(_network_forward(lin, X), lin(X), rtol=1e-12)

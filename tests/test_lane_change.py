@@ -269,6 +269,21 @@ def test_rho_sweep_cli_passes_its_options(tmp_path):
         main(["--rho-sweep", "--rhos", "a,b", "--out", str(tmp_path)])
 
 
+@pytest.mark.parametrize("args, name", [
+    (["--steps", "0"], "--steps"), (["--steps", "-3"], "--steps"),
+    (["--seeds", "0"], "--seeds"), (["--jobs", "0"], "--jobs"), (["--first", "-1"], "--first"),
+    (["--delta-step", "0"], "--delta-step"), (["--rhos", ","], "--rhos")])
+def test_rho_sweep_cli_rejects_non_positive_counts(tmp_path, capsys, args, name):
+    """``--rho-sweep --steps 0`` ended in an IndexError (an empty closed loop); now every
+    count of the CLI is checked when parsed, with an error naming the argument."""
+    from balustrade.reproduce.lane_change import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--rho-sweep", "--rhos", "0.5", *args, "--out", str(tmp_path)])
+    assert exc.value.code == 2 and name in capsys.readouterr().err
+    assert not (tmp_path / "rho_sweep.json").exists()
+
+
 @pytest.mark.slow
 def test_algorithm_6_4_reaches_S_r_at_rho_0_5_with_larger_delta_steps():
     """Session 11 (docs/vehicles.md): with Δ_i = i·1e-3 (the thesis' Δ of §6.5) instead of

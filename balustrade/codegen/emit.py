@@ -868,14 +868,26 @@ def emit_approximate(controller: object, name: str, out_dir: str | Path,
 
 
 def _network_forward(net: object, X: np.ndarray) -> np.ndarray:
-    """What bal/approx_net.c computes, in numpy, on the rows of ``X``."""
+    """What bal/approx_net.c computes, in numpy, on the rows of ``X`` (softplus above
+    ``net.softplus_threshold``: linear, as the network's own forward pass)."""
     z = (np.atleast_2d(X) - np.asarray(net.mean, float)) / np.asarray(net.scale, float)
-    n = len(net.weights)
+    n, t = len(net.weights), _softplus_threshold(net)
     for k, (W, b) in enumerate(zip(net.weights, net.biases)):
         z = z @ np.asarray(W, float).T + np.asarray(b, float).reshape(-1)
         if k < n - 1:
-            z = np.where(z > 20.0, z, np.log1p(np.exp(np.minimum(z, 20.0))))
+            z = np.where(z > t, z, np.log1p(np.exp(np.minimum(z, t))))
     return z[:, 0] ** 3 if net.output_transform == "cbrt" else z[:, 0]
+
+
+def _softplus_threshold(net: object) -> float:
+    """The network's softplus threshold (``MLPModel.softplus_threshold``, from
+    ``balustrade.learn.train.SOFTPLUS_THRESHOLD``); a CodegenError if it has none."""
+    t = getattr(net, "softplus_threshold", None)
+    if not isinstance(t, (int, float)) or not np.isfinite(t):
+        raise CodegenError(f"the network ({type(net).__name__}) has no finite "
+                           f"softplus_threshold (balustrade.learn.train.MLPModel has one), "
+                           f"got {t!r}")
+    return float(t)
 
 
 def _network_config(cfg: C.Config, name: str, net: object | None, h: ca.Function,
@@ -903,11 +915,14 @@ def _network_config(cfg: C.Config, name: str, net: object | None, h: ca.Function
     got = _network_forward(net, X)
     if not np.allclose(got, want, rtol=1e-9, atol=1e-12):
         raise CodegenError(f"{name}: the network does not compute h^ (softplus layers, "
-                           f"threshold 20): {got} where h^ gives {want} on 4 test states")
+                           f"threshold {_softplus_threshold(net):g}): {got} where h^ gives "
+                           f"{want} on 4 test states")
     cfg.define(f"{name}_NET_NL", len(W), "layers")
     cfg.define(f"{name}_NET_SIZES", "{" + ", ".join(map(str, sizes)) + "}", "widths")
     cfg.define(f"{name}_NET_MAXW", max(sizes))
     cfg.define(f"{name}_NET_CUBE", int(net.output_transform == "cbrt"), "h^ = output cubed")
+    cfg.define(f"{name}_NET_THRESHOLD", C.c_double(_softplus_threshold(net)),
+               "softplus: linear above this input")
     cfg.array(f"{name}_NET_W", np.concatenate([w.reshape(-1) for w in W]))
     cfg.array(f"{name}_NET_B", np.concatenate(b))
     cfg.array(f"{name}_NET_MEAN", np.asarray(net.mean, float))

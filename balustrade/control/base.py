@@ -49,11 +49,22 @@ TRUNCATED = "truncated"
 
 
 #: the status words of a step that did what its algorithm prescribes on solves that ended
-#: ``optimal`` (or on none): ``"ok"``, and ``"certified"`` — the PCBF filter's (2.24) skipped
-#: on the shifted-plan certificate (``certificate_first``, a certified ``h_PB = 0``), or
-#: Algorithm 7.5's certification shortcut (line 4). Any other word names a solve that did
-#: not end optimal, a fallback or bad data.
-SUCCEEDED = frozenset({"ok", "certified"})
+#: ``optimal`` (or on none):
+#:
+#: * ``"ok"`` — every solve of the step ended ``optimal`` (or, Algorithm 8.7, a grid
+#:   candidate met the decrease ``ĥ(f(x, u_i)) <= ρ ĥ(x)``);
+#: * ``"certified"`` — nothing was solved: the PCBF filter's (2.24) skipped on the
+#:   shifted-plan certificate (``certificate_first``, a certified ``h_PB = 0``), or
+#:   Algorithm 7.5's certification shortcut (line 4, ``ĥ(f(x, u_p)) <= 0``);
+#: * ``"proposal_feasible"`` — Algorithm 7.5 after an optimal (7.6): ``u_p ∈ U`` meets the
+#:   decrease of (7.5), whose cost is 0 there, so ``u_p`` is its exact minimiser (no
+#:   fallback, no (7.5) solve).
+#:
+#: Any other word names a solve that did not end optimal (``"filter_<status>"``,
+#: ``"max_decrease_failed"``, ``"error: …"``, :data:`TRUNCATED`), a fallback
+#: (``"no_decreasing_candidate"``) or bad data (``"non_finite_state"``,
+#: ``"non_finite_proposal[_<status>]"``).
+SUCCEEDED = frozenset({"ok", "certified", "proposal_feasible"})
 
 
 def step_succeeded(status: str) -> bool:

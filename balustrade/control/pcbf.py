@@ -165,13 +165,19 @@ class PCBFSafetyFilter:
     @classmethod
     def build(cls, system: System, X: Set, U: Set, h_f: Callable, N: int,
               deltas: np.ndarray, alpha_f: float = 1e6, slack_norm: int | float = 1,
-              target: Target | str = "fast-sqp", eps: float = 1e-6) -> PCBFSafetyFilter:
+              target: Target | str = "fast-sqp", eps: float = 1e-6,
+              warm_start: str = "last", shifted_certificate: bool = True,
+              certificate_first: bool | None = None) -> PCBFSafetyFilter:
         """Build and compile both problems ((2.24) and (2.23)) for ``target`` (a
-        :class:`~balustrade.backends.Target` or a preset name, e.g. ``"cvxpy"``)."""
+        :class:`~balustrade.backends.Target` or a preset name, e.g. ``"cvxpy"``);
+        ``warm_start``, ``shifted_certificate`` and ``certificate_first`` are passed to
+        the constructor (same defaults)."""
         slack = compile(pcbf_slack_problem(system, X, U, h_f, N, deltas, alpha_f, slack_norm),
                         target)
         filt = compile(pcbf_filter_problem(system, X, U, h_f, N, deltas, eps), target)
-        return cls(slack, filt, U, eps)
+        return cls(slack, filt, U, eps, warm_start=warm_start,
+                   shifted_certificate=shifted_certificate,
+                   certificate_first=certificate_first)
 
     def reset(self) -> None:
         self._last_slack: Solution | None = None

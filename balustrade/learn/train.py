@@ -16,6 +16,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -70,6 +71,9 @@ class MLPModel:
     output_transform: str | None = None
     history: dict[str, list[float]] = field(default_factory=dict)
     config: dict = field(default_factory=dict)
+    #: the softplus threshold of the hidden layers (:data:`SOFTPLUS_THRESHOLD`); the
+    #: emitted C reads it from here (``<name>_NET_THRESHOLD``, codegen cannot import learn)
+    softplus_threshold: ClassVar[float] = SOFTPLUS_THRESHOLD
 
     @property
     def nx(self) -> int:

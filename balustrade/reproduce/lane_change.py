@@ -595,10 +595,33 @@ def _worker_seeds(args: tuple[list[int], str]) -> int:
 
 def _floats(text: str) -> tuple[float, ...]:
     try:
-        return tuple(float(t) for t in text.split(",") if t.strip())
+        values = tuple(float(t) for t in text.split(",") if t.strip())
     except ValueError as exc:
         raise argparse.ArgumentTypeError(f"--rhos: comma-separated numbers, got {text!r}"
                                          ) from exc
+    if not values:
+        raise argparse.ArgumentTypeError(f"--rhos: at least one number, got {text!r}")
+    return values
+
+
+class _CountsParser(argparse.ArgumentParser):
+    """The CLI's parser: after parsing, every count is checked (``--steps``, ``--seeds``,
+    ``--jobs`` >= 1, ``--first`` >= 0, ``--delta-step`` > 0) with an error naming the
+    argument (``--rho-sweep --steps 0`` used to end in an IndexError of an empty loop)."""
+
+    LOWEST = {"steps": 1, "seeds": 1, "jobs": 1, "first": 0}
+
+    def parse_args(self, args: list[str] | None = None,  # type: ignore[override]
+                   namespace: argparse.Namespace | None = None) -> argparse.Namespace:
+        ns = super().parse_args(args, namespace)
+        for name, low in self.LOWEST.items():
+            value = getattr(ns, name, None)
+            if value is not None and value < low:
+                self.error(f"--{name}: must be >= {low}, got {value}")
+        step = getattr(ns, "delta_step", None)
+        if step is not None and not (np.isfinite(step) and step > 0):
+            self.error(f"--delta-step: must be positive and finite, got {step}")
+        return ns
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -607,7 +630,7 @@ def main(argv: list[str] | None = None) -> int:
     in ``DIR/seeds``; rerun the same command after an interruption) and spread over
     ``--jobs`` processes; prints a summary. ``balustrade reproduce lane-change --out DIR``
     then reads these seeds instead of running them again."""
-    parser = argparse.ArgumentParser(prog="python -m balustrade.reproduce.lane_change")
+    parser = _CountsParser(prog="python -m balustrade.reproduce.lane_change")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--seeds", type=int, default=50, help="seeds 0 … SEEDS-1")
     parser.add_argument("--first", type=int, default=0, help="first seed")

@@ -6,13 +6,14 @@
  * a few loops and the weights one array (A_NET_W, 8 bytes a weight).
  *
  * h^(x) = T(W_L s(... s(W_1 (x - mean) / scale + b_1) ...) + b_L), s = softplus with
- * torch's threshold 20 (z above it: z, else log1p(exp(z))), T = the cube if A_NET_CUBE.
+ * the network's threshold A_NET_THRESHOLD (balustrade.learn.train.SOFTPLUS_THRESHOLD, torch's
+ * 20; z above it: z, else log1p(exp(z))), T = the cube if A_NET_CUBE.
  * The operations are those of balustrade.learn.export.expression in the same order (each
  * row summed over its inputs in order, then the bias), so the values are the CasADi code's.
  * h^(f(x, u)) takes f from the CasADi-generated A_f (x, u) -> x+.
  * From <name>_config.h: A_NET_NL (layers), A_NET_SIZES (NL + 1 widths, input first),
  * A_NET_MAXW (largest width), A_NET_W (the W_k row-major, concatenated), A_NET_B,
- * A_NET_MEAN, A_NET_SCALE, A_NET_CUBE. Included by bal/approx.c.
+ * A_NET_MEAN, A_NET_SCALE, A_NET_CUBE, A_NET_THRESHOLD. Included by bal/approx.c.
  */
 #include <math.h>
 
@@ -40,7 +41,7 @@ static casadi_real BAL_QX(net_eval)(const casadi_real* x) {
       s = 0.0;
       for (j = 0; j < n; ++j) s += w[j] * z[j];
       s += b[i];
-      if (k < BAL_QX(NET_NL) - 1) s = s > 20.0 ? s : log1p(exp(s));
+      if (k < BAL_QX(NET_NL) - 1) s = s > BAL_QX(NET_THRESHOLD) ? s : log1p(exp(s));
       y[i] = s;
       w += n;
     }
