@@ -267,6 +267,19 @@ def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
     return rows
 
 
+
+def timed_into(fn, acc: dict, part: str):
+    """``fn`` wrapped to add its wall time to ``acc[part]`` on every call (also when it
+    raises)."""
+    def call(*args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            acc[part] = acc.get(part, 0.0) + time.perf_counter() - t0
+    return call
+
+
 def step_split(d: dict, steps: int, target: str = "fast-convex") -> list[dict]:
     """Where one ``controller.step`` of the parametric path spends its time, per step:
     the estimator's update (nonfalsified set, support LPs, records), the new vertices and
@@ -282,13 +295,7 @@ def step_split(d: dict, steps: int, target: str = "fast-convex") -> list[dict]:
     acc: dict[str, float] = {}
 
     def timed(fn, part):
-        def call(*args, **kwargs):
-            t0 = time.perf_counter()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                acc[part] = acc.get(part, 0.0) + time.perf_counter() - t0
-        return call
+        return timed_into(fn, acc, part)
 
     ctrl.estimator.update = timed(ctrl.estimator.update, "estimator update")
     ctrl._set_theta = timed(ctrl._set_theta, "vertices and s of a new Θ_k")

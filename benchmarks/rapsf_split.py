@@ -27,26 +27,16 @@ Medians over the timed steps (the first, which compiles, is not timed); the enla
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 
 import balustrade.estimate.updates as updates
 from balustrade.reproduce import msd_adaptive
 from benchmarks.bench_rapsf import GOAL_S, Loop, RebuiltCvxpy
+from benchmarks.bench_rapsf import timed_into as _timed
 
 PARTS = ["estimator LPs", "estimator, rest", "s_jr of a new Θ_k", "nesting check",
          "QP solve", "QP data", "step, rest"]
-
-
-def _timed(fn, acc: dict, part: str):
-    def call(*args, **kwargs):
-        t0 = time.perf_counter()
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            acc[part] = acc.get(part, 0.0) + time.perf_counter() - t0
-    return call
 
 
 def split(masses: int, steps: int) -> dict:
