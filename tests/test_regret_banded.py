@@ -88,7 +88,7 @@ def test_banded_lmi_is_a_congruence_of_the_original(weight, case):
     pieces = banded_pieces(par.Y(cols), ops.m, ops.p, [np.eye(d), W3], [b0])
     assert not isinstance(pieces, NotBanded)
     Yrows = slice(cols.start * par.M, cols.stop * par.M)
-    for definite in (False, False, True):     # indefinite draws, then a positive definite one
+    for definite in (False, False, True):     # random draws, then a positive definite one
         theta = rng.standard_normal(par.n_theta)
         L = (par.AY[Yrows] @ theta + par.cY[Yrows]).reshape((par.M, d), order="F")
         lam, mu, a = rng.uniform(0.1, 3.0), rng.uniform(0.1, 3.0), 0.5
@@ -100,7 +100,10 @@ def test_banded_lmi_is_a_congruence_of_the_original(weight, case):
         Dp = (lam * pieces.D[0] + mu * pieces.D[1]).toarray()
         banded = _arrow(LC, Dp, a, mu * pieces.b[0], y0)
         inertia = _inertia(orig)
-        assert (inertia[1] == 0) == definite
+        # a random draw is usually indefinite but may be definite (case (2799, 1, 1, 2) of a
+        # new user's run): only the constructed draw's definiteness is known
+        if definite:
+            assert inertia[1] == 0
         assert _inertia(banded) == inertia
         # the banded matrix is sparse: at most 3 disturbance blocks off the diagonal
         assert block_bandwidth(Dp, ops.p) <= 3
