@@ -329,6 +329,7 @@ class CasadiCompiled:
         self.retries = default_retries(solver, opts) if retries is None else list(retries)
         self._retry: list[ca.Function] | None = None
         self._g_function: ca.Function | None = None
+        self._complementarity_fn: ca.Function | None = None
         self._dm = as_dm(data)
         self._lowered: dict[str, tuple[dict, dict]] = {
             self.lowering: (self.nlp, self.derivatives)}
@@ -598,29 +599,19 @@ class CasadiCompiled:
 
     def _complementarity(self, w_all: np.ndarray, res: dict, p: np.ndarray) -> float:
         """The largest complementarity error of the solver's own primal-dual point, in its
-        own (scaled) units: ``|λ_i| · gap_i`` over the inequality rows and bounds, ``gap_i``
-        the slack to the bound that the sign of ``λ_i`` points to (CasADi: ``λ > 0`` upper,
-        ``λ < 0`` lower), on the feasible side only and less its rounding
-        (:func:`complementarity_gap`); equality rows (``lo == up``) have no complementarity
-        condition and are skipped; a multiplier pointing to an infinite bound (its row
-        cannot be active: a sign error) counts as ``|λ_i|``. ``inf`` for a non-finite
-        point."""
+        own (scaled) units (:func:`complementarity_expr`, the expression the emitted C's KKT
+        test uses too). ``inf`` for a non-finite point."""
         lam_g = np.asarray(res["lam_g"], dtype=float).reshape(-1)
         lam_x = np.asarray(res["lam_x"], dtype=float).reshape(-1)
         if not (np.all(np.isfinite(w_all)) and np.all(np.isfinite(lam_g))
                 and np.all(np.isfinite(lam_x))):
             return float("inf")
-        worst = 0.0
-        for lam, val, lo, up in ((lam_g, self._g(w_all, p), self.lbg, self.ubg),
-                                 (lam_x, w_all, self.lbx, self.ubx)):
-            lo = np.broadcast_to(np.asarray(lo, dtype=float), lam.shape)
-            up = np.broadcast_to(np.asarray(up, dtype=float), lam.shape)
-            with np.errstate(invalid="ignore"):
-                gap = np.where(lam > 0, complementarity_gap(up - val, up),
-                               complementarity_gap(val - lo, lo))
-                err = np.where((lam == 0) | (lo == up), 0.0, np.abs(lam) * gap)
-            worst = max(worst, float(np.max(err, initial=0.0)))
-        return worst
+        if self._complementarity_fn is None:  # built once, on the first solve that needs it
+            w, g = ca.SX.sym("w", lam_x.size), ca.SX.sym("g", lam_g.size)
+            lx, lg = ca.SX.sym("lam_x", lam_x.size), ca.SX.sym("lam_g", lam_g.size)
+            self._complementarity_fn = ca.Function(
+                "complementarity", [w, g, lx, lg], [complementarity_expr(self, w, g, lx, lg)])
+        return float(self._complementarity_fn(w_all, self._g(w_all, p), lam_x, lam_g))
 
     def _initial_guess(self, warm: Solution | dict | None, p: np.ndarray | None = None
                        ) -> tuple[np.ndarray, np.ndarray | float, np.ndarray | float]:
@@ -700,16 +691,34 @@ SQP_COMPLEMENTARITY_TOL = 1e-8
 COMPLEMENTARITY_SLACK_ROUNDING = 1e-12
 
 
-def complementarity_gap(slack: np.ndarray, bound: np.ndarray) -> np.ndarray:
-    """The gap of the complementarity test for one side of a row: the slack ``bound − value``
-    (``value − bound`` for a lower bound) on the feasible side less
-    :data:`COMPLEMENTARITY_SLACK_ROUNDING` ``· (1 + |bound|)``, never negative (an overshoot
-    is the feasibility test's business); 1 where the bound is infinite."""
-    finite = np.isfinite(bound)
-    safe = np.where(finite, bound, 0.0)
-    slack = np.where(finite, slack, 0.0)
-    gap = np.maximum(slack - COMPLEMENTARITY_SLACK_ROUNDING * (1.0 + np.abs(safe)), 0.0)
-    return np.where(finite, gap, 1.0)
+def complementarity_expr(c: CasadiCompiled, w: object, g: object, lam_x: object,
+                         lam_g: object) -> object:
+    """``max |λ_i| · gap_i`` over the inequality rows and bounds of ``c`` as a CasADi
+    expression in the primal ``w``, the rows ``g`` and the multipliers: ``gap_i`` is the
+    slack to the bound the sign of ``λ_i`` points to (CasADi: ``λ > 0`` upper, ``λ < 0``
+    lower), on the feasible side only (an overshoot is the feasibility test's business) and
+    less :data:`COMPLEMENTARITY_SLACK_ROUNDING` ``· (1 + |bound|)``, never negative; a
+    multiplier pointing to an infinite bound (its row cannot be active: a sign error) counts
+    as ``|λ_i|``; equality rows (``lo == up``) have no complementarity condition and are
+    skipped. One definition for :meth:`CasadiCompiled._complementarity` and the emitted C's
+    KKT test (:func:`balustrade.codegen.emit._kkt_function`)."""
+    parts = [ca.DM(0)]
+    for lam, val, lo, up in ((lam_x, w, c.lbx, c.ubx), (lam_g, g, c.lbg, c.ubg)):
+        if not np.size(lo):
+            continue
+        lo_a = np.broadcast_to(np.asarray(lo, dtype=float), (lam.numel(),))
+        up_a = np.broadcast_to(np.asarray(up, dtype=float), (lam.numel(),))
+        inequality = ca.DM((lo_a != up_a).astype(float))
+        for bound, mult, sign in ((up_a, ca.fmax(lam, 0), 1.0),
+                                  (lo_a, ca.fmax(-lam, 0), -1.0)):
+            finite = np.isfinite(bound)
+            mask = ca.DM(finite.astype(float))
+            safe = np.where(finite, bound, 0.0)
+            slack = sign * (ca.DM(safe) - val)
+            rounding = ca.DM(COMPLEMENTARITY_SLACK_ROUNDING * (1.0 + np.abs(safe)))
+            gap = mask * ca.fmax(slack - rounding, 0) + (1 - mask)
+            parts.append(ca.mmax(inequality * mult * gap))
+    return ca.mmax(ca.vertcat(*parts))
 
 
 #: sqpmethod's QP solvers whose returned point can be an unconverged interior-point or ADMM

@@ -37,7 +37,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_vector
-from balustrade.backends.casadi_backend import COMPLEMENTARITY_SLACK_ROUNDING, CasadiCompiled
+from balustrade.backends.casadi_backend import CasadiCompiled, complementarity_expr
 from balustrade.backends.emittable import (
     STATUS_OPTIONS,
     c_libraries,
@@ -191,7 +191,7 @@ def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None,
     du = ca.norm_inf(grad_lag + lam_x)
     weight = c.complementarity_weight()
     if weight is not None:  # P_TOL_DU also bounds the complementarity (scaled): as the backend
-        du = ca.fmax(du, weight * _complementarity(c, w, g, lam_x, lam_g))
+        du = ca.fmax(du, weight * complementarity_expr(c, w, g, lam_x, lam_g))
     viol = [ca.fmax(w - ca.DM(c.ubx), 0), ca.fmax(ca.DM(c.lbx) - w, 0)]
     if g.numel():
         viol += [ca.fmax(g - ca.DM(c.ubg), 0), ca.fmax(ca.DM(c.lbg) - g, 0)]
@@ -202,30 +202,6 @@ def _kkt_function(c: CasadiCompiled, sym: str, lowering: str | None = None,
     feas = ca.mmax(ca.vertcat(*scaled, 0))
     return ca.Function(sym, [w, p, lam_x, lam_g], [pr, du, feas],
                        ["x", "p", "lam_x", "lam_g"], ["pr_inf", "du_inf", "feas"])
-
-
-def _complementarity(c: CasadiCompiled, w: object, g: object, lam_x: object,
-                     lam_g: object) -> object:
-    """``max |λ_i| · gap_i`` as :meth:`CasadiCompiled._complementarity` computes it (the
-    feasible-side slack to the bound the sign of ``λ_i`` points to, less
-    :data:`~balustrade.backends.casadi_backend.COMPLEMENTARITY_SLACK_ROUNDING` ``· (1 +
-    |bound|)``; ``|λ_i|`` where that bound is infinite; equality rows skipped)."""
-    parts = [ca.DM(0)]
-    for lam, val, lo, up in ((lam_x, w, c.lbx, c.ubx), (lam_g, g, c.lbg, c.ubg)):
-        if not np.size(lo):
-            continue
-        lo_a, up_a = np.asarray(lo, dtype=float), np.asarray(up, dtype=float)
-        inequality = ca.DM((lo_a != up_a).astype(float))
-        for bound, mult, sign in ((up_a, ca.fmax(lam, 0), 1.0),
-                                  (lo_a, ca.fmax(-lam, 0), -1.0)):
-            finite = np.isfinite(bound)
-            mask = ca.DM(finite.astype(float))
-            safe = np.where(finite, bound, 0.0)
-            slack = sign * (ca.DM(safe) - val)
-            rounding = ca.DM(COMPLEMENTARITY_SLACK_ROUNDING * (1.0 + np.abs(safe)))
-            gap = mask * ca.fmax(slack - rounding, 0) + (1 - mask)
-            parts.append(ca.mmax(inequality * mult * gap))
-    return ca.mmax(ca.vertcat(*parts))
 
 
 def _check_compiled(c: object, what: str, allow_external: bool) -> tuple[str, ...]:
