@@ -133,7 +133,9 @@ def kkt_residual(P, q, A, b, m0: int, y: np.ndarray, z: np.ndarray) -> float:
 def compare(masses: int, steps: int, order: str = "alternate", options: dict | None = None,
             plugin: str = "qpoases") -> dict:
     """The closed loop on ``fast-convex`` with every (4.5) solve also given to the hot
-    ``conic``; per solve: times, iterations, statuses, ``|v_0|`` and objective differences."""
+    ``conic``; per solve: times, iterations, statuses, ``|v_0|`` and objective differences.
+    Step 0 compiles (4.5) inside the step, so the rows are the solves of steps ``1 …
+    steps − 1`` (the first of them qpOASES' cold ``init``)."""
     d = msd_adaptive.design(masses)
     ctrl = msd_adaptive.adaptive_controller(d)
     loop = Loop(d, ctrl.step, steps)
