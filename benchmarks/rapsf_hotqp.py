@@ -98,9 +98,9 @@ class HotQpoases:
         self.args["lba"][:self.m0] = b[:self.m0]
         if A is not None:
             self.args["a"][:] = A
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         self._eval()
-        elapsed = time.perf_counter() - t0
+        elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
         st = self.buffer.stats()
         y, z = self.res["x"].copy(), self.res["lam_a"].copy()
         values = self.A.data if A is None else A
@@ -112,7 +112,7 @@ class HotQpoases:
         unified = str(st.get("unified_return_status"))
         flag = SUCCESSFUL_RETURN if st.get("success") else \
             RET_MAX_NWSR_REACHED if unified.endswith("LIMITED") else -1
-        return {"time": elapsed, "y": y, "iterations": int(st.get("iter_count", -1)),
+        return {"time": elapsed, "cpu": cpu, "y": y, "iterations": int(st.get("iter_count", -1)),
                 "words": str(st.get("return_status")), "kkt": kkt,
                 "status": status_of(flag, unified.endswith("INFEASIBLE"), kkt)}
 
@@ -154,9 +154,9 @@ def compare(masses: int, steps: int, order: str = "alternate", options: dict | N
             first = order == "qpoases" or (order == "alternate" and len(rows) % 2 == 1)
             if first:
                 other = qp.run(q, b, A)
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             raw = run(q, b) if A is None else run(q, b, A)
-            t_piqp = time.perf_counter() - t0
+            t_piqp, c_piqp = time.perf_counter() - t0, time.process_time() - c0
             if not first:
                 other = qp.run(q, b, A)
             v = [np.asarray(compiled.ocp.unpack_variables(y[:prog.n_w].copy())["v"])[:, 0]
@@ -164,7 +164,8 @@ def compare(masses: int, steps: int, order: str = "alternate", options: dict | N
             cost = [0.5 * y @ qp.P @ y + q @ y for y in (raw.y, other["y"])]
             changed = A is not None and (last_A[0] is None or not np.array_equal(A, last_A[0]))
             last_A[0] = None if A is None else A.copy()
-            rows.append({"piqp_time": t_piqp, "piqp_iter": raw.iterations,
+            rows.append({"piqp_time": t_piqp, "piqp_cpu": c_piqp, "qp_cpu": other["cpu"],
+                         "piqp_iter": raw.iterations,
                          "piqp_status": raw.status.value, "qp_time": other["time"],
                          "qp_iter": other["iterations"], "qp_status": other["status"],
                          "qp_words": other["words"], "kkt": other["kkt"],
@@ -189,9 +190,11 @@ def summary(r: dict, skip: int = 1) -> str:
     rows = r["rows"][skip:]
     if not rows:
         return "no solves"
-    col = {k: np.array([x[k] for x in rows]) for k in ("piqp_time", "qp_time", "piqp_iter",
-                                                        "qp_iter", "dv0", "dobj", "kkt")}
+    col = {k: np.array([x[k] for x in rows]) for k in (
+        "piqp_time", "qp_time", "piqp_cpu", "qp_cpu", "piqp_iter", "qp_iter", "dv0", "dobj",
+        "kkt")}
     zero = col["qp_time"][col["qp_iter"] == 0]
+    zero_cpu = col["qp_cpu"][col["qp_iter"] == 0]
     first, name = r["rows"][0], r.get("plugin", "qpoases")
     statuses: dict[str, int] = {}
     for x in rows:
@@ -203,13 +206,16 @@ def summary(r: dict, skip: int = 1) -> str:
         f"{first['qp_status']}; PIQP {1e3 * first['piqp_time']:.1f} ms); "
         f"{sum(x['A_changed'] for x in rows)} solves with a changed A",
         f"  PIQP    solve median {1e3 * np.median(col['piqp_time']):8.3f} ms, worst "
-        f"{1e3 * col['piqp_time'].max():8.3f} ms; iterations median "
+        f"{1e3 * col['piqp_time'].max():8.3f} ms (CPU median "
+        f"{1e3 * np.median(col['piqp_cpu']):.3f} ms); iterations median "
         f"{np.median(col['piqp_iter']):.0f}, max {col['piqp_iter'].max()}",
         f"  {name:<7} solve median {1e3 * np.median(col['qp_time']):8.3f} ms, worst "
-        f"{1e3 * col['qp_time'].max():8.3f} ms; working-set changes median "
+        f"{1e3 * col['qp_time'].max():8.3f} ms (CPU median "
+        f"{1e3 * np.median(col['qp_cpu']):.3f} ms); working-set changes median "
         f"{np.median(col['qp_iter']):.0f}, max {col['qp_iter'].max()}; with 0 changes "
         f"({zero.size} solves) median "
-        f"{1e3 * np.median(zero) if zero.size else float('nan'):.3f} ms",
+        f"{1e3 * np.median(zero) if zero.size else float('nan'):.3f} ms (CPU "
+        f"{1e3 * np.median(zero_cpu) if zero.size else float('nan'):.3f} ms)",
         f"  max |v_0 difference| {col['dv0'].max():.2e}, max |objective difference| "
         f"{col['dobj'].max():.2e}, max KKT residual of {name} {col['kkt'].max():.2e}",
         "  statuses: " + "; ".join(f"{k}: {v}" for k, v in statuses.items()),
