@@ -1,15 +1,18 @@
 """Row generation against the full solve of (4.5) on the closed-loop states of the RAPSF bench
 (docs/adaptive.md, "session 12: row generation")::
 
-    PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen [masses] [steps] [per_round]
+    PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen [masses] [steps]
+    PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen loop [masses] [steps]
 
 The closed loop of :class:`benchmarks.bench_rapsf.Loop` (design of ``reproduce msd-adaptive``,
 box update, ``fast-convex``) runs ``steps`` steps and records the parameters of every solve of
 the main horizon. Then, state by state in the loop's order, the same compiled problem is solved
 whole (PIQP set up once, the default) and by row generation
-(:mod:`balustrade.backends.row_generation`, seeded by the previous state's active rows), the
-two taking turns. Reported: time per solve (median/worst), rounds, final rows, the largest
-``|v_0|`` and objective differences, the statuses.
+(:mod:`balustrade.backends.row_generation`) in a few configurations (rows added per violated
+group and round; the seed from the previous state), all taking turns state by state.
+Reported: time per solve (median/worst), rounds, final rows, the largest
+``|v_0|`` and objective differences, the statuses. ``loop``: whole closed loops of
+Algorithm 4.1 with and without row generation, taking turns every step (:func:`loops`).
 """
 
 from __future__ import annotations
@@ -45,55 +48,98 @@ def record(masses: int, steps: int) -> tuple[object, list[dict]]:
     return main, [p for c, p in seen if c is main]
 
 
-def compare(compiled: object, states: list[dict], per_round: int = 1) -> dict:
-    """Full solve and row generation, interleaved state by state."""
+def compare(compiled: object, states: list[dict], configs: list[dict]) -> dict:
+    """The full solve and row generation with each of ``configs`` (keywords of
+    :class:`~balustrade.backends.row_generation.RowGeneration`), taking turns state by state."""
     full = copy.copy(compiled)
     full.rowgen = None
-    gen = copy.copy(compiled)
-    gen.rowgen = compiled._row_generation({"per_round": per_round})
-    for c in (full, gen):
+    runs = {"full": full}
+    for cfg in configs:
+        gen = copy.copy(compiled)
+        gen.rowgen = compiled._row_generation(cfg)
+        runs[" ".join(f"{k}={v}" for k, v in cfg.items())] = gen
+    for c in runs.values():
         c.__dict__.pop("solve", None)  # the recording wrapper of record()
-    t_full, t_gen, rounds, rows, dv, dobj, statuses = [], [], [], [], [], [], []
+    out = {label: {"t": [], "rounds": [], "rows": [], "dv": [], "dobj": [], "status": set()}
+           for label in runs}
     for params in states:
-        t0 = time.perf_counter()
-        a = full.solve(params)
-        t1 = time.perf_counter()
-        b = gen.solve(params)
-        t2 = time.perf_counter()
-        t_full.append(t1 - t0)
-        t_gen.append(t2 - t1)
-        rounds.append(gen.rowgen.stats.rounds)
-        rows.append(gen.rowgen.stats.rows)
-        statuses.append((a.status.value, b.status.value))
-        if a.status == Status.OPTIMAL and b.status == Status.OPTIMAL:
-            dv.append(float(np.max(np.abs(a.primal["v"][:, 0] - b.primal["v"][:, 0]))))
-            dobj.append(abs(a.objective - b.objective))
-    m0 = sum(m for kind, m in compiled.program.cones if kind == "zero")
-    return {"states": len(states), "ineq_rows": compiled.program.A.shape[0] - m0,
-            "full_median": float(np.median(t_full)), "full_worst": float(np.max(t_full)),
-            "gen_median": float(np.median(t_gen)), "gen_worst": float(np.max(t_gen)),
-            "rounds": rounds, "rows": rows, "max_dv0": max(dv, default=np.nan),
-            "max_dobj": max(dobj, default=np.nan),
-            "statuses": sorted({f"{x}/{y}" for x, y in statuses})}
+        ref = None
+        for label, c in runs.items():
+            t0 = time.perf_counter()
+            sol = c.solve(params)
+            r = out[label]
+            r["t"].append(time.perf_counter() - t0)
+            r["status"].add(sol.status.value)
+            if c.rowgen is not None:
+                r["rounds"].append(c.rowgen.stats.rounds)
+                r["rows"].append(c.rowgen.stats.rows)
+            if ref is None:
+                ref = sol
+            elif ref.status == Status.OPTIMAL and sol.status == Status.OPTIMAL:
+                r["dv"].append(float(np.max(np.abs(ref.primal["v"][:, 0]
+                                                   - sol.primal["v"][:, 0]))))
+                r["dobj"].append(abs(ref.objective - sol.objective))
+    return out
+
+
+def loops(masses: int, steps: int, drop_after: int = 3) -> dict:
+    """Closed loops of Algorithm 4.1 with the same ``θ*`` and disturbances, taking turns every
+    step: the controller without row generation (the old default), with it (the default
+    choice of :class:`~balustrade.control.rapsf.RAPSF`), and with it dropping rows idle for
+    ``drop_after`` solves from the seed. Per loop: step times, the inputs' largest
+    difference from the old default's, fallbacks."""
+    d = msd_adaptive.design(masses)
+    ctrls = {"full (old default)": msd_adaptive.adaptive_controller(d),
+             "row generation": msd_adaptive.adaptive_controller(d),
+             f"row generation, drop_after={drop_after}": msd_adaptive.adaptive_controller(d)}
+    ctrls["full (old default)"].row_generation = False
+    runs = {label: Loop(d, c.step, steps) for label, c in ctrls.items()}
+    for k in range(steps):
+        for label, loop in runs.items():
+            loop(k)
+            if k == 0 and "drop_after" in label:
+                for c in ctrls[label]._compiled.values():
+                    if c.rowgen is not None:
+                        c.rowgen.drop_after = drop_after
+    ref = np.array(runs["full (old default)"].applied)
+    return {label: {"median": float(np.median(loop.times[1:])),
+                    "worst": float(np.max(loop.times[1:])), "fallbacks": loop.fallbacks,
+                    "max_du": float(np.max(np.abs(np.array(loop.applied) - ref))),
+                    "rowgen": any(getattr(c, "rowgen", None) is not None
+                                  for c in ctrls[label]._compiled.values())}
+            for label, loop in runs.items()}
 
 
 def main(argv: list[str]) -> None:
+    if argv and argv[0] == "loop":
+        masses = int(argv[1]) if len(argv) > 1 else 8
+        steps = int(argv[2]) if len(argv) > 2 else 16
+        out = loops(masses, steps)
+        print(f"{masses} masses, closed loops of {steps} steps taking turns (first step, "
+              "which compiles, not timed; under load)")
+        for label, r in out.items():
+            print(f"  {label:<32} median step {1e3 * r['median']:8.2f} ms  worst "
+                  f"{1e3 * r['worst']:8.2f} ms  max |du| vs old {r['max_du']:.1e}  "
+                  f"fallbacks {r['fallbacks']}  row generation used: {r['rowgen']}")
+        return
     masses = int(argv[0]) if argv else 8
     steps = int(argv[1]) if len(argv) > 1 else 15
-    per_round = int(argv[2]) if len(argv) > 2 else 1
+    configs = [{"per_round": 1, "seed": "active"}, {"per_round": 1, "seed": "working"},
+               {"per_round": 3, "seed": "working"}]
     compiled, states = record(masses, steps)
-    r = compare(compiled, states, per_round)
-    print(f"{masses} masses, {r['states']} states, {r['ineq_rows']} inequality rows, "
-          f"{per_round} row(s) per violated group and round (under load)")
-    print(f"  full solve      median {1e3 * r['full_median']:9.2f} ms  worst "
-          f"{1e3 * r['full_worst']:9.2f} ms")
-    print(f"  row generation  median {1e3 * r['gen_median']:9.2f} ms  worst "
-          f"{1e3 * r['gen_worst']:9.2f} ms")
-    print(f"  rounds {min(r['rounds'])}-{max(r['rounds'])} (median "
-          f"{np.median(r['rounds']):.0f}); final rows {min(r['rows'])}-{max(r['rows'])} "
-          f"(median {np.median(r['rows']):.0f})")
-    print(f"  max |v0 diff| {r['max_dv0']:.2e}, max |objective diff| {r['max_dobj']:.2e}, "
-          f"statuses (full/rowgen) {r['statuses']}")
+    out = compare(compiled, states, configs)
+    m0 = sum(m for kind, m in compiled.program.cones if kind == "zero")
+    print(f"{masses} masses, {len(states)} states, {compiled.program.A.shape[0] - m0} "
+          "inequality rows; times per solve under load, the configurations taking turns")
+    for label, r in out.items():
+        t = np.array(r["t"])
+        line = f"  {label:<28} median {1e3 * np.median(t):8.2f} ms  worst {1e3 * t.max():8.2f} ms"
+        if r["rounds"]:
+            line += (f"  rounds {min(r['rounds'])}-{max(r['rounds'])} (median "
+                     f"{np.median(r['rounds']):.0f}), final rows {min(r['rows'])}-"
+                     f"{max(r['rows'])}, max |dv0| {max(r['dv'], default=np.nan):.1e}, "
+                     f"max |dobj| {max(r['dobj'], default=np.nan):.1e}")
+        print(line + f"  statuses {sorted(r['status'])}")
 
 
 if __name__ == "__main__":

@@ -138,3 +138,26 @@ def test_rapsf_three_masses_equals_full_solve():
         assert np.max(np.abs(a.primal["v"][:, 0] - b.primal["v"][:, 0])) < 1e-8
         rounds.append(gen.rowgen.stats.rounds)
     assert max(rounds) > 1
+
+
+def test_rapsf_chooses_row_generation_by_size(monkeypatch):
+    """RAPSF compiles (4.5) for row generation only from ROWGEN_MIN_ROWS grouped rows on (the
+    3-mass problem is below it); forced on, the closed loop applies the same inputs."""
+    import balustrade.control.rapsf as rapsf_mod
+    from balustrade.reproduce import msd_adaptive
+    from benchmarks.bench_rapsf import Loop
+
+    d = msd_adaptive.design(3)
+    plain = msd_adaptive.adaptive_controller(d)
+    loop_plain = Loop(d, plain.step, 8)
+    for k in range(8):
+        loop_plain(k)
+    assert all(getattr(c, "rowgen", None) is None for c in plain._compiled.values())
+    monkeypatch.setattr(rapsf_mod, "ROWGEN_MIN_ROWS", 1)
+    forced = msd_adaptive.adaptive_controller(d)
+    loop_forced = Loop(d, forced.step, 8)
+    for k in range(8):
+        loop_forced(k)
+    assert any(getattr(c, "rowgen", None) is not None for c in forced._compiled.values())
+    assert np.max(np.abs(np.array(loop_plain.applied) - np.array(loop_forced.applied))) < 1e-8
+    assert loop_forced.fallbacks == loop_plain.fallbacks == 0

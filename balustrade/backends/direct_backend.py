@@ -176,14 +176,15 @@ class DirectCompiled:
 
     def _row_generation(self, setting: object) -> RowGeneration | None:
         """:class:`~balustrade.backends.row_generation.RowGeneration` for the option
-        ``row_generation`` (``True`` or ``{"per_round": k}``) when the OCP marks groups of
+        ``row_generation`` (``True`` or a dict of :class:`RowGeneration`'s keywords, e.g.
+        ``{"per_round": 2, "seed": "working"}``) when the OCP marks groups of
         inequality rows (``ocp.row_groups``: block name → a group label per row, and
         ``ocp.row_group_stride``, e.g. :func:`balustrade.problems.rapsf.rapsf_problem`) and
         the problem is an LP/QP solved by PIQP; ``None`` (every solve whole) otherwise."""
         groups = getattr(self.ocp, "row_groups", None)
         if not groups or self.solver_name != "piqp" or self.program.conic:
             return None
-        per_round = setting.get("per_round", 1) if isinstance(setting, Mapping) else 1
+        setting = dict(setting) if isinstance(setting, Mapping) else {}
         prog = self.program
         m0 = sum(m for kind, m in prog.cones if kind == "zero")
         labels = np.full(prog.A.shape[0] - m0, -1, dtype=np.int64)
@@ -192,9 +193,8 @@ class DirectCompiled:
                 if dm.mode != LINEAR or np.any(dm.at < m0):
                     return None                    # not plain inequality rows: no groups
                 labels[dm.at - m0] = np.asarray(ids)[dm.rows]
-        return RowGeneration(prog, labels, per_round=per_round,
-                             stride=int(getattr(self.ocp, "row_group_stride", 0)),
-                             options=self.options)
+        return RowGeneration(prog, labels, stride=int(getattr(self.ocp, "row_group_stride", 0)),
+                             options=self.options, **setting)
 
     def confirm_infeasible(self, p: np.ndarray, said_by: str, words: str,
                            full: bool = False) -> tuple[bool, str]:

@@ -11,7 +11,8 @@ active, so most of the 28644 inequality rows of the 8-mass QP never bind.
 ungrouped row and a working set of grouped rows. After each round all rows are evaluated at
 the reduced optimum ``y*`` by one sparse product; for each group with a row violated by more
 than the tolerance only its ``k`` most violated rows are added (never every violated row: that
-was measured in session 11 to end with almost all rows). Rows stay once added.
+was measured in session 11 to end with almost all rows). Rows stay once added; the next solve
+starts from this solve's working set (or its rows near active), also shifted by one stage.
 
 **Exactness.** Each reduced QP has a subset of the full QP's constraints, so it is a
 relaxation: its optimal value ``f*_red <= f*``. At termination ``y*`` (optimal for the reduced
@@ -46,6 +47,9 @@ from balustrade.errors import BalustradeError
 
 #: rounds after which row generation gives up (the caller then solves the full QP)
 MAX_ROUNDS = 40
+#: what seeds the next solve's working set: the rows near active at this solve ("active")
+#: or this solve's whole final working set ("working"), in both cases also shifted by a stage
+SEEDS = ("active", "working")
 #: a grouped row within this (relative) gap of active at a solve seeds the next solve
 ACTIVE_GAP = 1e-6
 
@@ -66,11 +70,16 @@ class RowGeneration:
     always kept). ``per_round``: rows added per violated group and round. ``stride``: the
     number of groups per stage, so that group ``g`` of the next solve is seeded with the rows
     active in group ``g + stride`` of this one (the receding horizon's shift), besides those
-    active in group ``g`` itself; ``0``: no shift. ``options``: PIQP settings."""
+    active in group ``g`` itself; ``0``: no shift. ``seed`` (:data:`SEEDS`): which rows of
+    this solve seed the next; ``drop_after``: leave out of the seed the rows not near active
+    at that many consecutive solves (``None``: keep them). ``options``: PIQP settings. The
+    defaults (3 rows per group and round, the whole working set as seed) were the fastest on
+    the 8-mass (4.5) (docs/adaptive.md, session 12)."""
 
-    def __init__(self, prog: ConicProgram, groups: np.ndarray, per_round: int = 1,
+    def __init__(self, prog: ConicProgram, groups: np.ndarray, per_round: int = 3,
                  stride: int = 0, options: dict | None = None,
-                 max_rounds: int = MAX_ROUNDS):
+                 max_rounds: int = MAX_ROUNDS, seed: str = "working",
+                 drop_after: int | None = None):
         if prog.conic:
             raise BalustradeError("row generation: an LP/QP is needed (this problem has "
                                   "second-order cones)")
@@ -85,6 +94,11 @@ class RowGeneration:
                                   f"got {per_round!r}")
         self.prog, self.groups, self.per_round, self.stride = prog, groups, per_round, stride
         self.max_rounds = max_rounds
+        if seed not in SEEDS:
+            raise BalustradeError(f"row generation: seed must be one of {SEEDS}, got {seed!r}")
+        self.seed = seed
+        self.drop_after = drop_after
+        self._idle = np.zeros(groups.size, dtype=np.int64)  # solves a row was not near active
         self.options = {**DEFAULT_OPTIONS["piqp"], **(options or {})}
         self.always = groups < 0
         self.n_groups = int(groups.max()) + 1 if groups.size else 0
@@ -232,8 +246,14 @@ class RowGeneration:
                                  stats.iterations)
             work[self._most_violated(viol, bad, self.per_round)] = True
         z = self._full_z(raw.z, rows)
-        # the seed of the next solve: grouped rows within ACTIVE_GAP of active
-        self._seed = np.flatnonzero((viol >= -ACTIVE_GAP * (1.0 + np.abs(h))) & ~self.always)
+        # the seed of the next solve: grouped rows within ACTIVE_GAP of active, or every
+        # grouped row of the last working set
+        near = viol >= -ACTIVE_GAP * (1.0 + np.abs(h))
+        self._idle = np.where(near, 0, self._idle + 1)
+        keep = near if self.seed == "active" else work
+        if self.drop_after is not None:              # rows idle for drop_after solves go
+            keep = keep & (self._idle < self.drop_after)
+        self._seed = np.flatnonzero(keep & ~self.always)
         raw.z, raw.iterations = z, stats.iterations
         raw.words += f" (row generation: {stats.rounds} rounds, {rows.size} of {h.size} " \
                      "inequality rows)"
@@ -250,4 +270,4 @@ class RowGeneration:
         return full
 
 
-__all__ = ["ACTIVE_GAP", "MAX_ROUNDS", "RowGenStats", "RowGeneration"]
+__all__ = ["ACTIVE_GAP", "MAX_ROUNDS", "SEEDS", "RowGenStats", "RowGeneration"]
