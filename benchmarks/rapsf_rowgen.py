@@ -2,7 +2,7 @@
 (docs/adaptive.md, "session 12: row generation")::
 
     PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen [masses] [steps]
-    PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen loop [masses] [steps]
+    PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen loop [masses] [steps] [drop_after]
 
 The closed loop of :class:`benchmarks.bench_rapsf.Loop` (design of ``reproduce msd-adaptive``,
 box update, ``fast-convex``) runs ``steps`` steps and records the parameters of every solve of
@@ -82,16 +82,17 @@ def compare(compiled: object, states: list[dict], configs: list[dict]) -> dict:
     return out
 
 
-def loops(masses: int, steps: int, drop_after: int = 3) -> dict:
+def loops(masses: int, steps: int, drop_after: int | None = None) -> dict:
     """Closed loops of Algorithm 4.1 with the same ``θ*`` and disturbances, taking turns every
     step: the controller without row generation (the old default), with it (the default
-    choice of :class:`~balustrade.control.rapsf.RAPSF`), and with it dropping rows idle for
-    ``drop_after`` solves from the seed. Per loop: step times, the inputs' largest
-    difference from the old default's, fallbacks."""
+    choice of :class:`~balustrade.control.rapsf.RAPSF`), and (``drop_after`` given) with it
+    dropping rows idle for ``drop_after`` solves from the seed. Per loop: step times, the
+    inputs' largest difference from the old default's, fallbacks."""
     d = msd_adaptive.design(masses)
     ctrls = {"full (old default)": msd_adaptive.adaptive_controller(d),
-             "row generation": msd_adaptive.adaptive_controller(d),
-             f"row generation, drop_after={drop_after}": msd_adaptive.adaptive_controller(d)}
+             "row generation": msd_adaptive.adaptive_controller(d)}
+    if drop_after is not None:
+        ctrls[f"row generation, drop_after={drop_after}"] = msd_adaptive.adaptive_controller(d)
     ctrls["full (old default)"].row_generation = False
     runs = {label: Loop(d, c.step, steps) for label, c in ctrls.items()}
     for k in range(steps):
@@ -114,7 +115,7 @@ def main(argv: list[str]) -> None:
     if argv and argv[0] == "loop":
         masses = int(argv[1]) if len(argv) > 1 else 8
         steps = int(argv[2]) if len(argv) > 2 else 16
-        out = loops(masses, steps)
+        out = loops(masses, steps, int(argv[3]) if len(argv) > 3 else None)
         print(f"{masses} masses, closed loops of {steps} steps taking turns (first step, "
               "which compiles, not timed; under load)")
         for label, r in out.items():

@@ -13,6 +13,7 @@ from balustrade.backends import compile
 from balustrade.backends.direct_backend import DirectCompiled
 from balustrade.backends.solution import Status
 from balustrade.dsl import OCP, squared_norm
+from balustrade.errors import BalustradeError
 
 ROWGEN = {"row_generation": True}
 
@@ -161,3 +162,11 @@ def test_rapsf_chooses_row_generation_by_size(monkeypatch):
     assert any(getattr(c, "rowgen", None) is not None for c in forced._compiled.values())
     assert np.max(np.abs(np.array(loop_plain.applied) - np.array(loop_forced.applied))) < 1e-8
     assert loop_forced.fallbacks == loop_plain.fallbacks == 0
+
+
+def test_unknown_kkt_solver_named():
+    ocp = _grouped_qp(0)
+    gen = DirectCompiled(ocp, "piqp", {"row_generation": {
+        "reduced_options": {"kkt_solver": "no_such_kkt"}}})
+    with pytest.raises(BalustradeError, match="no_such_kkt"):
+        gen.solve({"c": np.zeros(6)})

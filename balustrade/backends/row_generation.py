@@ -72,14 +72,15 @@ class RowGeneration:
     active in group ``g + stride`` of this one (the receding horizon's shift), besides those
     active in group ``g`` itself; ``0``: no shift. ``seed`` (:data:`SEEDS`): which rows of
     this solve seed the next; ``drop_after``: leave out of the seed the rows not near active
-    at that many consecutive solves (``None``: keep them). ``options``: PIQP settings. The
+    at that many consecutive solves (``None``: keep them). ``options``: PIQP settings;
+    ``reduced_options``: settings of the reduced solves only (e.g. the KKT solver). The
     defaults (3 rows per group and round, the whole working set as seed) were the fastest on
     the 8-mass (4.5) (docs/adaptive.md, session 12)."""
 
     def __init__(self, prog: ConicProgram, groups: np.ndarray, per_round: int = 3,
                  stride: int = 0, options: dict | None = None,
                  max_rounds: int = MAX_ROUNDS, seed: str = "working",
-                 drop_after: int | None = None):
+                 drop_after: int | None = None, reduced_options: dict | None = None):
         if prog.conic:
             raise BalustradeError("row generation: an LP/QP is needed (this problem has "
                                   "second-order cones)")
@@ -100,6 +101,9 @@ class RowGeneration:
         self.drop_after = drop_after
         self._idle = np.zeros(groups.size, dtype=np.int64)  # solves a row was not near active
         self.options = {**DEFAULT_OPTIONS["piqp"], **(options or {})}
+        #: PIQP settings of the reduced solves (the full solve's, updated by reduced_options;
+        #: a KKT solver may be given by its name)
+        self.reduced = {**self.options, **(reduced_options or {})}
         self.always = groups < 0
         self.n_groups = int(groups.max()) + 1 if groups.size else 0
         # the grouped rows sorted by group, and where each group starts in that order
@@ -189,7 +193,14 @@ class RowGeneration:
 
         solver = piqp.SparseSolver()
         solver.settings.verbose = False
-        _set_options(solver.settings, self.options, "PIQP")
+        options = dict(self.reduced)
+        if isinstance(options.get("kkt_solver"), str):
+            name = options["kkt_solver"]
+            if name not in piqp.KKTSolver.__members__:
+                raise BalustradeError(f"row generation: PIQP has no KKT solver {name!r}; use "
+                                      f"one of {', '.join(piqp.KKTSolver.__members__)}")
+            options["kkt_solver"] = piqp.KKTSolver.__members__[name]
+        _set_options(solver.settings, options, "PIQP")
         has_eq, has_in = A_eq.shape[0] > 0, G.shape[0] > 0
         solver.setup(self._P, q, A_eq if has_eq else None, b_eq if has_eq else None,
                      G.tocsc() if has_in else None, None, h if has_in else None)

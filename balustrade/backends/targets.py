@@ -382,8 +382,12 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("direct", None, name="fast-convex"),
     Target("direct", "clarabel", name="fast-convex-conic"),
     Target("direct", "piqp", name="fast-convex-qp"),
-    # row generation over the OCP's grouped rows (backends/row_generation.py; session 12)
-    Target("direct", "piqp", {"row_generation": True}, name="fast-convex-rowgen"),
+    # row generation over the OCP's grouped rows (backends/row_generation.py; session 12);
+    # the reduced QPs (few rows, 587 variables for 8 masses) condensed onto the variables:
+    # 1.5x faster than the plain LDLᵀ on the recorded 8-mass reduced QPs, same objective
+    Target("direct", "piqp",
+           {"row_generation": {"reduced_options": {"kkt_solver": "sparse_ldlt_ineq_cond"}}},
+           name="fast-convex-rowgen"),
     Target("auto", None, name="auto"),
 )}
 
