@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 
+from balustrade.backends import resolve_target
 from balustrade.backends.solution import Status
 from balustrade.reproduce import msd_adaptive
 from benchmarks.bench_rapsf import Loop
@@ -57,7 +58,8 @@ def compare(compiled: object, states: list[dict], configs: list[dict]) -> dict:
     for cfg in configs:
         gen = copy.copy(compiled)
         gen.rowgen = compiled._row_generation(cfg)
-        runs[" ".join(f"{k}={v}" for k, v in cfg.items())] = gen
+        runs[" ".join(f"{k}={v}" for k, v in cfg.items())
+             if "reduced_options" not in cfg else "preset fast-convex-rowgen"] = gen
     for c in runs.values():
         c.__dict__.pop("solve", None)  # the recording wrapper of record()
     out = {label: {"t": [], "rounds": [], "rows": [], "dv": [], "dobj": [], "status": set()}
@@ -125,8 +127,9 @@ def main(argv: list[str]) -> None:
         return
     masses = int(argv[0]) if argv else 8
     steps = int(argv[1]) if len(argv) > 1 else 15
+    preset = dict(resolve_target("fast-convex-rowgen").options["row_generation"])
     configs = [{"per_round": 1, "seed": "active"}, {"per_round": 1, "seed": "working"},
-               {"per_round": 3, "seed": "working"}]
+               {"per_round": 3, "seed": "working"}, preset]
     compiled, states = record(masses, steps)
     out = compare(compiled, states, configs)
     m0 = sum(m for kind, m in compiled.program.cones if kind == "zero")
