@@ -59,8 +59,7 @@ def compare(compiled: object, states: list[dict], configs: list[dict]) -> dict:
         gen = copy.copy(compiled)
         gen.rowgen = compiled._row_generation(cfg)
         runs[" ".join(f"{k}={v}" for k, v in cfg.items())
-             if "reduced_options" not in cfg else "preset fast-convex-rowgen"
-             + (" predict=True" if cfg.get("predict") else "")] = gen
+             if "reduced_options" not in cfg else "preset fast-convex-rowgen"] = gen
     for c in runs.values():
         c.__dict__.pop("solve", None)  # the recording wrapper of record()
     out = {label: {"t": [], "rounds": [], "rows": [], "dv": [], "dobj": [], "status": set()}
@@ -130,7 +129,7 @@ def main(argv: list[str]) -> None:
     steps = int(argv[1]) if len(argv) > 1 else 15
     preset = dict(resolve_target("fast-convex-rowgen").options["row_generation"])
     configs = [{"per_round": 1, "seed": "active"}, {"per_round": 1, "seed": "working"},
-               {"per_round": 3, "seed": "working"}, preset, {**preset, "predict": True}]
+               {"per_round": 3, "seed": "working"}, preset]
     compiled, states = record(masses, steps)
     out = compare(compiled, states, configs)
     m0 = sum(m for kind, m in compiled.program.cones if kind == "zero")

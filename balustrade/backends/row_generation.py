@@ -73,17 +73,14 @@ class RowGeneration:
     active in group ``g`` itself; ``0``: no shift. ``seed`` (:data:`SEEDS`): which rows of
     this solve seed the next; ``drop_after``: leave out of the seed the rows not near active
     at that many consecutive solves (``None``: keep them). ``options``: PIQP settings;
-    ``reduced_options``: settings of the reduced solves only (e.g. the KKT solver);
-    ``predict``: also add, before the first round, the ``per_round`` rows per group most
-    violated by the last solve's point under the new data. The
+    ``reduced_options``: settings of the reduced solves only (e.g. the KKT solver). The
     defaults (3 rows per group and round, the whole working set as seed) were the fastest on
     the 8-mass (4.5) (docs/adaptive.md, session 12)."""
 
     def __init__(self, prog: ConicProgram, groups: np.ndarray, per_round: int = 3,
                  stride: int = 0, options: dict | None = None,
                  max_rounds: int = MAX_ROUNDS, seed: str = "working",
-                 drop_after: int | None = None, reduced_options: dict | None = None,
-                 predict: bool = False):
+                 drop_after: int | None = None, reduced_options: dict | None = None):
         if prog.conic:
             raise BalustradeError("row generation: an LP/QP is needed (this problem has "
                                   "second-order cones)")
@@ -102,8 +99,6 @@ class RowGeneration:
             raise BalustradeError(f"row generation: seed must be one of {SEEDS}, got {seed!r}")
         self.seed = seed
         self.drop_after = drop_after
-        self.predict = predict
-        self._last_y: np.ndarray | None = None   # the last solve's point (predict)
         self._idle = np.zeros(groups.size, dtype=np.int64)  # solves a row was not near active
         self.options = {**DEFAULT_OPTIONS["piqp"], **(options or {})}
         #: PIQP settings of the reduced solves (the full solve's, updated by reduced_options;
@@ -234,13 +229,6 @@ class RowGeneration:
         if cold:
             self._seed = None
         work = self._initial(h)
-        if self.predict and self._last_y is not None and self._seed is not None:
-            # the rows the last solution violates under the new data, k per group: a
-            # guess of the rows the first round would otherwise have to find
-            Gy = G @ self._last_y
-            viol = Gy - h
-            bad = (viol > self._tolerance(h, Gy)) & ~work
-            work[self._most_violated(viol, bad, self.per_round)] = True
         stats = RowGenStats()
         self.stats = stats
         while True:
@@ -282,7 +270,6 @@ class RowGeneration:
         if self.drop_after is not None:              # rows idle for drop_after solves go
             keep = keep & (self._idle < self.drop_after)
         self._seed = np.flatnonzero(keep & ~self.always)
-        self._last_y = raw.y
         raw.z, raw.iterations = z, stats.iterations
         raw.words += f" (row generation: {stats.rounds} rounds, {rows.size} of {h.size} " \
                      "inequality rows)"
