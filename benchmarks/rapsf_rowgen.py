@@ -109,7 +109,9 @@ def loops(masses: int, steps: int, drop_after: int | None = None) -> dict:
                     "worst": float(np.max(loop.times[1:])), "fallbacks": loop.fallbacks,
                     "max_du": float(np.max(np.abs(np.array(loop.applied) - ref))),
                     "rowgen": any(getattr(c, "rowgen", None) is not None
-                                  for c in ctrls[label]._compiled.values())}
+                                  for c in ctrls[label]._compiled.values()),
+                    "rows": [c.rowgen.stats.rows for c in ctrls[label]._compiled.values()
+                             if getattr(c, "rowgen", None) is not None]}
             for label, loop in runs.items()}
 
 
@@ -123,7 +125,8 @@ def main(argv: list[str]) -> None:
         for label, r in out.items():
             print(f"  {label:<32} median step {1e3 * r['median']:8.2f} ms  worst "
                   f"{1e3 * r['worst']:8.2f} ms  max |du| vs old {r['max_du']:.1e}  "
-                  f"fallbacks {r['fallbacks']}  row generation used: {r['rowgen']}")
+                  f"fallbacks {r['fallbacks']}  row generation used: {r['rowgen']}"
+                  + (f" (rows of the last solve: {r['rows']})" if r["rows"] else ""))
         return
     masses = int(argv[0]) if argv else 8
     steps = int(argv[1]) if len(argv) > 1 else 15

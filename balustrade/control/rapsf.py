@@ -82,8 +82,9 @@ EMITTED_TARGETS = ("convex-qp",)
 
 #: (4.5) with at least this many grouped tube rows (4.5c) is solved by row generation
 #: (``"fast-convex-rowgen"``, exact) when the target is ``fast-convex``/``fast-convex-qp``/
-#: ``auto``: measured 3–6x faster on 8 masses (28644 rows), 10x slower on 3 masses (590 rows;
-#: docs/adaptive.md, session 12). ``RAPSF.row_generation = False`` turns it off.
+#: ``auto``: measured 8–10x faster on 8 masses (28644 rows), slower on 3 masses (590 rows:
+#: 1.96 against 1.59 ms per solve; docs/adaptive.md, session 12). ``RAPSF.row_generation =
+#: False`` turns it off.
 ROWGEN_MIN_ROWS = 10000
 ROWGEN_FROM = ("fast-convex", "fast-convex-qp", "auto")
 
