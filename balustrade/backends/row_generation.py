@@ -68,10 +68,10 @@ class RowGeneration:
     """Row generation on ``prog`` (an LP/QP) with inequality-row groups ``groups`` (one label
     per inequality row of ``prog.A``, i.e. per row after the equality rows; ``-1`` for rows
     always kept). ``per_round``: rows added per violated group and round. ``stride``: the
-    number of groups per stage, so that group ``g`` of the next solve is seeded with the rows
-    active in group ``g + stride`` of this one (the receding horizon's shift), besides those
-    active in group ``g`` itself; ``0``: no shift. ``seed`` (:data:`SEEDS`): which rows of
-    this solve seed the next; ``drop_after``: leave out of the seed the rows not near active
+    number of groups per stage, so that group ``g`` of the next solve is seeded with the
+    seed rows of group ``g + stride`` of this one (the receding horizon's shift, at the same
+    positions within the group), besides those of group ``g`` itself; ``0``: no shift.
+    ``seed`` (:data:`SEEDS`): which rows of this solve seed the next; ``drop_after``: leave out of the seed the rows not near active
     at that many consecutive solves (``None``: keep them). ``options``: PIQP settings;
     ``reduced_options``: settings of the reduced solves only (e.g. the KKT solver). The
     defaults (3 rows per group and round, the whole working set as seed) were the fastest on
