@@ -71,11 +71,12 @@ class RowGeneration:
     number of groups per stage, so that group ``g`` of the next solve is seeded with the
     seed rows of group ``g + stride`` of this one (the receding horizon's shift, at the same
     positions within the group), besides those of group ``g`` itself; ``0``: no shift.
-    ``seed`` (:data:`SEEDS`): which rows of this solve seed the next; ``drop_after``: leave out of the seed the rows not near active
-    at that many consecutive solves (``None``: keep them). ``options``: PIQP settings;
-    ``reduced_options``: settings of the reduced solves only (e.g. the KKT solver). The
-    defaults (3 rows per group and round, the whole working set as seed) were the fastest on
-    the 8-mass (4.5) (docs/adaptive.md, session 12)."""
+    ``seed`` (:data:`SEEDS`): which rows of this solve seed the next. ``drop_after``: leave
+    out of the seed the rows not near active at that many consecutive solves (``None``:
+    keep them). ``options``: PIQP settings. ``reduced_options``: settings of the reduced
+    solves only (e.g. the KKT solver). The defaults (3 rows per group and round, the whole
+    working set as seed) were the fastest on the 8-mass (4.5) (docs/adaptive.md, session
+    12)."""
 
     def __init__(self, prog: ConicProgram, groups: np.ndarray, per_round: int = 3,
                  stride: int = 0, options: dict | None = None,
