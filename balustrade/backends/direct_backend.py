@@ -43,6 +43,7 @@ from balustrade.backends.passes.to_conic import (
     ConicProgram,
     ToConic,
 )
+from balustrade.backends.row_generation import RowGeneration
 from balustrade.backends.solution import Solution, Status
 from balustrade.dsl.ocp import OCP
 from balustrade.errors import SolverError
@@ -112,7 +113,10 @@ class DirectCompiled:
                               f"got {type(options).__name__}")
         self.solver_name = solver.lower() if solver else ("clarabel" if self.conic else "piqp")
         self.options = dict(options or {})
+        rowgen = self.options.pop("row_generation", None)
         self.engine = make_engine(self.solver_name, program, self.options)
+        #: row generation over the OCP's grouped rows (option ``row_generation``), or None
+        self.rowgen = self._row_generation(rowgen) if rowgen else None
         self.cost_scale = program.cost_scale
         self._full: tuple[ConicProgram, object] | None = None  # with the large rows
         self._feasibility: dict = {}  # per program: the engine checking "infeasible"
@@ -127,12 +131,23 @@ class DirectCompiled:
               warm_start: Solution | dict[str, object] | None = None) -> Solution:
         """Solve with the given parameter values. ``warm_start`` is accepted for the common
         interface and ignored: neither interior-point solver takes a starting point through
-        its Python interface, so every solve is cold and depends on ``params`` only."""
+        its Python interface, so every solve is cold and depends on ``params`` only. With
+        the option ``row_generation`` (:mod:`~balustrade.backends.row_generation`) the
+        reduced QPs start from the previous solve's rows; the answer is the full QP's (exact
+        at termination, to the solver's tolerance), and a reduced solve that is not
+        optimal or infeasible is replaced by the full solve."""
         p = self.ocp.pack_parameters(params)
         prog = self.program
         start = time.perf_counter()
         q, b, A = prog.q(p), prog.b(p), prog.A_data(p)
-        raw = _run(self.engine, q, b, A)
+        if self.rowgen is not None:
+            raw = self.rowgen.run(q, b, A)
+            if raw.status not in (Status.OPTIMAL, Status.INFEASIBLE):  # solve it whole
+                first = raw.words
+                raw = _run(self.engine, q, b, A)
+                raw.words = f"{raw.words} (the full QP; {first})"
+        else:
+            raw = _run(self.engine, q, b, A)
         message = raw.words
         if raw.status == Status.INFEASIBLE:
             raw, message = self._check_infeasible(raw, prog, b, A)
@@ -162,6 +177,28 @@ class DirectCompiled:
                         primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
                         iterations=raw.iterations, backend="direct", solver=self.solver_name,
                         p=p, message=message)
+
+    def _row_generation(self, setting: object) -> RowGeneration | None:
+        """:class:`~balustrade.backends.row_generation.RowGeneration` for the option
+        ``row_generation`` (``True`` or a dict of :class:`RowGeneration`'s keywords, e.g.
+        ``{"per_round": 2, "seed": "working"}``) when the OCP marks groups of
+        inequality rows (``ocp.row_groups``: block name → a group label per row, and
+        ``ocp.row_group_stride``, e.g. :func:`balustrade.problems.rapsf.rapsf_problem`) and
+        the problem is an LP/QP solved by PIQP; ``None`` (every solve whole) otherwise."""
+        groups = getattr(self.ocp, "row_groups", None)
+        if not groups or self.solver_name != "piqp" or self.program.conic:
+            return None
+        setting = dict(setting) if isinstance(setting, Mapping) else {}
+        prog = self.program
+        m0 = sum(m for kind, m in prog.cones if kind == "zero")
+        labels = np.full(prog.A.shape[0] - m0, -1, dtype=np.int64)
+        for name, ids in groups.items():
+            for dm in prog.duals.get(name, []):
+                if dm.mode != LINEAR or np.any(dm.at < m0):
+                    return None                    # not plain inequality rows: no groups
+                labels[dm.at - m0] = np.asarray(ids)[dm.rows]
+        return RowGeneration(prog, labels, stride=int(getattr(self.ocp, "row_group_stride", 0)),
+                             options=self.options, **setting)
 
     def confirm_infeasible(self, p: np.ndarray, said_by: str, words: str,
                            full: bool = False) -> tuple[bool, str]:

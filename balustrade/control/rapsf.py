@@ -80,6 +80,14 @@ Backup = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
 #: them (:data:`balustrade.codegen.emit_rapsf.EMITTABLE_TARGET`)
 EMITTED_TARGETS = ("convex-qp",)
 
+#: (4.5) with at least this many grouped tube rows (4.5c) is solved by row generation
+#: (``"fast-convex-rowgen"``, exact) when the target is ``fast-convex``/``fast-convex-qp``/
+#: ``auto``: measured 8–10x faster on 8 masses (28644 rows), slower on 3 masses (590 rows:
+#: 1.96 against 1.59 ms per solve; docs/adaptive.md, session 12). ``RAPSF.row_generation =
+#: False`` turns it off.
+ROWGEN_MIN_ROWS = 10000
+ROWGEN_FROM = ("fast-convex", "fast-convex-qp", "auto")
+
 
 class RAPSF:
     """Algorithm 4.1 (SPEC §2.21) as a controller: ``step(x, u_p) -> (u, StepInfo)``.
@@ -146,6 +154,7 @@ class RAPSF:
         # deployment_spec). Since interior-point NLP targets emit C too (linking their
         # library), "emits C" no longer singles it out: the QP path is named.
         self._share = self.target.name not in EMITTED_TARGETS
+        self.row_generation = True      # allowed where it pays (_target_for)
         self._shared: dict[int, np.ndarray | None] = {}
         self._X0_vertices = _small_vertices(X0)
         self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
@@ -282,8 +291,8 @@ class RAPSF:
             if rep is not None and not self._data_share_rows(rep, params, n_th):
                 rep, key = None, (horizon, n_th, "all rows")  # these data repeat no rows
             if key not in self._compiled:
-                self._compiled[key] = compile(self._problem(horizon, n_vertices=n_th,
-                                                            shared=rep), self.target)
+                ocp = self._problem(horizon, n_vertices=n_th, shared=rep)
+                self._compiled[key] = compile(ocp, self._target_for(ocp))
             if self.enlargement is not None:
                 params["terminal_generators"] = self.enlargement.padded()
         else:
@@ -292,8 +301,8 @@ class RAPSF:
             if key not in self._compiled:
                 self._compiled = {k: c for k, c in self._compiled.items()
                                   if k[1] == key[1]}               # keep the current Θ only
-                self._compiled[key] = compile(self._problem(horizon, vertices=self.vertices),
-                                              self.target)
+                ocp = self._problem(horizon, vertices=self.vertices)
+                self._compiled[key] = compile(ocp, self._target_for(ocp))
         warm = None
         if self.warm_start and horizon == self.N and self.k_inf == 0 \
                 and self._last is not None and self._last[0] == key:
@@ -302,6 +311,15 @@ class RAPSF:
         if horizon == self.N:
             self._last = (key, sol) if outcome(sol) == "optimal" else None
         return sol
+
+    def _target_for(self, ocp: object) -> object:
+        """The target (4.5) is compiled for in :meth:`step`: ``fast-convex-rowgen`` in place
+        of a direct target when the problem has :data:`ROWGEN_MIN_ROWS` grouped rows or more
+        (the same answers), else :attr:`target`."""
+        rows = sum(len(g) for g in getattr(ocp, "row_groups", {}).values())
+        if self.row_generation and self.target.name in ROWGEN_FROM and rows >= ROWGEN_MIN_ROWS:
+            return resolve_target("fast-convex-rowgen")
+        return self.target
 
     def deployment_spec(self) -> RAPSFDeployment:
         """Algorithm 4.1 for :func:`balustrade.codegen.emit_rapsf` (one C call per step):

@@ -406,6 +406,7 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
     if factored:
         _tube_rows_factored(ocp, system, HX, K, thetas, s, w_bar, keep, z, alpha, v, N,
                             z_next, a_next)
+    _mark_row_groups(ocp, keep, N)
     for j, (A, B) in enumerate(zip(A_j, B_j, strict=True)):                             # (4.5c)
         if factored:
             break
@@ -422,6 +423,23 @@ def rapsf_problem(system: object, X0: Polytope, F: np.ndarray | JointPolytope,
     _terminal(ocp, z[:, N], alpha[N], terminal, n, name)                                 # (4.5e)
     ocp.minimize(squared_norm(u_p - (ca.mtimes(Kd, x0) + v[:, 0]), label="filter"))
     return ocp
+
+
+def _mark_row_groups(ocp: OCP, keep: np.ndarray, N: int) -> None:
+    """Record which rows of (4.5c) belong together, as metadata of ``ocp`` for a backend that
+    generates rows (:mod:`balustrade.backends.row_generation`): the rows of stage ``i`` and
+    facet ``r`` of 𝕏₀, one per vertex of ``Θ_k`` (those kept by ``keep``), form group
+    ``i · n_X + r``. ``ocp.row_groups`` maps each block ``tube_vertex_j`` to the group of each
+    of its rows (the block's row order: stages, then the kept facets); ``ocp.row_group_stride``
+    is ``n_X``, the groups per stage (group ``g + n_X`` is group ``g`` one stage later)."""
+    n_x = keep.shape[0]
+    groups = {}
+    for j in range(keep.shape[1]):
+        r_j = np.flatnonzero(keep[:, j])
+        if r_j.size:
+            groups[f"tube_vertex_{j}"] = (np.arange(N)[:, None] * n_x + r_j[None, :]).ravel()
+    ocp.row_groups = groups
+    ocp.row_group_stride = n_x
 
 
 def _checked_shared(shared: object, shape: tuple[int, int], name: str) -> np.ndarray:

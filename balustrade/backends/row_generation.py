@@ -1,0 +1,290 @@
+"""Row generation (a cutting-plane method) for an LP/QP whose inequality rows come in groups.
+
+The problem is the direct backend's lowering (:class:`~balustrade.backends.passes.to_conic.
+ConicProgram` without cones): ``min ½yᵀPy + qᵀy`` s.t. ``A_eq y = b_eq``, ``G y <= h``. The
+rows of ``G`` carry a group label (``-1``: not grouped, always kept). In (4.5) of the RAPSF
+(thesis Chapter 4, SPEC §2.20) a group is one tube row (4.5c) — stage ``i``, facet ``r`` of
+𝕏₀ — written once per vertex of ``Θ_k``; at the optimum only a few of a group's rows are
+active, so most of the 28644 inequality rows of the 8-mass QP never bind.
+
+:meth:`RowGeneration.run` solves a sequence of reduced QPs with the equality rows, every
+ungrouped row and a working set of grouped rows. After each round all rows are evaluated at
+the reduced optimum ``y*`` by one sparse product; for each group with a row violated by more
+than the tolerance only its ``k`` most violated rows are added (never every violated row: that
+was measured in session 11 to end with almost all rows). Rows stay once added; the next solve
+starts from this solve's working set (or its rows near active), also shifted by one stage.
+
+**Exactness.** Each reduced QP has a subset of the full QP's constraints, so it is a
+relaxation: its optimal value ``f*_red <= f*``. At termination ``y*`` (optimal for the reduced
+QP) satisfies every row of the full QP within the tolerance, so it is feasible for it and
+``f(y*) >= f*``; with ``f(y*) = f*_red <= f*`` it is optimal for the full QP. The reduced
+multipliers, extended by zeros for the rows left out, satisfy the full QP's KKT conditions
+(stationarity involves only the rows kept; left-out rows have zero multipliers and are
+satisfied, so complementarity holds). The minimizer in the variables the cost is strictly
+convex in (the RAPSF's ``v_0``) is therefore the full QP's. **Infeasible** is exact too: if a
+relaxation is infeasible the full QP is; its Farkas certificate, extended by zeros, is a
+certificate for the full data (the caller checks it on the full data). Any other stop of a
+reduced solve (iteration limit, failure) or too many rounds is reported as not solved, and the
+caller solves the full QP instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from balustrade.backends.direct_engines import (
+    _PIQP_STATUS,
+    DEFAULT_OPTIONS,
+    RawResult,
+    _set_options,
+)
+from balustrade.backends.passes.to_conic import ConicProgram
+from balustrade.backends.solution import Status
+from balustrade.errors import BalustradeError
+
+#: rounds after which row generation gives up (the caller then solves the full QP)
+MAX_ROUNDS = 40
+#: what seeds the next solve's working set: the rows near active at this solve ("active")
+#: or this solve's whole final working set ("working"), in both cases also shifted by a stage
+SEEDS = ("active", "working")
+#: a grouped row within this (relative) gap of active at a solve seeds the next solve
+ACTIVE_GAP = 1e-6
+
+
+@dataclass
+class RowGenStats:
+    """What the last :meth:`RowGeneration.run` did."""
+
+    rounds: int = 0
+    rows: int = 0          # inequality rows of the last reduced QP
+    iterations: int = 0    # interior-point iterations over all rounds
+    history: list[int] = field(default_factory=list)  # rows per round
+
+
+class RowGeneration:
+    """Row generation on ``prog`` (an LP/QP) with inequality-row groups ``groups`` (one label
+    per inequality row of ``prog.A``, i.e. per row after the equality rows; ``-1`` for rows
+    always kept). ``per_round``: rows added per violated group and round. ``stride``: the
+    number of groups per stage, so that group ``g`` of the next solve is seeded with the
+    seed rows of group ``g + stride`` of this one (the receding horizon's shift, at the same
+    positions within the group), besides those of group ``g`` itself; ``0``: no shift.
+    ``seed`` (:data:`SEEDS`): which rows of this solve seed the next. ``drop_after``: leave
+    out of the seed the rows not near active at that many consecutive solves (``None``:
+    keep them). ``options``: PIQP settings. ``reduced_options``: settings of the reduced
+    solves only (e.g. the KKT solver). The defaults (3 rows per group and round, the whole
+    working set as seed) were the fastest on the 8-mass (4.5) (docs/adaptive.md, session
+    12)."""
+
+    def __init__(self, prog: ConicProgram, groups: np.ndarray, per_round: int = 3,
+                 stride: int = 0, options: dict | None = None,
+                 max_rounds: int = MAX_ROUNDS, seed: str = "working",
+                 drop_after: int | None = None, reduced_options: dict | None = None):
+        if prog.conic:
+            raise BalustradeError("row generation: an LP/QP is needed (this problem has "
+                                  "second-order cones)")
+        self.m0 = sum(m for kind, m in prog.cones if kind == "zero")
+        m_in = prog.A.shape[0] - self.m0
+        groups = np.asarray(groups, dtype=np.int64).reshape(-1)
+        if groups.shape != (m_in,):
+            raise BalustradeError(f"row generation: groups must have one label per "
+                                  f"inequality row, shape ({m_in},), got {groups.shape}")
+        if not isinstance(per_round, int) or per_round < 1:
+            raise BalustradeError(f"row generation: per_round must be a positive integer, "
+                                  f"got {per_round!r}")
+        self.prog, self.groups, self.per_round, self.stride = prog, groups, per_round, stride
+        self.max_rounds = max_rounds
+        if seed not in SEEDS:
+            raise BalustradeError(f"row generation: seed must be one of {SEEDS}, got {seed!r}")
+        self.seed = seed
+        self.drop_after = drop_after
+        self._idle = np.zeros(groups.size, dtype=np.int64)  # solves a row was not near active
+        self.options = {**DEFAULT_OPTIONS["piqp"], **(options or {})}
+        #: PIQP settings of the reduced solves (the full solve's, updated by reduced_options;
+        #: a KKT solver may be given by its name)
+        self.reduced = {**self.options, **(reduced_options or {})}
+        self.always = groups < 0
+        self.n_groups = int(groups.max()) + 1 if groups.size else 0
+        # the grouped rows sorted by group, and where each group starts in that order
+        grouped = np.flatnonzero(~self.always)
+        self._order = grouped[np.argsort(groups[grouped], kind="stable")]
+        self._P = sp.triu(prog.P).tocsc()
+        self._layout: tuple | None = None   # the patterns of A's two blocks (_split)
+        self._seed: np.ndarray | None = None   # inequality rows active at the last solve
+        self.stats = RowGenStats()
+
+    # -- data ---------------------------------------------------------------------------------
+    def _split(self, A: np.ndarray | None) -> tuple[sp.csc_matrix, sp.csr_matrix]:
+        """The equality block (CSC) and the inequality block (CSR) of ``A`` with values
+        ``A`` (``None``: the program's own). The two patterns and where their values sit in
+        ``A.data`` are found once (a CSC→CSR conversion of the 8-mass ``A``, 3.2e5 nonzeros,
+        per solve is not needed: only the values are gathered)."""
+        prog = self.prog
+        if self._layout is None:
+            code = sp.csc_matrix((np.arange(prog.A.nnz, dtype=float), prog.A.indices,
+                                  prog.A.indptr), shape=prog.A.shape).tocsr()
+            code.sort_indices()
+            eq, ineq = code[:self.m0].tocsc(), code[self.m0:]
+            eq.sort_indices()
+            self._layout = (eq, eq.data.astype(np.int64), ineq, ineq.data.astype(np.int64))
+        eq, at_eq, ineq, at_in = self._layout
+        values = prog.A.data if A is None else A
+        A_eq = sp.csc_matrix((values[at_eq], eq.indices, eq.indptr), shape=eq.shape)
+        G = sp.csr_matrix((values[at_in], ineq.indices, ineq.indptr), shape=ineq.shape)
+        return A_eq, G
+
+    def _tolerance(self, h: np.ndarray, Gy: np.ndarray) -> np.ndarray:
+        """The violation above which a row counts as violated: PIQP's own feasibility test
+        per row (``eps_abs + eps_rel · max(|Gy|, |h|)``)."""
+        return self.options["eps_abs"] + self.options["eps_rel"] * np.maximum(np.abs(Gy),
+                                                                              np.abs(h))
+
+    def _initial(self, h: np.ndarray) -> np.ndarray:
+        """The first working set: ungrouped rows, the seed of the last solve (shifted by
+        :attr:`stride` groups too) or, cold, each group's row most violated at ``y = 0``
+        (the smallest ``h``)."""
+        work = self.always.copy()
+        if self._seed is not None:
+            work[self._seed] = True
+            if self.stride:
+                work |= self._shifted(self._seed)
+            return work
+        work[self._most_violated(-h, np.ones(h.size, dtype=bool), 1)] = True
+        return work
+
+    def _shifted(self, rows: np.ndarray) -> np.ndarray:
+        """Rows at the same position within group ``g − stride`` as ``rows`` within ``g``."""
+        out = np.zeros(self.groups.size, dtype=bool)
+        if self._pos is None:
+            return out
+        g = self.groups[rows]
+        ok = g >= self.stride
+        target = g[ok] - self.stride
+        pos = self._pos[rows[ok]]
+        start, size = self._start[target], self._size[target]
+        fits = pos < size
+        out[self._order[start[fits] + pos[fits]]] = True
+        return out
+
+    @property
+    def _pos(self) -> np.ndarray | None:
+        """Position of each grouped row within its group (in the sorted order)."""
+        if not hasattr(self, "_pos_cache"):
+            pos = np.full(self.groups.size, -1, dtype=np.int64)
+            g = self.groups[self._order]
+            starts = np.searchsorted(g, np.arange(self.n_groups))
+            sizes = np.searchsorted(g, np.arange(self.n_groups), side="right") - starts
+            pos[self._order] = np.arange(self._order.size) - starts[g]
+            self._pos_cache, self._start, self._size = pos, starts, sizes
+        return self._pos_cache
+
+    def _most_violated(self, viol: np.ndarray, candidate: np.ndarray, k: int) -> np.ndarray:
+        """Per group, the (up to) ``k`` candidate rows with the largest ``viol``."""
+        rows = self._order[candidate[self._order]]
+        if rows.size == 0:
+            return rows
+        g = self.groups[rows]
+        order = np.lexsort((-viol[rows], g))
+        rows, g = rows[order], g[order]
+        first = np.r_[True, g[1:] != g[:-1]]
+        rank = np.arange(rows.size) - np.maximum.accumulate(np.where(first,
+                                                                     np.arange(rows.size), 0))
+        return rows[rank < k]
+
+    # -- solve ----------------------------------------------------------------------------------
+    def _solve_reduced(self, q, A_eq, b_eq, G, h) -> RawResult:
+        import piqp
+
+        solver = piqp.SparseSolver()
+        solver.settings.verbose = False
+        options = dict(self.reduced)
+        if isinstance(options.get("kkt_solver"), str):
+            name = options["kkt_solver"]
+            if name not in piqp.KKTSolver.__members__:
+                raise BalustradeError(f"row generation: PIQP has no KKT solver {name!r}; use "
+                                      f"one of {', '.join(piqp.KKTSolver.__members__)}")
+            options["kkt_solver"] = piqp.KKTSolver.__members__[name]
+        _set_options(solver.settings, options, "PIQP")
+        has_eq, has_in = A_eq.shape[0] > 0, G.shape[0] > 0
+        solver.setup(self._P, q, A_eq if has_eq else None, b_eq if has_eq else None,
+                     G.tocsc() if has_in else None, None, h if has_in else None)
+        words = str(solver.solve().name)
+        res = solver.result
+        z_in = (np.asarray(res.z_u, dtype=float) - np.asarray(res.z_l, dtype=float)) \
+            if has_in else np.zeros(0)
+        z_eq = np.asarray(res.y, dtype=float) if has_eq else np.zeros(0)
+        return RawResult(_PIQP_STATUS.get(words, Status.FAILED), f"PIQP: {words}",
+                         np.asarray(res.x, dtype=float), np.concatenate([z_eq, z_in]),
+                         int(res.info.iter))
+
+    def run(self, q: np.ndarray, b: np.ndarray, A: np.ndarray | None = None,
+            cold: bool = False) -> RawResult:
+        """Solve the full QP ``(q, b, A)`` by row generation. ``OPTIMAL`` and ``INFEASIBLE``
+        results carry multipliers for every row of the full QP (zero for rows never added);
+        anything else is ``FAILED``/``MAX_ITERATIONS`` with the reason: the caller solves the
+        full QP then. ``cold``: ignore the rows of the last solve."""
+        A_eq, G = self._split(A)
+        b_eq, h = b[:self.m0], b[self.m0:]
+        if cold:
+            self._seed = None
+        work = self._initial(h)
+        stats = RowGenStats()
+        self.stats = stats
+        while True:
+            rows = np.flatnonzero(work)
+            stats.rounds += 1
+            stats.rows = rows.size
+            stats.history.append(rows.size)
+            raw = self._solve_reduced(q, A_eq, b_eq, G[rows], h[rows])
+            stats.iterations += raw.iterations
+            if raw.status == Status.INFEASIBLE:
+                raw.z = self._full_z(raw.z, rows)
+                raw.words += f" (a relaxation with {rows.size} of {h.size} rows, round " \
+                             f"{stats.rounds}: the full QP is infeasible too)"
+                raw.iterations = stats.iterations
+                self._seed = None
+                return raw
+            if raw.status != Status.OPTIMAL:
+                self._seed = None
+                return RawResult(Status.FAILED, f"row generation: round {stats.rounds} "
+                                 f"({rows.size} rows) stopped with {raw.words}", None, None,
+                                 stats.iterations)
+            Gy = G @ raw.y
+            viol = Gy - h
+            bad = (viol > self._tolerance(h, Gy)) & ~work
+            if not bad.any():
+                break
+            if stats.rounds >= self.max_rounds:
+                self._seed = None
+                return RawResult(Status.FAILED, f"row generation: {bad.sum()} rows still "
+                                 f"violated after {stats.rounds} rounds", None, None,
+                                 stats.iterations)
+            work[self._most_violated(viol, bad, self.per_round)] = True
+        z = self._full_z(raw.z, rows)
+        # the seed of the next solve: grouped rows within ACTIVE_GAP of active, or every
+        # grouped row of the last working set
+        near = viol >= -ACTIVE_GAP * (1.0 + np.abs(h))
+        self._idle = np.where(near, 0, self._idle + 1)
+        keep = near if self.seed == "active" else work
+        if self.drop_after is not None:              # rows idle for drop_after solves go
+            keep = keep & (self._idle < self.drop_after)
+        self._seed = np.flatnonzero(keep & ~self.always)
+        raw.z, raw.iterations = z, stats.iterations
+        raw.words += f" (row generation: {stats.rounds} rounds, {rows.size} of {h.size} " \
+                     "inequality rows)"
+        return raw
+
+    def _full_z(self, z: np.ndarray | None, rows: np.ndarray) -> np.ndarray | None:
+        """Reduced multipliers ``[z_eq, z_rows]`` as multipliers of every row of the full QP
+        (zero for the rows left out)."""
+        if z is None:
+            return None
+        full = np.zeros(self.prog.A.shape[0])
+        full[:self.m0] = z[:self.m0]
+        full[self.m0 + rows] = z[self.m0:]
+        return full
+
+
+__all__ = ["ACTIVE_GAP", "MAX_ROUNDS", "SEEDS", "RowGenStats", "RowGeneration"]
