@@ -118,3 +118,38 @@ def test_honest_solves_are_kept_and_h_tilde_does_not_rise(d):
                 assert h <= prev + (ctl.bound_tol + DECREASE_TOL) * max(1.0, prev), (k, h, prev)
             prev = h
             x = system.step(x, u, s.W.sample(1, rng)[0])
+
+
+def test_c_above_bound_status_reads_as_python():
+    """The emitted step's ``BAL_MULTIOBJ_ABOVE_BOUND`` reads as Python's step: status
+    ``problem_above_bound``, the candidate's fallback ``warm_start``, its values."""
+    from balustrade.codegen import status as S
+    from balustrade.codegen.runtime_robust import multiobjective_info
+
+    info = multiobjective_info(S.code_of(S.MULTIOBJ, "above_bound"), S.code_of(S.SOLVE, "ok"),
+                               S.code_of(S.SOLVE, "ok"), np.array([0.0, 2e-9, 0.0]))
+    assert (info.status, info.fallback) == ("problem_above_bound", "warm_start")
+    assert info.values == {"h_cand": 0.0, "bound": 2e-9, "h_tilde": 0.0}
+
+
+@pytest.mark.slow
+def test_lane_change_seed_42_in_c_h_tilde_non_increasing():
+    """The offending run: the emitted Algorithm 6.4 of the lane change (``converging``),
+    seed 42, 200 steps. Before the fix its step 191 was ``ok`` with ``h̃`` = 3.6e-6 against
+    a bound of 2e-9 (IPOPT's ``ξ_N = −3.6e-12``). Now every ``ok`` step meets its bound
+    within ``DECREASE_TOL`` and ``h̃`` never rises by more than the algorithm's margins
+    (``bound_tol + DECREASE_TOL``, relative); the car still converges, keeping ``X``."""
+    from balustrade.codegen import accelerate
+    from balustrade.reproduce import lane_change as lc
+
+    cfg = lc.config("converging")
+    d = lc.design(cfg)
+    py = lc.multiobjective(d, cfg.rho, record_h_r=False)
+    r = lc.closed_loop(accelerate(py), d, lc.disturbances(d, 42, lc.STEPS))
+    h, bound = r["h_tilde"], r["bound"]
+    ok = np.array([s == "ok" for s in r["statuses"]])
+    assert np.all(h[ok] <= bound[ok] + DECREASE_TOL * np.maximum(1.0, np.abs(bound[ok])))
+    rise = np.diff(h) - (py.bound_tol + DECREASE_TOL) * np.maximum(1.0, np.abs(h[:-1]))
+    assert rise.max() <= 0.0, (int(rise.argmax()) + 1, np.diff(h).max())
+    m = lc.run_metrics(r, d, "h_tilde")
+    assert m["converged"] and m["X_kept_after_S_r"] and m["non_increasing"], m

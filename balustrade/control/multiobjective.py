@@ -155,9 +155,15 @@ class MultiobjectiveLyapunovController:
 #: polished slacks may be, relative (``·max(1, |bound|)``), before the solve counts as failed
 #: (:meth:`MultiobjectivePCBFController._meets_decrease`): the primal tolerance (1e-9) of the
 #: SQP that answers (6.15) on the lane change, on that one row. The rounding of the running
-#: sums and IPOPT's answers within tolerance stay below it (largest seen: 3e-11); the
+#: sums and the chain's answers within tolerance stay below it (largest seen: 3e-11); the
 #: ``α_f``-weighted terminal-slack error behind the +3.6e-6 of seeds 42 and 43 does not.
 DECREASE_TOL = 1e-9
+#: Algorithm 6.4's default margin of the (6.15g) bound, relative (``bound_tol``)
+BOUND_TOL = 1e-9
+#: how much ``h̃(ξ*_k)`` can exceed ``h̃(ξ*_{k−1})``, relative (``·max(1, h̃(ξ*_{k−1}))``),
+#: with the default margins: ``h_cand <= h̃(ξ*_{k−1})`` (Theorem 6.15), so the bound is at most
+#: ``h̃(ξ*_{k−1})`` plus ``BOUND_TOL``, and an applied plan meets it within ``DECREASE_TOL``
+H_TILDE_RISE_TOL = BOUND_TOL + DECREASE_TOL
 
 
 class MultiobjectivePCBFController:
@@ -166,7 +172,7 @@ class MultiobjectivePCBFController:
     def __init__(self, slack: Compiled, problem: Compiled, system: System, X_E: Polytope,
                  U: Polytope, U_E: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
                  deltas: np.ndarray, alpha_f: float, rho: float = 0.9,
-                 bound_tol: float = 1e-9, record_h_r: bool = False):
+                 bound_tol: float = BOUND_TOL, record_h_r: bool = False):
         rho = as_scalar(rho, "Algorithm 6.4: rho (ρ)", 0.0, 1.0, high_open=True)
         bound_tol = as_scalar(bound_tol, "Algorithm 6.4: bound_tol", 0.0)
         alpha_f = as_scalar(alpha_f, "Algorithm 6.4: alpha_f", 0.0, low_open=True)
@@ -330,8 +336,8 @@ class MultiobjectivePCBFController:
         minimal (polished) slacks, ``h̃ <= bound + DECREASE_TOL·max(1, |bound|)``; else
         ``None`` (the value is kept as ``values["h_tilde_rejected"]``). The solver meets
         each row and bound only within its primal tolerance, and ``α_f`` multiplies the
-        error of ``ξ_N``: on the lane change (C, seeds 42 and 43) IPOPT, the last attempt of
-        the chain, returned ``ξ_N = −3.6e-12``, which freed ``α_f·3.6e-12 = 3.6e-6`` of the
+        error of ``ξ_N``: on the lane change (C, seeds 42 and 43) the chain's last attempt,
+        interior point, returned ``ξ_N = −3.6e-12``, which freed ``α_f·3.6e-12 = 3.6e-6`` of the
         bound for the other slacks; that plan is no feasible point of (6.15) and ``h̃``
         rose by 3.6e-6 (docs/vehicles.md, "session 12"). Theorem 6.15 needs a feasible
         point; the candidate (6.14) is one, so the step falls back to it."""
