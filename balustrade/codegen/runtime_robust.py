@@ -145,7 +145,7 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
                         ) -> StepInfo:
     """The :class:`StepInfo` of
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` for the same
-    decisions: ``status`` (``"ok"``, ``"problem_<s>"``, ``"init_<s>"``,
+    decisions: ``status`` (``"ok"``, ``"problem_<s>"``, ``"problem_above_bound"``, ``"init_<s>"``,
     ``"non_finite_state"``), ``fallback``, ``values`` ``h_cand``, ``bound``, ``h_tilde``."""
     known, info = _refused(_MULTIOBJ_CODES, code)
     if known is None:
