@@ -72,6 +72,7 @@ from balustrade.control.deploy import (
     RobustDeployment,
     TubeDeployment,
 )
+from balustrade.control.multiobjective import DECREASE_TOL
 from balustrade.control.robust import ABOVE_CANDIDATE_TOL
 from balustrade.errors import CodegenError
 
@@ -398,6 +399,8 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
         "Algorithm 6.4, the multiobjective robust PCBF controller (5.15)+(6.15)",
         [(f"{name}_RHO", C.c_double(spec.rho), "rho of (6.15g)"),
          (f"{name}_BOUND_TOL", C.c_double(spec.bound_tol), None),
+         (f"{name}_DECREASE_TOL", C.c_double(DECREASE_TOL),
+          "a converged (6.15) whose polished h~ exceeds the bound by more (relative) fails"),
          (f"{name}_XI_SUM", int("xi_sum" in p.vars),
           "1: (6.15g) in running-sum form, variable xi_sum")],
         {"rho": float(spec.rho), "bound_tol": float(spec.bound_tol)})

@@ -145,7 +145,7 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
                         ) -> StepInfo:
     """The :class:`StepInfo` of
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` for the same
-    decisions: ``status`` (``"ok"``, ``"problem_<s>"``, ``"init_<s>"``,
+    decisions: ``status`` (``"ok"``, ``"problem_<s>"``, ``"problem_above_bound"``, ``"init_<s>"``,
     ``"non_finite_state"``), ``fallback``, ``values`` ``h_cand``, ``bound``, ``h_tilde``."""
     known, info = _refused(_MULTIOBJ_CODES, code)
     if known is None:
@@ -155,6 +155,9 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
         return info
     info.values.update(h_cand=float(values[0]), bound=float(values[1]),
                        h_tilde=float(values[2]))
+    if known.name == "above_bound":   # multiobjective.py: a converged (6.15) above (6.15g)
+        info.status = "problem_above_bound"
+        return info
     info.status = "ok" if known.name == "ok" else \
         f"problem_{_PY_STATUS.get(p_code, str(p_code))}"
     return info

@@ -151,6 +151,9 @@ MULTIOBJ: tuple[Status, ...] = (
     Status("BAL_MULTIOBJ_BAD_INPUT", 3, "bad_input", "projected_proposal",
            "x is NaN or inf (or a pointer is NULL): nothing solved, u_p (NaN -> 0) "
            "clipped to U"),
+    Status("BAL_MULTIOBJ_ABOVE_BOUND", 4, "above_bound", "warm_start",
+           "(6.15) converged, but its polished slacks' h~ is above the bound of (6.15g) "
+           "(no feasible point): as BAL_MULTIOBJ_WARM_START"),
 )
 
 

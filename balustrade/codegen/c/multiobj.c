@@ -123,6 +123,17 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   if (wk->problem_status == BAL_OK) {
     BAL_QX(problem_warm_start)(&wk->problem);
     wk->have_problem = 1;
+  }
+  /* (6.15g) on the polished slacks: a plan needing more than the bound is no feasible
+     point of (6.15) (balustrade.control.multiobjective._meets_decrease) */
+  if (wk->problem_status == BAL_OK &&
+      !(wk->h_tilde <= bound + BAL_QX(DECREASE_TOL) * fmax(1.0, fabs(bound)))) {
+    z = wk->cz;
+    v = wk->cv;
+    memcpy(wk->xi, wk->cxi, sizeof(wk->xi));
+    wk->h_prev = wk->ch;
+    *status = BAL_MULTIOBJ_ABOVE_BOUND;
+  } else if (wk->problem_status == BAL_OK) {
     z = wk->problem.x + BAL_QX(problem_W_z);
     v = wk->problem.x + BAL_QX(problem_W_v);
     wk->h_prev = wk->h_tilde;

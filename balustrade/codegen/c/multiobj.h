@@ -14,6 +14,9 @@
  *   bound := (1 - rho) h~(candidate) + rho h_prev, plus Q_BOUND_TOL max(1, |bound|) (6.15g);
  *   solve (6.15) warm-started from its last converged solution (else from the candidate);
  *   converged: (z, v, polished slacks) of it                    BAL_MULTIOBJ_OK
+ *   converged, but h~ of its polished slacks above the bound by more than
+ *     Q_DECREASE_TOL max(1, |bound|) (no feasible point): the candidate
+ *                                                               BAL_MULTIOBJ_ABOVE_BOUND
  *   else: the candidate                                         BAL_MULTIOBJ_WARM_START
  *   h_prev := h~ of the chosen slacks; the next candidate (6.14) from the chosen point;
  *   apply u = v_0 + K(x - z_0).
