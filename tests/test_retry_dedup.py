@@ -127,3 +127,26 @@ def test_c_skips_the_same_retry_and_answers_as_python(pair):
         assert attempts(c.slack.work) == len(runs), (x, len(runs))
         chained += len(runs) > 1
     assert chained >= 3
+
+
+def _timing(reps: int = 6) -> None:  # pragma: no cover - a report, not a test
+    """Median solve time of the chain with and without the duplicate attempt, interleaved."""
+    import time
+
+    a, b = _slack(CHAIN), _slack(REFERENCE)
+    times: dict[str, list[float]] = {"dedup": [], "duplicate": []}
+    for rep in range(reps):
+        for x in STATES:
+            order = (("dedup", a), ("duplicate", b)) if rep % 2 == 0 else \
+                (("duplicate", b), ("dedup", a))
+            for key, compiled in order:
+                t0 = time.perf_counter()
+                compiled.solve({"x0": x})
+                times[key].append(time.perf_counter() - t0)
+    d, u = np.array(times["dedup"]), np.array(times["duplicate"])
+    print(f"median solve: skipped {1e3 * np.median(d):.1f} ms, repeated {1e3 * np.median(u):.1f}"
+          f" ms, median ratio {np.median(d / u):.3f}")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    _timing()
