@@ -302,6 +302,16 @@ def _measure_obstacles(out: Path, n: int) -> None:  # pragma: no cover - a repor
         for x, i1, i2 in log[:5]:
             print(f"  x {np.round(x, 4)}: python {i1.status}/{i1.fallback}, C {i2.status}/"
                   f"{i2.fallback}", flush=True)
+    from balustrade.reproduce import obstacles as R
+
+    runc = R.closed_loops(c, R.NaiveMPC(), starts=R.STARTS, steps=40)
+    for lw, py in pys.items():
+        runp = R.closed_loops(py, R.NaiveMPC(), starts=R.STARTS, steps=40)
+        du = max(float(np.abs(a["inputs"] - b["inputs"]).max()) for a, b in zip(runp, runc))
+        bad = sum(_norm(s1) != _norm(s2) for a, b in zip(runp, runc)
+                  for s1, s2 in zip(a["statuses"], b["statuses"]))
+        print(f"obstacle car loops {lw}: {len(R.STARTS)} starts x 40 steps (naive MPC), "
+              f"max du {du:.3g}, status mismatches {bad}", flush=True)
 
 
 def _measure_cartpole(out: Path, n_cartpole: int) -> None:  # pragma: no cover - a report
