@@ -389,7 +389,9 @@ class CasadiCompiled:
         :class:`Solution` (primal and dual) or a dict of variable values.
 
         A failed solve is retried from a cold start with each entry of :attr:`retries`
-        in turn (see :func:`default_retries`); ``Solution.message`` and
+        in turn (see :func:`default_retries`), except a retry that would run a solver
+        from a start it already ran from in this solve (:func:`_same_start`: the cold
+        retry of ``structured-ip`` after a cold first attempt); ``Solution.message`` and
         ``Solution.solver`` say when a retry was used. If no attempt converges but one
         ended primal feasible (rows within 1e-8 relative), it is returned with status
         ``"feasible"`` (not a success: feasible, not certified optimal; the message keeps
@@ -413,14 +415,20 @@ class CasadiCompiled:
         of an unbounded problem is no answer to use in a closed loop).
         """
         p = self.ocp.pack_parameters(params)
-        sol = self._solve_with(self.solver, p, self._initial_guess(warm_start, p))
+        guess = self._initial_guess(warm_start, p)
+        sol = self._solve_with(self.solver, p, guess)
         if self.budget is not None and sol.status == Status.MAX_ITERATIONS:
             return self._truncated(sol, p)  # no retry, no rescue: the time bound holds
         attempts = [sol]
+        ran = [(self.solver, guess)]  # (solver, start) of every attempt run so far
         for solver in self._retry_solvers():
             if attempts[-1].success:
                 break
-            attempts.append(self._solve_with(solver, p, self._initial_guess(None, p)))
+            cold = self._initial_guess(None, p)
+            if any(s is solver and _same_start(g, cold) for s, g in ran):
+                continue  # deterministic: the same solver from the same start (skipped)
+            ran.append((solver, cold))
+            attempts.append(self._solve_with(solver, p, cold))
         final = attempts[-1] if attempts[-1].success else attempts[0]
         unbounded = [a for a in attempts if a.raw.get("unbounded")]
         if unbounded and not final.success:  # evidence of unboundedness beats any rescue
@@ -640,6 +648,25 @@ class CasadiCompiled:
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
                         iterations=0, backend="casadi", solver=self.solver_name, p=p,
                         message=message)
+
+
+def _same_start(a: tuple, b: tuple) -> bool:
+    """Whether two starts ``(x0, lam_x0, lam_g0)`` of one solver are equal value for value
+    (a scalar multiplier start stands for that value in every entry).
+
+    Used to skip a retry identical to an attempt that already ran (issue #14, session 12):
+    the default ``structured-ip`` chain (fatrop, cold fatrop, IPOPT) re-ran fatrop from the
+    same cold start when the first attempt was itself cold; the solvers are deterministic,
+    so that run repeated the first one's iterations and answer (its statuses, points and
+    rescues are those of the first attempt: dropping it changes no result). The emitted C
+    skips the same retry (``bal/problem.c``)."""
+    for u, v in zip(a, b, strict=True):
+        u, v = np.asarray(u, dtype=float).ravel(), np.asarray(v, dtype=float).ravel()
+        if u.size != v.size and 1 not in (u.size, v.size):
+            return False
+        if not np.all(u == v):  # (a NaN start is never the same start)
+            return False
+    return True
 
 
 #: the balustrade option (in a target's options, never passed to ``nlpsol``) choosing the

@@ -16,6 +16,8 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
 ``"fast-sqp"``         CasADi ``sqpmethod`` + ``qrqp`` (dense active set), eigenvalue-clipping
                        convexification, retries with the other convexification, then IPOPT.
                        The closed-loop default for small problems; the one that emits C.
+                       Solves the compact lowering, the NLP its emitted C solves (as
+                       ``fast-sqp-noretry``, ``robust-sqp``, ``convex-qp``, ``real-time``).
 ``"fast-sqp-noretry"`` ``fast-sqp`` without retries, for loops with their own fallbacks and for
                        warm-started sampling (a failed warm solve is redone by a cold twin).
 ``"robust-sqp"``       ``fast-sqp`` with 500 SQP iterations (the robust filter (5.16)), on the
@@ -361,12 +363,22 @@ _CONVEX_QP_RETRIES = (("sqpmethod", {"convexify_strategy": "eigen-reflect"}),)
 # attempt answers at every step and the inputs agree to 1e-15 (tests/test_lane_c_chain.py).
 _ROBUST_SQP = {"max_iter": 500, "lowering": "compact"}
 
+# Every other preset whose C the emitters generate from the compact lowering (sqpmethod in
+# the layout's order: "fast-sqp", "fast-sqp-noretry", "convex-qp", "real-time") solves that
+# lowering in Python too (issue #14, session 12), for the reason of _ROBUST_SQP: Python and
+# its C then solve the same NLP, rounding included. The stage-ordered presets
+# ("structured-ip", "structured-sqp") keep the expanded NLP in stage order in Python (the
+# compact one is refused there); their C is the compact lowering permuted into stage
+# order, measured equal to Python to the last bit (docs/engines.md).
+_COMPACT = {"lowering": "compact"}
+
 PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", name="exact"),
-    Target("casadi", "sqpmethod", name="fast-sqp"),
-    Target("casadi", "sqpmethod", retries=(), name="fast-sqp-noretry"),
+    Target("casadi", "sqpmethod", _COMPACT, name="fast-sqp"),
+    Target("casadi", "sqpmethod", _COMPACT, retries=(), name="fast-sqp-noretry"),
     Target("casadi", "sqpmethod", _ROBUST_SQP, name="robust-sqp"),
-    Target("casadi", "sqpmethod", _CONVEX_QP, retries=_CONVEX_QP_RETRIES, name="convex-qp"),
+    Target("casadi", "sqpmethod", {**_CONVEX_QP, **_COMPACT}, retries=_CONVEX_QP_RETRIES,
+           name="convex-qp"),
     Target("casadi", "ipopt", {"ipopt.mu_strategy": "adaptive"}, name="long-horizon"),
     Target("casadi", "ipopt", _IPOPT_SAMPLING, name="sampling-cold"),
     Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="sampling-warm"),
@@ -377,7 +389,8 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("cvxpy", "clarabel", name="conic"),
     Target("cvxpy", "clarabel", name="sdp"),
     # -- real-time mode (issue #14 §5) --
-    replace(Target("casadi", "sqpmethod").with_budget(iterations=REALTIME_ITERATIONS),
+    replace(Target("casadi", "sqpmethod", _COMPACT).with_budget(
+        iterations=REALTIME_ITERATIONS),
             name="real-time"),
     Target("direct", None, name="fast-convex"),
     Target("direct", "clarabel", name="fast-convex-conic"),

@@ -295,7 +295,8 @@ class _Problem:
             self.reports.append(int(plugin in STATUS_OPTIONS))
             self.retry_labels.append(label)
             self.retry_docs.append(" ".join([plugin, *(f"{o} {v!r}" for o, v in over.items())])
-                                   if over else f"{plugin} again")
+                                   if over else f"{plugin} again (skipped after a cold first "
+                                   "attempt: the same run)")
         self.layout = c.layout  # the solver's x: the user's variables, then epigraph blocks
         self.vars = self.layout.to_dict()
         self.params = c.ocp.parameter_layout.to_dict()  # with declared values as "default"

@@ -178,8 +178,33 @@ static void BAL_PX(feasible_copy)(BAL_PX(work)* wk, int save) {
   }
 }
 
+/* 1 if the warm start in wk is the cold start (P_INIT_X, zero multipliers), else 0 */
+static int BAL_PX(is_cold)(const BAL_PX(work)* wk) {
+  casadi_int i;
+  for (i = 0; i < BAL_PX(NW); ++i) {
+    if (wk->x0[i] != BAL_PX(init_x)[i] || wk->lam_x0[i] != 0) return 0;
+  }
+  for (i = 0; i < BAL_PX(NG); ++i) {
+    if (wk->lam_g0[i] != 0) return 0;
+  }
+  return 1;
+}
+
+/* 1 if retry `which` (a cold start) would repeat an attempt that already ran in this
+   P_solve: the same solver function from the same start (an earlier retry, or the first
+   attempt when it started cold). The solvers are deterministic, so it would repeat that
+   attempt's run; skipped, as balustrade's backend does (casadi_backend._same_start: the
+   cold fatrop retry of structured-ip after a cold first attempt). */
+static int BAL_PX(ran_before)(int which, int first_cold) {
+  int j;
+  for (j = first_cold ? 0 : 1; j < which; ++j) {
+    if (BAL_PX(solvers)[j].eval == BAL_PX(solvers)[which].eval) return 1;
+  }
+  return 0;
+}
+
 int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
-  int first, status, which, have_feasible;
+  int first, first_cold, status, which, have_feasible;
   casadi_int i;
   if (!wk || !wk->ready) return BAL_EVAL_ERROR;
   wk->attempts = 0;
@@ -200,7 +225,9 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
 #endif
   have_feasible = first == BAL_FEASIBLE;
   if (have_feasible) BAL_PX(feasible_copy)(wk, 1);
+  first_cold = BAL_PX(is_cold)(wk);
   for (which = 1; which < BAL_PX(N_SOLVERS); ++which) {
+    if (BAL_PX(ran_before)(which, first_cold)) continue; /* the same run again: skipped */
     status = BAL_PX(attempt)(wk, p, which);
     if (status == BAL_OK) return status;
     if (status == BAL_FEASIBLE) {
@@ -217,6 +244,8 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
   }
   return first;
 }
+
+int BAL_PX(attempts)(const BAL_PX(work)* wk) { return wk->attempts; }
 
 int BAL_PX(truncated_feasible)(const BAL_PX(work)* wk, int status) {
   return status == BAL_TRUNCATED && wk->pr_inf <= BAL_PX(TRUNC_TOL);

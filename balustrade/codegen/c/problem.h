@@ -5,7 +5,7 @@
  * P_W_<variable>.
  *
  * Entry points: P_init, P_finalize, P_alloc, P_free, P_cold_start, P_warm_start,
- * P_warm_start_primal, P_solve, P_primal, P_value, P_residuals.
+ * P_warm_start_primal, P_solve, P_attempts, P_primal, P_value, P_residuals.
  * No include guard: included once per prefix.
  */
 #ifndef BAL_PROBLEM
@@ -59,6 +59,9 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p);
 /* 1 if status is BAL_TRUNCATED and the iterate in wk meets every row and bound within
    P_TRUNC_TOL (absolute: Solution.feasible_within of balustrade's backend), else 0. */
 int BAL_PX(truncated_feasible)(const BAL_PX(work)* wk, int status);
+/* The solver runs of the last P_solve (1: no retry; a retry that would repeat an attempt
+   already run, the same solver from the same start, is skipped and not counted). */
+int BAL_PX(attempts)(const BAL_PX(work)* wk);
 /* Pointers into wk, for foreign-function callers. */
 const casadi_real* BAL_PX(primal)(const BAL_PX(work)* wk);
 casadi_real BAL_PX(value)(const BAL_PX(work)* wk);
