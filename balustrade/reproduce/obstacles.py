@@ -42,6 +42,7 @@ from balustrade.control.pcbf import PCBFSafetyFilter
 from balustrade.learn.export import to_casadi
 from balustrade.learn.train import MLPModel, TrainConfig
 from balustrade.models.obstacle_car import (
+    ObstacleSetup,
     obstacle_car,
     obstacle_setup,
     signed_distance,
@@ -95,7 +96,8 @@ class NaiveMPC:
         return u
 
 
-def pcbf_algorithm(target: str = "exact", shifted: bool = True) -> PCBFSafetyFilter:
+def pcbf_algorithm(target: str = "exact", shifted: bool = True,
+                   horizon: int | None = None) -> PCBFSafetyFilter:
     """The PCBF algorithm [41] for the car: (2.24) then (2.23), both with the hard
     terminal constraint (``ξ_N ≡ 0``); ``shifted``: (2.24) warm-started from the shifted last
     plan (``PCBFSafetyFilter(warm_start="shifted")``), else from its last solution.
@@ -105,12 +107,34 @@ def pcbf_algorithm(target: str = "exact", shifted: bool = True) -> PCBFSafetyFil
     ``h_PB = 0`` for 32 steps, then 0.031; the car then entered a disk by 0.12 m). The
     library's shifted-plan certificate (``PCBFSafetyFilter(shifted_certificate=True)``, the
     default; :mod:`balustrade.control.shifted`) replaces such a point by the certified
-    ``h_PB = 0``, with either warm start (docs/obstacles.md)."""
-    system, s = obstacle_car(), obstacle_setup()
+    ``h_PB = 0``, with either warm start (docs/obstacles.md).
+
+    ``horizon``: ``N`` (default: the thesis' 50) with ``Δ_j = j·1e-4``; shorter horizons
+    are for fast tests (they stop the car only from lower speeds). The emitted C
+    (:func:`pcbf_algorithm_c`) warm-starts (2.24) from its last solution: build the
+    Python twin with ``shifted=False``."""
+    system = obstacle_car()
+    s = obstacle_setup() if horizon is None else ObstacleSetup(N=int(horizon))
     args = (system, s.X, s.U, s.N, s.deltas, s.delta_N)
     slack = compile(stopping_pcbf_problem(*args), target)
     filt = compile(stopping_filter_problem(*args), target)
     return PCBFSafetyFilter(slack, filt, s.U, warm_start="shifted" if shifted else "last")
+
+
+def pcbf_algorithm_c(target: str = "structured-ip", horizon: int | None = None,
+                     build_dir: str | Path | None = None) -> object:
+    """The PCBF algorithm of :func:`pcbf_algorithm` (``shifted=False``) as emitted C, one
+    call per step (:func:`~balustrade.codegen.accelerate`, cached in ``build_dir``;
+    :class:`~balustrade.codegen.CPCBFSafetyFilter`, ``accelerated`` says where and how
+    long). ``structured-ip`` (fatrop on the stage-ordered NLP, then a cold fatrop, then
+    IPOPT) links the casadi wheel's libfatrop, libblasfeo and libipopt. The Python filter
+    making the same decisions is ``pcbf_algorithm(target, shifted=False, horizon=...)``
+    (docs/obstacles.md, "session 12")."""
+    from balustrade.codegen import accelerate
+
+    py = pcbf_algorithm(target, shifted=False, horizon=horizon)
+    name = "obstacles_pcbf" if horizon is None else f"obstacles_pcbf_n{int(horizon)}"
+    return accelerate(py, build_dir=build_dir, name=name, werror=True)
 
 
 #: the path labels of :func:`path_of` (Algorithm 7.5) and :func:`pcbf_path_of`
