@@ -33,7 +33,6 @@ from pathlib import Path
 
 import numpy as np
 
-from balustrade.codegen import accelerate
 from balustrade.control.plant import check_plant
 from balustrade.models.obstacle_car import obstacle_car, obstacle_setup, signed_distance
 from balustrade.reproduce import obstacles as O
@@ -41,12 +40,11 @@ from balustrade.reproduce import obstacles as O
 BUILD_DIR = Path("/tmp/balustrade-obstacles-pcbf-c")
 
 
-def build_pair(target: str = "structured-ip", build_dir: str | Path = BUILD_DIR,
-               starts_only: bool = False) -> dict:
+def build_pair(target: str = "structured-ip", build_dir: str | Path = BUILD_DIR) -> dict:
     """The Python PCBF algorithm on ``target`` and its emitted C (cached build)."""
     py = O.pcbf_algorithm(target, shifted=False)
     t = time.perf_counter()
-    c = accelerate(py, build_dir=build_dir, name="obstacles_pcbf", werror=True)
+    c = O.pcbf_algorithm_c(target, build_dir=build_dir)
     wall = time.perf_counter() - t
     acc = c.accelerated
     d = Path(acc["dir"])
@@ -71,6 +69,7 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
     mpcs = {"py": O.NaiveMPC(), "c": O.NaiveMPC()}
     filters = {"py": py, "c": c}
     times: dict[str, list[float]] = {"py": [], "c": []}
+    where: list[tuple] = []  # (start, step, Python status) of every step, for the worst
     statuses: dict[str, list[str]] = {"py": [], "c": []}
     per_start = []
     max_du = max_dx = 0.0
@@ -94,6 +93,7 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
                 out[k] = (u, info)
                 xs[k].append(plant.step(x, u, None))
             (u_py, i_py), (u_c, i_c) = out["py"], out["c"]
+            where.append((list(p), step, i_py.status, i_c.status))
             max_du = max(max_du, float(np.max(np.abs(u_py - u_c))))
             differ += (i_py.status, i_py.fallback) != (i_c.status, i_c.fallback)
         row = {"start": list(p)}
@@ -104,7 +104,11 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
             statuses[k] += st[k]
         max_dx = max(max_dx, float(np.max(np.abs(np.array(xs["py"]) - np.array(xs["c"])))))
         per_start.append(row)
+    worst = {k: where[int(np.argmax(times[k]))] for k in filters}
     return {"per_start": per_start, "python": _stats(times["py"]), "c": _stats(times["c"]),
+            "worst_step": worst,
+            "without_first_step": {k: _stats([t for t, w in zip(times[k], where) if w[1]])
+                                   for k in filters},
             "statuses_py": dict(Counter(statuses["py"])),
             "statuses_c": dict(Counter(statuses["c"])),
             "max_du": max_du, "max_dx": max_dx, "steps_status_differs": differ,
