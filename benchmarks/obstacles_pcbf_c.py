@@ -2,7 +2,7 @@
 in Python and as emitted C (issue #16: "PCBF <= 50 ms").
 
 ``python -m benchmarks.obstacles_pcbf_c [--target structured-ip] [--states 200]
-[--steps 70] [--build-dir DIR]``
+[--steps 70] [--build-dir DIR] [--no-certificate-first] [--out FILE]``
 
 * The filter is :func:`balustrade.reproduce.obstacles.pcbf_algorithm` with ``target`` and
   ``shifted=False`` (the emitted C warm-starts (2.24) from its last solution, so the Python
@@ -40,11 +40,12 @@ from balustrade.reproduce import obstacles as O
 BUILD_DIR = Path("/tmp/balustrade-obstacles-pcbf-c")
 
 
-def build_pair(target: str = "structured-ip", build_dir: str | Path = BUILD_DIR) -> dict:
+def build_pair(target: str = "structured-ip", build_dir: str | Path = BUILD_DIR,
+               certificate_first: bool = True) -> dict:
     """The Python PCBF algorithm on ``target`` and its emitted C (cached build)."""
-    py = O.pcbf_algorithm(target, shifted=False)
+    py = O.pcbf_algorithm(target, shifted=False, certificate_first=certificate_first)
     t = time.perf_counter()
-    c = O.pcbf_algorithm_c(target, build_dir=build_dir)
+    c = O.pcbf_algorithm_c(target, build_dir=build_dir, certificate_first=certificate_first)
     wall = time.perf_counter() - t
     acc = c.accelerated
     d = Path(acc["dir"])
@@ -160,8 +161,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--steps", type=int, default=O.STEPS)
     ap.add_argument("--build-dir", default=str(BUILD_DIR))
     ap.add_argument("--out", default=None, help="write the metrics as JSON here")
+    ap.add_argument("--no-certificate-first", action="store_true",
+                    help="solve (2.24) at every step (certificate_first=False)")
     a = ap.parse_args(argv)
-    pair = build_pair(a.target, a.build_dir)
+    pair = build_pair(a.target, a.build_dir, not a.no_certificate_first)
     res: dict = {"target": a.target, **{k: v for k, v in pair.items() if k not in ("py", "c")}}
     print(json.dumps(res), flush=True)
     res["loops"] = lockstep_loops(pair["py"], pair["c"], steps=a.steps)
