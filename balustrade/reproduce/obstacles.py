@@ -15,7 +15,7 @@ heading to the centre, 70 steps.
   trains the network on it (augmented by the 8 symmetries of the obstacle layout), the
   learning curve over data sizes on the independent validation set, and the same closed
   loops on the emitted C (:func:`~balustrade.codegen.accelerate`) for the timings; the
-  PCBF algorithm's own closed loops (IPOPT), and as emitted C on ``structured-ip``
+  PCBF algorithm's own closed loops (target ``exact``), and as emitted C on ``structured-ip``
   (:func:`pcbf_algorithm_c`) beside its Python twin (``pcbf_c_closed_loop``).
 
 Metrics: the minimum signed distance ``‖p − o_i‖ − r`` to every obstacle on every
@@ -70,7 +70,7 @@ TRAIN = {"widths": (32, 32, 32, 32, 32), "epochs": 20, "lr": 2e-2, "batch_size":
          "loss": "huber", "huber_delta": 1.0, "output_transform": "cbrt",
          "lr_schedule": "cosine"}
 FILTER_TARGET = "fast-sqp"  # (7.5)/(7.6) are 2-variable NLPs; the target that emits C
-#: the PCBF algorithm's emitted C (session 12, docs/obstacles.md): fatrop on the stage order
+#: the PCBF algorithm's emitted C (session 12, docs/obstacles.md): the stage-ordered target
 PCBF_C_TARGET = "structured-ip"
 
 
@@ -135,8 +135,9 @@ def pcbf_algorithm_c(target: str = PCBF_C_TARGET, horizon: int | None = None,
     """The PCBF algorithm of :func:`pcbf_algorithm` (``shifted=False``) as emitted C, one
     call per step (:func:`~balustrade.codegen.accelerate`, cached in ``build_dir``;
     :class:`~balustrade.codegen.CPCBFSafetyFilter`, ``accelerated`` says where and how
-    long). ``structured-ip`` (fatrop on the stage-ordered NLP, then a cold fatrop, then
-    IPOPT) links the casadi wheel's libfatrop, libblasfeo and libipopt. The Python filter
+    long). ``structured-ip`` (its interior-point solver on the stage-ordered NLP, a cold
+    retry, then the ``exact`` solver as last resort; targets.py) links three libraries of
+    the casadi wheel (``manifest["link_flags"]``). The Python filter
     making the same decisions is ``pcbf_algorithm(target, shifted=False, ...)`` with the
     same ``horizon`` and ``certificate_first``
     (docs/obstacles.md, "session 12")."""
@@ -497,7 +498,7 @@ def run(out: Path, quick: bool = False) -> dict:
         ref = closed_loops(pcbf_algorithm(), mpc, classify=pcbf_path_of)
         metrics["pcbf_closed_loop"] = {**loop_metrics(ref, PCBF_PATHS),
                                        "wall_s": time.perf_counter() - t}
-        # the same algorithm as emitted C (structured-ip: fatrop, libipopt as last resort)
+        # the same algorithm as emitted C (structured-ip, the exact solver as last resort)
         # and its Python twin (same target, same warm starts: the same decisions)
         c_pcbf = pcbf_algorithm_c(PCBF_C_TARGET)
         twin = closed_loops(pcbf_algorithm(PCBF_C_TARGET, shifted=False), mpc,
