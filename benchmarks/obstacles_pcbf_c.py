@@ -74,7 +74,7 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
     statuses: dict[str, list[str]] = {"py": [], "c": []}
     per_start = []
     max_du = max_dx = 0.0
-    differ = 0
+    differ: list[tuple] = []  # (start, step, Python status, C status) where they differ
     for p in starts:
         x0 = O.initial_state(p)
         xs = {k: [x0.copy()] for k in filters}
@@ -96,7 +96,8 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
             (u_py, i_py), (u_c, i_c) = out["py"], out["c"]
             where.append((list(p), step, i_py.status, i_c.status))
             max_du = max(max_du, float(np.max(np.abs(u_py - u_c))))
-            differ += (i_py.status, i_py.fallback) != (i_c.status, i_c.fallback)
+            if (i_py.status, i_py.fallback) != (i_c.status, i_c.fallback):
+                differ.append((list(p), step, i_py.status, i_c.status))
         row = {"start": list(p)}
         for k in filters:
             X = np.array(xs[k])
@@ -112,7 +113,8 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
                                    for k in filters},
             "statuses_py": dict(Counter(statuses["py"])),
             "statuses_c": dict(Counter(statuses["c"])),
-            "max_du": max_du, "max_dx": max_dx, "steps_status_differs": differ,
+            "max_du": max_du, "max_dx": max_dx, "steps_status_differs": len(differ),
+            "status_differs": differ,
             "min_distance_py": min(r["min_distance_py"] for r in per_start),
             "min_distance_c": min(r["min_distance_c"] for r in per_start)}
 
