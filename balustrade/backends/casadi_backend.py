@@ -384,9 +384,15 @@ class CasadiCompiled:
         return other
 
     def solve(self, params: dict[str, object] | None = None,
-              warm_start: Solution | dict[str, object] | None = None) -> Solution:
+              warm_start: Solution | dict[str, object] | None = None,
+              second_start: Solution | dict[str, object] | None = None) -> Solution:
         """Solve with the given parameter values; ``warm_start`` is a previous
         :class:`Solution` (primal and dual) or a dict of variable values.
+
+        ``second_start`` (optional, same forms): when the first attempt fails, the first
+        solver is tried once more from this point *before* the cold-start retries (it
+        counts as one more attempt; e.g. a known feasible point, as the PCBF filter's
+        certified shifted plan for (2.23)).
 
         A failed solve is retried from a cold start with each entry of :attr:`retries`
         in turn (see :func:`default_retries`); ``Solution.message`` and
@@ -417,6 +423,9 @@ class CasadiCompiled:
         if self.budget is not None and sol.status == Status.MAX_ITERATIONS:
             return self._truncated(sol, p)  # no retry, no rescue: the time bound holds
         attempts = [sol]
+        if second_start is not None and not sol.success:
+            attempts.append(self._solve_with(self.solver, p,
+                                             self._initial_guess(second_start, p)))
         for solver in self._retry_solvers():
             if attempts[-1].success:
                 break
