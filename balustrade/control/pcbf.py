@@ -323,8 +323,9 @@ class PCBFSafetyFilter:
         of ``h_PB = 0``), so ``ξ* = 0`` and it meets every row of (2.23), whose rows are
         those of (2.24) with the slacks fixed to ``ξ* + eps`` (SPEC §2.7: the optimizer of
         (2.24) is feasible for (2.23)); (2.23) has no decrease or ``h_PB`` row. A feasible
-        start is a much better second try than the cold one (the obstacle car: warm and
-        cold fatrop failed on 3 of 350 steps, then IPOPT took 300–800 iterations).
+        start is a much better second try than the cold one (the obstacle car on the
+        structured-ip target: warm and cold attempts failed on 3 of 350 steps, then the last
+        resort took 300–800 iterations; with this attempt none failed, docs/obstacles.md).
         Backends whose ``solve`` has no ``second_start`` run their usual chain."""
         if "second_start" in inspect.signature(self.filter.solve).parameters:
             return self.filter.solve(params, warm_start=warm, second_start=plan)
