@@ -384,9 +384,15 @@ class CasadiCompiled:
         return other
 
     def solve(self, params: dict[str, object] | None = None,
-              warm_start: Solution | dict[str, object] | None = None) -> Solution:
+              warm_start: Solution | dict[str, object] | None = None,
+              second_start: Solution | dict[str, object] | None = None) -> Solution:
         """Solve with the given parameter values; ``warm_start`` is a previous
         :class:`Solution` (primal and dual) or a dict of variable values.
+
+        ``second_start`` (optional, same forms): when the first attempt fails, the first
+        solver is tried once more from this point *before* the cold-start retries (it
+        counts as one more attempt; e.g. a known feasible point, as the PCBF filter's
+        certified shifted plan for (2.23)).
 
         A failed solve is retried from a cold start with each entry of :attr:`retries`
         in turn (see :func:`default_retries`), except a retry that would run a solver
@@ -421,6 +427,11 @@ class CasadiCompiled:
             return self._truncated(sol, p)  # no retry, no rescue: the time bound holds
         attempts = [sol]
         ran = [(self.solver, guess)]  # (solver, start) of every attempt run so far
+        if second_start is not None and not sol.success:
+            # not in ``ran``: the retries run cold, and the C's ran_before compares them with
+            # the cold attempts only (a second start equal to the cold one is not skipped)
+            attempts.append(self._solve_with(self.solver, p,
+                                             self._initial_guess(second_start, p)))
         for solver in self._retry_solvers():
             if attempts[-1].success:
                 break

@@ -75,10 +75,12 @@ every step with a plan. The cost of (2.24), ``α_f ξ_N + Σ_i ‖ξ_i‖`` with
 ``α_f > 0`` and ``ξ >= 0``, is 0 only with every slack 0, and the candidate (slacks set to
 0) meets every row of (2.24) within the certificate's tolerance: ``h_PB(x) = 0`` is then the
 global optimum (the lower bound) and ``ξ* = 0``, so the (2.24) solve is skipped exactly.
-(2.23) runs with ``ξ* = 0`` from its usual warm start, and the next (2.24) starts from the
-candidate's primal. The skipped solve is never reported as a solver result: the step's
-``StepInfo.status`` is ``"certified"`` (``"certified_filter_<status>"`` when (2.23) did not
-end optimal), ``values["certificate_first"] = 1``, ``values["h_PB"] = 0``, and
+(2.23) runs with ``ξ* = 0`` from its usual warm start; if that attempt fails, it is tried
+once more from the candidate (feasible for (2.23): ``PCBFSafetyFilter._filter_solve``)
+before the cold retries (session 12); the next (2.24) starts from the candidate's primal.
+The skipped solve is never reported as a solver result: the step's ``StepInfo.status`` is
+``"certified"`` (``"certified_filter_<status>"`` when (2.23) did not end optimal),
+``values["certificate_first"] = 1``, ``values["h_PB"] = 0``, and
 ``solutions["slack"]`` is the candidate, a point of (2.24) and not a solver's result: status
 ``feasible`` (never ``optimal``), solver ``shifted_plan``, 0 iterations. A candidate that
 misses a row (e.g. after a step with ``ξ* > 0``, or without a plan) certifies nothing and
@@ -87,6 +89,7 @@ misses a row (e.g. after a step with ``ξ* > 0``, or without a plan) certifies n
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 
 import numpy as np
@@ -289,9 +292,12 @@ class PCBFSafetyFilter:
         self._last_slack = cand
         xi = np.maximum(np.asarray(cand["xi"]), 0.0)
         xi_N = max(float(np.asarray(cand["xi_N"]).reshape(-1)[0]), 0.0)
-        warm = self._last_filter if self._last_filter is not None \
-            else {"x": cand["x"], "u": cand["u"]}
-        s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
+        start = {"x": cand["x"], "u": cand["u"]}
+        params = {"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}
+        if self._last_filter is None:
+            s2 = self.filter.solve(params, warm_start=start)
+        else:
+            s2 = self._filter_solve(params, self._last_filter, start)
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
         if s2.success or feasible_truncation(s2):
@@ -308,6 +314,22 @@ class PCBFSafetyFilter:
             plan = np.asarray(cand["u"]).reshape(self.nu, -1)
         self._plan, self._plan_age = plan, 0
         return plan[:, 0].copy(), info
+
+    def _filter_solve(self, params: dict, warm: Solution, plan: dict) -> Solution:
+        """(2.23) of a certified step from its last solution; if that attempt fails, from
+        the certified shifted plan ``plan`` before the cold retries (issue #16, session 12).
+
+        The plan meets every row and bound of (2.24) with zero slack (it is the certificate
+        of ``h_PB = 0``), so ``ξ* = 0`` and it meets every row of (2.23), whose rows are
+        those of (2.24) with the slacks fixed to ``ξ* + eps`` (SPEC §2.7: the optimizer of
+        (2.24) is feasible for (2.23)); (2.23) has no decrease or ``h_PB`` row. A feasible
+        start is a much better second try than the cold one (the obstacle car on the
+        structured-ip target: warm and cold attempts failed on 3 of 350 steps, then the last
+        resort took 300–800 iterations; with this attempt none failed, docs/obstacles.md).
+        Backends whose ``solve`` has no ``second_start`` run their usual chain."""
+        if "second_start" in inspect.signature(self.filter.solve).parameters:
+            return self.filter.solve(params, warm_start=warm, second_start=plan)
+        return self.filter.solve(params, warm_start=warm)
 
     def _shifted(self, x: np.ndarray, s1: Solution) -> Solution | None:
         """The shifted plan as a certified optimum of (2.24) when the solve did not certify

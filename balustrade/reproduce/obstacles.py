@@ -14,7 +14,9 @@ heading to the centre, 70 steps.
   (Algorithm 7.6, resumable, into ``out/data``; an existing complete one is reused),
   trains the network on it (augmented by the 8 symmetries of the obstacle layout), the
   learning curve over data sizes on the independent validation set, and the same closed
-  loops on the emitted C (:func:`~balustrade.codegen.accelerate`) for the timings.
+  loops on the emitted C (:func:`~balustrade.codegen.accelerate`) for the timings; the
+  PCBF algorithm's own closed loops (target ``exact``), and as emitted C on ``structured-ip``
+  (:func:`pcbf_algorithm_c`) beside its Python twin (``pcbf_c_closed_loop``).
 
 Metrics: the minimum signed distance ``‖p − o_i‖ − r`` to every obstacle on every
 trajectory (HARD: ``>= −1e-3``), how often the filter changed ``u_p`` and which path of
@@ -42,6 +44,7 @@ from balustrade.control.pcbf import PCBFSafetyFilter
 from balustrade.learn.export import to_casadi
 from balustrade.learn.train import MLPModel, TrainConfig
 from balustrade.models.obstacle_car import (
+    ObstacleSetup,
     obstacle_car,
     obstacle_setup,
     signed_distance,
@@ -67,6 +70,8 @@ TRAIN = {"widths": (32, 32, 32, 32, 32), "epochs": 20, "lr": 2e-2, "batch_size":
          "loss": "huber", "huber_delta": 1.0, "output_transform": "cbrt",
          "lr_schedule": "cosine"}
 FILTER_TARGET = "fast-sqp"  # (7.5)/(7.6) are 2-variable NLPs; the target that emits C
+#: the PCBF algorithm's emitted C (session 12, docs/obstacles.md): the stage-ordered target
+PCBF_C_TARGET = "structured-ip"
 
 
 def initial_state(p: tuple[float, float]) -> np.ndarray:
@@ -95,7 +100,9 @@ class NaiveMPC:
         return u
 
 
-def pcbf_algorithm(target: str = "exact", shifted: bool = True) -> PCBFSafetyFilter:
+def pcbf_algorithm(target: str = "exact", shifted: bool = True,
+                   horizon: int | None = None, certificate_first: bool = True
+                   ) -> PCBFSafetyFilter:
     """The PCBF algorithm [41] for the car: (2.24) then (2.23), both with the hard
     terminal constraint (``ξ_N ≡ 0``); ``shifted``: (2.24) warm-started from the shifted last
     plan (``PCBFSafetyFilter(warm_start="shifted")``), else from its last solution.
@@ -105,12 +112,42 @@ def pcbf_algorithm(target: str = "exact", shifted: bool = True) -> PCBFSafetyFil
     ``h_PB = 0`` for 32 steps, then 0.031; the car then entered a disk by 0.12 m). The
     library's shifted-plan certificate (``PCBFSafetyFilter(shifted_certificate=True)``, the
     default; :mod:`balustrade.control.shifted`) replaces such a point by the certified
-    ``h_PB = 0``, with either warm start (docs/obstacles.md)."""
-    system, s = obstacle_car(), obstacle_setup()
+    ``h_PB = 0``, with either warm start (docs/obstacles.md).
+
+    ``horizon``: ``N`` (default: the thesis' 50) with ``Δ_j = j·1e-4``; shorter horizons
+    are for fast tests (they stop the car only from lower speeds). ``certificate_first``:
+    the shifted-plan certificate is checked before (2.24) (the default), else (2.24) is
+    solved at every step. The emitted C
+    (:func:`pcbf_algorithm_c`) warm-starts (2.24) from its last solution: build the
+    Python twin with ``shifted=False``."""
+    system = obstacle_car()
+    s = obstacle_setup() if horizon is None else ObstacleSetup(N=int(horizon))
     args = (system, s.X, s.U, s.N, s.deltas, s.delta_N)
     slack = compile(stopping_pcbf_problem(*args), target)
     filt = compile(stopping_filter_problem(*args), target)
-    return PCBFSafetyFilter(slack, filt, s.U, warm_start="shifted" if shifted else "last")
+    return PCBFSafetyFilter(slack, filt, s.U, warm_start="shifted" if shifted else "last",
+                            certificate_first=certificate_first)
+
+
+def pcbf_algorithm_c(target: str = PCBF_C_TARGET, horizon: int | None = None,
+                     build_dir: str | Path | None = None, certificate_first: bool = True
+                     ) -> object:
+    """The PCBF algorithm of :func:`pcbf_algorithm` (``shifted=False``) as emitted C, one
+    call per step (:func:`~balustrade.codegen.accelerate`, cached in ``build_dir``;
+    :class:`~balustrade.codegen.CPCBFSafetyFilter`, ``accelerated`` says where and how
+    long). ``structured-ip`` (its interior-point solver on the stage-ordered NLP, a cold
+    retry, then the ``exact`` solver as last resort; targets.py) links three libraries of
+    the casadi wheel (``manifest["link_flags"]``). The Python filter
+    making the same decisions is ``pcbf_algorithm(target, shifted=False, ...)`` with the
+    same ``horizon`` and ``certificate_first``
+    (docs/obstacles.md, "session 12")."""
+    from balustrade.codegen import accelerate
+
+    py = pcbf_algorithm(target, shifted=False, horizon=horizon,
+                        certificate_first=certificate_first)
+    name = "obstacles_pcbf" if horizon is None else f"obstacles_pcbf_n{int(horizon)}"
+    name += "" if certificate_first else "_solve_all"
+    return accelerate(py, build_dir=build_dir, name=name, werror=True)
 
 
 #: the path labels of :func:`path_of` (Algorithm 7.5) and :func:`pcbf_path_of`
@@ -461,6 +498,18 @@ def run(out: Path, quick: bool = False) -> dict:
         ref = closed_loops(pcbf_algorithm(), mpc, classify=pcbf_path_of)
         metrics["pcbf_closed_loop"] = {**loop_metrics(ref, PCBF_PATHS),
                                        "wall_s": time.perf_counter() - t}
+        # the same algorithm as emitted C (structured-ip, the exact solver as last resort)
+        # and its Python twin (same target, same warm starts: the same decisions)
+        c_pcbf = pcbf_algorithm_c(PCBF_C_TARGET)
+        twin = closed_loops(pcbf_algorithm(PCBF_C_TARGET, shifted=False), mpc,
+                            classify=pcbf_path_of)
+        c_ref = closed_loops(c_pcbf, mpc, classify=pcbf_path_of)
+        metrics["pcbf_python_twin_closed_loop"] = loop_metrics(twin, PCBF_PATHS)
+        metrics["pcbf_c_closed_loop"] = {
+            **loop_metrics(c_ref, PCBF_PATHS), "target": PCBF_C_TARGET,
+            "max_state_difference_to_python_twin": float(max(
+                np.max(np.abs(a["states"] - b["states"])) for a, b in zip(twin, c_ref))),
+            "build": {k: v for k, v in c_pcbf.accelerated.items() if k != "dir"}}
     plot_paths(runs, out / "figure8_2.png")
     plot_inputs(runs[0], out / "figure8_3.png")
     metrics["summary"] = summary_lines(metrics)

@@ -20,9 +20,11 @@ same feasible set and optimum after :meth:`StageInverse.primal`):
   column ``k`` is a control of stage ``k``;
 * every other block (scalars such as ``ξ_N`` or ``t`` of (7.8), epigraph variables of
   norm costs) is an *extra*: when all rows using it lie in one stage it is a control of
-  that stage; otherwise it is *lifted*: one copy ``e_k`` per stage, a state chained by the
-  gap rows ``e_{k+1} − e_k = 0``, each row using the copy of its own stage, the extra's
-  bounds on the copy of stage ``N`` (which is the value reported);
+  that stage (an extra in no row and not in the cost, e.g. the fixed ``ξ_N ≡ 0`` of the
+  obstacle car's (2.24), is a control of stage 0); otherwise it is *lifted*: one copy
+  ``e_k`` per stage, a state chained by the gap rows ``e_{k+1} − e_k = 0``, each row
+  using the copy of its own stage, the extra's bounds on the copy of stage ``N`` (which
+  is the value reported);
 * a row whose variables lie in one stage is a path row of that stage; a row over several
   stages that is additively separable by stage (its Hessian has no cross-stage entry, e.g.
   the decrease constraint (6.15g) ``α_f ξ_N + Σ_i 1ᵀξ_i <= bound`` or the perspective row of
@@ -180,6 +182,8 @@ def stage_order(ocp: OCP, data: NLPData, last_controls: bool = True
                                  "enters the dynamics; it cannot be ordered by stage")
         stages = {int(stage_arr[v]) for j in rows_of_extra[i] for v in row_vars[j]
                   if stage_arr[v] >= 0}
+        if not rows_of_extra[i] and not ca.depends_on(f, wel[i]):
+            stages = {0}  # in no row and not in the cost (only bounds): couples no stage
         if len(stages) == 1 and (last_controls or N not in stages):
             extra_stage[i] = stages.pop()
         else:

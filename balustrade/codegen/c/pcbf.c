@@ -203,9 +203,15 @@ static casadi_int BAL_QX(f_pos)(casadi_int j) {
   for (i = 0; i < (n); ++i) { \
     wk->filter.x0[BAL_QX(f_pos)((dst) + i)] = BAL_PCBF_SLACK((src) + i); \
   }
+#define BAL_PCBF_COPY_SECOND(src, dst, n) \
+  for (i = 0; i < (n); ++i) { \
+    wk->keep_x0[BAL_QX(f_pos)((dst) + i)] = BAL_PCBF_SLACK((src) + i); \
+  }
 #else
 #define BAL_PCBF_COPY_SHARED(src, dst, n) \
   memcpy(wk->filter.x0 + (dst), wk->slack.x + (src), (n) * sizeof(casadi_real));
+#define BAL_PCBF_COPY_SECOND(src, dst, n) \
+  memcpy(wk->keep_x0 + (dst), wk->slack.x + (src), (n) * sizeof(casadi_real));
 #endif
 
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
@@ -301,6 +307,17 @@ filter:
     BAL_QX(filter_cold_start)(&wk->filter);
     BAL_QX(SHARED)(BAL_PCBF_COPY_SHARED)
   }
+#if BAL_QX(SHIFT_CERT) && BAL_QX(CERT_FIRST)
+  if (wk->cert_first && wk->have_filter) {
+    /* (2.23) from its last solution; if that attempt fails, from the certified shifted
+       plan (feasible for (2.23): PCBFSafetyFilter._filter_solve) before the cold retries.
+       The plan's start is built as the start of a certified step without a last solution
+       (initial values, the variables shared with (2.24)); keep_x0 is free here (fired = 0) */
+    memcpy(wk->keep_x0, BAL_QX(filter_init_x), sizeof(wk->keep_x0));
+    BAL_QX(SHARED)(BAL_PCBF_COPY_SECOND)
+    wk->filter_status = BAL_QX(filter_solve_from)(&wk->filter, wk->p_filter, wk->keep_x0);
+  } else
+#endif
   wk->filter_status = BAL_QX(filter_solve)(&wk->filter, wk->p_filter);
   trunc_ok = BAL_QX(filter_truncated_feasible)(&wk->filter, wk->filter_status);
 #if BAL_QX(SHIFT_CERT)
@@ -340,6 +357,7 @@ filter:
 }
 
 #undef BAL_PCBF_COPY_SHARED
+#undef BAL_PCBF_COPY_SECOND
 
 BAL_DEFINE_PAIR_ACCESSORS(BAL_QX, slack, filter, slack_problem, filter_problem)
 casadi_real BAL_QX(h_upper)(const BAL_QX(work)* wk) { return wk->h_upper; }

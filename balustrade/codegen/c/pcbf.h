@@ -78,7 +78,8 @@ typedef struct BAL_QX(work) {
 #if BAL_QX(SHIFT_CERT)
   casadi_real cert_U[BAL_QX(NU) * BAL_QX(N)], cert_w[BAL_QX(slack_N_USER) + 1];
   casadi_real cert_v, cert_f;
-  /* the warm start of (2.23), kept while a certified step starts it from the candidate */
+  /* the warm start of (2.23), kept while a certified step starts it from the candidate;
+     in a certificate-first step, keep_x0 is (2.23)'s second start (the shifted plan) */
   casadi_real keep_x0[BAL_QX(filter_NW)], keep_lam_x0[BAL_QX(filter_NW)];
   casadi_real keep_lam_g0[BAL_QX(filter_NG) + 1];
   const casadi_real* carg[BAL_QX(shift_cert_SZ_ARG)];

@@ -102,18 +102,20 @@ void BAL_PX(warm_start_primal)(BAL_PX(work)* wk) {
   memcpy(wk->x0, wk->x, BAL_PX(N_USER) * sizeof(casadi_real));
 }
 
-/* One solver run: which = 0 from the warm start in wk, else retry `which` from a cold start. */
-static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which) {
+/* One solver run: which = 0 from the warm start in wk (or from the primal `start` with zero
+   multipliers if not NULL), else retry `which` from a cold start. */
+static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which,
+                           const casadi_real* start) {
   casadi_int i;
   int flag;
-  wk->arg[0] = which ? BAL_PX(init_x) : wk->x0;
+  wk->arg[0] = start ? start : which ? BAL_PX(init_x) : wk->x0;
   wk->arg[1] = p;
   wk->arg[2] = BAL_PX(lbx);
   wk->arg[3] = BAL_PX(ubx);
   wk->arg[4] = BAL_PX(lbg);
   wk->arg[5] = BAL_PX(ubg);
-  wk->arg[6] = which ? 0 : wk->lam_x0; /* 0: zero multipliers */
-  wk->arg[7] = which ? 0 : wk->lam_g0;
+  wk->arg[6] = (which || start) ? 0 : wk->lam_x0; /* 0: zero multipliers */
+  wk->arg[7] = (which || start) ? 0 : wk->lam_g0;
   wk->res[0] = wk->x;
   wk->res[1] = &wk->f;
   wk->res[2] = wk->g;
@@ -204,6 +206,10 @@ static int BAL_PX(ran_before)(int which, int first_cold) {
 }
 
 int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
+  return BAL_PX(solve_from)(wk, p, 0);
+}
+
+int BAL_PX(solve_from)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real* second) {
   int first, first_cold, status, which, have_feasible;
   casadi_int i;
   if (!wk || !wk->ready) return BAL_EVAL_ERROR;
@@ -214,7 +220,7 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
     wk->f = wk->pr_inf = wk->du_inf = wk->feas = NAN;
     return BAL_BAD_INPUT;
   }
-  first = BAL_PX(attempt)(wk, p, 0);
+  first = BAL_PX(attempt)(wk, p, 0, 0);
   if (first == BAL_OK) return first;
 #if BAL_PX(BUDGET) > 0
   /* stopped by the iteration budget (the budgeted SQP has no other way to stop without
@@ -226,9 +232,11 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
   have_feasible = first == BAL_FEASIBLE;
   if (have_feasible) BAL_PX(feasible_copy)(wk, 1);
   first_cold = BAL_PX(is_cold)(wk);
-  for (which = 1; which < BAL_PX(N_SOLVERS); ++which) {
-    if (BAL_PX(ran_before)(which, first_cold)) continue; /* the same run again: skipped */
-    status = BAL_PX(attempt)(wk, p, which);
+  /* the first solver again from `second` before the cold retries (CasadiCompiled.solve's
+     second_start); then the retries, each skipped when it would repeat a cold run */
+  for (which = second ? 0 : 1; which < BAL_PX(N_SOLVERS); ++which) {
+    if (which && BAL_PX(ran_before)(which, first_cold)) continue; /* the same run again */
+    status = BAL_PX(attempt)(wk, p, which, which ? 0 : second);
     if (status == BAL_OK) return status;
     if (status == BAL_FEASIBLE) {
       BAL_PX(feasible_copy)(wk, 1);

@@ -5,7 +5,7 @@
  * P_W_<variable>.
  *
  * Entry points: P_init, P_finalize, P_alloc, P_free, P_cold_start, P_warm_start,
- * P_warm_start_primal, P_solve, P_attempts, P_primal, P_value, P_residuals.
+ * P_warm_start_primal, P_solve, P_solve_from, P_attempts, P_primal, P_value, P_residuals.
  * No include guard: included once per prefix.
  */
 #ifndef BAL_PROBLEM
@@ -56,6 +56,9 @@ void BAL_PX(warm_start_primal)(BAL_PX(work)* wk);
    With an iteration budget (P_BUDGET > 0) a solve stopped by it returns BAL_TRUNCATED
    (its iterate in x; P_truncated_feasible tells whether it may be used). */
 int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p);
+/* P_solve, but if the first attempt fails, the first solver runs once more from the primal
+   `second` (P_NW values, zero multipliers; NULL: none) before the cold-start retries. */
+int BAL_PX(solve_from)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real* second);
 /* 1 if status is BAL_TRUNCATED and the iterate in wk meets every row and bound within
    P_TRUNC_TOL (absolute: Solution.feasible_within of balustrade's backend), else 0. */
 int BAL_PX(truncated_feasible)(const BAL_PX(work)* wk, int status);
