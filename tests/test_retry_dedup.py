@@ -150,3 +150,43 @@ def _timing(reps: int = 6) -> None:  # pragma: no cover - a report, not a test
 
 if __name__ == "__main__":  # pragma: no cover
     _timing()
+
+
+
+def test_c_warm_first_attempt_keeps_its_cold_retry(tmp_path):
+    """The C's counterpart of :func:`test_warm_first_attempt_keeps_its_cold_retry`: the
+    second step of a PCBF filter (no certificate first, so (2.24) is solved) warm-starts
+    (2.24) from the first step's point; after that warm attempt the cold fatrop retry runs in
+    the C as in Python — same attempt counts, statuses and inputs (fails if the C's
+    ``ran_before`` skipped the retry whatever the start: a review's mutation that the cold
+    tests did not catch)."""
+    import ctypes
+
+    from balustrade.codegen import accelerate
+    from balustrade.control import PCBFSafetyFilter
+    from balustrade.problems.pcbf import pcbf_filter_problem
+
+    system, s = pendulum(), pendulum_setup()
+    args = (system, s.X, s.U, pendulum_terminal_cbf(), s.N, s.deltas)
+    py = PCBFSafetyFilter(_slack(CHAIN), compile(pcbf_filter_problem(*args), CHAIN), s.U,
+                          certificate_first=False)
+    c = accelerate(py, build_dir=tmp_path, name="dedupw", werror=True)
+    attempts = c._lib.fn(f"{c.slack.info['prefix']}_attempts", ctypes.c_int,
+                         [ctypes.c_void_p])
+    runs = _counted(py.slack)
+    retried = 0
+    for x in STATES:
+        py.reset()
+        c.reset()
+        py.step(np.asarray(x), np.array([1.0]))
+        c.step(np.asarray(x), np.array([1.0]))
+        x2 = np.asarray(x) + 0.02
+        runs.clear()
+        (u_py, a), (u_c, b) = py.step(x2, np.array([1.0])), c.step(x2, np.array([1.0]))
+        assert (a.status, a.fallback) == (b.status, b.fallback), x
+        np.testing.assert_allclose(u_c, u_py, atol=1e-6)
+        assert attempts(c.slack.work) == len(runs), (x, attempts(c.slack.work), len(runs))
+        if len(runs) > 1:  # the warm attempt did not converge: the cold fatrop ran next
+            retried += 1
+            assert runs[:2] == [py.slack.solver, py.slack.solver], runs
+    assert retried >= 3

@@ -273,7 +273,10 @@ class CasadiCompiled:
         opts = solver_options(solver, options)
         #: which NLP the solver is built on (:data:`LOWERINGS`): a balustrade option,
         #: taken out of the solver's options
-        self.lowering = _lowering(ocp.name, opts.pop(LOWERING_OPTION, "expanded"))
+        lowering = opts.pop(LOWERING_OPTION, "expanded")
+        if lowering == AS_EMITTED:  # the NLP the C emitters generate for this solver
+            lowering = "expanded" if needs_stage_order(solver, opts) else "compact"
+        self.lowering = _lowering(ocp.name, lowering)
         data, inverses = run_chain(CASADI_CHAIN, ocp)
         self._data = data
         #: how the epigraph pass maps a solver point back (user variables, declared cost)
@@ -689,12 +692,20 @@ LOWERING_OPTION = "lowering"
 #: (:func:`~balustrade.backends.passes.casadi_nlp.compact_nlp`): its derivatives appear once
 #: in generated C (the default of the C emitters, :mod:`balustrade.codegen.emit`)
 LOWERINGS = ("expanded", "compact")
+#: the value of :data:`LOWERING_OPTION` the emitted presets carry: the lowering Python
+#: solves when its C is generated (``codegen.emit.EMIT_LOWERING``, ``"compact"``) for
+#: solvers in the layout's order, and ``"expanded"`` for the stage-ordered ones (fatrop,
+#: sqpmethod + hpipm), whose Python NLP is the expanded one in stage order and whose C is
+#: the compact lowering permuted into that order. So ``fast-sqp`` with ``qpsol="hpipm"``
+#: or with the solver fatrop still compiles (issue #14, session 12 review), while an
+#: explicit ``"compact"`` with a stage-ordered solver is refused.
+AS_EMITTED = "as-emitted"
 
 
 def _lowering(name: str, value: object) -> str:
     if value not in LOWERINGS:
         raise SolverError(f"{name}: option {LOWERING_OPTION!r} must be one of "
-                          f"{', '.join(map(repr, LOWERINGS))}, got {value!r}")
+                          f"{', '.join(map(repr, (*LOWERINGS, AS_EMITTED)))}, got {value!r}")
     return str(value)
 
 

@@ -361,7 +361,7 @@ _CONVEX_QP_RETRIES = (("sqpmethod", {"convexify_strategy": "eigen-reflect"}),)
 # retry converged (both within tolerance, h_r 1.6983296861 vs 1.6983294591); the inputs then
 # differed by 2.1e-6 (5.2) and 7.9e-6 (6.4). On the compact lowering in Python the same
 # attempt answers at every step and the inputs agree to 1e-15 (tests/test_lane_c_chain.py).
-_ROBUST_SQP = {"max_iter": 500, "lowering": "compact"}
+_ROBUST_SQP = {"max_iter": 500, "lowering": "as-emitted"}
 
 # Every other preset whose C the emitters generate from the compact lowering (sqpmethod in
 # the layout's order: "fast-sqp", "fast-sqp-noretry", "convex-qp", "real-time") solves that
@@ -369,8 +369,11 @@ _ROBUST_SQP = {"max_iter": 500, "lowering": "compact"}
 # its C then solve the same NLP, rounding included. The stage-ordered presets
 # ("structured-ip", "structured-sqp") keep the expanded NLP in stage order in Python (the
 # compact one is refused there); their C is the compact lowering permuted into stage
-# order, measured equal to Python to the last bit (docs/engines.md).
-_COMPACT = {"lowering": "compact"}
+# order, measured equal to Python to the last bit (docs/engines.md). The value "as-emitted"
+# (casadi_backend.AS_EMITTED) says exactly that: compact in the layout's order, expanded when
+# a user's variant of these presets is stage-ordered (qpsol hpipm, solver fatrop), which
+# then compiles as it did before session 12 instead of being refused.
+_COMPACT = {"lowering": "as-emitted"}
 
 PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", name="exact"),

@@ -295,8 +295,9 @@ class _Problem:
             self.reports.append(int(plugin in STATUS_OPTIONS))
             self.retry_labels.append(label)
             self.retry_docs.append(" ".join([plugin, *(f"{o} {v!r}" for o, v in over.items())])
-                                   if over else f"{plugin} again (skipped after a cold first "
-                                   "attempt: the same run)")
+                                   if over else f"{plugin} again, cold (skipped after a cold "
+                                   "first attempt: the same run)" if plugin == c.solver_name
+                                   else f"{plugin} (cold start)")
         self.layout = c.layout  # the solver's x: the user's variables, then epigraph blocks
         self.vars = self.layout.to_dict()
         self.params = c.ocp.parameter_layout.to_dict()  # with declared values as "default"
