@@ -225,3 +225,56 @@ def test_split_matches_the_program_blocks():
     dense = coded.toarray()
     assert np.array_equal(A_eq.toarray(), dense[:rg.m0])
     assert np.array_equal(G.toarray(), dense[rg.m0:])
+
+
+def _msd3_controller(**kw):
+    from balustrade.control.rapsf import RAPSF
+    from balustrade.estimate import BoxUpdate
+    from balustrade.reproduce import msd_adaptive
+
+    d = msd_adaptive.design(3)
+    s = d["setup"]
+    kw.setdefault("target", msd_adaptive.TARGET)
+    return d, RAPSF(d["system"], d["X0"], msd_adaptive.joint(d), None, s.W, d["K"], s.N,
+                    s.Theta0, estimator=BoxUpdate(d["system"], s.W, s.Theta0), **kw)
+
+
+def test_rapsf_row_generation_only_for_the_preset_itself(monkeypatch):
+    """A user's Target named like a preset of ROWGEN_FROM but with its own options is not
+    swapped for ``fast-convex-rowgen``; the preset itself is; ``row_generation=False`` (a
+    constructor argument) keeps the target; a non-bool is refused."""
+    import balustrade.control.rapsf as rapsf_mod
+    from balustrade.backends import resolve_target
+    from balustrade.backends.targets import Target
+
+    monkeypatch.setattr(rapsf_mod, "ROWGEN_MIN_ROWS", 1)
+    own = Target("direct", "piqp", {"eps_abs": 1e-7}, name="fast-convex-qp")
+    _, ctrl = _msd3_controller(target=own)
+    ocp = ctrl._problem(ctrl.N, n_vertices=ctrl._n_compiled)
+    assert ctrl._target_for(ocp) is ctrl.target
+    assert dict(ctrl._target_for(ocp).options) == {"eps_abs": 1e-7}
+    _, ctrl = _msd3_controller(target="fast-convex-qp")
+    assert ctrl._target_for(ocp).name == "fast-convex-rowgen"
+    _, ctrl = _msd3_controller(target=resolve_target("fast-convex-qp"), row_generation=False)
+    assert ctrl._target_for(ocp).name == "fast-convex-qp"
+    with pytest.raises(BalustradeError, match="row_generation"):
+        _msd3_controller(target="fast-convex-qp", row_generation=1)
+
+
+def test_rapsf_switching_row_generation_recompiles(monkeypatch):
+    """Setting ``RAPSF.row_generation`` after steps drops the problems compiled for the other
+    choice: the next step compiles (4.5) without row generation."""
+    import balustrade.control.rapsf as rapsf_mod
+    from balustrade.reproduce import msd_adaptive
+    from benchmarks.bench_rapsf import Loop
+
+    assert msd_adaptive.TARGET in rapsf_mod.ROWGEN_FROM
+    monkeypatch.setattr(rapsf_mod, "ROWGEN_MIN_ROWS", 1)
+    d, ctrl = _msd3_controller()
+    loop = Loop(d, ctrl.step, 3)
+    loop(0)
+    assert any(getattr(c, "rowgen", None) is not None for c in ctrl._compiled.values())
+    ctrl.row_generation = False
+    loop(1)
+    assert ctrl._compiled
+    assert all(getattr(c, "rowgen", None) is None for c in ctrl._compiled.values())

@@ -30,6 +30,7 @@ caller solves the full QP instead.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -111,7 +112,7 @@ class RowGeneration:
         if isinstance(stride, bool) or not isinstance(stride, int | np.integer) or stride < 0:
             raise BalustradeError(f"row generation: stride must be an integer >= 0, got "
                                   f"{stride!r}")
-        if reduced_options is not None and not isinstance(reduced_options, dict):
+        if reduced_options is not None and not isinstance(reduced_options, Mapping):
             raise BalustradeError(f"row generation: reduced_options must be a dict of PIQP "
                                   f"settings or None, got {type(reduced_options).__name__}")
         self.prog, self.groups = prog, groups
