@@ -230,3 +230,17 @@ def test_bad_row_groups(groups, named):
     ocp.row_groups = groups
     with pytest.raises(SolverError, match=named):
         DirectCompiled(ocp, "piqp", {"row_generation": True})
+
+
+def test_bad_row_generation_value_refused_without_groups():
+    """A bad value is refused even where row generation would not run (no ``row_groups``,
+    or Clarabel): it is not silently ignored."""
+    from balustrade.backends.direct_backend import DirectCompiled
+
+    ocp = _grouped_qp_for_bad_input()
+    del ocp.row_groups
+    with pytest.raises(SolverError, match="max_rounds"):
+        DirectCompiled(ocp, "piqp", {"row_generation": {"max_rounds": "many"}})
+    with pytest.raises(SolverError, match="drop_after"):
+        DirectCompiled(_grouped_qp_for_bad_input(), "clarabel",
+                       {"row_generation": {"drop_after": 0}})

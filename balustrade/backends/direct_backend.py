@@ -43,10 +43,10 @@ from balustrade.backends.passes.to_conic import (
     ConicProgram,
     ToConic,
 )
-from balustrade.backends.row_generation import ROWGEN_KEYS, RowGeneration
+from balustrade.backends.row_generation import ROWGEN_KEYS, RowGeneration, check_setting
 from balustrade.backends.solution import Solution, Status
 from balustrade.dsl.ocp import OCP
-from balustrade.errors import SolverError
+from balustrade.errors import BalustradeError, SolverError
 
 #: statuses after which a solve is retried (unequilibrated, then with the cost rescaled)
 _RETRY = (Status.FAILED, Status.MAX_ITERATIONS, Status.OPTIMAL_INACCURATE)
@@ -211,6 +211,10 @@ class DirectCompiled:
         else:
             raise SolverError(f"{where} must be True/False or a dict of "
                               f"{', '.join(ROWGEN_KEYS)}, got {type(setting).__name__}")
+        try:
+            check_setting(**setting)
+        except BalustradeError as err:
+            raise SolverError(f"{where}: {err}") from None
         groups = getattr(self.ocp, "row_groups", None)
         if not groups or self.solver_name != "piqp" or self.program.conic:
             return None

@@ -79,6 +79,22 @@ class RowGenStats:
     history: list[int] = field(default_factory=list)  # rows per round
 
 
+def check_setting(per_round: object = 3, seed: object = "working",
+                  max_rounds: object = MAX_ROUNDS, drop_after: object = None,
+                  reduced_options: object = None) -> None:
+    """Refuse a bad value of a :data:`ROWGEN_KEYS` keyword (a :class:`BalustradeError`
+    naming it); the direct backend calls it for its option ``row_generation`` whether or not
+    the OCP has row groups."""
+    _positive_int(per_round, "per_round")
+    _positive_int(max_rounds, "max_rounds")
+    _positive_int(drop_after, "drop_after", none_ok=True)
+    if not isinstance(seed, str) or seed not in SEEDS:
+        raise BalustradeError(f"row generation: seed must be one of {SEEDS}, got {seed!r}")
+    if reduced_options is not None and not isinstance(reduced_options, Mapping):
+        raise BalustradeError(f"row generation: reduced_options must be a dict of PIQP "
+                              f"settings or None, got {type(reduced_options).__name__}")
+
+
 class RowGeneration:
     """Row generation on ``prog`` (an LP/QP) with inequality-row groups ``groups`` (one label
     per inequality row of ``prog.A``, i.e. per row after the equality rows; ``-1`` for rows
@@ -106,20 +122,14 @@ class RowGeneration:
         if groups.shape != (m_in,):
             raise BalustradeError(f"row generation: groups must have one label per "
                                   f"inequality row, shape ({m_in},), got {groups.shape}")
-        _positive_int(per_round, "per_round")
-        _positive_int(max_rounds, "max_rounds")
-        _positive_int(drop_after, "drop_after", none_ok=True)
+        check_setting(per_round=per_round, seed=seed, max_rounds=max_rounds,
+                      drop_after=drop_after, reduced_options=reduced_options)
         if isinstance(stride, bool) or not isinstance(stride, int | np.integer) or stride < 0:
             raise BalustradeError(f"row generation: stride must be an integer >= 0, got "
                                   f"{stride!r}")
-        if reduced_options is not None and not isinstance(reduced_options, Mapping):
-            raise BalustradeError(f"row generation: reduced_options must be a dict of PIQP "
-                                  f"settings or None, got {type(reduced_options).__name__}")
         self.prog, self.groups = prog, groups
         self.per_round, self.stride = int(per_round), int(stride)
         self.max_rounds = int(max_rounds)
-        if not isinstance(seed, str) or seed not in SEEDS:
-            raise BalustradeError(f"row generation: seed must be one of {SEEDS}, got {seed!r}")
         self.seed = seed
         self.drop_after = None if drop_after is None else int(drop_after)
         self._idle = np.zeros(groups.size, dtype=np.int64)  # solves a row was not near active
@@ -310,4 +320,5 @@ class RowGeneration:
         return full
 
 
-__all__ = ["ACTIVE_GAP", "MAX_ROUNDS", "ROWGEN_KEYS", "SEEDS", "RowGenStats", "RowGeneration"]
+__all__ = ["ACTIVE_GAP", "MAX_ROUNDS", "ROWGEN_KEYS", "SEEDS", "RowGenStats", "RowGeneration",
+           "check_setting"]
