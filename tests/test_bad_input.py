@@ -172,3 +172,75 @@ def test_headline_bad_inputs_of_issue_12(pend):
         pcbf_slack_problem(*args, nan_deltas)
     with pytest.raises(BalustradeError, match=r"pcbf_slack: alpha_f: must lie in \(0, inf\)"):
         pcbf_slack_problem(*args, pend.deltas, alpha_f=-1.0)
+
+
+def _grouped_qp_for_bad_input() -> OCP:
+    """A small QP with one group of inequality rows (``ocp.row_groups``)."""
+    ocp = OCP(name="grouped")
+    y = ocp.variable("y", 2)
+    c = ocp.parameter("c", 2)
+    ocp.le(ca.mtimes(ca.DM(np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])), y), 1.0,
+           name="halfspaces")
+    ocp.minimize(ca.sumsqr(y - c))
+    ocp.row_groups = {"halfspaces": np.zeros(3, dtype=int)}
+    return ocp
+
+
+@pytest.mark.parametrize("setting, named", [
+    ({"per_rnd": 2}, "per_rnd"),                       # a misspelt key
+    ({"stride": 2}, "stride"),                         # from ocp.row_group_stride
+    ({"options": {}}, "options"),                      # from the target
+    ({"max_rounds": 2.5}, "max_rounds"),
+    ({"max_rounds": 0}, "max_rounds"),
+    ({"drop_after": "3"}, "drop_after"),
+    ({"drop_after": True}, "drop_after"),
+    ({"per_round": 1.0}, "per_round"),
+    ({"seed": "nearest"}, "seed"),
+    ({"reduced_options": 3}, "reduced_options"),
+    ("yes", "row_generation"),
+])
+def test_bad_row_generation_option(setting, named):
+    """The option ``row_generation`` of the direct backend is checked at compile time (no
+    TypeError from a keyword, no silent misuse), naming the key."""
+    from balustrade.backends.direct_backend import DirectCompiled
+
+    with pytest.raises(BalustradeError, match=named):
+        DirectCompiled(_grouped_qp_for_bad_input(), "piqp", {"row_generation": setting})
+
+
+def test_row_generation_empty_dict_is_on_false_is_off():
+    from balustrade.backends.direct_backend import DirectCompiled
+
+    ocp = _grouped_qp_for_bad_input()
+    assert DirectCompiled(ocp, "piqp", {"row_generation": {}}).rowgen is not None
+    assert DirectCompiled(ocp, "piqp", {"row_generation": False}).rowgen is None
+
+
+@pytest.mark.parametrize("groups, named", [
+    ({"halfspaces": np.zeros(2, dtype=int)}, r"row_groups\['halfspaces'\].*\(3,\).*\(2,\)"),
+    ({"halfspaces": np.zeros(3)}, r"row_groups\['halfspaces'\].*integer"),
+    ({"no_block": np.zeros(3, dtype=int)}, "no_block"),
+])
+def test_bad_row_groups(groups, named):
+    """``ocp.row_groups`` of the wrong length (an IndexError before), of floats or naming no
+    block: a SolverError naming the block, before any solve."""
+    from balustrade.backends.direct_backend import DirectCompiled
+
+    ocp = _grouped_qp_for_bad_input()
+    ocp.row_groups = groups
+    with pytest.raises(SolverError, match=named):
+        DirectCompiled(ocp, "piqp", {"row_generation": True})
+
+
+def test_bad_row_generation_value_refused_without_groups():
+    """A bad value is refused even where row generation would not run (no ``row_groups``,
+    or Clarabel): it is not silently ignored."""
+    from balustrade.backends.direct_backend import DirectCompiled
+
+    ocp = _grouped_qp_for_bad_input()
+    del ocp.row_groups
+    with pytest.raises(SolverError, match="max_rounds"):
+        DirectCompiled(ocp, "piqp", {"row_generation": {"max_rounds": "many"}})
+    with pytest.raises(SolverError, match="drop_after"):
+        DirectCompiled(_grouped_qp_for_bad_input(), "clarabel",
+                       {"row_generation": {"drop_after": 0}})

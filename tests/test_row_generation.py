@@ -90,9 +90,35 @@ def test_infeasible_relaxation_is_infeasible():
     full, gen = DirectCompiled(ocp, "piqp"), DirectCompiled(ocp, "piqp", ROWGEN)
     a, b = full.solve({"c": np.zeros(6)}), gen.solve({"c": np.zeros(6)})
     assert a.status == b.status == Status.INFEASIBLE
-    # a Farkas certificate checked on the full data (the relaxation's own, extended by
-    # zeros, or that of the feasibility solve of the full constraints)
-    assert "certificate checked" in b.message or "certificate does" in b.message
+    # the verdict comes from a relaxation (row generation did not fall back to the full
+    # QP) ...
+    assert "a relaxation with" in b.message and "the full QP;" not in b.message
+    assert gen.rowgen.stats.rows < 8 * 12 + 12
+    # ... and what establishes it is the Clarabel feasibility solve of the full constraints,
+    # whose certificate passes the Farkas check on the full data: PIQP's certificate of the
+    # relaxation, extended by zeros, does not (‖Aᵀz‖₁ 4e-7 .. 8e-5 measured for seeds 0–5:
+    # it excludes feasible points only up to ‖y‖∞ 2e4 .. 5e5, the check asks for 3e6)
+    assert "its certificate does not hold" in b.message
+    assert "the clarabel feasibility solve's certificate does" in b.message
+
+
+def test_unconfirmed_infeasible_relaxation_solves_the_full_qp(monkeypatch):
+    """A relaxation's "infeasible" that the checks on the full data overturn (here: made up
+    for a feasible QP, no certificate) is not the answer: the full QP is solved."""
+    from balustrade.backends.direct_engines import RawResult
+
+    ocp = _grouped_qp(1)
+    gen = DirectCompiled(ocp, "piqp", ROWGEN)
+    ref = DirectCompiled(ocp, "piqp").solve({"c": np.full(6, 4.0)})
+
+    def says_infeasible(q, b, A=None, cold=False):
+        return RawResult(Status.INFEASIBLE, "PIQP: made up (a relaxation)", None, None, 3)
+
+    monkeypatch.setattr(gen.rowgen, "run", says_infeasible)
+    sol = gen.solve({"c": np.full(6, 4.0)})
+    assert sol.status == Status.OPTIMAL and "the full QP" in sol.message
+    assert "the constraints alone are feasible" in sol.message
+    assert np.max(np.abs(sol.primal["y"] - ref.primal["y"])) < 1e-8
 
 
 def test_failed_round_falls_back_to_the_full_solve():
@@ -170,3 +196,85 @@ def test_unknown_kkt_solver_named():
         "reduced_options": {"kkt_solver": "no_such_kkt"}}})
     with pytest.raises(BalustradeError, match="no_such_kkt"):
         gen.solve({"c": np.zeros(6)})
+
+
+def test_violation_tolerance_is_the_reduced_solves():
+    """A row counts as violated above the tolerance the reduced solves run with
+    (``reduced_options`` over the full options): a looser reduced ``eps_abs`` cannot leave
+    rows "violated" that the reduced solve may not satisfy any better."""
+    ocp = _grouped_qp(0)
+    gen = DirectCompiled(ocp, "piqp", {"row_generation": {
+        "reduced_options": {"eps_abs": 1e-6, "eps_rel": 1e-7}}})
+    rg = gen.rowgen
+    tol = rg._tolerance(np.array([0.0, 10.0]), np.array([0.0, 0.0]))
+    assert np.allclose(tol, [1e-6, 1e-6 + 1e-7 * 10.0])
+    sol = gen.solve({"c": np.full(6, 4.0)})
+    assert sol.status == Status.OPTIMAL
+
+
+def test_split_matches_the_program_blocks():
+    """The equality and inequality blocks row generation works on (from the engine's
+    ``_row_blocks``) are the rows of the program's ``A`` with the values passed."""
+    ocp = _grouped_qp(2)
+    rg = DirectCompiled(ocp, "piqp", ROWGEN).rowgen
+    A = rg.prog.A
+    values = np.arange(1.0, A.nnz + 1.0)
+    A_eq, G = rg._split(values)
+    coded = A.copy()
+    coded.data = values
+    dense = coded.toarray()
+    assert np.array_equal(A_eq.toarray(), dense[:rg.m0])
+    assert np.array_equal(G.toarray(), dense[rg.m0:])
+
+
+def _msd3_controller(**kw):
+    from balustrade.control.rapsf import RAPSF
+    from balustrade.estimate import BoxUpdate
+    from balustrade.reproduce import msd_adaptive
+
+    d = msd_adaptive.design(3)
+    s = d["setup"]
+    kw.setdefault("target", msd_adaptive.TARGET)
+    return d, RAPSF(d["system"], d["X0"], msd_adaptive.joint(d), None, s.W, d["K"], s.N,
+                    s.Theta0, estimator=BoxUpdate(d["system"], s.W, s.Theta0), **kw)
+
+
+def test_rapsf_row_generation_only_for_the_preset_itself(monkeypatch):
+    """A user's Target named like a preset of ROWGEN_FROM but with its own options is not
+    swapped for ``fast-convex-rowgen``; the preset itself is; ``row_generation=False`` (a
+    constructor argument) keeps the target; a non-bool is refused."""
+    import balustrade.control.rapsf as rapsf_mod
+    from balustrade.backends import resolve_target
+    from balustrade.backends.targets import Target
+
+    monkeypatch.setattr(rapsf_mod, "ROWGEN_MIN_ROWS", 1)
+    own = Target("direct", "piqp", {"eps_abs": 1e-7}, name="fast-convex-qp")
+    _, ctrl = _msd3_controller(target=own)
+    ocp = ctrl._problem(ctrl.N, n_vertices=ctrl._n_compiled)
+    assert ctrl._target_for(ocp) is ctrl.target
+    assert dict(ctrl._target_for(ocp).options) == {"eps_abs": 1e-7}
+    _, ctrl = _msd3_controller(target="fast-convex-qp")
+    assert ctrl._target_for(ocp).name == "fast-convex-rowgen"
+    _, ctrl = _msd3_controller(target=resolve_target("fast-convex-qp"), row_generation=False)
+    assert ctrl._target_for(ocp).name == "fast-convex-qp"
+    with pytest.raises(BalustradeError, match="row_generation"):
+        _msd3_controller(target="fast-convex-qp", row_generation=1)
+
+
+def test_rapsf_switching_row_generation_recompiles(monkeypatch):
+    """Setting ``RAPSF.row_generation`` after steps drops the problems compiled for the other
+    choice: the next step compiles (4.5) without row generation."""
+    import balustrade.control.rapsf as rapsf_mod
+    from balustrade.reproduce import msd_adaptive
+    from benchmarks.bench_rapsf import Loop
+
+    assert msd_adaptive.TARGET in rapsf_mod.ROWGEN_FROM
+    monkeypatch.setattr(rapsf_mod, "ROWGEN_MIN_ROWS", 1)
+    d, ctrl = _msd3_controller()
+    loop = Loop(d, ctrl.step, 3)
+    loop(0)
+    assert any(getattr(c, "rowgen", None) is not None for c in ctrl._compiled.values())
+    ctrl.row_generation = False
+    loop(1)
+    assert ctrl._compiled
+    assert all(getattr(c, "rowgen", None) is None for c in ctrl._compiled.values())

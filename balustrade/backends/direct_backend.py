@@ -43,10 +43,10 @@ from balustrade.backends.passes.to_conic import (
     ConicProgram,
     ToConic,
 )
-from balustrade.backends.row_generation import RowGeneration
+from balustrade.backends.row_generation import ROWGEN_KEYS, RowGeneration, check_setting
 from balustrade.backends.solution import Solution, Status
 from balustrade.dsl.ocp import OCP
-from balustrade.errors import SolverError
+from balustrade.errors import BalustradeError, SolverError
 
 #: statuses after which a solve is retried (unequilibrated, then with the cost rescaled)
 _RETRY = (Status.FAILED, Status.MAX_ITERATIONS, Status.OPTIMAL_INACCURATE)
@@ -116,7 +116,7 @@ class DirectCompiled:
         rowgen = self.options.pop("row_generation", None)
         self.engine = make_engine(self.solver_name, program, self.options)
         #: row generation over the OCP's grouped rows (option ``row_generation``), or None
-        self.rowgen = self._row_generation(rowgen) if rowgen else None
+        self.rowgen = self._row_generation(rowgen) if rowgen is not None else None
         self.cost_scale = program.cost_scale
         self._full: tuple[ConicProgram, object] | None = None  # with the large rows
         self._feasibility: dict = {}  # per program: the engine checking "infeasible"
@@ -134,8 +134,9 @@ class DirectCompiled:
         its Python interface, so every solve is cold and depends on ``params`` only. With
         the option ``row_generation`` (:mod:`~balustrade.backends.row_generation`) the
         reduced QPs start from the previous solve's rows; the answer is the full QP's (exact
-        at termination, to the solver's tolerance), and a reduced solve that is not
-        optimal or infeasible is replaced by the full solve."""
+        at termination, to the solver's tolerance); a reduced solve that is not optimal or
+        infeasible, or an "infeasible" that :meth:`_check_infeasible` does not establish on
+        the full data, is replaced by the full solve."""
         p = self.ocp.pack_parameters(params)
         prog = self.program
         start = time.perf_counter()
@@ -151,6 +152,14 @@ class DirectCompiled:
         message = raw.words
         if raw.status == Status.INFEASIBLE:
             raw, message = self._check_infeasible(raw, prog, b, A)
+            if self.rowgen is not None and raw.status == Status.FAILED:
+                # a relaxation's "infeasible" that the checks do not establish (e.g. the
+                # full constraints are feasible): the full QP decides
+                raw = _run(self.engine, q, b, A)
+                raw.words = f"{raw.words} (the full QP; row generation: {message})"
+                message = raw.words
+                if raw.status == Status.INFEASIBLE:
+                    raw, message = self._check_infeasible(raw, prog, b, A)
         if prog.large is not None and raw.status != Status.INFEASIBLE \
                 and not self._within_large(raw, p):
             first = "violated them" if raw.status.success else raw.status
@@ -184,19 +193,48 @@ class DirectCompiled:
         ``{"per_round": 2, "seed": "working"}``) when the OCP marks groups of
         inequality rows (``ocp.row_groups``: block name → a group label per row, and
         ``ocp.row_group_stride``, e.g. :func:`balustrade.problems.rapsf.rapsf_problem`) and
-        the problem is an LP/QP solved by PIQP; ``None`` (every solve whole) otherwise."""
+        the problem is an LP/QP solved by PIQP; ``None`` (every solve whole) otherwise, and
+        for ``False``. The setting and ``ocp.row_groups`` are checked here, before any solve
+        (:class:`~balustrade.errors.SolverError` naming the key or the block)."""
+        where = f"{self.ocp.name}: option row_generation"
+        if isinstance(setting, bool):
+            if not setting:
+                return None
+            setting = {}
+        elif isinstance(setting, Mapping):
+            setting = dict(setting)
+            unknown = sorted(set(map(str, setting)) - set(ROWGEN_KEYS))
+            if unknown:
+                raise SolverError(f"{where}: unknown key(s) {', '.join(unknown)}; use "
+                                  f"{', '.join(ROWGEN_KEYS)} (the stride comes from "
+                                  "ocp.row_group_stride, the solver options from the target)")
+        else:
+            raise SolverError(f"{where} must be True/False or a dict of "
+                              f"{', '.join(ROWGEN_KEYS)}, got {type(setting).__name__}")
+        try:
+            check_setting(**setting)
+        except BalustradeError as err:
+            raise SolverError(f"{where}: {err}") from None
         groups = getattr(self.ocp, "row_groups", None)
         if not groups or self.solver_name != "piqp" or self.program.conic:
             return None
-        setting = dict(setting) if isinstance(setting, Mapping) else {}
         prog = self.program
         m0 = sum(m for kind, m in prog.cones if kind == "zero")
         labels = np.full(prog.A.shape[0] - m0, -1, dtype=np.int64)
+        blocks = {block.name: block.rows for block in self.ocp.blocks}
         for name, ids in groups.items():
+            ids = np.asarray(ids)
+            if name not in blocks:
+                raise SolverError(f"{self.ocp.name}: ocp.row_groups names {name!r}, which is "
+                                  "no constraint block of the OCP")
+            if ids.shape != (blocks[name],) or not np.issubdtype(ids.dtype, np.integer):
+                raise SolverError(f"{self.ocp.name}: ocp.row_groups[{name!r}] must be one "
+                                  f"integer group label per row, shape ({blocks[name]},), got "
+                                  f"shape {ids.shape} of {ids.dtype}")
             for dm in prog.duals.get(name, []):
                 if dm.mode != LINEAR or np.any(dm.at < m0):
                     return None                    # not plain inequality rows: no groups
-                labels[dm.at - m0] = np.asarray(ids)[dm.rows]
+                labels[dm.at - m0] = ids[dm.rows]
         return RowGeneration(prog, labels, stride=int(getattr(self.ocp, "row_group_stride", 0)),
                              options=self.options, **setting)
 

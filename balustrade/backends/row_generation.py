@@ -30,6 +30,7 @@ caller solves the full QP instead.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +40,7 @@ from balustrade.backends.direct_engines import (
     _PIQP_STATUS,
     DEFAULT_OPTIONS,
     RawResult,
+    _row_blocks,
     _set_options,
 )
 from balustrade.backends.passes.to_conic import ConicProgram
@@ -52,6 +54,19 @@ MAX_ROUNDS = 40
 SEEDS = ("active", "working")
 #: a grouped row within this (relative) gap of active at a solve seeds the next solve
 ACTIVE_GAP = 1e-6
+#: the keys of the direct backend's option ``row_generation`` (keywords of
+#: :class:`RowGeneration`; the groups, the stride and the full solve's options come from the
+#: OCP and the target)
+ROWGEN_KEYS = ("per_round", "seed", "max_rounds", "drop_after", "reduced_options")
+
+
+def _positive_int(value: object, name: str, none_ok: bool = False) -> None:
+    """Refuse anything but a positive ``int`` (``bool`` included) for ``name``."""
+    if none_ok and value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise BalustradeError(f"row generation: {name} must be a positive integer"
+                              f"{' or None' if none_ok else ''}, got {value!r}")
 
 
 @dataclass
@@ -62,6 +77,22 @@ class RowGenStats:
     rows: int = 0          # inequality rows of the last reduced QP
     iterations: int = 0    # interior-point iterations over all rounds
     history: list[int] = field(default_factory=list)  # rows per round
+
+
+def check_setting(per_round: object = 3, seed: object = "working",
+                  max_rounds: object = MAX_ROUNDS, drop_after: object = None,
+                  reduced_options: object = None) -> None:
+    """Refuse a bad value of a :data:`ROWGEN_KEYS` keyword (a :class:`BalustradeError`
+    naming it); the direct backend calls it for its option ``row_generation`` whether or not
+    the OCP has row groups."""
+    _positive_int(per_round, "per_round")
+    _positive_int(max_rounds, "max_rounds")
+    _positive_int(drop_after, "drop_after", none_ok=True)
+    if not isinstance(seed, str) or seed not in SEEDS:
+        raise BalustradeError(f"row generation: seed must be one of {SEEDS}, got {seed!r}")
+    if reduced_options is not None and not isinstance(reduced_options, Mapping):
+        raise BalustradeError(f"row generation: reduced_options must be a dict of PIQP "
+                              f"settings or None, got {type(reduced_options).__name__}")
 
 
 class RowGeneration:
@@ -91,15 +122,16 @@ class RowGeneration:
         if groups.shape != (m_in,):
             raise BalustradeError(f"row generation: groups must have one label per "
                                   f"inequality row, shape ({m_in},), got {groups.shape}")
-        if not isinstance(per_round, int) or per_round < 1:
-            raise BalustradeError(f"row generation: per_round must be a positive integer, "
-                                  f"got {per_round!r}")
-        self.prog, self.groups, self.per_round, self.stride = prog, groups, per_round, stride
-        self.max_rounds = max_rounds
-        if seed not in SEEDS:
-            raise BalustradeError(f"row generation: seed must be one of {SEEDS}, got {seed!r}")
+        check_setting(per_round=per_round, seed=seed, max_rounds=max_rounds,
+                      drop_after=drop_after, reduced_options=reduced_options)
+        if isinstance(stride, bool) or not isinstance(stride, int | np.integer) or stride < 0:
+            raise BalustradeError(f"row generation: stride must be an integer >= 0, got "
+                                  f"{stride!r}")
+        self.prog, self.groups = prog, groups
+        self.per_round, self.stride = int(per_round), int(stride)
+        self.max_rounds = int(max_rounds)
         self.seed = seed
-        self.drop_after = drop_after
+        self.drop_after = None if drop_after is None else int(drop_after)
         self._idle = np.zeros(groups.size, dtype=np.int64)  # solves a row was not near active
         self.options = {**DEFAULT_OPTIONS["piqp"], **(options or {})}
         #: PIQP settings of the reduced solves (the full solve's, updated by reduced_options;
@@ -123,22 +155,25 @@ class RowGeneration:
         per solve is not needed: only the values are gathered)."""
         prog = self.prog
         if self._layout is None:
-            code = sp.csc_matrix((np.arange(prog.A.nnz, dtype=float), prog.A.indices,
-                                  prog.A.indptr), shape=prog.A.shape).tocsr()
+            # the two blocks as the PIQP engine finds them (CSC, positions in A.data); the
+            # inequality block once more in CSR, its positions carried as values 1 … nnz
+            # (a value 0 would be a structural zero to scipy)
+            eq, ineq = _row_blocks(prog.A, self.m0)
+            code = sp.csc_matrix((ineq[2] + 1.0, ineq[0], ineq[1]), shape=ineq[3]).tocsr()
             code.sort_indices()
-            eq, ineq = code[:self.m0].tocsc(), code[self.m0:]
-            eq.sort_indices()
-            self._layout = (eq, eq.data.astype(np.int64), ineq, ineq.data.astype(np.int64))
-        eq, at_eq, ineq, at_in = self._layout
+            at_in = code.data.astype(np.int64) - 1
+            self._layout = (eq, (code.indices, code.indptr, at_in, code.shape))
+        (i_eq, p_eq, at_eq, s_eq), (i_in, p_in, at_in, s_in) = self._layout
         values = prog.A.data if A is None else A
-        A_eq = sp.csc_matrix((values[at_eq], eq.indices, eq.indptr), shape=eq.shape)
-        G = sp.csr_matrix((values[at_in], ineq.indices, ineq.indptr), shape=ineq.shape)
+        A_eq = sp.csc_matrix((values[at_eq], i_eq, p_eq), shape=s_eq)
+        G = sp.csr_matrix((values[at_in], i_in, p_in), shape=s_in)
         return A_eq, G
 
     def _tolerance(self, h: np.ndarray, Gy: np.ndarray) -> np.ndarray:
         """The violation above which a row counts as violated: PIQP's own feasibility test
-        per row (``eps_abs + eps_rel · max(|Gy|, |h|)``)."""
-        return self.options["eps_abs"] + self.options["eps_rel"] * np.maximum(np.abs(Gy),
+        per row (``eps_abs + eps_rel · max(|Gy|, |h|)``) with the tolerances the reduced
+        solves run with (:attr:`reduced`: their feasibility is all the check can rely on)."""
+        return self.reduced["eps_abs"] + self.reduced["eps_rel"] * np.maximum(np.abs(Gy),
                                                                               np.abs(h))
 
     def _initial(self, h: np.ndarray) -> np.ndarray:
@@ -157,8 +192,6 @@ class RowGeneration:
     def _shifted(self, rows: np.ndarray) -> np.ndarray:
         """Rows at the same position within group ``g − stride`` as ``rows`` within ``g``."""
         out = np.zeros(self.groups.size, dtype=bool)
-        if self._pos is None:
-            return out
         g = self.groups[rows]
         ok = g >= self.stride
         target = g[ok] - self.stride
@@ -169,7 +202,7 @@ class RowGeneration:
         return out
 
     @property
-    def _pos(self) -> np.ndarray | None:
+    def _pos(self) -> np.ndarray:
         """Position of each grouped row within its group (in the sorted order)."""
         if not hasattr(self, "_pos_cache"):
             pos = np.full(self.groups.size, -1, dtype=np.int64)
@@ -287,4 +320,5 @@ class RowGeneration:
         return full
 
 
-__all__ = ["ACTIVE_GAP", "MAX_ROUNDS", "SEEDS", "RowGenStats", "RowGeneration"]
+__all__ = ["ACTIVE_GAP", "MAX_ROUNDS", "ROWGEN_KEYS", "SEEDS", "RowGenStats", "RowGeneration",
+           "check_setting"]

@@ -47,7 +47,7 @@ which is recompiled whenever the vertices change.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -83,10 +83,29 @@ EMITTED_TARGETS = ("convex-qp",)
 #: (4.5) with at least this many grouped tube rows (4.5c) is solved by row generation
 #: (``"fast-convex-rowgen"``, exact) when the target is ``fast-convex``/``fast-convex-qp``/
 #: ``auto``: measured 8–10x faster on 8 masses (28644 rows), slower on 3 masses (590 rows:
-#: 1.96 against 1.59 ms per solve; docs/adaptive.md, session 12). ``RAPSF.row_generation =
-#: False`` turns it off.
+#: 1.96 against 1.59 ms per solve; docs/adaptive.md, session 12). Only the presets
+#: themselves qualify (name and options: a user's Target named like one keeps its own
+#: options); ``RAPSF(..., row_generation=False)`` turns it off.
 ROWGEN_MIN_ROWS = 10000
 ROWGEN_FROM = ("fast-convex", "fast-convex-qp", "auto")
+
+
+def _is_preset(target: object, names: tuple[str, ...]) -> bool:
+    """Whether ``target`` is the preset of its name (one of ``names``), not only named so:
+    every field equal, the options compared as plain values (``Target.__eq__`` leaves the
+    options, retries and budget out)."""
+    if target.name not in names:
+        return False
+    preset = resolve_target(target.name)
+    return all(_plain(getattr(target, f)) == _plain(getattr(preset, f))
+               for f in ("backend", "solver", "options", "retries", "budget", "name"))
+
+
+def _plain(value: object) -> object:
+    """Nested mappings as dicts (read-only option mappings compare like dicts)."""
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    return value
 
 
 class RAPSF:
@@ -114,7 +133,12 @@ class RAPSF:
     follows the same rule (``<name>_WARM_START``), so C = Python holds with it. It takes
     effect on targets that accept a starting point (the CasADi ones, e.g. ``"convex-qp"``,
     where it shortened the C step several-fold, docs/adaptive.md); ``"fast-convex"``
-    ignores it. The inputs equal the cold ones only within the solver's accuracy."""
+    ignores it. The inputs equal the cold ones only within the solver's accuracy.
+
+    ``row_generation=True`` solves (4.5) by row generation (preset ``"fast-convex-rowgen"``,
+    the same answers) when ``target`` is one of the presets :data:`ROWGEN_FROM` unchanged and
+    the problem has :data:`ROWGEN_MIN_ROWS` grouped tube rows or more; ``False``: always
+    ``target``. Setting the attribute later drops the problems compiled so far."""
 
     def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
                  W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
@@ -122,7 +146,8 @@ class RAPSF:
                  target: object = "exact", shrinking: bool = False,
                  terminal: TerminalSet | None = None, tol: float = 1e-7,
                  enlarge: bool | TerminalEnlargement = False, name: str = "rapsf",
-                 vertex_data: str = "parameters", warm_start: bool = False):
+                 vertex_data: str = "parameters", warm_start: bool = False,
+                 row_generation: bool = True):
         self.n, self.m, self.q = check_parametric_system(system, name)
         self.N = check_horizon(N, name)
         self.K = as_matrix(K, f"{name}: K", (self.m, self.n))
@@ -142,6 +167,9 @@ class RAPSF:
             raise BalustradeError(f"{name}: warm_start must be a bool, got "
                                   f"{type(warm_start).__name__}")
         self.warm_start = warm_start
+        if not isinstance(row_generation, bool):
+            raise BalustradeError(f"{name}: row_generation must be a bool, got "
+                                  f"{type(row_generation).__name__}")
         self.target = resolve_target(target)
         if vertex_data not in ("parameters", "constants"):
             raise BalustradeError(f"{name}: vertex_data must be 'parameters' or 'constants', "
@@ -154,7 +182,7 @@ class RAPSF:
         # deployment_spec). Since interior-point NLP targets emit C too (linking their
         # library), "emits C" no longer singles it out: the QP path is named.
         self._share = self.target.name not in EMITTED_TARGETS
-        self.row_generation = True      # allowed where it pays (_target_for)
+        self._row_generation = row_generation  # allowed where it pays (_target_for)
         self._shared: dict[int, np.ndarray | None] = {}
         self._X0_vertices = _small_vertices(X0)
         self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
@@ -312,12 +340,30 @@ class RAPSF:
             self._last = (key, sol) if outcome(sol) == "optimal" else None
         return sol
 
+    @property
+    def row_generation(self) -> bool:
+        """Whether (4.5) may be solved by row generation (:meth:`_target_for`)."""
+        return self._row_generation
+
+    @row_generation.setter
+    def row_generation(self, value: bool) -> None:
+        if not isinstance(value, bool):
+            raise BalustradeError(f"{self.name}: row_generation must be a bool, got "
+                                  f"{type(value).__name__}")
+        if value != self._row_generation:
+            self._compiled = {}     # compiled for the other choice
+            self._last = None
+        self._row_generation = value
+
     def _target_for(self, ocp: object) -> object:
         """The target (4.5) is compiled for in :meth:`step`: ``fast-convex-rowgen`` in place
-        of a direct target when the problem has :data:`ROWGEN_MIN_ROWS` grouped rows or more
-        (the same answers), else :attr:`target`."""
+        of :attr:`target` when that is one of the presets :data:`ROWGEN_FROM` itself (name,
+        backend, solver, options, retries and budget: a user's Target that only borrows the
+        name keeps its own options) and the problem has :data:`ROWGEN_MIN_ROWS` grouped rows
+        or more (the same answers), else :attr:`target`."""
         rows = sum(len(g) for g in getattr(ocp, "row_groups", {}).values())
-        if self.row_generation and self.target.name in ROWGEN_FROM and rows >= ROWGEN_MIN_ROWS:
+        if self._row_generation and rows >= ROWGEN_MIN_ROWS and _is_preset(self.target,
+                                                                           ROWGEN_FROM):
             return resolve_target("fast-convex-rowgen")
         return self.target
 
