@@ -324,7 +324,7 @@ class DirectRendezvous:
         if not r1.ok:
             return False, None, float("nan"), float("nan")
         xi, xi_N = self.minimal_slacks(z1)
-        h_r = min(max(r1.objective, 0.0), float(xi.sum()) + self.d.alpha_f * xi_N)
+        h_r = float(xi.sum()) + self.d.alpha_f * xi_N   # h~ of the minimal slacks, as balustrade
         r2, z2, v2 = self.solve_filter(x, xi, xi_N)
         self.last_iterations += r2.iterations
         if not r2.ok:

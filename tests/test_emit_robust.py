@@ -283,6 +283,35 @@ def test_multiobjective_c_equals_python_along_closed_loops(mo_pair: dict) -> Non
     assert seen.get("boundary", 0) <= 1, seen
 
 
+def test_multiobjective_rejection_above_the_bound_c_equals_python(
+        mo_pair: dict, tmp_path, monkeypatch) -> None:
+    """A converged (6.15) rejected above the bound (``problem_above_bound``) is reported by
+    the C as by Python, ``h_tilde_rejected`` included (``<name>_values`` out[3]). Forced by
+    ``DECREASE_TOL = -1`` in Python and in the emitted ``mo_DECREASE_TOL``: every plan with
+    ``h̃ > 0`` is rejected; inputs equal, statuses and all values equal."""
+    import importlib
+
+    emit_mod = importlib.import_module("balustrade.codegen.emit_robust")
+    mo_mod = importlib.import_module("balustrade.control.multiobjective")
+
+    py = mo_pair["py"]
+    monkeypatch.setattr(mo_mod, "DECREASE_TOL", -1.0)
+    monkeypatch.setattr(emit_mod, "DECREASE_TOL", -1.0)
+    emitted = emit_multiobjective(py, "mo", tmp_path)
+    c = CMultiobjectivePCBFFilter(build(tmp_path, emitted.name, werror=True))
+    x = unstable2d_setup(N).x0
+    py.reset()
+    c.reset()
+    rejected = 0
+    for j in range(3):
+        out_py, out_c = py.step(x, [2.5]), c.step(x, [2.5])
+        _same_mo(out_py, out_c, f"step {j}")
+        assert out_py[1].status == out_c[1].status, (out_py[1].status, out_c[1].status)
+        rejected += out_c[1].status == "problem_above_bound"
+        x = mo_pair["system"].step(x, out_py[0], W_BOUND * np.ones(2))
+    assert rejected >= 2
+
+
 def test_multiobjective_bad_input_and_refusals(mo_pair: dict, tmp_path) -> None:
     py, c = mo_pair["py"], mo_pair["c"]
     for ctrl in (py, c):

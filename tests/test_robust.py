@@ -232,3 +232,34 @@ def test_a_slack_solve_above_the_candidate_is_a_failed_slack_solve(d, monkeypatc
     monkeypatch.setattr(ctl, "_solve_slack", real)
     _, after = ctl.step(system.step(x, u, np.zeros(system.nx)), u_p)
     assert after.status == "ok" and after.values["h_r"] <= info.values["h_cand"] + 1e-5
+
+
+def test_h_r_is_the_polished_value_not_a_negative_slack_objective(d, monkeypatch):
+    """``h_r`` is ``h̃`` of the polished slacks alone (session-12 review): a solver that
+    returns ``ξ_N`` slightly negative (``-3.6e-12``, uncertified by its point) lowers its
+    objective by ``α_f·3.6e-12``; that lower value must not become ``h_r`` (it was
+    ``min(max(objective, 0), h̃)`` before, which picked exactly such objectives)."""
+    system, s, error, cbf = d["system"], d["s"], d["error"], d["cbf"]
+    ctl = RobustPCBFSafetyFilter(d["slack_ip"], d["filter_ca"], system, d["X_E"], s.U, error,
+                                 cbf, cbf.policy, s.deltas(), s.alpha_f)
+    x = np.array([-1.07685294, 1.72463401])   # h_r ≈ 0.0769 from the tube rows, ξ_N = 0
+    honest = ctl.slack.solve({"x0": x})
+    assert honest.success
+    xi, xi_N = polished_slacks(honest, d["X_E"], cbf, s.deltas())
+    assert xi_N == 0.0
+    expected = slack_cost(xi, xi_N, s.alpha_f)
+    assert expected > 0.0
+    real, drop = ctl.slack.solve, 3.6e-12
+
+    def negative_xi_N(params, warm_start=None):
+        sol = real(params, warm_start=warm_start)
+        primal = dict(sol.primal, xi_N=np.full_like(np.asarray(sol["xi_N"], dtype=float), -drop))
+        return Solution(status=sol.status, objective=float(sol.objective) - s.alpha_f * drop,
+                        primal=primal, dual=sol.dual,
+                        solve_time=0.0, iterations=sol.iterations, backend=sol.backend,
+                        solver=sol.solver)
+
+    monkeypatch.setattr(ctl.slack, "solve", negative_xi_N)
+    h_r, sol = ctl.h_r(x)
+    assert sol.objective < expected - 0.5 * s.alpha_f * drop   # what min(...) used to pick
+    assert h_r == pytest.approx(expected, rel=0, abs=1e-3 * s.alpha_f * drop)

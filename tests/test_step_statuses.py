@@ -25,6 +25,25 @@ WORDS = {
     "GridPCBFFilter (Alg. 8.7)": (
         ["ok"],
         ["no_decreasing_candidate", "non_finite_state", "non_finite_proposal"]),
+    # control/robust.py and codegen/runtime_robust.robust_info: a solve that did not end
+    # optimal names itself (an applied optimal_inaccurate or feasible truncated one too)
+    "RobustPCBFSafetyFilter (Alg. 5.2)": (
+        ["ok"],
+        ["slack_above_candidate", "slack_infeasible", "slack_max_iterations", "slack_failed",
+         "slack_feasible", "slack_truncated", "slack_not_converged", "slack_eval_error",
+         "slack_optimal_inaccurate", "filter_optimal_inaccurate",
+         "slack_optimal_inaccurate_filter_truncated", "filter_truncated", "filter_infeasible",
+         "filter_not_converged", "non_finite_state", "non_finite_proposal",
+         "non_finite_proposal_slack_above_candidate"]),
+    # control/multiobjective.py and codegen/runtime_robust.multiobjective_info. An applied
+    # optimal_inaccurate (6.15) is "ok" with uncertified["problem"] (the C cannot see
+    # IPOPT's acceptable stop: docs/vehicles.md, "session 12")
+    "MultiobjectivePCBFController (Alg. 6.4)": (
+        ["ok"],
+        ["problem_above_bound", "problem_infeasible", "problem_max_iterations",
+         "problem_failed", "problem_feasible", "problem_truncated", "problem_not_converged",
+         "problem_eval_error", "init_infeasible", "init_failed", "init_not_converged",
+         "non_finite_state", "non_finite_proposal", "non_finite_proposal_problem_above_bound"]),
 }
 
 

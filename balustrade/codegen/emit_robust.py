@@ -9,7 +9,7 @@ between the solves as two emitted CasADi functions:
 
 * ``<name>_post(w, f)`` — the polished slacks of (5.15) (:func:`~balustrade.control.
   robust_steps.polished_slacks`: elementwise minimum of the solver's slacks, clipped at 0,
-  and the slacks its ``z`` needs) and ``h_r = min(max(f, 0), h̃(ξ))`` (SPEC §1.12);
+  and the slacks its ``z`` needs) and ``h_r = h̃(ξ)`` of the polished slacks (SPEC §1.12);
 * ``<name>_cand(z, v, ξ)`` — the shifted candidate (5.17)
   (:func:`~balustrade.control.robust_steps.robust_candidate`) with ``h̃`` of it.
 
@@ -165,7 +165,9 @@ def _post(sym: str, spec: RobustDeployment | MultiobjectiveDeployment, prob: _Pr
           ) -> ca.Function:
     """``sym(w, f) -> (ξ, ξ_N, h_r, h̃)`` on the stacked vector ``w`` of ``prob`` ((5.15)
     or (6.15)): the polished slacks (:func:`~balustrade.control.robust_steps.
-    polished_slacks`), ``h_r = min(max(f, 0), h̃)`` and ``h̃`` of the polished slacks."""
+    polished_slacks`), ``h_r = h̃`` and ``h̃`` of the polished slacks (``f``, the solver's
+    objective, is not used: a slightly negative slack it contains is not certified by the
+    point, :meth:`~balustrade.control.robust.RobustPCBFSafetyFilter.h_r`)."""
     X_E, N = spec.X_E, len(spec.deltas)
     Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
     deltas = np.asarray(spec.deltas, dtype=float).reshape(-1)
@@ -179,8 +181,7 @@ def _post(sym: str, spec: RobustDeployment | MultiobjectiveDeployment, prob: _Pr
     xi_p = ca.fmin(xi, need)
     xi_N_p = ca.fmin(xi_N, ca.fmax(spec.h_f(z[:, N]), 0))
     h_tilde = _slack_cost(xi_p, xi_N_p, spec)
-    return ca.Function(sym, [w, f], [ca.vec(xi_p), xi_N_p, ca.fmin(ca.fmax(f, 0), h_tilde),
-                                     h_tilde],
+    return ca.Function(sym, [w, f], [ca.vec(xi_p), xi_N_p, h_tilde, h_tilde],
                        ["w", "f"], ["xi", "xi_N", "h_r", "h_tilde"])
 
 
@@ -357,7 +358,8 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` built with
     ``target="robust-sqp", slack_target="robust-sqp"`` as one C call per control step:
     ``<name>_step(x, u_p, u_out, status, work)`` (``bal/multiobj.h``); ``<name>_values``
-    gives ``h_cand``, ``bound``, ``h_tilde`` of the last step. ``record_h_r`` (an extra
+    gives ``h_cand``, ``bound``, ``h_tilde`` of the last step and ``h_tilde_rejected``
+    (NaN unless it was ``problem_above_bound``). ``record_h_r`` (an extra
     (5.15) solve per step, for plots) is not emitted. ``allow_external`` and ``full_chain``
     as in :func:`emit_robust`.
 

@@ -146,7 +146,8 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
     """The :class:`StepInfo` of
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` for the same
     decisions: ``status`` (``"ok"``, ``"problem_<s>"``, ``"problem_above_bound"``, ``"init_<s>"``,
-    ``"non_finite_state"``), ``fallback``, ``values`` ``h_cand``, ``bound``, ``h_tilde``."""
+    ``"non_finite_state"``), ``fallback``, ``values`` ``h_cand``, ``bound``, ``h_tilde`` and,
+    for ``"problem_above_bound"``, ``h_tilde_rejected`` (``values[3]``)."""
     known, info = _refused(_MULTIOBJ_CODES, code)
     if known is None:
         return info
@@ -157,6 +158,7 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
                        h_tilde=float(values[2]))
     if known.name == "above_bound":   # multiobjective.py: a converged (6.15) above (6.15g)
         info.status = "problem_above_bound"
+        info.values["h_tilde_rejected"] = float(values[3])
         return info
     info.status = "ok" if known.name == "ok" else \
         f"problem_{_PY_STATUS.get(p_code, str(p_code))}"
@@ -166,14 +168,16 @@ def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
 class _TwoProblemStep(_OwnsWork):
     """The ctypes plumbing shared by the emitted steps over two problems whose first one
     runs once or as a fallback (Algorithm 6.4: (5.15) then (6.15); Algorithm 6.3: (6.3) then
-    (6.10)): ``<Q>_step(x, u_p, u_out, &status, work)``, the two solve statuses, three
-    recorded values, the replaced-proposal flag and a view of each problem. Subclasses set
-    :attr:`_LABEL` (error messages), :attr:`_BAD`, :attr:`_INFO` (a static function: codes and
-    values → StepInfo) and may
-    add to a StepInfo in :meth:`_annotate`."""
+    (6.10)): ``<Q>_step(x, u_p, u_out, &status, work)``, the two solve statuses,
+    :attr:`_N_VALUES` recorded values, the replaced-proposal flag and a view of each
+    problem. Subclasses set :attr:`_LABEL` (error messages), :attr:`_BAD`, :attr:`_INFO` (a
+    static function: codes and values → StepInfo) and may add to a StepInfo in
+    :meth:`_annotate`."""
 
     _LABEL = "two-problem step"
     _BAD = -1
+    #: how many doubles ``<Q>_values`` writes
+    _N_VALUES = 3
     _INFO: Callable[[int, int, int, np.ndarray], StepInfo]
 
     def _load(self, lib_path: str | Path, manifest: dict | None, kind: str, what: str,
@@ -196,7 +200,7 @@ class _TwoProblemStep(_OwnsWork):
         self.problem = _CProblemView(self._lib, f"{Q}_problem", m["problems"]["problem"],
                                      self._lib.fn(f"{Q}_main_problem", vp, [vp])(self._work))
         self._x, self._u_p, self._u = np.zeros(self.nx), np.zeros(self.nu), np.zeros(self.nu)
-        self._values = np.zeros(3)
+        self._values = np.zeros(self._N_VALUES)
         self._status = ci(0)
         self._args = (_ptr(self._x), _ptr(self._u_p), _ptr(self._u),
                       ctypes.byref(self._status), self._work)
@@ -243,6 +247,7 @@ class CMultiobjectivePCBFFilter(_TwoProblemStep):
     _LABEL = "CMultiobjectivePCBFFilter"
     _BAD = S.code_of(S.MULTIOBJ, "bad_input")
     _INFO = staticmethod(multiobjective_info)
+    _N_VALUES = 4   # h_cand, bound, h_tilde, h_tilde_rejected (bal/multiobj.h)
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
         Q = self._load(lib_path, manifest, "multiobjective", "multiobjective PCBF controller",

@@ -153,7 +153,7 @@ MULTIOBJ: tuple[Status, ...] = (
            "clipped to U"),
     Status("BAL_MULTIOBJ_ABOVE_BOUND", 4, "above_bound", "warm_start",
            "(6.15) converged, but its polished slacks' h~ is above the bound of (6.15g) "
-           "(no feasible point): as BAL_MULTIOBJ_WARM_START"),
+           "(the returned point is not feasible for (6.15)): as BAL_MULTIOBJ_WARM_START"),
 )
 
 

@@ -153,10 +153,12 @@ class MultiobjectiveLyapunovController:
 
 #: Algorithm 6.4: how far above the bound of (6.15g) the ``h̃`` of a converged (6.15)'s
 #: polished slacks may be, relative (``·max(1, |bound|)``), before the solve counts as failed
-#: (:meth:`MultiobjectivePCBFController._meets_decrease`): the primal tolerance (1e-9) of the
-#: SQP that answers (6.15) on the lane change, on that one row. The rounding of the running
-#: sums and the chain's answers within tolerance stay below it (largest seen: 3e-11); the
-#: ``α_f``-weighted terminal-slack error behind the +3.6e-6 of seeds 42 and 43 does not.
+#: (:meth:`MultiobjectivePCBFController._meets_decrease`). A threshold the applied plan must
+#: meet, not a bound derived for any solver's answer: its value is the SQP's primal tolerance
+#: ``tol_pr`` (1e-9), reused as a number. What backs it is measured: the largest rise of an
+#: honest answer (the running sums' rounding, the chain's answers within their tolerances)
+#: seen on the lane change and the §5.6 example was 3.6e-11, well below it; the
+#: ``α_f``-weighted terminal-slack error behind the +3.6e-6 of seeds 42 and 43 is far above.
 DECREASE_TOL = 1e-9
 #: Algorithm 6.4's default margin of the (6.15g) bound, relative (``bound_tol``)
 BOUND_TOL = 1e-9

@@ -44,7 +44,9 @@ optimal; ``StepInfo.status`` carries the word ``"truncated"`` in place of their 
   after a (5.16) stopped infeasible, the next one starts from the primal of its step's
   (5.15), as in :mod:`balustrade.control.pcbf` (not from an older converged (5.16)).
 
-Recorded values: ``h_r`` (the optimal value of (5.15)) and ``h_cand`` (``h̃`` of the candidate
+Recorded values: ``h_r`` (the optimal value of (5.15), read as ``h̃`` of the polished slacks
+(:func:`~balustrade.control.robust_steps.polished_slacks`) — never the solver's objective,
+whose slightly negative slacks the point does not certify) and ``h_cand`` (``h̃`` of the candidate
 (5.17) built at the previous step, an upper bound on ``h_r`` by Theorem 5.15).
 """
 
@@ -158,8 +160,9 @@ class RobustPCBFSafetyFilter:
         if not s.success:
             return float("nan"), s, None
         xi, xi_N = polished_slacks(s, self.X_E, self.h_f, self.deltas)
-        return min(max(float(s.objective), 0.0),
-                   slack_cost(xi, xi_N, self.alpha_f, self.slack_norm)), s, (xi, xi_N)
+        # h_r from the polished slacks alone: the solver's objective may carry a slightly
+        # negative slack (e.g. xi_N = -3.6e-12, times alpha_f) that the point does not certify
+        return slack_cost(xi, xi_N, self.alpha_f, self.slack_norm), s, (xi, xi_N)
 
     def _applied(self, x: np.ndarray, z0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         return np.asarray(v0, dtype=float).reshape(-1) + self.error.kappa(x - z0)

@@ -1,7 +1,9 @@
 /* bal/multiobj.c: the Algorithm 6.4 control step Q = BAL_STEP (bal/multiobj.h) with the
  * fallbacks of balustrade.control.multiobjective. Included by the generated <name>.c after
  * the problems Q_slack (5.15) and Q_problem (6.15). From <name>_config.h: Q_NX, Q_NU, Q_N,
- * Q_N_XI, the box U, the feedback Q_K (NU x NX, column-major), Q_RHO, Q_BOUND_TOL, and the
+ * Q_N_XI, the box U, the feedback Q_K (NU x NX, column-major), Q_RHO, Q_BOUND_TOL,
+ * Q_DECREASE_TOL (control.multiobjective.DECREASE_TOL, the threshold of (6.15g) on the
+ * polished slacks), and the
  * emitted functions Q_post_slack / Q_post_problem (polished slacks, h~) and Q_cand (the
  * candidate (6.14)).
  */
@@ -28,7 +30,7 @@ void BAL_QX(reset)(BAL_QX(work)* wk) {
   wk->cand_exact = 1;
   wk->slack_status = wk->problem_status = BAL_NOT_RUN;
   wk->h_prev = NAN;
-  wk->values[0] = wk->values[1] = wk->values[2] = NAN;
+  wk->values[0] = wk->values[1] = wk->values[2] = wk->values[3] = NAN;
 }
 
 /* polished slacks and h~ of a solution w with value f (Q_post_slack / Q_post_problem);
@@ -59,7 +61,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     return BAL_MULTIOBJ_BAD_INPUT;
   }
   wk->slack_status = wk->problem_status = BAL_NOT_RUN;
-  wk->values[0] = wk->values[1] = wk->values[2] = NAN;
+  wk->values[0] = wk->values[1] = wk->values[2] = wk->values[3] = NAN;
   wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
   if (!bal_finite(x, BAL_QX(NX))) {
     wk->slack_status = wk->problem_status = BAL_BAD_INPUT;
@@ -131,6 +133,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     z = wk->cz;
     v = wk->cv;
     memcpy(wk->xi, wk->cxi, sizeof(wk->xi));
+    wk->values[3] = wk->h_tilde; /* values["h_tilde_rejected"] in Python */
     wk->h_prev = wk->ch;
     *status = BAL_MULTIOBJ_ABOVE_BOUND;
   } else if (wk->problem_status == BAL_OK) {
@@ -158,6 +161,7 @@ void BAL_QX(values)(const BAL_QX(work)* wk, casadi_real* out) {
   out[0] = wk->values[0];
   out[1] = wk->values[1];
   out[2] = wk->values[2];
+  out[3] = wk->values[3];
 }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }
 int BAL_QX(candidate_exact)(const BAL_QX(work)* wk) { return wk->cand_exact; }

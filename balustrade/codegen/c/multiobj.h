@@ -22,7 +22,8 @@
  *   apply u = v_0 + K(x - z_0).
  *   x NaN/inf, NULL args -> u_p (NaN -> 0) clipped to U         BAL_MULTIOBJ_BAD_INPUT
  *   u_p NaN/inf (x finite) -> those entries read as 0, the step runs as usual
- * Q_values(work, out): out[0] = h_cand, out[1] = bound, out[2] = h_tilde of the last step
+ * Q_values(work, out): out[0] = h_cand, out[1] = bound, out[2] = h_tilde of the last step,
+ * out[3] = h~ of a converged (6.15) rejected above the bound (BAL_MULTIOBJ_ABOVE_BOUND)
  * (NAN where not computed). The candidate's terminal input as in bal/robust.h
  * (Q_candidate_exact); a dropped candidate makes the next step start again from (5.15).
  */
@@ -39,7 +40,7 @@ typedef struct BAL_QX(work) {
   /* polished slacks of the last solve and their h~ */
   casadi_real xi[BAL_QX(N_XI)], xi_N, h_r, h_tilde;
   casadi_real h_prev;              /* h~(xi*_{k-1}) */
-  casadi_real values[3];           /* h_cand, bound, h_tilde of the last step */
+  casadi_real values[4];           /* h_cand, bound, h_tilde, h_tilde_rejected */
   casadi_real u_p[BAL_QX(NU)];
   const casadi_real* arg[BAL_QX(SZ_ARG)];
   casadi_real* res[BAL_QX(SZ_RES)];

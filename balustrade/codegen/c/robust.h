@@ -6,7 +6,7 @@
  *   x      measured state x_k              (Q_NX values, read)
  *   u_p    proposed input u_{p,k}          (Q_NU values, read)
  *   u_out  input to apply u_k              (Q_NU values, written)
- *   h_out  h_r(x_k) = min(max(optimum of (5.15), 0), h~ of the polished slacks)
+ *   h_out  h_r(x_k) = h~ of the polished slacks of (5.15) (not its optimum: see robust.py)
  *          (NAN if (5.15) did not converge)
  *   status BAL_ROBUST_* (also returned)
  * Per step, as balustrade.control.robust.RobustPCBFSafetyFilter:
