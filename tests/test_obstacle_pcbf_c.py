@@ -102,3 +102,50 @@ def test_reference_loop_c_equals_python(tmp_path):
     assert res["max_du"] <= 1e-8 and res["max_dx"] <= 1e-8
     assert all(same_status(a, b) for _, _, a, b in res["status_differs"])
     assert res["min_distance_py"] >= O.SAFE_TOL and res["min_distance_c"] >= O.SAFE_TOL
+
+
+@pytest.mark.slow
+def test_shifted_plan_attempt_c_equals_python(tmp_path):
+    """From (1.5, −1.5) (N = 50, the naive MPC proposing) steps 39–41 are certified steps
+    whose (2.23) attempt from its last solution fails and the attempt from the shifted plan
+    converges (``shifted_retry``, on for this car; review of session 12): C = Python in
+    statuses, fallbacks, inputs and (2.23) attempt counts at every step up to 42."""
+    import ctypes
+
+    from benchmarks.obstacles_pcbf_c import build_pair
+
+    pair = build_pair(TARGET, tmp_path)
+    py, c = pair["py"], pair["c"]
+    assert py.shifted_retry and c._lib.manifest["shifted_retry"]
+    q = c._lib.manifest["name"]
+    c_attempts = c._lib.fn(f"{q}_filter_attempts", ctypes.c_int, [ctypes.c_void_p])
+    inner, n = py.filter._solve_with, [0]
+
+    def counting(solver, p, guess):
+        n[0] += 1
+        return inner(solver, p, guess)
+
+    py.filter._solve_with = counting
+    plant = obstacle_car()
+    x0 = O.initial_state((1.5, -1.5))
+    xs, mpcs = {"py": x0.copy(), "c": x0.copy()}, {"py": O.NaiveMPC(), "c": O.NaiveMPC()}
+    for m in mpcs.values():
+        m.start(x0)
+    py.reset()
+    c.reset()
+    counts = []
+    try:
+        for step in range(42):
+            n[0] = 0
+            u1, i1 = py.step(xs["py"], mpcs["py"](step, xs["py"]))
+            u2, i2 = c.step(xs["c"], mpcs["c"](step, xs["c"]))
+            assert same_status(i1.status, i2.status), (step, i1.status, i2.status)
+            assert i1.fallback == i2.fallback
+            np.testing.assert_allclose(u2, u1, atol=1e-8)
+            if "filter" in i1.solutions:
+                assert c_attempts(c.filter.work) == n[0], step
+            counts.append(n[0])
+            xs = {"py": plant.step(xs["py"], u1), "c": plant.step(xs["c"], u2)}
+    finally:
+        del py.filter._solve_with
+    assert counts[39:42] == [2, 2, 2]  # warm attempt failed, the shifted plan converged

@@ -623,7 +623,10 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     With ``certificate_first`` (the controller's or the spec's; on by default wherever the
     certificate is emitted) the step checks it before (2.24) and skips the solve when it
     certifies ``h_PB = 0`` (``<name>_CERT_FIRST``, ``manifest["certificate_first"]``), as
-    the Python filter does; without the certificate it is off.
+    the Python filter does; without the certificate it is off. With ``shifted_retry``
+    (the controller's option, off by default; ``<name>_SHIFTED_RETRY``,
+    ``manifest["shifted_retry"]``) a certified step's failed (2.23) attempt from its last
+    solution is tried once more from the shifted plan before the cold retries.
     """
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
@@ -670,6 +673,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     first = bool(spec.certificate_first) and cert is not None
     cfg.define(f"{name}_CERT_FIRST", int(first),
                "certificate first: skip (2.24) when the shifted plan certifies h_PB = 0")
+    retry = bool(spec.shifted_retry) and first
+    cfg.define(f"{name}_SHIFTED_RETRY", int(retry),
+               "a certified step's failed (2.23) is tried from the shifted plan first")
     cfg.define(f"{name}_EPS", C.c_double(spec.eps), "the relaxation eps of (2.23)")
     cfg.define(f"{name}_CERT_TOL", C.c_double(cert.tol if cert is not None
                                                else FEASIBILITY_TOL),
@@ -692,6 +698,7 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
                 "dynamics": dynamics is not None,
                 "shifted_certificate": cert is not None,
                 "certificate_first": first,
+                "shifted_retry": retry,
                 "pcbf_status": S.manifest(S.PCBF),
                 # the solver libraries of the casadi wheel the C links (the structured
                 # target's): the flags accelerate() and build() need

@@ -45,6 +45,10 @@ class PCBFDeployment:
     #: certifies ``h_PB = 0`` (the filter's ``certificate_first``; on by default as in the
     #: filter; without the certificate the emitter turns it off)
     certificate_first: bool = True
+    #: whether a certified step's failed (2.23) attempt from its last solution is tried
+    #: once more from the certified shifted plan before the cold retries (the filter's
+    #: ``shifted_retry``; opt-in, off by default; needs ``certificate_first``)
+    shifted_retry: bool = False
 
 
 @dataclass(frozen=True)

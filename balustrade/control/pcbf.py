@@ -75,9 +75,10 @@ every step with a plan. The cost of (2.24), ``α_f ξ_N + Σ_i ‖ξ_i‖`` with
 ``α_f > 0`` and ``ξ >= 0``, is 0 only with every slack 0, and the candidate (slacks set to
 0) meets every row of (2.24) within the certificate's tolerance: ``h_PB(x) = 0`` is then the
 global optimum (the lower bound) and ``ξ* = 0``, so the (2.24) solve is skipped exactly.
-(2.23) runs with ``ξ* = 0`` from its usual warm start; if that attempt fails, it is tried
-once more from the candidate (feasible for (2.23): ``PCBFSafetyFilter._filter_solve``)
-before the cold retries (session 12); the next (2.24) starts from the candidate's primal.
+(2.23) runs with ``ξ* = 0`` from its usual warm start; with ``shifted_retry`` (opt-in,
+session 12) a failed attempt is tried once more from the candidate (feasible for (2.23):
+``PCBFSafetyFilter._filter_solve``) before the cold retries; the next (2.24) starts from
+the candidate's primal.
 The skipped solve is never reported as a solver result: the step's ``StepInfo.status`` is
 ``"certified"`` (``"certified_filter_<status>"`` when (2.23) did not end optimal),
 ``values["certificate_first"] = 1``, ``values["h_PB"] = 0``, and
@@ -120,7 +121,7 @@ class PCBFSafetyFilter:
 
     def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6,
                  warm_start: str = "last", shifted_certificate: bool = True,
-                 certificate_first: bool | None = None):
+                 certificate_first: bool | None = None, shifted_retry: bool = False):
         """``warm_start``: ``"last"`` starts (2.24) from its last accepted solution;
         ``"shifted"`` from the last (2.23) plan shifted by one step (states ``x_1 … x_N, x_N``
         with the first replaced by the measured state, inputs ``u_1 … u_{N−1}, 0``) — the
@@ -141,7 +142,14 @@ class PCBFSafetyFilter:
         when it certifies ``h_PB = 0`` (module docstring, "Certificate first"); such a step
         reports the status ``"certified"``, a successful step
         (:func:`~balustrade.control.base.step_succeeded`). ``False`` solves (2.24) at
-        every step; ``True`` needs ``shifted_certificate``."""
+        every step; ``True`` needs ``shifted_certificate``.
+
+        ``shifted_retry`` (default off, opt-in; on for the obstacle car of Section 8.3,
+        :func:`balustrade.reproduce.obstacles.pcbf_algorithm`): in a certified step whose
+        (2.23) attempt from its last solution fails, one more attempt from the certified
+        shifted plan before the cold retries (:meth:`_filter_solve`). Off by default: on the
+        cart-pole ``fast-sqp`` loop the first attempt fails in 56 of 97 certified steps and
+        the extra attempt added 50 % (2.23) iterations without changing a decision."""
         check_instance(U, Set, "PCBFSafetyFilter: U")
         if certificate_first and not shifted_certificate:
             raise BalustradeError("PCBFSafetyFilter: certificate_first=True checks the "
@@ -163,6 +171,10 @@ class PCBFSafetyFilter:
             else None
         self.certificate_first = bool(shifted_certificate) if certificate_first is None \
             else bool(certificate_first)
+        self.shifted_retry = bool(shifted_retry)
+        # whether the (2.23) backend takes a second start (CasadiCompiled.solve); read once
+        self._second_start_ok = "second_start" in inspect.signature(
+            self.filter.solve).parameters
         self.reset()
 
     @classmethod
@@ -170,17 +182,19 @@ class PCBFSafetyFilter:
               deltas: np.ndarray, alpha_f: float = 1e6, slack_norm: int | float = 1,
               target: Target | str = "fast-sqp", eps: float = 1e-6,
               warm_start: str = "last", shifted_certificate: bool = True,
-              certificate_first: bool | None = None) -> PCBFSafetyFilter:
+              certificate_first: bool | None = None, shifted_retry: bool = False
+              ) -> PCBFSafetyFilter:
         """Build and compile both problems ((2.24) and (2.23)) for ``target`` (a
         :class:`~balustrade.backends.Target` or a preset name, e.g. ``"cvxpy"``);
-        ``warm_start``, ``shifted_certificate`` and ``certificate_first`` are passed to
+        ``warm_start``, ``shifted_certificate``, ``certificate_first`` and
+        ``shifted_retry`` are passed to
         the constructor (same defaults)."""
         slack = compile(pcbf_slack_problem(system, X, U, h_f, N, deltas, alpha_f, slack_norm),
                         target)
         filt = compile(pcbf_filter_problem(system, X, U, h_f, N, deltas, eps), target)
         return cls(slack, filt, U, eps, warm_start=warm_start,
                    shifted_certificate=shifted_certificate,
-                   certificate_first=certificate_first)
+                   certificate_first=certificate_first, shifted_retry=shifted_retry)
 
     def reset(self) -> None:
         self._last_slack: Solution | None = None
@@ -285,8 +299,10 @@ class PCBFSafetyFilter:
     def _certified_step(self, x: np.ndarray, u_p: np.ndarray, cand: Solution
                         ) -> tuple[np.ndarray, StepInfo]:
         """A step whose (2.24) is skipped: ``h_PB = 0``, ``ξ* = 0``; (2.23) from its usual
-        warm start (its last accepted solution, else the candidate's states and inputs);
-        the next (2.24) starts from the candidate's primal."""
+        warm start (its last accepted solution, else the candidate's states and inputs) —
+        with ``shifted_retry``, a failed attempt from the last solution is tried once more
+        from the candidate before the cold retries (:meth:`_filter_solve`); the next (2.24)
+        starts from the candidate's primal."""
         info = StepInfo(solve_time=cand.solve_time, solutions={"slack": cand})
         info.values.update(h_PB=max(float(cand.objective), 0.0), certificate_first=1.0)
         self._last_slack = cand
@@ -296,6 +312,8 @@ class PCBFSafetyFilter:
         params = {"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}
         if self._last_filter is None:
             s2 = self.filter.solve(params, warm_start=start)
+        elif not self.shifted_retry:
+            s2 = self.filter.solve(params, warm_start=self._last_filter)
         else:
             s2 = self._filter_solve(params, self._last_filter, start)
         info.solve_time += s2.solve_time
@@ -323,11 +341,12 @@ class PCBFSafetyFilter:
         of ``h_PB = 0``), so ``ξ* = 0`` and it meets every row of (2.23), whose rows are
         those of (2.24) with the slacks fixed to ``ξ* + eps`` (SPEC §2.7: the optimizer of
         (2.24) is feasible for (2.23)); (2.23) has no decrease or ``h_PB`` row. A feasible
-        start is a much better second try than the cold one (the obstacle car on the
-        structured-ip target: warm and cold attempts failed on 3 of 350 steps, then the last
-        resort took 300–800 iterations; with this attempt none failed, docs/obstacles.md).
+        start can be a better second try than the cold one (the obstacle car on the
+        structured-ip target, docs/obstacles.md "session 12": 2 failing chains removed; the
+        extra attempt itself fails at 2 of the 5 steps where it runs, and where it fails it
+        adds an attempt, ~0.1 s at the worst step). Only with ``shifted_retry`` (opt-in).
         Backends whose ``solve`` has no ``second_start`` run their usual chain."""
-        if "second_start" in inspect.signature(self.filter.solve).parameters:
+        if self._second_start_ok:
             return self.filter.solve(params, warm_start=warm, second_start=plan)
         return self.filter.solve(params, warm_start=warm)
 
@@ -364,4 +383,5 @@ class PCBFSafetyFilter:
         return PCBFDeployment(slack=self.slack, filter=self.filter, U=self.U,
                               eps=float(self.eps), zero_tol=ZERO_TOL,
                               shifted_certificate=self.certificate is not None,
-                              certificate_first=self.certificate_first)
+                              certificate_first=self.certificate_first,
+                              shifted_retry=self.shifted_retry)

@@ -101,7 +101,8 @@ class NaiveMPC:
 
 
 def pcbf_algorithm(target: str = "exact", shifted: bool = True,
-                   horizon: int | None = None, certificate_first: bool = True
+                   horizon: int | None = None, certificate_first: bool = True,
+                   shifted_retry: bool = True
                    ) -> PCBFSafetyFilter:
     """The PCBF algorithm [41] for the car: (2.24) then (2.23), both with the hard
     terminal constraint (``ξ_N ≡ 0``); ``shifted``: (2.24) warm-started from the shifted last
@@ -119,19 +120,23 @@ def pcbf_algorithm(target: str = "exact", shifted: bool = True,
     the shifted-plan certificate is checked before (2.24) (the default), else (2.24) is
     solved at every step. The emitted C
     (:func:`pcbf_algorithm_c`) warm-starts (2.24) from its last solution: build the
-    Python twin with ``shifted=False``."""
+    Python twin with ``shifted=False``. ``shifted_retry`` (on here, off by default in the
+    library): a certified step's failed (2.23) attempt from its last solution is tried once
+    more from the certified shifted plan before the cold retries
+    (``PCBFSafetyFilter(shifted_retry=True)``; docs/obstacles.md "session 12")."""
     system = obstacle_car()
     s = obstacle_setup() if horizon is None else ObstacleSetup(N=int(horizon))
     args = (system, s.X, s.U, s.N, s.deltas, s.delta_N)
     slack = compile(stopping_pcbf_problem(*args), target)
     filt = compile(stopping_filter_problem(*args), target)
     return PCBFSafetyFilter(slack, filt, s.U, warm_start="shifted" if shifted else "last",
-                            certificate_first=certificate_first)
+                            certificate_first=certificate_first,
+                            shifted_retry=shifted_retry)
 
 
 def pcbf_algorithm_c(target: str = PCBF_C_TARGET, horizon: int | None = None,
-                     build_dir: str | Path | None = None, certificate_first: bool = True
-                     ) -> object:
+                     build_dir: str | Path | None = None, certificate_first: bool = True,
+                     shifted_retry: bool = True) -> object:
     """The PCBF algorithm of :func:`pcbf_algorithm` (``shifted=False``) as emitted C, one
     call per step (:func:`~balustrade.codegen.accelerate`, cached in ``build_dir``;
     :class:`~balustrade.codegen.CPCBFSafetyFilter`, ``accelerated`` says where and how
@@ -139,14 +144,15 @@ def pcbf_algorithm_c(target: str = PCBF_C_TARGET, horizon: int | None = None,
     retry, then the ``exact`` solver as last resort; targets.py) links three libraries of
     the casadi wheel (``manifest["link_flags"]``). The Python filter
     making the same decisions is ``pcbf_algorithm(target, shifted=False, ...)`` with the
-    same ``horizon`` and ``certificate_first``
+    same ``horizon``, ``certificate_first`` and ``shifted_retry``
     (docs/obstacles.md, "session 12")."""
     from balustrade.codegen import accelerate
 
     py = pcbf_algorithm(target, shifted=False, horizon=horizon,
-                        certificate_first=certificate_first)
+                        certificate_first=certificate_first, shifted_retry=shifted_retry)
     name = "obstacles_pcbf" if horizon is None else f"obstacles_pcbf_n{int(horizon)}"
     name += "" if certificate_first else "_solve_all"
+    name += "" if shifted_retry else "_no_retry"
     return accelerate(py, build_dir=build_dir, name=name, werror=True)
 
 

@@ -240,7 +240,8 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   /* certificate first (PCBFSafetyFilter._first): the shifted plan meets (2.24) with zero
      slack -> h_PB = 0, xi* = 0 (the global optimum, cost 0 forces every slack to 0); (2.24)
      is not solved (its status stays BAL_NOT_RUN), the next one starts from the candidate's
-     primal, (2.23) from its usual warm start */
+     primal, (2.23) from its usual warm start (with Q_SHIFTED_RETRY a failed attempt from
+     its last solution is tried once more from the candidate before the cold retries) */
   if (wk->have_plan && BAL_QX(shift_eval)(wk, x)) {
     wk->cert_first = 1;
     BAL_QX(pcbf_slack_keep)(wk);
@@ -307,10 +308,11 @@ filter:
     BAL_QX(filter_cold_start)(&wk->filter);
     BAL_QX(SHARED)(BAL_PCBF_COPY_SHARED)
   }
-#if BAL_QX(SHIFT_CERT) && BAL_QX(CERT_FIRST)
+#if BAL_QX(SHIFT_CERT) && BAL_QX(CERT_FIRST) && BAL_QX(SHIFTED_RETRY)
   if (wk->cert_first && wk->have_filter) {
-    /* (2.23) from its last solution; if that attempt fails, from the certified shifted
-       plan (feasible for (2.23): PCBFSafetyFilter._filter_solve) before the cold retries.
+    /* shifted_retry (opt-in): (2.23) from its last solution; if that attempt fails, from the
+       certified shifted plan (feasible for (2.23): PCBFSafetyFilter._filter_solve) before
+       the cold retries.
        The plan's start is built as the start of a certified step without a last solution
        (initial values, the variables shared with (2.24)); keep_x0 is free here (fired = 0) */
     memcpy(wk->keep_x0, BAL_QX(filter_init_x), sizeof(wk->keep_x0));

@@ -39,7 +39,9 @@
  * qualifies, (2.24) is not solved (Q_solve_status 0 stays BAL_NOT_RUN): h_PB = 0, xi* = 0
  * ((2.24)'s cost is 0 only with every slack 0), (2.23) runs from its usual warm start, the
  * next (2.24) starts from the candidate's primal (Q_cert_first = 1; status BAL_PCBF_OK or a
- * (2.23) fallback as usual).
+ * (2.23) fallback as usual). With Q_SHIFTED_RETRY = 1 (PCBFSafetyFilter's shifted_retry,
+ * opt-in, off by default) a failed (2.23) attempt from its last solution in such a step is
+ * run once more from the candidate before the cold retries (Q_filter_solve_from).
  * Warm starts as balustrade's backend: from a converged solution (primal and multipliers);
  * from the primal of a certified BAL_FEASIBLE (2.24) (zero multipliers); never from an
  * uncertified one; (2.23) only from BAL_OK solutions.
@@ -79,7 +81,7 @@ typedef struct BAL_QX(work) {
   casadi_real cert_U[BAL_QX(NU) * BAL_QX(N)], cert_w[BAL_QX(slack_N_USER) + 1];
   casadi_real cert_v, cert_f;
   /* the warm start of (2.23), kept while a certified step starts it from the candidate;
-     in a certificate-first step, keep_x0 is (2.23)'s second start (the shifted plan) */
+     with Q_SHIFTED_RETRY, in a certificate-first step keep_x0 is (2.23)'s second start */
   casadi_real keep_x0[BAL_QX(filter_NW)], keep_lam_x0[BAL_QX(filter_NW)];
   casadi_real keep_lam_g0[BAL_QX(filter_NG) + 1];
   const casadi_real* carg[BAL_QX(shift_cert_SZ_ARG)];

@@ -157,6 +157,15 @@ static int BAL_PX(finite_params)(const casadi_real* p) {
   return 1;
 }
 
+/* 1 if the n values are all finite, else 0 */
+static int BAL_PX(finite_vec)(const casadi_real* v, casadi_int n) {
+  casadi_int i;
+  for (i = 0; i < n; ++i) {
+    if (!isfinite(v[i])) return 0;
+  }
+  return 1;
+}
+
 /* keep (save = 1) or restore (save = 0) the point of a BAL_FEASIBLE attempt */
 static void BAL_PX(feasible_copy)(BAL_PX(work)* wk, int save) {
   if (save) {
@@ -220,6 +229,15 @@ int BAL_PX(solve_from)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real
     wk->f = wk->pr_inf = wk->du_inf = wk->feas = NAN;
     return BAL_BAD_INPUT;
   }
+  /* a non-finite warm start (P_warm_start copies wk->x as it is) -> the cold start, as
+     CasadiCompiled._initial_guess does for a non-finite Solution (initial values, zero
+     multipliers); a non-finite second start is ignored (a NaN start can keep a solver
+     from returning) */
+  if (!BAL_PX(finite_vec)(wk->x0, BAL_PX(NW)) || !BAL_PX(finite_vec)(wk->lam_x0, BAL_PX(NW)) ||
+      !BAL_PX(finite_vec)(wk->lam_g0, BAL_PX(NG))) {
+    BAL_PX(cold_start)(wk);
+  }
+  if (second && !BAL_PX(finite_vec)(second, BAL_PX(NW))) second = 0;
   first = BAL_PX(attempt)(wk, p, 0, 0);
   if (first == BAL_OK) return first;
 #if BAL_PX(BUDGET) > 0

@@ -52,12 +52,14 @@ void BAL_PX(warm_start)(BAL_PX(work)* wk);
 void BAL_PX(warm_start_primal)(BAL_PX(work)* wk);
 /* Solve with parameters p (P_NP values) from the warm start in wk; returns BAL_*
    (call P_warm_start afterwards to start the next solve from this solution).
-   A NaN or inf parameter returns BAL_BAD_INPUT without solving (x and f are then NaN).
+   A NaN or inf parameter returns BAL_BAD_INPUT without solving (x and f are then NaN);
+   a NaN or inf in the start (x0, lam_x0, lam_g0) makes it the cold start (P_cold_start).
    With an iteration budget (P_BUDGET > 0) a solve stopped by it returns BAL_TRUNCATED
    (its iterate in x; P_truncated_feasible tells whether it may be used). */
 int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p);
 /* P_solve, but if the first attempt fails, the first solver runs once more from the primal
-   `second` (P_NW values, zero multipliers; NULL: none) before the cold-start retries. */
+   `second` (P_NW values, zero multipliers; NULL or a NaN/inf entry: none) before the
+   cold-start retries. */
 int BAL_PX(solve_from)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real* second);
 /* 1 if status is BAL_TRUNCATED and the iterate in wk meets every row and bound within
    P_TRUNC_TOL (absolute: Solution.feasible_within of balustrade's backend), else 0. */
