@@ -52,6 +52,17 @@ def _record(compiled, fail_first: bool) -> list[tuple]:
     return calls
 
 
+def _step_recorded(ctl: PCBFSafetyFilter, x: np.ndarray, fail_first: bool):
+    """One step of ``ctl`` at ``x`` with its (2.23) attempts recorded (:func:`_record`);
+    returns ``(u, info, calls)``."""
+    calls = _record(ctl.filter, fail_first=fail_first)
+    try:
+        u, info = ctl.step(x, np.array([0.3]))
+    finally:
+        del ctl.filter._solve_with
+    return u, info, calls
+
+
 def _certified_state(ctl: PCBFSafetyFilter) -> np.ndarray:
     """Run a few steps from inside the safe set until the next one is certified first with
     a last (2.23) solution; returns that next state."""
@@ -68,11 +79,7 @@ def _certified_state(ctl: PCBFSafetyFilter) -> np.ndarray:
 def test_failed_warm_attempt_is_retried_from_the_shifted_plan(ctl, monkeypatch):
     x = _certified_state(ctl)
     cand = ctl._first(x)
-    calls = _record(ctl.filter, fail_first=True)
-    try:
-        u, info = ctl.step(x, np.array([0.3]))
-    finally:
-        del ctl.filter._solve_with
+    u, info, calls = _step_recorded(ctl, x, fail_first=True)
     assert info.values["certificate_first"] == 1.0
     # warm (forced failure), then the shifted plan, which converges: no cold retry
     assert len(calls) == 2
@@ -87,11 +94,7 @@ def test_failed_warm_attempt_is_retried_from_the_shifted_plan(ctl, monkeypatch):
 
 def test_no_extra_attempt_when_the_warm_attempt_succeeds(ctl):
     x = _certified_state(ctl)
-    calls = _record(ctl.filter, fail_first=False)
-    try:
-        _, info = ctl.step(x, np.array([0.3]))
-    finally:
-        del ctl.filter._solve_with
+    _, info, calls = _step_recorded(ctl, x, fail_first=False)
     assert info.status == "certified"
     assert len(calls) == 1
 
@@ -127,11 +130,7 @@ def test_default_runs_no_shifted_attempt(ctl):
     assert off.shifted_retry is False and off.deployment_spec().shifted_retry is False
     x = _certified_state(off)
     cand = off._first(x)
-    calls = _record(off.filter, fail_first=True)
-    try:
-        _, info = off.step(x, np.array([0.3]))
-    finally:
-        del off.filter._solve_with
+    _, info, calls = _step_recorded(off, x, fail_first=True)
     assert info.values["certificate_first"] == 1.0
     start = off.filter._initial_guess({"x": cand["x"], "u": cand["u"]}, calls[1][2])[0]
     cold = off.filter._initial_guess(None, calls[1][2])[0]

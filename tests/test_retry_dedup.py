@@ -90,20 +90,24 @@ def test_warm_first_attempt_keeps_its_cold_retry():
     assert retried >= 3
 
 
-@pytest.fixture(scope="module")
-def pair(tmp_path_factory):
-    """The pendulum PCBF step on the chain, in Python and as emitted C (fatrop's C links
-    libfatrop; its chain is fatrop, cold fatrop, IPOPT as in Python)."""
+def _pendulum_pair(build_dir, name: str, **filter_options):
+    """The pendulum PCBF step on the chain, in Python and as emitted C."""
     from balustrade.codegen import accelerate
     from balustrade.control import PCBFSafetyFilter
     from balustrade.problems.pcbf import pcbf_filter_problem
 
     system, s = pendulum(), pendulum_setup()
     args = (system, s.X, s.U, pendulum_terminal_cbf(), s.N, s.deltas)
-    py = PCBFSafetyFilter(_slack(CHAIN), compile(pcbf_filter_problem(*args), CHAIN), s.U)
-    c = accelerate(py, build_dir=tmp_path_factory.mktemp("dedup"), name="dedup",
-                   werror=True)
-    return py, c
+    py = PCBFSafetyFilter(_slack(CHAIN), compile(pcbf_filter_problem(*args), CHAIN), s.U,
+                          **filter_options)
+    return py, accelerate(py, build_dir=build_dir, name=name, werror=True)
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    """The pendulum PCBF step on the chain, in Python and as emitted C (fatrop's C links
+    libfatrop; its chain is fatrop, cold fatrop, IPOPT as in Python)."""
+    return _pendulum_pair(tmp_path_factory.mktemp("dedup"), "dedup")
 
 
 def test_c_skips_the_same_retry_and_answers_as_python(pair):
@@ -162,15 +166,8 @@ def test_c_warm_first_attempt_keeps_its_cold_retry(tmp_path):
     tests did not catch)."""
     import ctypes
 
-    from balustrade.codegen import accelerate
-    from balustrade.control import PCBFSafetyFilter
-    from balustrade.problems.pcbf import pcbf_filter_problem
 
-    system, s = pendulum(), pendulum_setup()
-    args = (system, s.X, s.U, pendulum_terminal_cbf(), s.N, s.deltas)
-    py = PCBFSafetyFilter(_slack(CHAIN), compile(pcbf_filter_problem(*args), CHAIN), s.U,
-                          certificate_first=False)
-    c = accelerate(py, build_dir=tmp_path, name="dedupw", werror=True)
+    py, c = _pendulum_pair(tmp_path, "dedupw", certificate_first=False)
     attempts = c._lib.fn(f"{c.slack.info['prefix']}_attempts", ctypes.c_int,
                          [ctypes.c_void_p])
     runs = _counted(py.slack)
