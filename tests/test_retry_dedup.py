@@ -103,6 +103,13 @@ def _pendulum_pair(build_dir, name: str, **filter_options):
     return py, accelerate(py, build_dir=build_dir, name=name, werror=True)
 
 
+def _attempts_of(c):
+    """The C's ``<P>_attempts`` of the filter's slack problem: solver runs of its last solve."""
+    import ctypes
+
+    return c._lib.fn(f"{c.slack.info['prefix']}_attempts", ctypes.c_int, [ctypes.c_void_p])
+
+
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory):
     """The pendulum PCBF step on the chain, in Python and as emitted C (fatrop's C links
@@ -111,12 +118,9 @@ def pair(tmp_path_factory):
 
 
 def test_c_skips_the_same_retry_and_answers_as_python(pair):
-    import ctypes
-
     py, c = pair
     assert c.slack.info["retries"] == ["fatrop", "ipopt"]  # the whole chain is emitted
-    attempts = c._lib.fn(f"{c.slack.info['prefix']}_attempts", ctypes.c_int,
-                         [ctypes.c_void_p])
+    attempts = _attempts_of(c)
     runs = _counted(py.slack)
     chained = 0
     for x in STATES:
@@ -164,12 +168,8 @@ def test_c_warm_first_attempt_keeps_its_cold_retry(tmp_path):
     the C as in Python — same attempt counts, statuses and inputs (fails if the C's
     ``ran_before`` skipped the retry whatever the start: a review's mutation that the cold
     tests did not catch)."""
-    import ctypes
-
-
     py, c = _pendulum_pair(tmp_path, "dedupw", certificate_first=False)
-    attempts = c._lib.fn(f"{c.slack.info['prefix']}_attempts", ctypes.c_int,
-                         [ctypes.c_void_p])
+    attempts = _attempts_of(c)
     runs = _counted(py.slack)
     retried = 0
     for x in STATES:
