@@ -241,3 +241,21 @@ def test_function_set_without_support_solver_says_so(monkeypatch):
     disk = FunctionSet(lambda x: x[0] ** 2 + x[1] ** 2 - 1.0, 2, name="disk")
     with pytest.raises(BalustradeError, match="disk.support: no support solver"):
         disk.support(np.array([1.0, 0.0]))
+
+
+def test_is_preset_compares_every_field_not_only_the_name():
+    """``Target.is_preset``: the presets (and their aliases) are; a copy with other options,
+    retries or a budget is not, although ``==`` (options, retries, budget left out) and the
+    name say otherwise; a custom target is not."""
+    from dataclasses import replace
+
+    for name, t in PRESETS.items():
+        assert t.is_preset(), name
+    assert resolve_target("clarabel").is_preset()  # an alias resolves to the preset itself
+    fc = PRESETS["fast-convex"]
+    for other in (replace(fc, options={"eps_abs": 1e-6}),
+                  replace(PRESETS["exact"], retries=()),
+                  replace(PRESETS["fast-sqp"].with_budget(iterations=2), name="fast-sqp")):
+        assert not other.is_preset(), other
+    assert replace(fc, options={"eps_abs": 1e-6}) == fc  # why == cannot decide it
+    assert not Target("casadi", "ipopt").is_preset()

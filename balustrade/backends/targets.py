@@ -243,6 +243,20 @@ class Target:
                                   f"with with_budget")
         return replace(self, options={**self.options, **added}, name=f"{self.name}+options")
 
+    def is_preset(self) -> bool:
+        """Whether this target is the preset of its name itself (:data:`PRESETS`): every
+        field equal, options, retries and budget included (``==`` leaves those out), so a
+        user's target that only borrows a preset's name is not one."""
+        preset = PRESETS.get(self.name)
+        if preset is None:
+            return False
+
+        def fields(t: Target) -> tuple:
+            retries = None if t.retries is None else tuple((s, _plain(o)) for s, o in t.retries)
+            return t.backend, t.solver, _plain(t.options), retries, t.budget
+
+        return fields(self) == fields(preset)
+
     def with_retries(self, retries: list[tuple[str, Mapping]] | tuple | None) -> Target:
         """A copy with another retry chain (``()`` for none, ``None`` for the default)."""
         return replace(self, retries=None if retries is None else tuple(retries))

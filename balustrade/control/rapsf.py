@@ -47,7 +47,7 @@ which is recompiled whenever the vertices change.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 
 import numpy as np
 
@@ -88,24 +88,6 @@ EMITTED_TARGETS = ("convex-qp",)
 #: options); ``RAPSF(..., row_generation=False)`` turns it off.
 ROWGEN_MIN_ROWS = 10000
 ROWGEN_FROM = ("fast-convex", "fast-convex-qp", "auto")
-
-
-def _is_preset(target: object, names: tuple[str, ...]) -> bool:
-    """Whether ``target`` is the preset of its name (one of ``names``), not only named so:
-    every field equal, the options compared as plain values (``Target.__eq__`` leaves the
-    options, retries and budget out)."""
-    if target.name not in names:
-        return False
-    preset = resolve_target(target.name)
-    return all(_plain(getattr(target, f)) == _plain(getattr(preset, f))
-               for f in ("backend", "solver", "options", "retries", "budget", "name"))
-
-
-def _plain(value: object) -> object:
-    """Nested mappings as dicts (read-only option mappings compare like dicts)."""
-    if isinstance(value, Mapping):
-        return {k: _plain(v) for k, v in value.items()}
-    return value
 
 
 class RAPSF:
@@ -362,8 +344,8 @@ class RAPSF:
         name keeps its own options) and the problem has :data:`ROWGEN_MIN_ROWS` grouped rows
         or more (the same answers), else :attr:`target`."""
         rows = sum(len(g) for g in getattr(ocp, "row_groups", {}).values())
-        if self._row_generation and rows >= ROWGEN_MIN_ROWS and _is_preset(self.target,
-                                                                           ROWGEN_FROM):
+        if self._row_generation and rows >= ROWGEN_MIN_ROWS \
+                and self.target.name in ROWGEN_FROM and self.target.is_preset():
             return resolve_target("fast-convex-rowgen")
         return self.target
 
