@@ -281,18 +281,20 @@ def test_rapsf_switching_row_generation_recompiles(monkeypatch):
 
 
 def _scaled_grouped_qp(seed: int = 0) -> OCP:
-    """:func:`_grouped_qp` whose grouped rows read ``(1 + k_g) a_rᵀ y <= 1 + g_r`` with a
-    parameter ``k`` per group: their coefficients (the values of ``A(p)``) change with ``p``."""
+    """:func:`_grouped_qp` whose grouped rows read ``(1 + k_g) a_rᵀ y <= 1 + g_r + d_g`` with
+    parameters ``k`` and ``d`` per group: their coefficients (the values of ``A(p)``) and
+    their bounds change with ``p``."""
     rng = np.random.default_rng(seed)
     ocp = OCP(name=f"scaled{seed}")
     y = ocp.variable("y", 6)
     c = ocp.parameter("c", 6)
     k = ocp.parameter("k", 8)
+    d = ocp.parameter("d", 8)
     marks = {}
     for g in range(8):
         a = rng.normal(size=(12, 6))
         h = 1.0 + rng.uniform(0.0, 0.5, 12)
-        ocp.le((1.0 + k[g]) * ca.mtimes(ca.DM(a), y), ca.DM(h), name=f"group_{g}")
+        ocp.le((1.0 + k[g]) * ca.mtimes(ca.DM(a), y), ca.DM(h) + d[g], name=f"group_{g}")
         marks[f"group_{g}"] = np.full(12, g)
     ocp.le(y, 3.0, name="upper")
     ocp.le(-y, 3.0, name="lower")
@@ -317,6 +319,7 @@ def test_reused_solver_gives_the_full_solve_answer(make):
         params = {"c": rng.normal(scale=4.0, size=6)}
         if "k" in ocp.parameters:
             params["k"] = rng.uniform(-0.3, 0.3, size=8)
+            params["d"] = rng.uniform(0.0, 0.5, size=8)
         a, b = full.solve(params), gen.solve(params)
         assert a.status == b.status == Status.OPTIMAL
         assert np.max(np.abs(a.primal["y"] - b.primal["y"])) < 1e-7
