@@ -153,24 +153,26 @@ class RowGeneration:
         grouped = np.flatnonzero(~self.always)
         self._order = grouped[np.argsort(groups[grouped], kind="stable")]
         self._P = sp.triu(prog.P).tocsc()
-        self._layout: tuple | None = None   # the patterns of A's two blocks (_split)
-        self._blocks: tuple | None = None   # (A_eq, G) built once, values overwritten
+        self._layout: tuple | None = None   # the patterns of A's two blocks (_load)
+        self._A_full: sp.csc_matrix | None = None   # A with the values of the last _load
+        self._A_eq: sp.csc_matrix | None = None     # its equality block
         self._seed: np.ndarray | None = None   # inequality rows active at the last solve
         self.reuse_solver = reuse_solver
-        # the last reduced QP: its rows, G[rows] (CSC) and where its values sit in G.data
+        # the last reduced QP: its rows, G[rows] (CSC) and where its values sit in A.data
         self._red: tuple[np.ndarray, sp.csc_matrix, np.ndarray] | None = None
         self._solver: object | None = None   # the PIQP solver set up for self._red's rows
-        self._code: sp.csr_matrix | None = None   # (_reduced)
+        self._code: sp.csr_matrix | None = None   # G's pattern, positions in A.data (_load)
         self.stats = RowGenStats()
 
     # -- data ---------------------------------------------------------------------------------
-    def _split(self, A: np.ndarray | None) -> tuple[sp.csc_matrix, sp.csr_matrix]:
-        """The equality block (CSC) and the inequality block (CSR) of ``A`` with values
-        ``A`` (``None``: the program's own). The two patterns and where their values sit in
-        ``A.data`` are found once, and so are the two matrices: later calls overwrite their
-        values in place (no CSC→CSR conversion of the 8-mass ``A``, 3.2e5 nonzeros, and no
-        scipy constructor with its index checks per solve; explicit zeros stay, so the
-        pattern never changes). The matrices returned are the same objects every call."""
+    def _load(self, A: np.ndarray | None) -> sp.csc_matrix:
+        """Take the values ``A`` of the program's ``A`` (``None``: its own): into the full
+        matrix (:attr:`_A_full`, CSC on the program's pattern, whose product with ``y`` gives
+        every row at once) and into the equality block, which is returned (CSC). The
+        patterns, where each block's values sit in ``A.data`` and the matrices themselves
+        are built once; later calls overwrite their values in place (no scipy constructor
+        with its index checks, and no CSR copy of the 8-mass ``A``'s 3.2e5 values, per
+        solve; explicit zeros stay, so no pattern ever changes)."""
         prog = self.prog
         values = prog.A.data if A is None else A
         if self._layout is None:
@@ -182,32 +184,43 @@ class RowGeneration:
             code.sort_indices()
             at_in = code.data.astype(np.int64) - 1
             self._layout = (eq, (code.indices, code.indptr, at_in, code.shape))
-            (i_eq, p_eq, at_eq, s_eq), (i_in, p_in, _, s_in) = self._layout
-            self._blocks = (sp.csc_matrix((values[at_eq], i_eq, p_eq), shape=s_eq),
-                            sp.csr_matrix((values[at_in], i_in, p_in), shape=s_in))
-            return self._blocks
-        (_, _, at_eq, _), (_, _, at_in, _) = self._layout
-        A_eq, G = self._blocks
-        A_eq.data[:] = values[at_eq]
-        G.data[:] = values[at_in]
-        return A_eq, G
+            # G's pattern in CSR with the positions of its values in A.data (+1) as values
+            self._code = sp.csr_matrix((at_in + 1.0, code.indices, code.indptr),
+                                       shape=code.shape)
+            i_eq, p_eq, at_eq, s_eq = eq
+            self._A_full = sp.csc_matrix((np.array(values, dtype=float), prog.A.indices,
+                                          prog.A.indptr), shape=prog.A.shape)
+            self._A_eq = sp.csc_matrix((values[at_eq], i_eq, p_eq), shape=s_eq)
+            return self._A_eq
+        self._A_full.data[:] = values
+        self._A_eq.data[:] = values[self._layout[0][2]]
+        return self._A_eq
 
-    def _reduced(self, G: sp.csr_matrix, rows: np.ndarray) -> sp.csc_matrix:
-        """``G[rows]`` in CSC with the values of ``G`` (:meth:`_split`'s matrix). For the rows
-        of the last call the same matrix is returned with its values overwritten (the same
-        pattern, explicit zeros kept: what PIQP's ``update`` needs); for new rows its
-        pattern and where its values sit in ``G.data`` are found once."""
+    def _rows_at(self, y: np.ndarray) -> np.ndarray:
+        """``G y``: every inequality row of the full QP at ``y`` (one sparse product with
+        the values of the last :meth:`_load`)."""
+        return (self._A_full @ y)[self.m0:]
+
+    def _split(self, A: np.ndarray | None) -> tuple[sp.csc_matrix, sp.csr_matrix]:
+        """The equality block (CSC, :meth:`_load`'s matrix) and the inequality block ``G``
+        (a new CSR matrix) of ``A`` with values ``A`` (``None``: the program's own), e.g. to
+        inspect a reduced QP; :meth:`run` does not build ``G``."""
+        A_eq = self._load(A)
+        i_in, p_in, at_in, s_in = self._layout[1]
+        return A_eq, sp.csr_matrix((self._A_full.data[at_in], i_in, p_in), shape=s_in)
+
+    def _reduced(self, rows: np.ndarray) -> sp.csc_matrix:
+        """``G[rows]`` in CSC with the values of the last :meth:`_load`. For the rows of the
+        last call the same matrix is returned with its values overwritten (the same pattern,
+        explicit zeros kept: what PIQP's ``update`` needs); for new rows its pattern and
+        where its values sit in ``A.data`` are found once."""
         if self._red is not None and np.array_equal(self._red[0], rows):
             _, red, at = self._red
-            red.data[:] = G.data[at]
+            red.data[:] = self._A_full.data[at]
             return red
-        if self._code is None:       # G's pattern, its positions in G.data as values 1 … nnz
-            i_in, p_in, _, shape = self._layout[1]
-            self._code = sp.csr_matrix((np.arange(1.0, i_in.size + 1.0), i_in, p_in),
-                                       shape=shape)
         sub = self._code[rows].tocsc()
         at = sub.data.astype(np.int64) - 1
-        red = sp.csc_matrix((G.data[at], sub.indices, sub.indptr), shape=sub.shape)
+        red = sp.csc_matrix((self._A_full.data[at], sub.indices, sub.indptr), shape=sub.shape)
         self._red, self._solver = (rows.copy(), red, at), None
         return red
 
@@ -306,13 +319,13 @@ class RowGeneration:
                          np.array(res.x, dtype=float), np.concatenate([z_eq, z_in]),
                          int(res.info.iter)), solver
 
-    def _round(self, q, A_eq, b_eq, G, h, rows: np.ndarray) -> RawResult:
+    def _round(self, q, A_eq, b_eq, h, rows: np.ndarray) -> RawResult:
         """The reduced QP of the rows ``rows``: by the last solver updated when it was set up
         for these rows (:attr:`reuse_solver`), else by a new one. A reused solver's answer
         other than optimal/infeasible is not taken: the round is solved again by a new
         solver (as without reuse), so reuse never changes what a round reports."""
         done = (Status.OPTIMAL, Status.INFEASIBLE)
-        red = self._reduced(G, rows)       # forgets the solver when the rows changed
+        red = self._reduced(rows)          # forgets the solver when the rows changed
         reuse = self._solver if self.reuse_solver else None
         raw, solver = self._solve_reduced(q, A_eq, b_eq, red, h[rows], reuse)
         if reuse is not None and raw.status in done:
@@ -331,7 +344,7 @@ class RowGeneration:
         results carry multipliers for every row of the full QP (zero for rows never added);
         anything else is ``FAILED``/``MAX_ITERATIONS`` with the reason: the caller solves the
         full QP then. ``cold``: ignore the rows of the last solve."""
-        A_eq, G = self._split(A)
+        A_eq = self._load(A)
         b_eq, h = b[:self.m0], b[self.m0:]
         if cold:
             self._seed = None
@@ -343,7 +356,7 @@ class RowGeneration:
             stats.rounds += 1
             stats.rows = rows.size
             stats.history.append(rows.size)
-            raw = self._round(q, A_eq, b_eq, G, h, rows)
+            raw = self._round(q, A_eq, b_eq, h, rows)
             stats.iterations += raw.iterations
             if raw.status == Status.INFEASIBLE:
                 raw.z = self._full_z(raw.z, rows)
@@ -357,7 +370,7 @@ class RowGeneration:
                 return RawResult(Status.FAILED, f"row generation: round {stats.rounds} "
                                  f"({rows.size} rows) stopped with {raw.words}", None, None,
                                  stats.iterations)
-            Gy = G @ raw.y
+            Gy = self._rows_at(raw.y)
             viol = Gy - h
             bad = (viol > self._tolerance(h, Gy)) & ~work
             if not bad.any():
