@@ -155,8 +155,9 @@ class PCBFSafetyFilter:
         ``shifted_retry_solver`` (with ``shifted_retry``): which solver of the (2.23) chain
         makes that attempt — 0 (the default) the first solver, ``k`` the ``k``-th retry's,
         ``-1`` the chain's last (``CasadiCompiled.solve(second_solver=)``). On the obstacle
-        car (``structured-ip``) ``-1``, IPOPT from the plan, cut the worst step where the
-        first solver stalls from every start (docs/obstacles.md "session 13")."""
+        car (``structured-ip``) ``-1``, the chain's last resort from the plan, cut the worst
+        step where the first solver stalls from every start (docs/obstacles.md
+        "session 13")."""
         check_instance(U, Set, "PCBFSafetyFilter: U")
         if certificate_first and not shifted_certificate:
             raise BalustradeError("PCBFSafetyFilter: certificate_first=True checks the "
