@@ -77,8 +77,9 @@ every step with a plan. The cost of (2.24), ``α_f ξ_N + Σ_i ‖ξ_i‖`` with
 global optimum (the lower bound) and ``ξ* = 0``, so the (2.24) solve is skipped exactly.
 (2.23) runs with ``ξ* = 0`` from its usual warm start; with ``shifted_retry`` (opt-in,
 session 12) a failed attempt is tried once more from the candidate (feasible for (2.23):
-``PCBFSafetyFilter._filter_solve``) before the cold retries; the next (2.24) starts from
-the candidate's primal.
+``PCBFSafetyFilter._filter_solve``) before the cold retries, by the chain's solver that
+``shifted_retry_solver`` names (default the first; session 13); the next (2.24) starts
+from the candidate's primal.
 The skipped solve is never reported as a solver result: the step's ``StepInfo.status`` is
 ``"certified"`` (``"certified_filter_<status>"`` when (2.23) did not end optimal),
 ``values["certificate_first"] = 1``, ``values["h_PB"] = 0``, and
