@@ -388,14 +388,19 @@ class CasadiCompiled:
 
     def solve(self, params: dict[str, object] | None = None,
               warm_start: Solution | dict[str, object] | None = None,
-              second_start: Solution | dict[str, object] | None = None) -> Solution:
+              second_start: Solution | dict[str, object] | None = None,
+              second_solver: int = 0) -> Solution:
         """Solve with the given parameter values; ``warm_start`` is a previous
         :class:`Solution` (primal and dual) or a dict of variable values.
 
         ``second_start`` (optional, same forms): when the first attempt fails, the first
         solver is tried once more from this point *before* the cold-start retries (it
         counts as one more attempt; e.g. a known feasible point, as the PCBF filter's
-        certified shifted plan for (2.23)).
+        certified shifted plan for (2.23)). ``second_solver`` picks the solver of that
+        attempt: 0 the first solver, ``k >= 1`` that of the ``k``-th retry, ``-1`` the last
+        of the chain (:func:`chain_solver_index`; e.g. ``structured-ip``'s IPOPT, which
+        converged from the obstacle car's shifted plan where its interior-point solver on the
+        stage-ordered NLP stalls: docs/obstacles.md "session 13").
 
         A failed solve is retried from a cold start with each entry of :attr:`retries`
         in turn (see :func:`default_retries`), except a retry that would run a solver
@@ -424,6 +429,7 @@ class CasadiCompiled:
         of an unbounded problem is no answer to use in a closed loop).
         """
         p = self.ocp.pack_parameters(params)
+        second_k = chain_solver_index(second_solver, len(self.retries))
         guess = self._initial_guess(warm_start, p)
         sol = self._solve_with(self.solver, p, guess)
         if self.budget is not None and sol.status == Status.MAX_ITERATIONS:
@@ -433,8 +439,9 @@ class CasadiCompiled:
         if second_start is not None and not sol.success:
             # not in ``ran``: the retries run cold, and the C's ran_before compares them with
             # the cold attempts only (a second start equal to the cold one is not skipped)
-            attempts.append(self._solve_with(self.solver, p,
-                                             self._initial_guess(second_start, p)))
+            attempts.append(self._solve_with(
+                self._retry_solvers()[second_k - 1] if second_k else self.solver, p,
+                self._initial_guess(second_start, p)))
         for solver in self._retry_solvers():
             if attempts[-1].success:
                 break
@@ -662,6 +669,19 @@ class CasadiCompiled:
                         primal=self.ocp.unpack_variables(w), dual={}, solve_time=elapsed,
                         iterations=0, backend="casadi", solver=self.solver_name, p=p,
                         message=message)
+
+
+def chain_solver_index(which: int, n_retries: int) -> int:
+    """The attempt index (0: the first solver, ``k``: the ``k``-th retry) that ``which``
+    names in a chain of ``n_retries`` retries; ``-1`` is the last of the chain (the first
+    solver when there is no retry). Refuses an index outside the chain."""
+    if isinstance(which, bool) or not isinstance(which, int | np.integer):
+        raise SolverError(f"second_solver must be an int, got {which!r}")
+    k = n_retries if which == -1 else int(which)
+    if not 0 <= k <= n_retries:
+        raise SolverError(f"second_solver {which} is outside the chain (first solver 0, "
+                          f"retries 1..{n_retries}, or -1 for the last)")
+    return k
 
 
 def _same_start(a: tuple, b: tuple) -> bool:
