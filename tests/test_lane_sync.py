@@ -149,3 +149,21 @@ def test_lane_change_c_equals_python_bitwise(kind: str) -> None:
     assert np.array_equal(a["inputs"], b["inputs"]), np.max(np.abs(a["inputs"] - b["inputs"]))
     assert np.array_equal(a["states"], b["states"])
     assert a["statuses"] == b["statuses"] and a["fallbacks"] == b["fallbacks"]
+
+
+def test_every_build_turns_off_fused_multiply_add() -> None:
+    """CasADi's evaluation in Python rounds each operation; a C compiled with contraction
+    (GCC's default where the target has FMA: ``-march=native``, aarch64) would not, so the
+    library build, the example executable and the generated Makefile all pass
+    ``-ffp-contract=off`` (x86-64 without ``-march`` has no FMA: the loops above are
+    bitwise equal with or without it on this machine)."""
+    import importlib
+    import inspect
+    from importlib.resources import files
+
+    B = importlib.import_module("balustrade.codegen.build")
+
+    assert "-ffp-contract=off" in B.BASE_FLAGS
+    assert "FP_FLAGS" in inspect.getsource(B.build_executable)
+    makefile = files("balustrade.codegen").joinpath("c/Makefile.in").read_text()
+    assert "-ffp-contract=off" in makefile
