@@ -167,3 +167,35 @@ def test_every_build_turns_off_fused_multiply_add() -> None:
     assert "FP_FLAGS" in inspect.getsource(B.build_executable)
     makefile = files("balustrade.codegen").joinpath("c/Makefile.in").read_text()
     assert "-ffp-contract=off" in makefile
+
+
+def compare_seeds(seeds: list[int], kinds: tuple[str, ...] = ("robust", "multiobjective"),
+                  steps: int = 200) -> dict:
+    """The session-13 measurement: per seed and algorithm, the lane change's free-running
+    closed loops in Python and in C (``converging``), compared by
+    :func:`~balustrade.reproduce.lane_change.compare`, plus the first step whose inputs
+    differ at all (-1: none)."""
+    from balustrade.reproduce import lane_change as L
+
+    cfg = L.config("converging")
+    d = L.design(cfg)
+    ctrls = L.controllers(d, rho=cfg.rho)
+    cs = {k: accelerate(ctrls[k]) for k in kinds}
+    rows = {}
+    for seed in seeds:
+        ws = L.disturbances(d, seed, steps)
+        for kind in kinds:
+            py, c = L.closed_loop(ctrls[kind], d, ws), L.closed_loop(cs[kind], d, ws)
+            row = L.compare(py, c)
+            nonzero = np.flatnonzero(np.max(np.abs(py["inputs"] - c["inputs"]), axis=1) > 0)
+            row["first_step_nonzero"] = int(nonzero[0]) if nonzero.size else -1
+            rows[f"{kind}/{seed}"] = row
+            print(kind, seed, row, flush=True)
+    return rows
+
+
+if __name__ == "__main__":   # PYTHONPATH=$PWD python tests/test_lane_sync.py 0,1,2 [steps]
+    import sys
+
+    compare_seeds([int(s) for s in sys.argv[1].split(",")],
+                  steps=int(sys.argv[2]) if len(sys.argv) > 2 else 200)
