@@ -134,21 +134,45 @@ def test_c_equals_python_bitwise_along_closed_loops(loops: dict, kind: str) -> N
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["robust", "multiobjective"])
-def test_lane_change_c_equals_python_bitwise(kind: str) -> None:
-    """Seed 1 of the lane change (``converging``), 60 steps: before session 13 the C and
-    Python differed from step 0 (6.4) / step 4 (5.2) and Algorithm 6.4 by 3.9e-3 from
-    step 165; now the loops are bitwise equal."""
+@pytest.mark.parametrize(("kind", "seed"), [("robust", 1), ("multiobjective", 1),
+                                            ("robust", 8)])
+def test_lane_change_c_equals_python_bitwise(kind: str, seed: int) -> None:
+    """The lane change (``converging``), 60 steps. Seed 1: before session 13 the C and
+    Python differed from step 0 (6.4) / step 4 (5.2), Algorithm 6.4 by 3.9e-3 from step
+    165. Seed 8 (5.2): at step 1 Python's IPOPT retry of (5.16) stopped at its acceptable
+    level and the C's did not (2.6e-8 along the loop; fails without
+    ``casadi_backend.EMITTED_STOP_OPTIONS``). Now the loops are bitwise equal."""
     from balustrade.reproduce import lane_change as L
 
     cfg = L.config("converging")
     d = L.design(cfg)
     py = L.controllers(d, rho=cfg.rho)[kind]
-    ws = L.disturbances(d, 1, 60)
+    ws = L.disturbances(d, seed, 60)
     a, b = L.closed_loop(py, d, ws), L.closed_loop(accelerate(py), d, ws)
     assert np.array_equal(a["inputs"], b["inputs"]), np.max(np.abs(a["inputs"] - b["inputs"]))
     assert np.array_equal(a["states"], b["states"])
-    assert a["statuses"] == b["statuses"] and a["fallbacks"] == b["fallbacks"]
+    assert a["fallbacks"] == b["fallbacks"]
+    # one word the C cannot tell apart: IPOPT's own Solved_To_Acceptable_Level (seed 8,
+    # step 1: Python "filter_optimal_inaccurate", the C "ok", the same point)
+    assert all(x == y or (x.endswith("optimal_inaccurate") and y == "ok")
+               for x, y in zip(a["statuses"], b["statuses"]))
+
+
+def test_emitted_targets_retry_with_the_stopping_rule_of_their_c(loops: dict) -> None:
+    """The IPOPT retry of an as-emitted target (``robust-sqp``) never stops at its
+    acceptable level, as its emitted C (``emittable.STATUS_OPTIONS``); a target that is not
+    emitted keeps IPOPT's defaults."""
+    from balustrade.backends.casadi_backend import EMITTED_STOP_OPTIONS
+    from balustrade.backends.emittable import STATUS_OPTIONS
+
+    slack = loops["py"]["robust"].slack
+    assert slack.as_emitted and [n for n, _ in slack.retries][-1] == "ipopt"
+    opts = slack._retry_options("ipopt", {})
+    assert opts["ipopt.acceptable_iter"] == 0
+    assert EMITTED_STOP_OPTIONS["ipopt"].items() <= STATUS_OPTIONS["ipopt"].items()
+    plain = slack.with_retries(slack.retries)
+    plain.as_emitted = False
+    assert "ipopt.acceptable_iter" not in plain._retry_options("ipopt", {})
 
 
 def test_every_build_turns_off_fused_multiply_add() -> None:
