@@ -274,6 +274,9 @@ class CasadiCompiled:
         #: which NLP the solver is built on (:data:`LOWERINGS`): a balustrade option,
         #: taken out of the solver's options
         lowering = opts.pop(LOWERING_OPTION, "expanded")
+        #: the target is one the C emitters generate (``lowering: "as-emitted"``): its
+        #: retries on another plugin stop as their emitted C does (:meth:`_retry_options`)
+        self.as_emitted = lowering == AS_EMITTED
         if lowering == AS_EMITTED:  # the NLP the C emitters generate for this solver
             lowering = "expanded" if needs_stage_order(solver, opts) else "compact"
         self.lowering = _lowering(ocp.name, lowering)
@@ -511,9 +514,22 @@ class CasadiCompiled:
                 self.solver if (name == self.solver_name and not overrides) else
                 _nlpsol(f"{self.ocp.name}_retry{k + 1}", name, self.nlp,
                         self.with_derivatives({**self.options, **overrides})
-                        if name == self.solver_name else solver_options(name, overrides))
+                        if name == self.solver_name else self._retry_options(name, overrides))
                 for k, (name, overrides) in enumerate(self.retries)]
         return self._retry
+
+    def _retry_options(self, name: str, overrides: dict) -> dict:
+        """The options of a retry on another plugin ``name``: its defaults updated by
+        ``overrides`` (:func:`solver_options`) and, for a target the C emitters generate
+        (:attr:`as_emitted`), the stopping rule of that plugin's emitted C
+        (:data:`EMITTED_STOP_OPTIONS`), so that Python and its C run the same iterations
+        (issue #14, "C = Python"; session 13: on the lane change, seed 8 step 1, Python's
+        IPOPT retry of (5.16) stopped at its acceptable level, ``optimal_inaccurate``, where
+        the C's went on to the full tolerance: inputs 1.8e-13 apart, then 2.6e-8)."""
+        opts = solver_options(name, overrides)
+        if self.as_emitted:
+            opts = {**opts, **EMITTED_STOP_OPTIONS.get(name, {})}
+        return opts
 
     def with_derivatives(self, opts: dict, derivatives: dict | None = None) -> dict:
         """``opts`` plus the shared derivative functions (``derivatives``, default this
@@ -705,6 +721,13 @@ def _same_start(a: tuple, b: tuple) -> bool:
 
 #: the balustrade option (in a target's options, never passed to ``nlpsol``) choosing the
 #: NLP the solver is built on
+#: options of a plugin's emitted C that change where it stops (part of
+#: :data:`balustrade.backends.emittable.STATUS_OPTIONS`, which adds ``error_on_fail`` for the
+#: C's verdict): the emitted IPOPT never stops at its acceptable level, a run either reaches
+#: the full tolerance or fails (then the chain goes on). :meth:`CasadiCompiled._retry_options`
+#: gives the retries of an as-emitted target the same rule.
+EMITTED_STOP_OPTIONS: dict[str, dict] = {"ipopt": {"ipopt.acceptable_iter": 0}}
+
 LOWERING_OPTION = "lowering"
 #: the lowerings of :data:`LOWERING_OPTION`: ``"expanded"`` (default) — one SX graph of
 #: ``f`` and ``g``, derivatives written out for every stage (fastest from Python);

@@ -67,11 +67,12 @@ from balustrade.control.fallbacks import (
     project,
     projected_proposal,
 )
-from balustrade.control.robust_steps import (
-    Candidate,
-    polished_slacks,
-    robust_candidate,
-    slack_cost,
+from balustrade.control.robust_steps import Candidate
+from balustrade.control.tube_functions import (
+    TubeFunctions,
+    tube_candidate,
+    tube_cost,
+    tube_polished,
 )
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
@@ -111,6 +112,10 @@ class RobustPCBFSafetyFilter:
         self.deltas = check_deltas(d, d.size, block)
         self.alpha_f = as_scalar(alpha_f, f"{block}: alpha_f", 0.0, low_open=True)
         self.slack_norm = check_norm_order(slack_norm, f"{block}: slack_norm")
+        # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
+        # Python bitwise: balustrade.control.tube_functions); None: numpy
+        self._tube = TubeFunctions.build(system, X_E, self.U_E, h_f, pi_f, self.deltas,
+                                         self.alpha_f, self.slack_norm)
         self.reset()
 
     @classmethod
@@ -159,17 +164,17 @@ class RobustPCBFSafetyFilter:
         s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=self._last_slack)
         if not s.success:
             return float("nan"), s, None
-        xi, xi_N = polished_slacks(s, self.X_E, self.h_f, self.deltas)
+        xi, xi_N = tube_polished(self._tube, s, self.X_E, self.h_f, self.deltas)
         # h_r from the polished slacks alone: the solver's objective may carry a slightly
         # negative slack (e.g. xi_N = -3.6e-12, times alpha_f) that the point does not certify
-        return slack_cost(xi, xi_N, self.alpha_f, self.slack_norm), s, (xi, xi_N)
+        return tube_cost(self._tube, xi, xi_N, self.alpha_f, self.slack_norm), s, (xi, xi_N)
 
     def _applied(self, x: np.ndarray, z0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         return np.asarray(v0, dtype=float).reshape(-1) + self.error.kappa(x - z0)
 
     def _make_candidate(self, z: np.ndarray, v: np.ndarray, xi: np.ndarray) -> Candidate:
-        return robust_candidate(self.system, self.X_E, self.h_f, self.pi_f, self.deltas, z, v, xi,
-                                self.U_E)
+        return tube_candidate(self._tube, self.system, self.X_E, self.h_f, self.pi_f, self.deltas,
+                              z, v, xi, self.U_E)
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of Algorithm 5.2 (module docstring); never raises for runtime data."""
@@ -184,7 +189,8 @@ class RobustPCBFSafetyFilter:
         info = StepInfo()
         if self.candidate is not None:
             c = self.candidate
-            info.values["h_cand"] = slack_cost(c.xi, c.xi_N, self.alpha_f, self.slack_norm)
+            info.values["h_cand"] = tube_cost(self._tube, c.xi, c.xi_N, self.alpha_f,
+                                              self.slack_norm)
         h_r, s1, polished = self._solve_slack(x)
         info.solve_time, info.solutions["slack"] = s1.solve_time, s1
         if not s1.success:
