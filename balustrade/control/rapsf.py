@@ -200,6 +200,7 @@ class RAPSF:
         self.k = 0
         self.k_inf = self.N - 1
         self.plan: np.ndarray | None = None
+        self.tube: tuple[np.ndarray, np.ndarray] | None = None   # (z, α) of the plan
         self._last: tuple[object, Solution] | None = None   # (compiled key, optimal solve)
         self.falsified = False
         self._set_theta(self.Theta0)
@@ -412,6 +413,7 @@ class RAPSF:
         info.solve_time += float(getattr(sol, "solve_time", 0.0) or 0.0)
         if note_solve(info, "rapsf", outcome(sol)):
             self.plan = np.asarray(sol["v"], dtype=float).reshape(self.m, self.N)
+            self.tube = _tube(sol, self.n, self.N)
             self.k_inf = 0
             info.values["objective"] = float(sol.objective)
             if self.enlargement is not None:                       # Theorem 4.12: record
@@ -430,16 +432,46 @@ class RAPSF:
                 info.solutions["rapsf_shrunk"] = short
                 if note_solve(info, "rapsf_shrunk", outcome(short)):
                     info.fallback = "shrunk_horizon"
-                    v0 = np.asarray(short["v"], dtype=float).reshape(self.m, -1)[:, 0]
-                    return self.K @ x + v0
+                    self._store_shrunk(short)
+                    return self.K @ x + self.plan[:, self.k_inf]
             info.fallback = "stored_plan"
             return self.K @ x + self.plan[:, self.k_inf]
         info.fallback = "backup"
         return self._backup(x, u_p)
 
+    def _store_shrunk(self, short: Solution) -> None:
+        """Remark 4.6: after an optimal (4.5) with the horizon ``N − k_inf`` at ``x_k`` the
+        state follows *its* tube, so it becomes the stored plan from column ``k_inf`` on:
+        ``plan[:, k_inf + i] = v̂_i`` and ``tube`` columns ``k_inf + i`` ``= (ẑ_i, α̂_i)``
+        (``i = 0 … N − k_inf``). Its last set lies in ``C_f`` at the same time
+        ``k − k_inf + N`` as the old plan's, so ``k_inf`` keeps counting from the last
+        full solve and a later stored-plan fallback ``K x + plan[:, k_inf]`` (or the backup
+        after ``N − 1``) keeps Theorem 4.7's guarantee: ``x_{k+i}`` lies in the stored tube's
+        set ``k_inf + i``. Without this the fallback would use the old plan, whose tube the
+        state may have left (audit session 13, finding 1)."""
+        h = self.N - self.k_inf
+        self.plan = self.plan.copy()
+        self.plan[:, self.k_inf:] = np.asarray(short["v"], dtype=float).reshape(self.m, h)
+        if self.tube is not None:
+            z, alpha = _tube(short, self.n, h)
+            self.tube = (self.tube[0].copy(), self.tube[1].copy())
+            self.tube[0][:, self.k_inf:] = z
+            self.tube[1][self.k_inf:] = alpha
+
     def _backup(self, x: np.ndarray, u_p: np.ndarray) -> np.ndarray:
         x_safe = np.where(np.isfinite(x), x, 0.0)
         return np.asarray(self.backup(x_safe, u_p, self.k), dtype=float).reshape(self.m)
+
+
+def _tube(sol: Solution, n: int, horizon: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(z, α)`` of an optimal (4.5) as ``(n × (horizon+1), horizon+1)`` arrays (the sets
+    ``z_i ⊕ α_i 𝕏₀``), or ``None`` when the solution does not carry them."""
+    try:
+        z = np.asarray(sol["z"], dtype=float).reshape(n, horizon + 1)
+        alpha = np.asarray(sol["alpha"], dtype=float).reshape(horizon + 1)
+    except (BalustradeError, ValueError):
+        return None
+    return z, alpha
 
 
 def _enlargement(enlarge: bool | TerminalEnlargement, n: int, terminal: TerminalSet | None,
