@@ -51,7 +51,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from balustrade._checks import as_matrix, check_horizon, check_instance
+from balustrade._checks import as_matrix, as_vector, check_horizon, check_instance
 from balustrade.backends import Solution, compile, resolve_target
 from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import RAPSFDeployment
@@ -63,6 +63,8 @@ from balustrade.estimate.base import SetEstimator
 from balustrade.problems.rapsf import (
     TerminalSet,
     check_parametric_system,
+    check_terminal,
+    check_tube_sets,
     rapsf_problem,
     row_dependence,
     rows_shared,
@@ -137,6 +139,8 @@ class RAPSF:
         if Theta0.dim != self.q:
             raise BalustradeError(f"{name}: Theta0 has dimension {Theta0.dim}, the system "
                                   f"has q = {self.q} parameters")
+        check_tube_sets(system, X0, W, name)       # before any support LP
+        check_terminal(terminal, self.n, name)      # not only at the first solve
         if estimator is not None and not callable(getattr(estimator, "update", None)):
             raise BalustradeError(f"{name}: estimator must have a method "
                                   "update(x_prev, u_prev, x) -> Θ")
@@ -388,8 +392,9 @@ class RAPSF:
     # -- Algorithm 4.1 --------------------------------------------------------------------------
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of Algorithm 4.1; never raises for a failed solve."""
-        x = np.asarray(x, dtype=float).reshape(self.n)
-        u_p = np.asarray(u_p, dtype=float).reshape(self.m)
+        # wrong sizes or non-numbers are errors; NaN/inf entries are handled below
+        x = as_vector(x, f"{self.name}.step: x", self.n, finite=False)
+        u_p = as_vector(u_p, f"{self.name}.step: u_p", self.m, finite=False)
         info = StepInfo()
         if not np.all(np.isfinite(u_p)):
             u_p = np.where(np.isfinite(u_p), u_p, 0.0)
