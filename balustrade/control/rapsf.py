@@ -222,9 +222,12 @@ class RAPSF:
         return self.terminal if self.terminal is not None else TerminalSet()
 
     # -- Θ_k --------------------------------------------------------------------------------
-    def _set_theta(self, Theta: Polytope) -> None:
+    def _set_theta(self, Theta: Polytope, vertices: np.ndarray | None = None) -> None:
+        """``Θ_k``, its vertices (``vertices`` when the caller enumerated them already: for
+        a general polytope, e.g. :class:`~balustrade.estimate.ExactUpdate`'s, enumeration is
+        most of the update) and ``s_jr``."""
         self.Theta = Theta
-        self.vertices = np.atleast_2d(Theta.vertices())
+        self.vertices = np.atleast_2d(Theta.vertices() if vertices is None else vertices)
         if self._s_affine is not None:
             self._s = _s_from_affine(self._s_affine, self.vertices)
         elif self._s_l1 is not None:
@@ -255,10 +258,11 @@ class RAPSF:
         if new is self.Theta:                       # the same set: Θ_k, s_jr unchanged
             return
         check_instance(new, Polytope, f"{self.name}: estimator.update result")
-        if not np.all(self.Theta.contains_many(np.atleast_2d(new.vertices()), tol=1e-9)):
+        vertices = np.atleast_2d(new.vertices())      # enumerated once: nesting and s_jr
+        if not np.all(self.Theta.contains_many(vertices, tol=1e-9)):
             info.status = "theta_not_nested"
             return
-        self._set_theta(new)
+        self._set_theta(new, vertices)
 
     # -- (4.5) ------------------------------------------------------------------------------
     def _shared_rows(self, n_th: int) -> np.ndarray | None:
