@@ -121,9 +121,10 @@ class RAPSF:
 
     ``target`` (default ``"fast-convex"``, the direct sparse QP backend; session 13): (4.5)
     is a QP, and on it ``"exact"`` (IPOPT) gave the same inputs (3 masses: within 3.8e-11
-    over 30 closed-loop steps, the same fallbacks) at 27 ms against 2.0 ms per step, and on
-    8 masses about 22 s against 24 ms (where ``"fast-convex"`` becomes row generation,
-    below); docs/adaptive.md "Session 13: audit fixes". ``"convex-qp"`` is the target whose
+    over 30 closed-loop steps, the same fallbacks) at 27 ms against 2.0 ms per step; on 8
+    masses (where ``"fast-convex"`` becomes row generation, below) 6–22 s against 12–69 ms,
+    and IPOPT stopped ``optimal_inaccurate`` where the QP path solved;
+    docs/adaptive.md "Session 13: audit fixes". ``"convex-qp"`` is the target whose
     C is emitted (:meth:`deployment_spec`).
 
     ``row_generation=True`` solves (4.5) by row generation (preset ``"fast-convex-rowgen"``,
