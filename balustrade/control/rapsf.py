@@ -120,10 +120,10 @@ class RAPSF:
     ignores it. The inputs equal the cold ones only within the solver's accuracy.
 
     ``target`` (default ``"fast-convex"``, the direct sparse QP backend; session 13): (4.5)
-    is a QP, and on it ``"exact"`` (IPOPT) gave the same inputs (3 masses: within 3.8e-11
+    is a QP, and on it ``"exact"`` (the NLP target) gave the same inputs (3 masses: within 3.8e-11
     over 30 closed-loop steps, the same fallbacks) at 27 ms against 2.0 ms per step; on 8
     masses (where ``"fast-convex"`` becomes row generation, below) 6–22 s against 12–69 ms,
-    and IPOPT stopped ``optimal_inaccurate`` where the QP path solved;
+    and ``"exact"`` stopped ``optimal_inaccurate`` where the QP path solved;
     docs/adaptive.md "Session 13: audit fixes". ``"convex-qp"`` is the target whose
     C is emitted (:meth:`deployment_spec`).
 
