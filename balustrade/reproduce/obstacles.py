@@ -22,7 +22,7 @@ border.
 
 Metrics: the minimum signed distance ``‖p − o_i‖ − r`` to every obstacle on every
 trajectory (HARD: ``>= −1e-3``) and the worst value of every row of the state constraints
-``X`` (the discs and ``|δ| <= 0.75``; a run is ``safe`` only if both hold,
+``X`` (the disks and ``|δ| <= 0.75``; a run is ``safe`` only if both hold,
 :func:`state_rows`), how often the filter changed ``u_p`` and which path of
 Algorithm 7.5 each step took (``certified``: line 4; ``proposal_feasible``: (7.6) solved,
 ``u_p`` met the decrease; ``ok``/``filter_*`` without a fallback: (7.6) and (7.5) solved;
@@ -68,7 +68,7 @@ CONFIG = Path(__file__).resolve().parents[2] / "configs" / "obstacles-small.json
 STARTS = ((-1.8, -1.0), (-2.0, 0.5), (-0.5, -1.5), (0.8, 1.5), (1.5, -1.5))
 STEPS, RHO, V0 = 70, 0.5, 3.0
 SAFE_TOL = -1e-3
-#: the rows of X other than the discs (``±δ − δ̄``) may exceed 0 by at most this in a safe run
+#: the rows of X other than the disks (``±δ − δ̄``) may exceed 0 by at most this in a safe run
 ROW_TOL = 1e-6
 THESIS = {"certification_ms": 0.26, "two_solves_ms": 37.0, "pcbf_ms": 500.0,
           "validation_error": 1e-2, "training_points": 1.2e7, "validation_points": 6e6,
@@ -252,8 +252,8 @@ def state_rows(states: np.ndarray, setup: ObstacleSetup | None = None) -> np.nda
 
 
 def state_constraint_metrics(states: np.ndarray, min_distance: float) -> dict:
-    """The worst value of every row of ``X`` along one run (``worst_per_row``: discs, then
-    ``δ − δ̄``, ``−δ − δ̄``), ``max_abs_delta``, and ``rows_ok``: the discs through the
+    """The worst value of every row of ``X`` along one run (``worst_per_row``: disks, then
+    ``δ − δ̄``, ``−δ − δ̄``), ``max_abs_delta``, and ``rows_ok``: the disks through the
     signed distance (``>= SAFE_TOL``), every other row ``<= ROW_TOL`` (session 13, audit
     finding 2: the learned filter's quick run (0.8, 1.5) reaches ``|δ| = 1.029`` with every
     disc kept at −8e-3)."""
@@ -269,7 +269,7 @@ def state_constraint_metrics(states: np.ndarray, min_distance: float) -> dict:
 def loop_metrics(runs: list[dict], path_names: tuple[str, ...] = PATHS) -> dict:
     """Per-run safety and intervention metrics and the path timings (ms) of each path in
     ``path_names`` (:data:`PCBF_PATHS` for the PCBF algorithm's loops). ``safe``: every
-    row of ``X`` kept (:func:`state_constraint_metrics`), not only the discs."""
+    row of ``X`` kept (:func:`state_constraint_metrics`), not only the disks."""
     per_run: dict = {}
     times: dict[str, list] = {p: [] for p in path_names}
     worst_other = -np.inf
