@@ -107,7 +107,8 @@ def through_ctypes(ctls: dict, X: np.ndarray, P: np.ndarray, repeats: int) -> di
         for _ in range(repeats):
             for key, ctl in ctls.items():
                 last[key], info = ctl.step(x, p)
-                times.setdefault((key, O.path_of(info.status)), []).append(info.solve_time)
+                path = O.path_of(info.status, info.fallback)
+                times.setdefault((key, path), []).append(info.solve_time)
         for key in ctls:
             inputs[key].append(last[key])
     med = {k: (len(v) // repeats, 1e6 * float(np.median(v))) for k, v in times.items()}

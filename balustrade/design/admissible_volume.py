@@ -12,7 +12,10 @@ the row bounds). ``vol 𝓕 ≈ vol X · k/S`` with a Wilson score interval for 
 samples, so an inclusion such as ``𝓕(Θ₀) ⊆ 𝓕(Θ₁₅₀) ⊆ 𝓕_f(Θ₁₅₀)`` (Theorems 4.7, 4.10) is
 checked sample by sample (``nesting_violations``), and the differences of volumes have far
 smaller variance than independent estimates. Undecided LPs (neither feasible nor infeasible
-after a retry) are counted and reported, never counted as feasible.
+after a retry) are counted and reported, never counted as feasible in the estimate; the
+intervals let them go either way (session 13, audit finding 4): the volume interval is
+``[Wilson(k).lo, Wilson(k + u).hi]`` (``u`` undecided samples), and the growth interval of
+:meth:`VolumeReport.growth` is taken at the worst completion of the undecided samples.
 """
 
 from __future__ import annotations
@@ -192,10 +195,62 @@ def wilson_interval(k: int, n: int, z: float = Z95) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
+def volume_interval(feasible: int, undecided: int, n: int, z: float = Z95
+                    ) -> tuple[float, float]:
+    """95 % interval of the feasible fraction when ``undecided`` of the ``n`` samples could
+    be either: ``[Wilson(feasible, n).lo, Wilson(feasible + undecided, n).hi]`` (each end
+    at the completion of the undecided samples that is worst for it)."""
+    return (wilson_interval(feasible, n, z)[0], wilson_interval(feasible + undecided, n, z)[1])
+
+
+#: two-sided quantile of level 1 − 0.05/2 (Bonferroni over the two proportions of
+#: :func:`paired_growth_interval`, so that both hold together with probability >= 95 %)
+Z975 = 2.241402727604947
+
+
+def paired_growth_interval(small: np.ndarray, large: np.ndarray, z: float = Z975
+                           ) -> tuple[float, float, dict]:
+    """95 % interval of ``vol L / vol S − 1`` from paired outcomes (FEASIBLE / INFEASIBLE /
+    UNDECIDED per sample, the same samples for both sets).
+
+    Among the ``m`` samples in ``S ∪ L`` let ``n_L`` be in ``L`` only and ``n_S`` in ``S``
+    only. Conditioned on ``m`` these are multinomial with probabilities ``q_L, q_S`` and
+    ``vol L / vol S = (1 − q_S)/(1 − q_L)``; Wilson intervals for ``q_L`` and ``q_S`` at
+    level 97.5 % each (both hold with probability >= 95 %) give
+    ``[(1 − q_S.hi)/(1 − q_L.lo), (1 − q_S.lo)/(1 − q_L.hi)] − 1``. So 0 differing samples of
+    200 give about ``[−2.5 %, +2.5 %]``, not ``[0, 0]``. The lower end counts every
+    undecided sample of ``S`` as in ``S`` and of ``L`` as not in ``L`` (the completion that
+    lowers it most), the upper end the reverse. Also returns the counts ``only_large``,
+    ``only_small``, ``union`` with undecided samples counted as infeasible (as the
+    estimates)."""
+    small, large = np.asarray(small), np.asarray(large)
+    nan = float("nan")
+
+    def ends(a: np.ndarray, b: np.ndarray) -> tuple[int, int, int]:
+        return int(np.sum(b & ~a)), int(np.sum(a & ~b)), int(np.sum(a | b))
+
+    # lower end: S as large as the data allow, L as small
+    nL, nS, m = ends(small != INFEASIBLE, large == FEASIBLE)
+    lo = nan if m == 0 else ((1 - wilson_interval(nS, m, z)[1])
+                             / (1 - wilson_interval(nL, m, z)[0]) - 1)
+    # upper end: S as small, L as large
+    nL2, nS2, m2 = ends(small == FEASIBLE, large != INFEASIBLE)
+    if m2 == 0:
+        hi = nan
+    else:
+        q_hi = wilson_interval(nL2, m2, z)[1]
+        hi = float("inf") if q_hi >= 1 else (1 - wilson_interval(nS2, m2, z)[0]) / (1 - q_hi) - 1
+    nL0, nS0, m0 = ends(small == FEASIBLE, large == FEASIBLE)
+    counts = {"only_large": nL0, "only_small": nS0, "union": m0}
+    return float(lo), float(hi), counts
+
+
 @dataclass(frozen=True)
 class VolumeEstimate:
-    """``volume = box_volume · feasible/samples`` and its 95 % Wilson interval; undecided
-    samples are excluded from ``feasible`` and listed in ``undecided``."""
+    """``volume = box_volume · feasible/samples`` and its 95 % interval
+    ``box_volume · [Wilson(feasible).lo, Wilson(feasible + undecided).hi]``
+    (:func:`volume_interval`): undecided samples are excluded from ``feasible`` (the
+    estimate) and listed in ``undecided``; the interval allows each to be either."""
 
     name: str
     samples: int
@@ -232,19 +287,17 @@ class VolumeReport:
     nesting_violations: dict[str, int] = field(default_factory=dict)
 
     def growth(self, small: str, large: str) -> dict:
-        """Relative growth ``vol large / vol small − 1`` and a 95 % interval from the paired
-        samples (delta method on the ratio of the two sample means; common random numbers
-        make both estimates move together)."""
-        a = self.outcomes[small] == FEASIBLE
-        b = self.outcomes[large] == FEASIBLE
-        n, pa, pb = a.size, a.mean(), b.mean()
-        if pa == 0:
-            return {"growth": float("nan"), "ci95": [float("nan"), float("nan")]}
-        r = pb / pa
-        cov = np.cov(np.vstack([b.astype(float), a.astype(float)]))
-        var = (cov[0, 0] - 2 * r * cov[0, 1] + r * r * cov[1, 1]) / (n * pa * pa)
-        half = Z95 * float(np.sqrt(max(var, 0.0)))
-        return {"growth": float(r - 1), "ci95": [float(r - 1 - half), float(r - 1 + half)]}
+        """Relative growth ``vol large / vol small − 1`` on the paired samples (common
+        random numbers) and a 95 % interval (:func:`paired_growth_interval`): from the
+        samples in one set but not the other, so that 0 differing samples still give an
+        interval of positive width, and with the undecided samples of either set at the
+        completion that is worst for each end. The point estimate counts undecided samples
+        as infeasible, as :class:`VolumeEstimate` does."""
+        oa, ob = self.outcomes[small], self.outcomes[large]
+        a, b = oa == FEASIBLE, ob == FEASIBLE
+        lo, hi, counts = paired_growth_interval(oa, ob)
+        growth = float(b.sum() / a.sum() - 1) if a.sum() else float("nan")
+        return {"growth": growth, "ci95": [lo, hi], **counts}
 
     def as_dict(self) -> dict:
         return {"box_volume": self.box_volume, "samples": int(self.samples.shape[0]),
@@ -283,10 +336,10 @@ def admissible_volumes(sets: Mapping[str, FeasibilityLP], X: Box, samples: int |
         ticker = _Ticker(name, xs.shape[0], progress, start)
         out = lp.feasible(xs, ticker)
         ticker.done(out)
-        k = int(np.sum(out == FEASIBLE))
-        estimates[name] = VolumeEstimate(name, xs.shape[0], k, int(np.sum(out == UNDECIDED)),
-                                         box_volume, tuple(box_volume * p for p in
-                                                           wilson_interval(k, xs.shape[0])),
+        k, u = int(np.sum(out == FEASIBLE)), int(np.sum(out == UNDECIDED))
+        estimates[name] = VolumeEstimate(name, xs.shape[0], k, u, box_volume,
+                                         tuple(box_volume * p for p in
+                                               volume_interval(k, u, xs.shape[0])),
                                          time.perf_counter() - start)
         outcomes[name] = out
     violations = {f"{a} ⊆ {b}": int(np.sum((outcomes[a] == FEASIBLE)
@@ -323,5 +376,5 @@ def print_progress(line: str) -> None:
 
 
 __all__ = ["CompiledFeasibility", "FeasibilityLP", "VolumeEstimate", "VolumeReport",
-           "admissible_volumes", "box_samples", "feasibility_lp", "print_progress",
-           "wilson_interval"]
+           "admissible_volumes", "box_samples", "feasibility_lp",
+           "paired_growth_interval", "print_progress", "volume_interval", "wilson_interval"]

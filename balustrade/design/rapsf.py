@@ -28,6 +28,7 @@ from balustrade._checks import as_matrix
 from balustrade.backends import solve_synthesis
 from balustrade.backends.lp import solve_lps
 from balustrade.backends.solution import Status
+from balustrade.dsl import sets_geometry as geo
 from balustrade.dsl.joint import JointPolytope, as_joint
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.sets_geometry import vertices as polytope_vertices
@@ -391,28 +392,37 @@ def _distinct(rows: object) -> list[np.ndarray]:
 
 def _supports(P: Polytope, rows: list[np.ndarray], tol: float
               ) -> tuple[list[np.ndarray], np.ndarray]:
-    """``(rows, upper bounds of their supports over P)``: the bound of its bounding box
-    (``2n`` LPs, support over the box ``>=`` over ``P``) where that is ``<= 1 + tol`` (the
-    row is redundant then, no LP needed), else the support itself (one warm-started LP
-    model for all of them, :func:`~balustrade.backends.lp.solve_lps`; ``P.support`` for any
-    it did not solve)."""
+    """``(rows, upper bounds of their supports over P)``: the bound of a box that provably
+    contains ``P`` (``2n`` LPs whose multipliers bound it,
+    :func:`~balustrade.dsl.sets_geometry.box_from_multipliers`) where that is
+    ``<= 1 + tol`` (the row is redundant then, no LP needed), else the support itself (one
+    warm-started LP model for all of them, :func:`~balustrade.backends.lp.solve_lps`),
+    raised to its weak-duality bound over that box (:func:`~balustrade.dsl.sets_geometry.
+    verified_upper`; session 13: the LP optima alone can sit below the support by the
+    solver's tolerance); ``P.support`` (verified too) for any it did not solve."""
     if not rows:
         return rows, np.zeros(0)
     n = P.dim
     R = np.array(rows, dtype=float)
     ones = np.ones(P.H.shape[0])
     ext = solve_lps(np.vstack([np.eye(n), -np.eye(n)]), P.H, ones)
+    box = None
     if len(ext) == 2 * n and all(r.status is Status.OPTIMAL for r in ext):
-        ub = np.array([r.value for r in ext[:n]])
-        lb = -np.array([r.value for r in ext[n:]])
+        box = geo.box_from_multipliers(P.H, ones, [r.dual for r in ext[:n]],
+                                       [r.dual for r in ext[n:]])
+    if box is not None:
+        lb, ub = box
         value = np.maximum(R * ub, R * lb).sum(axis=1)
     else:
         value = np.full(len(R), np.inf)
     todo = np.flatnonzero(value > 1 + tol)
     res = solve_lps(R[todo], P.H, ones) if len(todo) else []
     for k, idx in enumerate(todo):
-        ok = k < len(res) and res[k].status is Status.OPTIMAL
-        value[idx] = res[k].value if ok else P.support(R[idx])
+        ok = (k < len(res) and res[k].status is Status.OPTIMAL and box is not None
+              and res[k].dual is not None)
+        value[idx] = (max(res[k].value, geo.verified_upper(R[idx], P.H, ones, *box,
+                                                            res[k].dual))
+                      if ok else P.support(R[idx]))
     return rows, value
 
 

@@ -131,13 +131,32 @@ class Polytope(Set):
         return res.status == 2
 
     def support(self, a: np.ndarray) -> float:
+        """``max_{x∈P} aᵀx`` as a verified upper bound (session 13, audit finding 5): the
+        LP's multipliers bound it by weak duality (:func:`~balustrade.dsl.sets_geometry.
+        verified_upper`) over a box that provably contains ``P`` (:meth:`verified_box`),
+        so a solver tolerance can only raise the value, never lower it (the LP optimum
+        alone was up to 2.8e-7 below the exact support of the 8-mass 𝕏₀, and the tube
+        constants s_jr, t_r of SPEC §2.20 are such supports). ``+inf`` along an unbounded
+        direction; an unbounded polytope has no such box and gets the LP optimum."""
         a = as_vector(a, f"{self.name}.support(a)", self.dim)
         res = geo.linprog(-a, self.H, self.h, [(None, None)] * self.dim)
         if res.status == 3:
             return float("inf")
         if res.status != 0:
             raise BalustradeError(f"{self.name}.support: LP failed ({res.message})")
-        return float(-res.fun)
+        box = self.verified_box()
+        if box is None:
+            return float(-res.fun)
+        y = -np.asarray(res.ineqlin.marginals, dtype=float)
+        return max(float(-res.fun), geo.verified_upper(a, self.H, self.h, *box, y))
+
+    def verified_box(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A box that provably contains the polytope (:func:`~balustrade.dsl.
+        sets_geometry.verified_box`, ``2·dim`` LPs, computed once per polytope), or
+        ``None`` when it is unbounded."""
+        if "_verified_box" not in self.__dict__:
+            object.__setattr__(self, "_verified_box", geo.verified_box(self.H, self.h))
+        return self.__dict__["_verified_box"]
 
     def tighten(self, other: Set, name: str | None = None) -> Polytope:
         """Pontryagin difference ``self ⊖ other`` by support functions (SPEC §1.5).

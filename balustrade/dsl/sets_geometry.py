@@ -42,6 +42,76 @@ def lp_max(H: np.ndarray, h: np.ndarray, a: np.ndarray, block: str) -> tuple[flo
     return float(-res.fun), np.asarray(res.x, dtype=float)
 
 
+# -- verified bounds (weak duality) -----------------------------------------------------------
+def verified_upper(c: np.ndarray, H: np.ndarray, h: np.ndarray, lb: np.ndarray,
+                   ub: np.ndarray, y: np.ndarray) -> float:
+    """An upper bound of ``max {cᵀθ : Hθ <= h}`` that holds whatever the accuracy of the
+    solver that produced ``y``, when the feasible set lies in the box ``[lb, ub]`` (weak
+    duality): for ``y⁺ = max(y, 0)`` and ``r = c − Hᵀy⁺``, every feasible θ has
+    ``cᵀθ = y⁺ᵀHθ + rᵀθ <= y⁺ᵀh + Σ_j max(r_j lb_j, r_j ub_j)``. A solver's optimum can sit
+    below the true maximum by its optimality tolerance divided by a small coefficient of
+    ``H`` (the §4.7 chain's regressors are ~1e-3 near the origin): the box update then cut
+    θ* off by up to ~1e-6 and a later transition "falsified" the true model (3-mass seeded
+    runs, session 10); with this bound it cannot. (Moved here from
+    :mod:`balustrade.estimate.updates` in session 13 so that :meth:`Polytope.support
+    <balustrade.dsl.sets.Polytope.support>` verifies its LPs the same way.)"""
+    y = np.maximum(np.asarray(y, dtype=float), 0.0)
+    r = np.asarray(c, dtype=float) - H.T @ y
+    return float(y @ h + np.maximum(r * lb, r * ub).sum())
+
+
+#: a verified box is given up (``None``) when the multipliers of its ``2n`` LPs leave a
+#: residual ``‖e_i − Hᵀy‖₁`` this large (the bound below needs it ``< 1``)
+BOX_MAX_RESIDUAL = 0.5
+
+
+def box_from_multipliers(H: np.ndarray, h: np.ndarray, upper: list, lower: list
+                         ) -> tuple[np.ndarray, np.ndarray] | None:
+    """A box ``[lb, ub]`` that provably contains ``{Hx <= h}``, from multipliers ``y`` of
+    the ``2n`` LPs ``max ±x_i`` (``upper[i]`` for ``+x_i``, ``lower[i]`` for ``−x_i``; any
+    arrays — only weak duality is used, not their optimality). With ``y⁺ = max(y, 0)``,
+    ``c = y⁺ᵀh`` and ``r = ±e_i − Hᵀy⁺``, every ``x`` in the set has
+    ``±x_i <= c + ‖r‖₁ ‖x‖∞``; so ``‖x‖∞ <= R = max c / (1 − ρ)`` with ``ρ`` the largest
+    ``‖r‖₁`` (when ``ρ < 1``), and ``±x_i <= c + ‖r‖₁ R``. No bound of the box is assumed, so
+    unlike a box from the LP optima this one cannot be too small. ``None`` when a multiplier
+    is missing or ``ρ >=`` :data:`BOX_MAX_RESIDUAL`."""
+    n = H.shape[1]
+    if len(upper) != n or len(lower) != n or any(y is None for y in (*upper, *lower)):
+        return None
+    cs, rs = [], []
+    for sign, ys in ((1.0, upper), (-1.0, lower)):
+        for i, y in enumerate(ys):
+            y = np.maximum(np.asarray(y, dtype=float), 0.0)
+            e = np.zeros(n)
+            e[i] = sign
+            cs.append(float(y @ h))
+            rs.append(float(np.abs(e - H.T @ y).sum()))
+    c, r = np.array(cs), np.array(rs)
+    rho = float(r.max())
+    if not np.all(np.isfinite(c)) or rho >= BOX_MAX_RESIDUAL:
+        return None
+    R = max(float(c.max()), 0.0) / (1.0 - rho)
+    ub = c[:n] + r[:n] * R
+    lb = -(c[n:] + r[n:] * R)
+    return lb, ub
+
+
+def verified_box(H: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`box_from_multipliers` from ``2n`` LPs (``None`` when the set is unbounded
+    or an LP fails)."""
+    n = H.shape[1]
+    ys: list = []
+    for sign in (1.0, -1.0):
+        for i in range(n):
+            c = np.zeros(n)
+            c[i] = -sign                                  # linprog minimises
+            res = linprog(c, H, h, [(None, None)] * n)
+            if res.status != 0:
+                return None
+            ys.append(-np.asarray(res.ineqlin.marginals, dtype=float))
+    return box_from_multipliers(H, h, ys[:n], ys[n:])
+
+
 def chebyshev_center(H: np.ndarray, h: np.ndarray, block: str) -> tuple[np.ndarray, float]:
     """Centre and radius of the largest Euclidean ball in ``{Hx <= h}`` (one LP).
 

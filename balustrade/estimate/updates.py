@@ -25,6 +25,7 @@ from balustrade._checks import as_scalar
 from balustrade.backends.lp import is_feasible, solve_lp, solve_lps_joint
 from balustrade.backends.solution import Status
 from balustrade.dsl.sets import Box, Polytope
+from balustrade.dsl.sets_geometry import verified_upper
 from balustrade.dsl.system_parametric import ParametricLinearSystem
 from balustrade.errors import BalustradeError
 from balustrade.estimate.base import Proposal, SetEstimator, Transition, require_box
@@ -210,21 +211,6 @@ def vertex_supports(C: np.ndarray, H: np.ndarray, h: np.ndarray, duals: bool = F
 #: a bound from the vertices is used only if its weak-duality verification
 #: (:func:`verified_upper`) is within this (relative) of it; else the LPs decide
 VERIFY_GAP = 1e-9
-
-
-def verified_upper(c: np.ndarray, H: np.ndarray, h: np.ndarray, lb: np.ndarray,
-                   ub: np.ndarray, y: np.ndarray) -> float:
-    """An upper bound of ``max {cᵀθ : Hθ <= h}`` that holds whatever the accuracy of the
-    solver that produced ``y``, when the feasible set lies in the box ``[lb, ub]`` (weak
-    duality): for ``y⁺ = max(y, 0)`` and ``r = c − Hᵀy⁺``, every feasible θ has
-    ``cᵀθ = y⁺ᵀHθ + rᵀθ <= y⁺ᵀh + Σ_j max(r_j lb_j, r_j ub_j)``. A solver's optimum can sit
-    below the true maximum by its optimality tolerance divided by a small coefficient of
-    ``H`` (the §4.7 chain's regressors are ~1e-3 near the origin): the box update then cut
-    θ* off by up to ~1e-6 and a later transition "falsified" the true model (3-mass seeded
-    runs, session 10); with this bound it cannot."""
-    y = np.maximum(np.asarray(y, dtype=float), 0.0)
-    r = np.asarray(c, dtype=float) - H.T @ y
-    return float(y @ h + np.maximum(r * lb, r * ub).sum())
 
 
 def box_supports(C: np.ndarray, H: np.ndarray, h: np.ndarray, lb: np.ndarray,

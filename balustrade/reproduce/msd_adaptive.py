@@ -441,8 +441,8 @@ def table(metrics: dict) -> str:
             th = "n/a" if r["thesis"] is None else f"{r['thesis']:.3g}"
             return f"{ours} ({th})"
 
-        gr = " / ".join(f"{100 * v['growth']:+.0f}% [{100 * v['ci95'][0]:+.0f}, "
-                        f"{100 * v['ci95'][1]:+.0f}] ({100 * v['thesis']:+.0f}%)"
+        gr = " / ".join(f"{100 * v['growth']:+.1f}% [{100 * v['ci95'][0]:+.1f}, "
+                        f"{100 * v['ci95'][1]:+.1f}] ({100 * v['thesis']:+.0f}%)"
                         for v in g.values())
         lines.append(f"{n:>6} | " + " | ".join(cell(k) for k in ("constraints",) + SETS)
                      + f" | {gr}")
