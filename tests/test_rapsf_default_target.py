@@ -30,3 +30,19 @@ def test_default_is_fast_convex_with_the_inputs_of_exact(rapsf_toy) -> None:
         assert i_d.fallback == i_e.fallback and i_d.status == i_e.status, (k, i_d, i_e)
         assert np.max(np.abs(u_d - u_e)) <= 1e-6, (k, u_d, u_e)
         x = t.sys.step(x, u_d, theta, rng.uniform(-0.004, 0.004, 2))
+
+
+def test_warm_start_on_the_default_target_warns(rapsf_toy) -> None:
+    """``warm_start=True`` does nothing on the direct backend (no starting point): the user
+    is told at construction instead of losing warm starts silently (review, session 13)."""
+    import pytest
+
+    t = rapsf_toy
+    args = (t.sys, t.X0, t.F, t.G, t.W, t.K, N, t.Theta0)
+    with pytest.warns(UserWarning, match="warm_start=True has no effect"):
+        RAPSF(*args, warm_start=True)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        RAPSF(*args, warm_start=True, target="convex-qp")
+        RAPSF(*args)

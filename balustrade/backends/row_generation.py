@@ -185,8 +185,7 @@ class RowGeneration:
             at_in = code.data.astype(np.int64) - 1
             self._layout = (eq, (code.indices, code.indptr, at_in, code.shape))
             # G's pattern in CSR with the positions of its values in A.data (+1) as values
-            self._code = sp.csr_matrix((at_in + 1.0, code.indices, code.indptr),
-                                       shape=code.shape)
+            self._code = code  # its values are those positions + 1 already
             i_eq, p_eq, at_eq, s_eq = eq
             self._A_full = sp.csc_matrix((np.array(values, dtype=float), prog.A.indices,
                                           prog.A.indptr), shape=prog.A.shape)

@@ -12,8 +12,9 @@ The Remark 4.6 shrinking variant (``shrinking=True``) is emitted too: (4.5) with
 shorter horizon ``h = 1 … N−1`` is one more problem ``<name>_shrunk<h>`` of the module (same
 parameters ``x0, u_p, theta, s``), and after a failed (4.5) with ``k_inf <= N − 1`` and a
 stored plan the step first solves the one with ``h = N − k_inf`` and applies its
-``K x + v*_0`` (``BAL_RAPSF_SHRUNK_HORIZON``; the stored plan and ``k_inf`` are kept, as in
-:class:`~balustrade.control.rapsf.RAPSF`), falling back to the stored plan if it fails too.
+``K x + v*_0`` (``BAL_RAPSF_SHRUNK_HORIZON``; its ``v̂`` becomes the stored plan from stage
+``k_inf`` on and ``k_inf`` keeps counting, as in :class:`~balustrade.control.rapsf.RAPSF`),
+falling back to the stored plan if it fails too.
 
 What stays in the host language: the set-membership estimator (line 4 of Algorithm 4.1, LPs
 or the box update of :mod:`balustrade.estimate`) with the nesting check of Assumption 4.2,

@@ -47,6 +47,7 @@ which is recompiled whenever the vertices change.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 
 import numpy as np
@@ -165,6 +166,10 @@ class RAPSF:
             raise BalustradeError(f"{name}: row_generation must be a bool, got "
                                   f"{type(row_generation).__name__}")
         self.target = resolve_target(target)
+        if warm_start and self.target.backend != "casadi":
+            warnings.warn(f"{name}: warm_start=True has no effect on the target "
+                          f"{self.target.name!r} (it takes no starting point); use a CasADi "
+                          "target such as 'convex-qp' for warm starts", stacklevel=2)
         if vertex_data not in ("parameters", "constants"):
             raise BalustradeError(f"{name}: vertex_data must be 'parameters' or 'constants', "
                                   f"got {vertex_data!r}")
@@ -460,9 +465,9 @@ class RAPSF:
         """Remark 4.6: after an optimal (4.5) with the horizon ``N − k_inf`` at ``x_k`` the
         state follows *its* tube, so it becomes the stored plan from column ``k_inf`` on:
         ``plan[:, k_inf + i] = v̂_i`` and ``tube`` columns ``k_inf + i`` ``= (ẑ_i, α̂_i)``
-        (``i = 0 … N − k_inf``). Its last set lies in ``C_f`` at the same time
-        ``k − k_inf + N`` as the old plan's, so ``k_inf`` keeps counting from the last
-        full solve and a later stored-plan fallback ``K x + plan[:, k_inf]`` (or the backup
+        (``i = 0 … N − k_inf − 1`` for the plan, ``0 … N − k_inf`` for the tube).
+        Its last set lies in ``C_f`` at the same time ``k − k_inf + N`` as the old plan's,
+        so ``k_inf`` keeps counting from the last full solve and a later stored-plan fallback ``K x + plan[:, k_inf]`` (or the backup
         after ``N − 1``) keeps Theorem 4.7's guarantee: ``x_{k+i}`` lies in the stored tube's
         set ``k_inf + i``. Without this the fallback would use the old plan, whose tube the
         state may have left (audit session 13, finding 1)."""

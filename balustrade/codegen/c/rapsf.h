@@ -20,8 +20,9 @@
  *   BAL_OK -> u = K x + v*_0, store the plan v*, k_inf := 0        BAL_RAPSF_OK
  *   else k_inf := k_inf + 1 and
  *     k_inf <= N - 1 and a stored plan, Q_SHRINKING (Remark 4.6): solve (4.5) with the
- *       horizon N - k_inf (cold start); BAL_OK -> u = K x + v^_0 of that solve, the
- *       stored plan and k_inf kept                                BAL_RAPSF_SHRUNK_HORIZON
+ *       horizon N - k_inf (cold start); BAL_OK -> u = K x + v^_0 of that solve, and
+ *       v^ becomes the stored plan from stage k_inf on (k_inf keeps counting)
+ *                                                                  BAL_RAPSF_SHRUNK_HORIZON
  *     k_inf <= N - 1 and a stored plan -> u = K x + v*_{k_inf}    BAL_RAPSF_STORED_PLAN
  *     otherwise the backup policy u = pi_Cf(x)                     BAL_RAPSF_BACKUP
  *   falsified                       -> u = pi_Cf(x), nothing solved  BAL_RAPSF_FALSIFIED
