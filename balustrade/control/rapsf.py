@@ -469,8 +469,9 @@ class RAPSF:
         Its last set lies in ``C_f`` at the same time ``k − k_inf + N`` as the old plan's,
         so ``k_inf`` keeps counting from the last full solve and a later stored-plan
         fallback ``K x + plan[:, k_inf]`` (or the backup after ``N − 1``) keeps Theorem
-        4.7's guarantee: ``x_{k+i}`` lies in the stored tube's set ``k_inf + i``. Without this the fallback would use the old plan, whose tube the
-        state may have left (audit session 13, finding 1)."""
+        4.7's guarantee: ``x_{k+i}`` lies in the stored tube's set ``k_inf + i``. Without
+        this the fallback would use the old plan, whose tube the state may have left
+        (audit session 13, finding 1)."""
         h = self.N - self.k_inf
         self.plan = self.plan.copy()
         self.plan[:, self.k_inf:] = np.asarray(short["v"], dtype=float).reshape(self.m, h)
