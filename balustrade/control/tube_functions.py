@@ -34,6 +34,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade.control.robust_steps import (
+    CONTAINS_TOL,
     Candidate,
     polished_slacks,
     robust_candidate,
@@ -42,9 +43,6 @@ from balustrade.control.robust_steps import (
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError
-
-#: tolerance of ``U_E.contains`` in :func:`~balustrade.control.robust_steps.terminal_input`
-CONTAINS_TOL = 1e-12
 
 
 def norm_expr(col: ca.SX, order: float) -> ca.SX:
