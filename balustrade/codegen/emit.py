@@ -331,7 +331,8 @@ class _Problem:
         the first, ``k`` the ``k``-th retry's, -1 the last) from a second start. The index
         names an attempt of the compiled problem's own chain (Python's): the C runs the
         same solver (:attr:`c_attempt`, its index in the C chain when the C leaves out
-        retries, e.g. ``fast-sqp``'s IPOPT); refused when the C leaves that retry out."""
+        retries, e.g. ``fast-sqp``'s last, which links a library); refused when the C
+        leaves that retry out."""
         k = chain_solver_index(which, len(self.c.retries))
         j = self.c_attempt[k]
         if j is None:
