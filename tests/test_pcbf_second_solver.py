@@ -167,3 +167,14 @@ def test_emit_on_fast_sqp_whose_c_drops_the_ipopt_retry(pair, tmp_path):
     py = PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=-1)
     with pytest.raises(CodegenError, match="retry 2 .ipopt., whose C is not emitted"):
         emit_pcbf(py, "fsqplast", tmp_path / "last")
+
+
+def test_index_past_the_chain_is_refused_at_construction(pair):
+    """An attempt index past the (2.23) chain is bad input of the constructor, naming the
+    argument (session 13 review: it passed ``>= -1`` and raised inside ``step()``)."""
+    slack, filt, U = pair
+    assert len(filt.retries) == 1
+    for ok in (0, 1, -1):
+        PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=ok)
+    with pytest.raises(BalustradeError, match="shifted_retry_solver 2 names no attempt"):
+        PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=2)
