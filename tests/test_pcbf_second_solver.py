@@ -142,3 +142,39 @@ def test_c_equals_python(pair, which, tmp_path):
     assert got_c[FAILING_STEP][2] == (3 if which == 0 else 2)
     for (_, _, _, a), (_, _, _, b) in zip(got_py, got_c, strict=True):
         np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_emit_on_fast_sqp_whose_c_drops_the_ipopt_retry(pair, tmp_path):
+    """``fast-sqp``'s C runs its SQP retry but not its IPOPT one (self-contained C): a
+    second start by the first solver (the default) or by the SQP retry is emitted with the
+    same attempt in C; the last (IPOPT, not emitted) is refused by name (session 13 review:
+    any ``shifted_retry`` PCBF on ``fast-sqp`` was refused)."""
+    from balustrade.codegen import emit_pcbf
+    from balustrade.errors import CodegenError
+
+    slack, _, U = pair
+    system = LinearSystem(A, B, name="stable2")
+    X = Box([-1.0, -1.5], [1.0, 1.5])
+    filt = compile(pcbf_filter_problem(system, X, U, lambda x: x.T @ P @ x - LEVEL, N,
+                                       1e-3 * np.arange(N), 1e-6), "fast-sqp")
+    assert [name for name, _ in filt.retries] == ["sqpmethod", "ipopt"]
+    for which, k in ((0, 0), (1, 1)):
+        py = PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=which)
+        emitted = emit_pcbf(py, f"fsqp{k}", tmp_path / str(k))
+        assert emitted.manifest["shifted_retry_solver"] == k
+        assert f"#define fsqp{k}_filter_SECOND_SOLVER {k}" in (
+            tmp_path / str(k) / f"fsqp{k}_config.h").read_text()
+    py = PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=-1)
+    with pytest.raises(CodegenError, match="retry 2 .ipopt., whose C is not emitted"):
+        emit_pcbf(py, "fsqplast", tmp_path / "last")
+
+
+def test_index_past_the_chain_is_refused_at_construction(pair):
+    """An attempt index past the (2.23) chain is bad input of the constructor, naming the
+    argument (session 13 review: it passed ``>= -1`` and raised inside ``step()``)."""
+    slack, filt, U = pair
+    assert len(filt.retries) == 1
+    for ok in (0, 1, -1):
+        PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=ok)
+    with pytest.raises(BalustradeError, match="shifted_retry_solver 2 names no attempt"):
+        PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=2)

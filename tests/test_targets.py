@@ -259,3 +259,26 @@ def test_is_preset_compares_every_field_not_only_the_name():
         assert not other.is_preset(), other
     assert replace(fc, options={"eps_abs": 1e-6}) == fc  # why == cannot decide it
     assert not Target("casadi", "ipopt").is_preset()
+
+
+def test_every_emitted_preset_retries_with_the_stopping_rule_of_its_c():
+    """Every CasADi preset whose C the emitters generate (its first solver emittable, a
+    library allowed) compiles ``as_emitted``: its IPOPT retry stops as the emitted IPOPT
+    does (``acceptable_iter`` 0, ``emittable.STATUS_OPTIONS``), ``structured-ip`` included
+    (session 13 review: it carried no lowering option, so Python's IPOPT retry kept
+    IPOPT's acceptable stop while the C has none). The IPOPT-first presets are not
+    emitted as closed-loop C (their first attempt is the known gap, not a retry)."""
+    from balustrade.backends.casadi_backend import EMITTED_STOP_OPTIONS
+
+    emitted = [n for n, t in PRESETS.items() if t.backend == "casadi"
+               and t.nlp_solver != "ipopt" and t.emit_reason(allow_external=True) is None]
+    assert {"structured-ip", "structured-ip-noretry", "structured-sqp",
+            "fast-sqp", "robust-sqp"} <= set(emitted)
+    stop = EMITTED_STOP_OPTIONS["ipopt"]
+    for name in emitted:
+        c = compile(_small_ocp(), name)
+        assert c.as_emitted, name
+        assert c._retry_options("ipopt", {}).items() >= stop.items(), name
+    c = compile(_small_ocp(), "structured-ip")
+    assert c.lowering == "expanded" and c.stages is not None  # unchanged: stage order
+    assert [n for n, _ in c.retries] == ["fatrop", "ipopt"]

@@ -719,15 +719,16 @@ def _same_start(a: tuple, b: tuple) -> bool:
     return True
 
 
-#: the balustrade option (in a target's options, never passed to ``nlpsol``) choosing the
-#: NLP the solver is built on
 #: options of a plugin's emitted C that change where it stops (part of
 #: :data:`balustrade.backends.emittable.STATUS_OPTIONS`, which adds ``error_on_fail`` for the
-#: C's verdict): the emitted IPOPT never stops at its acceptable level, a run either reaches
-#: the full tolerance or fails (then the chain goes on). :meth:`CasadiCompiled._retry_options`
-#: gives the retries of an as-emitted target the same rule.
+#: C's verdict): the emitted IPOPT takes no acceptable stop after a run of acceptable
+#: iterates (it can still end at its acceptable level otherwise, which the C cannot tell
+#: from success: emittable.STATUS_OPTIONS). :meth:`CasadiCompiled._retry_options` gives the
+#: retries of an as-emitted target the same rule.
 EMITTED_STOP_OPTIONS: dict[str, dict] = {"ipopt": {"ipopt.acceptable_iter": 0}}
 
+#: the balustrade option (in a target's options, never passed to ``nlpsol``) choosing the
+#: NLP the solver is built on
 LOWERING_OPTION = "lowering"
 #: the lowerings of :data:`LOWERING_OPTION`: ``"expanded"`` (default) — one SX graph of
 #: ``f`` and ``g``, derivatives written out for every stage (fastest from Python);

@@ -388,6 +388,13 @@ _ROBUST_SQP = {"max_iter": 500, "lowering": "as-emitted"}
 # a user's variant of these presets is stage-ordered (qpsol hpipm, solver fatrop), which
 # then compiles as it did before session 12 instead of being refused.
 _COMPACT = {"lowering": "as-emitted"}
+# The stage-ordered presets whose C the emitters generate ("structured-ip",
+# "structured-ip-noretry", "structured-sqp") carry "as-emitted" too: their lowering stays
+# the expanded NLP in stage order (what "as-emitted" means for them), and their retries on
+# another plugin (IPOPT) stop as that plugin's emitted C does (casadi_backend.
+# EMITTED_STOP_OPTIONS; session 13 review: without it Python's IPOPT retry of
+# "structured-ip" could stop at its acceptable level where the C's goes on).
+_STAGED = {"lowering": "as-emitted"}
 
 PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", name="exact"),
@@ -399,9 +406,10 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("casadi", "ipopt", {"ipopt.mu_strategy": "adaptive"}, name="long-horizon"),
     Target("casadi", "ipopt", _IPOPT_SAMPLING, name="sampling-cold"),
     Target("casadi", "ipopt", {**_IPOPT_SAMPLING, **_IPOPT_WARM}, name="sampling-warm"),
-    Target("casadi", "fatrop", retries=(("fatrop", {}), ("ipopt", {})), name="structured-ip"),
-    Target("casadi", "fatrop", retries=(), name="structured-ip-noretry"),
-    Target("casadi", "sqpmethod", {"qpsol": "hpipm"}, name="structured-sqp"),
+    Target("casadi", "fatrop", _STAGED, retries=(("fatrop", {}), ("ipopt", {})),
+           name="structured-ip"),
+    Target("casadi", "fatrop", _STAGED, retries=(), name="structured-ip-noretry"),
+    Target("casadi", "sqpmethod", {"qpsol": "hpipm", **_STAGED}, name="structured-sqp"),
     Target("cvxpy", None, name="cvxpy"),
     Target("cvxpy", "clarabel", name="conic"),
     Target("cvxpy", "clarabel", name="sdp"),

@@ -306,6 +306,16 @@ class _Problem:
         #: ``second_solver`` of :meth:`CasadiCompiled.solve`): 0, the first solver, unless
         #: :meth:`set_second_solver` says otherwise
         self.second_solver = 0
+        #: per attempt of the compiled problem's chain (0 the first solver, ``k`` its
+        #: ``k``-th retry), the index of the C attempt running it, ``None`` for a retry the
+        #: C leaves out (the emitted retries are the chain's emittable ones, in order;
+        #: equal entries are kept or left out alike, so matching in order is exact)
+        self.c_attempt: list[int | None] = [0]
+        j = 0  # the emitted retries matched so far
+        for name, over in c.retries:
+            hit = j < len(attempts) and attempts[j][:2] == (name, dict(over))
+            j += hit
+            self.c_attempt.append(j if hit else None)
         self.layout = c.layout  # the solver's x: the user's variables, then epigraph blocks
         self.vars = self.layout.to_dict()
         self.params = c.ocp.parameter_layout.to_dict()  # with declared values as "default"
@@ -318,15 +328,20 @@ class _Problem:
 
     def set_second_solver(self, which: int) -> None:
         """Run the solver of attempt ``which`` (``CasadiCompiled.solve(second_solver=)``: 0
-        the first, ``k`` the ``k``-th retry's, -1 the last) from a second start; refused
-        when the emitted chain is not the compiled problem's own (an attempt index would
-        name another solver in C than in Python)."""
+        the first, ``k`` the ``k``-th retry's, -1 the last) from a second start. The index
+        names an attempt of the compiled problem's own chain (Python's): the C runs the
+        same solver (:attr:`c_attempt`, its index in the C chain when the C leaves out
+        retries, e.g. ``fast-sqp``'s last, which links a library); refused when the C
+        leaves that retry out."""
         k = chain_solver_index(which, len(self.c.retries))
-        if len(self.solvers) != 1 + len(self.c.retries):
-            raise CodegenError(f"{self.P}: a second start on attempt {which} needs the whole "
-                               f"retry chain in C ({len(self.c.retries)} retries), but "
-                               f"{len(self.solvers) - 1} are emitted")
-        self.second_solver = k
+        j = self.c_attempt[k]
+        if j is None:
+            name = self.c.retries[k - 1][0]
+            raise CodegenError(f"{self.P}: second_solver {which} names retry {k} ({name}), "
+                               f"whose C is not emitted (the C runs "
+                               f"{len(self.solvers) - 1} of the {len(self.c.retries)} "
+                               f"retries); choose an emitted attempt (0: the first solver)")
+        self.second_solver = j
 
     def functions(self) -> dict[str, ca.Function]:
         # every attempt on the compiled problem's own plugin shares its derivative

@@ -74,15 +74,13 @@ from balustrade.control.deploy import (
 )
 from balustrade.control.multiobjective import DECREASE_TOL
 from balustrade.control.robust import ABOVE_CANDIDATE_TOL
-from balustrade.control.tube_functions import CONTAINS_TOL, candidate_function, polish_expr
+from balustrade.control.tube_functions import candidate_function, polish_expr
 from balustrade.errors import BalustradeError, CodegenError
 
 #: the target to build both problems of Algorithm 5.2 with for C (module docstring)
 EMITTABLE_TARGET = "robust-sqp"
 _HINT = (f"build the controller with target={EMITTABLE_TARGET!r}, "
          f"slack_target={EMITTABLE_TARGET!r} ({{}}.build)")
-#: tolerance of ``U_E.contains`` in :func:`~balustrade.control.robust_steps.terminal_input`
-_CONTAINS_TOL = CONTAINS_TOL
 
 
 def _columns(w: ca.SX, var: dict) -> ca.SX:

@@ -98,6 +98,7 @@ import numpy as np
 
 from balustrade._checks import as_scalar, check_instance
 from balustrade.backends import Compiled, Solution, Target, compile
+from balustrade.backends.casadi_backend import chain_solver_index
 from balustrade.control.base import StepInfo, feasible_truncation, note_solve, outcome
 from balustrade.control.deploy import PCBFDeployment
 from balustrade.control.fallbacks import (
@@ -110,7 +111,7 @@ from balustrade.control.fallbacks import (
 from balustrade.control.shifted import ShiftedCertificate
 from balustrade.dsl.sets import Set
 from balustrade.dsl.system import System
-from balustrade.errors import BalustradeError
+from balustrade.errors import BalustradeError, SolverError
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
 
 #: a merely feasible (2.24) point of cost <= ZERO_TOL is optimal (``h_PB >= 0``)
@@ -187,6 +188,14 @@ class PCBFSafetyFilter:
                                   f">= -1 (0 the first solver, k the k-th retry's, -1 the "
                                   f"last), got {shifted_retry_solver!r}")
         self.shifted_retry_solver = int(shifted_retry_solver)
+        retries = getattr(filter, "retries", None)  # the (2.23) chain (CasADi backends)
+        if retries is not None:
+            try:
+                chain_solver_index(self.shifted_retry_solver, len(retries))
+            except SolverError as err:
+                raise BalustradeError(f"PCBFSafetyFilter: shifted_retry_solver "
+                                      f"{shifted_retry_solver} names no attempt of the "
+                                      f"(2.23) chain ({len(retries)} retries): {err}") from None
         # whether the (2.23) backend takes a second start (CasadiCompiled.solve); read once
         self._second_start_ok = "second_start" in inspect.signature(
             self.filter.solve).parameters

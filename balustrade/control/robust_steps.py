@@ -86,13 +86,18 @@ def robust_candidate(system: System, X_E: Polytope, h_f: Callable, pi_f: Callabl
     return Candidate(z_t, v_t, xi_t, xi_N)
 
 
+#: tolerance of ``U_E.contains`` in :func:`terminal_input` (``tube_functions.CONTAINS_TOL``,
+#: the same test in the CasADi candidate and its emitted C)
+CONTAINS_TOL = 1e-12
+
+
 def terminal_input(system: System, h_f: Callable, pi_f: Callable, z_N: np.ndarray,
                    U_E: Polytope | None = None) -> np.ndarray:
     """``v*_k(z_N)`` of (5.17): ``π_f(z_N)`` if it lies in ``U ⊖ κ(E)`` (always on ``D_f``,
     Assumption 6.14), otherwise ``argmin_{v ∈ U ⊖ κ(E)} h_f(f(z_N, v, 0))`` — the largest
     decrease of ``h_f`` any admissible input achieves (a small SLSQP problem)."""
     u_f = np.asarray(pi_f(z_N), dtype=float).reshape(-1)
-    if U_E is None or U_E.contains(u_f, tol=1e-12):
+    if U_E is None or U_E.contains(u_f, tol=CONTAINS_TOL):
         return u_f
     w0 = np.zeros(system.nw) if system.nw else None
 
@@ -106,7 +111,7 @@ def terminal_input(system: System, h_f: Callable, pi_f: Callable, z_N: np.ndarra
                                                 "jac": lambda v: -U_E.H}],
                                   options={"ftol": 1e-12, "maxiter": 200})
     v = np.asarray(res.x, dtype=float)
-    if not U_E.contains(v, tol=1e-12):
+    if not U_E.contains(v, tol=CONTAINS_TOL):
         v = U_E.project(v)
     return v if value(v) <= value(start) else start
 
@@ -136,5 +141,5 @@ def polished_slacks(solution, X_E: Polytope, h_f: Callable, deltas: np.ndarray
     return np.minimum(xi, xi_min), min(xi_N, xi_N_min)
 
 
-__all__ = ["Candidate", "minimal_slacks", "polished_slacks", "robust_candidate",
+__all__ = ["CONTAINS_TOL", "Candidate", "minimal_slacks", "polished_slacks", "robust_candidate",
            "slack_cost", "terminal_input"]

@@ -34,6 +34,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade.control.robust_steps import (
+    CONTAINS_TOL,
     Candidate,
     polished_slacks,
     robust_candidate,
@@ -43,8 +44,10 @@ from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError
 
-#: tolerance of ``U_E.contains`` in :func:`~balustrade.control.robust_steps.terminal_input`
-CONTAINS_TOL = 1e-12
+#: how far the affine map identified for a numpy-only ``π_f`` (:func:`policy_expr`) may be
+#: from ``π_f(z_N)`` for the CasADi candidate to be used (the tolerance of the
+#: identification; on the lane change the two differ by rounding only)
+POLICY_TOL = 1e-9
 
 
 def norm_expr(col: ca.SX, order: float) -> ca.SX:
@@ -66,15 +69,26 @@ def slack_cost_expr(xi: ca.SX, xi_N: ca.SX, alpha_f: float, slack_norm: float) -
     return total
 
 
-def policy_expr(nx: int, nu: int, pi_f: Callable, z: ca.SX) -> ca.SX:
-    """``π_f(z)`` on CasADi symbols: ``π_f`` itself if it accepts them, else the linear map
-    it is checked to be (``π_f(x) = K_f x + c`` at random points), else a BalustradeError."""
+def symbolic_policy(nu: int, pi_f: Callable, z: ca.SX) -> ca.SX | None:
+    """``π_f(z)`` when ``π_f`` accepts CasADi symbols (``nu`` entries), else ``None``."""
     try:
         out = pi_f(z)
         if isinstance(out, (ca.SX, ca.MX, ca.DM)) and out.numel() == nu:
             return ca.reshape(ca.SX(out) if isinstance(out, ca.DM) else out, nu, 1)
-    except Exception:  # noqa: BLE001 - a numpy-only policy: identified below
+    except Exception:  # noqa: BLE001 - a numpy-only policy
         pass
+    return None
+
+
+def policy_expr(nx: int, nu: int, pi_f: Callable, z: ca.SX) -> ca.SX:
+    """``π_f(z)`` on CasADi symbols: ``π_f`` itself if it accepts them, else the linear map
+    it is checked to be (``π_f(x) = K_f x + c`` at random points), else a BalustradeError.
+    The check cannot see a numpy-only ``π_f`` that is affine only where it was probed (e.g.
+    saturating at large ``|Kx|``): :meth:`TubeFunctions.candidate` compares the map with
+    ``π_f`` at every ``z_N`` it is used at."""
+    out = symbolic_policy(nu, pi_f, z)
+    if out is not None:
+        return out
     try:
         c = np.asarray(pi_f(np.zeros(nx)), dtype=float).reshape(nu)
         K = np.column_stack([np.asarray(pi_f(e), dtype=float).reshape(nu) - c
@@ -175,6 +189,9 @@ class TubeFunctions:
     cost_fn: ca.Function
     polish_fn: ca.Function
     cand_fn: ca.Function
+    #: for a numpy-only ``π_f``: ``(π_f, the affine map policy_expr identified)``, checked
+    #: against each other at every candidate's ``z_N`` (``None``: ``π_f`` is symbolic)
+    policy_check: tuple[Callable, ca.Function] | None = None
 
     @classmethod
     def build(cls, system: System, X_E: Polytope, U_E: Polytope, h_f: Callable,
@@ -198,9 +215,12 @@ class TubeFunctions:
                                [slack_cost_expr(xi, xi_N, alpha_f, slack_norm)])
             cand = candidate_function("tube_cand", system, X_E, U_E, h_f, pi_f, deltas,
                                       alpha_f, slack_norm)
+            zN = ca.SX.sym("zN", nx)
+            check = None if symbolic_policy(nu, pi_f, zN) is not None else (
+                pi_f, ca.Function("tube_policy", [zN], [policy_expr(nx, nu, pi_f, zN)]))
         except Exception:  # noqa: BLE001 - no CasADi form: the numpy path is used
             return None
-        return cls(nx, nu, nr, N, cost, polish, cand)
+        return cls(nx, nu, nr, N, cost, polish, cand, check)
 
     def cost(self, xi: np.ndarray, xi_N: float) -> float:
         """``h̃(ξ)`` (the C's sum order)."""
@@ -217,8 +237,16 @@ class TubeFunctions:
 
     def candidate(self, z: np.ndarray, v: np.ndarray, xi: np.ndarray) -> Candidate | None:
         """The candidate (5.17)/(6.14); ``None`` where its terminal input has no closed form
-        (the caller computes it as :func:`~balustrade.control.robust_steps.robust_candidate`
-        does)."""
+        or, for a numpy-only ``π_f``, where the affine map identified for it differs from
+        ``π_f(z_N)`` (beyond :data:`POLICY_TOL`) (the caller computes it as
+        :func:`~balustrade.control.robust_steps.robust_candidate` does)."""
+        if self.policy_check is not None:
+            pi_f, affine = self.policy_check
+            zN = np.asarray(z, dtype=float).reshape(self.nx, self.N + 1)[:, self.N]
+            want = np.asarray(pi_f(zN), dtype=float).reshape(-1)
+            got = np.asarray(affine(zN), dtype=float).reshape(-1)
+            if not np.allclose(got, want, rtol=POLICY_TOL, atol=POLICY_TOL):
+                return None
         out = self.cand_fn(np.asarray(z, dtype=float),
                            np.asarray(v, dtype=float).reshape(self.nu, self.N),
                            np.asarray(xi, dtype=float).reshape(self.nr, self.N))
@@ -261,6 +289,6 @@ def tube_candidate(tube: TubeFunctions | None, system: System, X_E: Polytope, h_
     return cand
 
 
-__all__ = ["CONTAINS_TOL", "TubeFunctions", "candidate_function", "norm_expr", "policy_expr",
-           "polish_expr", "slack_cost_expr", "terminal_input_expr", "tube_candidate",
-           "tube_cost", "tube_polished"]
+__all__ = ["CONTAINS_TOL", "POLICY_TOL", "TubeFunctions", "candidate_function", "norm_expr",
+           "policy_expr", "polish_expr", "slack_cost_expr", "symbolic_policy",
+           "terminal_input_expr", "tube_candidate", "tube_cost", "tube_polished"]
