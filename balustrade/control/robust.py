@@ -57,7 +57,7 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, as_vector, check_deltas, check_instance, check_norm_order
-from balustrade.backends import Compiled, Solution, Target, companion, compile
+from balustrade.backends import Compiled, Solution, Target, companion, compile, recovery_lead
 from balustrade.control.base import StepInfo, feasible_truncation, note_solve, outcome
 from balustrade.control.deploy import RobustDeployment
 from balustrade.control.fallbacks import (
@@ -90,6 +90,9 @@ from balustrade.problems.robust import (
 #: tests/test_robust.py allows ``h_r`` above ``h_cand``
 ABOVE_CANDIDATE_TOL = 1e-5
 
+#: the default recovery target (module docstring, "Recovery steps")
+RECOVERY_TARGET: str | None = "recovery"
+
 
 class RobustPCBFSafetyFilter:
     """Algorithm 5.2 over the compiled problems (5.15) and (5.16) (any backend)."""
@@ -97,7 +100,8 @@ class RobustPCBFSafetyFilter:
     def __init__(self, slack: Compiled, filter: Compiled, system: System, X_E: Polytope,
                  U: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
                  deltas: np.ndarray, alpha_f: float, slack_norm: int | float = 1,
-                 U_E: Polytope | None = None):
+                 U_E: Polytope | None = None,
+                 recovery_target: Target | str | None = RECOVERY_TARGET):
         block = "RobustPCBFSafetyFilter"
         check_instance(system, System, f"{block}: system")
         check_instance(X_E, Polytope, f"{block}: X_E")
@@ -111,6 +115,8 @@ class RobustPCBFSafetyFilter:
         self.deltas = check_deltas(d, d.size, block)
         self.alpha_f = as_scalar(alpha_f, f"{block}: alpha_f", 0.0, low_open=True)
         self.slack_norm = check_norm_order(slack_norm, f"{block}: slack_norm")
+        #: the recovery target (module docstring, "Recovery steps")
+        self.recovery_target = recovery_target
         self.reset()
 
     @classmethod
@@ -118,7 +124,9 @@ class RobustPCBFSafetyFilter:
               N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
               slack_norm: int | float = 1, objective: Objective | None = None,
               target: Target | str = "auto", slack_target: Target | str | None = None,
-              eps: float = 1e-6, U_tight: Polytope | None = None) -> RobustPCBFSafetyFilter:
+              eps: float = 1e-6, U_tight: Polytope | None = None,
+              recovery_target: Target | str | None = RECOVERY_TARGET
+              ) -> RobustPCBFSafetyFilter:
         """Build and compile (5.15) for ``slack_target`` and (5.16) for ``target`` (targets
         or preset names, e.g. ``target="cvxpy"``).
 
@@ -139,7 +147,7 @@ class RobustPCBFSafetyFilter:
                                                   objective, U_tight), target)
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, filt, system, sets.X_E, U, error, h_f, pi_f, deltas, alpha_f,
-                   slack_norm, sets.U_E)
+                   slack_norm, sets.U_E, recovery_target)
 
     def reset(self) -> None:
         self._last_slack: Solution | None = None
@@ -152,11 +160,28 @@ class RobustPCBFSafetyFilter:
         h_r, s, _ = self._solve_slack(x)
         return h_r, s
 
-    def _solve_slack(self, x: np.ndarray
+    @property
+    def slack_lead(self) -> int | None:
+        """The attempt of the (5.15) chain a recovery step runs first (``None``: the chain in
+        its usual order); read from the problem's chain as it is now (a mirrored chain,
+        :func:`~balustrade.codegen.mirror_c_retries`, may have dropped it)."""
+        return recovery_lead(self.slack, self.recovery_target)
+
+    def recovering(self) -> bool:
+        """Whether the next step is a recovery step: no candidate (the first step, or after
+        a reset or a projected proposal), or a candidate whose ``h̃`` is positive, so that it
+        does not certify ``h_r(x_k) = 0`` (Theorem 5.15: ``h_r(x_k) <= h̃``)."""
+        c = self.candidate
+        return c is None or slack_cost(c.xi, c.xi_N, self.alpha_f, self.slack_norm) > 0.0
+
+    def _solve_slack(self, x: np.ndarray, lead: int | None = None
                      ) -> tuple[float, Solution, tuple[np.ndarray, float] | None]:
         """:meth:`h_r` and the polished slacks ``(ξ, ξ_N)`` it was computed from (``None``
-        if the solve failed), so that a step polishes them once."""
-        s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=self._last_slack)
+        if the solve failed), so that a step polishes them once; ``lead``: the attempt of
+        the chain that runs first (a recovery step)."""
+        extra = {} if lead is None else {"lead": lead}
+        s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=self._last_slack,
+                             **extra)
         if not s.success:
             return float("nan"), s, None
         xi, xi_N = polished_slacks(s, self.X_E, self.h_f, self.deltas)
@@ -185,8 +210,11 @@ class RobustPCBFSafetyFilter:
         if self.candidate is not None:
             c = self.candidate
             info.values["h_cand"] = slack_cost(c.xi, c.xi_N, self.alpha_f, self.slack_norm)
-        h_r, s1, polished = self._solve_slack(x)
+        lead = self.slack_lead if self.recovering() else None
+        h_r, s1, polished = self._solve_slack(x, lead)
         info.solve_time, info.solutions["slack"] = s1.solve_time, s1
+        if lead is not None:
+            info.values["recovery"] = 1.0
         if not s1.success:
             info.status = f"slack_{outcome(s1)}"
             if feasible_truncation(s1):  # continued next step; its cost bounds h_r only
@@ -201,8 +229,10 @@ class RobustPCBFSafetyFilter:
         note_solve(info, "slack", s1.status)   # optimal_inaccurate: h_r flagged, not certified
         info.values["h_r"] = h_r
         xi, xi_N = polished
-        warm = self._last_filter if self._last_filter is not None else {"z": s1["z"],
-                                                                         "v": s1["v"]}
+        # before the first (5.16) and on a recovery step: from the (5.15) point (an
+        # interior-point answer of the previous (5.16) stops the SQP: docs/vehicles.md)
+        warm = self._last_filter if self._last_filter is not None and lead is None else \
+            {"z": s1["z"], "v": s1["v"]}
         s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
@@ -242,5 +272,6 @@ class RobustPCBFSafetyFilter:
                                 h_f=self.h_f, pi_f=self.pi_f, K=self.error.K
                                 if self.error.kappa_fn is None else None,
                                 deltas=self.deltas, alpha_f=self.alpha_f,
-                                slack_norm=self.slack_norm)
+                                slack_norm=self.slack_norm,
+                                recovery_target=self.recovery_target)
 
