@@ -339,8 +339,6 @@ class MultiobjectivePCBFController:
             self._candidate_start(c)
         lead = self.problem_lead if self.recovering() else None
         self._recovered = lead is not None
-        if lead is not None:
-            info.values["recovery"] = 1.0
         sol = self.problem.solve({"x0": x, "u_p": u_p, "bound": bound}, warm_start=warm,
                                  **({} if lead is None else {"lead": lead}))
         info.solve_time += sol.solve_time

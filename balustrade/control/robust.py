@@ -213,8 +213,6 @@ class RobustPCBFSafetyFilter:
         lead = self.slack_lead if self.recovering() else None
         h_r, s1, polished = self._solve_slack(x, lead)
         info.solve_time, info.solutions["slack"] = s1.solve_time, s1
-        if lead is not None:
-            info.values["recovery"] = 1.0
         if not s1.success:
             info.status = f"slack_{outcome(s1)}"
             if feasible_truncation(s1):  # continued next step; its cost bounds h_r only
