@@ -43,6 +43,11 @@ the lane change (§8.2) the SQP attempts alone fail the cold (5.15) at ``x_0`` a
 (5.16)/(6.15) solves that the last retry solves. ``full_chain=False`` gives self-contained
 C (only ``libm``) without it; compare that with a Python controller that runs the same
 part of the chain (:func:`~balustrade.codegen.mirror_c_retries`).
+
+Recovery steps (issue #14): the controllers' ``recovery_target`` names an attempt of the
+chain that leads on their recovery steps (:mod:`balustrade.backends.recovery`); the C runs
+it first there too (``bal/problem.c``'s ``P_solve_lead``, ``<name>_SLACK_LEAD``,
+``<name>_PROBLEM_LEAD``; 0 when that attempt is not emitted, ``full_chain=False``).
 """
 
 from __future__ import annotations

@@ -16,6 +16,14 @@ converged (6.15) whose plan needs more than the bound (its polished slacks' ``h�
 by more than :data:`DECREASE_TOL` relative) is no feasible point of (6.15) and falls back
 the same way (status ``"problem_above_bound"``, value ``h_tilde_rejected``).
 
+Recovery steps (issue #14): the first (5.15) and every (6.15) until one converges (the
+bound of the first leaves no interior: the minimizers of (5.15)) run the attempt of their
+retry chains named by ``recovery_target`` first (default ``"recovery"``: the interior-point
+retry, :mod:`balustrade.backends.recovery`), then the rest of the chain; the (6.15) after a
+recovery solve starts from the candidate (6.14), not from the interior-point point, which
+stops the SQP (docs/vehicles.md, session 13). ``recovery_target=None``: the usual order. The
+emitted C decides the same (``<name>_SLACK_LEAD``, ``<name>_PROBLEM_LEAD``).
+
 The decrease bounds get a margin ``bound_tol · max(1, bound)`` (default ``1e-9``) so that a
 candidate that meets them with equality is not declared infeasible by solver round-off.
 A solve used although it ended ``optimal_inaccurate`` is flagged in ``StepInfo.uncertified``.
@@ -214,7 +222,8 @@ class MultiobjectivePCBFController:
         lane change it makes a (6.15) solve ≈ 18× faster (docs/vehicles.md); on the 2-D
         example of §5.6 the SQP alone then converges less often from far-off states at
         ``k = 0`` (5 of 49 instead of 40; the retry chain's last resort solves them), so it
-        is not the default."""
+        is not the default. ``recovery_target``: the attempt that leads the first (5.15)
+        and (6.15) solves (module docstring; ``None``: none)."""
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                   1, U_tight), companion(slack_target, target))
         prob = compile(multiobjective_pcbf_problem(system, X, U, h_f, N, deltas, error, alpha_f,

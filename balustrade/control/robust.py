@@ -44,6 +44,17 @@ optimal; ``StepInfo.status`` carries the word ``"truncated"`` in place of their 
   after a (5.16) stopped infeasible, the next one starts from the primal of its step's
   (5.15), as in :mod:`balustrade.control.pcbf` (not from an older converged (5.16)).
 
+Recovery steps (issue #14): a step whose candidate does not certify ``h_r(x_k) = 0`` — no
+candidate (the first step, after a reset or a projected proposal), or one with ``h̃ > 0``
+(Theorem 5.15: ``h_r(x_k) <= h̃``) — solves (5.15) with the attempt of its retry chain named
+by ``recovery_target`` first (default ``"recovery"``: the interior-point retry,
+:mod:`balustrade.backends.recovery`), then the rest of the chain; (5.16) then starts from
+the (5.15) point, as at the first step. Why: while ``h_r > 0`` the LP-like (5.15) makes the
+SQP attempts fail after hundreds of iterations (150–240 ms each) before the interior-point
+last resort answers (21–50 ms alone); an interior-point (5.16) point, as a warm start, stops
+the next SQP (docs/vehicles.md, session 13). ``recovery_target=None`` keeps the chain's order
+everywhere. The emitted C decides the same (``<name>_SLACK_LEAD``).
+
 Recorded values: ``h_r`` (the optimal value of (5.15), read as ``h̃`` of the polished slacks
 (:func:`~balustrade.control.robust_steps.polished_slacks`) — never the solver's objective,
 whose slightly negative slacks the point does not certify) and ``h_cand`` (``h̃`` of the candidate
@@ -138,7 +149,8 @@ class RobustPCBFSafetyFilter:
         degenerate for it); ``robust-sqp`` is the SQP target for (5.16) (more iterations: the
         default limit stops early on tube problems), the one whose C can be emitted; on any
         other backend (5.15) uses ``target``. Tune a target with
-        :meth:`~balustrade.backends.Target.with_options`.
+        :meth:`~balustrade.backends.Target.with_options`. ``recovery_target``: the attempt
+        that leads (5.15) on a recovery step (module docstring; ``None``: none).
         """
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                   slack_norm, U_tight),
