@@ -4,9 +4,10 @@ lane change's worst steps: the SQP attempts fail on the LP-like slack problems w
 
 On the unstable 2-D example of Section 5.6 with ``robust-sqp`` (the lane change's target):
 Algorithm 5.2 leads (5.15) with the chain's interior-point retry where its candidate does not
-certify ``h_r = 0`` (the first step) and not where it does; Algorithm 6.4 leads its first
-(5.15) and (6.15) and not the next (6.15). The emitted C runs the same attempts: its attempt
-counters ``<P>_attempts`` equal Python's runs, and the C decides as Python.
+certify ``h_r = 0`` and not where it does (nor at the first step, which has no
+candidate); Algorithm 6.4 leads its first (5.15) and (6.15) and not the next (6.15). The
+emitted C runs the same attempts: its attempt counters ``<P>_attempts`` equal Python's runs,
+and the C decides as Python.
 """
 
 from __future__ import annotations
@@ -62,8 +63,12 @@ def test_robust_recovery_step_runs_the_interior_point_attempt_first() -> None:
     led, name = _lead_solver(ctrl.slack)
     for x in OUTSIDE:
         ctrl.reset()
+        assert not ctrl.recovering()  # the first step: no candidate
         runs.clear()
-        assert ctrl.recovering()  # no candidate
+        ctrl.step(x, np.array([1.0]))
+        assert runs[0] is ctrl.slack.solver
+        assert ctrl.recovering()  # outside S_r: the candidate's h~ is positive
+        runs.clear()
         u, info = ctrl.step(x, np.array([1.0]))
         assert runs[0] is led, (x, runs)
         assert runs.count(led) == 1  # not run again as the last resort
@@ -83,8 +88,10 @@ def test_robust_without_recovery_target_keeps_the_chain_order() -> None:
     ctrl, _ = _design()
     ctrl.recovery_target = None
     runs = _counted(ctrl.slack)
-    ctrl.step(OUTSIDE[0], np.array([1.0]))
-    assert runs[0] is ctrl.slack.solver
+    for _ in range(2):
+        runs.clear()
+        ctrl.step(OUTSIDE[0], np.array([1.0]))
+        assert runs[0] is ctrl.slack.solver
 
 
 def _mo() -> MultiobjectivePCBFController:
@@ -129,7 +136,7 @@ def test_c_runs_the_same_attempts_as_python(robust_c: tuple) -> None:
     for x in [*OUTSIDE, ORIGIN]:
         py.reset()
         c.reset()
-        for u_p in (np.array([1.0]), np.array([0.5])):
+        for u_p in (np.array([1.0]), np.array([0.5]), np.array([0.2])):
             runs.clear()
             (u1, i1), (u2, i2) = py.step(x, u_p), c.step(x, u_p)
             assert (i1.status, i1.fallback) == (i2.status, i2.fallback), (x, i1.status)

@@ -165,6 +165,7 @@ class RobustPCBFSafetyFilter:
         self._last_slack: Solution | None = None
         self._last_filter: Solution | None = None
         self.candidate: Candidate | None = None
+        self._slack_recovered = False  # the last converged (5.15) was a recovery solve
 
     def h_r(self, x: np.ndarray) -> tuple[float, Solution]:
         """Solve (5.15) at ``x``: ``(h_r(x), solution)`` (``nan`` if the solve failed); the
@@ -180,11 +181,15 @@ class RobustPCBFSafetyFilter:
         return recovery_lead(self.slack, self.recovery_target)
 
     def recovering(self) -> bool:
-        """Whether the next step is a recovery step: no candidate (the first step, or after
-        a reset or a projected proposal), or a candidate whose ``h̃`` is positive, so that it
-        does not certify ``h_r(x_k) = 0`` (Theorem 5.15: ``h_r(x_k) <= h̃``)."""
+        """Whether the next step is a recovery step: a candidate whose ``h̃`` is positive, so
+        that it does not certify ``h_r(x_k) = 0`` (Theorem 5.15: ``h_r(x_k) <= h̃``). Not
+        the first step (no candidate): there (5.16), started from an interior-point (5.15)
+        point, ends at the interior-point solver's acceptable level, which Python flags
+        (``optimal_inaccurate``) and the emitted C cannot tell from convergence
+        (docs/vehicles.md, session 13)."""
         c = self.candidate
-        return c is None or slack_cost(c.xi, c.xi_N, self.alpha_f, self.slack_norm) > 0.0
+        return c is not None and slack_cost(c.xi, c.xi_N, self.alpha_f,
+                                            self.slack_norm) > 0.0
 
     def _solve_slack(self, x: np.ndarray, lead: int | None = None
                      ) -> tuple[float, Solution, tuple[np.ndarray, float] | None]:
@@ -192,8 +197,11 @@ class RobustPCBFSafetyFilter:
         if the solve failed), so that a step polishes them once; ``lead``: the attempt of
         the chain that runs first (a recovery step)."""
         extra = {} if lead is None else {"lead": lead}
-        s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=self._last_slack,
-                             **extra)
+        # after a (5.15) answered on a recovery step, from the candidate (5.17): the
+        # interior-point point stops the SQP of the next step (docs/vehicles.md, session 13)
+        warm = self.candidate.as_dict() if self._slack_recovered and \
+            self.candidate is not None else self._last_slack
+        s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=warm, **extra)
         if not s.success:
             return float("nan"), s, None
         xi, xi_N = polished_slacks(s, self.X_E, self.h_f, self.deltas)
@@ -236,6 +244,7 @@ class RobustPCBFSafetyFilter:
             info.status, info.values["h_r_local"] = "slack_above_candidate", h_r
             return self._fallback(x, u_p, info)
         self._last_slack = s1
+        self._slack_recovered = lead is not None
         note_solve(info, "slack", s1.status)   # optimal_inaccurate: h_r flagged, not certified
         info.values["h_r"] = h_r
         xi, xi_N = polished
