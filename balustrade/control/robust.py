@@ -231,7 +231,8 @@ class RobustPCBFSafetyFilter:
             c = self.candidate
             info.values["h_cand"] = slack_cost(c.xi, c.xi_N, self.alpha_f, self.slack_norm)
         lead = self.slack_lead if self.recovering() else None
-        h_r, s1, polished = self._solve_slack(x, lead)
+        h_r, s1, polished = self._solve_slack(x) if lead is None else \
+            self._solve_slack(x, lead)
         info.solve_time, info.solutions["slack"] = s1.solve_time, s1
         if not s1.success:
             info.status = f"slack_{outcome(s1)}"
