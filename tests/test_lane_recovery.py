@@ -16,7 +16,7 @@ import ctypes
 
 import numpy as np
 import pytest
-from test_emit_robust import _design
+from test_emit_robust import _design, _kind
 
 from balustrade.backends import PRESETS, recovery_lead
 from balustrade.backends.targets import target
@@ -149,3 +149,41 @@ def test_c_runs_the_same_attempts_as_python(robust_c: tuple) -> None:
         seen_led += runs[0] is led
         seen_sqp += runs[0] is py.slack.solver
     assert seen_led >= 5 and seen_sqp >= 2, (seen_led, seen_sqp)
+
+
+@pytest.fixture(scope="module")
+def mo_c(tmp_path_factory: pytest.TempPathFactory) -> tuple:
+    base, _ = _design()
+    s = unstable2d_setup(10)
+    capped = target("robust-sqp", options={"max_iter": 3})
+    py = MultiobjectivePCBFController.build(
+        unstable2d(), s.X, s.U, base.h_f, base.pi_f, 10, s.deltas(), base.error, s.alpha_f,
+        target=capped, slack_target=capped)
+    return py, accelerate(py, build_dir=tmp_path_factory.mktemp("mo_recovery"), name="morec")
+
+
+def test_multiobjective_c_runs_the_same_attempts_as_python(mo_c: tuple) -> None:
+    """Algorithm 6.4 in C: the attempts of (5.15) at the first step and of each (6.15) equal
+    Python's runs (the first (6.15) led by the interior-point attempt, the next ones by the
+    SQP from the candidate), with the same statuses and inputs."""
+    py, c = mo_c
+    fn = {k: c._lib.fn(f"{v.info['prefix']}_attempts", ctypes.c_int, [ctypes.c_void_p])
+          for k, v in (("slack", c.slack), ("problem", c.problem))}
+    runs = {"slack": _counted(py.slack), "problem": _counted(py.problem)}
+    led, _ = _lead_solver(py.problem)
+    py.reset()
+    c.reset()
+    x, firsts = OUTSIDE[0], []
+    for k in range(5):
+        for r in runs.values():
+            r.clear()
+        (u1, i1), (u2, i2) = py.step(x, np.array([1.0])), c.step(x, np.array([1.0]))
+        assert (_kind(i1.status), i1.fallback) == (_kind(i2.status), i2.fallback), k
+        assert np.max(np.abs(u1 - u2)) <= 1e-6, (k, u1, u2)
+        assert fn["problem"](c.problem.work) == len(runs["problem"]), k
+        if k == 0:
+            assert fn["slack"](c.slack.work) == len(runs["slack"])
+        firsts.append(runs["problem"][0] is led)
+        x = np.asarray(py.system.step(x, u1, np.zeros(py.system.nw) if py.system.nw else None),
+                       dtype=float).reshape(-1)
+    assert firsts == [True, False, False, False, False], firsts
