@@ -2,11 +2,15 @@
 in Python and as emitted C (issue #16: "PCBF <= 50 ms").
 
 ``python -m benchmarks.obstacles_pcbf_c [--target structured-ip] [--states 200]
-[--steps 70] [--build-dir DIR] [--no-certificate-first] [--out FILE]``
+[--steps 70] [--build-dir DIR] [--no-certificate-first] [--shifted-retry-solver K]
+[--out FILE]``
 
-* The filter is :func:`balustrade.reproduce.obstacles.pcbf_algorithm` with ``target`` and
-  ``shifted=False`` (the emitted C warm-starts (2.24) from its last solution, so the Python
-  filter does too: same decisions); its C through
+* The filter is :func:`balustrade.reproduce.obstacles.pcbf_algorithm` with ``target``,
+  ``shifted=False`` and ``shifted_retry_solver`` (default
+  :data:`~balustrade.reproduce.obstacles.SHIFTED_RETRY_SOLVER`, -1: the chain's last solver
+  makes the shifted-plan attempt; 0 is session 12's, the first solver); the emitted C
+  warm-starts (2.24) from its last solution, so the Python filter does too (same
+  decisions); its C through
   :func:`~balustrade.codegen.accelerate` (:func:`~balustrade.codegen.emit_pcbf`, one call
   per step; with ``structured-ip`` it links the casadi wheel's libfatrop/libblasfeo and
   libipopt, the chain's last resort). Build time and source size are reported (the build
@@ -41,16 +45,24 @@ BUILD_DIR = Path("/tmp/balustrade-obstacles-pcbf-c")
 
 
 def build_pair(target: str = "structured-ip", build_dir: str | Path = BUILD_DIR,
-               certificate_first: bool = True) -> dict:
+               certificate_first: bool = True,
+               shifted_retry_solver: int = O.SHIFTED_RETRY_SOLVER) -> dict:
     """The Python PCBF algorithm on ``target`` and its emitted C (cached build)."""
-    py = O.pcbf_algorithm(target, shifted=False, certificate_first=certificate_first)
+    py = O.pcbf_algorithm(target, shifted=False, certificate_first=certificate_first,
+                          shifted_retry_solver=shifted_retry_solver)
+    # the Python backend builds its retry solvers on first use (~0.2 s under load), the C
+    # allocates them at init: built here, so that no step's time includes a build
+    for prob in (py.slack, py.filter):
+        getattr(prob, "_retry_solvers", lambda: None)()
     t = time.perf_counter()
-    c = O.pcbf_algorithm_c(target, build_dir=build_dir, certificate_first=certificate_first)
+    c = O.pcbf_algorithm_c(target, build_dir=build_dir, certificate_first=certificate_first,
+                           shifted_retry_solver=shifted_retry_solver)
     wall = time.perf_counter() - t
     acc = c.accelerated
     d = Path(acc["dir"])
     size = sum(p.stat().st_size for p in d.rglob("*.[ch]"))
-    return {"py": py, "c": c, "build_s": acc["build_s"], "cached": acc["cached"],
+    return {"py": py, "c": c, "shifted_retry_solver": shifted_retry_solver,
+            "build_s": acc["build_s"], "cached": acc["cached"],
             "accelerate_s": wall, "source_bytes": size, "dir": str(d),
             "link_flags": list(c._lib.manifest.get("link_flags", []))}
 
@@ -94,7 +106,10 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
                 out[k] = (u, info)
                 xs[k].append(plant.step(x, u, None))
             (u_py, i_py), (u_c, i_c) = out["py"], out["c"]
-            where.append((list(p), step, i_py.status, i_c.status))
+            s2 = i_py.solutions.get("filter")
+            where.append((list(p), step, i_py.status, i_c.status,
+                          None if s2 is None else f"{s2.solver}, {s2.iterations} iterations: "
+                          f"{s2.message[:160]}"))
             max_du = max(max_du, float(np.max(np.abs(u_py - u_c))))
             if (i_py.status, i_py.fallback) != (i_c.status, i_c.fallback):
                 differ.append((list(p), step, i_py.status, i_c.status))
@@ -107,8 +122,11 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
         max_dx = max(max_dx, float(np.max(np.abs(np.array(xs["py"]) - np.array(xs["c"])))))
         per_start.append(row)
     worst = {k: where[int(np.argmax(times[k]))] for k in filters}
+    # the 5 slowest steps of each, with the Python (2.23) chain's summary (same in C)
+    slowest = {k: [[round(times[k][i], 1), *where[i]] for i in np.argsort(times[k])[-5:][::-1]]
+               for k in filters}
     return {"per_start": per_start, "python": _stats(times["py"]), "c": _stats(times["c"]),
-            "worst_step": worst,
+            "worst_step": worst, "slowest_steps": slowest,
             "without_first_step": {k: _stats([t for t, w in zip(times[k], where) if w[1]])
                                    for k in filters},
             "statuses_py": dict(Counter(statuses["py"])),
@@ -165,8 +183,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", default=None, help="write the metrics as JSON here")
     ap.add_argument("--no-certificate-first", action="store_true",
                     help="solve (2.24) at every step (certificate_first=False)")
+    ap.add_argument("--shifted-retry-solver", type=int, default=O.SHIFTED_RETRY_SOLVER,
+                    help="the (2.23) chain's solver of a certified step's attempt from the "
+                         "shifted plan (0 the first, -1 the last)")
     a = ap.parse_args(argv)
-    pair = build_pair(a.target, a.build_dir, not a.no_certificate_first)
+    pair = build_pair(a.target, a.build_dir, not a.no_certificate_first,
+                      a.shifted_retry_solver)
     res: dict = {"target": a.target, **{k: v for k, v in pair.items() if k not in ("py", "c")}}
     print(json.dumps(res), flush=True)
     res["loops"] = lockstep_loops(pair["py"], pair["c"], steps=a.steps)

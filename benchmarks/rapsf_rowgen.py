@@ -3,6 +3,7 @@
 
     PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen [masses] [steps]
     PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen loop [masses] [steps] [drop_after]
+    PYTHONPATH=$PWD python -m benchmarks.rapsf_rowgen versions [masses] [steps] [path]
 
 The closed loop of :class:`benchmarks.bench_rapsf.Loop` (design of ``reproduce msd-adaptive``,
 box update, ``fast-convex``) runs ``steps`` steps and records the parameters of every solve of
@@ -13,11 +14,17 @@ group and round; the seed from the previous state), all taking turns state by st
 Reported: time per solve (median/worst), rounds, final rows, the largest
 ``|v_0|`` and objective differences, the statuses. ``loop``: whole closed loops of
 Algorithm 4.1 with and without row generation, taking turns every step (:func:`loops`).
+``versions``: closed loops with row generation by this checkout's
+:class:`~balustrade.backends.row_generation.RowGeneration` and by the one in another copy of
+``row_generation.py`` (``path``, e.g. ``/work/main/balustrade/backends/row_generation.py``;
+default: this checkout's with ``reuse_solver=False``), taking turns every step
+(:func:`versions`).
 """
 
 from __future__ import annotations
 
 import copy
+import importlib.util
 import sys
 import time
 
@@ -115,7 +122,75 @@ def loops(masses: int, steps: int, drop_after: int | None = None) -> dict:
             for label, loop in runs.items()}
 
 
+def _row_generation_class(path: str | None) -> type:
+    """``RowGeneration`` of the module file ``path`` (``None``: this checkout's)."""
+    if path is None:
+        from balustrade.backends.row_generation import RowGeneration
+        return RowGeneration
+    spec = importlib.util.spec_from_file_location("_other_row_generation", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module             # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module.RowGeneration
+
+
+def versions(masses: int, steps: int, path: str | None = None) -> dict:
+    """Two closed loops of Algorithm 4.1 with row generation (the preset chosen by
+    :class:`~balustrade.control.rapsf.RAPSF`), the same ``θ*`` and disturbances, taking turns
+    every step (which goes first alternates): this checkout's ``RowGeneration`` and the one of
+    ``path`` (``None``: this checkout's with ``reuse_solver=False``, i.e. a new PIQP solver
+    per round as in session 12). The other loop's row generation is swapped in after the
+    first step (which compiles; its working set carried over). Per loop: step times, rounds
+    per step; the largest input difference between the two; per-step time ratios."""
+    other_cls = _row_generation_class(path)
+    d = msd_adaptive.design(masses)
+    ctrls = {"this checkout": msd_adaptive.adaptive_controller(d),
+             "other": msd_adaptive.adaptive_controller(d)}
+    runs = {label: Loop(d, c.step, steps) for label, c in ctrls.items()}
+    rounds: dict[str, list[int]] = {label: [] for label in runs}
+    for loop in runs.values():
+        loop(0)
+    setting = dict(resolve_target("fast-convex-rowgen").options["row_generation"])
+    if path is None:
+        setting["reuse_solver"] = False
+    for c in ctrls["other"]._compiled.values():
+        if c.rowgen is not None:
+            seed = c.rowgen._seed
+            c.rowgen = other_cls(c.program, c.rowgen.groups, stride=c.rowgen.stride,
+                                 options=c.options, **setting)
+            c.rowgen._seed = seed
+    for k in range(1, steps):
+        for label in (list(runs) if k % 2 else list(runs)[::-1]):
+            runs[label](k)
+            gens = [c.rowgen for c in ctrls[label]._compiled.values()
+                    if getattr(c, "rowgen", None) is not None]
+            rounds[label].append(gens[0].stats.rounds if gens else 0)
+    t = {label: np.array(loop.times[1:]) for label, loop in runs.items()}
+    du = float(np.max(np.abs(np.array(runs["this checkout"].applied)
+                             - np.array(runs["other"].applied))))
+    return {"median": {k: float(np.median(v)) for k, v in t.items()},
+            "mean": {k: float(np.mean(v)) for k, v in t.items()},
+            "ratio_median": float(np.median(t["other"] / t["this checkout"])),
+            "rounds": rounds, "max_du": du,
+            "fallbacks": {k: loop.fallbacks for k, loop in runs.items()}}
+
+
 def main(argv: list[str]) -> None:
+    if argv and argv[0] == "versions":
+        masses = int(argv[1]) if len(argv) > 1 else 8
+        steps = int(argv[2]) if len(argv) > 2 else 30
+        path = argv[3] if len(argv) > 3 else None
+        r = versions(masses, steps, path)
+        print(f"{masses} masses, closed loops of {steps} steps taking turns (first step not "
+              f"timed; under load); other = {path or 'this checkout, reuse_solver=False'}")
+        for label in r["median"]:
+            print(f"  {label:<14} median step {1e3 * r['median'][label]:8.2f} ms  mean "
+                  f"{1e3 * r['mean'][label]:8.2f} ms  rounds per step "
+                  f"{np.bincount(r['rounds'][label]).tolist()} (count of 0, 1, 2, … rounds)  "
+                  f"fallbacks {r['fallbacks'][label]}")
+        print(f"  median of per-step ratios other/this {r['ratio_median']:.3f}; max |du| "
+              f"between the two {r['max_du']:.1e}")
+        return
     if argv and argv[0] == "loop":
         masses = int(argv[1]) if len(argv) > 1 else 8
         steps = int(argv[2]) if len(argv) > 2 else 16

@@ -16,6 +16,13 @@ own bound methods are wrapped with timers (instance attributes only, nothing els
 * ``s_jr of a new Θ_k`` — vertices and support constants (SPEC §2.20) when ``Θ_k`` changed;
 * ``nesting check`` — the rest of the parameter update (``Θ_k ⊆ Θ_{k−1}`` at the vertices);
 * ``QP solve`` — the solver engine's run (PIQP's data update and its interior-point solve);
+  0 when (4.5) is solved by row generation (8 masses), whose parts are:
+* ``rowgen: PIQP set-up`` / ``rowgen: PIQP update`` — a new solver for a round with new
+  rows, resp. the kept one's data update for a round with the last round's rows;
+* ``rowgen: PIQP solves`` — the interior-point solves of the reduced QPs (all rounds);
+* ``rowgen: all-row check`` — every inequality row at each round's optimum (one product);
+* ``rowgen: rest`` — the rest of the row generation (values of ``A``, ``G[rows]``, the
+  working set, the most violated rows, the multipliers of the full QP);
 * ``QP data`` — the rest of the backend's ``solve`` (parameter packing, ``q``, ``b``,
   ``A(p)``, the :class:`~balustrade.backends.Solution` with its duals);
 * ``step, rest`` — Algorithm 4.1's bookkeeping (plan, ``StepInfo``).
@@ -35,8 +42,32 @@ from balustrade.reproduce import msd_adaptive
 from benchmarks.bench_rapsf import GOAL_S, Loop, RebuiltCvxpy
 from benchmarks.bench_rapsf import timed_into as _timed
 
+ROWGEN_PARTS = ["rowgen: PIQP set-up", "rowgen: PIQP update", "rowgen: PIQP solves",
+                "rowgen: all-row check", "rowgen: rest"]
 PARTS = ["estimator LPs", "estimator, rest", "s_jr of a new Θ_k", "nesting check",
-         "QP solve", "QP data", "step, rest"]
+         "QP solve", *ROWGEN_PARTS, "QP data", "step, rest"]
+
+
+def _timed_piqp(acc: dict) -> tuple[object, object]:
+    """``piqp.SparseSolver`` replaced (in the ``piqp`` module, which row generation imports
+    per round) by a subclass timing ``setup``, ``update`` and ``solve`` into ``acc``;
+    returns the module and the original class (to put back)."""
+    import piqp
+
+    original = piqp.SparseSolver
+
+    class Timed(original):
+        def setup(self, *a, **kw):
+            return _timed(super().setup, acc, "rowgen: PIQP set-up")(*a, **kw)
+
+        def update(self, *a, **kw):
+            return _timed(super().update, acc, "rowgen: PIQP update")(*a, **kw)
+
+        def solve(self):
+            return _timed(super().solve, acc, "rowgen: PIQP solves")()
+
+    piqp.SparseSolver = Timed
+    return piqp, original
 
 
 def split(masses: int, steps: int) -> dict:
@@ -52,6 +83,7 @@ def split(masses: int, steps: int) -> dict:
     acc: dict[str, float] = {}
     lps = updates.solve_lps_joint
     updates.solve_lps_joint = _timed(lps, acc, "estimator LPs")
+    piqp, solver_class = _timed_piqp(acc)
     try:
         ctrl.estimator.update = _timed(ctrl.estimator.update, acc, "estimator")
         ctrl._update_theta = _timed(ctrl._update_theta, acc, "theta update")
@@ -59,7 +91,12 @@ def split(masses: int, steps: int) -> dict:
         for compiled in ctrl._compiled.values():
             compiled.solve = _timed(compiled.solve, acc, "backend solve")
             compiled.engine.run = _timed(compiled.engine.run, acc, "QP solve")
+            if compiled.rowgen is not None:
+                gen = compiled.rowgen
+                gen.run = _timed(gen.run, acc, "rowgen")
+                gen._rows_at = _timed(gen._rows_at, acc, "rowgen: all-row check")
         per: dict[str, list[float]] = {k: [] for k in ["step", *PARTS]}
+        rounds: list[int] = []       # row-generation rounds per step (0: none)
         for k in range(1, steps):
             base(k)                 # its own BoxUpdate's LPs are not the controller's
             acc.clear()
@@ -68,21 +105,27 @@ def split(masses: int, steps: int) -> dict:
             acc["estimator, rest"] = g("estimator", 0.0) - g("estimator LPs", 0.0)
             acc["nesting check"] = g("theta update", 0.0) - g("estimator", 0.0) \
                 - g("s_jr of a new Θ_k", 0.0)
-            acc["QP data"] = g("backend solve", 0.0) - g("QP solve", 0.0)
+            acc["rowgen: rest"] = g("rowgen", 0.0) - sum(g(p, 0.0) for p in ROWGEN_PARTS[:-1])
+            acc["QP data"] = g("backend solve", 0.0) - g("QP solve", 0.0) - g("rowgen", 0.0)
             acc["step, rest"] = loop.times[-1] - g("theta update", 0.0) \
                 - g("backend solve", 0.0)
             per["step"].append(loop.times[-1])
+            gens = [c.rowgen for c in ctrl._compiled.values()
+                    if getattr(c, "rowgen", None) is not None]
+            rounds.append(gens[0].stats.rounds if gens else 0)
             for p in PARTS:
                 per[p].append(acc.get(p, 0.0))
     finally:
         updates.solve_lps_joint = lps
+        piqp.SparseSolver = solver_class
     du = float(np.max(np.abs(np.array(loop.applied) - np.array(base.applied))))
     return {"masses": masses, "steps": steps - 1,
             "median": {k: float(np.median(v)) for k, v in per.items()},
             "mean": {k: float(np.mean(v)) for k, v in per.items()},
             "baseline_median": float(np.median(base.times[1:])),
             "max_du_vs_baseline": du, "fallbacks": loop.fallbacks,
-            "lp_steps": sum(r.lps > 0 for r in ctrl.estimator.history)}
+            "lp_steps": sum(r.lps > 0 for r in ctrl.estimator.history),
+            "rounds": rounds}
 
 
 def main(argv: list[str]) -> None:
@@ -90,10 +133,14 @@ def main(argv: list[str]) -> None:
     steps = int(argv[1]) if len(argv) > 1 else 150
     r = split(masses, steps)
     med, mean = r["median"], r["mean"]
-    print(f"{masses} masses, {r['steps']} steps (fast-convex; {r['lp_steps']} steps with "
+    target = "fast-convex"
+    if max(r["rounds"]) > 0:
+        target = (f"fast-convex-rowgen, rounds per step {np.bincount(r['rounds']).tolist()} "
+                  "(count of 0, 1, 2, … rounds)")
+    print(f"{masses} masses, {r['steps']} steps ({target}; {r['lp_steps']} steps with "
           f"estimator LPs, {r['fallbacks']} fallbacks)")
     for k in ["step", *PARTS]:
-        print(f"  {k:<20} median {1e3 * med[k]:9.3f} ms   mean {1e3 * mean[k]:9.3f} ms")
+        print(f"  {k:<22} median {1e3 * med[k]:9.3f} ms   mean {1e3 * mean[k]:9.3f} ms")
     print(f"  cvxpy rebuilt every step: median {1e3 * r['baseline_median']:.3f} ms, ratio "
           f"{r['baseline_median'] / med['step']:.1f}x; goal {1e3 * GOAL_S[masses]:.0f} ms; "
           f"max |du| vs baseline {r['max_du_vs_baseline']:.2g}")

@@ -77,7 +77,7 @@ def test_first_round_alone_violates_a_row():
     A_eq, G = rg._split(prog.A_data(p))
     h = b[rg.m0:]
     rows = np.flatnonzero(rg._initial(h))
-    first = rg._solve_reduced(q, A_eq, b[:rg.m0], G[rows], h[rows])
+    first, _ = rg._solve_reduced(q, A_eq, b[:rg.m0], G[rows], h[rows])
     assert first.status == Status.OPTIMAL
     assert np.max(G @ first.y - h) > 1e-3      # a row of the full QP is violated
     done = rg.run(q, b, prog.A_data(p), cold=True)
@@ -278,3 +278,67 @@ def test_rapsf_switching_row_generation_recompiles(monkeypatch):
     loop(1)
     assert ctrl._compiled
     assert all(getattr(c, "rowgen", None) is None for c in ctrl._compiled.values())
+
+
+def _scaled_grouped_qp(seed: int = 0) -> OCP:
+    """:func:`_grouped_qp` whose grouped rows read ``(1 + k_g) a_rᵀ y <= 1 + g_r + d_g`` with
+    parameters ``k`` and ``d`` per group: their coefficients (the values of ``A(p)``) and
+    their bounds change with ``p``."""
+    rng = np.random.default_rng(seed)
+    ocp = OCP(name=f"scaled{seed}")
+    y = ocp.variable("y", 6)
+    c = ocp.parameter("c", 6)
+    k = ocp.parameter("k", 8)
+    d = ocp.parameter("d", 8)
+    marks = {}
+    for g in range(8):
+        a = rng.normal(size=(12, 6))
+        h = 1.0 + rng.uniform(0.0, 0.5, 12)
+        ocp.le((1.0 + k[g]) * ca.mtimes(ca.DM(a), y), ca.DM(h) + d[g], name=f"group_{g}")
+        marks[f"group_{g}"] = np.full(12, g)
+    ocp.le(y, 3.0, name="upper")
+    ocp.le(-y, 3.0, name="lower")
+    ocp.minimize(squared_norm(y - c))
+    ocp.row_groups = marks
+    return ocp
+
+
+@pytest.mark.parametrize("make", [_grouped_qp, _scaled_grouped_qp])
+def test_reused_solver_gives_the_full_solve_answer(make):
+    """Rounds whose rows are those of the last reduced solve update that PIQP solver
+    (``reuse_solver``, session 13) with the new ``q``, ``h`` and values of ``A(p)``: the
+    answers stay the full solve's. (A solver whose data were not updated would answer the
+    last QP; a result array left as a view of the solver's memory would change under a
+    later solve: both are checked.)"""
+    ocp = make(0)
+    full, gen = DirectCompiled(ocp, "piqp"), DirectCompiled(ocp, "piqp", ROWGEN)
+    assert gen.rowgen.reuse_solver
+    rng = np.random.default_rng(7)
+    reused, kept = 0, []
+    for _ in range(8):
+        params = {"c": rng.normal(scale=4.0, size=6)}
+        if "k" in ocp.parameters:
+            params["k"] = rng.uniform(-0.3, 0.3, size=8)
+            params["d"] = rng.uniform(0.0, 0.5, size=8)
+        a, b = full.solve(params), gen.solve(params)
+        assert a.status == b.status == Status.OPTIMAL
+        assert np.max(np.abs(a.primal["y"] - b.primal["y"])) < 1e-7
+        assert abs(a.objective - b.objective) < 1e-7
+        reused += gen.rowgen.stats.reused
+        p = ocp.pack_parameters(params)
+        prog = gen.program
+        raw = gen.rowgen.run(prog.q(p), prog.b(p), prog.A_data(p))
+        kept.append((raw.y, raw.y.copy()))
+    assert reused >= 4                           # the update path was taken
+    for y, copy in kept:                        # not overwritten by later solves
+        assert np.array_equal(y, copy)
+
+
+def test_reuse_solver_off_sets_up_every_round():
+    ocp = _grouped_qp(1)
+    gen = DirectCompiled(ocp, "piqp", {"row_generation": {"reuse_solver": False}})
+    for c in (np.full(6, 4.0), np.full(6, -4.0), np.full(6, 4.0)):
+        assert gen.solve({"c": c}).status == Status.OPTIMAL
+        assert gen.rowgen.stats.reused == 0
+    with pytest.raises(BalustradeError, match="reuse_solver"):
+        DirectCompiled(ocp, "piqp", {"row_generation": {"reuse_solver": 1}})

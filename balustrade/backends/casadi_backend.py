@@ -274,6 +274,9 @@ class CasadiCompiled:
         #: which NLP the solver is built on (:data:`LOWERINGS`): a balustrade option,
         #: taken out of the solver's options
         lowering = opts.pop(LOWERING_OPTION, "expanded")
+        #: the target is one the C emitters generate (``lowering: "as-emitted"``): its
+        #: retries on another plugin stop as their emitted C does (:meth:`_retry_options`)
+        self.as_emitted = lowering == AS_EMITTED
         if lowering == AS_EMITTED:  # the NLP the C emitters generate for this solver
             lowering = "expanded" if needs_stage_order(solver, opts) else "compact"
         self.lowering = _lowering(ocp.name, lowering)
@@ -389,6 +392,7 @@ class CasadiCompiled:
     def solve(self, params: dict[str, object] | None = None,
               warm_start: Solution | dict[str, object] | None = None,
               second_start: Solution | dict[str, object] | None = None,
+              second_solver: int = 0,
               lead: int | None = None) -> Solution:
         """Solve with the given parameter values; ``warm_start`` is a previous
         :class:`Solution` (primal and dual) or a dict of variable values.
@@ -396,7 +400,11 @@ class CasadiCompiled:
         ``second_start`` (optional, same forms): when the first attempt fails, the first
         solver is tried once more from this point *before* the cold-start retries (it
         counts as one more attempt; e.g. a known feasible point, as the PCBF filter's
-        certified shifted plan for (2.23)).
+        certified shifted plan for (2.23)). ``second_solver`` picks the solver of that
+        attempt: 0 the first solver, ``k >= 1`` that of the ``k``-th retry, ``-1`` the last
+        of the chain (:func:`chain_solver_index`; e.g. ``structured-ip``'s IPOPT, which
+        converged from the obstacle car's shifted plan where its interior-point solver on the
+        stage-ordered NLP stalls: docs/obstacles.md "session 13").
 
         ``lead`` (optional): the index of an entry of :attr:`retries` that runs *first*,
         from its cold start, before the first solver (the recovery steps of Algorithms 5.2
@@ -430,6 +438,7 @@ class CasadiCompiled:
         of an unbounded problem is no answer to use in a closed loop).
         """
         p = self.ocp.pack_parameters(params)
+        second_k = chain_solver_index(second_solver, len(self.retries))
         guess = self._initial_guess(warm_start, p)
         attempts, ran = [], []  # (solver, start) of every attempt run so far
         if lead is not None and self.budget is None:  # (a budget has no retries to lead)
@@ -446,8 +455,9 @@ class CasadiCompiled:
         if second_start is not None and not sol.success:
             # not in ``ran``: the retries run cold, and the C's ran_before compares them with
             # the cold attempts only (a second start equal to the cold one is not skipped)
-            attempts.append(self._solve_with(self.solver, p,
-                                             self._initial_guess(second_start, p)))
+            attempts.append(self._solve_with(
+                self._retry_solvers()[second_k - 1] if second_k else self.solver, p,
+                self._initial_guess(second_start, p)))
         for solver in self._retry_solvers():
             if attempts[-1].success:
                 break
@@ -517,9 +527,22 @@ class CasadiCompiled:
                 self.solver if (name == self.solver_name and not overrides) else
                 _nlpsol(f"{self.ocp.name}_retry{k + 1}", name, self.nlp,
                         self.with_derivatives({**self.options, **overrides})
-                        if name == self.solver_name else solver_options(name, overrides))
+                        if name == self.solver_name else self._retry_options(name, overrides))
                 for k, (name, overrides) in enumerate(self.retries)]
         return self._retry
+
+    def _retry_options(self, name: str, overrides: dict) -> dict:
+        """The options of a retry on another plugin ``name``: its defaults updated by
+        ``overrides`` (:func:`solver_options`) and, for a target the C emitters generate
+        (:attr:`as_emitted`), the stopping rule of that plugin's emitted C
+        (:data:`EMITTED_STOP_OPTIONS`), so that Python and its C run the same iterations
+        (issue #14, "C = Python"; session 13: on the lane change, seed 8 step 1, Python's
+        IPOPT retry of (5.16) stopped at its acceptable level, ``optimal_inaccurate``, where
+        the C's went on to the full tolerance: inputs 1.8e-13 apart, then 2.6e-8)."""
+        opts = solver_options(name, overrides)
+        if self.as_emitted:
+            opts = {**opts, **EMITTED_STOP_OPTIONS.get(name, {})}
+        return opts
 
     def with_derivatives(self, opts: dict, derivatives: dict | None = None) -> dict:
         """``opts`` plus the shared derivative functions (``derivatives``, default this
@@ -677,6 +700,19 @@ class CasadiCompiled:
                         message=message)
 
 
+def chain_solver_index(which: int, n_retries: int) -> int:
+    """The attempt index (0: the first solver, ``k``: the ``k``-th retry) that ``which``
+    names in a chain of ``n_retries`` retries; ``-1`` is the last of the chain (the first
+    solver when there is no retry). Refuses an index outside the chain."""
+    if isinstance(which, bool) or not isinstance(which, int | np.integer):
+        raise SolverError(f"second_solver must be an int, got {which!r}")
+    k = n_retries if which == -1 else int(which)
+    if not 0 <= k <= n_retries:
+        raise SolverError(f"second_solver {which} is outside the chain (first solver 0, "
+                          f"retries 1..{n_retries}, or -1 for the last)")
+    return k
+
+
 def _same_start(a: tuple, b: tuple) -> bool:
     """Whether two starts ``(x0, lam_x0, lam_g0)`` of one solver are equal value for value
     (a scalar multiplier start stands for that value in every entry).
@@ -698,6 +734,13 @@ def _same_start(a: tuple, b: tuple) -> bool:
 
 #: the balustrade option (in a target's options, never passed to ``nlpsol``) choosing the
 #: NLP the solver is built on
+#: options of a plugin's emitted C that change where it stops (part of
+#: :data:`balustrade.backends.emittable.STATUS_OPTIONS`, which adds ``error_on_fail`` for the
+#: C's verdict): the emitted IPOPT never stops at its acceptable level, a run either reaches
+#: the full tolerance or fails (then the chain goes on). :meth:`CasadiCompiled._retry_options`
+#: gives the retries of an as-emitted target the same rule.
+EMITTED_STOP_OPTIONS: dict[str, dict] = {"ipopt": {"ipopt.acceptable_iter": 0}}
+
 LOWERING_OPTION = "lowering"
 #: the lowerings of :data:`LOWERING_OPTION`: ``"expanded"`` (default) — one SX graph of
 #: ``f`` and ``g``, derivatives written out for every stage (fastest from Python);

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from balustrade.backends.casadi_backend import solver_options
+from balustrade.backends.casadi_backend import EMITTED_STOP_OPTIONS, solver_options
 
 #: (nlpsol plugin, qpsol plugin or None) -> libraries the generated C must be linked with
 #: (empty: self-contained, needs only libm).
@@ -56,7 +56,7 @@ SUPPORTED: dict[tuple[str, str | None], tuple[str, ...]] = {
 #: therefore never stops at the acceptable level (``acceptable_iter`` 0), so a converged C
 #: attempt is one IPOPT solved to its full tolerance.
 STATUS_OPTIONS: dict[str, dict] = {"ipopt": {"error_on_fail": True,
-                                             "ipopt.acceptable_iter": 0},
+                                             **EMITTED_STOP_OPTIONS["ipopt"]},
                                     # fatrop: its generated C returns nonzero unless fatrop
                                     # itself ended with Success (an acceptable stop
                                     # included: the C then retries it, never uses it)

@@ -57,7 +57,8 @@ ACTIVE_GAP = 1e-6
 #: the keys of the direct backend's option ``row_generation`` (keywords of
 #: :class:`RowGeneration`; the groups, the stride and the full solve's options come from the
 #: OCP and the target)
-ROWGEN_KEYS = ("per_round", "seed", "max_rounds", "drop_after", "reduced_options")
+ROWGEN_KEYS = ("per_round", "seed", "max_rounds", "drop_after", "reduced_options",
+               "reuse_solver")
 
 
 def _positive_int(value: object, name: str, none_ok: bool = False) -> None:
@@ -77,11 +78,12 @@ class RowGenStats:
     rows: int = 0          # inequality rows of the last reduced QP
     iterations: int = 0    # interior-point iterations over all rounds
     history: list[int] = field(default_factory=list)  # rows per round
+    reused: int = 0        # rounds solved by updating the last PIQP solver (same rows)
 
 
 def check_setting(per_round: object = 3, seed: object = "working",
                   max_rounds: object = MAX_ROUNDS, drop_after: object = None,
-                  reduced_options: object = None) -> None:
+                  reduced_options: object = None, reuse_solver: object = True) -> None:
     """Refuse a bad value of a :data:`ROWGEN_KEYS` keyword (a :class:`BalustradeError`
     naming it); the direct backend calls it for its option ``row_generation`` whether or not
     the OCP has row groups."""
@@ -93,6 +95,9 @@ def check_setting(per_round: object = 3, seed: object = "working",
     if reduced_options is not None and not isinstance(reduced_options, Mapping):
         raise BalustradeError(f"row generation: reduced_options must be a dict of PIQP "
                               f"settings or None, got {type(reduced_options).__name__}")
+    if not isinstance(reuse_solver, bool):
+        raise BalustradeError(f"row generation: reuse_solver must be True or False, got "
+                              f"{reuse_solver!r}")
 
 
 class RowGeneration:
@@ -105,14 +110,18 @@ class RowGeneration:
     ``seed`` (:data:`SEEDS`): which rows of this solve seed the next. ``drop_after``: leave
     out of the seed the rows not near active at that many consecutive solves (``None``:
     keep them). ``options``: PIQP settings. ``reduced_options``: settings of the reduced
-    solves only (e.g. the KKT solver). The defaults (3 rows per group and round, the whole
-    working set as seed) were the fastest on the 8-mass (4.5) (docs/adaptive.md, session
-    12)."""
+    solves only (e.g. the KKT solver). ``reuse_solver``: a round whose rows are those of the
+    last reduced solve (the same sparsity pattern) updates that PIQP solver's data
+    (``update``) instead of setting up a new one; the solve itself is as cold as before
+    (PIQP takes no starting point), only the set-up (ordering, symbolic analysis) is saved.
+    The defaults (3 rows per group and round, the whole working set as seed, reuse) were the
+    fastest on the 8-mass (4.5) (docs/adaptive.md, sessions 12 and 13)."""
 
     def __init__(self, prog: ConicProgram, groups: np.ndarray, per_round: int = 3,
                  stride: int = 0, options: dict | None = None,
                  max_rounds: int = MAX_ROUNDS, seed: str = "working",
-                 drop_after: int | None = None, reduced_options: dict | None = None):
+                 drop_after: int | None = None, reduced_options: dict | None = None,
+                 reuse_solver: bool = True):
         if prog.conic:
             raise BalustradeError("row generation: an LP/QP is needed (this problem has "
                                   "second-order cones)")
@@ -123,7 +132,8 @@ class RowGeneration:
             raise BalustradeError(f"row generation: groups must have one label per "
                                   f"inequality row, shape ({m_in},), got {groups.shape}")
         check_setting(per_round=per_round, seed=seed, max_rounds=max_rounds,
-                      drop_after=drop_after, reduced_options=reduced_options)
+                      drop_after=drop_after, reduced_options=reduced_options,
+                      reuse_solver=reuse_solver)
         if isinstance(stride, bool) or not isinstance(stride, int | np.integer) or stride < 0:
             raise BalustradeError(f"row generation: stride must be an integer >= 0, got "
                                   f"{stride!r}")
@@ -143,17 +153,28 @@ class RowGeneration:
         grouped = np.flatnonzero(~self.always)
         self._order = grouped[np.argsort(groups[grouped], kind="stable")]
         self._P = sp.triu(prog.P).tocsc()
-        self._layout: tuple | None = None   # the patterns of A's two blocks (_split)
+        self._layout: tuple | None = None   # the patterns of A's two blocks (_load)
+        self._A_full: sp.csc_matrix | None = None   # A with the values of the last _load
+        self._A_eq: sp.csc_matrix | None = None     # its equality block
         self._seed: np.ndarray | None = None   # inequality rows active at the last solve
+        self.reuse_solver = reuse_solver
+        # the last reduced QP: its rows, G[rows] (CSC) and where its values sit in A.data
+        self._red: tuple[np.ndarray, sp.csc_matrix, np.ndarray] | None = None
+        self._solver: object | None = None   # the PIQP solver set up for self._red's rows
+        self._code: sp.csr_matrix | None = None   # G's pattern, positions in A.data (_load)
         self.stats = RowGenStats()
 
     # -- data ---------------------------------------------------------------------------------
-    def _split(self, A: np.ndarray | None) -> tuple[sp.csc_matrix, sp.csr_matrix]:
-        """The equality block (CSC) and the inequality block (CSR) of ``A`` with values
-        ``A`` (``None``: the program's own). The two patterns and where their values sit in
-        ``A.data`` are found once (a CSC→CSR conversion of the 8-mass ``A``, 3.2e5 nonzeros,
-        per solve is not needed: only the values are gathered)."""
+    def _load(self, A: np.ndarray | None) -> sp.csc_matrix:
+        """Take the values ``A`` of the program's ``A`` (``None``: its own): into the full
+        matrix (:attr:`_A_full`, CSC on the program's pattern, whose product with ``y`` gives
+        every row at once) and into the equality block, which is returned (CSC). The
+        patterns, where each block's values sit in ``A.data`` and the matrices themselves
+        are built once; later calls overwrite their values in place (no scipy constructor
+        with its index checks, and no CSR copy of the 8-mass ``A``'s 3.2e5 values, per
+        solve; explicit zeros stay, so no pattern ever changes)."""
         prog = self.prog
+        values = prog.A.data if A is None else A
         if self._layout is None:
             # the two blocks as the PIQP engine finds them (CSC, positions in A.data); the
             # inequality block once more in CSR, its positions carried as values 1 … nnz
@@ -163,11 +184,45 @@ class RowGeneration:
             code.sort_indices()
             at_in = code.data.astype(np.int64) - 1
             self._layout = (eq, (code.indices, code.indptr, at_in, code.shape))
-        (i_eq, p_eq, at_eq, s_eq), (i_in, p_in, at_in, s_in) = self._layout
-        values = prog.A.data if A is None else A
-        A_eq = sp.csc_matrix((values[at_eq], i_eq, p_eq), shape=s_eq)
-        G = sp.csr_matrix((values[at_in], i_in, p_in), shape=s_in)
-        return A_eq, G
+            # G's pattern in CSR with the positions of its values in A.data (+1) as values
+            self._code = sp.csr_matrix((at_in + 1.0, code.indices, code.indptr),
+                                       shape=code.shape)
+            i_eq, p_eq, at_eq, s_eq = eq
+            self._A_full = sp.csc_matrix((np.array(values, dtype=float), prog.A.indices,
+                                          prog.A.indptr), shape=prog.A.shape)
+            self._A_eq = sp.csc_matrix((values[at_eq], i_eq, p_eq), shape=s_eq)
+            return self._A_eq
+        self._A_full.data[:] = values
+        self._A_eq.data[:] = values[self._layout[0][2]]
+        return self._A_eq
+
+    def _rows_at(self, y: np.ndarray) -> np.ndarray:
+        """``G y``: every inequality row of the full QP at ``y`` (one sparse product with
+        the values of the last :meth:`_load`)."""
+        return (self._A_full @ y)[self.m0:]
+
+    def _split(self, A: np.ndarray | None) -> tuple[sp.csc_matrix, sp.csr_matrix]:
+        """The equality block (CSC, :meth:`_load`'s matrix) and the inequality block ``G``
+        (a new CSR matrix) of ``A`` with values ``A`` (``None``: the program's own), e.g. to
+        inspect a reduced QP; :meth:`run` does not build ``G``."""
+        A_eq = self._load(A)
+        i_in, p_in, at_in, s_in = self._layout[1]
+        return A_eq, sp.csr_matrix((self._A_full.data[at_in], i_in, p_in), shape=s_in)
+
+    def _reduced(self, rows: np.ndarray) -> sp.csc_matrix:
+        """``G[rows]`` in CSC with the values of the last :meth:`_load`. For the rows of the
+        last call the same matrix is returned with its values overwritten (the same pattern,
+        explicit zeros kept: what PIQP's ``update`` needs); for new rows its pattern and
+        where its values sit in ``A.data`` are found once."""
+        if self._red is not None and np.array_equal(self._red[0], rows):
+            _, red, at = self._red
+            red.data[:] = self._A_full.data[at]
+            return red
+        sub = self._code[rows].tocsc()
+        at = sub.data.astype(np.int64) - 1
+        red = sp.csc_matrix((self._A_full.data[at], sub.indices, sub.indptr), shape=sub.shape)
+        self._red, self._solver = (rows.copy(), red, at), None
+        return red
 
     def _tolerance(self, h: np.ndarray, Gy: np.ndarray) -> np.ndarray:
         """The violation above which a row counts as violated: PIQP's own feasibility test
@@ -227,30 +282,61 @@ class RowGeneration:
         return rows[rank < k]
 
     # -- solve ----------------------------------------------------------------------------------
-    def _solve_reduced(self, q, A_eq, b_eq, G, h) -> RawResult:
+    def _solve_reduced(self, q, A_eq, b_eq, G, h, solver: object | None = None
+                       ) -> tuple[RawResult, object]:
+        """One reduced QP ``(q, A_eq, b_eq, G, h)`` by PIQP: ``solver`` (set up for a QP of
+        the same sparsity pattern) gets the new data by ``update``, else a new solver is set
+        up. Returns the result and the solver."""
         import piqp
 
-        solver = piqp.SparseSolver()
-        solver.settings.verbose = False
-        options = dict(self.reduced)
-        if isinstance(options.get("kkt_solver"), str):
-            name = options["kkt_solver"]
-            if name not in piqp.KKTSolver.__members__:
-                raise BalustradeError(f"row generation: PIQP has no KKT solver {name!r}; use "
-                                      f"one of {', '.join(piqp.KKTSolver.__members__)}")
-            options["kkt_solver"] = piqp.KKTSolver.__members__[name]
-        _set_options(solver.settings, options, "PIQP")
         has_eq, has_in = A_eq.shape[0] > 0, G.shape[0] > 0
-        solver.setup(self._P, q, A_eq if has_eq else None, b_eq if has_eq else None,
-                     G.tocsc() if has_in else None, None, h if has_in else None)
+        if solver is not None:
+            solver.update(c=q, A=A_eq if has_eq else None, b=b_eq if has_eq else None,
+                          G=G if has_in else None, h_u=h if has_in else None)
+        else:
+            solver = piqp.SparseSolver()
+            solver.settings.verbose = False
+            options = dict(self.reduced)
+            if isinstance(options.get("kkt_solver"), str):
+                name = options["kkt_solver"]
+                if name not in piqp.KKTSolver.__members__:
+                    raise BalustradeError(f"row generation: PIQP has no KKT solver {name!r}; "
+                                          f"use one of {', '.join(piqp.KKTSolver.__members__)}")
+                options["kkt_solver"] = piqp.KKTSolver.__members__[name]
+            _set_options(solver.settings, options, "PIQP")
+            solver.setup(self._P, q, A_eq if has_eq else None, b_eq if has_eq else None,
+                         sp.csc_matrix(G) if has_in else None, None,
+                         h if has_in else None)
         words = str(solver.solve().name)
+        # the result's arrays are views of the solver's memory, which a kept solver
+        # overwrites at its next solve: copied (np.array; the subtraction and the
+        # concatenation below copy too)
         res = solver.result
         z_in = (np.asarray(res.z_u, dtype=float) - np.asarray(res.z_l, dtype=float)) \
             if has_in else np.zeros(0)
         z_eq = np.asarray(res.y, dtype=float) if has_eq else np.zeros(0)
         return RawResult(_PIQP_STATUS.get(words, Status.FAILED), f"PIQP: {words}",
-                         np.asarray(res.x, dtype=float), np.concatenate([z_eq, z_in]),
-                         int(res.info.iter))
+                         np.array(res.x, dtype=float), np.concatenate([z_eq, z_in]),
+                         int(res.info.iter)), solver
+
+    def _round(self, q, A_eq, b_eq, h, rows: np.ndarray) -> RawResult:
+        """The reduced QP of the rows ``rows``: by the last solver updated when it was set up
+        for these rows (:attr:`reuse_solver`), else by a new one. A reused solver's answer
+        other than optimal/infeasible is not taken: the round is solved again by a new
+        solver (as without reuse), so reuse never changes what a round reports."""
+        done = (Status.OPTIMAL, Status.INFEASIBLE)
+        red = self._reduced(rows)          # forgets the solver when the rows changed
+        reuse = self._solver if self.reuse_solver else None
+        raw, solver = self._solve_reduced(q, A_eq, b_eq, red, h[rows], reuse)
+        if reuse is not None and raw.status in done:
+            self.stats.reused += 1
+        elif reuse is not None:
+            first = raw.iterations
+            raw, solver = self._solve_reduced(q, A_eq, b_eq, red, h[rows])
+            raw.iterations += first
+        # a solver that stopped otherwise is not kept (the next round sets up anew)
+        self._solver = solver if raw.status in done else None
+        return raw
 
     def run(self, q: np.ndarray, b: np.ndarray, A: np.ndarray | None = None,
             cold: bool = False) -> RawResult:
@@ -258,7 +344,7 @@ class RowGeneration:
         results carry multipliers for every row of the full QP (zero for rows never added);
         anything else is ``FAILED``/``MAX_ITERATIONS`` with the reason: the caller solves the
         full QP then. ``cold``: ignore the rows of the last solve."""
-        A_eq, G = self._split(A)
+        A_eq = self._load(A)
         b_eq, h = b[:self.m0], b[self.m0:]
         if cold:
             self._seed = None
@@ -270,7 +356,7 @@ class RowGeneration:
             stats.rounds += 1
             stats.rows = rows.size
             stats.history.append(rows.size)
-            raw = self._solve_reduced(q, A_eq, b_eq, G[rows], h[rows])
+            raw = self._round(q, A_eq, b_eq, h, rows)
             stats.iterations += raw.iterations
             if raw.status == Status.INFEASIBLE:
                 raw.z = self._full_z(raw.z, rows)
@@ -284,7 +370,7 @@ class RowGeneration:
                 return RawResult(Status.FAILED, f"row generation: round {stats.rounds} "
                                  f"({rows.size} rows) stopped with {raw.words}", None, None,
                                  stats.iterations)
-            Gy = G @ raw.y
+            Gy = self._rows_at(raw.y)
             viol = Gy - h
             bad = (viol > self._tolerance(h, Gy)) & ~work
             if not bad.any():

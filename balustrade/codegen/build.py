@@ -9,8 +9,13 @@ from pathlib import Path
 
 from balustrade.errors import CodegenError
 
-#: Flags of every build: optimized, position independent, all warnings.
-BASE_FLAGS = ("-O3", "-fPIC", "-Wall", "-Wextra")
+#: Flags of every build: optimized, position independent, all warnings, and no contraction
+#: of a product and a sum into one fused multiply-add (``-ffp-contract=off``): CasADi's
+#: evaluation in Python rounds every operation, so a fused C (GCC's default where the target
+#: has FMA: ``-march=native`` on x86-64, any aarch64) would round differently and C = Python
+#: would no longer be bitwise (docs/vehicles.md, "Session 13: C = Python along loops").
+FP_FLAGS = ("-ffp-contract=off",)
+BASE_FLAGS = ("-O3", *FP_FLAGS, "-fPIC", "-Wall", "-Wextra")
 #: CasADi's generated memory pools hold one user per function unless told otherwise; the
 #: Python runtime may hold several work structs of the same library at once.
 THREAD_FLAGS = ("-DCASADI_MAX_NUM_THREADS=8",)
@@ -71,7 +76,7 @@ def _run(cmd: list[str], what: str) -> None:
 def build(src_dir: str | Path, name: str | None = None, werror: bool = False,
           extra_flags: tuple[str, ...] | list[str] = (), out: str | Path | None = None) -> Path:
     """Compile every ``*.c`` in ``src_dir`` except ``main.c`` into a shared library
-    (``cc -O3 -fPIC -shared -Wall -Wextra [-Werror] ... -lm``) and return its path
+    (``cc -O3 -ffp-contract=off -fPIC -shared -Wall -Wextra [-Werror] ... -lm``) and return its path
     (default ``src_dir/lib<name>.so``; ``name`` defaults to the folder's manifest)."""
     src_dir = _src_dir(src_dir, "build")
     extra_flags = _flags(extra_flags, "build")
@@ -101,7 +106,8 @@ def build_executable(src_dir: str | Path, main: str = "main.c", werror: bool = T
                            "main.c)")
     cc = find_compiler()
     target = Path(out) if out is not None else src_dir / Path(main).stem
-    cmd = [cc, "-O3", "-Wall", "-Wextra", *(["-Werror"] if werror else []), *extra_flags,
+    cmd = [cc, "-O3", *FP_FLAGS, "-Wall", "-Wextra", *(["-Werror"] if werror else []),
+           *extra_flags,
            "-o", str(target), str(src_dir / main), *map(str, _sources(src_dir, main)), "-lm"]
     _run(cmd, f"building {target.name}")
     return target

@@ -37,7 +37,11 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_vector
-from balustrade.backends.casadi_backend import CasadiCompiled, complementarity_expr
+from balustrade.backends.casadi_backend import (
+    CasadiCompiled,
+    chain_solver_index,
+    complementarity_expr,
+)
 from balustrade.backends.emittable import (
     STATUS_OPTIONS,
     c_libraries,
@@ -298,6 +302,10 @@ class _Problem:
                                    if over else f"{plugin} again, cold (skipped after a cold "
                                    "first attempt: the same run)" if plugin == c.solver_name
                                    else f"{plugin} (cold start)")
+        #: the attempt whose solver runs from a second start (``P_solve_from``; the
+        #: ``second_solver`` of :meth:`CasadiCompiled.solve`): 0, the first solver, unless
+        #: :meth:`set_second_solver` says otherwise
+        self.second_solver = 0
         self.layout = c.layout  # the solver's x: the user's variables, then epigraph blocks
         self.vars = self.layout.to_dict()
         self.params = c.ocp.parameter_layout.to_dict()  # with declared values as "default"
@@ -307,6 +315,18 @@ class _Problem:
             staged = np.empty_like(self.init)
             staged[self.take] = self.init
             self.init = staged
+
+    def set_second_solver(self, which: int) -> None:
+        """Run the solver of attempt ``which`` (``CasadiCompiled.solve(second_solver=)``: 0
+        the first, ``k`` the ``k``-th retry's, -1 the last) from a second start; refused
+        when the emitted chain is not the compiled problem's own (an attempt index would
+        name another solver in C than in Python)."""
+        k = chain_solver_index(which, len(self.c.retries))
+        if len(self.solvers) != 1 + len(self.c.retries):
+            raise CodegenError(f"{self.P}: a second start on attempt {which} needs the whole "
+                               f"retry chain in C ({len(self.c.retries)} retries), but "
+                               f"{len(self.solvers) - 1} are emitted")
+        self.second_solver = k
 
     def functions(self) -> dict[str, ca.Function]:
         # every attempt on the compiled problem's own plugin shares its derivative
@@ -387,6 +407,8 @@ class _Problem:
         cfg.define(f"{P}_F_SCALE", C.c_double(getattr(self.c, "objective_scale", 1.0)),
                    "the solver's objective is the declared one times this")
         cfg.define(f"{P}_ACCEPT_TOL", C.c_double(self.accept_tol))
+        cfg.define(f"{P}_SECOND_SOLVER", self.second_solver,
+                   "the attempt whose solver runs from a second start (P_solve_from)")
         cfg.define(f"{P}_BUDGET", self.budget,
                    "iteration budget (0: none); a stop by it is BAL_TRUNCATED")
         cfg.define(f"{P}_TRUNC_TOL", C.c_double(FEASIBILITY_TOL),
@@ -626,7 +648,9 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     the Python filter does; without the certificate it is off. With ``shifted_retry``
     (the controller's option, off by default; ``<name>_SHIFTED_RETRY``,
     ``manifest["shifted_retry"]``) a certified step's failed (2.23) attempt from its last
-    solution is tried once more from the shifted plan before the cold retries.
+    solution is tried once more from the shifted plan before the cold retries, by the
+    solver of the attempt ``shifted_retry_solver`` names (``<name>_filter_SECOND_SOLVER``,
+    ``manifest["shifted_retry_solver"]``, the resolved attempt index; 0 the first solver).
     """
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
@@ -664,16 +688,18 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
     if dynamics is not None:
         functions[f"{name}_dynamics"] = dynamics
     files = _generate(functions, name, out_dir)
+    first = bool(spec.certificate_first) and cert is not None
+    retry = bool(spec.shifted_retry) and first
+    if retry:  # before f.config: its P_SECOND_SOLVER
+        f.set_second_solver(int(spec.shifted_retry_solver))
     cfg = C.Config()
     s.config(cfg)
     f.config(cfg)
     cfg.comment(f"---- the PCBF control step {name}: (2.24) then (2.23) (bal/pcbf.h) ----")
     cfg.define(f"{name}_SHIFT_CERT", int(cert is not None),
                "the shifted-plan certificate of h_PB = 0 (balustrade.control.shifted)")
-    first = bool(spec.certificate_first) and cert is not None
     cfg.define(f"{name}_CERT_FIRST", int(first),
                "certificate first: skip (2.24) when the shifted plan certifies h_PB = 0")
-    retry = bool(spec.shifted_retry) and first
     cfg.define(f"{name}_SHIFTED_RETRY", int(retry),
                "a certified step's failed (2.23) is tried from the shifted plan first")
     cfg.define(f"{name}_EPS", C.c_double(spec.eps), "the relaxation eps of (2.23)")
@@ -699,6 +725,7 @@ def emit_pcbf(controller: object, name: str, out_dir: str | Path,
                 "shifted_certificate": cert is not None,
                 "certificate_first": first,
                 "shifted_retry": retry,
+                "shifted_retry_solver": f.second_solver,
                 "pcbf_status": S.manifest(S.PCBF),
                 # the solver libraries of the casadi wheel the C links (the structured
                 # target's): the flags accelerate() and build() need

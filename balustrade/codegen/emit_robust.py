@@ -81,14 +81,15 @@ from balustrade.control.deploy import (
 )
 from balustrade.control.multiobjective import DECREASE_TOL
 from balustrade.control.robust import ABOVE_CANDIDATE_TOL
-from balustrade.errors import CodegenError
+from balustrade.control.tube_functions import CONTAINS_TOL, candidate_function, polish_expr
+from balustrade.errors import BalustradeError, CodegenError
 
 #: the target to build both problems of Algorithm 5.2 with for C (module docstring)
 EMITTABLE_TARGET = "robust-sqp"
 _HINT = (f"build the controller with target={EMITTABLE_TARGET!r}, "
          f"slack_target={EMITTABLE_TARGET!r} ({{}}.build)")
 #: tolerance of ``U_E.contains`` in :func:`~balustrade.control.robust_steps.terminal_input`
-_CONTAINS_TOL = 1e-12
+_CONTAINS_TOL = CONTAINS_TOL
 
 
 def _columns(w: ca.SX, var: dict) -> ca.SX:
@@ -99,123 +100,32 @@ def _columns(w: ca.SX, var: dict) -> ca.SX:
     return ca.reshape(w[off: off + rows * cols], rows, cols)
 
 
-def _norm(col: ca.SX, order: float) -> ca.SX:
-    if order == 1:
-        return ca.norm_1(col)
-    if order == 2:
-        return ca.norm_2(col)
-    if np.isinf(order):
-        return ca.norm_inf(col)
-    raise CodegenError(f"slack norm {order!r}: the C supports 1, 2 and inf")
-
-
-def _slack_cost(xi: ca.SX, xi_N: ca.SX, spec: RobustDeployment | MultiobjectiveDeployment) -> ca.SX:
-    """``h̃(ξ) = α_f ξ_N + Σ_i ‖ξ_i‖`` (SPEC §1.12)."""
-    total = spec.alpha_f * xi_N
-    for i in range(xi.shape[1]):
-        total += _norm(xi[:, i], spec.slack_norm)
-    return total
-
-
-def _policy(name: str, spec: TubeDeployment, z: ca.SX) -> ca.SX:
-    """``π_f(z)`` on CasADi symbols: ``π_f`` itself if it accepts them, else the linear map
-    it is checked to be (``π_f(x) = K_f x + c`` at random points), else a CodegenError."""
-    nx, nu = spec.system.nx, spec.system.nu
-    try:
-        out = spec.pi_f(z)
-        if isinstance(out, (ca.SX, ca.MX, ca.DM)) and out.numel() == nu:
-            return ca.reshape(ca.SX(out) if isinstance(out, ca.DM) else out, nu, 1)
-    except Exception:  # noqa: BLE001 - a numpy-only policy: identified below
-        pass
-    pi = spec.pi_f
-    try:
-        c = np.asarray(pi(np.zeros(nx)), dtype=float).reshape(nu)
-        K = np.column_stack([np.asarray(pi(e), dtype=float).reshape(nu) - c
-                             for e in np.eye(nx)])
-        rng = np.random.default_rng(0)
-        for x in rng.standard_normal((3, nx)) * 3:
-            y = np.asarray(pi(x), dtype=float).reshape(nu)
-            if not np.allclose(y, K @ x + c, rtol=1e-9, atol=1e-9):
-                raise ValueError("not linear")
-    except Exception as exc:  # noqa: BLE001
-        raise CodegenError(f"{name}: the terminal policy pi_f must accept CasADi symbols or "
-                           "be affine (checked at random points) to be emitted as C") from exc
-    return ca.mtimes(ca.DM(K), z) + ca.DM(c)
-
-
-def _terminal_input(name: str, spec: TubeDeployment, zN: ca.SX) -> tuple[ca.SX, ca.SX]:
-    """``(v_f, exact)``: the terminal input of (5.17)
-    (:func:`~balustrade.control.robust_steps.terminal_input`) and whether the C computed
-    it as Python does (module docstring)."""
-    system, U_E = spec.system, spec.U_E
-    H, h = np.asarray(U_E.H, dtype=float), np.asarray(U_E.h, dtype=float)
-    u_f = _policy(name, spec, zN)
-    inside = ca.mmin(ca.DM(h) + _CONTAINS_TOL - ca.mtimes(ca.DM(H), u_f)) >= 0
-    if system.nu != 1:
-        return u_f, inside
-    v = ca.SX.sym("v_f", 1)
-    w0 = ca.DM.zeros(system.nw) if system.nw else None
-    q = spec.h_f(system(zN, v, w0) if w0 is not None else system(zN, v))
-    hess = ca.hessian(q, v)[0]
-    if ca.depends_on(hess, ca.vertcat(zN, v)) or float(ca.DM(hess)) <= 0:
-        return u_f, inside
-    a = float(ca.DM(hess))
-    b = ca.substitute(ca.jacobian(q, v), v, 0)
-    col = H[:, 0]
-    lo = max((h[i] / col[i] for i in range(len(h)) if col[i] < 0), default=-np.inf)
-    hi = min((h[i] / col[i] for i in range(len(h)) if col[i] > 0), default=np.inf)
-    v_min = ca.fmin(ca.fmax(-b / a, lo), hi)
-    return ca.if_else(inside, u_f, v_min), ca.SX(1)
-
-
 def _post(sym: str, spec: RobustDeployment | MultiobjectiveDeployment, prob: _Problem
           ) -> ca.Function:
     """``sym(w, f) -> (ξ, ξ_N, h_r, h̃)`` on the stacked vector ``w`` of ``prob`` ((5.15)
-    or (6.15)): the polished slacks (:func:`~balustrade.control.robust_steps.
-    polished_slacks`), ``h_r = h̃`` and ``h̃`` of the polished slacks (``f``, the solver's
-    objective, is not used: a slightly negative slack it contains is not certified by the
-    point, :meth:`~balustrade.control.robust.RobustPCBFSafetyFilter.h_r`)."""
-    X_E, N = spec.X_E, len(spec.deltas)
-    Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
-    deltas = np.asarray(spec.deltas, dtype=float).reshape(-1)
-    nr = X_E.H.shape[0]
+    or (6.15)): the polished slacks and ``h_r = h̃`` of them
+    (:func:`~balustrade.control.tube_functions.polish_expr`, the expression the Python
+    controllers evaluate; ``f``, the solver's objective, is not used: a slightly negative
+    slack it contains is not certified by the point,
+    :meth:`~balustrade.control.robust.RobustPCBFSafetyFilter.h_r`)."""
     w, f = ca.SX.sym("w", prob.nw), ca.SX.sym("f", 1)
-    z = _columns(w, prob.vars["z"])
-    xi = ca.fmax(_columns(w, prob.vars["xi"]), 0)
-    xi_N = ca.fmax(w[int(prob.vars["xi_N"]["offset"])], 0)
-    need = ca.fmax(ca.mtimes(Hx, z[:, :N]) - ca.repmat(hx, 1, N)
-                   + ca.repmat(ca.DM(deltas).T, nr, 1), 0)
-    xi_p = ca.fmin(xi, need)
-    xi_N_p = ca.fmin(xi_N, ca.fmax(spec.h_f(z[:, N]), 0))
-    h_tilde = _slack_cost(xi_p, xi_N_p, spec)
+    xi_p, xi_N_p, h_tilde = polish_expr(
+        spec.X_E, spec.h_f, spec.deltas, spec.alpha_f, spec.slack_norm,
+        _columns(w, prob.vars["z"]), _columns(w, prob.vars["xi"]),
+        w[int(prob.vars["xi_N"]["offset"])])
     return ca.Function(sym, [w, f], [ca.vec(xi_p), xi_N_p, h_tilde, h_tilde],
                        ["w", "f"], ["xi", "xi_N", "h_r", "h_tilde"])
 
 
 def _cand(sym: str, spec: TubeDeployment) -> ca.Function:
     """``sym(z, v, ξ) -> (z̃, ṽ, ξ̃, ξ̃_N, h̃(ξ̃), exact)``: the candidate (5.17)/(6.14)
-    (:func:`~balustrade.control.robust_steps.robust_candidate`)."""
-    system, X_E = spec.system, spec.X_E
-    nx, nu, N = system.nx, system.nu, len(spec.deltas)
-    Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
-    deltas = np.asarray(spec.deltas, dtype=float).reshape(-1)
-    nr = X_E.H.shape[0]
-    zc, vc, xic = ca.SX.sym("z", nx, N + 1), ca.SX.sym("v", nu, N), ca.SX.sym("xi", nr, N)
-    zN = zc[:, N]
-    u_f, exact = _terminal_input(sym, spec, zN)
-    w0 = ca.DM.zeros(system.nw) if system.nw else None
-    z_next = system(zN, u_f, w0) if w0 is not None else system(zN, u_f)
-    z_t = ca.horzcat(zc[:, 1:], z_next)
-    v_t = ca.horzcat(vc[:, 1:], u_f) if N > 1 else u_f
-    cols = [ca.fmax(xic[:, i + 1] + (deltas[i] - deltas[i + 1]), 0) for i in range(N - 1)]
-    cols.append(ca.fmax(ca.mtimes(Hx, zN) - hx + deltas[N - 1], 0))
-    xi_t = ca.horzcat(*cols)
-    xi_N_t = ca.fmax(spec.h_f(z_next), 0)
-    return ca.Function(sym, [zc, vc, xic],
-                       [z_t, v_t, ca.vec(xi_t), xi_N_t, _slack_cost(xi_t, xi_N_t, spec),
-                        exact],
-                       ["z", "v", "xi"], ["z_next", "v_next", "xi_next", "xi_N_next",
-                                          "h_cand", "exact"])
+    (:func:`~balustrade.control.tube_functions.candidate_function`, the function the Python
+    controllers evaluate)."""
+    try:
+        return candidate_function(sym, spec.system, spec.X_E, spec.U_E, spec.h_f, spec.pi_f,
+                                  spec.deltas, spec.alpha_f, spec.slack_norm)
+    except BalustradeError as exc:
+        raise CodegenError(f"{sym}: {exc} to be emitted as C") from exc
 
 
 def _c_lead(prob: _Problem, recovery: object, full_chain: bool) -> int:

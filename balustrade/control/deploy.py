@@ -49,6 +49,9 @@ class PCBFDeployment:
     #: once more from the certified shifted plan before the cold retries (the filter's
     #: ``shifted_retry``; opt-in, off by default; needs ``certificate_first``)
     shifted_retry: bool = False
+    #: which solver of the (2.23) chain makes that attempt: 0 the first, ``k`` the
+    #: ``k``-th retry's, ``-1`` the last (the filter's ``shifted_retry_solver``)
+    shifted_retry_solver: int = 0
 
 
 @dataclass(frozen=True)

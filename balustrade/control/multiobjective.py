@@ -53,11 +53,12 @@ from balustrade.control.fallbacks import (
     project,
     projected_proposal,
 )
-from balustrade.control.robust_steps import (
-    Candidate,
-    polished_slacks,
-    robust_candidate,
-    slack_cost,
+from balustrade.control.robust_steps import Candidate
+from balustrade.control.tube_functions import (
+    TubeFunctions,
+    tube_candidate,
+    tube_cost,
+    tube_polished,
 )
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
@@ -199,6 +200,9 @@ class MultiobjectivePCBFController:
         self.record_h_r = record_h_r
         #: the recovery target (module docstring, "Recovery steps")
         self.recovery_target = recovery_target
+        # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
+        # Python bitwise: balustrade.control.tube_functions); None: numpy
+        self._tube = TubeFunctions.build(system, X_E, U_E, h_f, pi_f, self.deltas, alpha_f, 1)
         self.reset()
 
     @classmethod
@@ -241,7 +245,7 @@ class MultiobjectivePCBFController:
         self._recovered = False   # the last (6.15) was a recovery solve
 
     def h_tilde(self, xi: np.ndarray, xi_N: float) -> float:
-        return slack_cost(xi, xi_N, self.alpha_f, 1)
+        return tube_cost(self._tube, xi, xi_N, self.alpha_f, 1)
 
     def _h_r(self, x: np.ndarray, start: dict | None = None, lead: int | None = None
              ) -> Solution:
@@ -277,11 +281,11 @@ class MultiobjectivePCBFController:
         """``h̃`` of a (5.15) solution's polished slacks; NaN if the solve failed."""
         if not s.success:
             return np.nan
-        return self.h_tilde(*polished_slacks(s, self.X_E, self.h_f, self.deltas))
+        return self.h_tilde(*tube_polished(self._tube, s, self.X_E, self.h_f, self.deltas))
 
     def _make_candidate(self, z: np.ndarray, v: np.ndarray, xi: np.ndarray) -> Candidate:
-        return robust_candidate(self.system, self.X_E, self.h_f, self.pi_f, self.deltas, z, v,
-                                xi, self.U_E)
+        return tube_candidate(self._tube, self.system, self.X_E, self.h_f, self.pi_f,
+                              self.deltas, z, v, xi, self.U_E)
 
     def _candidate_start(self, c: Candidate) -> dict[str, np.ndarray]:
         """The candidate (6.14) as a starting point of (6.15); with the running-sum form of
@@ -291,7 +295,13 @@ class MultiobjectivePCBFController:
         ocp = getattr(self.problem, "ocp", None)
         if ocp is not None and "xi_sum" in ocp.variables:
             xi = np.asarray(c.xi, dtype=float).reshape(self.X_E.H.shape[0], -1, order="F")
-            start["xi_sum"] = np.cumsum(xi.sum(axis=0)).reshape(1, -1)
+            # σ_i summed entry by entry, column by column, as the C does (bitwise equal)
+            sums, acc = np.empty((1, xi.shape[1])), 0.0
+            for i in range(xi.shape[1]):
+                for value in xi[:, i]:
+                    acc += float(value)
+                sums[0, i] = acc
+            start["xi_sum"] = sums
         return start
 
     @property
@@ -328,7 +338,7 @@ class MultiobjectivePCBFController:
                 info.status, info.fallback = f"init_{outcome(s0)}", "projected_proposal"
                 return project(u_p, self.U), info
             note_solve(info, "slack", s0.status)
-            xi0, xi0_N = polished_slacks(s0, self.X_E, self.h_f, self.deltas)
+            xi0, xi0_N = tube_polished(self._tube, s0, self.X_E, self.h_f, self.deltas)
             self.candidate = Candidate(np.asarray(s0["z"], dtype=float),
                                        np.asarray(s0["v"], dtype=float).reshape(nu, -1),
                                        xi0, xi0_N)
@@ -384,7 +394,7 @@ class MultiobjectivePCBFController:
         rose by 3.6e-6 (docs/vehicles.md, "session 12"). Theorem 6.15 needs a feasible
         point; the candidate (6.14) is one, so the step falls back to it."""
         nu = self.system.nu
-        xi, xi_N = polished_slacks(sol, self.X_E, self.h_f, self.deltas)
+        xi, xi_N = tube_polished(self._tube, sol, self.X_E, self.h_f, self.deltas)
         h = self.h_tilde(xi, xi_N)
         if not h <= bound + DECREASE_TOL * max(1.0, abs(bound)):
             info.values["h_tilde_rejected"] = h

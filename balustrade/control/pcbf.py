@@ -77,8 +77,9 @@ every step with a plan. The cost of (2.24), ``α_f ξ_N + Σ_i ‖ξ_i‖`` with
 global optimum (the lower bound) and ``ξ* = 0``, so the (2.24) solve is skipped exactly.
 (2.23) runs with ``ξ* = 0`` from its usual warm start; with ``shifted_retry`` (opt-in,
 session 12) a failed attempt is tried once more from the candidate (feasible for (2.23):
-``PCBFSafetyFilter._filter_solve``) before the cold retries; the next (2.24) starts from
-the candidate's primal.
+``PCBFSafetyFilter._filter_solve``) before the cold retries, by the chain's solver that
+``shifted_retry_solver`` names (default the first; session 13); the next (2.24) starts
+from the candidate's primal.
 The skipped solve is never reported as a solver result: the step's ``StepInfo.status`` is
 ``"certified"`` (``"certified_filter_<status>"`` when (2.23) did not end optimal),
 ``values["certificate_first"] = 1``, ``values["h_PB"] = 0``, and
@@ -121,7 +122,8 @@ class PCBFSafetyFilter:
 
     def __init__(self, slack: Compiled, filter: Compiled, U: Set, eps: float = 1e-6,
                  warm_start: str = "last", shifted_certificate: bool = True,
-                 certificate_first: bool | None = None, shifted_retry: bool = False):
+                 certificate_first: bool | None = None, shifted_retry: bool = False,
+                 shifted_retry_solver: int = 0):
         """``warm_start``: ``"last"`` starts (2.24) from its last accepted solution;
         ``"shifted"`` from the last (2.23) plan shifted by one step (states ``x_1 … x_N, x_N``
         with the first replaced by the measured state, inputs ``u_1 … u_{N−1}, 0``) — the
@@ -149,7 +151,14 @@ class PCBFSafetyFilter:
         (2.23) attempt from its last solution fails, one more attempt from the certified
         shifted plan before the cold retries (:meth:`_filter_solve`). Off by default: on the
         cart-pole ``fast-sqp`` loop the first attempt fails in 56 of 97 certified steps and
-        the extra attempt added 50 % (2.23) iterations without changing a decision."""
+        the extra attempt added 50 % (2.23) iterations without changing a decision.
+
+        ``shifted_retry_solver`` (with ``shifted_retry``): which solver of the (2.23) chain
+        makes that attempt — 0 (the default) the first solver, ``k`` the ``k``-th retry's,
+        ``-1`` the chain's last (``CasadiCompiled.solve(second_solver=)``). On the obstacle
+        car (``structured-ip``) ``-1``, the chain's last resort from the plan, cut the worst
+        step where the first solver stalls from every start (docs/obstacles.md
+        "session 13")."""
         check_instance(U, Set, "PCBFSafetyFilter: U")
         if certificate_first and not shifted_certificate:
             raise BalustradeError("PCBFSafetyFilter: certificate_first=True checks the "
@@ -172,6 +181,12 @@ class PCBFSafetyFilter:
         self.certificate_first = bool(shifted_certificate) if certificate_first is None \
             else bool(certificate_first)
         self.shifted_retry = bool(shifted_retry)
+        if isinstance(shifted_retry_solver, bool) or not isinstance(
+                shifted_retry_solver, int | np.integer) or shifted_retry_solver < -1:
+            raise BalustradeError(f"PCBFSafetyFilter: shifted_retry_solver must be an int "
+                                  f">= -1 (0 the first solver, k the k-th retry's, -1 the "
+                                  f"last), got {shifted_retry_solver!r}")
+        self.shifted_retry_solver = int(shifted_retry_solver)
         # whether the (2.23) backend takes a second start (CasadiCompiled.solve); read once
         self._second_start_ok = "second_start" in inspect.signature(
             self.filter.solve).parameters
@@ -182,19 +197,20 @@ class PCBFSafetyFilter:
               deltas: np.ndarray, alpha_f: float = 1e6, slack_norm: int | float = 1,
               target: Target | str = "fast-sqp", eps: float = 1e-6,
               warm_start: str = "last", shifted_certificate: bool = True,
-              certificate_first: bool | None = None, shifted_retry: bool = False
-              ) -> PCBFSafetyFilter:
+              certificate_first: bool | None = None, shifted_retry: bool = False,
+              shifted_retry_solver: int = 0) -> PCBFSafetyFilter:
         """Build and compile both problems ((2.24) and (2.23)) for ``target`` (a
         :class:`~balustrade.backends.Target` or a preset name, e.g. ``"cvxpy"``);
-        ``warm_start``, ``shifted_certificate``, ``certificate_first`` and
-        ``shifted_retry`` are passed to
-        the constructor (same defaults)."""
+        ``warm_start``, ``shifted_certificate``, ``certificate_first``,
+        ``shifted_retry`` and ``shifted_retry_solver`` are passed to the constructor (same
+        defaults)."""
         slack = compile(pcbf_slack_problem(system, X, U, h_f, N, deltas, alpha_f, slack_norm),
                         target)
         filt = compile(pcbf_filter_problem(system, X, U, h_f, N, deltas, eps), target)
         return cls(slack, filt, U, eps, warm_start=warm_start,
                    shifted_certificate=shifted_certificate,
-                   certificate_first=certificate_first, shifted_retry=shifted_retry)
+                   certificate_first=certificate_first, shifted_retry=shifted_retry,
+                   shifted_retry_solver=shifted_retry_solver)
 
     def reset(self) -> None:
         self._last_slack: Solution | None = None
@@ -347,6 +363,9 @@ class PCBFSafetyFilter:
         adds an attempt, ~0.1 s at the worst step). Only with ``shifted_retry`` (opt-in).
         Backends whose ``solve`` has no ``second_start`` run their usual chain."""
         if self._second_start_ok:
+            if self.shifted_retry_solver:
+                return self.filter.solve(params, warm_start=warm, second_start=plan,
+                                         second_solver=self.shifted_retry_solver)
             return self.filter.solve(params, warm_start=warm, second_start=plan)
         return self.filter.solve(params, warm_start=warm)
 
@@ -384,4 +403,5 @@ class PCBFSafetyFilter:
                               eps=float(self.eps), zero_tol=ZERO_TOL,
                               shifted_certificate=self.certificate is not None,
                               certificate_first=self.certificate_first,
-                              shifted_retry=self.shifted_retry)
+                              shifted_retry=self.shifted_retry,
+                              shifted_retry_solver=self.shifted_retry_solver)

@@ -51,7 +51,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from balustrade._checks import as_matrix, check_horizon, check_instance
+from balustrade._checks import as_matrix, as_vector, check_horizon, check_instance
 from balustrade.backends import Solution, compile, resolve_target
 from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import RAPSFDeployment
@@ -63,6 +63,8 @@ from balustrade.estimate.base import SetEstimator
 from balustrade.problems.rapsf import (
     TerminalSet,
     check_parametric_system,
+    check_terminal,
+    check_tube_sets,
     rapsf_problem,
     row_dependence,
     rows_shared,
@@ -117,6 +119,14 @@ class RAPSF:
     where it shortened the C step several-fold, docs/adaptive.md); ``"fast-convex"``
     ignores it. The inputs equal the cold ones only within the solver's accuracy.
 
+    ``target`` (default ``"fast-convex"``, the direct sparse QP backend; session 13): (4.5)
+    is a QP, and on it ``"exact"`` (the NLP target) gave the same inputs (3 masses: within 3.8e-11
+    over 30 closed-loop steps, the same fallbacks) at 27 ms against 2.0 ms per step; on 8
+    masses (where ``"fast-convex"`` becomes row generation, below) 6–22 s against 12–69 ms,
+    and ``"exact"`` stopped ``optimal_inaccurate`` where the QP path solved;
+    docs/adaptive.md "Session 13: audit fixes". ``"convex-qp"`` is the target whose
+    C is emitted (:meth:`deployment_spec`).
+
     ``row_generation=True`` solves (4.5) by row generation (preset ``"fast-convex-rowgen"``,
     the same answers) when ``target`` is one of the presets :data:`ROWGEN_FROM` unchanged and
     the problem has :data:`ROWGEN_MIN_ROWS` grouped tube rows or more; ``False``: always
@@ -125,7 +135,7 @@ class RAPSF:
     def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
                  W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
                  estimator: object | None = None, backup: Backup | object | None = None,
-                 target: object = "exact", shrinking: bool = False,
+                 target: object = "fast-convex", shrinking: bool = False,
                  terminal: TerminalSet | None = None, tol: float = 1e-7,
                  enlarge: bool | TerminalEnlargement = False, name: str = "rapsf",
                  vertex_data: str = "parameters", warm_start: bool = False,
@@ -137,6 +147,8 @@ class RAPSF:
         if Theta0.dim != self.q:
             raise BalustradeError(f"{name}: Theta0 has dimension {Theta0.dim}, the system "
                                   f"has q = {self.q} parameters")
+        check_tube_sets(system, X0, W, name)       # before any support LP
+        check_terminal(terminal, self.n, name)      # not only at the first solve
         if estimator is not None and not callable(getattr(estimator, "update", None)):
             raise BalustradeError(f"{name}: estimator must have a method "
                                   "update(x_prev, u_prev, x) -> Θ")
@@ -200,6 +212,7 @@ class RAPSF:
         self.k = 0
         self.k_inf = self.N - 1
         self.plan: np.ndarray | None = None
+        self.tube: tuple[np.ndarray, np.ndarray] | None = None   # (z, α) of the plan
         self._last: tuple[object, Solution] | None = None   # (compiled key, optimal solve)
         self.falsified = False
         self._set_theta(self.Theta0)
@@ -217,9 +230,12 @@ class RAPSF:
         return self.terminal if self.terminal is not None else TerminalSet()
 
     # -- Θ_k --------------------------------------------------------------------------------
-    def _set_theta(self, Theta: Polytope) -> None:
+    def _set_theta(self, Theta: Polytope, vertices: np.ndarray | None = None) -> None:
+        """``Θ_k``, its vertices (``vertices`` when the caller enumerated them already: for
+        a general polytope, e.g. :class:`~balustrade.estimate.ExactUpdate`'s, enumeration is
+        most of the update) and ``s_jr``."""
         self.Theta = Theta
-        self.vertices = np.atleast_2d(Theta.vertices())
+        self.vertices = np.atleast_2d(Theta.vertices() if vertices is None else vertices)
         if self._s_affine is not None:
             self._s = _s_from_affine(self._s_affine, self.vertices)
         elif self._s_l1 is not None:
@@ -250,10 +266,11 @@ class RAPSF:
         if new is self.Theta:                       # the same set: Θ_k, s_jr unchanged
             return
         check_instance(new, Polytope, f"{self.name}: estimator.update result")
-        if not np.all(self.Theta.contains_many(np.atleast_2d(new.vertices()), tol=1e-9)):
+        vertices = np.atleast_2d(new.vertices())      # enumerated once: nesting and s_jr
+        if not np.all(self.Theta.contains_many(vertices, tol=1e-9)):
             info.status = "theta_not_nested"
             return
-        self._set_theta(new)
+        self._set_theta(new, vertices)
 
     # -- (4.5) ------------------------------------------------------------------------------
     def _shared_rows(self, n_th: int) -> np.ndarray | None:
@@ -387,8 +404,9 @@ class RAPSF:
     # -- Algorithm 4.1 --------------------------------------------------------------------------
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of Algorithm 4.1; never raises for a failed solve."""
-        x = np.asarray(x, dtype=float).reshape(self.n)
-        u_p = np.asarray(u_p, dtype=float).reshape(self.m)
+        # wrong sizes or non-numbers are errors; NaN/inf entries are handled below
+        x = as_vector(x, f"{self.name}.step: x", self.n, finite=False)
+        u_p = as_vector(u_p, f"{self.name}.step: u_p", self.m, finite=False)
         info = StepInfo()
         if not np.all(np.isfinite(u_p)):
             u_p = np.where(np.isfinite(u_p), u_p, 0.0)
@@ -412,6 +430,7 @@ class RAPSF:
         info.solve_time += float(getattr(sol, "solve_time", 0.0) or 0.0)
         if note_solve(info, "rapsf", outcome(sol)):
             self.plan = np.asarray(sol["v"], dtype=float).reshape(self.m, self.N)
+            self.tube = _tube(sol, self.n, self.N)
             self.k_inf = 0
             info.values["objective"] = float(sol.objective)
             if self.enlargement is not None:                       # Theorem 4.12: record
@@ -430,16 +449,46 @@ class RAPSF:
                 info.solutions["rapsf_shrunk"] = short
                 if note_solve(info, "rapsf_shrunk", outcome(short)):
                     info.fallback = "shrunk_horizon"
-                    v0 = np.asarray(short["v"], dtype=float).reshape(self.m, -1)[:, 0]
-                    return self.K @ x + v0
+                    self._store_shrunk(short)
+                    return self.K @ x + self.plan[:, self.k_inf]
             info.fallback = "stored_plan"
             return self.K @ x + self.plan[:, self.k_inf]
         info.fallback = "backup"
         return self._backup(x, u_p)
 
+    def _store_shrunk(self, short: Solution) -> None:
+        """Remark 4.6: after an optimal (4.5) with the horizon ``N − k_inf`` at ``x_k`` the
+        state follows *its* tube, so it becomes the stored plan from column ``k_inf`` on:
+        ``plan[:, k_inf + i] = v̂_i`` and ``tube`` columns ``k_inf + i`` ``= (ẑ_i, α̂_i)``
+        (``i = 0 … N − k_inf``). Its last set lies in ``C_f`` at the same time
+        ``k − k_inf + N`` as the old plan's, so ``k_inf`` keeps counting from the last
+        full solve and a later stored-plan fallback ``K x + plan[:, k_inf]`` (or the backup
+        after ``N − 1``) keeps Theorem 4.7's guarantee: ``x_{k+i}`` lies in the stored tube's
+        set ``k_inf + i``. Without this the fallback would use the old plan, whose tube the
+        state may have left (audit session 13, finding 1)."""
+        h = self.N - self.k_inf
+        self.plan = self.plan.copy()
+        self.plan[:, self.k_inf:] = np.asarray(short["v"], dtype=float).reshape(self.m, h)
+        if self.tube is not None:
+            z, alpha = _tube(short, self.n, h)
+            self.tube = (self.tube[0].copy(), self.tube[1].copy())
+            self.tube[0][:, self.k_inf:] = z
+            self.tube[1][self.k_inf:] = alpha
+
     def _backup(self, x: np.ndarray, u_p: np.ndarray) -> np.ndarray:
         x_safe = np.where(np.isfinite(x), x, 0.0)
         return np.asarray(self.backup(x_safe, u_p, self.k), dtype=float).reshape(self.m)
+
+
+def _tube(sol: Solution, n: int, horizon: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(z, α)`` of an optimal (4.5) as ``(n × (horizon+1), horizon+1)`` arrays (the sets
+    ``z_i ⊕ α_i 𝕏₀``), or ``None`` when the solution does not carry them."""
+    try:
+        z = np.asarray(sol["z"], dtype=float).reshape(n, horizon + 1)
+        alpha = np.asarray(sol["alpha"], dtype=float).reshape(horizon + 1)
+    except (BalustradeError, ValueError):
+        return None
+    return z, alpha
 
 
 def _enlargement(enlarge: bool | TerminalEnlargement, n: int, terminal: TerminalSet | None,

@@ -78,11 +78,12 @@ from balustrade.control.fallbacks import (
     project,
     projected_proposal,
 )
-from balustrade.control.robust_steps import (
-    Candidate,
-    polished_slacks,
-    robust_candidate,
-    slack_cost,
+from balustrade.control.robust_steps import Candidate
+from balustrade.control.tube_functions import (
+    TubeFunctions,
+    tube_candidate,
+    tube_cost,
+    tube_polished,
 )
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
@@ -128,6 +129,10 @@ class RobustPCBFSafetyFilter:
         self.slack_norm = check_norm_order(slack_norm, f"{block}: slack_norm")
         #: the recovery target (module docstring, "Recovery steps")
         self.recovery_target = recovery_target
+        # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
+        # Python bitwise: balustrade.control.tube_functions); None: numpy
+        self._tube = TubeFunctions.build(system, X_E, self.U_E, h_f, pi_f, self.deltas,
+                                         self.alpha_f, self.slack_norm)
         self.reset()
 
     @classmethod
@@ -188,8 +193,8 @@ class RobustPCBFSafetyFilter:
         (``optimal_inaccurate``) and the emitted C cannot tell from convergence
         (docs/vehicles.md, session 13)."""
         c = self.candidate
-        return c is not None and slack_cost(c.xi, c.xi_N, self.alpha_f,
-                                            self.slack_norm) > 0.0
+        return c is not None and tube_cost(self._tube, c.xi, c.xi_N, self.alpha_f,
+                                           self.slack_norm) > 0.0
 
     def _solve_slack(self, x: np.ndarray, lead: int | None = None
                      ) -> tuple[float, Solution, tuple[np.ndarray, float] | None]:
@@ -204,17 +209,17 @@ class RobustPCBFSafetyFilter:
         s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=warm, **extra)
         if not s.success:
             return float("nan"), s, None
-        xi, xi_N = polished_slacks(s, self.X_E, self.h_f, self.deltas)
+        xi, xi_N = tube_polished(self._tube, s, self.X_E, self.h_f, self.deltas)
         # h_r from the polished slacks alone: the solver's objective may carry a slightly
         # negative slack (e.g. xi_N = -3.6e-12, times alpha_f) that the point does not certify
-        return slack_cost(xi, xi_N, self.alpha_f, self.slack_norm), s, (xi, xi_N)
+        return tube_cost(self._tube, xi, xi_N, self.alpha_f, self.slack_norm), s, (xi, xi_N)
 
     def _applied(self, x: np.ndarray, z0: np.ndarray, v0: np.ndarray) -> np.ndarray:
         return np.asarray(v0, dtype=float).reshape(-1) + self.error.kappa(x - z0)
 
     def _make_candidate(self, z: np.ndarray, v: np.ndarray, xi: np.ndarray) -> Candidate:
-        return robust_candidate(self.system, self.X_E, self.h_f, self.pi_f, self.deltas, z, v, xi,
-                                self.U_E)
+        return tube_candidate(self._tube, self.system, self.X_E, self.h_f, self.pi_f, self.deltas,
+                              z, v, xi, self.U_E)
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of Algorithm 5.2 (module docstring); never raises for runtime data."""
@@ -229,7 +234,8 @@ class RobustPCBFSafetyFilter:
         info = StepInfo()
         if self.candidate is not None:
             c = self.candidate
-            info.values["h_cand"] = slack_cost(c.xi, c.xi_N, self.alpha_f, self.slack_norm)
+            info.values["h_cand"] = tube_cost(self._tube, c.xi, c.xi_N, self.alpha_f,
+                                              self.slack_norm)
         lead = self.slack_lead if self.recovering() else None
         h_r, s1, polished = self._solve_slack(x) if lead is None else \
             self._solve_slack(x, lead)

@@ -35,6 +35,9 @@ from balustrade.errors import BalustradeError
 from balustrade.problems.rapsf import (
     TerminalSet,
     check_parametric_system,
+    check_terminal,
+    check_tube_sets,
+    check_vertices,
     closed_loop_matrices,
     disturbance_map,
     model_matrices,
@@ -97,7 +100,8 @@ def robust_gain(system: object, vertices: np.ndarray, contraction: float = 0.95,
     its maximum over the polytope ``Θ₀`` is attained at a vertex. The gain then meets the
     LMI of :func:`robust_gain_sdp` with ``E = c P⁻¹``, ``Y = K E`` (``c`` scaling ``E ⪰ I``):
     the same property, not the same (trace-optimal) ``E``."""
-    V = np.atleast_2d(np.asarray(vertices, dtype=float))
+    V = check_vertices(vertices, check_parametric_system(system, "robust_gain")[2],
+                       "robust_gain")
     if method not in ("auto", "lmi", "lqr"):
         raise BalustradeError(f"robust_gain: method must be 'auto', 'lmi' or 'lqr', got "
                               f"{method!r}")
@@ -426,7 +430,9 @@ def check_rpi(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarray,
               W: Polytope, lam: float = 1.0, tol: float = 1e-9) -> CheckReport:
     """``A_cl(θ^j)𝕏₀ ⊕ W ⊆ λ𝕏₀`` for every vertex ``θ^j`` (i.e. ``s_jr + w̄_r <= λ``; one LP
     per row and vertex)."""
-    n = check_parametric_system(system, "check_rpi")[0]
+    n, _, q = check_parametric_system(system, "check_rpi")
+    vertices = check_vertices(vertices, q, "check_rpi")
+    check_tube_sets(system, X0, W, "check_rpi")
     F0 = np.zeros((1, n))
     c = tube_constants(X0, W, system, K, vertices, F0, np.zeros((1, np.shape(K)[0])))
     excess = c.s + c.w_bar[:, None] - lam
@@ -457,7 +463,10 @@ def check_assumption_4_11(system: object, X0: Polytope, W: Polytope, K: np.ndarr
     terminal set ``z = 0, 0 <= α <= 1`` is checked at ``α = 1`` with ``v = 0, z⁺ = 0, α⁺ = 1``
     (:func:`check_rpi` and :func:`check_constraints`). ``𝒵``: a
     :class:`~balustrade.dsl.joint.JointPolytope` ``F`` (``G=None``) or the matrices ``F, G``."""
-    n, m, _ = check_parametric_system(system, "check_assumption_4_11")
+    n, m, q = check_parametric_system(system, "check_assumption_4_11")
+    vertices = check_vertices(vertices, q, "check_assumption_4_11")
+    check_tube_sets(system, X0, W, "check_assumption_4_11")
+    check_terminal(terminal, n, "check_assumption_4_11")
     K = as_matrix(K, "check_assumption_4_11: K", (m, n))
     Z = joint_set(F, G, n, m, "check_assumption_4_11")
     if terminal is not None and terminal.has_generators:   # a hull (4.10): its own LPs

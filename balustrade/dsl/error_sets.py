@@ -59,13 +59,22 @@ class ErrorSet:
                                   f"{type(self.kappa_fn).__name__}")
 
     def kappa(self, e: np.ndarray) -> np.ndarray:
-        """``κ(e)``: ``K e`` or the user's feedback."""
+        """``κ(e)``: ``K e`` or the user's feedback. ``K e`` is summed left to right from its
+        first term (``K[:, 0] e_0 + K[:, 1] e_1 + …``), the order of the emitted C's applied
+        input (``bal/tube_common.c``), so that C and Python round alike (BLAS may reorder or
+        fuse the products of ``K @ e``)."""
         e = np.asarray(e, dtype=float).reshape(-1)
         if self.kappa_fn is not None:
             return np.asarray(self.kappa_fn(e), dtype=float).reshape(-1)
         if self.K is None:
             raise BalustradeError(f"ErrorSet({self.E.name}): no feedback K or κ given")
-        return self.K @ e
+        K = self.K
+        if e.size != K.shape[1] or e.size == 0:
+            raise ShapeError(f"ErrorSet({self.E.name}).kappa: e", (K.shape[1],), e.shape)
+        out = K[:, 0] * e[0]
+        for j in range(1, e.size):
+            out = out + K[:, j] * e[j]
+        return out
 
     def tighten_state(self, X: Polytope, name: str | None = None) -> Polytope:
         """``X ⊖ E``."""

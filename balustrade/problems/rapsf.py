@@ -40,7 +40,13 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_float_array, as_matrix, check_horizon, check_instance
+from balustrade._checks import (
+    as_float_array,
+    as_matrix,
+    as_vector,
+    check_horizon,
+    check_instance,
+)
 from balustrade.dsl import OCP, Polytope, squared_norm
 from balustrade.dsl.joint import JointPolytope, as_joint, row_supports
 from balustrade.dsl.synthesis import SynthesisProblem, bmat, trace
@@ -80,8 +86,9 @@ def disturbance_map(system: object, n: int) -> np.ndarray:
 
 
 def model_matrices(system: object, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``A(θ)``, ``B(θ)`` of (4.6) at a numeric ``θ``."""
-    theta = np.asarray(theta, dtype=float).ravel()
+    """``A(θ)``, ``B(θ)`` of (4.6) at a numeric ``θ`` (``q`` entries, else
+    :class:`~balustrade.errors.ShapeError`)."""
+    theta = as_vector(theta, "model_matrices: theta", len(system.A_list))
     A = np.array(system.A0, dtype=float) + sum(
         (t * np.asarray(Aj, dtype=float) for t, Aj in zip(theta, system.A_list, strict=True)),
         np.zeros_like(np.asarray(system.A0, dtype=float)))
@@ -91,11 +98,24 @@ def model_matrices(system: object, theta: np.ndarray) -> tuple[np.ndarray, np.nd
     return A, B
 
 
-def closed_loop_matrices(system: object, K: np.ndarray, vertices: np.ndarray
-                         ) -> list[np.ndarray]:
-    """``A_cl(θ^j) = A(θ^j) + B(θ^j)K`` for each row ``θ^j`` of ``vertices``."""
+def check_vertices(vertices: object, q: int, where: str) -> np.ndarray:
+    """``vertices`` of ``Θ`` as a finite ``n_θ × q`` matrix with ``n_θ >= 1`` (rows are the
+    vertices ``θ^j``); else a :class:`~balustrade.errors.BalustradeError` naming ``where``
+    and the shapes (before any LP or solver runs)."""
+    V = as_matrix(np.atleast_2d(as_float_array(vertices, f"{where}: vertices")),
+                  f"{where}: vertices", (None, q))
+    if V.shape[0] == 0:
+        raise ShapeError(f"{where}: vertices", f"at least one vertex (an n_θ × {q} matrix, "
+                         "n_θ >= 1)", V.shape, what="")
+    return V
+
+
+def closed_loop_matrices(system: object, K: np.ndarray, vertices: np.ndarray,
+                         where: str = "closed_loop_matrices") -> list[np.ndarray]:
+    """``A_cl(θ^j) = A(θ^j) + B(θ^j)K`` for each row ``θ^j`` of ``vertices`` (checked by
+    :func:`check_vertices`: ``n_θ >= 1`` rows of width ``q``)."""
     out = []
-    for th in np.atleast_2d(vertices):
+    for th in check_vertices(vertices, len(system.A_list), where):
         A, B = model_matrices(system, th)
         out.append(A + B @ K)
     return out
@@ -116,6 +136,23 @@ def joint_constraints(X: Polytope, U: Polytope) -> tuple[np.ndarray, np.ndarray]
     check_instance(U, Polytope, "joint_constraints: U")
     Z = JointPolytope.product(X, U)
     return Z.F, Z.G
+
+
+def check_tube_sets(system: object, X0: Polytope, W: Polytope, where: str) -> None:
+    """``𝕏₀`` a polytope in the state space (dimension ``n``) and ``W`` one of the
+    disturbance's dimension (the columns of ``E``, ``n`` without one); else a
+    :class:`~balustrade.errors.ShapeError` naming ``X0``/``W`` and the dimensions, before
+    any support LP runs."""
+    n = check_parametric_system(system, where)[0]
+    check_instance(X0, Polytope, f"{where}: X0")
+    if X0.dim != n:
+        raise ShapeError(f"{where}: X0", f"dimension {n} (the state)", f"dimension {X0.dim}",
+                         what="")
+    check_instance(W, Polytope, f"{where}: W")
+    nw = disturbance_map(system, n).shape[1]
+    if W.dim != nw:
+        raise ShapeError(f"{where}: W", f"dimension {nw} (the disturbance)",
+                         f"dimension {W.dim}", what="")
 
 
 def unit_polytope(X0: Polytope, where: str) -> np.ndarray:
@@ -164,8 +201,8 @@ def tube_constants(X0: Polytope, W: Polytope, system: object, K: np.ndarray,
     """All constants of SPEC §2.20 for the vertices ``θ^j`` (rows of ``vertices``); ``𝒵``
     given as matrices ``F, G`` or as a :class:`~balustrade.dsl.joint.JointPolytope`
     ``F`` with ``G=None``."""
+    check_tube_sets(system, X0, W, "tube_constants")
     HX = unit_polytope(X0, "tube_constants")
-    check_instance(W, Polytope, "tube_constants: W")
     E = disturbance_map(system, HX.shape[1])
     w_bar = np.array([W.support(row @ E) for row in HX])
     Z = as_joint(F, G, "tube_constants").check_dims(HX.shape[1], np.shape(K)[0],
@@ -588,10 +625,25 @@ def _terminal(ocp: OCP, zN: ca.SX, aN: ca.SX, terminal: TerminalSet | None, n: i
 
 def _terminal_rows(terminal: TerminalSet, n: int, name: str) -> tuple[np.ndarray, np.ndarray]:
     H_T = as_matrix(terminal.H_T, f"{name}: terminal H_T", (None, n))
-    h_T = np.asarray(terminal.h_T, dtype=float).reshape(-1)
-    if h_T.size != H_T.shape[0]:
-        raise ShapeError(f"{name}: terminal h_T", (H_T.shape[0],), h_T.shape)
+    h_T = as_vector(terminal.h_T, f"{name}: terminal h_T", H_T.shape[0])
     return H_T, h_T
+
+
+def check_terminal(terminal: object, n: int, name: str) -> None:
+    """The terminal set (4.5e) of a controller, checked when it is built rather than at the
+    first solve: a :class:`TerminalSet` whose ``H_T`` has ``n`` columns and whose ``H_T``,
+    ``h_T`` (one entry per row) and numeric generators (``n + 1`` rows) are finite; else a
+    :class:`~balustrade.errors.BalustradeError` naming the field and the shapes."""
+    if terminal is None:
+        return
+    check_instance(terminal, TerminalSet, f"{name}: terminal")
+    if terminal.H_T is not None or terminal.h_T is not None:
+        if terminal.H_T is None or terminal.h_T is None:
+            raise BalustradeError(f"{name}: terminal needs both H_T and h_T (or neither: "
+                                  "the default z_N = 0, 0 <= α_N <= 1)")
+        _terminal_rows(terminal, n, name)
+    if terminal.Z is not None:
+        as_matrix(terminal.generators, f"{name}: terminal generators [Z; a]", (n + 1, None))
 
 
 def _terminal_hull(ocp: OCP, zN: ca.SX, aN: ca.SX, terminal: TerminalSet, n: int,
@@ -644,8 +696,8 @@ def robust_gain_sdp(system: object, vertices: np.ndarray, contraction: float = 0
     return sdp
 
 
-__all__ = ["TerminalSet", "TubeConstants", "check_parametric_system",
-           "closed_loop_matrices", "disturbance_map", "factored_pays", "joint_constraints",
-           "model_matrices", "parameter_vertices", "rapsf_problem", "robust_gain_sdp",
-           "row_dependence", "rows_shared", "s_constants", "shared_rows", "support_rows",
-           "tube_constants", "unit_polytope"]
+__all__ = ["TerminalSet", "TubeConstants", "check_parametric_system", "check_terminal",
+           "check_tube_sets", "check_vertices", "closed_loop_matrices", "disturbance_map",
+           "factored_pays", "joint_constraints", "model_matrices", "parameter_vertices",
+           "rapsf_problem", "robust_gain_sdp", "row_dependence", "rows_shared",
+           "s_constants", "shared_rows", "support_rows", "tube_constants", "unit_polytope"]

@@ -100,9 +100,19 @@ class NaiveMPC:
         return u
 
 
+#: which solver of the (2.23) chain makes the shifted-plan attempt of a certified step
+#: (``PCBFSafetyFilter(shifted_retry_solver=)``): the chain's last resort on
+#: ``structured-ip`` (session 13: from (−0.5, −1.5), step 48, the first solver stalls from
+#: every start, its dual infeasibility stuck at 8.8e-5 with its regularization at 1e4 until
+#: its iteration limit; the last resort from the plan converges in 15 iterations;
+#: docs/obstacles.md "session 13")
+SHIFTED_RETRY_SOLVER = -1
+
+
 def pcbf_algorithm(target: str = "exact", shifted: bool = True,
                    horizon: int | None = None, certificate_first: bool = True,
-                   shifted_retry: bool = True
+                   shifted_retry: bool = True,
+                   shifted_retry_solver: int = SHIFTED_RETRY_SOLVER
                    ) -> PCBFSafetyFilter:
     """The PCBF algorithm [41] for the car: (2.24) then (2.23), both with the hard
     terminal constraint (``ξ_N ≡ 0``); ``shifted``: (2.24) warm-started from the shifted last
@@ -123,7 +133,9 @@ def pcbf_algorithm(target: str = "exact", shifted: bool = True,
     Python twin with ``shifted=False``. ``shifted_retry`` (on here, off by default in the
     library): a certified step's failed (2.23) attempt from its last solution is tried once
     more from the certified shifted plan before the cold retries
-    (``PCBFSafetyFilter(shifted_retry=True)``; docs/obstacles.md "session 12")."""
+    (``PCBFSafetyFilter(shifted_retry=True)``; docs/obstacles.md "session 12"), by the
+    chain's solver ``shifted_retry_solver`` names (:data:`SHIFTED_RETRY_SOLVER`, the last:
+    session 13)."""
     system = obstacle_car()
     s = obstacle_setup() if horizon is None else ObstacleSetup(N=int(horizon))
     args = (system, s.X, s.U, s.N, s.deltas, s.delta_N)
@@ -131,12 +143,14 @@ def pcbf_algorithm(target: str = "exact", shifted: bool = True,
     filt = compile(stopping_filter_problem(*args), target)
     return PCBFSafetyFilter(slack, filt, s.U, warm_start="shifted" if shifted else "last",
                             certificate_first=certificate_first,
-                            shifted_retry=shifted_retry)
+                            shifted_retry=shifted_retry,
+                            shifted_retry_solver=shifted_retry_solver)
 
 
 def pcbf_algorithm_c(target: str = PCBF_C_TARGET, horizon: int | None = None,
                      build_dir: str | Path | None = None, certificate_first: bool = True,
-                     shifted_retry: bool = True) -> object:
+                     shifted_retry: bool = True,
+                     shifted_retry_solver: int = SHIFTED_RETRY_SOLVER) -> object:
     """The PCBF algorithm of :func:`pcbf_algorithm` (``shifted=False``) as emitted C, one
     call per step (:func:`~balustrade.codegen.accelerate`, cached in ``build_dir``;
     :class:`~balustrade.codegen.CPCBFSafetyFilter`, ``accelerated`` says where and how
@@ -144,12 +158,13 @@ def pcbf_algorithm_c(target: str = PCBF_C_TARGET, horizon: int | None = None,
     retry, then the ``exact`` solver as last resort; targets.py) links three libraries of
     the casadi wheel (``manifest["link_flags"]``). The Python filter
     making the same decisions is ``pcbf_algorithm(target, shifted=False, ...)`` with the
-    same ``horizon``, ``certificate_first`` and ``shifted_retry``
-    (docs/obstacles.md, "session 12")."""
+    same ``horizon``, ``certificate_first``, ``shifted_retry`` and
+    ``shifted_retry_solver`` (docs/obstacles.md, "session 12", "session 13")."""
     from balustrade.codegen import accelerate
 
     py = pcbf_algorithm(target, shifted=False, horizon=horizon,
-                        certificate_first=certificate_first, shifted_retry=shifted_retry)
+                        certificate_first=certificate_first, shifted_retry=shifted_retry,
+                        shifted_retry_solver=shifted_retry_solver)
     name = "obstacles_pcbf" if horizon is None else f"obstacles_pcbf_n{int(horizon)}"
     name += "" if certificate_first else "_solve_all"
     name += "" if shifted_retry else "_no_retry"

@@ -4,7 +4,8 @@
  * from <name>_config.h: bounds P_LBX/P_UBX/P_LBG/P_UBG, initial point P_INIT_X, the
  * tolerances P_TOL_PR, P_TOL_DU, P_ACCEPT_TOL, the objective scale P_F_SCALE, the
  * iteration budget P_BUDGET (0: none; else a first attempt that stops without converging is
- * BAL_TRUNCATED, never retried), and P_SOLVERS(X), the CasADi solvers of the
+ * BAL_TRUNCATED, never retried), P_SECOND_SOLVER (the attempt whose solver runs from a
+ * second start, P_solve_from; 0: the first solver), and P_SOLVERS(X), the CasADi solvers of the
  * first attempt and of each retry (the same function twice shares its memory), P_REPORTS,
  * per attempt 1 if its solver returns its own verdict (the interior-point
  * solver: BAL_OK when it converged)
@@ -102,8 +103,9 @@ void BAL_PX(warm_start_primal)(BAL_PX(work)* wk) {
   memcpy(wk->x0, wk->x, BAL_PX(N_USER) * sizeof(casadi_real));
 }
 
-/* One solver run: which = 0 from the warm start in wk (or from the primal `start` with zero
-   multipliers if not NULL), else retry `which` from a cold start. */
+/* One solver run of the solver of attempt `which`: from the primal `start` with zero
+   multipliers if not NULL, else which = 0 from the warm start in wk and which >= 1 (a
+   retry) from a cold start. */
 static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which,
                            const casadi_real* start) {
   casadi_int i;
@@ -277,13 +279,16 @@ int BAL_PX(solve_lead)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real
     have_feasible = 1;
   }
   first_cold = BAL_PX(is_cold)(wk);
-  /* the first solver again from `second` before the cold retries (CasadiCompiled.solve's
-     second_start); then the retries, each skipped when it would repeat a cold run */
-  for (which = second ? 0 : 1; which < BAL_PX(N_SOLVERS); ++which) {
-    if (which && (BAL_PX(ran_before)(which, first_cold) || BAL_PX(is_lead)(which, lead))) {
+  /* the solver of attempt P_SECOND_SOLVER (0: the first) from `second` before the cold
+     retries (CasadiCompiled.solve's second_start, second_solver); then the retries, each
+     skipped when it would repeat a cold run (an earlier one, or the lead's) */
+  for (which = second ? -1 : 1; which < BAL_PX(N_SOLVERS); ++which) {
+    if (which == 0) continue; /* attempt 0 ran above */
+    if (which > 0 && (BAL_PX(ran_before)(which, first_cold) || BAL_PX(is_lead)(which, lead))) {
       continue; /* the same run again */
     }
-    status = BAL_PX(attempt)(wk, p, which, which ? 0 : second);
+    status = which < 0 ? BAL_PX(attempt)(wk, p, BAL_PX(SECOND_SOLVER), second)
+                       : BAL_PX(attempt)(wk, p, which, 0);
     if (status == BAL_OK) return status;
     if (status == BAL_FEASIBLE) {
       BAL_PX(feasible_copy)(wk, 1);

@@ -118,8 +118,11 @@ static void BAL_QX(apply_backup)(const casadi_real* x, casadi_real* u, BAL_QX(wo
 }
 
 #if BAL_QX(SHRINKING)
-/* Remark 4.6: (4.5) with the horizon h (1 <= h <= N - 1) at the parameters wk->p, from a
-   cold start as every solve; BAL_OK -> u_out = K x + v^_0 of it. Returns its status. */
+/* Remark 4.6: (4.5) with the horizon h = N - k_inf (1 <= h <= N - 1) at the parameters
+   wk->p, from a cold start as every solve; BAL_OK -> its v^ becomes the stored plan from
+   stage k_inf on (plan[k_inf + i] = v^_i: the state now follows its tube, which ends in C_f
+   at the old plan's time, so k_inf keeps counting; RAPSF._store_shrunk) and
+   u_out = K x + v^_0. Returns its status. */
 static int BAL_QX(solve_shrunk)(BAL_QX(work)* wk, int h, const casadi_real* x,
                                 casadi_real* u_out) {
   int st = BAL_NOT_RUN;
@@ -127,7 +130,11 @@ static int BAL_QX(solve_shrunk)(BAL_QX(work)* wk, int h, const casadi_real* x,
   if (h == hh) {                                                            \
     BAL_QX(tag##_cold_start)(&wk->tag);                                     \
     st = BAL_QX(tag##_solve)(&wk->tag, wk->p);                              \
-    if (st == BAL_OK) BAL_QX(feedback)(x, wk->tag.x + BAL_QX(tag##_W_v), u_out); \
+    if (st == BAL_OK) {                                                     \
+      memcpy(wk->plan + (BAL_QX(N) - hh) * BAL_QX(NU),                      \
+             wk->tag.x + BAL_QX(tag##_W_v), hh * BAL_QX(NU) * sizeof(casadi_real)); \
+      BAL_QX(feedback)(x, wk->plan + (BAL_QX(N) - hh) * BAL_QX(NU), u_out); \
+    }                                                                       \
   }
   BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_SOLVE)
 #undef BAL_RAPSF_SHRUNK_SOLVE

@@ -41,7 +41,8 @@ typedef struct BAL_QX(work) {
   BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_MEMBER) /* (4.5) with the horizon h (Q_SHRINKING) */
 #undef BAL_RAPSF_SHRUNK_MEMBER
   casadi_real p[BAL_QX(main_NP) + 1];
-  casadi_real plan[BAL_QX(NU) * BAL_QX(N)]; /* v* of the last converged (4.5), NU x N */
+  casadi_real plan[BAL_QX(NU) * BAL_QX(N)]; /* v* of the last converged (4.5), NU x N;
+                                               from k_inf on v^ of a converged shrunk solve */
   casadi_real u_p[BAL_QX(NU)];              /* the proposal used (non-finite -> 0) */
   casadi_real objective;                    /* of the last converged (4.5), else NAN */
   int have_plan, k_inf, main_status, shrunk_status, n_replaced, ready;

@@ -7,13 +7,17 @@
  */
 #include <string.h>
 
-/* u := v0 + K (x - z0) */
+/* u := v0 + K (x - z0), in the order of balustrade.dsl.error_sets.ErrorSet.kappa (the
+   Python controllers' u = v0 + kappa(x - z0)): (K e)_i summed left to right from its first
+   term, then added to v0, so that C and Python round alike (bitwise equal inputs) */
 static void BAL_QX(applied)(const casadi_real* x, const casadi_real* z0,
                             const casadi_real* v0, casadi_real* u) {
   casadi_int i, j;
+  casadi_real acc;
   for (i = 0; i < BAL_QX(NU); ++i) {
-    u[i] = v0[i];
-    for (j = 0; j < BAL_QX(NX); ++j) u[i] += BAL_QX(kappa)[i + j * BAL_QX(NU)] * (x[j] - z0[j]);
+    acc = BAL_QX(kappa)[i] * (x[0] - z0[0]);
+    for (j = 1; j < BAL_QX(NX); ++j) acc += BAL_QX(kappa)[i + j * BAL_QX(NU)] * (x[j] - z0[j]);
+    u[i] = v0[i] + acc;
   }
 }
 

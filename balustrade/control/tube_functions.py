@@ -1,0 +1,266 @@
+"""The numbers Algorithms 5.2 and 6.4 compute between their solves, as CasADi functions:
+the one definition that the Python controllers evaluate and the C emitters generate code
+from (:mod:`balustrade.codegen.emit_robust`), so that C and Python round alike (issue #14,
+"C = Python along closed loops"; docs/vehicles.md, "session 13").
+
+* :func:`slack_cost_expr` — ``h̃(ξ) = α_f ξ_N + Σ_i ‖ξ_i‖`` (SPEC §1.12), summed left to
+  right from ``α_f ξ_N``;
+* :func:`polish_expr` — the polished slacks of :func:`~balustrade.control.robust_steps.
+  polished_slacks` (elementwise minimum of the solver's slacks, clipped at 0, and the
+  slacks its ``z`` needs) and their ``h̃``;
+* :func:`candidate_function` — the shifted candidate (5.17)/(6.14) of
+  :func:`~balustrade.control.robust_steps.robust_candidate` with its ``h̃`` and whether its
+  terminal input is exact (:func:`terminal_input_expr`).
+
+:class:`TubeFunctions` holds them for one controller; :meth:`TubeFunctions.build` returns
+``None`` when ``h_f`` or ``π_f`` have no CasADi form (then the controllers use the numpy
+functions of :mod:`~balustrade.control.robust_steps`, whose sums and products BLAS may order
+differently — such a controller cannot be emitted anyway).
+
+Why: session 13 traced the first bit that differed between Python and C along the lane
+change: every solve (SQP, its QP, the interior-point retry) returned bitwise the same point
+from the same data, but ``h_r``, ``h̃``, ``h_cand`` and the input differed by one rounding
+(2.2e-16) because numpy summed ``h̃`` pairwise and computed ``d·P·d`` and ``K e`` with
+BLAS, while the C summed left to right. Those 1e-16 grew to 1e-8 in later solves and, where
+attempts of the retry chain answer at nearby states, to 1e-3.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from balustrade.control.robust_steps import (
+    Candidate,
+    polished_slacks,
+    robust_candidate,
+    slack_cost,
+)
+from balustrade.dsl.sets import Polytope
+from balustrade.dsl.system import System
+from balustrade.errors import BalustradeError
+
+#: tolerance of ``U_E.contains`` in :func:`~balustrade.control.robust_steps.terminal_input`
+CONTAINS_TOL = 1e-12
+
+
+def norm_expr(col: ca.SX, order: float) -> ca.SX:
+    """``‖col‖`` for the slack norms 1, 2 and ∞ (CasADi sums left to right)."""
+    if order == 1:
+        return ca.norm_1(col)
+    if order == 2:
+        return ca.norm_2(col)
+    if np.isinf(order):
+        return ca.norm_inf(col)
+    raise BalustradeError(f"slack norm {order!r}: the tube functions support 1, 2 and inf")
+
+
+def slack_cost_expr(xi: ca.SX, xi_N: ca.SX, alpha_f: float, slack_norm: float) -> ca.SX:
+    """``h̃(ξ) = α_f ξ_N + Σ_i ‖ξ_i‖`` (SPEC §1.12), one column of ``xi`` per step."""
+    total = alpha_f * xi_N
+    for i in range(xi.shape[1]):
+        total += norm_expr(xi[:, i], slack_norm)
+    return total
+
+
+def policy_expr(nx: int, nu: int, pi_f: Callable, z: ca.SX) -> ca.SX:
+    """``π_f(z)`` on CasADi symbols: ``π_f`` itself if it accepts them, else the linear map
+    it is checked to be (``π_f(x) = K_f x + c`` at random points), else a BalustradeError."""
+    try:
+        out = pi_f(z)
+        if isinstance(out, (ca.SX, ca.MX, ca.DM)) and out.numel() == nu:
+            return ca.reshape(ca.SX(out) if isinstance(out, ca.DM) else out, nu, 1)
+    except Exception:  # noqa: BLE001 - a numpy-only policy: identified below
+        pass
+    try:
+        c = np.asarray(pi_f(np.zeros(nx)), dtype=float).reshape(nu)
+        K = np.column_stack([np.asarray(pi_f(e), dtype=float).reshape(nu) - c
+                             for e in np.eye(nx)])
+        rng = np.random.default_rng(0)
+        for x in rng.standard_normal((3, nx)) * 3:
+            y = np.asarray(pi_f(x), dtype=float).reshape(nu)
+            if not np.allclose(y, K @ x + c, rtol=1e-9, atol=1e-9):
+                raise ValueError("not linear")
+    except Exception as exc:  # noqa: BLE001
+        raise BalustradeError("the terminal policy pi_f must accept CasADi symbols or be "
+                              "affine (checked at random points)") from exc
+    return ca.mtimes(ca.DM(K), z) + ca.DM(c)
+
+
+def terminal_input_expr(system: System, h_f: Callable, pi_f: Callable, U_E: Polytope,
+                        zN: ca.SX) -> tuple[ca.SX, ca.SX]:
+    """``(v_f, exact)``: the terminal input of (5.17)
+    (:func:`~balustrade.control.robust_steps.terminal_input`) — ``π_f(z_N)`` when it lies in
+    ``U ⊖ κ(E)``; otherwise, for one input with ``h_f(f(z_N, v, 0))`` quadratic in ``v``, its
+    minimizer over the interval ``U ⊖ κ(E)`` in closed form — and whether it is exact
+    (``exact = 0``: outside, and no closed form)."""
+    H, h = np.asarray(U_E.H, dtype=float), np.asarray(U_E.h, dtype=float)
+    u_f = policy_expr(system.nx, system.nu, pi_f, zN)
+    inside = ca.mmin(ca.DM(h) + CONTAINS_TOL - ca.mtimes(ca.DM(H), u_f)) >= 0
+    if system.nu != 1:
+        return u_f, inside
+    v = ca.SX.sym("v_f", 1)
+    w0 = ca.DM.zeros(system.nw) if system.nw else None
+    q = h_f(system(zN, v, w0) if w0 is not None else system(zN, v))
+    hess = ca.hessian(q, v)[0]
+    if ca.depends_on(hess, ca.vertcat(zN, v)) or float(ca.DM(hess)) <= 0:
+        return u_f, inside
+    a = float(ca.DM(hess))
+    b = ca.substitute(ca.jacobian(q, v), v, 0)
+    col = H[:, 0]
+    lo = max((h[i] / col[i] for i in range(len(h)) if col[i] < 0), default=-np.inf)
+    hi = min((h[i] / col[i] for i in range(len(h)) if col[i] > 0), default=np.inf)
+    v_min = ca.fmin(ca.fmax(-b / a, lo), hi)
+    return ca.if_else(inside, u_f, v_min), ca.SX(1)
+
+
+def polish_expr(X_E: Polytope, h_f: Callable, deltas: np.ndarray, alpha_f: float,
+                slack_norm: float, z: ca.SX, xi: ca.SX, xi_N: ca.SX
+                ) -> tuple[ca.SX, ca.SX, ca.SX]:
+    """``(ξ, ξ_N, h̃)`` polished (:func:`~balustrade.control.robust_steps.polished_slacks`):
+    ``min(max(ξ, 0), max(0, c_x^E(z_i) + Δ_i))``, ``min(max(ξ_N, 0), max(h_f(z_N), 0))``
+    and ``h̃`` of them."""
+    deltas = np.asarray(deltas, dtype=float).reshape(-1)
+    N, nr = deltas.size, X_E.H.shape[0]
+    Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
+    xi = ca.fmax(xi, 0)
+    xi_N = ca.fmax(xi_N, 0)
+    need = ca.fmax(ca.mtimes(Hx, z[:, :N]) - ca.repmat(hx, 1, N)
+                   + ca.repmat(ca.DM(deltas).T, nr, 1), 0)
+    xi_p = ca.fmin(xi, need)
+    xi_N_p = ca.fmin(xi_N, ca.fmax(h_f(z[:, N]), 0))
+    return xi_p, xi_N_p, slack_cost_expr(xi_p, xi_N_p, alpha_f, slack_norm)
+
+
+def candidate_function(sym: str, system: System, X_E: Polytope, U_E: Polytope,
+                       h_f: Callable, pi_f: Callable, deltas: np.ndarray, alpha_f: float,
+                       slack_norm: float) -> ca.Function:
+    """``sym(z, v, ξ) -> (z̃, ṽ, vec ξ̃, ξ̃_N, h̃(ξ̃), exact)``: the candidate (5.17)/(6.14)
+    (:func:`~balustrade.control.robust_steps.robust_candidate`; ``exact``: its terminal input
+    is the one Python's numpy path computes, :func:`terminal_input_expr`)."""
+    nx, nu = system.nx, system.nu
+    deltas = np.asarray(deltas, dtype=float).reshape(-1)
+    N, nr = deltas.size, X_E.H.shape[0]
+    Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
+    zc, vc, xic = ca.SX.sym("z", nx, N + 1), ca.SX.sym("v", nu, N), ca.SX.sym("xi", nr, N)
+    zN = zc[:, N]
+    u_f, exact = terminal_input_expr(system, h_f, pi_f, U_E, zN)
+    w0 = ca.DM.zeros(system.nw) if system.nw else None
+    z_next = system(zN, u_f, w0) if w0 is not None else system(zN, u_f)
+    z_t = ca.horzcat(zc[:, 1:], z_next)
+    v_t = ca.horzcat(vc[:, 1:], u_f) if N > 1 else u_f
+    cols = [ca.fmax(xic[:, i + 1] + (deltas[i] - deltas[i + 1]), 0) for i in range(N - 1)]
+    cols.append(ca.fmax(ca.mtimes(Hx, zN) - hx + deltas[N - 1], 0))
+    xi_t = ca.horzcat(*cols)
+    xi_N_t = ca.fmax(h_f(z_next), 0)
+    return ca.Function(sym, [zc, vc, xic],
+                       [z_t, v_t, ca.vec(xi_t), xi_N_t,
+                        slack_cost_expr(xi_t, xi_N_t, alpha_f, slack_norm), exact],
+                       ["z", "v", "xi"], ["z_next", "v_next", "xi_next", "xi_N_next",
+                                          "h_cand", "exact"])
+
+
+@dataclass
+class TubeFunctions:
+    """The CasADi functions of one tube controller (module docstring), evaluated in Python:
+    ``cost(ξ, ξ_N)``, ``polish(z, ξ, ξ_N)`` and ``candidate(z, v, ξ)``."""
+
+    nx: int
+    nu: int
+    nr: int
+    N: int
+    cost_fn: ca.Function
+    polish_fn: ca.Function
+    cand_fn: ca.Function
+
+    @classmethod
+    def build(cls, system: System, X_E: Polytope, U_E: Polytope, h_f: Callable,
+              pi_f: Callable, deltas: np.ndarray, alpha_f: float, slack_norm: float
+              ) -> TubeFunctions | None:
+        """The functions of a controller, or ``None`` when ``h_f`` or ``π_f`` have no
+        CasADi form, ``h_f`` is not scalar or the system takes parameters θ (the numpy path
+        of :mod:`~balustrade.control.robust_steps` is used then)."""
+        deltas = np.asarray(deltas, dtype=float).reshape(-1)
+        N, nr, nx, nu = deltas.size, X_E.H.shape[0], system.nx, system.nu
+        try:
+            if getattr(system, "ntheta", 0):
+                return None
+            z, xi, xi_N = ca.SX.sym("z", nx, N + 1), ca.SX.sym("xi", nr, N), ca.SX.sym("xN")
+            hz = h_f(z[:, N])
+            if not isinstance(hz, (ca.SX, ca.MX, ca.DM)) or hz.numel() != 1:
+                return None
+            xi_p, xi_N_p, h = polish_expr(X_E, h_f, deltas, alpha_f, slack_norm, z, xi, xi_N)
+            polish = ca.Function("tube_polish", [z, xi, xi_N], [xi_p, xi_N_p, h])
+            cost = ca.Function("tube_cost", [xi, xi_N],
+                               [slack_cost_expr(xi, xi_N, alpha_f, slack_norm)])
+            cand = candidate_function("tube_cand", system, X_E, U_E, h_f, pi_f, deltas,
+                                      alpha_f, slack_norm)
+        except Exception:  # noqa: BLE001 - no CasADi form: the numpy path is used
+            return None
+        return cls(nx, nu, nr, N, cost, polish, cand)
+
+    def cost(self, xi: np.ndarray, xi_N: float) -> float:
+        """``h̃(ξ)`` (the C's sum order)."""
+        xi = np.asarray(xi, dtype=float).reshape(self.nr, self.N)
+        return float(self.cost_fn(xi, float(xi_N)))
+
+    def polish(self, solution: object) -> tuple[np.ndarray, float]:
+        """The polished slacks ``(ξ, ξ_N)`` of a solution with ``z``, ``xi``, ``xi_N``."""
+        xi_N = float(np.asarray(solution["xi_N"], dtype=float).reshape(-1)[0])
+        xi, xN, _ = self.polish_fn(np.asarray(solution["z"], dtype=float),
+                                   np.asarray(solution["xi"], dtype=float)
+                                   .reshape(self.nr, self.N), xi_N)
+        return np.asarray(xi), float(xN)
+
+    def candidate(self, z: np.ndarray, v: np.ndarray, xi: np.ndarray) -> Candidate | None:
+        """The candidate (5.17)/(6.14); ``None`` where its terminal input has no closed form
+        (the caller computes it as :func:`~balustrade.control.robust_steps.robust_candidate`
+        does)."""
+        out = self.cand_fn(np.asarray(z, dtype=float),
+                           np.asarray(v, dtype=float).reshape(self.nu, self.N),
+                           np.asarray(xi, dtype=float).reshape(self.nr, self.N))
+        if not float(out[5]) > 0.5:
+            return None
+        return Candidate(np.asarray(out[0]), np.asarray(out[1]).reshape(self.nu, self.N),
+                         np.asarray(out[2]).reshape(self.nr, self.N, order="F"),
+                         float(out[3]))
+
+
+
+
+def tube_cost(tube: TubeFunctions | None, xi: np.ndarray, xi_N: float, alpha_f: float,
+              slack_norm: float = 1) -> float:
+    """``h̃(ξ)``: :meth:`TubeFunctions.cost`, else :func:`~balustrade.control.robust_steps.
+    slack_cost` (numpy)."""
+    if tube is None:
+        return slack_cost(xi, xi_N, alpha_f, slack_norm)
+    return tube.cost(xi, xi_N)
+
+
+def tube_polished(tube: TubeFunctions | None, solution: object, X_E: Polytope,
+                  h_f: Callable, deltas: np.ndarray) -> tuple[np.ndarray, float]:
+    """The polished slacks: :meth:`TubeFunctions.polish`, else
+    :func:`~balustrade.control.robust_steps.polished_slacks` (numpy)."""
+    if tube is None:
+        return polished_slacks(solution, X_E, h_f, deltas)
+    return tube.polish(solution)
+
+
+def tube_candidate(tube: TubeFunctions | None, system: System, X_E: Polytope, h_f: Callable,
+                   pi_f: Callable, deltas: np.ndarray, z: np.ndarray, v: np.ndarray,
+                   xi: np.ndarray, U_E: Polytope | None = None) -> Candidate:
+    """The candidate (5.17)/(6.14): :meth:`TubeFunctions.candidate` where it is exact, else
+    :func:`~balustrade.control.robust_steps.robust_candidate` (numpy; its terminal input by
+    SLSQP where π_f leaves ``U ⊖ κ(E)`` and no closed form exists)."""
+    cand = None if tube is None else tube.candidate(z, v, xi)
+    if cand is None:
+        cand = robust_candidate(system, X_E, h_f, pi_f, deltas, z, v, xi, U_E)
+    return cand
+
+
+__all__ = ["CONTAINS_TOL", "TubeFunctions", "candidate_function", "norm_expr", "policy_expr",
+           "polish_expr", "slack_cost_expr", "terminal_input_expr", "tube_candidate",
+           "tube_cost", "tube_polished"]

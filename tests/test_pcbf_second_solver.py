@@ -1,0 +1,144 @@
+"""Which solver makes the shifted-plan attempt of a certified step's (2.23) (issue #16,
+session 13): ``PCBFSafetyFilter(shifted_retry_solver=k)`` → ``CasadiCompiled.solve(
+second_solver=k)`` → ``<name>_filter_SECOND_SOLVER`` in the emitted C (bal/problem.c
+``P_solve_from``). 0 (the default) is session 12's attempt by the first solver; ``-1`` the
+chain's last solver (on the obstacle car of §8.3 IPOPT, which converges from the plan where
+fatrop stalls: docs/obstacles.md "session 13").
+
+The (2.23) target of the fast tests stops ``sqpmethod`` after one iteration and retries
+with 100: the warm attempt fails at the 6th step from (0.2, −0.1) (measured in
+tests/test_c_nonfinite_start.py). With the first solver the attempt from the plan (one
+iteration) fails too and the cold retry converges (3 attempts); with the last solver the
+attempt from the plan converges (2 attempts), in Python and in C, with the same inputs."""
+
+from __future__ import annotations
+
+import ctypes
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+from balustrade.backends import compile
+from balustrade.backends.casadi_backend import chain_solver_index
+from balustrade.backends.targets import Target
+from balustrade.control import PCBFSafetyFilter
+from balustrade.dsl.sets import Box
+from balustrade.dsl.system import LinearSystem
+from balustrade.errors import BalustradeError
+from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
+
+N = 10
+A = np.array([[1.0, 0.1], [-0.4, 0.85]])
+B = np.array([[0.0], [0.5]])
+P = sla.solve_discrete_lyapunov(A.T, np.eye(2))
+LEVEL = 0.125 / np.max(np.diag(np.linalg.inv(P)))
+ONE_ITER = Target("casadi", "sqpmethod", {"lowering": "as-emitted", "max_iter": 1},
+                  retries=(("sqpmethod", {"max_iter": 100}),), name="one-iteration")
+STEPS = 8
+FAILING_STEP = 5  # the 6th step: the warm attempt (one iteration) does not converge
+
+
+@pytest.fixture(scope="module")
+def pair():
+    system = LinearSystem(A, B, name="stable2")
+    X, U = Box([-1.0, -1.5], [1.0, 1.5]), Box([-2.0], [2.0])
+    h_f, d = (lambda x: x.T @ P @ x - LEVEL), 1e-3 * np.arange(N)
+    slack = compile(pcbf_slack_problem(system, X, U, h_f, N, d, 1e6, 1), "fast-sqp")
+    filt = compile(pcbf_filter_problem(system, X, U, h_f, N, d, 1e-6), ONE_ITER)
+    return slack, filt, U
+
+
+def _python_loop(ctl: PCBFSafetyFilter) -> list[tuple]:
+    """(status, fallback, (2.23) attempts as (solver object, start), u) per step of the
+    loop from (0.2, −0.1)."""
+    out, x = [], np.array([0.2, -0.1])
+    inner = ctl.filter._solve_with
+    calls: list[tuple] = []
+
+    def recording(solver, p, guess):
+        calls.append((solver, np.array(guess[0], dtype=float).reshape(-1)))
+        return inner(solver, p, guess)
+
+    ctl.filter._solve_with = recording
+    try:
+        ctl.reset()
+        for _ in range(STEPS):
+            calls.clear()
+            u, info = ctl.step(x, np.array([0.3]))
+            out.append((info.status, info.fallback, list(calls), u.copy()))
+            x = A @ x + B @ u
+    finally:
+        del ctl.filter._solve_with
+    return out
+
+
+def test_last_solver_makes_the_shifted_plan_attempt(pair):
+    slack, filt, U = pair
+    first = _python_loop(PCBFSafetyFilter(slack, filt, U, shifted_retry=True))
+    last = _python_loop(PCBFSafetyFilter(slack, filt, U, shifted_retry=True,
+                                         shifted_retry_solver=-1))
+    retry = filt._retry_solvers()[-1]
+    st, fb, calls, _ = first[FAILING_STEP]
+    assert st == "certified" and fb is None
+    # session 12's order: warm (fails), first solver from the plan (fails), cold retry
+    assert [c[0] for c in calls] == [filt.solver, filt.solver, retry]
+    st, fb, calls, _ = last[FAILING_STEP]
+    assert st == "certified" and fb is None
+    # the last solver from the plan converges: no cold retry
+    assert [c[0] for c in calls] == [filt.solver, retry]
+    np.testing.assert_allclose(calls[1][1], first[FAILING_STEP][2][1][1])  # the plan
+    assert not np.allclose(calls[1][1], np.asarray(filt._initial_guess(
+        None, np.zeros(filt.ocp.parameter_layout.size))[0], float).reshape(-1))
+    # every step stays a successful one
+    assert all(s in ("ok", "certified") for s, _, _, _ in last)
+
+
+def test_index_of_the_chain_is_checked(pair):
+    slack, filt, U = pair
+    assert chain_solver_index(-1, 2) == 2 and chain_solver_index(0, 2) == 0
+    assert chain_solver_index(1, 1) == 1 and chain_solver_index(-1, 0) == 0
+    for bad in (3, -2, True, 1.0):
+        with pytest.raises(BalustradeError):
+            chain_solver_index(bad, 2)
+    for bad in (-2, True, "last"):
+        with pytest.raises(BalustradeError, match="shifted_retry_solver"):
+            PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=bad)
+    with pytest.raises(BalustradeError, match="outside the chain"):
+        filt.solve({"x0": np.zeros(2), "u_p": np.zeros(1), "xi": np.zeros((4, N)),
+                    "xi_N": 0.0}, second_start={}, second_solver=2)
+    assert PCBFSafetyFilter(slack, filt, U).deployment_spec().shifted_retry_solver == 0
+
+
+def _c_loop(c) -> list[tuple]:
+    Q = c._lib.manifest["name"]
+    attempts = c._lib.fn(f"{Q}_filter_attempts", ctypes.c_int, [ctypes.c_void_p])
+    out, x = [], np.array([0.2, -0.1])
+    c.reset()
+    for _ in range(STEPS):
+        u, info = c.step(x, np.array([0.3]))
+        out.append((info.status, info.fallback, attempts(c.filter.work), u.copy()))
+        x = A @ x + B @ u
+    return out
+
+
+@pytest.mark.parametrize("which", [0, -1])
+def test_c_equals_python(pair, which, tmp_path):
+    """The emitted step runs the same attempts: statuses, fallbacks, attempt counts and
+    inputs equal Python's; the manifest and the config name the resolved attempt."""
+    from balustrade.codegen import CPCBFSafetyFilter, build, emit_pcbf
+
+    slack, filt, U = pair
+    py = PCBFSafetyFilter(slack, filt, U, shifted_retry=True, shifted_retry_solver=which)
+    emitted = emit_pcbf(py, "secondpcbf", tmp_path)
+    k = 0 if which == 0 else 1
+    assert emitted.manifest["shifted_retry_solver"] == k
+    config = (tmp_path / "secondpcbf_config.h").read_text()
+    assert f"#define secondpcbf_filter_SECOND_SOLVER {k}" in config
+    c = CPCBFSafetyFilter(build(tmp_path, emitted.name, werror=True))
+    got_py, got_c = _python_loop(py), _c_loop(c)
+    assert [(s, f) for s, f, _, _ in got_py] == [(s, f) for s, f, _, _ in got_c]
+    assert [len(a) for _, _, a, _ in got_py] == [n for _, _, n, _ in got_c]
+    assert got_c[FAILING_STEP][2] == (3 if which == 0 else 2)
+    for (_, _, _, a), (_, _, _, b) in zip(got_py, got_c, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-6)
