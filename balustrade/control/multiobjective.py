@@ -242,7 +242,7 @@ class MultiobjectivePCBFController:
         self.h_prev: float | None = None   # h̃(ξ*_{k−1})
         self._last: Solution | None = None
         self._last_slack: Solution | None = None
-        self._recovered = False   # the last (6.15) was a recovery solve
+        self._recovered = False   # no (6.15) converged since a recovery solve
 
     def h_tilde(self, xi: np.ndarray, xi_N: float) -> float:
         return tube_cost(self._tube, xi, xi_N, self.alpha_f, 1)
@@ -353,13 +353,15 @@ class MultiobjectivePCBFController:
         bound += self.bound_tol * max(1.0, abs(bound))
         info.values.update({"h_cand": h_cand, "bound": bound})
         # from the candidate before the first converged (6.15) and after a recovery solve
-        # (the interior-point point stops the SQP of the next step: docs/vehicles.md)
+        # until one converges (the interior-point point stops the SQP: docs/vehicles.md)
         warm = self._last if self._last is not None and not self._recovered else \
             self._candidate_start(c)
         lead = self.problem_lead if self.recovering() else None
-        self._recovered = lead is not None
         sol = self.problem.solve({"x0": x, "u_p": u_p, "bound": bound}, warm_start=warm,
                                  **({} if lead is None else {"lead": lead}))
+        # from the candidate again until a (6.15) converges after the recovery solve (the
+        # C's warm start holds the candidate start then, not the interior-point point)
+        self._recovered = lead is not None or (self._recovered and not sol.success)
         info.solve_time += sol.solve_time
         info.solutions["problem"] = sol
         accepted = None

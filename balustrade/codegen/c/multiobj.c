@@ -102,12 +102,12 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   for (i = 0; i < BAL_QX(NU); ++i) wk->p_problem[BAL_QX(problem_P_u_p) + i] = wk->u_p[i];
   wk->p_problem[BAL_QX(problem_P_bound)] = bound;
   /* the first (6.15) until one converges is a recovery solve: the attempt Q_PROBLEM_LEAD
-     leads (0: none); the one after it starts from the candidate as well
+     leads (0: none); the ones after it start from the candidate as well until one converges
      (balustrade.control.multiobjective.MultiobjectivePCBFController.recovering) */
   lead = (BAL_QX(PROBLEM_LEAD) > 0 && !wk->have_problem) ? BAL_QX(PROBLEM_LEAD) : 0;
   if (!wk->have_problem || wk->recovered) {
-    /* before its first success and after a recovery solve: from the candidate, the rest
-       cold */
+    /* before its first success and after a recovery solve until one converges: from the
+       candidate, the rest cold */
     BAL_QX(problem_cold_start)(&wk->problem);
     BAL_MO_COPY(z, wk->cz, BAL_QX(NX) * (BAL_QX(N) + 1))
     BAL_MO_COPY(v, wk->cv, BAL_QX(NU) * BAL_QX(N))
@@ -126,7 +126,9 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
 #endif
   }
   wk->problem_status = BAL_QX(problem_solve_lead)(&wk->problem, wk->p_problem, 0, lead);
-  wk->recovered = lead > 0;
+  /* from the candidate again until a (6.15) converges after the recovery solve (Python's
+     _recovered: its warm start is then the candidate's, never the interior-point point) */
+  wk->recovered = lead > 0 || (wk->recovered && wk->problem_status != BAL_OK);
   if (wk->problem_status == BAL_OK &&
       BAL_QX(polish)(wk, BAL_QX(post_problem), wk->problem.x, &wk->problem.f)) {
     wk->problem_status = BAL_EVAL_ERROR;
