@@ -20,9 +20,10 @@ Recovery steps (issue #14): the first (5.15) and every (6.15) until one converge
 bound of the first leaves no interior: the minimizers of (5.15)) run the attempt of their
 retry chains named by ``recovery_target`` first (default ``"recovery"``: the interior-point
 retry, :mod:`balustrade.backends.recovery`), then the rest of the chain; the (6.15) after a
-recovery solve starts from the candidate (6.14), not from the interior-point point, which
-stops the SQP (docs/vehicles.md, session 13). ``recovery_target=None``: the usual order. The
-emitted C decides the same (``<name>_SLACK_LEAD``, ``<name>_PROBLEM_LEAD``).
+recovery solve, and each next one until one converges, starts from the candidate (6.14),
+not from the interior-point point, which stops the SQP (docs/vehicles.md, session 13).
+``recovery_target=None``: the usual order. The emitted C decides the same
+(``<name>_SLACK_LEAD``, ``<name>_PROBLEM_LEAD``).
 
 The decrease bounds get a margin ``bound_tol · max(1, bound)`` (default ``1e-9``) so that a
 candidate that meets them with equality is not declared infeasible by solver round-off.
