@@ -107,6 +107,9 @@ def test_lane_change_c_equals_python_where_the_retries_answer(
             (u1, i1), (u2, i2) = py.step(x, L.human(x)), c.step(x, L.human(x))
             assert (i1.status, i1.fallback) == (i2.status, i2.fallback), (kind, k)
             assert np.max(np.abs(u1 - u2)) <= 1e-6, (kind, k, u1 - u2)
-            retried += any("after retries" in s.message for s in i1.solutions.values())
+            # a retry of the chain answered: after the first attempt, or as the lead of a
+            # recovery step (backends/recovery.py: its answer says no "after retries")
+            retried += any("after retries" in s.message or s.solver != py.slack.solver_name
+                           for s in i1.solutions.values())
             x = d.system.step(x, u1, w)
         assert retried >= 1, kind        # the steps exercise the retry chain

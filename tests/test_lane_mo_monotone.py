@@ -150,6 +150,10 @@ def test_lane_change_seed_42_in_c_h_tilde_non_increasing():
     cfg = lc.config("converging")
     d = lc.design(cfg)
     py = lc.multiobjective(d, cfg.rho, record_h_r=False)
+    # the offending run as it was: the chain in its usual order (session 13's recovery
+    # lead changes which attempt answers the first (6.15), and the loop no longer visits
+    # the state of step 191; docs/vehicles.md, session 13)
+    py.recovery_target = None
     r = lc.closed_loop(accelerate(py), d, lc.disturbances(d, 42, lc.STEPS))
     h, bound = r["h_tilde"], r["bound"]
     # the step that rose before the fix is the one rejected now (docs/vehicles.md)

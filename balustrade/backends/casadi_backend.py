@@ -392,7 +392,8 @@ class CasadiCompiled:
     def solve(self, params: dict[str, object] | None = None,
               warm_start: Solution | dict[str, object] | None = None,
               second_start: Solution | dict[str, object] | None = None,
-              second_solver: int = 0) -> Solution:
+              second_solver: int = 0,
+              lead: int | None = None) -> Solution:
         """Solve with the given parameter values; ``warm_start`` is a previous
         :class:`Solution` (primal and dual) or a dict of variable values.
 
@@ -404,6 +405,11 @@ class CasadiCompiled:
         of the chain (:func:`chain_solver_index`; e.g. ``structured-ip``'s IPOPT, which
         converged from the obstacle car's shifted plan where its interior-point solver on the
         stage-ordered NLP stalls: docs/obstacles.md "session 13").
+
+        ``lead`` (optional): the index of an entry of :attr:`retries` that runs *first*,
+        from its cold start, before the first solver (the recovery steps of Algorithms 5.2
+        and 6.4: :func:`~balustrade.backends.recovery.recovery_lead`); the chain then runs
+        as usual, the lead counting as the first attempt and not run again.
 
         A failed solve is retried from a cold start with each entry of :attr:`retries`
         in turn (see :func:`default_retries`), except a retry that would run a solver
@@ -434,11 +440,18 @@ class CasadiCompiled:
         p = self.ocp.pack_parameters(params)
         second_k = chain_solver_index(second_solver, len(self.retries))
         guess = self._initial_guess(warm_start, p)
+        attempts, ran = [], []  # (solver, start) of every attempt run so far
+        if lead is not None and self.budget is None:  # (a budget has no retries to lead)
+            led, cold = self._retry_solvers()[lead], self._initial_guess(None, p)
+            attempts.append(self._solve_with(led, p, cold))
+            ran.append((led, cold))
+            if attempts[0].success:
+                return attempts[0]
         sol = self._solve_with(self.solver, p, guess)
         if self.budget is not None and sol.status == Status.MAX_ITERATIONS:
             return self._truncated(sol, p)  # no retry, no rescue: the time bound holds
-        attempts = [sol]
-        ran = [(self.solver, guess)]  # (solver, start) of every attempt run so far
+        attempts.append(sol)
+        ran.append((self.solver, guess))
         if second_start is not None and not sol.success:
             # not in ``ran``: the retries run cold, and the C's ran_before compares them with
             # the cold attempts only (a second start equal to the cold one is not skipped)

@@ -56,6 +56,10 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
 ``"fast-convex-qp"``   ``fast-convex`` with PIQP (LPs/QPs only).
 ``"fast-convex-rowgen"`` ``fast-convex-qp`` solving by row generation when the OCP groups its
                        rows (``ocp.row_groups``, e.g. (4.5)); exact, see ``row_generation``.
+``"recovery"``         the attempt that leads a recovery step (Algorithms 5.2 and 6.4 outside
+                       the robust safe set, ``recovery_target=``): the interior-point solver,
+                       run first from a cold start when the problem's retry chain has it
+                       (:mod:`~balustrade.backends.recovery`); the chain follows as usual.
 ``"auto"``             ``fast-convex`` when the OCP classifies as convex, else ``exact``
                        (decided by :func:`~balustrade.backends.compile`, which records the
                        target it used as ``compiled.target``). Takes no solver or options.
@@ -426,6 +430,9 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("direct", "piqp",
            {"row_generation": {"reduced_options": {"kkt_solver": "sparse_ldlt_ineq_cond"}}},
            name="fast-convex-rowgen"),
+    # the lead of a recovery step (backends/recovery.py): the chain's interior-point retry
+    # ("ipopt", {}), matched by solver and options, so the C runs the same attempt
+    Target("casadi", "ipopt", name="recovery"),
     Target("auto", None, name="auto"),
 )}
 

@@ -43,6 +43,11 @@ the lane change (§8.2) the SQP attempts alone fail the cold (5.15) at ``x_0`` a
 (5.16)/(6.15) solves that the last retry solves. ``full_chain=False`` gives self-contained
 C (only ``libm``) without it; compare that with a Python controller that runs the same
 part of the chain (:func:`~balustrade.codegen.mirror_c_retries`).
+
+Recovery steps (issue #14): the controllers' ``recovery_target`` names an attempt of the
+chain that leads on their recovery steps (:mod:`balustrade.backends.recovery`); the C runs
+it first there too (``bal/problem.c``'s ``P_solve_lead``, ``<name>_SLACK_LEAD``,
+``<name>_PROBLEM_LEAD``; 0 when that attempt is not emitted, ``full_chain=False``).
 """
 
 from __future__ import annotations
@@ -52,6 +57,8 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
+from balustrade.backends.emittable import c_retries
+from balustrade.backends.recovery import recovery_lead
 from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
 from balustrade.codegen.emit import (
@@ -117,6 +124,24 @@ def _cand(sym: str, spec: TubeDeployment) -> ca.Function:
                                   spec.deltas, spec.alpha_f, spec.slack_norm)
     except BalustradeError as exc:
         raise CodegenError(f"{sym}: {exc} to be emitted as C") from exc
+
+
+def _c_lead(prob: _Problem, recovery: object, full_chain: bool) -> int:
+    """The attempt number in ``bal/problem.c`` (0: the first attempt, ``k``: the k-th
+    retry) of the attempt that leads ``prob``'s chain on a recovery step
+    (:func:`~balustrade.backends.recovery.recovery_lead`), 0 for none: no recovery target,
+    or its attempt not emitted (``full_chain=False`` leaves the interior-point retry out;
+    the C then runs the chain in its usual order, as a Python controller without a recovery
+    target)."""
+    k = recovery_lead(prob.c, recovery)
+    if k is None or prob.budget:
+        return 0
+    name, over = prob.c.retries[k]
+    emitted = c_retries(prob.c.solver_name, prob.c.options, prob.c.retries, full_chain)
+    for j, (plugin, o, _, _) in enumerate(emitted):
+        if plugin == name and dict(o) == dict(over):
+            return j + 1
+    return 0
 
 
 def _check_tube(name: str, spec: TubeDeployment, probs: dict[str, _Problem]) -> None:
@@ -255,7 +280,9 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
         name, out_dir, spec, U, libs, {"slack": s, "filter": f}, steps,
         ("robust", "robust", S.ROBUST, "robust_status"),
         f"Algorithm 5.2, the robust PCBF step {name}: (5.15) then (5.16)",
-        "Algorithm 5.2, the robust PCBF filter (5.15)+(5.16)", [],
+        "Algorithm 5.2, the robust PCBF filter (5.15)+(5.16)",
+        [(f"{name}_SLACK_LEAD", _c_lead(s, spec.recovery_target, full_chain),
+          "the (5.15) attempt run first on a recovery step (0: none)")],
         {"n_xi": spec.X_E.H.shape[0] * N})
 
 
@@ -308,6 +335,10 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
         f"Algorithm 6.4, the multiobjective robust PCBF step {name}",
         "Algorithm 6.4, the multiobjective robust PCBF controller (5.15)+(6.15)",
         [(f"{name}_RHO", C.c_double(spec.rho), "rho of (6.15g)"),
+         (f"{name}_SLACK_LEAD", _c_lead(s, spec.recovery_target, full_chain),
+          "the (5.15) attempt run first at the first step (0: none)"),
+         (f"{name}_PROBLEM_LEAD", _c_lead(p, spec.recovery_target, full_chain),
+          "the (6.15) attempt run first until one converges (0: none)"),
          (f"{name}_BOUND_TOL", C.c_double(spec.bound_tol), None),
          (f"{name}_DECREASE_TOL", C.c_double(DECREASE_TOL),
           "a converged (6.15) whose polished h~ exceeds the bound by more (relative) fails"),

@@ -156,6 +156,9 @@ class RobustDeployment(TubeDeployment):
 
     #: the slack norm of ``h̃`` (SPEC §1.12)
     slack_norm: int | float
+    #: the recovery target (a preset name or Target; ``None``: none) whose attempt leads
+    #: the (5.15) chain on a recovery step (:mod:`balustrade.backends.recovery`)
+    recovery_target: object = None
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,9 @@ class MultiobjectiveDeployment(TubeDeployment):
     record_h_r: bool
     #: the slack norm of ``h̃`` (ℓ1 in Algorithm 6.4)
     slack_norm: int | float = 1
+    #: the recovery target whose attempt leads the first (5.15) and (6.15) solves
+    #: (:mod:`balustrade.backends.recovery`; ``None``: none)
+    recovery_target: object = None
 
 
 @dataclass(frozen=True)

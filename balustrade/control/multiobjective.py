@@ -16,6 +16,15 @@ converged (6.15) whose plan needs more than the bound (its polished slacks' ``h�
 by more than :data:`DECREASE_TOL` relative) is no feasible point of (6.15) and falls back
 the same way (status ``"problem_above_bound"``, value ``h_tilde_rejected``).
 
+Recovery steps (issue #14): the first (5.15) and every (6.15) until one converges (the
+bound of the first leaves no interior: the minimizers of (5.15)) run the attempt of their
+retry chains named by ``recovery_target`` first (default ``"recovery"``: the interior-point
+retry, :mod:`balustrade.backends.recovery`), then the rest of the chain; the (6.15) after a
+recovery solve, and each next one until one converges, starts from the candidate (6.14),
+not from the interior-point point, which stops the SQP (docs/vehicles.md, session 13).
+``recovery_target=None``: the usual order. The emitted C decides the same
+(``<name>_SLACK_LEAD``, ``<name>_PROBLEM_LEAD``).
+
 The decrease bounds get a margin ``bound_tol · max(1, bound)`` (default ``1e-9``) so that a
 candidate that meets them with equality is not declared infeasible by solver round-off.
 A solve used although it ended ``optimal_inaccurate`` is flagged in ``StepInfo.uncertified``.
@@ -35,7 +44,7 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, check_instance
-from balustrade.backends import Compiled, Solution, Target, companion, compile
+from balustrade.backends import Compiled, Solution, Target, companion, compile, recovery_lead
 from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import LyapunovDeployment, MultiobjectiveDeployment
 from balustrade.control.fallbacks import (
@@ -167,6 +176,8 @@ BOUND_TOL = 1e-9
 #: with the default margins: ``h_cand <= h̃(ξ*_{k−1})`` (Theorem 6.15), so the bound is at most
 #: ``h̃(ξ*_{k−1})`` plus ``BOUND_TOL``, and an applied plan meets it within ``DECREASE_TOL``
 H_TILDE_RISE_TOL = BOUND_TOL + DECREASE_TOL
+#: the default recovery target of Algorithm 6.4 (module docstring, "Recovery steps")
+RECOVERY_TARGET: str | None = "recovery"
 
 
 class MultiobjectivePCBFController:
@@ -175,7 +186,8 @@ class MultiobjectivePCBFController:
     def __init__(self, slack: Compiled, problem: Compiled, system: System, X_E: Polytope,
                  U: Polytope, U_E: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
                  deltas: np.ndarray, alpha_f: float, rho: float = 0.9,
-                 bound_tol: float = BOUND_TOL, record_h_r: bool = False):
+                 bound_tol: float = BOUND_TOL, record_h_r: bool = False,
+                 recovery_target: Target | str | None = RECOVERY_TARGET):
         rho = as_scalar(rho, "Algorithm 6.4: rho (ρ)", 0.0, 1.0, high_open=True)
         bound_tol = as_scalar(bound_tol, "Algorithm 6.4: bound_tol", 0.0)
         alpha_f = as_scalar(alpha_f, "Algorithm 6.4: alpha_f", 0.0, low_open=True)
@@ -187,6 +199,8 @@ class MultiobjectivePCBFController:
         self.deltas = np.asarray(deltas, dtype=float).reshape(-1)
         self.alpha_f, self.rho, self.bound_tol = alpha_f, rho, bound_tol
         self.record_h_r = record_h_r
+        #: the recovery target (module docstring, "Recovery steps")
+        self.recovery_target = recovery_target
         # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
         # Python bitwise: balustrade.control.tube_functions); None: numpy
         self._tube = TubeFunctions.build(system, X_E, U_E, h_f, pi_f, self.deltas, alpha_f, 1)
@@ -198,7 +212,9 @@ class MultiobjectivePCBFController:
               rho: float = 0.9, objective: Objective | None = None,
               target: Target | str = "auto", slack_target: Target | str | None = None,
               U_tight: Polytope | None = None, record_h_r: bool = False,
-              running_sum: bool = False) -> MultiobjectivePCBFController:
+              running_sum: bool = False,
+              recovery_target: Target | str | None = RECOVERY_TARGET
+              ) -> MultiobjectivePCBFController:
         """Build and compile (5.15) (ℓ1 slack norm) for ``slack_target`` and (6.15) for
         ``target`` (targets or preset names; default ``"auto"``: the direct conic backend
         for convex problems, else ``exact``; ``slack_target=None``: ``"exact"`` on
@@ -211,7 +227,8 @@ class MultiobjectivePCBFController:
         lane change it makes a (6.15) solve ≈ 18× faster (docs/vehicles.md); on the 2-D
         example of §5.6 the SQP alone then converges less often from far-off states at
         ``k = 0`` (5 of 49 instead of 40; the retry chain's last resort solves them), so it
-        is not the default."""
+        is not the default. ``recovery_target``: the attempt that leads the first (5.15)
+        and (6.15) solves (module docstring; ``None``: none)."""
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                   1, U_tight), companion(slack_target, target))
         prob = compile(multiobjective_pcbf_problem(system, X, U, h_f, N, deltas, error, alpha_f,
@@ -219,20 +236,23 @@ class MultiobjectivePCBFController:
                                                    running_sum=running_sum), target)
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, prob, system, sets.X_E, U, sets.U_E, error, h_f, pi_f, deltas,
-                   alpha_f, rho, record_h_r=record_h_r)
+                   alpha_f, rho, record_h_r=record_h_r, recovery_target=recovery_target)
 
     def reset(self) -> None:
         self.candidate: Candidate | None = None
         self.h_prev: float | None = None   # h̃(ξ*_{k−1})
         self._last: Solution | None = None
         self._last_slack: Solution | None = None
+        self._recovered = False   # no (6.15) converged since a recovery solve
 
     def h_tilde(self, xi: np.ndarray, xi_N: float) -> float:
         return tube_cost(self._tube, xi, xi_N, self.alpha_f, 1)
 
-    def _h_r(self, x: np.ndarray, start: dict | None = None) -> Solution:
+    def _h_r(self, x: np.ndarray, start: dict | None = None, lead: int | None = None
+             ) -> Solution:
+        extra = {} if lead is None else {"lead": lead}
         s = self.slack.solve({"x0": x}, warm_start=self._last_slack if start is None
-                             else start)
+                             else start, **extra)
         if s.success:
             self._last_slack = s
         return s
@@ -285,6 +305,21 @@ class MultiobjectivePCBFController:
             start["xi_sum"] = sums
         return start
 
+    @property
+    def slack_lead(self) -> int | None:
+        """The attempt of the (5.15) chain the first step runs first (``None``: none)."""
+        return recovery_lead(self.slack, self.recovery_target)
+
+    @property
+    def problem_lead(self) -> int | None:
+        """The attempt of the (6.15) chain a recovery solve runs first (``None``: none)."""
+        return recovery_lead(self.problem, self.recovery_target)
+
+    def recovering(self) -> bool:
+        """Whether the (6.15) of this step is a recovery solve: no converged (6.15) yet to
+        start from (its first solve, from the candidate)."""
+        return self._last is None
+
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of Algorithm 6.4 (module docstring); never raises for runtime data."""
         u_p, replaced = finite_proposal(u_p, self.system.nu, "Algorithm 6.4: u_p")
@@ -298,7 +333,7 @@ class MultiobjectivePCBFController:
         nu = self.system.nu
         info = StepInfo()
         if self.candidate is None:                      # initialization from (5.15)
-            s0 = self._h_r(x)
+            s0 = self._h_r(x, lead=self.slack_lead)     # a recovery step: no candidate
             info.solve_time += s0.solve_time
             if not s0.success:
                 info.status, info.fallback = f"init_{outcome(s0)}", "projected_proposal"
@@ -318,8 +353,16 @@ class MultiobjectivePCBFController:
         bound = decrease_bound(h_cand, float(self.h_prev), self.rho)
         bound += self.bound_tol * max(1.0, abs(bound))
         info.values.update({"h_cand": h_cand, "bound": bound})
-        warm = self._last if self._last is not None else self._candidate_start(c)
-        sol = self.problem.solve({"x0": x, "u_p": u_p, "bound": bound}, warm_start=warm)
+        # from the candidate before the first converged (6.15) and after a recovery solve
+        # until one converges (the interior-point point stops the SQP: docs/vehicles.md)
+        warm = self._last if self._last is not None and not self._recovered else \
+            self._candidate_start(c)
+        lead = self.problem_lead if self.recovering() else None
+        sol = self.problem.solve({"x0": x, "u_p": u_p, "bound": bound}, warm_start=warm,
+                                 **({} if lead is None else {"lead": lead}))
+        # from the candidate again until a (6.15) converges after the recovery solve (the
+        # C's warm start holds the candidate start then, not the interior-point point)
+        self._recovered = lead is not None or (self._recovered and not sol.success)
         info.solve_time += sol.solve_time
         info.solutions["problem"] = sol
         accepted = None
@@ -372,4 +415,5 @@ class MultiobjectivePCBFController:
             system=self.system, X_E=self.X_E, U=self.U, U_E=self.U_E, h_f=self.h_f,
             pi_f=self.pi_f, K=self.error.K if self.error.kappa_fn is None else None,
             deltas=self.deltas, alpha_f=self.alpha_f, rho=self.rho,
-            bound_tol=self.bound_tol, record_h_r=self.record_h_r)
+            bound_tol=self.bound_tol, record_h_r=self.record_h_r,
+            recovery_target=self.recovery_target)

@@ -44,6 +44,17 @@ optimal; ``StepInfo.status`` carries the word ``"truncated"`` in place of their 
   after a (5.16) stopped infeasible, the next one starts from the primal of its step's
   (5.15), as in :mod:`balustrade.control.pcbf` (not from an older converged (5.16)).
 
+Recovery steps (issue #14): a step whose candidate does not certify ``h_r(x_k) = 0`` — no
+candidate (the first step, after a reset or a projected proposal), or one with ``h̃ > 0``
+(Theorem 5.15: ``h_r(x_k) <= h̃``) — solves (5.15) with the attempt of its retry chain named
+by ``recovery_target`` first (default ``"recovery"``: the interior-point retry,
+:mod:`balustrade.backends.recovery`), then the rest of the chain; (5.16) then starts from
+the (5.15) point, as at the first step. Why: while ``h_r > 0`` the LP-like (5.15) makes the
+SQP attempts fail after hundreds of iterations (150–240 ms each) before the interior-point
+last resort answers (21–50 ms alone); an interior-point (5.16) point, as a warm start, stops
+the next SQP (docs/vehicles.md, session 13). ``recovery_target=None`` keeps the chain's order
+everywhere. The emitted C decides the same (``<name>_SLACK_LEAD``).
+
 Recorded values: ``h_r`` (the optimal value of (5.15), read as ``h̃`` of the polished slacks
 (:func:`~balustrade.control.robust_steps.polished_slacks`) — never the solver's objective,
 whose slightly negative slacks the point does not certify) and ``h_cand`` (``h̃`` of the candidate
@@ -57,7 +68,7 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, as_vector, check_deltas, check_instance, check_norm_order
-from balustrade.backends import Compiled, Solution, Target, companion, compile
+from balustrade.backends import Compiled, Solution, Target, companion, compile, recovery_lead
 from balustrade.control.base import StepInfo, feasible_truncation, note_solve, outcome
 from balustrade.control.deploy import RobustDeployment
 from balustrade.control.fallbacks import (
@@ -91,6 +102,9 @@ from balustrade.problems.robust import (
 #: tests/test_robust.py allows ``h_r`` above ``h_cand``
 ABOVE_CANDIDATE_TOL = 1e-5
 
+#: the default recovery target (module docstring, "Recovery steps")
+RECOVERY_TARGET: str | None = "recovery"
+
 
 class RobustPCBFSafetyFilter:
     """Algorithm 5.2 over the compiled problems (5.15) and (5.16) (any backend)."""
@@ -98,7 +112,8 @@ class RobustPCBFSafetyFilter:
     def __init__(self, slack: Compiled, filter: Compiled, system: System, X_E: Polytope,
                  U: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
                  deltas: np.ndarray, alpha_f: float, slack_norm: int | float = 1,
-                 U_E: Polytope | None = None):
+                 U_E: Polytope | None = None,
+                 recovery_target: Target | str | None = RECOVERY_TARGET):
         block = "RobustPCBFSafetyFilter"
         check_instance(system, System, f"{block}: system")
         check_instance(X_E, Polytope, f"{block}: X_E")
@@ -112,6 +127,8 @@ class RobustPCBFSafetyFilter:
         self.deltas = check_deltas(d, d.size, block)
         self.alpha_f = as_scalar(alpha_f, f"{block}: alpha_f", 0.0, low_open=True)
         self.slack_norm = check_norm_order(slack_norm, f"{block}: slack_norm")
+        #: the recovery target (module docstring, "Recovery steps")
+        self.recovery_target = recovery_target
         # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
         # Python bitwise: balustrade.control.tube_functions); None: numpy
         self._tube = TubeFunctions.build(system, X_E, self.U_E, h_f, pi_f, self.deltas,
@@ -123,7 +140,9 @@ class RobustPCBFSafetyFilter:
               N: int, deltas: np.ndarray, error: ErrorSet, alpha_f: float = 1e6,
               slack_norm: int | float = 1, objective: Objective | None = None,
               target: Target | str = "auto", slack_target: Target | str | None = None,
-              eps: float = 1e-6, U_tight: Polytope | None = None) -> RobustPCBFSafetyFilter:
+              eps: float = 1e-6, U_tight: Polytope | None = None,
+              recovery_target: Target | str | None = RECOVERY_TARGET
+              ) -> RobustPCBFSafetyFilter:
         """Build and compile (5.15) for ``slack_target`` and (5.16) for ``target`` (targets
         or preset names, e.g. ``target="cvxpy"``).
 
@@ -135,7 +154,8 @@ class RobustPCBFSafetyFilter:
         degenerate for it); ``robust-sqp`` is the SQP target for (5.16) (more iterations: the
         default limit stops early on tube problems), the one whose C can be emitted; on any
         other backend (5.15) uses ``target``. Tune a target with
-        :meth:`~balustrade.backends.Target.with_options`.
+        :meth:`~balustrade.backends.Target.with_options`. ``recovery_target``: the attempt
+        that leads (5.15) on a recovery step (module docstring; ``None``: none).
         """
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                   slack_norm, U_tight),
@@ -144,12 +164,13 @@ class RobustPCBFSafetyFilter:
                                                   objective, U_tight), target)
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, filt, system, sets.X_E, U, error, h_f, pi_f, deltas, alpha_f,
-                   slack_norm, sets.U_E)
+                   slack_norm, sets.U_E, recovery_target)
 
     def reset(self) -> None:
         self._last_slack: Solution | None = None
         self._last_filter: Solution | None = None
         self.candidate: Candidate | None = None
+        self._slack_recovered = False  # the last converged (5.15) was a recovery solve
 
     def h_r(self, x: np.ndarray) -> tuple[float, Solution]:
         """Solve (5.15) at ``x``: ``(h_r(x), solution)`` (``nan`` if the solve failed); the
@@ -157,11 +178,35 @@ class RobustPCBFSafetyFilter:
         h_r, s, _ = self._solve_slack(x)
         return h_r, s
 
-    def _solve_slack(self, x: np.ndarray
+    @property
+    def slack_lead(self) -> int | None:
+        """The attempt of the (5.15) chain a recovery step runs first (``None``: the chain in
+        its usual order); read from the problem's chain as it is now (a mirrored chain,
+        :func:`~balustrade.codegen.mirror_c_retries`, may have dropped it)."""
+        return recovery_lead(self.slack, self.recovery_target)
+
+    def recovering(self) -> bool:
+        """Whether the next step is a recovery step: a candidate whose ``h̃`` is positive, so
+        that it does not certify ``h_r(x_k) = 0`` (Theorem 5.15: ``h_r(x_k) <= h̃``). Not
+        the first step (no candidate): there (5.16), started from an interior-point (5.15)
+        point, ends at the interior-point solver's acceptable level, which Python flags
+        (``optimal_inaccurate``) and the emitted C cannot tell from convergence
+        (docs/vehicles.md, session 13)."""
+        c = self.candidate
+        return c is not None and tube_cost(self._tube, c.xi, c.xi_N, self.alpha_f,
+                                           self.slack_norm) > 0.0
+
+    def _solve_slack(self, x: np.ndarray, lead: int | None = None
                      ) -> tuple[float, Solution, tuple[np.ndarray, float] | None]:
         """:meth:`h_r` and the polished slacks ``(ξ, ξ_N)`` it was computed from (``None``
-        if the solve failed), so that a step polishes them once."""
-        s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=self._last_slack)
+        if the solve failed), so that a step polishes them once; ``lead``: the attempt of
+        the chain that runs first (a recovery step)."""
+        extra = {} if lead is None else {"lead": lead}
+        # after a (5.15) answered on a recovery step, from the candidate (5.17): the
+        # interior-point point stops the SQP of the next step (docs/vehicles.md, session 13)
+        warm = self.candidate.as_dict() if self._slack_recovered and \
+            self.candidate is not None else self._last_slack
+        s = self.slack.solve({"x0": np.asarray(x, dtype=float)}, warm_start=warm, **extra)
         if not s.success:
             return float("nan"), s, None
         xi, xi_N = tube_polished(self._tube, s, self.X_E, self.h_f, self.deltas)
@@ -191,7 +236,9 @@ class RobustPCBFSafetyFilter:
             c = self.candidate
             info.values["h_cand"] = tube_cost(self._tube, c.xi, c.xi_N, self.alpha_f,
                                               self.slack_norm)
-        h_r, s1, polished = self._solve_slack(x)
+        lead = self.slack_lead if self.recovering() else None
+        h_r, s1, polished = self._solve_slack(x) if lead is None else \
+            self._solve_slack(x, lead)
         info.solve_time, info.solutions["slack"] = s1.solve_time, s1
         if not s1.success:
             info.status = f"slack_{outcome(s1)}"
@@ -204,11 +251,14 @@ class RobustPCBFSafetyFilter:
             info.status, info.values["h_r_local"] = "slack_above_candidate", h_r
             return self._fallback(x, u_p, info)
         self._last_slack = s1
+        self._slack_recovered = lead is not None
         note_solve(info, "slack", s1.status)   # optimal_inaccurate: h_r flagged, not certified
         info.values["h_r"] = h_r
         xi, xi_N = polished
-        warm = self._last_filter if self._last_filter is not None else {"z": s1["z"],
-                                                                         "v": s1["v"]}
+        # before the first (5.16) and on a recovery step: from the (5.15) point (an
+        # interior-point answer of the previous (5.16) stops the SQP: docs/vehicles.md)
+        warm = self._last_filter if self._last_filter is not None and lead is None else \
+            {"z": s1["z"], "v": s1["v"]}
         s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
@@ -248,5 +298,6 @@ class RobustPCBFSafetyFilter:
                                 h_f=self.h_f, pi_f=self.pi_f, K=self.error.K
                                 if self.error.kappa_fn is None else None,
                                 deltas=self.deltas, alpha_f=self.alpha_f,
-                                slack_norm=self.slack_norm)
+                                slack_norm=self.slack_norm,
+                                recovery_target=self.recovery_target)
 

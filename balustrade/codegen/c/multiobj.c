@@ -26,7 +26,7 @@ BAL_DEFINE_ALLOC_FREE(BAL_QX)
 void BAL_QX(reset)(BAL_QX(work)* wk) {
   BAL_QX(slack_cold_start)(&wk->slack);
   BAL_QX(problem_cold_start)(&wk->problem);
-  wk->have_cand = wk->have_problem = wk->n_replaced = 0;
+  wk->have_cand = wk->have_problem = wk->n_replaced = wk->recovered = 0;
   wk->cand_exact = 1;
   wk->slack_status = wk->problem_status = BAL_NOT_RUN;
   wk->h_prev = NAN;
@@ -54,6 +54,7 @@ static int BAL_QX(polish)(BAL_QX(work)* wk, BAL_QX(post_fn) post, const casadi_r
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  int* status, BAL_QX(work)* wk) {
   casadi_int i;
+  int lead;
   casadi_real bound;
   const casadi_real *z, *v;
   if (!x || !u_p || !u_out || !status || !wk) {
@@ -72,7 +73,9 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   if (!wk->have_cand) {
     /* initialization from (5.15) */
     for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
-    wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
+    /* a recovery step: the attempt Q_SLACK_LEAD leads (0: none) */
+    wk->slack_status = BAL_QX(slack_solve_lead)(&wk->slack, wk->p_slack, 0,
+                                                BAL_QX(SLACK_LEAD));
     if (wk->slack_status == BAL_OK &&
         BAL_QX(polish)(wk, BAL_QX(post_slack), wk->slack.x, &wk->slack.f)) {
       wk->slack_status = BAL_EVAL_ERROR;
@@ -98,8 +101,13 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_problem[BAL_QX(problem_P_x0) + i] = x[i];
   for (i = 0; i < BAL_QX(NU); ++i) wk->p_problem[BAL_QX(problem_P_u_p) + i] = wk->u_p[i];
   wk->p_problem[BAL_QX(problem_P_bound)] = bound;
-  if (!wk->have_problem) {
-    /* before its first success: from the candidate, the rest cold */
+  /* the first (6.15) until one converges is a recovery solve: the attempt Q_PROBLEM_LEAD
+     leads (0: none); the ones after it start from the candidate as well until one converges
+     (balustrade.control.multiobjective.MultiobjectivePCBFController.recovering) */
+  lead = (BAL_QX(PROBLEM_LEAD) > 0 && !wk->have_problem) ? BAL_QX(PROBLEM_LEAD) : 0;
+  if (!wk->have_problem || wk->recovered) {
+    /* before its first success and after a recovery solve until one converges: from the
+       candidate, the rest cold */
     BAL_QX(problem_cold_start)(&wk->problem);
     BAL_MO_COPY(z, wk->cz, BAL_QX(NX) * (BAL_QX(N) + 1))
     BAL_MO_COPY(v, wk->cv, BAL_QX(NU) * BAL_QX(N))
@@ -117,7 +125,10 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     }
 #endif
   }
-  wk->problem_status = BAL_QX(problem_solve)(&wk->problem, wk->p_problem);
+  wk->problem_status = BAL_QX(problem_solve_lead)(&wk->problem, wk->p_problem, 0, lead);
+  /* from the candidate again until a (6.15) converges after the recovery solve (Python's
+     _recovered: its warm start is then the candidate's, never the interior-point point) */
+  wk->recovered = lead > 0 || (wk->recovered && wk->problem_status != BAL_OK);
   if (wk->problem_status == BAL_OK &&
       BAL_QX(polish)(wk, BAL_QX(post_problem), wk->problem.x, &wk->problem.f)) {
     wk->problem_status = BAL_EVAL_ERROR;

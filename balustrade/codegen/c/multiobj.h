@@ -47,6 +47,7 @@ typedef struct BAL_QX(work) {
   casadi_int iw[BAL_QX(SZ_IW) + 1];
   casadi_real w[BAL_QX(SZ_W) + 1];
   int have_cand, cand_exact, have_problem, n_replaced;
+  int recovered; /* no (6.15) converged since a recovery solve (the next starts from the candidate) */
   int slack_status, problem_status; /* BAL_* of the last step's solves */
   int ready;
 } BAL_QX(work);

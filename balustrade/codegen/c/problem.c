@@ -221,7 +221,18 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p) {
 }
 
 int BAL_PX(solve_from)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real* second) {
-  int first, first_cold, status, which, have_feasible;
+  return BAL_PX(solve_lead)(wk, p, second, 0);
+}
+
+/* 1 if retry `which` runs the solver of the lead attempt (lead > 0), which already ran
+   cold in this P_solve_lead: skipped (casadi_backend: the lead is in `ran`) */
+static int BAL_PX(is_lead)(int which, int lead) {
+  return lead > 0 && BAL_PX(solvers)[which].eval == BAL_PX(solvers)[lead].eval;
+}
+
+int BAL_PX(solve_lead)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real* second,
+                       int lead) {
+  int first, first_cold, status, which, have_feasible = 0;
   casadi_int i;
   if (!wk || !wk->ready) return BAL_EVAL_ERROR;
   wk->attempts = 0;
@@ -240,8 +251,22 @@ int BAL_PX(solve_from)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real
     BAL_PX(cold_start)(wk);
   }
   if (second && !BAL_PX(finite_vec)(second, BAL_PX(NW))) second = 0;
-  first = BAL_PX(attempt)(wk, p, 0, 0);
-  if (first == BAL_OK) return first;
+  /* a recovery step (backends.recovery): retry `lead` first, from its cold start; its
+     status is the first attempt's (CasadiCompiled.solve's lead) */
+  if (BAL_PX(BUDGET) > 0 || lead <= 0 || lead >= BAL_PX(N_SOLVERS)) lead = 0;
+  if (lead) {
+    first = BAL_PX(attempt)(wk, p, lead, 0);
+    if (first == BAL_OK) return first;
+    if (first == BAL_FEASIBLE) {
+      BAL_PX(feasible_copy)(wk, 1);
+      have_feasible = 1;
+    }
+    status = BAL_PX(attempt)(wk, p, 0, 0);
+    if (status == BAL_OK) return status;
+  } else {
+    first = status = BAL_PX(attempt)(wk, p, 0, 0);
+    if (first == BAL_OK) return first;
+  }
 #if BAL_PX(BUDGET) > 0
   /* stopped by the iteration budget (the budgeted SQP has no other way to stop without
      converging: backends.targets.BUDGET_COMPANIONS): truncated, its iterate and residuals
@@ -249,15 +274,19 @@ int BAL_PX(solve_from)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real
      max_iterations with Solution.truncated */
   if (first == BAL_FEASIBLE || first == BAL_NOT_CONVERGED) return BAL_TRUNCATED;
 #endif
-  have_feasible = first == BAL_FEASIBLE;
-  if (have_feasible) BAL_PX(feasible_copy)(wk, 1);
+  if (status == BAL_FEASIBLE) {
+    BAL_PX(feasible_copy)(wk, 1);
+    have_feasible = 1;
+  }
   first_cold = BAL_PX(is_cold)(wk);
   /* the solver of attempt P_SECOND_SOLVER (0: the first) from `second` before the cold
      retries (CasadiCompiled.solve's second_start, second_solver); then the retries, each
-     skipped when it would repeat a cold run */
+     skipped when it would repeat a cold run (an earlier one, or the lead's) */
   for (which = second ? -1 : 1; which < BAL_PX(N_SOLVERS); ++which) {
     if (which == 0) continue; /* attempt 0 ran above */
-    if (which > 0 && BAL_PX(ran_before)(which, first_cold)) continue; /* the same run again */
+    if (which > 0 && (BAL_PX(ran_before)(which, first_cold) || BAL_PX(is_lead)(which, lead))) {
+      continue; /* the same run again */
+    }
     status = which < 0 ? BAL_PX(attempt)(wk, p, BAL_PX(SECOND_SOLVER), second)
                        : BAL_PX(attempt)(wk, p, which, 0);
     if (status == BAL_OK) return status;

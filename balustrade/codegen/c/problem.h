@@ -5,7 +5,7 @@
  * P_W_<variable>.
  *
  * Entry points: P_init, P_finalize, P_alloc, P_free, P_cold_start, P_warm_start,
- * P_warm_start_primal, P_solve, P_solve_from, P_attempts, P_primal, P_value, P_residuals.
+ * P_warm_start_primal, P_solve, P_solve_from, P_solve_lead, P_attempts, P_primal, P_value, P_residuals.
  * No include guard: included once per prefix.
  */
 #ifndef BAL_PROBLEM
@@ -61,6 +61,10 @@ int BAL_PX(solve)(BAL_PX(work)* wk, const casadi_real* p);
    `second` (P_NW values, zero multipliers; NULL or a NaN/inf entry: none) before the
    cold-start retries. */
 int BAL_PX(solve_from)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real* second);
+/* P_solve_from, but first (lead > 0) the cold-start retry `lead` runs, then the chain as
+   usual without that retry (a recovery step, balustrade.backends.recovery); lead 0: none. */
+int BAL_PX(solve_lead)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real* second,
+                       int lead);
 /* 1 if status is BAL_TRUNCATED and the iterate in wk meets every row and bound within
    P_TRUNC_TOL (absolute: Solution.feasible_within of balustrade's backend), else 0. */
 int BAL_PX(truncated_feasible)(const BAL_PX(work)* wk, int status);

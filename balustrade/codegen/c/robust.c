@@ -24,7 +24,7 @@ BAL_DEFINE_ALLOC_FREE(BAL_QX)
 void BAL_QX(reset)(BAL_QX(work)* wk) {
   BAL_QX(slack_cold_start)(&wk->slack);
   BAL_QX(filter_cold_start)(&wk->filter);
-  wk->have_cand = wk->have_slack = wk->have_filter = wk->n_replaced = 0;
+  wk->have_cand = wk->have_slack = wk->have_filter = wk->n_replaced = wk->recovered = 0;
   wk->cand_exact = 1;
   wk->slack_status = wk->filter_status = BAL_NOT_RUN;
   wk->h_cand = wk->h_r = NAN;
@@ -47,6 +47,7 @@ static int BAL_QX(fallback)(BAL_QX(work)* wk, const casadi_real* x, casadi_real*
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk) {
   casadi_int i;
+  int lead;
   const casadi_real *z, *v;
   if (!x || !u_p || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_ROBUST_BAD_INPUT;
@@ -64,9 +65,21 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     return *status;
   }
   if (wk->have_cand) wk->h_cand = wk->ch;
+  /* a recovery step (a candidate whose h~ is positive: it does not certify h_r(x_k) = 0)
+     runs the attempt Q_SLACK_LEAD of the (5.15) chain first
+     (balustrade.control.robust.RobustPCBFSafetyFilter.recovering; 0: none) */
+  lead = (BAL_QX(SLACK_LEAD) > 0 && wk->have_cand && wk->ch > 0.0) ? BAL_QX(SLACK_LEAD) : 0;
+  if (wk->recovered && wk->have_cand) {
+    /* the last converged (5.15) was a recovery solve: from the candidate, the rest cold */
+    BAL_QX(slack_cold_start)(&wk->slack);
+    memcpy(wk->slack.x0 + BAL_QX(slack_W_z), wk->cz, sizeof(wk->cz));
+    memcpy(wk->slack.x0 + BAL_QX(slack_W_v), wk->cv, sizeof(wk->cv));
+    memcpy(wk->slack.x0 + BAL_QX(slack_W_xi), wk->cxi, sizeof(wk->cxi));
+    wk->slack.x0[BAL_QX(slack_W_xi_N)] = wk->cxi_N;
+  }
   /* (5.15): h_r(x_k) and the slacks */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
-  wk->slack_status = BAL_QX(slack_solve)(&wk->slack, wk->p_slack);
+  wk->slack_status = BAL_QX(slack_solve_lead)(&wk->slack, wk->p_slack, 0, lead);
   if (wk->slack_status != BAL_OK) {
     /* a truncated (5.15) at a feasible iterate (real-time mode) is continued primal-dual
        by the next solve; its cost only bounds h_r (balustrade.control.robust) */
@@ -100,13 +113,14 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   }
   BAL_QX(slack_warm_start)(&wk->slack);
   wk->have_slack = 1;
+  wk->recovered = lead > 0;
   /* (5.16) with the polished slacks fixed */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_filter[BAL_QX(filter_P_x0) + i] = x[i];
   for (i = 0; i < BAL_QX(NU); ++i) wk->p_filter[BAL_QX(filter_P_u_p) + i] = wk->u_p[i];
   for (i = 0; i < BAL_QX(N_XI); ++i) wk->p_filter[BAL_QX(filter_P_xi) + i] = wk->xi[i];
   wk->p_filter[BAL_QX(filter_P_xi_N)] = wk->xi_N;
-  if (!wk->have_filter) {
-    /* before its first success: z, v of (5.15), the rest cold */
+  if (!wk->have_filter || lead) {
+    /* before its first success and on a recovery step: z, v of (5.15), the rest cold */
     BAL_QX(filter_cold_start)(&wk->filter);
     memcpy(wk->filter.x0 + BAL_QX(filter_W_z), wk->slack.x + BAL_QX(slack_W_z),
            BAL_QX(NX) * (BAL_QX(N) + 1) * sizeof(casadi_real));

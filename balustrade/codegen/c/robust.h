@@ -46,6 +46,7 @@ typedef struct BAL_QX(work) {
   casadi_int iw[BAL_QX(SZ_IW) + 1];
   casadi_real w[BAL_QX(SZ_W) + 1];
   int have_cand, cand_exact, have_slack, have_filter, n_replaced;
+  int recovered; /* the last converged (5.15) was a recovery solve: the next starts from the candidate */
   int slack_status, filter_status; /* BAL_* of the last step's solves */
   int ready;
 } BAL_QX(work);

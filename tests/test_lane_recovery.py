@@ -1,0 +1,189 @@
+"""Recovery steps run the interior-point attempt of the retry chain first (issue #14, the
+lane change's worst steps: the SQP attempts fail on the LP-like slack problems while
+``h_r > 0`` and cost 150–240 ms each, the interior-point solver alone 21–50 ms).
+
+On the unstable 2-D example of Section 5.6 with ``robust-sqp`` (the lane change's target):
+Algorithm 5.2 leads (5.15) with the chain's interior-point retry where its candidate does not
+certify ``h_r = 0`` and not where it does (nor at the first step, which has no
+candidate); Algorithm 6.4 leads its first (5.15) and (6.15) and not the next (6.15). The
+emitted C runs the same attempts: its attempt counters ``<P>_attempts`` equal Python's runs,
+and the C decides as Python.
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import numpy as np
+import pytest
+from test_emit_robust import _design, _kind
+
+from balustrade.backends import PRESETS, recovery_lead
+from balustrade.backends.targets import target
+from balustrade.codegen import accelerate
+from balustrade.control.multiobjective import MultiobjectivePCBFController
+from balustrade.models.unstable2d import unstable2d, unstable2d_setup
+
+#: states outside S_r (h_r > 0) of the 2-D example, and the origin (inside)
+OUTSIDE = [np.array([0.9, 8.0]), np.array([-0.95, -9.0]), np.array([0.8, 9.5])]
+ORIGIN = np.zeros(2)
+
+
+def _counted(compiled) -> list:
+    """The solver object of every attempt ``compiled`` runs (clear it between solves)."""
+    runs: list = []
+    inner = compiled._solve_with
+
+    def counting(solver, p, guess):
+        runs.append(solver)
+        return inner(solver, p, guess)
+
+    compiled._solve_with = counting
+    return runs
+
+
+def _lead_solver(compiled):
+    lead = recovery_lead(compiled, "recovery")
+    assert lead is not None  # robust-sqp's chain ends with the interior-point retry
+    return compiled._retry_solvers()[lead], compiled.retries[lead][0]
+
+
+def test_recovery_lead_is_the_chains_interior_point_retry() -> None:
+    ctrl, _ = _design()
+    assert ctrl.recovery_target == "recovery" and PRESETS["recovery"].backend == "casadi"
+    k = recovery_lead(ctrl.slack, "recovery")
+    assert ctrl.slack.retries[k][0] == PRESETS["recovery"].nlp_solver
+    assert recovery_lead(ctrl.slack, None) is None
+    # a chain that starts with that solver has nothing to reorder
+    assert recovery_lead(ctrl.slack.with_retries([]), "recovery") is None
+
+
+def test_robust_recovery_step_runs_the_interior_point_attempt_first() -> None:
+    ctrl, _ = _design()
+    runs = _counted(ctrl.slack)
+    led, name = _lead_solver(ctrl.slack)
+    for x in OUTSIDE:
+        ctrl.reset()
+        assert not ctrl.recovering()  # the first step: no candidate
+        runs.clear()
+        ctrl.step(x, np.array([1.0]))
+        assert runs[0] is ctrl.slack.solver
+        assert ctrl.recovering()  # outside S_r: the candidate's h~ is positive
+        runs.clear()
+        u, info = ctrl.step(x, np.array([1.0]))
+        assert runs[0] is led, (x, runs)
+        assert runs.count(led) == 1  # not run again as the last resort
+        s = info.solutions["slack"]
+        assert s.solver == name and len(runs) == 1, (x, s.solver, s.message)
+        assert info.values["h_r"] > 0
+    # from the origin the candidate certifies h_r = 0 at the next step: the SQP leads
+    ctrl.reset()
+    ctrl.step(ORIGIN, np.array([0.0]))
+    assert not ctrl.recovering()
+    runs.clear()
+    ctrl.step(ORIGIN, np.array([0.0]))
+    assert runs[0] is ctrl.slack.solver
+
+
+def test_robust_without_recovery_target_keeps_the_chain_order() -> None:
+    ctrl, _ = _design()
+    ctrl.recovery_target = None
+    runs = _counted(ctrl.slack)
+    for _ in range(2):
+        runs.clear()
+        ctrl.step(OUTSIDE[0], np.array([1.0]))
+        assert runs[0] is ctrl.slack.solver
+
+
+def _mo() -> MultiobjectivePCBFController:
+    base, _ = _design()
+    s = unstable2d_setup(10)
+    return MultiobjectivePCBFController.build(
+        unstable2d(), s.X, s.U, base.h_f, base.pi_f, 10, s.deltas(), base.error, s.alpha_f,
+        target="robust-sqp", slack_target="robust-sqp")
+
+
+def test_multiobjective_leads_its_first_solves_only() -> None:
+    ctrl = _mo()
+    slack_runs, runs = _counted(ctrl.slack), _counted(ctrl.problem)
+    led_s, _ = _lead_solver(ctrl.slack)
+    led_p, name = _lead_solver(ctrl.problem)
+    x = OUTSIDE[0]
+    u, info = ctrl.step(x, np.array([1.0]))
+    assert slack_runs[0] is led_s and runs[0] is led_p
+    assert info.solutions["problem"].solver == name and info.status == "ok"
+    assert not ctrl.recovering()
+    runs.clear()
+    x = ctrl.system.step(x, u, np.zeros(ctrl.system.nw) if ctrl.system.nw else None)
+    ctrl.step(np.asarray(x, dtype=float).reshape(-1), np.array([1.0]))
+    assert runs[0] is ctrl.problem.solver  # the next (6.15): the SQP leads again
+
+
+@pytest.fixture(scope="module")
+def robust_c(tmp_path_factory: pytest.TempPathFactory) -> tuple:
+    # SQP attempts capped at a few iterations (as tests/test_lane_c_chain.py): they fail
+    # where the lane's do, so the attempt counts tell a led solve from the usual order
+    py, _ = _design(target("robust-sqp", options={"max_iter": 3}))
+    return py, accelerate(py, build_dir=tmp_path_factory.mktemp("recovery"), name="rec")
+
+
+def test_c_runs_the_same_attempts_as_python(robust_c: tuple) -> None:
+    """The C's ``<P>_attempts`` of (5.15) equal Python's runs along a loop over states
+    outside ``S_r`` (recovery steps, led by the interior-point attempt: one run) and at the
+    origin (the SQP first), with the same statuses and inputs. Fails on a C that does not
+    lead: its SQP attempts, warm-started from the previous state, fail first (three runs)."""
+    py, c = robust_c
+    attempts = c._lib.fn(f"{c.slack.info['prefix']}_attempts", ctypes.c_int,
+                         [ctypes.c_void_p])
+    runs = _counted(py.slack)
+    led, _ = _lead_solver(py.slack)
+    seen_led = seen_sqp = 0
+    py.reset()
+    c.reset()
+    for x in [*OUTSIDE, *OUTSIDE[::-1], ORIGIN, ORIGIN]:
+        runs.clear()
+        (u1, i1), (u2, i2) = py.step(x, np.array([1.0])), c.step(x, np.array([1.0]))
+        assert (i1.status, i1.fallback) == (i2.status, i2.fallback), (x, i1.status)
+        assert np.max(np.abs(u1 - u2)) <= 1e-6, (x, u1, u2)
+        assert attempts(c.slack.work) == len(runs), (x, attempts(c.slack.work), len(runs))
+        seen_led += runs[0] is led
+        seen_sqp += runs[0] is py.slack.solver
+    assert seen_led >= 5 and seen_sqp >= 2, (seen_led, seen_sqp)
+
+
+@pytest.fixture(scope="module")
+def mo_c(tmp_path_factory: pytest.TempPathFactory) -> tuple:
+    base, _ = _design()
+    s = unstable2d_setup(10)
+    capped = target("robust-sqp", options={"max_iter": 3})
+    py = MultiobjectivePCBFController.build(
+        unstable2d(), s.X, s.U, base.h_f, base.pi_f, 10, s.deltas(), base.error, s.alpha_f,
+        target=capped, slack_target=capped)
+    return py, accelerate(py, build_dir=tmp_path_factory.mktemp("mo_recovery"), name="morec")
+
+
+def test_multiobjective_c_runs_the_same_attempts_as_python(mo_c: tuple) -> None:
+    """Algorithm 6.4 in C: the attempts of (5.15) at the first step and of each (6.15) equal
+    Python's runs (the first (6.15) led by the interior-point attempt, the next ones by the
+    SQP from the candidate), with the same statuses and inputs."""
+    py, c = mo_c
+    fn = {k: c._lib.fn(f"{v.info['prefix']}_attempts", ctypes.c_int, [ctypes.c_void_p])
+          for k, v in (("slack", c.slack), ("problem", c.problem))}
+    runs = {"slack": _counted(py.slack), "problem": _counted(py.problem)}
+    led, _ = _lead_solver(py.problem)
+    py.reset()
+    c.reset()
+    x, firsts = OUTSIDE[0], []
+    for k in range(5):
+        for r in runs.values():
+            r.clear()
+        (u1, i1), (u2, i2) = py.step(x, np.array([1.0])), c.step(x, np.array([1.0]))
+        assert (_kind(i1.status), i1.fallback) == (_kind(i2.status), i2.fallback), k
+        assert np.max(np.abs(u1 - u2)) <= 1e-6, (k, u1, u2)
+        assert fn["problem"](c.problem.work) == len(runs["problem"]), k
+        if k == 0:
+            assert fn["slack"](c.slack.work) == len(runs["slack"])
+        firsts.append(runs["problem"][0] is led)
+        x = np.asarray(py.system.step(x, u1, np.zeros(py.system.nw) if py.system.nw else None),
+                       dtype=float).reshape(-1)
+    assert firsts == [True, False, False, False, False], firsts
