@@ -156,8 +156,12 @@ def test_lane_change_seed_42_in_c_h_tilde_non_increasing():
     py.recovery_target = None
     r = lc.closed_loop(accelerate(py), d, lc.disturbances(d, 42, lc.STEPS))
     h, bound = r["h_tilde"], r["bound"]
-    # the step that rose before the fix is the one rejected now (docs/vehicles.md)
-    assert r["statuses"][191] == "problem_above_bound", r["statuses"][185:195]
+    # session 12 saw step 191 rejected (problem_above_bound) here; since session 13's
+    # rounding-order fix (C = Python bitwise, control/tube_functions.py) the loop reaches
+    # step 191 with h̃ 2.03e-9 against a bound of 2.0e-9, within DECREASE_TOL, so it is
+    # ``ok``. The rejection itself is tested by the forced-rejection C = Python test
+    # (tests/test_emit_robust.py); here what must hold along the whole run: every applied
+    # plan within its bound, h̃ non-increasing, the lane reached
     ok = np.array([s == "ok" for s in r["statuses"]])
     assert np.all(h[ok] <= bound[ok] + DECREASE_TOL * np.maximum(1.0, np.abs(bound[ok])))
     rise = np.diff(h) - (py.bound_tol + DECREASE_TOL) * np.maximum(1.0, np.abs(h[:-1]))
