@@ -11,7 +11,7 @@ from __future__ import annotations
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
 from balustrade.backends.direct_backend import DirectCompiled
-from balustrade.backends.recovery import recovery_lead
+from balustrade.backends.recovery import RECOVERY_TARGET, check_recovery_target, recovery_lead
 from balustrade.backends.set_support import function_set_support
 from balustrade.backends.solution import Solution, Status
 from balustrade.backends.synthesis_cvxpy import (
@@ -97,7 +97,7 @@ def _compile_auto(ocp: OCP, tgt: Target) -> Compiled:
 
 
 __all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CompiledSynthesis",
-           "recovery_lead",
+           "recovery_lead", "RECOVERY_TARGET", "check_recovery_target",
            "CvxpyCompiled", "DirectCompiled", "Solution", "Status", "SynthesisSolution", "Target",
            "companion",
            "compile", "compile_synthesis", "resolve_target", "sampling_targets",

@@ -437,6 +437,10 @@ class CasadiCompiled:
         converged, such an attempt is returned, never rescued as ``"feasible"`` (a point
         of an unbounded problem is no answer to use in a closed loop).
         """
+        if lead is not None and (isinstance(lead, bool) or not isinstance(lead, int | np.integer)
+                                 or not 0 <= lead < len(self.retries)):
+            raise SolverError(f"{self.ocp.name}: lead must be the index of a retry "
+                              f"(0 … {len(self.retries) - 1}), got {lead!r}")
         p = self.ocp.pack_parameters(params)
         second_k = chain_solver_index(second_solver, len(self.retries))
         guess = self._initial_guess(warm_start, p)

@@ -15,12 +15,32 @@ runs the same order (``bal/problem.c``'s ``P_solve_lead``), so C = Python holds 
 construction.
 
 The lead is an attempt the chain already has: no solver is added, only the order of one
-solve changes.
+solve changes. Known gap it makes more frequent: when the led interior-point attempt ends at
+its *acceptable* level, Python reports ``optimal_inaccurate`` while the emitted C, which
+cannot tell that stop from convergence, reports success (measured on the lane change, seed 0
+step 5; docs/vehicles.md, session 13).
 """
 
 from __future__ import annotations
 
 from balustrade.backends.targets import Target, _plain, target
+from balustrade.errors import SolverError
+
+#: the recovery target of Algorithms 5.2 and 6.4 by default (a preset name)
+RECOVERY_TARGET: str | None = "recovery"
+
+
+def check_recovery_target(recovery: Target | str | None, what: str) -> Target | str | None:
+    """``recovery`` unchanged when it is ``None`` or names a target; a bad value raises the
+    :class:`~balustrade.errors.SolverError` of :func:`target`, prefixed with ``what``, at
+    construction instead of inside a later ``step`` (review, session 13)."""
+    if recovery is None:
+        return None
+    try:
+        target(recovery)
+    except SolverError as exc:  # the same error, naming the argument
+        raise SolverError(f"{what}: recovery_target: {exc}") from exc
+    return recovery
 
 
 def recovery_lead(compiled: object, recovery: Target | str | None) -> int | None:
@@ -47,4 +67,4 @@ def recovery_lead(compiled: object, recovery: Target | str | None) -> int | None
     return None
 
 
-__all__ = ["recovery_lead"]
+__all__ = ["RECOVERY_TARGET", "check_recovery_target", "recovery_lead"]

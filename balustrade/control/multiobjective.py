@@ -44,7 +44,16 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, check_instance
-from balustrade.backends import Compiled, Solution, Target, companion, compile, recovery_lead
+from balustrade.backends import (
+    RECOVERY_TARGET,
+    Compiled,
+    Solution,
+    Target,
+    check_recovery_target,
+    companion,
+    compile,
+    recovery_lead,
+)
 from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import LyapunovDeployment, MultiobjectiveDeployment
 from balustrade.control.fallbacks import (
@@ -176,8 +185,6 @@ BOUND_TOL = 1e-9
 #: with the default margins: ``h_cand <= h̃(ξ*_{k−1})`` (Theorem 6.15), so the bound is at most
 #: ``h̃(ξ*_{k−1})`` plus ``BOUND_TOL``, and an applied plan meets it within ``DECREASE_TOL``
 H_TILDE_RISE_TOL = BOUND_TOL + DECREASE_TOL
-#: the default recovery target of Algorithm 6.4 (module docstring, "Recovery steps")
-RECOVERY_TARGET: str | None = "recovery"
 
 
 class MultiobjectivePCBFController:
@@ -200,7 +207,7 @@ class MultiobjectivePCBFController:
         self.alpha_f, self.rho, self.bound_tol = alpha_f, rho, bound_tol
         self.record_h_r = record_h_r
         #: the recovery target (module docstring, "Recovery steps")
-        self.recovery_target = recovery_target
+        self.recovery_target = check_recovery_target(recovery_target, "Algorithm 6.4")
         # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
         # Python bitwise: balustrade.control.tube_functions); None: numpy
         self._tube = TubeFunctions.build(system, X_E, U_E, h_f, pi_f, self.deltas, alpha_f, 1)

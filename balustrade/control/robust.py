@@ -44,16 +44,17 @@ optimal; ``StepInfo.status`` carries the word ``"truncated"`` in place of their 
   after a (5.16) stopped infeasible, the next one starts from the primal of its step's
   (5.15), as in :mod:`balustrade.control.pcbf` (not from an older converged (5.16)).
 
-Recovery steps (issue #14): a step whose candidate does not certify ``h_r(x_k) = 0`` — no
-candidate (the first step, after a reset or a projected proposal), or one with ``h̃ > 0``
-(Theorem 5.15: ``h_r(x_k) <= h̃``) — solves (5.15) with the attempt of its retry chain named
-by ``recovery_target`` first (default ``"recovery"``: the interior-point retry,
-:mod:`balustrade.backends.recovery`), then the rest of the chain; (5.16) then starts from
-the (5.15) point, as at the first step. Why: while ``h_r > 0`` the LP-like (5.15) makes the
-SQP attempts fail after hundreds of iterations (150–240 ms each) before the interior-point
-last resort answers (21–50 ms alone); an interior-point (5.16) point, as a warm start, stops
-the next SQP (docs/vehicles.md, session 13). ``recovery_target=None`` keeps the chain's order
-everywhere. The emitted C decides the same (``<name>_SLACK_LEAD``).
+Recovery steps (issue #14): a step whose candidate has ``h̃ > 0``, so that it does not
+certify ``h_r(x_k) = 0`` (Theorem 5.15: ``h_r(x_k) <= h̃``), solves (5.15) with the attempt
+of its retry chain named by ``recovery_target`` first (default ``"recovery"``: the
+interior-point retry, :mod:`balustrade.backends.recovery`), then the rest of the chain;
+(5.16) then starts from the (5.15) point, as at the first step. Why: while ``h_r > 0`` the
+LP-like (5.15) makes the SQP attempts fail after hundreds of iterations (150–240 ms each)
+before the interior-point last resort answers (21–50 ms alone); an interior-point (5.16)
+point, as a warm start, stops the next SQP (docs/vehicles.md, session 13).
+``recovery_target=None`` keeps the chain's order everywhere. The emitted C decides the same
+(``<name>_SLACK_LEAD``). The first step (no candidate) is not led:
+:meth:`RobustPCBFSafetyFilter.recovering`.
 
 Recorded values: ``h_r`` (the optimal value of (5.15), read as ``h̃`` of the polished slacks
 (:func:`~balustrade.control.robust_steps.polished_slacks`) — never the solver's objective,
@@ -68,7 +69,16 @@ from collections.abc import Callable
 import numpy as np
 
 from balustrade._checks import as_scalar, as_vector, check_deltas, check_instance, check_norm_order
-from balustrade.backends import Compiled, Solution, Target, companion, compile, recovery_lead
+from balustrade.backends import (
+    RECOVERY_TARGET,
+    Compiled,
+    Solution,
+    Target,
+    check_recovery_target,
+    companion,
+    compile,
+    recovery_lead,
+)
 from balustrade.control.base import StepInfo, feasible_truncation, note_solve, outcome
 from balustrade.control.deploy import RobustDeployment
 from balustrade.control.fallbacks import (
@@ -102,9 +112,6 @@ from balustrade.problems.robust import (
 #: tests/test_robust.py allows ``h_r`` above ``h_cand``
 ABOVE_CANDIDATE_TOL = 1e-5
 
-#: the default recovery target (module docstring, "Recovery steps")
-RECOVERY_TARGET: str | None = "recovery"
-
 
 class RobustPCBFSafetyFilter:
     """Algorithm 5.2 over the compiled problems (5.15) and (5.16) (any backend)."""
@@ -128,7 +135,7 @@ class RobustPCBFSafetyFilter:
         self.alpha_f = as_scalar(alpha_f, f"{block}: alpha_f", 0.0, low_open=True)
         self.slack_norm = check_norm_order(slack_norm, f"{block}: slack_norm")
         #: the recovery target (module docstring, "Recovery steps")
-        self.recovery_target = recovery_target
+        self.recovery_target = check_recovery_target(recovery_target, block)
         # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
         # Python bitwise: balustrade.control.tube_functions); None: numpy
         self._tube = TubeFunctions.build(system, X_E, self.U_E, h_f, pi_f, self.deltas,
