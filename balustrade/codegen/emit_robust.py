@@ -13,6 +13,12 @@ between the solves as two emitted CasADi functions:
 * ``<name>_cand(z, v, ξ)`` — the shifted candidate (5.17)
   (:func:`~balustrade.control.robust_steps.robust_candidate`) with ``h̃`` of it.
 
+``π_f`` must be an expression (:class:`~balustrade.dsl.policies.AffinePolicy`, a
+``casadi.Function``): the C evaluates it as Python's tube functions do, and a numpy-only
+``π_f`` is refused with a :class:`~balustrade.errors.CodegenError` naming ``pi_f`` (session
+13; it used to be replaced by an affine map probed from calls of it, which the C applied
+where ``π_f`` differs from it).
+
 The candidate's terminal input is ``π_f(z_N)`` when it lies in ``U ⊖ κ(E)``; otherwise
 Python minimizes ``h_f(f(z_N, v, 0))`` over ``U ⊖ κ(E)`` with SLSQP. The C computes that
 minimizer in closed form when there is one input and the function is a quadratic in ``v``

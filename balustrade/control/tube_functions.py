@@ -17,6 +17,12 @@ from (:mod:`balustrade.codegen.emit_robust`), so that C and Python round alike (
 functions of :mod:`~balustrade.control.robust_steps`, whose sums and products BLAS may order
 differently — such a controller cannot be emitted anyway).
 
+``π_f``: give it as an expression (:class:`~balustrade.dsl.policies.AffinePolicy`, a
+``casadi.Function``). A numpy-only ``π_f`` is replaced in Python by the affine map probed
+from calls of it, checked against ``π_f(z_N)`` at every candidate (:func:`policy_expr`,
+:data:`POLICY_TOL`); the C emitters refuse it (``fit_policy=False``), since the C has no such
+check (session 13, docs/vehicles.md "Session 13: π_f in C").
+
 Why: session 13 traced the first bit that differed between Python and C along the lane
 change: every solve (SQP, its QP, the interior-point retry) returned bitwise the same point
 from the same data, but ``h_r``, ``h̃``, ``h_cand`` and the input differed by one rounding
