@@ -123,3 +123,11 @@ def test_explicit_pi_f_gives_the_c_the_python_candidate(tube, kind):
         a, b = c_fn(z, v, xi), ctrl._tube.cand_fn(z, v, xi)
         for x, y in zip(a, b):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_affine_policy_of_the_wrong_size_is_refused_naming_pi_f(tube, tmp_path):
+    """An :class:`AffinePolicy` for 3 states on the 2-state system: the emitter names
+    ``pi_f`` and the sizes it needs."""
+    ctrl = _robust(tube, AffinePolicy(np.ones((1, 3))))
+    with pytest.raises(CodegenError, match=r"pi_f .*1 entries on a state of 2"):
+        emit_robust(ctrl, "bad", tmp_path)

@@ -100,7 +100,8 @@ def policy_expr(nx: int, nu: int, pi_f: Callable, z: ca.SX, fit: bool = True) ->
         return out
     if not fit:
         raise BalustradeError(f"the terminal policy pi_f ({_describe(pi_f)}) does not accept "
-                              f"CasADi symbols: {PI_F_HINT.format(nx=nx, nu=nu)}")
+                              f"CasADi symbols (or gives no {nu} entries on a state of {nx}): "
+                              f"{PI_F_HINT.format(nx=nx, nu=nu)}")
     try:
         c = np.asarray(pi_f(np.zeros(nx)), dtype=float).reshape(nu)
         K = np.column_stack([np.asarray(pi_f(e), dtype=float).reshape(nu) - c
