@@ -29,7 +29,7 @@ FORMS = {"single row": False, "running sum": True}
 
 
 def _controllers(d: object) -> dict[str, object]:
-    common = (d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N, d.deltas, d.error, d.alpha_f)
+    common = (d.system, d.X, d.U, d.cbf, d.pi_f, d.N, d.deltas, d.error, d.alpha_f)
     out = {}
     for label, running in FORMS.items():
         py = MultiobjectivePCBFController.build(*common, rho=L.RHO, target=L.TARGET,

@@ -36,6 +36,7 @@ from balustrade.control.multiobjective import MultiobjectivePCBFController
 from balustrade.control.robust import RobustPCBFSafetyFilter
 from balustrade.design.rpi import ellipsoidal_rpi
 from balustrade.design.terminal_cbf import synthesize_terminal_cbf
+from balustrade.dsl.policies import AffinePolicy
 from balustrade.errors import CodegenError, DegenerateResultWarning
 from balustrade.models.unstable2d import W_BOUND, unstable2d, unstable2d_setup
 
@@ -52,7 +53,9 @@ def _design(target: str = EMITTABLE_TARGET) -> tuple[RobustPCBFSafetyFilter, obj
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DegenerateResultWarning)
         cbf = synthesize_terminal_cbf(system.A, system.B, X_E, U_E, delta_N=s.deltas()[-1])
-    ctrl = RobustPCBFSafetyFilter.build(system, s.X, s.U, cbf, cbf.policy, N, s.deltas(),
+    # π_f as an explicit affine law: a numpy-only cbf.policy cannot be emitted (session 13)
+    ctrl = RobustPCBFSafetyFilter.build(system, s.X, s.U, cbf, AffinePolicy(cbf.K), N,
+                                        s.deltas(),
                                         error, s.alpha_f, slack_norm=1, target=target,
                                         slack_target=target)
     return ctrl, system

@@ -364,8 +364,11 @@ def test_emitted_robust_step_reports_truncation_as_python(unstable2d_tube, tmp_p
     t = unstable2d_tube
     system, s = t["system"], t["s"]
     budget = target("robust-sqp").with_budget(iterations=5)
-    py = RobustPCBFSafetyFilter.build(system, s.X, s.U, t["cbf"], t["cbf"].policy, t["N"],
-                                      s.deltas(), t["error"], s.alpha_f, slack_norm=1,
+    from balustrade.dsl.policies import AffinePolicy
+
+    # π_f as an explicit affine law: a numpy-only policy cannot be emitted (session 13)
+    py = RobustPCBFSafetyFilter.build(system, s.X, s.U, t["cbf"], AffinePolicy(t["cbf"].K),
+                                      t["N"], s.deltas(), t["error"], s.alpha_f, slack_norm=1,
                                       target=budget, slack_target=budget)
     emitted = emit_robust(py, "rtrob", tmp_path)
     c = CRobustPCBFSafetyFilter(build(tmp_path, emitted.name, werror=True))

@@ -13,6 +13,12 @@ between the solves as two emitted CasADi functions:
 * ``<name>_cand(z, v, ξ)`` — the shifted candidate (5.17)
   (:func:`~balustrade.control.robust_steps.robust_candidate`) with ``h̃`` of it.
 
+``π_f`` must be an expression (:class:`~balustrade.dsl.policies.AffinePolicy`, a
+``casadi.Function``): the C evaluates it as Python's tube functions do, and a numpy-only
+``π_f`` is refused with a :class:`~balustrade.errors.CodegenError` naming ``pi_f`` (session
+13; it used to be replaced by an affine map probed from calls of it, which the C applied
+where ``π_f`` differs from it).
+
 The candidate's terminal input is ``π_f(z_N)`` when it lies in ``U ⊖ κ(E)``; otherwise
 Python minimizes ``h_f(f(z_N, v, 0))`` over ``U ⊖ κ(E)`` with SLSQP. The C computes that
 minimizer in closed form when there is one input and the function is a quadratic in ``v``
@@ -118,12 +124,17 @@ def _post(sym: str, spec: RobustDeployment | MultiobjectiveDeployment, prob: _Pr
 def _cand(sym: str, spec: TubeDeployment) -> ca.Function:
     """``sym(z, v, ξ) -> (z̃, ṽ, ξ̃, ξ̃_N, h̃(ξ̃), exact)``: the candidate (5.17)/(6.14)
     (:func:`~balustrade.control.tube_functions.candidate_function`, the function the Python
-    controllers evaluate)."""
+    controllers evaluate). ``π_f`` must accept CasADi symbols (an
+    :class:`~balustrade.dsl.policies.AffinePolicy`, a ``casadi.Function``): a numpy-only
+    ``π_f`` is refused, not replaced by an affine map identified from calls of it, which
+    the C would apply where ``π_f`` is not that map (session 13, docs/vehicles.md)."""
     try:
         return candidate_function(sym, spec.system, spec.X_E, spec.U_E, spec.h_f, spec.pi_f,
-                                  spec.deltas, spec.alpha_f, spec.slack_norm)
+                                  spec.deltas, spec.alpha_f, spec.slack_norm,
+                                  fit_policy=False)
     except BalustradeError as exc:
-        raise CodegenError(f"{sym}: {exc} to be emitted as C") from exc
+        raise CodegenError(f"{sym}: {exc} (the C computes the candidate (5.17)/(6.14) from "
+                           "the CasADi expressions of h_f and pi_f)") from exc
 
 
 def _c_lead(prob: _Problem, recovery: object, full_chain: bool) -> int:

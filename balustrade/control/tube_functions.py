@@ -17,6 +17,12 @@ from (:mod:`balustrade.codegen.emit_robust`), so that C and Python round alike (
 functions of :mod:`~balustrade.control.robust_steps`, whose sums and products BLAS may order
 differently — such a controller cannot be emitted anyway).
 
+``π_f``: give it as an expression (:class:`~balustrade.dsl.policies.AffinePolicy`, a
+``casadi.Function``). A numpy-only ``π_f`` is replaced in Python by the affine map probed
+from calls of it, checked against ``π_f(z_N)`` at every candidate (:func:`policy_expr`,
+:data:`POLICY_TOL`); the C emitters refuse it (``fit_policy=False``), since the C has no such
+check (session 13, docs/vehicles.md "Session 13: π_f in C").
+
 Why: session 13 traced the first bit that differed between Python and C along the lane
 change: every solve (SQP, its QP, the interior-point retry) returned bitwise the same point
 from the same data, but ``h_r``, ``h̃``, ``h_cand`` and the input differed by one rounding
@@ -80,15 +86,22 @@ def symbolic_policy(nu: int, pi_f: Callable, z: ca.SX) -> ca.SX | None:
     return None
 
 
-def policy_expr(nx: int, nu: int, pi_f: Callable, z: ca.SX) -> ca.SX:
-    """``π_f(z)`` on CasADi symbols: ``π_f`` itself if it accepts them, else the linear map
-    it is checked to be (``π_f(x) = K_f x + c`` at random points), else a BalustradeError.
-    The check cannot see a numpy-only ``π_f`` that is affine only where it was probed (e.g.
-    saturating at large ``|Kx|``): :meth:`TubeFunctions.candidate` compares the map with
-    ``π_f`` at every ``z_N`` it is used at."""
+def policy_expr(nx: int, nu: int, pi_f: Callable, z: ca.SX, fit: bool = True) -> ca.SX:
+    """``π_f(z)`` on CasADi symbols: ``π_f`` itself if it accepts them (e.g. a
+    :class:`~balustrade.dsl.policies.AffinePolicy` or a ``casadi.Function``); else, with
+    ``fit``, the linear map it is checked to be (``π_f(x) = K_f x + c`` at random points),
+    else a BalustradeError naming ``pi_f``. The check cannot see a numpy-only ``π_f`` that is
+    affine only where it was probed (e.g. saturating at large ``|Kx|``):
+    :meth:`TubeFunctions.candidate` compares the map with ``π_f`` at every ``z_N`` it is used
+    at; the C emitters pass ``fit=False`` (no such check runs in C,
+    :func:`~balustrade.codegen.emit_robust.emit_robust`)."""
     out = symbolic_policy(nu, pi_f, z)
     if out is not None:
         return out
+    if not fit:
+        raise BalustradeError(f"the terminal policy pi_f ({_describe(pi_f)}) does not accept "
+                              f"CasADi symbols (or gives no {nu} entries on a state of {nx}): "
+                              f"{PI_F_HINT.format(nx=nx, nu=nu)}")
     try:
         c = np.asarray(pi_f(np.zeros(nx)), dtype=float).reshape(nu)
         K = np.column_stack([np.asarray(pi_f(e), dtype=float).reshape(nu) - c
@@ -104,15 +117,26 @@ def policy_expr(nx: int, nu: int, pi_f: Callable, z: ca.SX) -> ca.SX:
     return ca.mtimes(ca.DM(K), z) + ca.DM(c)
 
 
+def _describe(pi_f: Callable) -> str:
+    """``pi_f``'s name for an error message (``TerminalCBF.policy``, ``<lambda>``, …)."""
+    return getattr(pi_f, "__qualname__", None) or type(pi_f).__name__
+
+
+#: how to pass a ``π_f`` whose C computes what Python computes (:func:`policy_expr`)
+PI_F_HINT = ("pass it as an explicit law, balustrade.dsl.AffinePolicy(K, k, x_s) for "
+             "pi_f(x) = K (x - x_s) + k (e.g. AffinePolicy(cbf.K) for a terminal CBF's "
+             "policy K x), or a casadi.Function of x ({nx} entries) with {nu} outputs")
+
+
 def terminal_input_expr(system: System, h_f: Callable, pi_f: Callable, U_E: Polytope,
-                        zN: ca.SX) -> tuple[ca.SX, ca.SX]:
+                        zN: ca.SX, fit: bool = True) -> tuple[ca.SX, ca.SX]:
     """``(v_f, exact)``: the terminal input of (5.17)
     (:func:`~balustrade.control.robust_steps.terminal_input`) — ``π_f(z_N)`` when it lies in
     ``U ⊖ κ(E)``; otherwise, for one input with ``h_f(f(z_N, v, 0))`` quadratic in ``v``, its
     minimizer over the interval ``U ⊖ κ(E)`` in closed form — and whether it is exact
-    (``exact = 0``: outside, and no closed form)."""
+    (``exact = 0``: outside, and no closed form). ``fit``: as in :func:`policy_expr`."""
     H, h = np.asarray(U_E.H, dtype=float), np.asarray(U_E.h, dtype=float)
-    u_f = policy_expr(system.nx, system.nu, pi_f, zN)
+    u_f = policy_expr(system.nx, system.nu, pi_f, zN, fit)
     inside = ca.mmin(ca.DM(h) + CONTAINS_TOL - ca.mtimes(ca.DM(H), u_f)) >= 0
     if system.nu != 1:
         return u_f, inside
@@ -151,17 +175,19 @@ def polish_expr(X_E: Polytope, h_f: Callable, deltas: np.ndarray, alpha_f: float
 
 def candidate_function(sym: str, system: System, X_E: Polytope, U_E: Polytope,
                        h_f: Callable, pi_f: Callable, deltas: np.ndarray, alpha_f: float,
-                       slack_norm: float) -> ca.Function:
+                       slack_norm: float, fit_policy: bool = True) -> ca.Function:
     """``sym(z, v, ξ) -> (z̃, ṽ, vec ξ̃, ξ̃_N, h̃(ξ̃), exact)``: the candidate (5.17)/(6.14)
     (:func:`~balustrade.control.robust_steps.robust_candidate`; ``exact``: its terminal input
-    is the one Python's numpy path computes, :func:`terminal_input_expr`)."""
+    is the one Python's numpy path computes, :func:`terminal_input_expr`). ``fit_policy=False``
+    (the C emitters): a numpy-only ``π_f`` is a BalustradeError naming ``pi_f``, not an
+    affine map identified from calls (:func:`policy_expr`)."""
     nx, nu = system.nx, system.nu
     deltas = np.asarray(deltas, dtype=float).reshape(-1)
     N, nr = deltas.size, X_E.H.shape[0]
     Hx, hx = ca.DM(np.asarray(X_E.H, dtype=float)), ca.DM(np.asarray(X_E.h, dtype=float))
     zc, vc, xic = ca.SX.sym("z", nx, N + 1), ca.SX.sym("v", nu, N), ca.SX.sym("xi", nr, N)
     zN = zc[:, N]
-    u_f, exact = terminal_input_expr(system, h_f, pi_f, U_E, zN)
+    u_f, exact = terminal_input_expr(system, h_f, pi_f, U_E, zN, fit_policy)
     w0 = ca.DM.zeros(system.nw) if system.nw else None
     z_next = system(zN, u_f, w0) if w0 is not None else system(zN, u_f)
     z_t = ca.horzcat(zc[:, 1:], z_next)
@@ -289,6 +315,6 @@ def tube_candidate(tube: TubeFunctions | None, system: System, X_E: Polytope, h_
     return cand
 
 
-__all__ = ["CONTAINS_TOL", "POLICY_TOL", "TubeFunctions", "candidate_function", "norm_expr",
-           "policy_expr", "polish_expr", "slack_cost_expr", "symbolic_policy",
+__all__ = ["CONTAINS_TOL", "PI_F_HINT", "POLICY_TOL", "TubeFunctions", "candidate_function",
+           "norm_expr", "policy_expr", "polish_expr", "slack_cost_expr", "symbolic_policy",
            "terminal_input_expr", "tube_candidate", "tube_cost", "tube_polished"]

@@ -41,6 +41,7 @@ from balustrade.design.incremental_rpi import (
 from balustrade.design.rpi import ellipsoidal_rpi
 from balustrade.design.terminal_cbf import terminal_cbf_with_domain
 from balustrade.dsl.error_sets import ErrorSet
+from balustrade.dsl.policies import AffinePolicy
 from balustrade.dsl.sets import Box, Polytope
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError
@@ -90,6 +91,13 @@ class BicycleDesign:
     @property
     def U_E(self) -> Polytope:
         return self.error.tighten_input(self.U)
+
+    @property
+    def pi_f(self) -> AffinePolicy:
+        """The terminal policy ``π_f(x) = K_f (x − x_s)`` of ``cbf`` as an explicit affine
+        law: the controllers of Algorithms 5.2/6.4 and their emitted C evaluate the same
+        expression (``cbf.policy`` is numpy-only and cannot be emitted; session 13)."""
+        return AffinePolicy(self.cbf.K, x_s=self.cbf.x_s)
 
     def terminal_spec(self) -> TerminalSpec:
         """What :func:`~balustrade.design.incremental_rpi.sampled_terminal_check` and

@@ -138,7 +138,7 @@ def human(x: np.ndarray) -> np.ndarray:
 def controllers(d: BicycleDesign, target: str = TARGET, record_h_r: bool = False,
                 rho: float = RHO) -> dict:
     """Algorithm 5.2 and Algorithm 6.4 (``ρ = 0.9``), both problems on ``target``."""
-    common = (d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N, d.deltas, d.error, d.alpha_f)
+    common = (d.system, d.X, d.U, d.cbf, d.pi_f, d.N, d.deltas, d.error, d.alpha_f)
     return {"robust": RobustPCBFSafetyFilter.build(*common, slack_norm=1, target=target,
                                                    slack_target=target),
             "multiobjective": MultiobjectivePCBFController.build(
@@ -148,7 +148,7 @@ def controllers(d: BicycleDesign, target: str = TARGET, record_h_r: bool = False
 
 def multiobjective(d: BicycleDesign, rho: float, target: str = TARGET,
                    record_h_r: bool = True) -> MultiobjectivePCBFController:
-    common = (d.system, d.X, d.U, d.cbf, d.cbf.policy, d.N, d.deltas, d.error, d.alpha_f)
+    common = (d.system, d.X, d.U, d.cbf, d.pi_f, d.N, d.deltas, d.error, d.alpha_f)
     return MultiobjectivePCBFController.build(*common, rho=rho, target=target,
                                               slack_target=target, record_h_r=record_h_r,
                                               running_sum=RUNNING_SUM)

@@ -31,6 +31,7 @@ from balustrade.control.robust import RobustPCBFSafetyFilter
 from balustrade.design.rpi import ellipsoidal_rpi
 from balustrade.design.terminal_cbf import terminal_cbf_with_domain
 from balustrade.dsl.error_sets import is_rpi
+from balustrade.dsl.policies import AffinePolicy
 from balustrade.models.rendezvous import MEAN_MOTION, TS, rendezvous, rendezvous_setup
 from balustrade.problems.robust import fuel_objective
 from balustrade.reproduce._plotting import figure, save
@@ -60,11 +61,11 @@ def controllers(d: dict, rhos: tuple[float, ...], target: str | None = None,
     system, s, error, cbf = d["system"], d["setup"], d["error"], d["cbf"]
     robust = target or ROBUST_TARGET
     out = {"robust": RobustPCBFSafetyFilter.build(
-        system, s.X, s.U, cbf, cbf.policy, s.N, s.deltas(), error, s.alpha_f,
+        system, s.X, s.U, cbf, AffinePolicy(cbf.K), s.N, s.deltas(), error, s.alpha_f,
         objective=fuel_objective, target=robust, slack_target=robust)}
     for rho in rhos:
         out[f"mo_rho{rho:g}"] = MultiobjectivePCBFController.build(
-            system, s.X, s.U, cbf, cbf.policy, s.N, s.deltas(), error, s.alpha_f, rho=rho,
+            system, s.X, s.U, cbf, AffinePolicy(cbf.K), s.N, s.deltas(), error, s.alpha_f, rho=rho,
             objective=fuel_objective, target=target or MULTIOBJECTIVE_TARGET,
             record_h_r=record_h_r)
     return out
