@@ -96,10 +96,18 @@ def test_saturating_numpy_pi_f_is_refused_by_both_emitters(tube, tmp_path):
         target=EMITTABLE_TARGET, slack_target=EMITTABLE_TARGET)
     with pytest.raises(CodegenError, match="pi_f"):
         emit_multiobjective(mo, "satmo", tmp_path / "m")
-    # the same K x, given numpy-only (a bound method), is refused too: the C has no
+    # the same K x, given numpy-only (a plain function), is refused too: the C has no
     # expression of it to generate
-    with pytest.raises(CodegenError, match="TerminalCBF.policy"):
-        emit_robust(_robust(tube, tube["cbf"].policy), "np", tmp_path / "n")
+    K = np.asarray(tube["cbf"].K, dtype=float)
+
+    def numpy_kx(x):
+        return K @ np.asarray(x, dtype=float).reshape(-1)
+
+    with pytest.raises(CodegenError, match="numpy_kx"):
+        emit_robust(_robust(tube, numpy_kx), "np", tmp_path / "n")
+    # while the terminal CBF's own policy is an explicit affine law and emits
+    assert isinstance(tube["cbf"].policy, AffinePolicy)
+    emit_robust(_robust(tube, tube["cbf"].policy), "cbfpol", tmp_path / "c")
 
 
 @pytest.mark.parametrize("kind", ["affine", "function"])

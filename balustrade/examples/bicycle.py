@@ -96,7 +96,7 @@ class BicycleDesign:
     def pi_f(self) -> AffinePolicy:
         """The terminal policy ``π_f(x) = K_f (x − x_s)`` of ``cbf`` as an explicit affine
         law: the controllers of Algorithms 5.2/6.4 and their emitted C evaluate the same
-        expression (``cbf.policy`` is numpy-only and cannot be emitted; session 13)."""
+        expression (the same law as ``cbf.policy``; session 13)."""
         return AffinePolicy(self.cbf.K, x_s=self.cbf.x_s)
 
     def terminal_spec(self) -> TerminalSpec:

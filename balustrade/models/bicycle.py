@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from balustrade.dsl.policies import AffinePolicy
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError, moved_names
@@ -117,8 +118,11 @@ class ShiftedCBF:
         d = np.asarray(x, dtype=float).reshape(-1) - self.x_s
         return float(d @ self.P @ d - 1.0)
 
-    def policy(self, x: np.ndarray) -> np.ndarray:
-        return self.K @ (np.asarray(x, dtype=float).reshape(-1) - self.x_s)
+    @property
+    def policy(self) -> AffinePolicy:
+        """``π_f(x) = K (x − x_s)`` as an explicit affine law (numbers and CasADi symbols;
+        :mod:`balustrade.dsl.policies`), so controllers built with it emit C."""
+        return AffinePolicy(self.K, x_s=self.x_s)
 
 #: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {

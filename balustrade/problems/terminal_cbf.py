@@ -25,6 +25,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_matrix, as_scalar, check_instance, check_psd
+from balustrade.dsl.policies import AffinePolicy
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.synthesis import SynthesisProblem, bmat, logdet
 from balustrade.errors import (
@@ -60,9 +61,12 @@ class TerminalCBF:
         x = np.asarray(x, dtype=float).reshape(-1)
         return float(x @ self.P @ x - 1.0)
 
-    def policy(self, x: np.ndarray) -> np.ndarray:
-        """``π_f(x) = Kx``."""
-        return self.K @ np.asarray(x, dtype=float).reshape(-1)
+    @property
+    def policy(self) -> AffinePolicy:
+        """``π_f(x) = Kx`` as an explicit affine law: called on a state like a function, and
+        on CasADi symbols, so a controller built with it emits C that evaluates the same
+        expression (:mod:`balustrade.dsl.policies`; session 13)."""
+        return AffinePolicy(self.K)
 
     @property
     def E(self) -> np.ndarray:
