@@ -627,6 +627,9 @@ class CasadiCompiled:
                         message=message,
                         raw={"x": w_all, "lam_x": lam_x, "lam_g": lam_g,
                              "unbounded": why is not None,
+                             # which function of the chain answered (retries equal to the
+                             # first solver share its function, as in the emitted C)
+                             "function": solver.name(),
                              # the solver's own outputs, passed back as a warm start as-is
                              "dm": (res["x"], res["lam_x"], res["lam_g"])})
 

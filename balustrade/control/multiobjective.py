@@ -322,6 +322,20 @@ class MultiobjectivePCBFController:
         """The attempt of the (6.15) chain a recovery solve runs first (``None``: none)."""
         return recovery_lead(self.problem, self.recovery_target)
 
+    def _answered_by_lead(self, sol: Solution) -> bool:
+        """Whether a converged (6.15) was answered by the solver of the recovery attempt
+        (:attr:`problem_lead`), here as a retry of an ordinary step. The next (6.15) then
+        starts from the candidate (6.14), as after a recovery solve: from the
+        interior-point primal–dual point the first SQP attempt stops after one QP that
+        costs up to 1.4 s under load (lane change, seed 9, steps 99–101; docs/vehicles.md,
+        "session 13: Algorithm 6.4's worst steps"). The emitted C decides the same from
+        the solver that answered (``bal/problem.c``'s ``which``)."""
+        k = self.problem_lead
+        if k is None or not sol.success:
+            return False
+        name = sol.raw.get("function")
+        return name is not None and name == self.problem._retry_solvers()[k].name()
+
     def recovering(self) -> bool:
         """Whether the (6.15) of this step is a recovery solve: no converged (6.15) yet to
         start from (its first solve, from the candidate)."""
@@ -369,7 +383,8 @@ class MultiobjectivePCBFController:
                                  **({} if lead is None else {"lead": lead}))
         # from the candidate again until a (6.15) converges after the recovery solve (the
         # C's warm start holds the candidate start then, not the interior-point point)
-        self._recovered = lead is not None or (self._recovered and not sol.success)
+        self._recovered = lead is not None or (self._recovered and not sol.success) \
+            or self._answered_by_lead(sol)
         info.solve_time += sol.solve_time
         info.solutions["problem"] = sol
         accepted = None

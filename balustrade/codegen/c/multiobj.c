@@ -129,6 +129,15 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   /* from the candidate again until a (6.15) converges after the recovery solve (Python's
      _recovered: its warm start is then the candidate's, never the interior-point point) */
   wk->recovered = lead > 0 || (wk->recovered && wk->problem_status != BAL_OK);
+  /* a (6.15) answered by the recovery attempt's solver (as a retry) is followed by a start
+     from the candidate too: its interior-point point stops the next SQP after one costly
+     QP (Python's _answered_by_lead; docs/vehicles.md, "session 13: Algorithm 6.4's worst
+     steps") */
+  if (BAL_QX(PROBLEM_LEAD) > 0 && wk->problem_status == BAL_OK &&
+      BAL_QX(problem_solvers)[wk->problem.which].eval ==
+          BAL_QX(problem_solvers)[BAL_QX(PROBLEM_LEAD)].eval) {
+    wk->recovered = 1;
+  }
   if (wk->problem_status == BAL_OK &&
       BAL_QX(polish)(wk, BAL_QX(post_problem), wk->problem.x, &wk->problem.f)) {
     wk->problem_status = BAL_EVAL_ERROR;

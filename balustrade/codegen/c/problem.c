@@ -125,6 +125,7 @@ static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which,
   wk->res[4] = wk->lam_g;
   wk->res[5] = wk->lam_p;
   wk->attempts++;
+  wk->which = which;
   if (which < 0 || which >= BAL_PX(N_SOLVERS)) return BAL_EVAL_ERROR;
   flag = BAL_PX(solvers)[which].eval(wk->arg, wk->res, wk->iw, wk->w, wk->mem[which]);
   if (flag && !BAL_PX(reports)[which]) return BAL_EVAL_ERROR;

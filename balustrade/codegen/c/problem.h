@@ -20,6 +20,7 @@ typedef struct BAL_PX(work) {
   casadi_real lam_p[BAL_PX(NP) + 1];
   casadi_real f, pr_inf, du_inf, feas;
   int attempts; /* solver runs in the last P_solve (> 1: retried) */
+  int which;    /* the solver (attempt index) of the last attempt run */
   /* the last BAL_FEASIBLE attempt of a P_solve, restored if no attempt converges */
   casadi_real kx[BAL_PX(NW)], klam_x[BAL_PX(NW)], klam_g[BAL_PX(NG) + 1], kg[BAL_PX(NG) + 1];
   casadi_real kf, kpr_inf, kdu_inf, kfeas;
