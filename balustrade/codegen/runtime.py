@@ -42,6 +42,18 @@ _TRUNCATED = S.code_of(S.SOLVE, "truncated")
 #: solve status code -> the Solution status of the Python backend where they coincide
 #: (a converged C solve is the backend's "optimal"); the others keep the C name
 _PY_STATUS = {**_STATUS, _OK: "optimal"}
+#: the backend's name of a solve the C returned ``BAL_OK`` for with ``<P>_inaccurate`` 1 (the
+#: solver stopped at its acceptable level: ``Status.OPTIMAL_INACCURATE``, used, never
+#: certified optimal; bal/problem.h)
+INACCURATE = "optimal_inaccurate"
+
+
+def py_status(code: int, inaccurate: bool = False) -> str:
+    """The backend's status name of a C solve status ``code`` (``_PY_STATUS``), with a
+    ``BAL_OK`` that stopped at the solver's acceptable level (``inaccurate``) named
+    :data:`INACCURATE`, as :class:`~balustrade.backends.casadi_backend.CasadiCompiled`
+    names it."""
+    return INACCURATE if code == _OK and inaccurate else _PY_STATUS.get(code, str(code))
 #: PCBF step code -> Status (``balustrade.codegen.status.PCBF``), read once per step
 _PCBF_CODES = S.by_code(S.PCBF)
 
@@ -218,6 +230,7 @@ class _CProblemView:
         self.x = np.ctypeslib.as_array(primal(work_ptr), shape=(info["nw"],))
         self._res_fn = lib.fn(f"{prefix}_residuals", None, [ctypes.c_void_p, _dbl_p])
         self._res = np.zeros(3)  # <P>_residuals writes 3 values (bal/problem.h)
+        self._inaccurate_fn = lib.fn(f"{prefix}_inaccurate", ctypes.c_int, [ctypes.c_void_p])
         self._layout: Layout | None = None
 
     def warm_start(self) -> dict[str, np.ndarray]:
@@ -234,6 +247,16 @@ class _CProblemView:
             k += n
         out["lam_g0"], out["lam_g"] = out["lam_g0"][:-1], out["lam_g"][:-1]
         return out
+
+    def inaccurate(self) -> bool:
+        """The last solve's ``BAL_OK`` is a stop at the solver's acceptable level
+        (``<P>_inaccurate``: the backend's ``optimal_inaccurate``)."""
+        return bool(self._inaccurate_fn(self.work))
+
+    def py_status(self, code: int) -> str:
+        """The backend's name of this problem's last solve status ``code``
+        (:func:`py_status` with :meth:`inaccurate`)."""
+        return py_status(code, code == _OK and self.inaccurate())
 
     def residuals(self) -> tuple[float, float]:
         """Primal violation and dual residual of the last solve."""
@@ -377,7 +400,9 @@ class CProblem(_OwnsWork):
             self._warm(self._work)  # a feasible truncated iterate is continued (real time)
         w = self.view.x.copy()
         value = float(self.view.value_fn(self._work)) if code != _BAD_INPUT else float("nan")
-        return _STATUS.get(code, str(code)), value, self.view.unpack(w), w
+        name = INACCURATE if code == _OK and self.view.inaccurate() else \
+            _STATUS.get(code, str(code))
+        return name, value, self.view.unpack(w), w
 
 class CPCBFSafetyFilter(_OwnsWork):
     """The emitted PCBF step (2.24)+(2.23) as a closed-loop controller: the same
