@@ -80,3 +80,35 @@ def test_status_names_and_the_accessor_rule() -> None:
                          {"s": "IpoptInterface"})
     c, h = status_accessors("unchanged", "h", {"s": "Sqpmethod"})
     assert (c, h) == ("unchanged", "h")
+
+
+def test_step_loaders_record_an_acceptable_stop_as_the_controllers_do() -> None:
+    """The StepInfo words of the step loaders for a flagged ``BAL_OK``, as robust.py,
+    multiobjective.py and pcbf.py record an ``optimal_inaccurate`` solve (``note_solve``:
+    used, flagged in ``uncertified``, never ``"ok"`` for Algorithm 5.2 and the PCBF)."""
+    from balustrade.codegen import status as S
+    from balustrade.codegen.runtime import _pcbf_info
+    from balustrade.codegen.runtime_robust import multiobjective_info, robust_info
+
+    ok = S.code_of(S.SOLVE, "ok")
+    r_ok = S.code_of(S.ROBUST, "ok")
+    assert robust_info(r_ok, ok, ok, 0.1, 0.2).status == "ok"
+    info = robust_info(r_ok, ok, ok, 0.1, 0.2, s_inaccurate=True)
+    assert info.status == "slack_optimal_inaccurate" and info.values["h_r"] == 0.1
+    info = robust_info(r_ok, ok, ok, 0.1, 0.2, f_inaccurate=True)
+    assert info.status == "filter_optimal_inaccurate"
+    assert info.uncertified == {"filter": "optimal_inaccurate"}
+    info = robust_info(r_ok, ok, ok, 0.1, 0.2, s_inaccurate=True, f_inaccurate=True)
+    assert info.status == "slack_optimal_inaccurate_filter_optimal_inaccurate"
+    # a flag on a solve that did not return BAL_OK is not read
+    info = robust_info(S.code_of(S.ROBUST, "candidate"), S.code_of(S.SOLVE, "not_converged"),
+                       S.code_of(S.SOLVE, "not_run"), 0.1, 0.2, s_inaccurate=True)
+    assert info.status == "slack_not_converged" and not info.uncertified
+    m_ok = S.code_of(S.MULTIOBJ, "ok")
+    info = multiobjective_info(m_ok, ok, ok, np.zeros(4), p_inaccurate=True)
+    assert info.status == "ok" and info.uncertified == {"problem": "optimal_inaccurate"}
+    p_ok = S.code_of(S.PCBF, "ok")
+    assert _pcbf_info(p_ok, ok, ok, 0.0, float("nan")).status == "ok"
+    info = _pcbf_info(p_ok, ok, ok, 0.3, float("nan"), s_inaccurate=True)
+    assert info.status == "slack_optimal_inaccurate_filter_optimal"
+    assert info.values["h_PB"] == 0.3 and info.uncertified == {"slack": "optimal_inaccurate"}

@@ -480,6 +480,8 @@ class _Problem:
                 "ng": self.ng, "n_user": self.layout.user_size, "variables": self.vars,
                 "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
                 "accept_tol": self.accept_tol, "budget": self.budget,
+                "acceptable_stop": any(plugin in ACCEPTABLE_STOP
+                                       for _, plugin, _ in self.solvers),
                 "retries": list(self.retry_labels),
                 "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol"),
                 **({} if self.take is None else {
