@@ -425,8 +425,8 @@ class _Problem:
         cfg.xmacro(f"{P}_SOLVERS", syms)
         cfg.define(f"{P}_REPORTS", "{" + ", ".join(map(str, self.reports)) + "}",
                    "per attempt: 1 if its solver returns its own verdict (0: converged)")
-        # the acceptable stop of a solver that reports it (emittable.ACCEPTABLE_STOP: IPOPT's
-        # Solved_To_Acceptable_Level): its return status accessor and that status' value
+        # the acceptable stop of a solver that reports it (emittable.ACCEPTABLE_STOP: the
+        # interior-point solver's): its return status accessor and that status' value
         stops = [ACCEPTABLE_STOP.get(plugin) for _, plugin, _ in self.solvers]
         cfg.define(f"{P}_RETURN_STATUS_FNS", "{" + ", ".join(
             f"{sym}{RETURN_STATUS_SUFFIX}" if stop is not None else "0"
