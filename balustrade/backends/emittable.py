@@ -58,9 +58,11 @@ SUPPORTED: dict[tuple[str, str | None], tuple[str, ...]] = {
 #: casadi_backend.EMITTED_STOP_OPTIONS`) has ``acceptable_iter`` 0, which switches off the
 #: acceptable stop after a run of acceptable iterates — it does not stop IPOPT from ending
 #: at the acceptable level otherwise: measured on the lane change (seed 8, the (5.16)
-#: retry) IPOPT returned ``Solved_To_Acceptable_Level`` after 82 iterations with it. Known
-#: gap: the C cannot tell that stop from success (it counts it ``BAL_OK`` where Python
-#: reports ``optimal_inaccurate``; tests/test_lane_sync.py).
+#: retry) IPOPT returned ``Solved_To_Acceptable_Level`` after 82 iterations with it (IPOPT
+#: stops there when its line search would call the restoration phase at an acceptable
+#: point). The C tells that stop from success by IPOPT's own return status
+#: (:data:`ACCEPTABLE_STOP`, :func:`status_accessors`): ``BAL_OK`` with ``<P>_inaccurate``,
+#: named ``optimal_inaccurate`` as by the backend (session 13; tests/test_ipopt_status.py).
 STATUS_OPTIONS: dict[str, dict] = {"ipopt": {"error_on_fail": True,
                                              **EMITTED_STOP_OPTIONS["ipopt"]},
                                     # fatrop: its generated C returns nonzero unless fatrop
