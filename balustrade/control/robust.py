@@ -192,7 +192,7 @@ class RobustPCBFSafetyFilter:
         (5.16), started from the interior-point (5.15) point, ends at the interior-point
         solver's acceptable level: ``optimal_inaccurate`` (used, flagged), in Python and in
         the emitted C alike since it reads the solver's own return status (docs/vehicles.md,
-        "session 13: IPOPT's acceptable stop in C")."""
+        session 13, the acceptable stop in C)."""
         c = self.candidate
         return c is None or tube_cost(self._tube, c.xi, c.xi_N, self.alpha_f,
                                       self.slack_norm) > 0.0
