@@ -30,6 +30,7 @@ others                         refused (no code generation in CasADi)
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 
 from balustrade.backends.casadi_backend import EMITTED_STOP_OPTIONS, solver_options
@@ -57,15 +58,67 @@ SUPPORTED: dict[tuple[str, str | None], tuple[str, ...]] = {
 #: casadi_backend.EMITTED_STOP_OPTIONS`) has ``acceptable_iter`` 0, which switches off the
 #: acceptable stop after a run of acceptable iterates — it does not stop IPOPT from ending
 #: at the acceptable level otherwise: measured on the lane change (seed 8, the (5.16)
-#: retry) IPOPT returned ``Solved_To_Acceptable_Level`` after 82 iterations with it. Known
-#: gap: the C cannot tell that stop from success (it counts it ``BAL_OK`` where Python
-#: reports ``optimal_inaccurate``; tests/test_lane_sync.py).
+#: retry) IPOPT returned ``Solved_To_Acceptable_Level`` after 82 iterations with it (IPOPT
+#: stops there when its line search would call the restoration phase at an acceptable
+#: point). The C tells that stop from success by IPOPT's own return status
+#: (:data:`ACCEPTABLE_STOP`, :func:`status_accessors`): ``BAL_OK`` with ``<P>_inaccurate``,
+#: named ``optimal_inaccurate`` as by the backend (session 13; tests/test_ipopt_status.py).
 STATUS_OPTIONS: dict[str, dict] = {"ipopt": {"error_on_fail": True,
                                              **EMITTED_STOP_OPTIONS["ipopt"]},
                                     # fatrop: its generated C returns nonzero unless fatrop
                                     # itself ended with Success (an acceptable stop
                                     # included: the C then retries it, never uses it)
                                     "fatrop": {"error_on_fail": True}}
+
+#: plugins whose generated C keeps the solver's own return status in its memory struct
+#: (CasADi 3.8.2: ``struct casadi_ipopt_data`` has ``enum ApplicationReturnStatus status``,
+#: set by ``casadi_ipopt_solve``, in the file-static array ``casadi_f<N>_mem``), with the
+#: value of that status that means "stopped at the acceptable level": IPOPT's
+#: ``Solved_To_Acceptable_Level`` = 1 (``IpReturnCodes_inc.h``). The generated solver returns
+#: 0 (converged) for it as for ``Solve_Succeeded`` (``error_on_fail`` counts it converged),
+#: so the emitters add an accessor (:func:`status_accessors`) and ``bal/problem.c`` reports
+#: that stop as the backend does: ``optimal_inaccurate`` (``Status.OPTIMAL_INACCURATE``),
+#: never as optimal (session 13).
+ACCEPTABLE_STOP: dict[str, int] = {"ipopt": 1}
+
+#: CasADi's class name of an nlpsol plugin -> the plugin (for the plugins of
+#: :data:`ACCEPTABLE_STOP`)
+_PLUGIN_CLASS: dict[str, str] = {"IpoptInterface": "ipopt"}
+
+#: suffix of the accessor of a solver's own return status (``<symbol>_return_status(mem)``)
+RETURN_STATUS_SUFFIX = "_return_status"
+
+
+def status_accessors(c_text: str, h_text: str, classes: Mapping[str, str]) -> tuple[str, str]:
+    """The generated C (``c_text``) and header (``h_text``) with, for every solver symbol of
+    ``classes`` (C symbol -> CasADi class name) whose plugin is in :data:`ACCEPTABLE_STOP`,
+    an exported ``int <symbol>_return_status(int mem)``: the solver's own return status of
+    its last run on memory ``mem``. The memory array is found through the symbol's exported
+    wrapper (``return casadi_f<N>(arg, res, iw, w, mem);``); a symbol whose wrapper is not
+    found raises ValueError (a CasADi whose generated C has another shape)."""
+    defs, decls = [], []
+    for sym, cls in classes.items():
+        if _PLUGIN_CLASS.get(cls) not in ACCEPTABLE_STOP:
+            continue
+        m = re.search(r"int " + re.escape(sym) + r"\(const casadi_real\*\* arg[^)]*\)\s*\{"
+                      r"\s*return (casadi_f\d+)\(arg, res, iw, w, mem\);", c_text)
+        if m is None or f"static struct casadi_ipopt_data {m.group(1)}_mem[" not in c_text:
+            raise ValueError(f"{sym}: the generated C has no IPOPT memory to read its return "
+                             f"status from (CasADi's code generation changed?)")
+        fn = f"{sym}{RETURN_STATUS_SUFFIX}"
+        defs.append(f"/* balustrade: {sym}'s own return status (IPOPT's "
+                    f"ApplicationReturnStatus) of its last run on memory mem */\n"
+                    f"CASADI_SYMBOL_EXPORT int {fn}(int mem) {{\n"
+                    f"  return (int) {m.group(1)}_mem[mem].status;\n}}\n")
+        decls.append(f"int {fn}(int mem);\n")
+    if not defs:
+        return c_text, h_text
+    tail = '#ifdef __cplusplus\n} /* extern "C" */\n#endif'
+    cut = h_text.rfind(tail)
+    h_text = h_text[:cut] + "".join(decls) + h_text[cut:] if cut >= 0 else \
+        h_text + "".join(decls)
+    return c_text + "\n" + "\n".join(defs), h_text
+
 
 #: blocks of C that CasADi 3.8 writes with *every* solver of a plugin it generates (fatrop's
 #: print callbacks): with two such solvers in one file (a PCBF pair) the C redefines them and
@@ -199,6 +252,7 @@ def c_retry_chain(solver: str, options: Mapping, retries: list[tuple[str, dict]]
     return retries if same else kept
 
 
-__all__ = ["ADVICE", "INCLUDE_SUBDIRS", "ONCE_PER_FILE", "REFUSED", "STATUS_OPTIONS",
-           "SUPPORTED", "c_libraries", "c_retries", "c_retry_chain", "codegen_reason",
-           "full_options", "include_subdirs", "once_per_file", "retries_link_libraries"]
+__all__ = ["ACCEPTABLE_STOP", "ADVICE", "INCLUDE_SUBDIRS", "ONCE_PER_FILE", "REFUSED",
+           "RETURN_STATUS_SUFFIX", "STATUS_OPTIONS", "SUPPORTED", "c_libraries", "c_retries",
+           "c_retry_chain", "codegen_reason", "full_options", "include_subdirs",
+           "once_per_file", "retries_link_libraries", "status_accessors"]

@@ -43,12 +43,15 @@ from balustrade.backends.casadi_backend import (
     complementarity_expr,
 )
 from balustrade.backends.emittable import (
+    ACCEPTABLE_STOP,
+    RETURN_STATUS_SUFFIX,
     STATUS_OPTIONS,
     c_libraries,
     c_retries,
     include_subdirs,
     once_per_file,
     retries_link_libraries,
+    status_accessors,
 )
 from balustrade.backends.solution import FEASIBILITY_TOL
 from balustrade.codegen import cfiles as C
@@ -146,15 +149,26 @@ def _generate(functions: dict[str, ca.Function], name: str, out_dir: Path) -> li
     out_dir.mkdir(parents=True, exist_ok=True)
     cg_name = f"{name}_casadi"
     cg = ca.CodeGenerator(cg_name, {"with_header": True})
+    classes = {}  # C symbol -> CasADi class of the function generated under it
     for sym, fn in functions.items():
         check_no_callbacks(fn, f"{name}: function {sym!r}")
-        cg.add(_renamed(fn, sym))
+        renamed = _renamed(fn, sym)
+        classes[sym] = renamed.class_name()
+        cg.add(renamed)
     try:
         cg.generate(str(out_dir) + "/")
     except RuntimeError as exc:  # pragma: no cover - CasADi-internal failures
         raise CodegenError(f"{name}: CasADi code generation failed: {exc}") from exc
     c_path, h_path = out_dir / f"{cg_name}.c", out_dir / f"{cg_name}.h"
-    c_path.write_text(C.static_text("casadi_prologue.h") + once_per_file(c_path.read_text()))
+    # the accessors of the interior-point solver's own return status (its acceptable stop
+    # is optimal_inaccurate, as in the backend: bal/problem.c, emittable.ACCEPTABLE_STOP)
+    try:
+        c_text, h_text = status_accessors(once_per_file(c_path.read_text()),
+                                          h_path.read_text(), classes)
+    except ValueError as exc:  # pragma: no cover - another CasADi's generated C
+        raise CodegenError(f"{name}: {exc}") from exc
+    c_path.write_text(C.static_text("casadi_prologue.h") + c_text)
+    h_path.write_text(h_text)
     return [c_path, h_path]
 
 
@@ -411,6 +425,17 @@ class _Problem:
         cfg.xmacro(f"{P}_SOLVERS", syms)
         cfg.define(f"{P}_REPORTS", "{" + ", ".join(map(str, self.reports)) + "}",
                    "per attempt: 1 if its solver returns its own verdict (0: converged)")
+        # the acceptable stop of a solver that reports it (emittable.ACCEPTABLE_STOP: the
+        # interior-point solver's): its return status accessor and that status' value
+        stops = [ACCEPTABLE_STOP.get(plugin) for _, plugin, _ in self.solvers]
+        cfg.define(f"{P}_RETURN_STATUS_FNS", "{" + ", ".join(
+            f"{sym}{RETURN_STATUS_SUFFIX}" if stop is not None else "0"
+            for (sym, _, _), stop in zip(self.solvers, stops)) + "}",
+                   "per attempt: its solver's own return status accessor (0: none)")
+        cfg.define(f"{P}_ACCEPTABLE_STOP", "{" + ", ".join(
+            str(-1 if stop is None else stop) for stop in stops) + "}",
+                   "per attempt: the return status of a stop at the acceptable level "
+                   "(BAL_OK, P_inaccurate 1)")
         uniq = list(dict.fromkeys(syms))
         for key in ("ARG", "RES", "IW", "W"):
             expr = f"{uniq[0]}_SZ_{key}"
@@ -455,6 +480,8 @@ class _Problem:
                 "ng": self.ng, "n_user": self.layout.user_size, "variables": self.vars,
                 "parameters": self.params, "tol_pr": self.tol_pr, "tol_du": self.tol_du,
                 "accept_tol": self.accept_tol, "budget": self.budget,
+                "acceptable_stop": any(plugin in ACCEPTABLE_STOP
+                                       for _, plugin, _ in self.solvers),
                 "retries": list(self.retry_labels),
                 "solver": self.c.solver_name, "qpsol": self.c.options.get("qpsol"),
                 **({} if self.take is None else {

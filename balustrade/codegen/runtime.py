@@ -42,6 +42,18 @@ _TRUNCATED = S.code_of(S.SOLVE, "truncated")
 #: solve status code -> the Solution status of the Python backend where they coincide
 #: (a converged C solve is the backend's "optimal"); the others keep the C name
 _PY_STATUS = {**_STATUS, _OK: "optimal"}
+#: the backend's name of a solve the C returned ``BAL_OK`` for with ``<P>_inaccurate`` 1 (the
+#: solver stopped at its acceptable level: ``Status.OPTIMAL_INACCURATE``, used, never
+#: certified optimal; bal/problem.h)
+INACCURATE = "optimal_inaccurate"
+
+
+def py_status(code: int, inaccurate: bool = False) -> str:
+    """The backend's status name of a C solve status ``code`` (``_PY_STATUS``), with a
+    ``BAL_OK`` that stopped at the solver's acceptable level (``inaccurate``) named
+    :data:`INACCURATE`, as :class:`~balustrade.backends.casadi_backend.CasadiCompiled`
+    names it."""
+    return INACCURATE if code == _OK and inaccurate else _PY_STATUS.get(code, str(code))
 #: PCBF step code -> Status (``balustrade.codegen.status.PCBF``), read once per step
 _PCBF_CODES = S.by_code(S.PCBF)
 
@@ -218,6 +230,9 @@ class _CProblemView:
         self.x = np.ctypeslib.as_array(primal(work_ptr), shape=(info["nw"],))
         self._res_fn = lib.fn(f"{prefix}_residuals", None, [ctypes.c_void_p, _dbl_p])
         self._res = np.zeros(3)  # <P>_residuals writes 3 values (bal/problem.h)
+        self._inaccurate_fn = lib.fn(f"{prefix}_inaccurate", ctypes.c_int, [ctypes.c_void_p])
+        #: whether an attempt can stop at its acceptable level (else no foreign call)
+        self._can_be_inaccurate = bool(info.get("acceptable_stop", True))
         self._layout: Layout | None = None
 
     def warm_start(self) -> dict[str, np.ndarray]:
@@ -234,6 +249,16 @@ class _CProblemView:
             k += n
         out["lam_g0"], out["lam_g"] = out["lam_g0"][:-1], out["lam_g"][:-1]
         return out
+
+    def inaccurate(self) -> bool:
+        """The last solve's ``BAL_OK`` is a stop at the solver's acceptable level
+        (``<P>_inaccurate``: the backend's ``optimal_inaccurate``)."""
+        return self._can_be_inaccurate and bool(self._inaccurate_fn(self.work))
+
+    def py_status(self, code: int) -> str:
+        """The backend's name of this problem's last solve status ``code``
+        (:func:`py_status` with :meth:`inaccurate`)."""
+        return py_status(code, code == _OK and self.inaccurate())
 
     def residuals(self) -> tuple[float, float]:
         """Primal violation and dual residual of the last solve."""
@@ -377,7 +402,9 @@ class CProblem(_OwnsWork):
             self._warm(self._work)  # a feasible truncated iterate is continued (real time)
         w = self.view.x.copy()
         value = float(self.view.value_fn(self._work)) if code != _BAD_INPUT else float("nan")
-        return _STATUS.get(code, str(code)), value, self.view.unpack(w), w
+        name = INACCURATE if code == _OK and self.view.inaccurate() else \
+            _STATUS.get(code, str(code))
+        return name, value, self.view.unpack(w), w
 
 class CPCBFSafetyFilter(_OwnsWork):
     """The emitted PCBF step (2.24)+(2.23) as a closed-loop controller: the same
@@ -468,15 +495,21 @@ class CPCBFSafetyFilter(_OwnsWork):
         if self._hot_certified is not None and not first:
             fn, args = self._hot_certified
             fired = fn(*args)
+        # a BAL_OK that stopped at the solver's acceptable level (optimal_inaccurate)
+        f_inacc = f_code == _OK and self.filter.inaccurate()
+        s_inacc = s_code == _OK and not first and not fired and self.slack.inaccurate()
         if first:  # (2.24) skipped: "certified", as PCBFSafetyFilter._certified_step
             info = _certified_info(code, f_code, float(self._h[0]),
-                                   f_code == _TRUNCATED and self.filter.truncated_feasible())
+                                   f_code == _TRUNCATED and self.filter.truncated_feasible(),
+                                   f_inacc)
         elif fired:  # the shifted plan was the (2.24) point: an optimal one, as in Python
             info = _pcbf_info(code, _OK, f_code, float(self._h[0]), float("nan"), False,
-                              f_code == _TRUNCATED and self.filter.truncated_feasible())
+                              f_code == _TRUNCATED and self.filter.truncated_feasible(),
+                              False, f_inacc)
             info.values.update(shifted_certificate=1.0,
                                h_PB_solver=float(self._h_solver(self._work)))
-        elif code == self._PCBF_OK and s_code == _OK and f_code == _OK:  # _pcbf_info's "ok"
+        elif code == self._PCBF_OK and s_code == _OK and f_code == _OK and not s_inacc \
+                and not f_inacc:  # _pcbf_info's "ok"
             info = StepInfo(values={"h_PB": float(self._h[0])})
         else:
             # the bound of a merely feasible (2.24) is only read when there is one
@@ -484,7 +517,8 @@ class CPCBFSafetyFilter(_OwnsWork):
                 else float("nan")
             info = _pcbf_info(code, s_code, f_code, float(self._h[0]), h_upper,
                               s_code == _TRUNCATED and self.slack.truncated_feasible(),
-                              f_code == _TRUNCATED and self.filter.truncated_feasible())
+                              f_code == _TRUNCATED and self.filter.truncated_feasible(),
+                              s_inacc, f_inacc)
         info.solve_time = elapsed
         if code != self._BAD and not finite_u_p:
             fn, args = self._hot_replaced
@@ -497,7 +531,8 @@ class CPCBFSafetyFilter(_OwnsWork):
         return self._u.copy(), info
 
 
-def _certified_info(code: int, f_code: int, h: float, f_trunc_ok: bool) -> StepInfo:
+def _certified_info(code: int, f_code: int, h: float, f_trunc_ok: bool,
+                    f_inaccurate: bool = False) -> StepInfo:
     """The :class:`StepInfo` of a step whose (2.24) was skipped on the shifted-plan
     certificate (``certificate_first``), as
     :meth:`~balustrade.control.pcbf.PCBFSafetyFilter._certified_step` records it:
@@ -506,25 +541,30 @@ def _certified_info(code: int, f_code: int, h: float, f_trunc_ok: bool) -> StepI
     known = _PCBF_CODES.get(code)
     info = StepInfo(fallback=known.fallback if known is not None else "unknown",
                     values={"h_PB": h, "certificate_first": 1.0})
-    f = _PY_STATUS.get(f_code, str(f_code))
-    info.status = "certified" if f_code == _OK else f"certified_filter_{f}"
-    if (f_code in _SOLVED or f_trunc_ok) and f_code != _OK:
+    f = py_status(f_code, f_inaccurate)
+    info.status = "certified" if f == "optimal" else f"certified_filter_{f}"
+    if (f_code in _SOLVED or f_trunc_ok) and f != "optimal":
         info.uncertified["filter"] = f
     return info
 
 
 def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float,
-               s_trunc_ok: bool = False, f_trunc_ok: bool = False) -> StepInfo:
+               s_trunc_ok: bool = False, f_trunc_ok: bool = False,
+               s_inaccurate: bool = False, f_inaccurate: bool = False) -> StepInfo:
     """The :class:`StepInfo` :class:`~balustrade.control.pcbf.PCBFSafetyFilter` records for
     the same decisions, from the C step's code and its two solve statuses: ``status``
     (``"ok"``, ``"slack_<s>"``, ``"slack_<s>_filter_<f>"``, ``"filter_<f>"``, with a
     converged C solve named ``optimal`` and one stopped by its budget ``truncated``),
     ``fallback``, ``h_PB`` (NaN after a merely feasible (2.24), whose cost is
     ``h_PB_upper``) and ``uncertified``. ``s_trunc_ok``/``f_trunc_ok``: the truncated
-    (2.24)/(2.23) stopped at a feasible iterate (used as the Python policy uses it)."""
+    (2.24)/(2.23) stopped at a feasible iterate (used as the Python policy uses it).
+    ``s_inaccurate``/``f_inaccurate``: the (2.24)/(2.23) ``BAL_OK`` stopped at the solver's
+    acceptable level (``optimal_inaccurate``: used, its ``h_PB`` recorded, never
+    certified, as pcbf.py)."""
     known = _PCBF_CODES.get(code)
     info = StepInfo(fallback=known.fallback if known is not None else "unknown")
-    s, f = _PY_STATUS.get(s_code, str(s_code)), _PY_STATUS.get(f_code, str(f_code))
+    s_inaccurate, f_inaccurate = s_inaccurate and s_code == _OK, f_inaccurate and f_code == _OK
+    s, f = py_status(s_code, s_inaccurate), py_status(f_code, f_inaccurate)
     if known is None:
         info.status = str(code)
         return info
@@ -532,21 +572,23 @@ def _pcbf_info(code: int, s_code: int, f_code: int, h: float, h_upper: float,
         info.status = "non_finite_state"
         return info
     s_usable = s_code == _FEASIBLE or s_trunc_ok  # feasible, not converged
-    certified = s_code == _OK or (s_usable and np.isfinite(h))
+    certified = (s_code == _OK and not s_inaccurate) or (s_usable and np.isfinite(h))
     # a truncated (2.24) never makes the step "ok", even when certified by h_PB >= 0
     plain = certified and s_code != _TRUNCATED
     if s_usable and not certified:
         info.uncertified["slack"] = s
         info.values.update(h_PB=float("nan"), h_PB_upper=h_upper)
-    elif certified:
+    elif certified or s_inaccurate:
+        if s_inaccurate:
+            info.uncertified["slack"] = s
         info.values["h_PB"] = h
     if known.name in ("shifted_plan", "projected_proposal"):
         info.status = f"slack_{s}"
         return info
     if f_code in _SOLVED or f_trunc_ok:
-        if f_code != _OK:
+        if f != "optimal":
             info.uncertified["filter"] = f
-        info.status = "ok" if plain and f_code == _OK else f"slack_{s}_filter_{f}"
+        info.status = "ok" if plain and f == "optimal" else f"slack_{s}_filter_{f}"
     else:
         info.status = ("" if plain else f"slack_{s}_") + f"filter_{f}"
     return info

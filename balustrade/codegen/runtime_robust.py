@@ -17,13 +17,16 @@ import numpy as np
 from balustrade._checks import as_vector
 from balustrade.codegen import status as S
 from balustrade.codegen.runtime import (
+    _OK,
     _PY_STATUS,
     _TRUNCATED,
+    INACCURATE,
     _CProblemView,
     _dbl_p,
     _OwnsWork,
     _proposal,
     _ptr,
+    py_status,
 )
 from balustrade.control.base import StepInfo
 from balustrade.control.fallbacks import note_proposal
@@ -46,14 +49,19 @@ def _refused(family: dict[int, S.Status], code: int) -> tuple[S.Status | None, S
 
 
 def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float,
-                h_r_upper: float = float("nan")) -> StepInfo:
+                h_r_upper: float = float("nan"), s_inaccurate: bool = False,
+                f_inaccurate: bool = False) -> StepInfo:
     """The :class:`StepInfo` :class:`~balustrade.control.robust.RobustPCBFSafetyFilter`
     records for the same decisions: ``status`` (``"ok"``, ``"slack_<s>"``,
     ``"filter_<f>"``, ``"non_finite_state"``; a converged C solve is named ``optimal``, one
     stopped by its budget ``truncated``), ``fallback``, ``values["h_r"]`` (after a
     converged (5.15)), ``values["h_r_upper"]`` (the cost of a feasible truncated (5.15):
     ``h_r_upper`` when finite), ``values["h_cand"]`` (when a candidate existed) and
-    ``uncertified["filter"]`` (a feasible truncated (5.16), applied)."""
+    ``uncertified["filter"]`` (a feasible truncated (5.16), applied). ``s_inaccurate`` /
+    ``f_inaccurate``: the (5.15) / (5.16) solve's ``BAL_OK`` stopped at the solver's
+    acceptable level (``<P>_inaccurate``): ``uncertified["slack"]`` /
+    ``uncertified["filter"]`` ``"optimal_inaccurate"`` and the status joined from them, as
+    robust.py's ``note_solve`` records them."""
     known, info = _refused(_ROBUST_CODES, code)
     if known is None:
         return info
@@ -68,10 +76,15 @@ def robust_info(code: int, s_code: int, f_code: int, h_r: float, h_cand: float,
             info.values["h_r_upper"] = h_r_upper
         return info
     info.values["h_r"] = h_r
-    if known.name == "ok" and f_code == _TRUNCATED:
-        info.uncertified["filter"] = _PY_STATUS[f_code]
-    info.status = "ok" if known.name == "ok" and not info.uncertified else \
-        f"filter_{_PY_STATUS.get(f_code, str(f_code))}"
+    if s_inaccurate and s_code == _OK:  # robust.py: note_solve(info, "slack", ...)
+        info.uncertified["slack"] = INACCURATE
+    if known.name != "ok":
+        info.status = f"filter_{_PY_STATUS.get(f_code, str(f_code))}"
+        return info
+    if f_code == _TRUNCATED or (f_inaccurate and f_code == _OK):
+        info.uncertified["filter"] = py_status(f_code, f_inaccurate)
+    info.status = "ok" if not info.uncertified else "_".join(
+        f"{k}_{v}" for k, v in info.uncertified.items())
     return info
 
 
@@ -128,8 +141,10 @@ class CRobustPCBFSafetyFilter(_OwnsWork):
         # a feasible truncated (5.15) bounds h_r from above (robust.py's h_r_upper)
         h_r_upper = max(float(self.slack.value_fn(self.slack.work)), 0.0) \
             if s_code == _TRUNCATED and self.slack.truncated_feasible() else float("nan")
-        info = robust_info(code, s_code, self._status_fn(self._work, 1), h_r,
-                           float(self._h_cand(self._work)), h_r_upper)
+        f_code = self._status_fn(self._work, 1)
+        info = robust_info(code, s_code, f_code, h_r, float(self._h_cand(self._work)),
+                           h_r_upper, s_code == _OK and self.slack.inaccurate(),
+                           f_code == _OK and self.filter.inaccurate())
         info.solve_time = elapsed
         if code != self._BAD:
             note_proposal(info, int(self._replaced(self._work)))
@@ -141,25 +156,34 @@ class CRobustPCBFSafetyFilter(_OwnsWork):
         return u.copy(), info
 
 
-def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray
+def multiobjective_info(code: int, s_code: int, p_code: int, values: np.ndarray,
+                        s_inaccurate: bool = False, p_inaccurate: bool = False
                         ) -> StepInfo:
     """The :class:`StepInfo` of
     :class:`~balustrade.control.multiobjective.MultiobjectivePCBFController` for the same
     decisions: ``status`` (``"ok"``, ``"problem_<s>"``, ``"problem_above_bound"``, ``"init_<s>"``,
     ``"non_finite_state"``), ``fallback``, ``values`` ``h_cand``, ``bound``, ``h_tilde`` and,
-    for ``"problem_above_bound"``, ``h_tilde_rejected`` (``values[3]``)."""
+    for ``"problem_above_bound"``, ``h_tilde_rejected`` (``values[3]``). ``s_inaccurate`` /
+    ``p_inaccurate``: the (5.15) / (6.15) solve's ``BAL_OK`` stopped at the solver's
+    acceptable level: ``uncertified["slack"]`` / ``uncertified["problem"]``
+    ``"optimal_inaccurate"`` where multiobjective.py's ``note_solve`` records them (the
+    status stays ``"ok"``, as there)."""
     known, info = _refused(_MULTIOBJ_CODES, code)
     if known is None:
         return info
     if known.name == "init_failed":
         info.status = f"init_{_PY_STATUS.get(s_code, str(s_code))}"
         return info
+    if s_inaccurate and s_code == _OK:  # the initializing (5.15), used
+        info.uncertified["slack"] = INACCURATE
     info.values.update(h_cand=float(values[0]), bound=float(values[1]),
                        h_tilde=float(values[2]))
     if known.name == "above_bound":   # multiobjective.py: a converged (6.15) above (6.15g)
         info.status = "problem_above_bound"
         info.values["h_tilde_rejected"] = float(values[3])
         return info
+    if known.name == "ok" and p_inaccurate and p_code == _OK:
+        info.uncertified["problem"] = INACCURATE
     info.status = "ok" if known.name == "ok" else \
         f"problem_{_PY_STATUS.get(p_code, str(p_code))}"
     return info
@@ -195,6 +219,7 @@ class _TwoProblemStep(_OwnsWork):
         self._replaced = self._lib.fn(f"{Q}_proposal_replaced", ci, [vp])
         self._allocate(Q)
         attr, suffix, key, getter = first
+        self._FIRST = attr
         setattr(self, attr, _CProblemView(self._lib, f"{Q}_{suffix}", m["problems"][key],
                                           self._lib.fn(f"{Q}_{getter}", vp, [vp])(self._work)))
         self.problem = _CProblemView(self._lib, f"{Q}_problem", m["problems"]["problem"],
@@ -230,8 +255,11 @@ class _TwoProblemStep(_OwnsWork):
         u, code = self.step_raw(x, u_p)
         elapsed = time.perf_counter() - start
         self._values_fn(self._work, _ptr(self._values))
-        info = self._INFO(code, self._status_fn(self._work, 0),
-                          self._status_fn(self._work, 1), self._values)
+        s_code, p_code = self._status_fn(self._work, 0), self._status_fn(self._work, 1)
+        first = getattr(self, self._FIRST)
+        info = self._INFO(code, s_code, p_code, self._values,
+                          s_code == _OK and first.inaccurate(),
+                          p_code == _OK and self.problem.inaccurate())
         info.solve_time = elapsed
         if code != self._BAD:
             note_proposal(info, int(self._replaced(self._work)))

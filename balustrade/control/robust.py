@@ -193,15 +193,16 @@ class RobustPCBFSafetyFilter:
         return recovery_lead(self.slack, self.recovery_target)
 
     def recovering(self) -> bool:
-        """Whether the next step is a recovery step: a candidate whose ``h̃`` is positive, so
-        that it does not certify ``h_r(x_k) = 0`` (Theorem 5.15: ``h_r(x_k) <= h̃``). Not
-        the first step (no candidate): there (5.16), started from an interior-point (5.15)
-        point, ends at the interior-point solver's acceptable level, which Python flags
-        (``optimal_inaccurate``) and the emitted C cannot tell from convergence
-        (docs/vehicles.md, session 13)."""
+        """Whether the next step is a recovery step: the first step (no candidate certifies
+        anything yet) or a candidate whose ``h̃`` is positive, so that it does not certify
+        ``h_r(x_k) = 0`` (Theorem 5.15: ``h_r(x_k) <= h̃``). On the lane change's first step
+        (5.16), started from the interior-point (5.15) point, ends at the interior-point
+        solver's acceptable level: ``optimal_inaccurate`` (used, flagged), in Python and in
+        the emitted C alike since it reads the solver's own return status (docs/vehicles.md,
+        session 13, the acceptable stop in C)."""
         c = self.candidate
-        return c is not None and tube_cost(self._tube, c.xi, c.xi_N, self.alpha_f,
-                                           self.slack_norm) > 0.0
+        return c is None or tube_cost(self._tube, c.xi, c.xi_N, self.alpha_f,
+                                      self.slack_norm) > 0.0
 
     def _solve_slack(self, x: np.ndarray, lead: int | None = None
                      ) -> tuple[float, Solution, tuple[np.ndarray, float] | None]:

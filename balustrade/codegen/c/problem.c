@@ -8,7 +8,8 @@
  * second start, P_solve_from; 0: the first solver), and P_SOLVERS(X), the CasADi solvers of the
  * first attempt and of each retry (the same function twice shares its memory), P_REPORTS,
  * per attempt 1 if its solver returns its own verdict (the interior-point
- * solver: BAL_OK when it converged)
+ * solver: BAL_OK when it converged; P_inaccurate 1 when it stopped at its acceptable
+ * level, P_RETURN_STATUS_FNS/P_ACCEPTABLE_STOP)
  * instead of being judged by P_TOL_PR/P_TOL_DU. P_kkt
  * evaluates the solver's own convergence measures at a point.
  */
@@ -26,6 +27,14 @@ static const bal_casadi_fn BAL_PX(solvers)[BAL_PX(N_SOLVERS)] = {BAL_PX(SOLVERS)
 /* 1 if the solver of attempt k returns its own verdict (0: converged; the interior-point
    solver, whose convergence test is on its internally scaled problem), else its KKT residuals decide */
 static const int BAL_PX(reports)[BAL_PX(N_SOLVERS)] = BAL_PX(REPORTS);
+/* the solver of attempt k's own return status of its last run on a memory (0: the solver
+   does not keep one), and the value of that status meaning "stopped at the acceptable
+   level" (IPOPT's Solved_To_Acceptable_Level, which its generated C returns as converged:
+   backends.emittable.ACCEPTABLE_STOP) */
+typedef int (*BAL_PX(return_status_fn))(int mem);
+static const BAL_PX(return_status_fn) BAL_PX(return_status)[BAL_PX(N_SOLVERS)] =
+    BAL_PX(RETURN_STATUS_FNS);
+static const int BAL_PX(acceptable_stop)[BAL_PX(N_SOLVERS)] = BAL_PX(ACCEPTABLE_STOP);
 
 /* the first attempt that uses the solver of attempt k (its memory is shared) */
 static int BAL_PX(first_use)(int k) {
@@ -126,6 +135,7 @@ static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which,
   wk->res[5] = wk->lam_p;
   wk->attempts++;
   wk->which = which;
+  wk->inaccurate = 0;
   if (which < 0 || which >= BAL_PX(N_SOLVERS)) return BAL_EVAL_ERROR;
   flag = BAL_PX(solvers)[which].eval(wk->arg, wk->res, wk->iw, wk->w, wk->mem[which]);
   if (flag && !BAL_PX(reports)[which]) return BAL_EVAL_ERROR;
@@ -143,7 +153,12 @@ static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which,
     if (!isfinite(wk->x[i])) return BAL_NONFINITE;
   }
   if (BAL_PX(reports)[which]) {
-    if (!flag) return BAL_OK; /* the solver's own test passed, as the backend reads it */
+    if (!flag) { /* the solver's own test passed, as the backend reads it; a stop at its
+                    acceptable level is the backend's optimal_inaccurate: flagged */
+      wk->inaccurate = BAL_PX(return_status)[which] &&
+          BAL_PX(return_status)[which](wk->mem[which]) == BAL_PX(acceptable_stop)[which];
+      return BAL_OK;
+    }
   } else if (wk->pr_inf < BAL_PX(TOL_PR) && wk->du_inf < BAL_PX(TOL_DU)) {
     return BAL_OK;
   }
@@ -237,6 +252,7 @@ int BAL_PX(solve_lead)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real
   casadi_int i;
   if (!wk || !wk->ready) return BAL_EVAL_ERROR;
   wk->attempts = 0;
+  wk->inaccurate = 0;
   if ((BAL_PX(NP) > 0 && !p) || (p && !BAL_PX(finite_params)(p))) {
     /* refuse before any solver runs; the outputs say "no solution" */
     for (i = 0; i < BAL_PX(NW); ++i) wk->x[i] = NAN;
@@ -301,12 +317,15 @@ int BAL_PX(solve_lead)(BAL_PX(work)* wk, const casadi_real* p, const casadi_real
      otherwise the first attempt's status (wk->x then holds the last attempt) */
   if (have_feasible) {
     BAL_PX(feasible_copy)(wk, 0);
+    wk->inaccurate = 0;
     return BAL_FEASIBLE;
   }
   return first;
 }
 
 int BAL_PX(attempts)(const BAL_PX(work)* wk) { return wk->attempts; }
+
+int BAL_PX(inaccurate)(const BAL_PX(work)* wk) { return wk->inaccurate; }
 
 int BAL_PX(truncated_feasible)(const BAL_PX(work)* wk, int status) {
   return status == BAL_TRUNCATED && wk->pr_inf <= BAL_PX(TRUNC_TOL);

@@ -5,7 +5,8 @@
  * P_W_<variable>.
  *
  * Entry points: P_init, P_finalize, P_alloc, P_free, P_cold_start, P_warm_start,
- * P_warm_start_primal, P_solve, P_solve_from, P_solve_lead, P_attempts, P_primal, P_value, P_residuals.
+ * P_warm_start_primal, P_solve, P_solve_from, P_solve_lead, P_attempts, P_inaccurate, P_primal,
+ * P_value, P_residuals.
  * No include guard: included once per prefix.
  */
 #ifndef BAL_PROBLEM
@@ -21,6 +22,10 @@ typedef struct BAL_PX(work) {
   casadi_real f, pr_inf, du_inf, feas;
   int attempts; /* solver runs in the last P_solve (> 1: retried) */
   int which;    /* the solver (attempt index) of the last attempt run */
+  /* 1 if the last P_solve returned BAL_OK from a solver that stopped at its acceptable
+     level (IPOPT's Solved_To_Acceptable_Level): balustrade's backend reports that solve
+     optimal_inaccurate (used, flagged, never certified optimal), else 0 */
+  int inaccurate;
   /* the last BAL_FEASIBLE attempt of a P_solve, restored if no attempt converges */
   casadi_real kx[BAL_PX(NW)], klam_x[BAL_PX(NW)], klam_g[BAL_PX(NG) + 1], kg[BAL_PX(NG) + 1];
   casadi_real kf, kpr_inf, kdu_inf, kfeas;
@@ -72,6 +77,9 @@ int BAL_PX(truncated_feasible)(const BAL_PX(work)* wk, int status);
 /* The solver runs of the last P_solve (1: no retry; a retry that would repeat an attempt
    already run, the same solver from the same start, is skipped and not counted). */
 int BAL_PX(attempts)(const BAL_PX(work)* wk);
+/* 1 if the last P_solve's BAL_OK is a stop at the solver's acceptable level (the
+   backend's optimal_inaccurate: converged only to the reduced tolerances), else 0. */
+int BAL_PX(inaccurate)(const BAL_PX(work)* wk);
 /* Pointers into wk, for foreign-function callers. */
 const casadi_real* BAL_PX(primal)(const BAL_PX(work)* wk);
 casadi_real BAL_PX(value)(const BAL_PX(work)* wk);

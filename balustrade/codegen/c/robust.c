@@ -65,10 +65,10 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     return *status;
   }
   if (wk->have_cand) wk->h_cand = wk->ch;
-  /* a recovery step (a candidate whose h~ is positive: it does not certify h_r(x_k) = 0)
-     runs the attempt Q_SLACK_LEAD of the (5.15) chain first
+  /* a recovery step (the first step, or a candidate whose h~ is positive: it does not
+     certify h_r(x_k) = 0) runs the attempt Q_SLACK_LEAD of the (5.15) chain first
      (balustrade.control.robust.RobustPCBFSafetyFilter.recovering; 0: none) */
-  lead = (BAL_QX(SLACK_LEAD) > 0 && wk->have_cand && wk->ch > 0.0) ? BAL_QX(SLACK_LEAD) : 0;
+  lead = (BAL_QX(SLACK_LEAD) > 0 && (!wk->have_cand || wk->ch > 0.0)) ? BAL_QX(SLACK_LEAD) : 0;
   if (wk->recovered && wk->have_cand) {
     /* the last converged (5.15) was a recovery solve: from the candidate, the rest cold */
     BAL_QX(slack_cold_start)(&wk->slack);
