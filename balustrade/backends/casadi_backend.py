@@ -742,9 +742,10 @@ def _same_start(a: tuple, b: tuple) -> bool:
 #: options of a plugin's emitted C that change where it stops (part of
 #: :data:`balustrade.backends.emittable.STATUS_OPTIONS`, which adds ``error_on_fail`` for the
 #: C's verdict): the emitted IPOPT takes no acceptable stop after a run of acceptable
-#: iterates (it can still end at its acceptable level otherwise, which the C cannot tell
-#: from success: emittable.STATUS_OPTIONS). :meth:`CasadiCompiled._retry_options` gives the
-#: retries of an as-emitted target the same rule.
+#: iterates (it can still end at its acceptable level otherwise; the C then reads IPOPT's
+#: return status and reports ``optimal_inaccurate`` as Python does:
+#: emittable.ACCEPTABLE_STOP). :meth:`CasadiCompiled._retry_options` gives the retries of an
+#: as-emitted target the same rule.
 EMITTED_STOP_OPTIONS: dict[str, dict] = {"ipopt": {"ipopt.acceptable_iter": 0}}
 
 #: the balustrade option (in a target's options, never passed to ``nlpsol``) choosing the

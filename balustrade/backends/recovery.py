@@ -15,10 +15,10 @@ runs the same order (``bal/problem.c``'s ``P_solve_lead``), so C = Python holds 
 construction.
 
 The lead is an attempt the chain already has: no solver is added, only the order of one
-solve changes. Known gap it makes more frequent: when the led interior-point attempt ends at
-its *acceptable* level, Python reports ``optimal_inaccurate`` while the emitted C, which
-cannot tell that stop from convergence, reports success (measured on the lane change, seed 0
-step 5; docs/vehicles.md, session 13).
+solve changes. When the led interior-point attempt ends at its *acceptable* level, the
+solve is ``optimal_inaccurate`` (used, flagged ``uncertified``), in Python and in the emitted
+C alike (the C reads IPOPT's own return status: :data:`balustrade.backends.emittable.
+ACCEPTABLE_STOP`; docs/vehicles.md, session 13).
 """
 
 from __future__ import annotations
