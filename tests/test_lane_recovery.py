@@ -18,6 +18,7 @@ import ctypes
 import numpy as np
 import pytest
 from test_emit_robust import _design, _kind
+from test_retry_dedup import _counted
 
 from balustrade.backends import PRESETS, recovery_lead
 from balustrade.backends.targets import target
@@ -28,19 +29,6 @@ from balustrade.models.unstable2d import unstable2d, unstable2d_setup
 #: states outside S_r (h_r > 0) of the 2-D example, and the origin (inside)
 OUTSIDE = [np.array([0.9, 8.0]), np.array([-0.95, -9.0]), np.array([0.8, 9.5])]
 ORIGIN = np.zeros(2)
-
-
-def _counted(compiled) -> list:
-    """The solver object of every attempt ``compiled`` runs (clear it between solves)."""
-    runs: list = []
-    inner = compiled._solve_with
-
-    def counting(solver, p, guess):
-        runs.append(solver)
-        return inner(solver, p, guess)
-
-    compiled._solve_with = counting
-    return runs
 
 
 def _lead_solver(compiled):

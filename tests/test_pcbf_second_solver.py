@@ -17,25 +17,18 @@ import ctypes
 
 import numpy as np
 import pytest
-import scipy.linalg as sla
+
+# the stable 2-state example of the non-finite-start tests (N, A, B, P, LEVEL, ONE_ITER, STEPS)
+from test_c_nonfinite_start import LEVEL, ONE_ITER, STEPS, A, B, N, P
 
 from balustrade.backends import compile
 from balustrade.backends.casadi_backend import chain_solver_index
-from balustrade.backends.targets import Target
 from balustrade.control import PCBFSafetyFilter
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import LinearSystem
 from balustrade.errors import BalustradeError
 from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
 
-N = 10
-A = np.array([[1.0, 0.1], [-0.4, 0.85]])
-B = np.array([[0.0], [0.5]])
-P = sla.solve_discrete_lyapunov(A.T, np.eye(2))
-LEVEL = 0.125 / np.max(np.diag(np.linalg.inv(P)))
-ONE_ITER = Target("casadi", "sqpmethod", {"lowering": "as-emitted", "max_iter": 1},
-                  retries=(("sqpmethod", {"max_iter": 100}),), name="one-iteration")
-STEPS = 8
 FAILING_STEP = 5  # the 6th step: the warm attempt (one iteration) does not converge
 
 
