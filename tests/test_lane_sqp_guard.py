@@ -36,6 +36,9 @@ class _Reports:
     def class_name(self) -> str:
         return "Sqpmethod"
 
+    def name(self) -> str:  # a CasADi Function's name (Solution.raw["function"])
+        return "reports"
+
 
 @pytest.fixture(scope="module")
 def problem():
