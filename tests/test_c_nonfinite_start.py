@@ -40,14 +40,20 @@ ONE_ITER = Target("casadi", "sqpmethod", {"lowering": "as-emitted", "max_iter": 
 STEPS = 8
 
 
-@pytest.fixture(scope="module")
-def pair():
+def stable2_problems() -> tuple:
+    """The PCBF slack problem (2.24) on ``fast-sqp``, the filter (2.23) on :data:`ONE_ITER`, and U
+    of the stable 2-state example (shared with tests/test_pcbf_second_solver.py)."""
     system = LinearSystem(A, B, name="stable2")
     X, U = Box([-1.0, -1.5], [1.0, 1.5]), Box([-2.0], [2.0])
     h_f, d = (lambda x: x.T @ P @ x - LEVEL), 1e-3 * np.arange(N)
     slack = compile(pcbf_slack_problem(system, X, U, h_f, N, d, 1e6, 1), "fast-sqp")
     filt = compile(pcbf_filter_problem(system, X, U, h_f, N, d, 1e-6), ONE_ITER)
     return slack, filt, U
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return stable2_problems()
 
 
 def _python_attempts(ctl: PCBFSafetyFilter) -> list[tuple[str, int]]:

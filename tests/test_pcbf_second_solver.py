@@ -19,7 +19,15 @@ import numpy as np
 import pytest
 
 # the stable 2-state example of the non-finite-start tests (N, A, B, P, LEVEL, ONE_ITER, STEPS)
-from test_c_nonfinite_start import LEVEL, ONE_ITER, STEPS, A, B, N, P
+from test_c_nonfinite_start import (
+    LEVEL,
+    STEPS,
+    A,
+    B,
+    N,
+    P,
+    stable2_problems,
+)
 
 from balustrade.backends import compile
 from balustrade.backends.casadi_backend import chain_solver_index
@@ -27,19 +35,14 @@ from balustrade.control import PCBFSafetyFilter
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import LinearSystem
 from balustrade.errors import BalustradeError
-from balustrade.problems.pcbf import pcbf_filter_problem, pcbf_slack_problem
+from balustrade.problems.pcbf import pcbf_filter_problem
 
 FAILING_STEP = 5  # the 6th step: the warm attempt (one iteration) does not converge
 
 
 @pytest.fixture(scope="module")
 def pair():
-    system = LinearSystem(A, B, name="stable2")
-    X, U = Box([-1.0, -1.5], [1.0, 1.5]), Box([-2.0], [2.0])
-    h_f, d = (lambda x: x.T @ P @ x - LEVEL), 1e-3 * np.arange(N)
-    slack = compile(pcbf_slack_problem(system, X, U, h_f, N, d, 1e6, 1), "fast-sqp")
-    filt = compile(pcbf_filter_problem(system, X, U, h_f, N, d, 1e-6), ONE_ITER)
-    return slack, filt, U
+    return stable2_problems()
 
 
 def _python_loop(ctl: PCBFSafetyFilter) -> list[tuple]:
