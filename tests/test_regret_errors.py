@@ -8,6 +8,7 @@ from balustrade.control.regret_synthesis import (
     dynamic_regret,
     generalized_regret,
     pointwise_regret,
+    zero_x0_regret,
 )
 from balustrade.errors import BalustradeError, NotPSDError, ShapeError
 from balustrade.problems.regret import LTVSystem, StateInputConstraints, build_operators
@@ -27,6 +28,21 @@ def test_non_psd_weights_are_named():
         pointwise_regret(ops, [1.0, 0.0], -np.eye(2))
     with pytest.raises(NotPSDError, match="W"):
         generalized_regret(ops, [1.0, 0.0], 1.0, W=-np.eye(ops.nd))
+
+
+def test_competitive_ratio_needs_a_nonsingular_benchmark():
+    """W = "O" needs 𝒪 ≻ 0 ((3.11) asks W_w ≻ 0). With Q_k = diag(1, 0) the state x₂ costs
+    nothing, 𝒪 is singular (its smallest eigenvalue is 0, computed here independently of the
+    check) and (3.30) crashed in its certificate with numpy's LinAlgError after the solve."""
+    ops = build_operators(LTVSystem.create(A, B, 3, Q=np.diag([1.0, 0.0])))
+    assert np.linalg.eigvalsh(ops.O)[0] < 1e-9 * np.abs(ops.O).max()
+    for synth in (lambda: zero_x0_regret(ops, W="O"),
+                  lambda: generalized_regret(ops, [1.0, 0.0], 1.0, W="O"),
+                  lambda: pointwise_regret(ops, [1.0, 0.0], np.eye(2), W="O")):
+        with pytest.raises(NotPSDError, match="W='O'.*positive definite"):
+            synth()
+    ok = build_operators(LTVSystem.create(A, B, 3))   # Q_k = I: 𝒪 ≻ 0, accepted
+    assert zero_x0_regret(ok, W="O").ok
 
 
 def test_disturbance_matrix_without_full_row_rank():
