@@ -159,3 +159,74 @@ def test_rpi_sdp_is_a_synthesis_problem_with_lambda_as_a_parameter():
     assert sol.ok and sol.objective == pytest.approx(best.info["objective"], rel=1e-9)
     with pytest.raises(Exception, match=r"λ must lie in \(0, 1\)"):
         ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U, lambdas=[0.5, 1.0])
+
+
+def test_rpi_line_search_never_takes_an_unverified_inaccurate_solve(monkeypatch):
+    """(5.14): an ``optimal_inaccurate`` solve with a lower objective whose set is not RPI
+    (here E shrunk 4×, checked below with an own trust-region-free test: the image of a
+    boundary point leaves E) must not be chosen over the full-accuracy solves; the old line
+    search took the lowest objective of any ``ok`` solve."""
+    from dataclasses import replace
+
+    from balustrade.backends import compile_synthesis
+    from balustrade.backends.synthesis_cvxpy import CompiledSynthesis
+    from balustrade.errors import BalustradeError
+    from balustrade.problems.rpi import rpi_sdp
+
+    system, s = unstable2d(), unstable2d_setup(10)
+    real = CompiledSynthesis.solve
+
+    def solve(self, params=None):
+        sol = real(self, params)
+        if sol.ok and abs(float(params["lambda"]) - 0.5) < 1e-12:
+            vals = {**sol.values, "E": 0.25 * sol.values["E"], "Y": 0.25 * sol.values["Y"]}
+            return replace(sol, status="optimal_inaccurate", objective=-1.0, values=vals)
+        return sol
+
+    monkeypatch.setattr(CompiledSynthesis, "solve", solve)
+    bad = real(compile_synthesis(rpi_sdp(system.A, system.B, s.W, s.X, s.U)), {"lambda": 0.5})
+    E_bad = 0.25 * bad["E"]
+    K_bad = bad["Y"] @ np.linalg.inv(E_bad)
+    P_bad = np.linalg.inv(E_bad)
+    # own check: a point on ∂E mapped by A + BK plus a vertex of W lands outside E
+    A_cl = system.A + system.B @ K_bad
+    lam, V = np.linalg.eigh(P_bad)
+    worst = max(float((A_cl @ e + w) @ P_bad @ (A_cl @ e + w))
+                for t in np.linspace(0, 2 * np.pi, 400)
+                for e in [V @ (np.array([np.cos(t), np.sin(t)]) / np.sqrt(lam))]
+                for w in s.W.vertices())
+    assert worst > 1.0
+    err = ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U, lambdas=[0.5, 0.8])
+    assert err.info["status"] == "optimal" and err.info["lambda"] == 0.8
+    assert "refused" not in err.info      # the full-accuracy solve came first and passed
+    with pytest.raises(BalustradeError, match="is RPI.*optimal_inaccurate"):
+        ellipsoidal_rpi(system.A, system.B, s.W, s.X, s.U, lambdas=[0.5])
+
+
+def test_rpi_of_an_ill_conditioned_design_is_rpi_by_an_own_check():
+    """The bicycle linearization (§8.2, G = heading only): E_P of (5.14) has cond ≈ 1e6–1e8,
+    and the best "optimal" solve's E = E_P⁻¹ missed A_K E ⊕ GW ⊆ E by 2.9e-6 (in eᵀPe units;
+    other λ by 0.3). The returned set must pass an exact check done here by an S-lemma SDP
+    per vertex of W: max_{eᵀPe ≤ 1} ‖A_K e + G w‖²_P ≤ 1."""
+    import cvxpy as cp
+
+    from balustrade.dsl.sets import Polytope
+    from balustrade.examples.bicycle import G_HEADING, V_S, bicycle_sets
+    from balustrade.models.bicycle import bicycle
+
+    system, (X, U, W) = bicycle(), bicycle_sets()
+    x_s = np.array([0.0, 0.0, V_S, 0.0])
+    A, B = (np.asarray(M, dtype=float) for M in system.jacobians(x_s, np.zeros(2)))
+    G = np.asarray(G_HEADING, dtype=float)
+    err = ellipsoidal_rpi(A, B, W, Polytope(X.H, X.h - X.H @ x_s), U, G=G)
+    P, A_K = err.E.P, A + B @ err.K
+    n = A.shape[0]
+    for w in W.vertices():
+        g = G @ w
+        t, lam = cp.Variable(), cp.Variable(nonneg=True)
+        b = (A_K.T @ P @ g).reshape(n, 1)
+        L = cp.bmat([[cp.reshape(t - g @ P @ g - lam, (1, 1)), -b.T],
+                     [-b, lam * P - A_K.T @ P @ A_K]])
+        cp.Problem(cp.Minimize(t), [(L + L.T) / 2 >> 0]).solve(solver="CLARABEL")
+        assert t.value <= 1.0 + 1e-9, (w, t.value, err.info)
+    assert err.info["inflation"] - 1.0 <= 1e-3

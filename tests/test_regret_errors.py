@@ -8,6 +8,7 @@ from balustrade.control.regret_synthesis import (
     dynamic_regret,
     generalized_regret,
     pointwise_regret,
+    zero_x0_regret,
 )
 from balustrade.errors import BalustradeError, NotPSDError, ShapeError
 from balustrade.problems.regret import LTVSystem, StateInputConstraints, build_operators
@@ -27,6 +28,21 @@ def test_non_psd_weights_are_named():
         pointwise_regret(ops, [1.0, 0.0], -np.eye(2))
     with pytest.raises(NotPSDError, match="W"):
         generalized_regret(ops, [1.0, 0.0], 1.0, W=-np.eye(ops.nd))
+
+
+def test_competitive_ratio_needs_a_nonsingular_benchmark():
+    """W = "O" needs 𝒪 ≻ 0 ((3.11) asks W_w ≻ 0). With Q_k = diag(1, 0) the state x₂ costs
+    nothing, 𝒪 is singular (its smallest eigenvalue is 0, computed here independently of the
+    check) and (3.30) crashed in its certificate with numpy's LinAlgError after the solve."""
+    ops = build_operators(LTVSystem.create(A, B, 3, Q=np.diag([1.0, 0.0])))
+    assert np.linalg.eigvalsh(ops.O)[0] < 1e-9 * np.abs(ops.O).max()
+    for synth in (lambda: zero_x0_regret(ops, W="O"),
+                  lambda: generalized_regret(ops, [1.0, 0.0], 1.0, W="O"),
+                  lambda: pointwise_regret(ops, [1.0, 0.0], np.eye(2), W="O")):
+        with pytest.raises(NotPSDError, match="W='O'.*positive definite"):
+            synth()
+    ok = build_operators(LTVSystem.create(A, B, 3))   # Q_k = I: 𝒪 ≻ 0, accepted
+    assert zero_x0_regret(ok, W="O").ok
 
 
 def test_disturbance_matrix_without_full_row_rank():
@@ -121,3 +137,44 @@ def test_trust_region_near_hard_case_attains_its_dual_bound(eps):
     res = maximize_quadratic_on_ball(Amat, b, 0.5, 2.0)
     assert res.w @ res.w == pytest.approx(2.0, rel=1e-12)
     assert res.value == pytest.approx(res.upper, rel=1e-10, abs=1e-12)
+
+
+def test_trust_region_interior_maximum_of_a_concave_quadratic():
+    """max 1 − ‖w‖² over ‖w‖² ≤ 2 is 1 at w = 0 (ν = 0): the solver used to force the boundary
+    (ν = α_max = −1) and report −1 as both the attained value and the 'upper' bound."""
+    r = maximize_quadratic_on_ball(-np.eye(2), np.zeros(2), 1.0, 2.0)
+    assert r.value == pytest.approx(1.0, abs=1e-12) and r.upper >= r.value - 1e-12
+    # b ≠ 0, interior: −A⁻¹b = (0.25, −0.1) lies in the ball; max = c + bᵀ(−A)⁻¹b
+    A2, b2 = -np.diag([2.0, 5.0]), np.array([0.5, -0.5])
+    r = maximize_quadratic_on_ball(A2, b2, 0.3, 1.0)
+    assert r.value == pytest.approx(0.3 + 0.25 / 2 + 0.25 / 5, rel=1e-12)
+    assert r.w == pytest.approx([0.25, -0.1])
+
+
+def test_generalized_level_of_a_controller_with_an_interior_worst_case():
+    """generalized_level_energy (the 'exact' certificate that becomes the reported level of
+    (3.28)) for a controller bad for x₀ and open loop for w, ω = 100: at the level the inner
+    maximum is interior (M_ww − μI ≺ 0). The old level 7.85 was beaten by the explicit
+    disturbance w = (μI − M_ww)⁻¹M_wx x₀ (‖w‖² = 6.9 ≤ ω, regret − μδᵀδ = +292); the level must
+    leave that point (and its own interior stationary point) at ≤ 0."""
+    from balustrade.problems.regret.verify import generalized_level_energy, regret_matrix
+
+    ops = build_operators(LTVSystem.create(np.array([[0.5, 0.2], [0.0, 0.6]]),
+                                           np.array([[0.0], [1.0]]), 4))
+    n, om, x0 = ops.n, 100.0, np.array([5.0, -3.0])
+    Pu = np.zeros((ops.m * (ops.T + 1), ops.nd))
+    Pu[:, :n] = 3.0 * np.random.default_rng(0).standard_normal((Pu.shape[0], n))
+    M = regret_matrix(ops, Pu)
+    mu = generalized_level_energy(ops, Pu, x0, om, np.eye(ops.nd))
+    for level in (7.852401180192828, mu):
+        A_ww = M[n:, n:] - level * np.eye(ops.nd - n)
+        if np.linalg.eigvalsh(A_ww).max() >= 0:
+            continue
+        w = np.linalg.solve(-A_ww, M[n:, :n] @ x0)
+        d = np.concatenate([x0, w])
+        excess = float(d @ (M - level * np.eye(ops.nd)) @ d)
+        if level == mu:
+            assert w @ w <= om and excess <= 1e-7 * mu
+        else:
+            assert w @ w <= om and excess > 100.0   # the old level is beaten
+    assert mu > 15.0

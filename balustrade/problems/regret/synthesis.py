@@ -110,7 +110,10 @@ def _weight(ops: Operators, W: object) -> np.ndarray:
         if W == "I":
             return np.eye(ops.nd)
         if W == "O":
-            return ops.O
+            # (3.11) needs W_w ≻ 0; 𝒪 is singular when some δ has zero non-causal cost (e.g. a
+            # singular Q_k), and the levels (3.29)/(3.30) then divide by zero
+            return check_psd(ops.O, "W='O' (the benchmark matrix 𝒪 of (3.6); the competitive "
+                             "ratio needs 𝒪 ≻ 0, e.g. every Q_k ≻ 0)", strict=True)
         raise BalustradeError(f"W: expected 'I', 'O' or a matrix, got {W!r}")
     Wm = as_matrix(W, "W", (ops.nd, ops.nd))
     return check_psd(Wm, "W", strict=True)

@@ -41,10 +41,11 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, c: float, omega: fl
                                ) -> TrustRegionCertificate:
     """max wᵀAw + 2bᵀw + c over ‖w‖² ≤ ω for symmetric A (the trust-region subproblem).
 
-    Optimality: (νI − A)w = b, νI − A ⪰ 0, ν(ω − ‖w‖²) = 0. With A = V diag(α) Vᵀ and
-    β = Vᵀb, ν solves the secular equation Σ β_i²/(ν − α_i)² = ω on ν > α_max, or, in the hard
-    case (β vanishing on the top eigenspace and the equation unsolvable), ν = α_max and the
-    top eigenvector fills up the norm.
+    Optimality: (νI − A)w = b, νI − A ⪰ 0, ν ≥ 0, ν(ω − ‖w‖²) = 0. With A = V diag(α) Vᵀ and
+    β = Vᵀb: for A ≺ 0 with ‖A⁻¹b‖² ≤ ω the optimum is interior, ν = 0; otherwise ν solves the
+    secular equation Σ β_i²/(ν − α_i)² = ω on ν > max(α_max, 0), or, in the hard case (β
+    vanishing on the top eigenspace, α_max ≥ 0 and the equation unsolvable), ν = α_max and
+    the top eigenvector fills up the norm.
     """
     if omega <= 0:
         raise BalustradeError(f"omega: must be positive, got {omega}")
@@ -62,7 +63,16 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, c: float, omega: fl
     sqrt_om = np.sqrt(omega)
     beta_top = float(np.linalg.norm(beta[top]))
     hard = False
-    if beta_top <= tiny:
+    if amax < -tiny and norm_at(0.0) <= sqrt_om:
+        # A ≺ 0 and the unconstrained maximizer −A⁻¹b lies in the ball: interior optimum with
+        # ν = 0 (the multiplier of ‖w‖² ≤ ω must be ≥ 0, so ν = α_max < 0 is not a solution)
+        nu = 0.0
+        v = beta / (nu - alpha)
+        w = V @ v
+        value = float(w @ A @ w + 2 * b @ w + c)
+        upper = float(c + np.sum(beta ** 2 / (nu - alpha)))
+        return TrustRegionCertificate(value, max(upper, value), w, nu, False)
+    if beta_top <= tiny and amax >= -tiny:
         base = np.zeros_like(beta)
         base[rest] = beta[rest] / (amax - alpha[rest]) if np.any(rest) else 0.0
         if float(np.linalg.norm(base)) <= sqrt_om:
