@@ -89,8 +89,11 @@ class DaqpEngine:
 
     def __init__(self, prog: ConicProgram, options: dict, P: sp.csc_matrix | None = None,
                  q: np.ndarray | None = None):
-        import daqp
-
+        try:
+            import daqp
+        except ImportError:
+            raise SolverError("direct backend: the solver 'daqp' (target 'fast-convex-daqp') "
+                              "needs the package daqp: pip install 'balustrade[daqp]'") from None
         if prog.conic:
             raise SolverError("direct backend: DAQP takes LPs and QPs only; this problem "
                               "needs a second-order cone (use solver 'clarabel')")
