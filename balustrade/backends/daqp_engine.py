@@ -62,15 +62,16 @@ _INF = 1e30
 
 
 def kkt_residual(P: sp.spmatrix, q: np.ndarray, A: sp.spmatrix, b: np.ndarray, m0: int,
-                 y: np.ndarray, z: np.ndarray) -> float:
+                 y: np.ndarray, z: np.ndarray, AT: sp.spmatrix | None = None) -> float:
     """Largest scaled KKT violation of ``min ½yᵀPy + qᵀy, A[:m0] y = b[:m0], A[m0:] y <= b[m0:]``
     at the point ``y`` and multipliers ``z`` (``P y + q + Aᵀz = 0``, ``z >= 0`` on the
     inequality rows): stationarity, primal feasibility, dual sign, complementarity, divided by
-    ``1 + max(|b|, |q|)`` over their finite entries. ``nan`` when any of them is not finite."""
+    ``1 + max(|b|, |q|)`` over their finite entries. ``nan`` when any of them is not finite.
+    ``AT``: ``Aᵀ`` if the caller keeps it (else formed here)."""
     r = A @ y - b
     finite_b = b[np.isfinite(b)]
     scale = 1.0 + max(np.max(np.abs(finite_b), initial=0.0), np.max(np.abs(q), initial=0.0))
-    stat = np.max(np.abs(P @ y + q + A.T @ z), initial=0.0)
+    stat = np.max(np.abs(P @ y + q + (A.T if AT is None else AT) @ z), initial=0.0)
     prim = max(np.max(np.abs(r[:m0]), initial=0.0), np.max(r[m0:], initial=0.0))
     dual = max(0.0, -np.min(z[m0:], initial=0.0))
     comp = np.max(np.abs(z[m0:] * np.where(np.isfinite(b[m0:]), r[m0:], 0.0)), initial=0.0)
@@ -128,6 +129,7 @@ class DaqpEngine:
                                  self._pattern.indices, self._pattern.indptr),
                                 shape=self._pattern.shape)
         self._values = self._A.data
+        self._AT = self._A.T                # a CSR view on the same values
         self._dense = np.zeros(m * n)
         self._dense[self._flat] = self._values
         self.sense = np.zeros(m, dtype=np.intc)
@@ -203,7 +205,7 @@ class DaqpEngine:
         if flag != 1:
             return self._fallback(q, b, words, iterations)
         z = np.asarray(info["lam"], dtype=float)
-        kkt = kkt_residual(self.P, q, self._matrix(), b, self.m0, x, z)
+        kkt = kkt_residual(self.P, q, self._A, b, self.m0, x, z, self._AT)
         self.last = (flag, kkt)
         if not kkt <= self.kkt_tol:
             return self._fallback(q, b, f"{words}, KKT residual {kkt:.1e} > "
