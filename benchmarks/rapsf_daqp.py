@@ -1,7 +1,7 @@
 """DAQP through its own interface, hot-started, against PIQP on the QPs (4.5) of Algorithm 4.1
 (thesis Chapter 4, SPEC §2.21; docs/adaptive.md, "Session 14: DAQP's own interface")::
 
-    PYTHONPATH=$PWD python -m benchmarks.rapsf_daqp [masses] [steps]
+    PYTHONPATH=$PWD python -m benchmarks.rapsf_daqp [masses] [steps] [options]
     PYTHONPATH=$PWD python -m benchmarks.rapsf_daqp loop [masses] [steps]
 
 The closed loop of :mod:`benchmarks.rapsf_split` (design of ``reproduce msd-adaptive``, box
@@ -18,12 +18,15 @@ the solves several-fold in a trial). The two solvers take turns in going first.
 Per solve: wall and CPU time (``time.process_time``) of each, DAQP's exit flag and iterations,
 the KKT residual of DAQP's answer on the lowered QP, whether the engine accepted it (flag
 optimal *and* residual <= 1e-8) or fell back to PIQP, ``|v_0|`` and objective differences.
+``options``: DAQP settings of the engine as a Python dict literal (e.g.
+``"{'primal_tol': 1e-6, 'eta_prox': -1.0}"``, DAQP's own defaults) over the engine's.
 ``loop``: :func:`loops`, two closed loops (``fast-convex`` and ``fast-convex-daqp``) taking
 turns every step, step times and input differences.
 """
 
 from __future__ import annotations
 
+import ast
 import sys
 import time
 from types import SimpleNamespace
@@ -116,7 +119,7 @@ def _stats(raw_piqp, t_piqp, c_piqp, raw_d, info, P, q, idx) -> dict:
     return row
 
 
-def compare(masses: int, steps: int) -> dict:
+def compare(masses: int, steps: int, options: dict | None = None) -> dict:
     """The closed loop with every (4.5) solve (3 masses) or every reduced QP of the row
     generation (8 masses) also solved by DAQP, taking turns in going first."""
     d = msd_adaptive.design(masses)
@@ -133,7 +136,7 @@ def compare(masses: int, steps: int) -> dict:
     def wrap_engine(compiled) -> None:
         engine, prog = compiled.engine, compiled.program
         run = engine.run
-        timed = Timed(DaqpEngine(prog, {}))
+        timed = Timed(DaqpEngine(prog, dict(options or {})))
         idx = v_index(compiled)
 
         def both(q, b, A=None):
@@ -165,7 +168,7 @@ def compare(masses: int, steps: int) -> dict:
                                    cones=[("zero", A_eq.shape[0]), ("nonneg", G.shape[0])],
                                    b0=np.concatenate([b_eq, h]), q0=q)
             last = state["timed"]
-            engine = DaqpEngine(prog, {"eq_reduction": 1})
+            engine = DaqpEngine(prog, {"eq_reduction": 1, **(options or {})})
             if last is not None and last.engine.model is not None:
                 engine._start = last.last_x
             state["timed"] = Timed(engine)
@@ -296,7 +299,8 @@ def main(argv: list[str]) -> None:
         return
     masses = int(argv[0]) if argv else 3
     steps = int(argv[1]) if len(argv) > 1 else 150
-    print(summary(compare(masses, steps)))
+    options = ast.literal_eval(argv[2]) if len(argv) > 2 else None
+    print(summary(compare(masses, steps, options)))
 
 
 if __name__ == "__main__":
