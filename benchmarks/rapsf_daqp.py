@@ -231,13 +231,13 @@ def summary(r: dict, skip: int = 1) -> str:
         f"{r['masses']} masses, {len(rows)} solves after {skip} cold (cold DAQP "
         f"{1e3 * first['wall']:.2f} ms, flag {first['flag']}; PIQP "
         f"{1e3 * first['piqp_s']:.2f} ms); loop fallbacks {r['fallbacks']}",
-        f"  PIQP          wall {q3(col('piqp_s'))}; CPU median "
-        f"{1e3 * np.median(col('piqp_cpu')):.3f} ms; iterations median "
+        f"  PIQP          wall {q3(col('piqp_s'))}\n                CPU  "
+        f"{q3(col('piqp_cpu'))}; iterations median "
         f"{np.median(col('piqp_iter')):.0f}, max {col('piqp_iter').max():.0f}",
-        f"  DAQP engine   wall {q3(col('wall'))}; CPU median "
-        f"{1e3 * np.median(col('cpu')):.3f} ms (incl. KKT check, fallbacks)",
-        f"  DAQP alone    wall {q3(col('daqp_s'))}; CPU median "
-        f"{1e3 * np.median(col('daqp_cpu')):.3f} ms; iterations median "
+        f"  DAQP engine   wall {q3(col('wall'))}\n                CPU  "
+        f"{q3(col('cpu'))} (incl. KKT check, fallbacks)",
+        f"  DAQP alone    wall {q3(col('daqp_s'))}\n                CPU  "
+        f"{q3(col('daqp_cpu'))}; iterations median "
         f"{np.median(col('daqp_iter')):.0f}, max {col('daqp_iter').max():.0f}",
         f"  per-solve ratio PIQP / DAQP engine: median {np.median(ratio):.2f}, "
         f"10th percentile {np.percentile(ratio, 10):.2f}",
