@@ -139,7 +139,12 @@ def compare(masses: int, steps: int, options: dict | None = None) -> dict:
         timed = Timed(DaqpEngine(prog, dict(options or {})))
         idx = v_index(compiled)
 
+        last_A: list = [None]
+
         def both(q, b, A=None):
+            changed = A is not None and last_A[0] is not None \
+                and not np.array_equal(A, last_A[0])
+            last_A[0] = None if A is None else A.copy()
             daqp_first = len(rows) % 2 == 1
             if daqp_first:
                 raw_d, info = timed.run(q, b, A)
@@ -149,6 +154,7 @@ def compare(masses: int, steps: int, options: dict | None = None) -> dict:
             if not daqp_first:
                 raw_d, info = timed.run(q, b, A)
             rows.append(_stats(raw, t_p, c_p, raw_d, info, timed.engine.P, q, idx))
+            rows[-1]["A_changed"] = changed
             return raw
         engine.run = both
 
@@ -250,6 +256,13 @@ def summary(r: dict, skip: int = 1) -> str:
     ]
     if "m" in rows[0]:
         lines.append(f"  reduced QP rows {int(col('m').min())}-{int(col('m').max())}")
+    if "A_changed" in rows[0]:
+        changed = col("A_changed").astype(bool)
+        for label, pick in (("with a changed A(p) (new Θ_k)", changed), ("same A(p)", ~changed)):
+            if pick.any():
+                lines.append(f"  solves {label}: {int(pick.sum())}, DAQP iterations median "
+                             f"{np.median(col('daqp_iter')[pick]):.1f}, engine CPU median "
+                             f"{1e3 * np.median(col('cpu')[pick]):.3f} ms")
     setup = col("setup").astype(bool)
     for label, pick in (("set up anew", setup), ("updated (kept model)", ~setup)):
         if pick.any():
