@@ -131,7 +131,9 @@ class DirectCompiled:
               warm_start: Solution | dict[str, object] | None = None) -> Solution:
         """Solve with the given parameter values. ``warm_start`` is accepted for the common
         interface and ignored: neither interior-point solver takes a starting point through
-        its Python interface, so every solve is cold and depends on ``params`` only. With
+        its Python interface, so every solve is cold and depends on ``params`` only (the
+        opt-in solver ``"daqp"`` starts from its own last working set instead, its answers
+        KKT-checked: :mod:`~balustrade.backends.daqp_engine`). With
         the option ``row_generation`` (:mod:`~balustrade.backends.row_generation`) the
         reduced QPs start from the previous solve's rows; the answer is the full QP's (exact
         at termination, to the solver's tolerance); a reduced solve that is not optimal or

@@ -11,7 +11,9 @@ dropping off, so that data updates are allowed) keeps nothing but the equilibrat
 data it was set up with; PIQP re-equilibrates on each update
 (``preconditioner_reuse_on_update`` off). Neither exposes a warm start through its Python
 interface, so the answer of a solve depends on its parameters only (history independence,
-issue #12 item 3).
+issue #12 item 3). The opt-in DAQP engine (:mod:`~balustrade.backends.daqp_engine`) is the
+exception: it starts each solve from the previous one's working set (its answers are KKT-checked;
+the optimal point, not the optimal value, may depend on the history).
 """
 
 from __future__ import annotations
@@ -25,8 +27,9 @@ from balustrade.backends.passes.to_conic import ConicProgram
 from balustrade.backends.solution import Status
 from balustrade.errors import SolverError
 
-#: the solvers of the direct backend
-DIRECT_SOLVERS = ("clarabel", "piqp")
+#: the solvers of the direct backend ("daqp": the opt-in hot-started dense active-set engine
+#: of :mod:`~balustrade.backends.daqp_engine`, checked and backed by PIQP)
+DIRECT_SOLVERS = ("clarabel", "piqp", "daqp")
 
 #: tolerances. PIQP: tight, as :data:`balustrade.backends.cvxpy_backend.SOLVER_OPTIONS`.
 #: Clarabel: the feasibility tolerance stays tight (1e-10: the rows, e.g. the decrease bound
@@ -248,13 +251,15 @@ def _row_blocks(A: sp.csc_matrix, m0: int) -> list[tuple[np.ndarray, np.ndarray,
     return out
 
 
-def make_engine(solver: str, prog: ConicProgram, options: dict, **data) -> ClarabelEngine | \
-        PiqpEngine:
+def make_engine(solver: str, prog: ConicProgram, options: dict, **data) -> object:
     """The engine named ``solver`` for ``prog`` (``data``: ``P``/``q`` replacing the
     program's, for the feasibility and rescaled re-solves)."""
     if solver == "clarabel":
         return ClarabelEngine(prog, options, **data)
     if solver == "piqp":
         return PiqpEngine(prog, options, **data)
+    if solver == "daqp":
+        from balustrade.backends.daqp_engine import DaqpEngine
+        return DaqpEngine(prog, options, **data)
     raise SolverError(f"direct backend: unknown solver {solver!r}; use one of "
                       f"{', '.join(DIRECT_SOLVERS)}")
