@@ -26,7 +26,8 @@ in Python and as emitted C (issue #16: "PCBF <= 50 ms").
   outside the discs with random proposals in ``U``: statuses and inputs compared.
 
 Times are wall times seen from Python (the C's include the ctypes call); the machine is
-shared, so they are under load.
+shared, so they are under load. The loops also report the process CPU time per step
+(``python_cpu``, ``c_cpu``; less bound to the load than the wall time, not free of it).
 """
 
 from __future__ import annotations
@@ -86,6 +87,7 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
     mpcs = {"py": O.NaiveMPC(), "c": O.NaiveMPC()}
     filters = {"py": py, "c": c}
     times: dict[str, list[float]] = {"py": [], "c": []}
+    cpu: dict[str, list[float]] = {"py": [], "c": []}  # process CPU time, less load-bound
     where: list[tuple] = []  # (start, step, Python status) of every step, for the worst
     statuses: dict[str, list[str]] = {"py": [], "c": []}
     per_start = []
@@ -103,9 +105,10 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
             for k in ("py", "c"):
                 x = xs[k][-1]
                 u_p = mpcs[k](step, x)
-                t = time.perf_counter()
+                t, tc = time.perf_counter(), time.process_time()
                 u, info = filters[k].step(x, u_p)
                 times[k].append(1e3 * (time.perf_counter() - t))
+                cpu[k].append(1e3 * (time.process_time() - tc))
                 st[k].append(info.status)
                 out[k] = (u, info)
                 xs[k].append(plant.step(x, u, None))
@@ -130,6 +133,9 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
     slowest = {k: [[round(times[k][i], 1), *where[i]] for i in np.argsort(times[k])[-5:][::-1]]
                for k in filters}
     return {"per_start": per_start, "python": _stats(times["py"]), "c": _stats(times["c"]),
+            "python_cpu": _stats(cpu["py"]), "c_cpu": _stats(cpu["c"]),
+            "slowest_steps_cpu": {k: [[round(cpu[k][i], 1), *where[i][:3]]
+                                      for i in np.argsort(cpu[k])[-5:][::-1]] for k in filters},
             "worst_step": worst, "slowest_steps": slowest,
             "without_first_step": {k: _stats([t for t, w in zip(times[k], where) if w[1]])
                                    for k in filters},
