@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from balustrade.backends.targets import target as resolve
+from balustrade.errors import BalustradeError
 from balustrade.models.obstacle_car import obstacle_car, obstacle_setup, signed_distance
 from balustrade.reproduce import obstacles as O
 
@@ -37,6 +38,13 @@ def test_stall_target_adds_the_stop_to_fatrop_targets_only():
     # a user's own fatrop options are kept
     mine = resolve("structured-ip").with_options({"fatrop": {"max_iter": 50}})
     assert O.stall_target(mine).options["fatrop"]["max_iter"] == 50
+
+
+@pytest.mark.parametrize("bad", [(1e-3,), (0.0, 20), (1e-3, 0), (1e-3, 2.5), (np.nan, 20),
+                                 "1e-3,20", (True, 20)])
+def test_a_bad_stall_is_refused_before_any_solver_is_built(bad):
+    with pytest.raises(BalustradeError, match="fatrop_stall"):
+        O.pcbf_algorithm("structured-ip", horizon=SHORT, fatrop_stall=bad)
 
 
 def test_the_cold_fatrop_retry_shares_the_stop():

@@ -42,10 +42,14 @@ from pathlib import Path
 import numpy as np
 
 from balustrade.backends import compile
+from balustrade.backends.casadi_backend import DEFAULT_OPTIONS
+from balustrade.backends.targets import Target
+from balustrade.backends.targets import target as resolve_target
 from balustrade.control.approximate import ApproximatePCBFFilter
 from balustrade.control.base import simulate
 from balustrade.control.mpc import MPCController
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.errors import BalustradeError
 from balustrade.learn.export import to_casadi
 from balustrade.learn.train import MLPModel, TrainConfig
 from balustrade.models.obstacle_car import (
@@ -128,26 +132,33 @@ SHIFTED_RETRY_SOLVER = -1
 FATROP_STALL: tuple[float, int] | None = (1e-3, 20)
 
 
-def stall_target(target: object, stall: tuple[float, int] | None = FATROP_STALL) -> object:
+def stall_target(target: Target | str, stall: tuple[float, int] | None = FATROP_STALL
+                 ) -> Target | str:
     """``target`` (a preset name or a :class:`~balustrade.backends.targets.Target`) with
     fatrop's stall stop ``stall = (tol_acceptable, acceptable_iter)`` added when its solver
     is fatrop (its other fatrop options kept; the chain's cold fatrop retry shares the
-    solver, hence the stop); any other target, or ``stall=None``, is returned as given."""
-    from balustrade.backends.casadi_backend import DEFAULT_OPTIONS
-    from balustrade.backends.targets import target as resolve
-
+    solver, hence the stop); any other target, or ``stall=None``, is returned as given.
+    ``stall`` must be ``None`` or a pair (a positive finite number, an integer >= 1)."""
     if stall is None:
         return target
-    t = resolve(target)
+    ok = isinstance(stall, tuple | list) and len(stall) == 2
+    if ok:
+        tol, iters = stall
+        ok = (isinstance(tol, int | float) and not isinstance(tol, bool)
+              and np.isfinite(tol) and tol > 0 and isinstance(iters, int | np.integer)
+              and not isinstance(iters, bool) and iters >= 1)
+    if not ok:
+        raise BalustradeError(f"stall_target: fatrop_stall must be None or (tol_acceptable > 0, "
+                              f"acceptable_iter >= 1), got {stall!r}")
+    t = resolve_target(target)
     if t.backend != "casadi" or t.solver != "fatrop":
         return target
-    tol, iters = stall
     fat = {**DEFAULT_OPTIONS["fatrop"]["fatrop"], **dict(t.options.get("fatrop", {})),
            "tol_acceptable": float(tol), "acceptable_iter": int(iters)}
     return t.with_options({"fatrop": fat})
 
 
-def pcbf_algorithm(target: object = "exact", shifted: bool = True,
+def pcbf_algorithm(target: Target | str = "exact", shifted: bool = True,
                    horizon: int | None = None, certificate_first: bool = True,
                    shifted_retry: bool = True,
                    shifted_retry_solver: int = SHIFTED_RETRY_SOLVER,
@@ -188,7 +199,7 @@ def pcbf_algorithm(target: object = "exact", shifted: bool = True,
                             shifted_retry_solver=shifted_retry_solver)
 
 
-def pcbf_algorithm_c(target: object = PCBF_C_TARGET, horizon: int | None = None,
+def pcbf_algorithm_c(target: Target | str = PCBF_C_TARGET, horizon: int | None = None,
                      build_dir: str | Path | None = None, certificate_first: bool = True,
                      shifted_retry: bool = True,
                      shifted_retry_solver: int = SHIFTED_RETRY_SOLVER,
