@@ -16,7 +16,14 @@ issue #16/#14, session 14, docs/obstacles.md "session 14").
     solver (IPOPT) from the certified shifted plan — what running that attempt *first*
     would cost — with iterations, statuses and the objective difference.
 
-Times are wall times under the machine's load.
+``python -m benchmarks.obstacles_pcbf_variants fatrop-plan``
+    Along the 5 reference loops (the chain as it is, with the stall stop), at every
+    certified step whose first (2.23) attempt fails: the process CPU time of the chain's
+    attempts after it (IPOPT from the certified plan) and, on the side (not used), of
+    fatrop from the plan followed, if that fails, by IPOPT from the plan (session 12's
+    second attempt put before session 13's).
+
+Times are wall times under the machine's load unless said otherwise.
 """
 
 from __future__ import annotations
@@ -152,17 +159,69 @@ def ipopt_first() -> None:
     print(f"objective (IPOPT from the plan − chain): {min(d):.3g} … {max(d):.3g}")
 
 
+def fatrop_plan() -> None:
+    f = O.pcbf_algorithm("structured-ip", shifted=False)
+    filt = f.filter
+    fatrop, ipopt = filt.solver, filt._retry_solvers()[-1]
+    solve = filt.solve
+    rows: list[tuple] = []
+
+    def cpu_solve(solver, p, guess) -> tuple:
+        t = time.process_time()
+        s = filt._solve_with(solver, p, guess)
+        return s, 1e3 * (time.process_time() - t)
+
+    def timed(params=None, warm_start=None, second_start=None, second_solver=0, lead=None):
+        if second_start is None:
+            return solve(params, warm_start, second_start, second_solver, lead)
+        p = filt.ocp.pack_parameters(params)
+        first, t0 = cpu_solve(fatrop, p, filt._initial_guess(warm_start, p))
+        if not first.success:
+            plan = filt._initial_guess(second_start, p)
+            s_ip, t_ip = cpu_solve(ipopt, p, plan)
+            s_fp, t_fp = cpu_solve(fatrop, p, plan)
+            t_alt, alt = t_fp, s_fp
+            if not s_fp.success:
+                alt, t2 = cpu_solve(ipopt, p, plan)
+                t_alt += t2
+            rows.append((t0, t_ip, t_alt, s_fp.message[:28], s_fp.iterations,
+                         alt.success, float(alt.objective - s_ip.objective)))
+        return solve(params, warm_start, second_start, second_solver, lead)
+
+    filt.solve = timed
+    plant = check_plant(obstacle_car(), "obstacles_pcbf_variants")
+    for p in O.STARTS:
+        x, mpc = O.initial_state(p), O.NaiveMPC()
+        mpc.start(x)
+        f.reset()
+        for k in range(O.STEPS):
+            u, _ = f.step(x, mpc(k, x))
+            x = plant.step(x, u, None)
+            if rows and len(rows[-1]) == 7:
+                rows[-1] = (*rows[-1], p, k)
+    print("CPU ms: first attempt + (IPOPT from the plan | fatrop from the plan [+ IPOPT])")
+    for r in rows:
+        print(f"  {r[7]} step {r[8]}: {r[0]:.1f} + ({r[1]:.1f} | {r[2]:.1f}); fatrop from the "
+              f"plan: {r[3]}, {r[4]} iterations; converged {r[5]}, objective "
+              f"difference {r[6]:.3g}")
+    if rows:
+        print(f"largest step: {max(r[0] + r[1] for r in rows):.1f} (as it is) | "
+              f"{max(r[0] + r[2] for r in rows):.1f} (fatrop from the plan first)")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("mode", choices=("stall", "ipopt-first"))
+    ap.add_argument("mode", choices=("stall", "ipopt-first", "fatrop-plan"))
     ap.add_argument("--variants", default="off;1e-3,20",
                     help="';'-separated TOL,ITERS or 'off'; the first is the reference")
     ap.add_argument("--states", type=int, default=200)
     a = ap.parse_args(argv)
     if a.mode == "stall":
         stall(a.variants.split(";"), a.states)
-    else:
+    elif a.mode == "ipopt-first":
         ipopt_first()
+    else:
+        fatrop_plan()
 
 
 if __name__ == "__main__":
