@@ -3,14 +3,16 @@ in Python and as emitted C (issue #16: "PCBF <= 50 ms").
 
 ``python -m benchmarks.obstacles_pcbf_c [--target structured-ip] [--states 200]
 [--steps 70] [--build-dir DIR] [--no-certificate-first] [--shifted-retry-solver K]
-[--out FILE]``
+[--fatrop-stall TOL,ITERS|off] [--out FILE]``
 
 * The filter is :func:`balustrade.reproduce.obstacles.pcbf_algorithm` with ``target``,
   ``shifted=False`` and ``shifted_retry_solver`` (default
   :data:`~balustrade.reproduce.obstacles.SHIFTED_RETRY_SOLVER`, -1: the chain's last solver
   makes the shifted-plan attempt; 0 is session 12's, the first solver); the emitted C
   warm-starts (2.24) from its last solution, so the Python filter does too (same
-  decisions); its C through
+  decisions) and ``fatrop_stall`` (default :data:`~balustrade.reproduce.obstacles.
+  FATROP_STALL`, fatrop's stall stop, a failure that moves the chain on; ``off``: none;
+  session 14); its C through
   :func:`~balustrade.codegen.accelerate` (:func:`~balustrade.codegen.emit_pcbf`, one call
   per step; with ``structured-ip`` it links the casadi wheel's libfatrop/libblasfeo and
   libipopt, the chain's last resort). Build time and source size are reported (the build
@@ -24,7 +26,8 @@ in Python and as emitted C (issue #16: "PCBF <= 50 ms").
   outside the discs with random proposals in ``U``: statuses and inputs compared.
 
 Times are wall times seen from Python (the C's include the ctypes call); the machine is
-shared, so they are under load.
+shared, so they are under load. The loops also report the process CPU time per step
+(``python_cpu``, ``c_cpu``; less bound to the load than the wall time, not free of it).
 """
 
 from __future__ import annotations
@@ -46,22 +49,24 @@ BUILD_DIR = Path("/tmp/balustrade-obstacles-pcbf-c")
 
 def build_pair(target: str = "structured-ip", build_dir: str | Path = BUILD_DIR,
                certificate_first: bool = True,
-               shifted_retry_solver: int = O.SHIFTED_RETRY_SOLVER) -> dict:
+               shifted_retry_solver: int = O.SHIFTED_RETRY_SOLVER,
+               fatrop_stall: tuple[float, int] | None = O.FATROP_STALL) -> dict:
     """The Python PCBF algorithm on ``target`` and its emitted C (cached build)."""
     py = O.pcbf_algorithm(target, shifted=False, certificate_first=certificate_first,
-                          shifted_retry_solver=shifted_retry_solver)
+                          shifted_retry_solver=shifted_retry_solver, fatrop_stall=fatrop_stall)
     # the Python backend builds its retry solvers on first use (~0.2 s under load), the C
     # allocates them at init: built here, so that no step's time includes a build
     for prob in (py.slack, py.filter):
         getattr(prob, "_retry_solvers", lambda: None)()
     t = time.perf_counter()
     c = O.pcbf_algorithm_c(target, build_dir=build_dir, certificate_first=certificate_first,
-                           shifted_retry_solver=shifted_retry_solver)
+                           shifted_retry_solver=shifted_retry_solver, fatrop_stall=fatrop_stall)
     wall = time.perf_counter() - t
     acc = c.accelerated
     d = Path(acc["dir"])
     size = sum(p.stat().st_size for p in d.rglob("*.[ch]"))
     return {"py": py, "c": c, "shifted_retry_solver": shifted_retry_solver,
+            "fatrop_stall": fatrop_stall,
             "build_s": acc["build_s"], "cached": acc["cached"],
             "accelerate_s": wall, "source_bytes": size, "dir": str(d),
             "link_flags": list(c._lib.manifest.get("link_flags", []))}
@@ -82,6 +87,7 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
     mpcs = {"py": O.NaiveMPC(), "c": O.NaiveMPC()}
     filters = {"py": py, "c": c}
     times: dict[str, list[float]] = {"py": [], "c": []}
+    cpu: dict[str, list[float]] = {"py": [], "c": []}  # process CPU time, less load-bound
     where: list[tuple] = []  # (start, step, Python status) of every step, for the worst
     statuses: dict[str, list[str]] = {"py": [], "c": []}
     per_start = []
@@ -99,9 +105,10 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
             for k in ("py", "c"):
                 x = xs[k][-1]
                 u_p = mpcs[k](step, x)
-                t = time.perf_counter()
+                t, tc = time.perf_counter(), time.process_time()
                 u, info = filters[k].step(x, u_p)
                 times[k].append(1e3 * (time.perf_counter() - t))
+                cpu[k].append(1e3 * (time.process_time() - tc))
                 st[k].append(info.status)
                 out[k] = (u, info)
                 xs[k].append(plant.step(x, u, None))
@@ -126,6 +133,9 @@ def lockstep_loops(py: object, c: object, starts: tuple = O.STARTS, steps: int =
     slowest = {k: [[round(times[k][i], 1), *where[i]] for i in np.argsort(times[k])[-5:][::-1]]
                for k in filters}
     return {"per_start": per_start, "python": _stats(times["py"]), "c": _stats(times["c"]),
+            "python_cpu": _stats(cpu["py"]), "c_cpu": _stats(cpu["c"]),
+            "slowest_steps_cpu": {k: [[round(cpu[k][i], 1), *where[i][:3]]
+                                      for i in np.argsort(cpu[k])[-5:][::-1]] for k in filters},
             "worst_step": worst, "slowest_steps": slowest,
             "without_first_step": {k: _stats([t for t, w in zip(times[k], where) if w[1]])
                                    for k in filters},
@@ -186,9 +196,19 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--shifted-retry-solver", type=int, default=O.SHIFTED_RETRY_SOLVER,
                     help="the (2.23) chain's solver of a certified step's attempt from the "
                          "shifted plan (0 the first, -1 the last)")
+    ap.add_argument("--fatrop-stall", default=None, metavar="TOL,ITERS",
+                    help="fatrop's stall stop (tol_acceptable, acceptable_iter; a failure "
+                         "that moves the chain on); 'off': none; default "
+                         f"{O.FATROP_STALL}")
     a = ap.parse_args(argv)
+    stall = O.FATROP_STALL
+    if a.fatrop_stall == "off":
+        stall = None
+    elif a.fatrop_stall:
+        tol, iters = a.fatrop_stall.split(",")
+        stall = (float(tol), int(iters))
     pair = build_pair(a.target, a.build_dir, not a.no_certificate_first,
-                      a.shifted_retry_solver)
+                      a.shifted_retry_solver, stall)
     res: dict = {"target": a.target, **{k: v for k, v in pair.items() if k not in ("py", "c")}}
     print(json.dumps(res), flush=True)
     res["loops"] = lockstep_loops(pair["py"], pair["c"], steps=a.steps)

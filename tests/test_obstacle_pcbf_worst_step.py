@@ -5,7 +5,10 @@ solve from any start (it stalls at ``inf_du`` ≈ 8.8e-5 with its regularization
 and cold (3 × 301 iterations), then IPOPT cold (203): 0.6 s idle, 0.85–1.8 s under load.
 With ``shifted_retry_solver = -1`` (:data:`~balustrade.reproduce.obstacles.
 SHIFTED_RETRY_SOLVER`) the chain's IPOPT runs from the certified plan right after the first
-fatrop attempt and converges in a few iterations to the optimum IPOPT reaches cold."""
+fatrop attempt and converges in a few iterations to the optimum IPOPT reaches cold.
+Session 14: fatrop's stall stop (:data:`~balustrade.reproduce.obstacles.FATROP_STALL`) ends
+that first attempt as a failure after ~32 instead of 301 iterations; the same IPOPT attempt
+then gives the same answer."""
 
 from __future__ import annotations
 
@@ -19,11 +22,12 @@ from balustrade.reproduce import obstacles as O
 START, STEP = (-0.5, -1.5), 48
 
 
-def _attempts_at_worst_step(shifted_retry_solver: int) -> tuple[list[tuple], object]:
+def _attempts_at_worst_step(shifted_retry_solver: int, fatrop_stall: object = O.FATROP_STALL
+                            ) -> tuple[list[tuple], object]:
     """Run the reference loop from ``START`` to ``STEP`` and record that step's (2.23)
-    attempts as (solver, status, iterations)."""
+    attempts as (solver, status, iterations, message)."""
     f = O.pcbf_algorithm("structured-ip", shifted=False,
-                         shifted_retry_solver=shifted_retry_solver)
+                         shifted_retry_solver=shifted_retry_solver, fatrop_stall=fatrop_stall)
     plant = check_plant(obstacle_car(), "worst step")
     mpc, x = O.NaiveMPC(), O.initial_state(START)
     mpc.start(x)
@@ -35,7 +39,7 @@ def _attempts_at_worst_step(shifted_retry_solver: int) -> tuple[list[tuple], obj
 
     def recording(solver, p, guess):
         s = inner(solver, p, guess)
-        calls.append((s.solver, str(s.status), s.iterations))
+        calls.append((s.solver, str(s.status), s.iterations, s.message))
         return s
 
     f.filter._solve_with = recording
@@ -57,3 +61,20 @@ def test_ipopt_from_the_plan_follows_the_stalled_first_attempt():
     # the same optimum, reached cold or from the plan
     np.testing.assert_allclose(info.solutions["filter"].objective,
                                info_old.solutions["filter"].objective, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_the_stall_stop_ends_the_first_attempt_early_with_the_same_answer():
+    """With the stall stop the first fatrop attempt fails as ``StopAtAcceptablePoint`` in
+    fewer than 60 iterations (measured 32: ~12 to primal feasibility, then the 20 of
+    ``acceptable_iter``); without it, it runs to ``max_iter`` (301). IPOPT from the plan
+    follows either way, with the same input and objective."""
+    calls, info = _attempts_at_worst_step(O.SHIFTED_RETRY_SOLVER)
+    off, info_off = _attempts_at_worst_step(O.SHIFTED_RETRY_SOLVER, fatrop_stall=None)
+    assert [c[0] for c in calls] == [c[0] for c in off] == ["fatrop", "ipopt"]
+    assert calls[0][3].startswith("fatrop: StopAtAcceptablePoint") and calls[0][2] < 60
+    assert calls[0][1] == "failed"
+    assert off[0][3].startswith("fatrop: MaxIterExceeded") and off[0][2] > 300
+    assert info.status == info_off.status == "certified"
+    np.testing.assert_array_equal(info.solutions["filter"].w,
+                                  info_off.solutions["filter"].w)
