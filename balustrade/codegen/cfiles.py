@@ -50,7 +50,7 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
                  "main_problem", "solve_status", "values", "proposal_replaced",
                  "candidate_exact"),
     "rapsf": ("init", "finalize", "alloc", "free", "reset", "step", "main_problem",
-              "solve_status", "k_inf", "objective", "proposal_replaced"),
+              "solve_status", "k_inf", "objective", "proposal_replaced", "inaccurate"),
     "multiobj_lyap": ("init", "finalize", "alloc", "free", "reset", "step", "init_problem",
                       "main_problem", "solve_status", "values", "proposal_replaced"),
 }
