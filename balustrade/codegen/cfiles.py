@@ -40,7 +40,7 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "pcbf": ("init", "finalize", "alloc", "free", "reset", "step", "slack_problem",
              "filter_problem", "solve_status", "h_upper", "proposal_replaced"),
     "approx": ("init", "finalize", "alloc", "free", "reset", "step", "set_certify", "dh",
-               "proposal_replaced", "counter"),
+               "proposal_replaced", "counter", "inaccurate"),
     "grid": ("init", "finalize", "alloc", "free", "reset", "step", "n_candidates",
              "proposal_replaced", "counter", "u_prev"),
     "robust": ("init", "finalize", "alloc", "free", "reset", "step", "slack_problem",
