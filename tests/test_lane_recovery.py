@@ -43,8 +43,20 @@ def test_recovery_lead_is_the_chains_interior_point_retry() -> None:
     k = recovery_lead(ctrl.slack, "recovery")
     assert ctrl.slack.retries[k][0] == PRESETS["recovery"].nlp_solver
     assert recovery_lead(ctrl.slack, None) is None
-    # a chain that starts with that solver has nothing to reorder
+    # a chain without retries has nothing to reorder
     assert recovery_lead(ctrl.slack.with_retries([]), "recovery") is None
+
+
+def test_chain_that_starts_with_the_recovery_solver_is_not_reordered() -> None:
+    """``exact`` runs IPOPT first and has IPOPT again as its cold retry, the very attempt
+    ``"recovery"`` names: its first attempt already is the lead, so nothing is reordered
+    (a recovery step would otherwise run the cold retry before the warm first attempt)."""
+    ctrl, _ = _design("exact")
+    rec = PRESETS["recovery"]
+    assert ctrl.slack.solver_name == rec.nlp_solver
+    assert (rec.nlp_solver, {}) in [(n, dict(o)) for n, o in ctrl.slack.retries]
+    assert recovery_lead(ctrl.slack, "recovery") is None
+    assert recovery_lead(ctrl.filter, "recovery") is None
 
 
 def test_robust_recovery_step_runs_the_interior_point_attempt_first() -> None:
@@ -181,3 +193,21 @@ def test_multiobjective_c_runs_the_same_attempts_as_python(mo_c: tuple) -> None:
         x = np.asarray(py.system.step(x, u1, np.zeros(py.system.nw) if py.system.nw else None),
                        dtype=float).reshape(-1)
     assert firsts == [True, False, False, False, False], firsts
+
+
+def test_c_lead_is_the_c_attempt_running_the_lead() -> None:
+    """The emitted ``<name>_SLACK_LEAD`` is the C attempt that runs the chain's lead
+    (``_Problem.c_attempt``, the mapping ``second_solver`` uses too): the interior-point
+    retry with the whole chain emitted, none when ``full_chain=False`` leaves it out."""
+    from balustrade.codegen.emit import _Problem
+    from balustrade.codegen.emit_robust import _c_lead
+
+    ctrl, _ = _design()
+    k = recovery_lead(ctrl.slack, "recovery")
+    full = _Problem(ctrl.slack, "q_slack", "(5.15)", "q", None, True)
+    part = _Problem(ctrl.slack, "q_slack", "(5.15)", "q", None, False)
+    j = _c_lead(full, "recovery")
+    assert j == full.c_attempt[k + 1] and j > 0
+    assert full.solvers[j][1] == ctrl.slack.retries[k][0] == "ipopt"
+    assert _c_lead(part, "recovery") == 0 and part.c_attempt[k + 1] is None
+    assert _c_lead(full, None) == 0

@@ -58,7 +58,7 @@ def _run(estimators, seed: int, theta_vertex: bool, w_vertex: bool, steps: int =
 @given(seed=st.integers(0, 2**32 - 1), theta_vertex=st.booleans(), w_vertex=st.booleans())
 def test_box_and_exact_updates_keep_assumption_4_2_and_shrink(seed, theta_vertex, w_vertex):
     box = BoxUpdate(SYS, SETUP.W, SETUP.Theta0)
-    exact = ExactUpdate(SYS, SETUP.W, SETUP.Theta0)
+    exact = ExactUpdate(SYS, SETUP.W, SETUP.Theta0, prune=False)
     for theta, _ in _run([box, exact], seed, theta_vertex, w_vertex):
         for est in (box, exact):
             rec = est.history[-1]
@@ -90,6 +90,32 @@ def test_hypercube_and_pruned_exact_keep_assumption_4_2(seed, w_vertex):
         assert np.allclose(ub - lb, (ub - lb)[0])  # still a cube
     assert pruned.Theta.H.shape[0] < 4 + 25 * 2 * SYS.nx  # pruning removed rows
     assert np.all(cube.history[-1].width < SETUP.Theta0.ub - SETUP.Theta0.lb)
+
+
+def _inside(A: Polytope, B: Polytope, tol: float = 1e-8) -> bool:
+    """``A ⊆ B`` by LPs: every row of ``B`` holds on ``A`` within ``tol`` (relative)."""
+    from balustrade.backends.lp import solve_lp
+    from balustrade.backends.solution import Status
+
+    for Hr, hr in zip(B.H, B.h):
+        res = solve_lp(Hr, A.H, A.h)
+        if res.status is not Status.OPTIMAL or res.value > hr + tol * (1.0 + abs(hr)):
+            return False
+    return True
+
+
+def test_exact_update_prunes_by_default_to_the_same_set():
+    """The default ``ExactUpdate`` removes redundant rows (a bounded number of rows) and its
+    ``Θ_k`` is the set ``prune=False`` grows row by row, equal by LPs at every step (session
+    14: the default changed to ``prune=True``, docs/adaptive.md)."""
+    default = ExactUpdate(SYS, SETUP.W, SETUP.Theta0)
+    grown = ExactUpdate(SYS, SETUP.W, SETUP.Theta0, prune=False)
+    assert default.prune and not grown.prune
+    for k, _ in enumerate(_run([default, grown], 11, False, True, steps=12)):
+        A, B = default.Theta, grown.Theta
+        assert _inside(A, B) and _inside(B, A), k
+    assert default.Theta.H.shape[0] <= 2 * SYS.q + 4, default.Theta.H.shape
+    assert grown.Theta.H.shape[0] > 4 * default.Theta.H.shape[0], grown.Theta.H.shape
 
 
 def test_nonfalsified_set_contains_theta_star_and_excludes_others():

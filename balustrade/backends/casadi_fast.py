@@ -14,6 +14,11 @@ import numpy as np
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.errors import BalustradeError
 
+#: per plugin, the return status (``stats()["return_status"]``) of a stop at the solver's
+#: acceptable level, which ``error_on_fail`` counts as converged and the backend reports
+#: ``optimal_inaccurate`` (``casadi_backend._RETURN_STATUS``)
+ACCEPTABLE_RETURN_STATUS: dict[str, str] = {"ipopt": "Solved_To_Acceptable_Level"}
+
 
 class Buffered:
     """A CasADi Function evaluated through its ``FunctionBuffer``: inputs and outputs are
@@ -47,8 +52,10 @@ class FastNLP:
     same NLP and options (plus ``error_on_fail``, so a failed solve raises instead of
     needing ``stats()``), evaluated through a :class:`Buffered` ``nlpsol`` from a primal
     start with zero multipliers (a cold start, as the emitted C does). :meth:`solve`
-    returns ``None`` when the solver fails; the caller then runs ``compiled.solve`` (with
-    its retry chain), so results and fallbacks are those of the compiled problem."""
+    returns ``None`` when the solver fails or stops at its acceptable level (IPOPT's
+    ``Solved_To_Acceptable_Level``: ``optimal_inaccurate`` in the backend, not optimal);
+    the caller then runs ``compiled.solve`` (with its retry chain), so results and
+    fallbacks are those of the compiled problem."""
 
     def __init__(self, compiled: CasadiCompiled):
         self.compiled = compiled
@@ -62,6 +69,9 @@ class FastNLP:
         self._x0 = self.nlp.args[names.index("x0")]
         self._p = self.nlp.args[names.index("p")]
         self._lam = [self.nlp.args[names.index(n)] for n in ("lam_x0", "lam_g0")]
+        #: the solver's return status of a stop at its acceptable level, which the backend
+        #: reports optimal_inaccurate (None: the solver has none)
+        self._acceptable = ACCEPTABLE_RETURN_STATUS.get(compiled.solver_name)
         self._w0 = compiled.layout.initial()  # the user's init, then the epigraph blocks'
         self.offsets = compiled.layout.user().slices
         self.param_offsets = compiled.ocp.parameter_layout.slices
@@ -89,6 +99,12 @@ class FastNLP:
         try:
             self.nlp._eval()
         except RuntimeError:  # not converged (error_on_fail) or an evaluation error
+            return None
+        if self._acceptable is not None and \
+                self.nlp._buffer.stats().get("return_status") == self._acceptable:
+            # error_on_fail lets IPOPT's acceptable stop through as converged; the
+            # compiled problem reports it optimal_inaccurate (used, flagged), never optimal:
+            # the caller's compiled.solve names it (session 14, C = Python statuses)
             return None
         return self.nlp.res[0], float(self.nlp.res[1][0])
 

@@ -40,7 +40,7 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "pcbf": ("init", "finalize", "alloc", "free", "reset", "step", "slack_problem",
              "filter_problem", "solve_status", "h_upper", "proposal_replaced"),
     "approx": ("init", "finalize", "alloc", "free", "reset", "step", "set_certify", "dh",
-               "proposal_replaced", "counter"),
+               "proposal_replaced", "counter", "inaccurate"),
     "grid": ("init", "finalize", "alloc", "free", "reset", "step", "n_candidates",
              "proposal_replaced", "counter", "u_prev"),
     "robust": ("init", "finalize", "alloc", "free", "reset", "step", "slack_problem",
@@ -50,7 +50,7 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
                  "main_problem", "solve_status", "values", "proposal_replaced",
                  "candidate_exact"),
     "rapsf": ("init", "finalize", "alloc", "free", "reset", "step", "main_problem",
-              "solve_status", "k_inf", "objective", "proposal_replaced"),
+              "solve_status", "k_inf", "objective", "proposal_replaced", "inaccurate"),
     "multiobj_lyap": ("init", "finalize", "alloc", "free", "reset", "step", "init_problem",
                       "main_problem", "solve_status", "values", "proposal_replaced"),
 }

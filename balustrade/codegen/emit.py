@@ -38,6 +38,7 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.backends.casadi_backend import (
+    EMITTED_STOP_OPTIONS,
     CasadiCompiled,
     chain_solver_index,
     complementarity_expr,
@@ -268,6 +269,21 @@ def _require(name: str, needed: dict[str, tuple[dict, list[str]]], hint: str) ->
             raise CodegenError(f"{name}: the {what}s {missing} are missing ({hint})")
 
 
+def c_solver_options(plugin: str, opts: dict) -> dict:
+    """The ``nlpsol`` options of an emitted attempt: ``opts``, the options the Python backend
+    runs that attempt with (the compiled problem's for its own plugin, ``CasadiCompiled.
+    _retry_options`` for a retry on another), plus what the C needs to read the solver's
+    verdict (``STATUS_OPTIONS``: ``error_on_fail``) — but not the stopping rule of the
+    emitted targets (``EMITTED_STOP_OPTIONS``), which an attempt carries only when Python's
+    does (the retries of an as-emitted target). So C and Python run each attempt with the
+    same options by construction: ``exact``, ``long-horizon`` and ``sampling-*`` keep
+    IPOPT's acceptable stop in C as in Python (flagged ``optimal_inaccurate`` by
+    ``<P>_inaccurate``), where the C used to switch it off (session 14)."""
+    stop = EMITTED_STOP_OPTIONS.get(plugin, {})
+    verdict = {k: v for k, v in STATUS_OPTIONS.get(plugin, {}).items() if k not in stop}
+    return {**opts, **verdict}
+
+
 class _Problem:
     """The C pieces of one compiled problem under the C prefix ``P``."""
 
@@ -309,6 +325,8 @@ class _Problem:
         for k, (plugin, over, opts, label) in enumerate(attempts):
             sym = f"{P}_nlp" if plugin == c.solver_name and not over else \
                 f"{P}_nlp_retry{k + 1}"
+            if plugin != c.solver_name:  # the options Python builds this retry with
+                opts = c._retry_options(plugin, over)
             self.solvers.append((sym, plugin, opts))
             self.reports.append(int(plugin in STATUS_OPTIONS))
             self.retry_labels.append(label)
@@ -357,6 +375,13 @@ class _Problem:
                                f"retries); choose an emitted attempt (0: the first solver)")
         self.second_solver = j
 
+    def nlpsol_options(self) -> list[tuple[str, str, dict]]:
+        """Per attempt ``(symbol, plugin, nlpsol options)`` of the generated solvers (without
+        the shared derivative functions): :func:`c_solver_options` of the options Python
+        runs that attempt with."""
+        return [(sym, plugin, c_solver_options(plugin, opts))
+                for sym, plugin, opts in self.solvers]
+
     def functions(self) -> dict[str, ca.Function]:
         # every attempt on the compiled problem's own plugin shares its derivative
         # functions, so their C is generated once (backends.casadi_backend.
@@ -378,17 +403,15 @@ class _Problem:
                 jac_fg = _staged_jac_fg(caches[c.solver_name])
             else:
                 nlp, caches, jac_fg = c.nlp, {}, {}
-            out = {sym: ca.nlpsol(sym, plugin, nlp, {**opts, **STATUS_OPTIONS.get(plugin, {}),
-                                                     "cache": caches.get(plugin, {})})
-                   for sym, plugin, opts in self.solvers}
+            out = {sym: ca.nlpsol(sym, plugin, nlp, {**opts, "cache": caches.get(plugin, {})})
+                   for sym, plugin, opts in self.nlpsol_options()}
             out[f"{self.P}_kkt"] = _kkt_function(c, f"{self.P}_kkt", lowered=(nlp, jac_fg))
             out[f"{self.P}_obj"] = c.inverse.cost
             return out
         nlp, derivatives = c.lowered(EMIT_LOWERING)
-        out = {sym: ca.nlpsol(sym, plugin, nlp, {**(c.with_derivatives(opts, derivatives)
-                                                    if plugin == c.solver_name else opts),
-                                                 **STATUS_OPTIONS.get(plugin, {})})
-               for sym, plugin, opts in self.solvers}
+        out = {sym: ca.nlpsol(sym, plugin, nlp, c.with_derivatives(opts, derivatives)
+                              if plugin == c.solver_name else opts)
+               for sym, plugin, opts in self.nlpsol_options()}
         out[f"{self.P}_kkt"] = _kkt_function(self.c, f"{self.P}_kkt", EMIT_LOWERING)
         return out
 

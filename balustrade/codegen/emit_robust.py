@@ -63,7 +63,6 @@ from pathlib import Path
 import casadi as ca
 import numpy as np
 
-from balustrade.backends.emittable import c_retries
 from balustrade.backends.recovery import recovery_lead
 from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
@@ -137,22 +136,19 @@ def _cand(sym: str, spec: TubeDeployment) -> ca.Function:
                            "the CasADi expressions of h_f and pi_f)") from exc
 
 
-def _c_lead(prob: _Problem, recovery: object, full_chain: bool) -> int:
+def _c_lead(prob: _Problem, recovery: object) -> int:
     """The attempt number in ``bal/problem.c`` (0: the first attempt, ``k``: the k-th
     retry) of the attempt that leads ``prob``'s chain on a recovery step
     (:func:`~balustrade.backends.recovery.recovery_lead`), 0 for none: no recovery target,
     or its attempt not emitted (``full_chain=False`` leaves the interior-point retry out;
     the C then runs the chain in its usual order, as a Python controller without a recovery
-    target)."""
+    target). The mapping from the chain's retries to the C's attempts is
+    :attr:`_Problem.c_attempt` (one rule for this and ``second_solver``)."""
     k = recovery_lead(prob.c, recovery)
-    if k is None or prob.budget:
+    if k is None:
         return 0
-    name, over = prob.c.retries[k]
-    emitted = c_retries(prob.c.solver_name, prob.c.options, prob.c.retries, full_chain)
-    for j, (plugin, o, _, _) in enumerate(emitted):
-        if plugin == name and dict(o) == dict(over):
-            return j + 1
-    return 0
+    j = prob.c_attempt[k + 1]  # c_attempt[0] is the first solver, [k + 1] retries[k]
+    return 0 if j is None else j
 
 
 def _check_tube(name: str, spec: TubeDeployment, probs: dict[str, _Problem]) -> None:
@@ -292,7 +288,7 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
         ("robust", "robust", S.ROBUST, "robust_status"),
         f"Algorithm 5.2, the robust PCBF step {name}: (5.15) then (5.16)",
         "Algorithm 5.2, the robust PCBF filter (5.15)+(5.16)",
-        [(f"{name}_SLACK_LEAD", _c_lead(s, spec.recovery_target, full_chain),
+        [(f"{name}_SLACK_LEAD", _c_lead(s, spec.recovery_target),
           "the (5.15) attempt run first on a recovery step (0: none)")],
         {"n_xi": spec.X_E.H.shape[0] * N})
 
@@ -346,9 +342,9 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
         f"Algorithm 6.4, the multiobjective robust PCBF step {name}",
         "Algorithm 6.4, the multiobjective robust PCBF controller (5.15)+(6.15)",
         [(f"{name}_RHO", C.c_double(spec.rho), "rho of (6.15g)"),
-         (f"{name}_SLACK_LEAD", _c_lead(s, spec.recovery_target, full_chain),
+         (f"{name}_SLACK_LEAD", _c_lead(s, spec.recovery_target),
           "the (5.15) attempt run first at the first step (0: none)"),
-         (f"{name}_PROBLEM_LEAD", _c_lead(p, spec.recovery_target, full_chain),
+         (f"{name}_PROBLEM_LEAD", _c_lead(p, spec.recovery_target),
           "the (6.15) attempt run first until one converges (0: none)"),
          (f"{name}_BOUND_TOL", C.c_double(spec.bound_tol), None),
          (f"{name}_DECREASE_TOL", C.c_double(DECREASE_TOL),

@@ -617,6 +617,7 @@ class CApproximatePCBFFilter(_OwnsWork):
     _BAD = S.code_of(S.APPROX, "bad_input")
     _CERTIFIED = S.code_of(S.APPROX, "certified")
     _FILTER_FEASIBLE = S.code_of(S.APPROX, "filter_feasible")
+    _OK = S.code_of(S.APPROX, "ok")
 
     def __init__(self, lib_path: str | Path, manifest: dict | None = None):
         m = self._open(lib_path, manifest, "approximate", "Algorithm 7.5 filter")
@@ -629,6 +630,10 @@ class CApproximatePCBFFilter(_OwnsWork):
         self._counter = self._lib.fn(f"{A}_counter", ctypes.c_long, [vp, ctypes.c_int])
         self._set_certify = self._lib.fn(f"{A}_set_certify", None, [vp, ctypes.c_int])
         self._replaced = self._lib.fn(f"{A}_proposal_replaced", ctypes.c_int, [vp])
+        # a (7.5) whose solver can stop at its acceptable level (IPOPT): its BAL_OK is
+        # named optimal_inaccurate, as ApproximatePCBFFilter records it
+        self._filter_inaccurate = self._lib.fn(f"{A}_inaccurate", ctypes.c_int, [vp]) \
+            if m["problems"]["filter"].get("acceptable_stop", True) else None
         self._allocate(A)
         self._step_buffers()
 
@@ -654,7 +659,9 @@ class CApproximatePCBFFilter(_OwnsWork):
         ShapeError; a NaN or inf ``x``: status ``"non_finite_state"``, the proposal
         (non-finite entries as 0) clipped to ``U``; NaN or inf entries of ``u_p`` are read
         as 0 and the step runs as usual (``"non_finite_proposal[_<status>]"``); a (7.5)
-        solve that is only feasible: ``"filter_feasible"``, flagged in ``uncertified``."""
+        solve that is only feasible: ``"filter_feasible"``, flagged in ``uncertified``; one
+        that stopped at its solver's acceptable level: ``"filter_optimal_inaccurate"``,
+        flagged."""
         _load(self._u_p, u_p, "CApproximatePCBFFilter.step: u_p", proposal=True)
         _load(self._x, x, "CApproximatePCBFFilter.step: x")
         start = time.perf_counter()
@@ -671,5 +678,9 @@ class CApproximatePCBFFilter(_OwnsWork):
             info.values.update(h_hat=float(self._h[0]), dh=float(self._dh(self._work)))
         if code == self._FILTER_FEASIBLE:
             info.uncertified["filter"] = "feasible"
+        elif code == self._OK and self._filter_inaccurate is not None and \
+                self._filter_inaccurate(self._work):
+            # approximate.py: note_solve(info, "filter", "optimal_inaccurate") -> flagged
+            info.status, info.uncertified["filter"] = f"filter_{INACCURATE}", INACCURATE
         note_proposal(info, int(self._replaced(self._work)))
         return self._u.copy(), info

@@ -1,7 +1,10 @@
 """Load the emitted Algorithm 8.7 (:func:`~balustrade.codegen.emit_grid.emit_grid`) with
 ctypes: :class:`CGridPCBFFilter`, a closed-loop controller with the interface, statuses and
 counters of :class:`~balustrade.control.approximate.GridPCBFFilter`, one foreign call per
-step (all grid candidates are evaluated inside it)."""
+step (all grid candidates are evaluated inside it). The step solves no optimization problem
+(it evaluates ``ĥ(f(x, u_i))`` on the grid), so there is no solver status to read: no
+``<P>_inaccurate``, no acceptable stop (unlike Algorithm 7.5,
+:class:`~balustrade.codegen.CApproximatePCBFFilter`)."""
 
 from __future__ import annotations
 

@@ -9,7 +9,9 @@ C step, and passes the vertices (padded by repetition, as the Python controller 
 and ``s`` to the C. With the Remark 4.6 variant emitted (``shrinking=True``) the C also
 solves (4.5) with the horizon ``N − k_inf`` after a failure; its status is recorded as
 the Python controller records it (``"shrunk_horizon"``, or ``uncertified["rapsf_shrunk"]``
-when it failed too)."""
+when it failed too). A (4.5) on IPOPT that stopped at its acceptable level (``BAL_OK`` with
+``<name>_inaccurate`` 1) is not used by the C, as RAPSF uses only an ``optimal`` solve, and
+is named ``optimal_inaccurate`` (tests/test_rapsf_ipopt_status.py)."""
 
 from __future__ import annotations
 
@@ -22,7 +24,15 @@ import numpy as np
 
 from balustrade._checks import as_vector
 from balustrade.codegen import status as S
-from balustrade.codegen.runtime import _PY_STATUS, _CProblemView, _dbl_p, _OwnsWork, _proposal, _ptr
+from balustrade.codegen.runtime import (
+    _OK,
+    _CProblemView,
+    _dbl_p,
+    _OwnsWork,
+    _proposal,
+    _ptr,
+    py_status,
+)
 from balustrade.control.base import StepInfo
 from balustrade.errors import BalustradeError, CodegenError
 
@@ -73,6 +83,10 @@ class CRAPSF(_OwnsWork):
         self.shrinking = bool(m.get("shrinking", False))
         self._k_inf = self._lib.fn(f"{Q}_k_inf", ci, [vp])
         self._objective = self._lib.fn(f"{Q}_objective", ctypes.c_double, [vp])
+        # an attempt that can stop at its acceptable level (IPOPT): the C does not use
+        # such a BAL_OK, as RAPSF does not use an optimal_inaccurate solve; its word
+        self._inaccurate = self._lib.fn(f"{Q}_inaccurate", ci, [vp, ci]) if any(
+            p.get("acceptable_stop", True) for p in m["problems"].values()) else None
         self._allocate(Q)
         self.main = _CProblemView(self._lib, f"{Q}_main", m["problems"]["main"],
                                   self._lib.fn(f"{Q}_main_problem", vp, [vp])(self._work))
@@ -102,6 +116,12 @@ class CRAPSF(_OwnsWork):
         idx = np.arange(self.n_vertices) % len(V)
         self._theta[:] = V[idx].T.reshape(-1, order="F")
         self._s[:] = s[:, idx].reshape(-1, order="F")
+
+    def _was_inaccurate(self, code: int, which: int) -> bool:
+        """The solve (0: (4.5), 1: the shrunk horizon) returned ``BAL_OK`` at the solver's
+        acceptable level (``<Q>_inaccurate``): ``optimal_inaccurate``, not used."""
+        return code == _OK and self._inaccurate is not None and \
+            bool(self._inaccurate(self._work, which))
 
     def step_raw(self, x: np.ndarray, u_p: np.ndarray, falsified: bool = False
                  ) -> tuple[np.ndarray, int]:
@@ -142,14 +162,15 @@ class CRAPSF(_OwnsWork):
             info.values["objective"] = float(self._objective(self._work))
         else:
             solve = self._status_fn(self._work)
-            name = _PY_STATUS.get(solve, str(solve))
+            name = py_status(solve, self._was_inaccurate(solve, 0))
             info.uncertified["rapsf"] = name
             if info.status == "ok":
                 info.status = name
             info.fallback = known.fallback
             shrunk = self._shrunk_fn(self._work)        # Remark 4.6's solve, if it ran
             if shrunk != self._NOT_RUN and known.name != "shrunk_horizon":
-                info.uncertified["rapsf_shrunk"] = _PY_STATUS.get(shrunk, str(shrunk))
+                info.uncertified["rapsf_shrunk"] = py_status(
+                    shrunk, self._was_inaccurate(shrunk, 1))
         info.values["k_inf"] = float(self.k_inf)
         u = u.copy()
         h._prev = (x, u) if np.all(np.isfinite(x)) else None   # as RAPSF.step

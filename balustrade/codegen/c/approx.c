@@ -121,6 +121,9 @@ void BAL_QX(reset)(BAL_QX(work)* wk) {
 void BAL_QX(set_certify)(BAL_QX(work)* wk, int certify) { wk->certify = certify; }
 casadi_real BAL_QX(dh)(const BAL_QX(work)* wk) { return wk->dh; }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }
+int BAL_QX(inaccurate)(const BAL_QX(work)* wk) {
+  return wk->filter_status == BAL_OK && BAL_QX(filter_inaccurate)(&wk->filter);
+}
 long BAL_QX(counter)(const BAL_QX(work)* wk, int which) {
   return which == 0   ? wk->n_steps
          : which == 1 ? wk->n_certified

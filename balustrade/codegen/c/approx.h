@@ -62,5 +62,8 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
                  casadi_real* h_out, int* status, BAL_QX(work)* wk);
 void BAL_QX(set_certify)(BAL_QX(work)* wk, int certify); /* 0: always solve (7.6), (7.5) */
 casadi_real BAL_QX(dh)(const BAL_QX(work)* wk); /* dh of the last solved step (NAN if none) */
+/* 1 if the last step's (7.5) returned BAL_OK at its solver's acceptable level
+   (<P>_inaccurate: the backend's optimal_inaccurate; applied, flagged), else 0 */
+int BAL_QX(inaccurate)(const BAL_QX(work)* wk);
 /* which: 0 steps, 1 certified, 2 solved, 3 fallbacks, 4 proposal feasible */
 long BAL_QX(counter)(const BAL_QX(work)* wk, int which);

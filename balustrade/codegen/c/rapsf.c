@@ -72,6 +72,7 @@ void BAL_QX(reset)(BAL_QX(work)* wk) {
   wk->k_inf = BAL_QX(N) - 1;
   wk->main_status = BAL_NOT_RUN;
   wk->shrunk_status = BAL_NOT_RUN;
+  wk->main_inaccurate = wk->shrunk_inaccurate = 0;
   wk->n_replaced = 0;
   wk->objective = NAN;
 }
@@ -122,15 +123,17 @@ static void BAL_QX(apply_backup)(const casadi_real* x, casadi_real* u, BAL_QX(wo
    wk->p, from a cold start as every solve; BAL_OK -> its v^ becomes the stored plan from
    stage k_inf on (plan[k_inf + i] = v^_i: the state now follows its tube, which ends in C_f
    at the old plan's time, so k_inf keeps counting; RAPSF._store_shrunk) and
-   u_out = K x + v^_0. Returns its status. */
+   u_out = K x + v^_0. Returns 1 if it was used: BAL_OK, and not a stop at the solver's
+   acceptable level (Q_inaccurate 1: RAPSF uses only an optimal solve), else 0. */
 static int BAL_QX(solve_shrunk)(BAL_QX(work)* wk, int h, const casadi_real* x,
                                 casadi_real* u_out) {
-  int st = BAL_NOT_RUN;
+  int st = BAL_NOT_RUN, inaccurate = 0;
 #define BAL_RAPSF_SHRUNK_SOLVE(tag, hh)                                     \
   if (h == hh) {                                                            \
     BAL_QX(tag##_cold_start)(&wk->tag);                                     \
     st = BAL_QX(tag##_solve)(&wk->tag, wk->p);                              \
-    if (st == BAL_OK) {                                                     \
+    inaccurate = st == BAL_OK && BAL_QX(tag##_inaccurate)(&wk->tag);        \
+    if (st == BAL_OK && !inaccurate) {                                      \
       memcpy(wk->plan + (BAL_QX(N) - hh) * BAL_QX(NU),                      \
              wk->tag.x + BAL_QX(tag##_W_v), hh * BAL_QX(NU) * sizeof(casadi_real)); \
       BAL_QX(feedback)(x, wk->plan + (BAL_QX(N) - hh) * BAL_QX(NU), u_out); \
@@ -139,7 +142,8 @@ static int BAL_QX(solve_shrunk)(BAL_QX(work)* wk, int h, const casadi_real* x,
   BAL_QX(SHRUNK)(BAL_RAPSF_SHRUNK_SOLVE)
 #undef BAL_RAPSF_SHRUNK_SOLVE
   wk->shrunk_status = st;
-  return st;
+  wk->shrunk_inaccurate = inaccurate;
+  return st == BAL_OK && !inaccurate;
 }
 #endif
 
@@ -154,6 +158,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   }
   wk->main_status = BAL_NOT_RUN;
   wk->shrunk_status = BAL_NOT_RUN;
+  wk->main_inaccurate = wk->shrunk_inaccurate = 0;
   wk->objective = NAN;
   wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
   if (falsified || !bal_finite(x, BAL_QX(NX))) {
@@ -177,7 +182,11 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   BAL_QX(main_cold_start)(&wk->main);
 #endif
   wk->main_status = BAL_QX(main_solve)(&wk->main, wk->p);
-  if (wk->main_status == BAL_OK) {
+  /* a BAL_OK that stopped at the solver's acceptable level (IPOPT's
+     Solved_To_Acceptable_Level, <P>_inaccurate) is the backend's optimal_inaccurate, which
+     RAPSF handles as infeasible (only an optimal solve is used): so does the C */
+  wk->main_inaccurate = wk->main_status == BAL_OK && BAL_QX(main_inaccurate)(&wk->main);
+  if (wk->main_status == BAL_OK && !wk->main_inaccurate) {
     memcpy(wk->plan, wk->main.x + BAL_QX(main_W_v), sizeof(wk->plan));
     wk->have_plan = 1;
     wk->k_inf = 0;
@@ -189,7 +198,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   wk->k_inf += 1;
   if (wk->k_inf <= BAL_QX(N) - 1 && wk->have_plan) {
 #if BAL_QX(SHRINKING)
-    if (BAL_QX(solve_shrunk)(wk, BAL_QX(N) - wk->k_inf, x, u_out) == BAL_OK) {
+    if (BAL_QX(solve_shrunk)(wk, BAL_QX(N) - wk->k_inf, x, u_out)) {
       *status = BAL_RAPSF_SHRUNK_HORIZON;
       return *status;
     }
@@ -206,6 +215,9 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
 BAL_QX(main_work)* BAL_QX(main_problem)(BAL_QX(work)* wk) { return &wk->main; }
 int BAL_QX(solve_status)(const BAL_QX(work)* wk) { return wk->main_status; }
 int BAL_QX(shrunk_status)(const BAL_QX(work)* wk) { return wk->shrunk_status; }
+int BAL_QX(inaccurate)(const BAL_QX(work)* wk, int which) {
+  return which ? wk->shrunk_inaccurate : wk->main_inaccurate;
+}
 int BAL_QX(k_inf)(const BAL_QX(work)* wk) { return wk->k_inf; }
 casadi_real BAL_QX(objective)(const BAL_QX(work)* wk) { return wk->objective; }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }

@@ -18,6 +18,8 @@
  * Per step, as balustrade.control.rapsf.RAPSF:
  *   solve (4.5) at (x, Theta_k) from a cold start (the retries of bal/problem.c);
  *   BAL_OK -> u = K x + v*_0, store the plan v*, k_inf := 0        BAL_RAPSF_OK
+ *   (a BAL_OK at the solver's acceptable level, Q_inaccurate, counts as failed: RAPSF uses
+ *   only optimal solves)
  *   else k_inf := k_inf + 1 and
  *     k_inf <= N - 1 and a stored plan, Q_SHRINKING (Remark 4.6): solve (4.5) with the
  *       horizon N - k_inf (cold start); BAL_OK -> u = K x + v^_0 of that solve, and
@@ -47,6 +49,7 @@ typedef struct BAL_QX(work) {
   casadi_real u_p[BAL_QX(NU)];              /* the proposal used (non-finite -> 0) */
   casadi_real objective;                    /* of the last converged (4.5), else NAN */
   int have_plan, k_inf, main_status, shrunk_status, n_replaced, ready;
+  int main_inaccurate, shrunk_inaccurate; /* that solve's BAL_OK stopped at the acceptable level */
 #if BAL_QX(BACKUP) == 2
   /* the backup policy Q_backup_policy(x): its arguments, work and memory */
   const casadi_real* barg[BAL_QX(backup_policy_SZ_ARG)];
@@ -65,10 +68,15 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
                  BAL_QX(work)* wk);
 /* the problem (4.5) inside the work struct, for foreign-function callers */
 BAL_QX(main_work)* BAL_QX(main_problem)(BAL_QX(work)* wk);
-/* BAL_* status of the last step's (4.5) solve (BAL_NOT_RUN if none ran) */
+/* BAL_* status of the last step's (4.5) solve (BAL_NOT_RUN if none ran; a BAL_OK with
+   Q_inaccurate 1 was not used) */
 int BAL_QX(solve_status)(const BAL_QX(work)* wk);
 /* BAL_* status of the last step's shrunk-horizon solve (BAL_NOT_RUN if none ran) */
 int BAL_QX(shrunk_status)(const BAL_QX(work)* wk);
+/* 1 if the last step's (4.5) (which 0) or shrunk-horizon solve (which 1) returned BAL_OK at
+   the solver's acceptable level (<P>_inaccurate: the backend's optimal_inaccurate), which the
+   step, as RAPSF, did not use (handled as a failed solve); else 0 */
+int BAL_QX(inaccurate)(const BAL_QX(work)* wk, int which);
 /* k_inf after the last step */
 int BAL_QX(k_inf)(const BAL_QX(work)* wk);
 /* objective of the last step's (4.5) if it converged, else NAN */

@@ -47,7 +47,7 @@ static int BAL_QX(fallback)(BAL_QX(work)* wk, const casadi_real* x, casadi_real*
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  casadi_real* h_out, int* status, BAL_QX(work)* wk) {
   casadi_int i;
-  int lead;
+  int lead, from_cand;
   const casadi_real *z, *v;
   if (!x || !u_p || !u_out || !h_out || !status || !wk) {
     if (status) *status = BAL_ROBUST_BAD_INPUT;
@@ -69,8 +69,13 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
      certify h_r(x_k) = 0) runs the attempt Q_SLACK_LEAD of the (5.15) chain first
      (balustrade.control.robust.RobustPCBFSafetyFilter.recovering; 0: none) */
   lead = (BAL_QX(SLACK_LEAD) > 0 && (!wk->have_cand || wk->ch > 0.0)) ? BAL_QX(SLACK_LEAD) : 0;
-  if (wk->recovered && wk->have_cand) {
-    /* the last converged (5.15) was a recovery solve: from the candidate, the rest cold */
+  from_cand = wk->recovered && wk->have_cand;
+  if (from_cand) {
+    /* the last converged (5.15) was a recovery solve: from the candidate, the rest cold;
+       the start of the last converged (5.15) is kept aside (restored below) */
+    memcpy(wk->kx0, wk->slack.x0, sizeof(wk->kx0));
+    memcpy(wk->klam_x0, wk->slack.lam_x0, sizeof(wk->klam_x0));
+    memcpy(wk->klam_g0, wk->slack.lam_g0, sizeof(wk->klam_g0));
     BAL_QX(slack_cold_start)(&wk->slack);
     memcpy(wk->slack.x0 + BAL_QX(slack_W_z), wk->cz, sizeof(wk->cz));
     memcpy(wk->slack.x0 + BAL_QX(slack_W_v), wk->cv, sizeof(wk->cv));
@@ -80,6 +85,14 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
   /* (5.15): h_r(x_k) and the slacks */
   for (i = 0; i < BAL_QX(NX); ++i) wk->p_slack[BAL_QX(slack_P_x0) + i] = x[i];
   wk->slack_status = BAL_QX(slack_solve_lead)(&wk->slack, wk->p_slack, 0, lead);
+  if (from_cand) {
+    /* the candidate was this solve's start only: the start stays the last converged
+       (5.15) until a (5.15) is kept below (slack_warm_start), as robust.py, whose warm start
+       is the candidate only while there is one, else _last_slack */
+    memcpy(wk->slack.x0, wk->kx0, sizeof(wk->kx0));
+    memcpy(wk->slack.lam_x0, wk->klam_x0, sizeof(wk->klam_x0));
+    memcpy(wk->slack.lam_g0, wk->klam_g0, sizeof(wk->klam_g0));
+  }
   if (wk->slack_status != BAL_OK) {
     /* a truncated (5.15) at a feasible iterate (real-time mode) is continued primal-dual
        by the next solve; its cost only bounds h_r (balustrade.control.robust) */

@@ -47,6 +47,10 @@ typedef struct BAL_QX(work) {
   casadi_real w[BAL_QX(SZ_W) + 1];
   int have_cand, cand_exact, have_slack, have_filter, n_replaced;
   int recovered; /* the last converged (5.15) was a recovery solve: the next starts from the candidate */
+  /* the start of the last converged (5.15) while slack.x0 holds the candidate's: restored
+     after that solve, so that a later (5.15) without a candidate starts from it (Python's
+     _last_slack) and not from a stale candidate */
+  casadi_real kx0[BAL_QX(slack_NW)], klam_x0[BAL_QX(slack_NW)], klam_g0[BAL_QX(slack_NG) + 1];
   int slack_status, filter_status; /* BAL_* of the last step's solves */
   int ready;
 } BAL_QX(work);
