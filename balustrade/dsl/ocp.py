@@ -357,7 +357,7 @@ class OCP:
         """``c_{x,f}(x_{N|k}) + Δ <= ξ_N`` (hard when ``slack=None``) ((2.9), (2.11))."""
         sys = self._need_system("terminal_constraint")
         self._check_set_dim(Xf, sys.nx, name)
-        delta = as_scalar(tightening, f"{self.name}: {name}: tightening")
+        delta = as_scalar(tightening, f"{self.name}: {name}: tightening", low=0.0)
         lhs = Xf.c(self.x[:, self.N]) + delta
         xi = self._slack(slack, lhs.shape, signed, name)
         self.le(lhs, 0 if xi is None else xi, name=name, tag="terminal")
@@ -488,12 +488,20 @@ class OCP:
                     value = tightening(i)
                 except Exception as exc:  # the user's function failed
                     raise BalustradeError(f"{where}: Δ(i) failed at step {i}: {exc}") from exc
-                values.append(as_scalar(value, f"{where} Δ_{i}"))
+                values.append(as_scalar(value, f"{where} Δ_{i}", low=0.0))
             return values
         arr = as_float_array(tightening, where)
         if arr.ndim == 0:
-            return [as_scalar(arr, where)] * len(steps)
-        return [float(d) for d in as_vector(arr, where, len(steps))]
+            return [as_scalar(arr, where, low=0.0)] * len(steps)
+        values = [float(d) for d in as_vector(arr, where, len(steps))]
+        negative = [k for k, d in enumerate(values) if d < 0]
+        if negative:
+            # a negative Δ_i would relax the hard row c(x) + Δ_i <= 0 beyond the declared set
+            # (SPEC §1.4: 0 = Δ_0 < Δ_1 < …; docs/language.md "Bad input")
+            raise BalustradeError(f"{where}: Δ_i must be nonnegative (a negative one relaxes "
+                                  f"the constraint beyond the declared set); entries "
+                                  f"{negative} are {[values[k] for k in negative]}")
+        return values
 
     def _as_column(self, value: object, size: int, block: str) -> ca.SX:
         if isinstance(value, (ca.SX, ca.DM)):
