@@ -402,6 +402,8 @@ many("OCP", {
     "input tightening negative": lambda: _ocp().input_constraint(U, tightening=-0.1),
     "steps out of range": lambda: _ocp().state_constraint(X, steps=[0, 7]),
     "steps negative": lambda: _ocp().state_constraint(X, steps=[-1]),
+    # u has N columns: step N was a raw CasADi slice error (audit B, session 14)
+    "input steps = N": lambda: _ocp().input_constraint(U, steps=[N]),
     "steps string": lambda: _ocp().state_constraint(X, steps="01"),
     "steps float": lambda: _ocp().input_constraint(U, steps=[0.5]),
     "steps empty": lambda: _ocp().input_constraint(U, steps=[]),

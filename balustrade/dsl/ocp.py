@@ -317,7 +317,7 @@ class OCP:
         """``u_{i|k} ∈ U`` (or ``U_i`` per step, e.g. ``U ⊖ K E_i`` (2.14)) for the steps."""
         sys = self._need_system("input_constraint")
         steps = self._steps(steps, name)
-        sets = self._per_step_sets(U, steps, sys.nu, name)
+        sets = self._per_step_sets(U, steps, sys.nu, name, last=self.N - 1)  # u: N columns
         delta = self._deltas(tightening, steps, name)
         rows = [S.c(self.u[:, i]) + d for S, i, d in zip(sets, steps, delta)]
         return self.le(ca.horzcat(*rows), 0, name=name, tag="input")
@@ -457,16 +457,19 @@ class OCP:
         return out
 
     def _per_step_sets(self, S: Set | Sequence[Set], steps: list[int], dim: int,
-                       block: str) -> list[Set]:
+                       block: str, last: int | None = None) -> list[Set]:
+        """One set per step of ``steps``, each of dimension ``dim``; steps in ``0..last``
+        (default ``N``: the state columns; ``N − 1`` for the inputs)."""
         sets = list(S) if isinstance(S, (list, tuple)) else [S] * len(steps)
         if len(sets) != len(steps):
             raise ShapeError(f"{self.name}: {block}", f"{len(steps)} sets (one per step)",
                              f"{len(sets)} sets", what="")
         for s in sets:
             self._check_set_dim(s, dim, block)
-        bad = [i for i in steps if not 0 <= i <= self.N]
+        last = self.N if last is None else last
+        bad = [i for i in steps if not 0 <= i <= last]
         if bad:
-            raise BalustradeError(f"{self.name}: {block}: steps {bad} outside 0..{self.N}")
+            raise BalustradeError(f"{self.name}: {block}: steps {bad} outside 0..{last}")
         return sets
 
     def _check_set_dim(self, S: Set, dim: int, block: str) -> None:
