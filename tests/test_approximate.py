@@ -374,3 +374,11 @@ def test_acceptable_ipopt_stop_of_7_5_is_flagged_not_ok() -> None:
     assert info.status == "filter_optimal_inaccurate", info.status
     assert info.uncertified.get("filter") == "optimal_inaccurate"
     assert u == pytest.approx(np.asarray(ref["u"]).reshape(-1), abs=1e-8)
+
+
+def test_grid_filter_refuses_a_grid_too_large_to_build() -> None:
+    """half_width 1e6 at spacing 1e-6 (2e12 candidates) raised a MemoryError from numpy
+    while building the offsets (audit B, session 14); now a BalustradeError naming both."""
+    with pytest.raises(BalustradeError, match="half_width .* spacing .* candidate inputs"):
+        GridPCBFFilter(SYS, U, h_wavy, 1e6, 1e-6)
+    assert len(GridPCBFFilter(SYS, U, h_wavy, 0.5, 0.1).offsets) == 11
