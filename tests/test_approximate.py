@@ -351,3 +351,34 @@ def test_maximal_decrease_stays_in_a_non_box_input_set():
     assert U2.contains(res.u, tol=1e-9) and U2.contains(res.u_proposal, tol=1e-9)
     assert res.u == pytest.approx([0.5, 0.5], abs=1e-7)
     assert res.h_next == pytest.approx(0.5, abs=1e-7)
+
+
+def test_acceptable_ipopt_stop_of_7_5_is_flagged_not_ok() -> None:
+    """IPOPT's acceptable stop passes CasADi's ``error_on_fail``, so the fast path of (7.5)
+    took it as optimal: the step said ``ok`` with nothing flagged, where ``Compiled.solve``
+    of the same problem says ``optimal_inaccurate`` (audit B, session 14). The step now
+    reports it as that solve does; the applied input is unchanged."""
+    from balustrade.backends.targets import Target
+
+    acc = Target("casadi", "ipopt", {"ipopt.tol": 1e-30, "ipopt.acceptable_tol": 1e-6,
+                                     "ipopt.acceptable_iter": 1}, retries=(), name="acc")
+    P = np.array([[4.246, 0.212], [0.212, 0.460]])
+    f = ApproximatePCBFFilter(SYS, U, lambda x: ca.mtimes([x.T, ca.DM(P), x]) - 1, rho=0.5,
+                              certify=False, exact_shortcut=False, target=acc)
+    x, u_p = np.array([0.4, 1.0]), np.array([3.0])
+    u, info = f.step(x, u_p)
+    dec = f.decrease.solve(x, u_p)
+    ref = f.filter.solve({"x0": x, "u_p": u_p, "dh": dec.dh, "rho": 0.5},
+                         warm_start={"u": dec.u})
+    assert ref.status == "optimal_inaccurate"       # the independent, plain solve
+    assert info.status == "filter_optimal_inaccurate", info.status
+    assert info.uncertified.get("filter") == "optimal_inaccurate"
+    assert u == pytest.approx(np.asarray(ref["u"]).reshape(-1), abs=1e-8)
+
+
+def test_grid_filter_refuses_a_grid_too_large_to_build() -> None:
+    """half_width 1e6 at spacing 1e-6 (2e12 candidates) raised a MemoryError from numpy
+    while building the offsets (audit B, session 14); now a BalustradeError naming both."""
+    with pytest.raises(BalustradeError, match="half_width .* spacing .* candidate inputs"):
+        GridPCBFFilter(SYS, U, h_wavy, 1e6, 1e-6)
+    assert len(GridPCBFFilter(SYS, U, h_wavy, 0.5, 0.1).offsets) == 11

@@ -395,8 +395,15 @@ many("OCP", {
     "tightening wrong length": lambda: _ocp().state_constraint(X, tightening=[0.0, 0.1]),
     "tightening callable NaN": lambda: _ocp().state_constraint(X, tightening=lambda i: np.nan),
     "tightening string": lambda: _ocp().state_constraint(X, tightening="0.1"),
+    # a negative Δ_i relaxes a hard row beyond the declared set (audit B, session 14)
+    "tightening negative": lambda: _ocp().state_constraint(X, tightening=-0.1),
+    "tightening vector negative": lambda: _ocp().state_constraint(X, tightening=[0, -0.1, 0]),
+    "tightening callable negative": lambda: _ocp().state_constraint(X, tightening=lambda i: -i),
+    "input tightening negative": lambda: _ocp().input_constraint(U, tightening=-0.1),
     "steps out of range": lambda: _ocp().state_constraint(X, steps=[0, 7]),
     "steps negative": lambda: _ocp().state_constraint(X, steps=[-1]),
+    # u has N columns: step N was a raw CasADi slice error (audit B, session 14)
+    "input steps = N": lambda: _ocp().input_constraint(U, steps=[N]),
     "steps string": lambda: _ocp().state_constraint(X, steps="01"),
     "steps float": lambda: _ocp().input_constraint(U, steps=[0.5]),
     "steps empty": lambda: _ocp().input_constraint(U, steps=[]),
@@ -406,6 +413,7 @@ many("OCP", {
     "slack unknown string": lambda: _ocp().state_constraint(X, slack="free"),
     "slack wrong shape": lambda: _ocp().state_constraint(X, slack=ca.SX.sym("s", 2, 2)),
     "terminal tightening NaN": lambda: _ocp().terminal_constraint(X, tightening=np.nan),
+    "terminal tightening negative": lambda: _ocp().terminal_constraint(X, tightening=-0.1),
     "terminal_cbf not callable": lambda: _ocp().terminal_cbf("h_f"),
     "terminal_cbf math.sin": lambda: _ocp().terminal_cbf(lambda x: math.sin(x[0])),
     "terminal_cbf vector": lambda: _ocp().terminal_cbf(lambda x: x),

@@ -250,3 +250,32 @@ def test_cli_config_with_the_old_solver_key_says_it_was_renamed(tmp_path, capsys
     cfg.write_text(json.dumps({"solver": "sqpmethod"}))
     assert main(["sample", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
     assert "'solver' is now 'target'" in capsys.readouterr().err
+
+
+class _FailingExtended:
+    """(7.8) that never converges but leaves a finite objective (its last iterate)."""
+
+    def __init__(self, inner) -> None:
+        self.inner = inner
+
+    def solve(self, params, warm_start=None, **kw):
+        sol = self.inner.solve(params)
+        sol.status, sol.objective = "failed", -0.25
+        return sol
+
+
+def test_failed_extended_solve_gives_no_label(problems: PCBFProblems) -> None:
+    """On ``S_PB`` the label is ``c_h·h̄_PB`` from a converged (7.8) only. When (7.8) fails
+    (warm and cold) and (2.24) then places ``x`` in ``S_PB``, the failed solve's objective
+    was used as the label of a good row (audit B, session 14); the row is dropped now."""
+    import dataclasses
+
+    x = np.zeros(problems.nx)                     # the origin: inside S_PB
+    good, _ = Evaluator(problems, warm=False).point(x, Seed(x, in_s=True))
+    assert good.ok and good.in_s and good.h < 0   # the independent value h̄_PB(0) < 0
+    broken = dataclasses.replace(problems, extended=_FailingExtended(problems.extended),
+                                 extended_cold=_FailingExtended(problems.extended))
+    s, _ = Evaluator(broken, warm=False).point(x, Seed(x, in_s=True))
+    assert s.in_s and s.h_pb == 0.0               # (2.24) converged: x ∈ S_PB
+    assert not s.ok and np.isnan(s.h), (s.ok, s.h)
+    assert "extended" in s.reason

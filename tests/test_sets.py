@@ -299,6 +299,32 @@ def test_containment_closed_cases() -> None:
     assert not disk(0.5).is_subset_of(Box.symmetric(0.49, 2))
 
 
+def test_nonconvex_function_set_support_is_refused_not_underestimated() -> None:
+    """Two unit discs centred at x₁ = −3 and x₁ = 6: the true support along e₁ is 7 (the
+    vertices of the discs, independent of any solver). The local NLP from x = 0 found the
+    left disc's −2, and ``S ⊆ {x₁ <= 2}`` was answered True (audit B, session 14). A row
+    that is not provably convex is refused now; a user's exact support is still used, and
+    convex rows (the disk) keep the NLP."""
+    import balustrade.backends  # noqa: F401 - registers the NLP support solver
+
+    def lobes(x: ca.SX) -> ca.SX:
+        return ca.fmin((x[0] + 3) ** 2 + x[1] ** 2 - 1, (x[0] - 6) ** 2 + x[1] ** 2 - 1)
+
+    S = FunctionSet(lobes, 2, name="lobes")
+    with pytest.raises(BalustradeError, match=r"lobes.support: row 0 .* not provably convex"):
+        S.support(np.array([1.0, 0.0]))
+    with pytest.raises(BalustradeError, match="not provably convex"):
+        S.is_subset_of(Box([-5.0, -2.0], [2.0, 2.0]))
+    exact = FunctionSet(lobes, 2, name="lobes", support=lambda fs, a: float(max(
+        a @ c + np.linalg.norm(a) for c in (np.array([-3.0, 0.0]), np.array([6.0, 0.0])))))
+    assert exact.support(np.array([1.0, 0.0])) == pytest.approx(7.0)
+    assert not exact.is_subset_of(Box([-5.0, -2.0], [2.0, 2.0]))
+    ring = FunctionSet(lambda x: 0.25 - ca.sumsqr(x), 2, name="outside_disc")  # concave row
+    with pytest.raises(BalustradeError, match="outside_disc.support: row 0"):
+        ring.support(np.array([1.0, 0.0]))
+    assert disk(2.0).support(np.array([0.6, 0.8])) == pytest.approx(2.0, abs=1e-6)
+
+
 def test_function_set_operations() -> None:
     D = disk(1.0, name="D")
     A = np.array([[2.0, 0.0], [1.0, 1.0]])

@@ -207,6 +207,11 @@ class ApproximatePCBFFilter:
             exact_shortcut=bool(self.exact_shortcut), network=self.network)
 
 
+#: Algorithm 8.7: the most candidate inputs per step (each one ``ĥ(f(x, u))`` evaluation);
+#: the thesis' grid has 55
+MAX_GRID_POINTS = 1_000_000
+
+
 class GridPCBFFilter:
     """Algorithm 8.7 (SPEC §2.34): the input-grid approximate PCBF filter with rate limits.
 
@@ -236,6 +241,14 @@ class GridPCBFFilter:
         if np.any(self.spacing <= 0) or np.any(self.half_width < 0):
             raise BalustradeError("GridPCBFFilter: spacing must be positive and half_width "
                                   "nonnegative")
+        if not (np.all(np.isfinite(self.half_width)) and np.all(np.isfinite(self.spacing))):
+            raise BalustradeError("GridPCBFFilter: half_width and spacing must be finite")
+        counts = 2 * np.floor(self.half_width / self.spacing + 1e-9) + 1
+        if float(np.prod(counts)) > MAX_GRID_POINTS:
+            raise BalustradeError(f"GridPCBFFilter: half_width {self.half_width} and spacing "
+                                  f"{self.spacing} give {float(np.prod(counts)):.3g} candidate "
+                                  f"inputs per step (at most {MAX_GRID_POINTS:g}); widen the "
+                                  "spacing")
         axes = [np.arange(-np.floor(w / s + 1e-9), np.floor(w / s + 1e-9) + 1) * s
                 for w, s in zip(self.half_width, self.spacing)]
         self.offsets = np.array(list(itertools.product(*axes)), dtype=float)

@@ -140,7 +140,9 @@ class MaximalDecrease:
         self._h_next_buf = Buffered(self._h_next)
         self._h_buf = Buffered(ca.Function("h", [x], [self.h(x)]))
         self._grad = Buffered(ca.Function("h_next_grad", [x, u], [ca.gradient(h_next, u)]))
-        self._fast_nlp = FastNLP(self.compiled)
+        # a local optimum of (7.6) is only a candidate (its value is evaluated again and
+        # any point of U bounds the minimum): an acceptable stop needs no status check
+        self._fast_nlp = FastNLP(self.compiled, check_stop=False)
 
     def _project(self, u: np.ndarray) -> np.ndarray:
         """``Π_U(u)``: a clip for a box, the exact projection otherwise."""

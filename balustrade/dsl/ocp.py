@@ -317,7 +317,7 @@ class OCP:
         """``u_{i|k} ∈ U`` (or ``U_i`` per step, e.g. ``U ⊖ K E_i`` (2.14)) for the steps."""
         sys = self._need_system("input_constraint")
         steps = self._steps(steps, name)
-        sets = self._per_step_sets(U, steps, sys.nu, name)
+        sets = self._per_step_sets(U, steps, sys.nu, name, last=self.N - 1)  # u: N columns
         delta = self._deltas(tightening, steps, name)
         rows = [S.c(self.u[:, i]) + d for S, i, d in zip(sets, steps, delta)]
         return self.le(ca.horzcat(*rows), 0, name=name, tag="input")
@@ -357,7 +357,7 @@ class OCP:
         """``c_{x,f}(x_{N|k}) + Δ <= ξ_N`` (hard when ``slack=None``) ((2.9), (2.11))."""
         sys = self._need_system("terminal_constraint")
         self._check_set_dim(Xf, sys.nx, name)
-        delta = as_scalar(tightening, f"{self.name}: {name}: tightening")
+        delta = as_scalar(tightening, f"{self.name}: {name}: tightening", low=0.0)
         lhs = Xf.c(self.x[:, self.N]) + delta
         xi = self._slack(slack, lhs.shape, signed, name)
         self.le(lhs, 0 if xi is None else xi, name=name, tag="terminal")
@@ -457,16 +457,19 @@ class OCP:
         return out
 
     def _per_step_sets(self, S: Set | Sequence[Set], steps: list[int], dim: int,
-                       block: str) -> list[Set]:
+                       block: str, last: int | None = None) -> list[Set]:
+        """One set per step of ``steps``, each of dimension ``dim``; steps in ``0..last``
+        (default ``N``: the state columns; ``N − 1`` for the inputs)."""
         sets = list(S) if isinstance(S, (list, tuple)) else [S] * len(steps)
         if len(sets) != len(steps):
             raise ShapeError(f"{self.name}: {block}", f"{len(steps)} sets (one per step)",
                              f"{len(sets)} sets", what="")
         for s in sets:
             self._check_set_dim(s, dim, block)
-        bad = [i for i in steps if not 0 <= i <= self.N]
+        last = self.N if last is None else last
+        bad = [i for i in steps if not 0 <= i <= last]
         if bad:
-            raise BalustradeError(f"{self.name}: {block}: steps {bad} outside 0..{self.N}")
+            raise BalustradeError(f"{self.name}: {block}: steps {bad} outside 0..{last}")
         return sets
 
     def _check_set_dim(self, S: Set, dim: int, block: str) -> None:
@@ -488,12 +491,20 @@ class OCP:
                     value = tightening(i)
                 except Exception as exc:  # the user's function failed
                     raise BalustradeError(f"{where}: Δ(i) failed at step {i}: {exc}") from exc
-                values.append(as_scalar(value, f"{where} Δ_{i}"))
+                values.append(as_scalar(value, f"{where} Δ_{i}", low=0.0))
             return values
         arr = as_float_array(tightening, where)
         if arr.ndim == 0:
-            return [as_scalar(arr, where)] * len(steps)
-        return [float(d) for d in as_vector(arr, where, len(steps))]
+            return [as_scalar(arr, where, low=0.0)] * len(steps)
+        values = [float(d) for d in as_vector(arr, where, len(steps))]
+        negative = [k for k, d in enumerate(values) if d < 0]
+        if negative:
+            # a negative Δ_i would relax the hard row c(x) + Δ_i <= 0 beyond the declared set
+            # (SPEC §1.4: 0 = Δ_0 < Δ_1 < …; docs/language.md "Bad input")
+            raise BalustradeError(f"{where}: Δ_i must be nonnegative (a negative one relaxes "
+                                  f"the constraint beyond the declared set); entries "
+                                  f"{negative} are {[values[k] for k in negative]}")
+        return values
 
     def _as_column(self, value: object, size: int, block: str) -> ca.SX:
         if isinstance(value, (ca.SX, ca.DM)):

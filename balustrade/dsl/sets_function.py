@@ -82,7 +82,8 @@ class FunctionSet(Set):
 
     def support(self, a: np.ndarray) -> float:
         """Support value ``max {aᵀx : c(x) <= 0}`` by the set's support solver (module
-        docstring; the backends' local NLP is exact when ``c`` is convex)."""
+        docstring; the backends' local NLP is exact when ``c`` is convex and refuses a row
+        that is not provably convex: affine or a convex quadratic)."""
         a = as_vector(a, f"{self.name}.support(a)", self.dim)
         fn = self._support or (_DEFAULT_SUPPORT[0] if _DEFAULT_SUPPORT else None)
         if fn is None:

@@ -217,6 +217,12 @@ class Evaluator:
                 h_bar = float(e.objective)
         if in_s:
             h_pb = 0.0
+            # the label on S_PB is c_h·h̄_PB (7.9): only from a converged (7.8); the
+            # objective of a failed one (e.g. (7.8) failed, then (2.24) placed x in S_PB)
+            # is no value of h̄_PB, and the row is dropped (audit B, session 14)
+            e = sols.get("extended")
+            if e is None or not e.success:
+                ok, h_bar = False, math.nan
             h = self.p.c_h * min(h_bar, 0.0) if np.isfinite(h_bar) else math.nan
         else:
             h = h_pb
