@@ -112,3 +112,14 @@ def test_default_eight_masses_runs_row_generation_on_piqp() -> None:
     assert compiled.rowgen is not None
     m, n = compiled.program.A.shape
     assert m * n > SIZED_DENSE_LIMIT
+
+
+def test_default_is_not_emitted_as_c(msd3, tmp_path) -> None:
+    """The C of Algorithm 4.1 stays the ``convex-qp`` one: ``emit_rapsf`` refuses the
+    default (direct backend) and names the target to use, before writing anything."""
+    from balustrade.codegen.emit_rapsf import emit_rapsf
+    from balustrade.errors import BalustradeError
+
+    with pytest.raises(BalustradeError, match="convex-qp"):
+        emit_rapsf(_controller(msd3), "r", tmp_path)
+    assert not list(tmp_path.iterdir())
