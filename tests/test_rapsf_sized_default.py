@@ -71,7 +71,8 @@ def test_size_rule_direction_on_the_three_mass_problem(msd3) -> None:
     """At a limit equal to the lowered (4.5)'s ``m · n`` DAQP is chosen, one entry below it
     PIQP: the rule hands DAQP the small problems, not the large ones."""
     ctrl = _controller(msd3)
-    ctrl.step(msd3["setup"].x0, np.zeros(3))
+    _, info = ctrl.step(msd3["setup"].x0, np.zeros(3))
+    assert info.solutions["rapsf"].solver == "daqp"
     (compiled,) = [c for c in ctrl._compiled.values() if c.ocp.N == ctrl.N]
     m, n = compiled.program.A.shape
     assert compiled.program.large is None and compiled.solver_name == "daqp"
