@@ -7,6 +7,9 @@ others, where ``Θ_{k−1} ⊆ Δ_k``; and the constants ``s_jr`` of a new ``Θ_
 Paths, timed interleaved on the same states in one run (blocks of 10 steps, path after path,
 :func:`benchmarks._timing.interleaved`), each one ``controller.step`` per state:
 
+* ``default`` — ``RAPSF(...)`` without ``target=`` (:data:`~balustrade.control.rapsf.
+  DEFAULT_TARGET`, ``"fast-convex-sized"``: DAQP hot-started on 3 masses, row generation on
+  PIQP on 8; the row's ``engine`` says which solver ran);
 * ``fast-convex`` — :class:`~balustrade.control.rapsf.RAPSF` with the ``Θ_k``-vertex data as
   parameters: (4.5) compiled once, the direct backend updates the values of the constraint
   matrix ``A(p)`` per step;
@@ -49,7 +52,7 @@ import cvxpy as cp
 import numpy as np
 
 from balustrade.backends.cvxpy_backend import SOLVER_OPTIONS
-from balustrade.control.rapsf import RAPSF, _small_vertices
+from balustrade.control.rapsf import DEFAULT_TARGET, RAPSF, _small_vertices
 from balustrade.design.rapsf import contractive_box, contractive_polytope, robust_gain
 from balustrade.errors import BalustradeError
 from balustrade.estimate import BoxUpdate
@@ -221,7 +224,8 @@ def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
     """The paths on ``steps`` states of ``d``'s chain (without the recompiling ``fast-convex
     constants`` path unless ``constants``)."""
     n = d["n"]
-    paths = {"fast-convex": _controller(d, "fast-convex", "parameters"),
+    paths = {"default": _controller(d, DEFAULT_TARGET, "parameters"),
+             "fast-convex": _controller(d, "fast-convex", "parameters"),
              "fast-convex every row": every_row(_controller(d, "fast-convex",
                                                             "parameters")),
              "fast-convex-conic": _controller(d, "fast-convex-conic", "parameters"),
@@ -254,7 +258,8 @@ def bench_size(d: dict, steps: int, constants: bool = True) -> list[dict]:
             row.update(baseline=BASELINE, ratio=t_base / times[k],
                        max_du_vs_fast_convex=float(np.max(np.abs(np.array(loop.applied)
                                                                  - ref))),
-                       fallbacks=loop.fallbacks,
+                       fallbacks=loop.fallbacks, target=paths[k].target.name,
+                       engine=paths[k].engine,
                        update_lp_steps=sum(r.lps > 0 for r in paths[k].estimator.history))
         row.update(goal_s=GOAL_S[n], vs_thesis=THESIS_S[n] / times[k], steps=steps - 1,
                    n_vertices=int(len(d["setup"].Theta0.vertices())),

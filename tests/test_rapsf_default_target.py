@@ -1,5 +1,6 @@
-"""RAPSF's default target is ``fast-convex`` (the direct QP backend; row generation on large
-problems), the one docs/adaptive.md calls the Python default, and it gives the inputs
+"""RAPSF's default target is ``fast-convex-sized`` (the direct QP backend: DAQP on small (4.5),
+PIQP on large, row generation on large problems; session 14, before it ``fast-convex``), the one
+docs/adaptive.md calls the Python default, and it gives the inputs
 ``exact`` (IPOPT) gives (audit session 13, finding 7; measured on 3 and 8 masses by
 ``benchmarks/rapsf_default_target.py``)."""
 
@@ -21,7 +22,7 @@ def test_default_is_fast_convex_with_the_inputs_of_exact(rapsf_toy) -> None:
                      estimator=BoxUpdate(t.sys, t.W, t.Theta0), **kw)
 
     default, exact = make(), make(target="exact")
-    assert default.target.name == "fast-convex" and default.target.is_preset()
+    assert default.target.name == "fast-convex-sized" and default.target.is_preset()
     rng = np.random.default_rng(5)
     x, theta = np.array([0.9, 0.2]), np.array([1.2, 0.3])
     for k in range(8):

@@ -25,6 +25,7 @@ sign convention of the other backends (``≥ 0`` for ``g <= 0`` rows, ``∇f + �
 
 from __future__ import annotations
 
+import numbers
 import time
 from collections.abc import Callable, Iterator, Mapping
 
@@ -50,6 +51,27 @@ from balustrade.errors import BalustradeError, SolverError
 
 #: statuses after which a solve is retried (unequilibrated, then with the cost rescaled)
 _RETRY = (Status.FAILED, Status.MAX_ITERATIONS, Status.OPTIMAL_INACCURATE)
+
+
+#: the option of a target without a solver that picks the engine of an LP/QP by its size
+#: (preset ``"fast-convex-sized"``): DAQP (:mod:`~balustrade.backends.daqp_engine`) when the
+#: lowered program's dense constraint matrix has at most this many entries, else PIQP
+DENSE_CHOICE = "daqp_max_entries"
+
+
+def _by_size(program: ConicProgram, limit: object, name: str) -> str:
+    """The engine of the LP/QP ``program`` when the target names no solver: ``"daqp"`` when
+    ``limit`` (option :data:`DENSE_CHOICE`) is given and ``m · n`` of the lowered program
+    (every row, the large ones included) is at most ``limit``, else ``"piqp"``."""
+    if limit is None:
+        return "piqp"
+    if isinstance(limit, bool) or not isinstance(limit, numbers.Integral) or limit < 1:
+        raise SolverError(f"{name}: option {DENSE_CHOICE} must be a positive int, got "
+                          f"{limit!r}")
+    m, n = program.A.shape
+    if program.large is not None:   # set aside, but solved with when a bound binds
+        m += program.large.A.shape[0]
+    return "daqp" if m * n <= limit else "piqp"
 
 
 def _run(engine: object, q: np.ndarray, b: np.ndarray, A: np.ndarray | None) -> RawResult:
@@ -111,8 +133,13 @@ class DirectCompiled:
         if options is not None and not isinstance(options, Mapping):
             raise SolverError(f"{ocp.name}: options must be a dict of solver options or None, "
                               f"got {type(options).__name__}")
-        self.solver_name = solver.lower() if solver else ("clarabel" if self.conic else "piqp")
         self.options = dict(options or {})
+        small = self.options.pop(DENSE_CHOICE, None)
+        if small is not None and solver is not None:
+            raise SolverError(f"{ocp.name}: option {DENSE_CHOICE} chooses the solver by size; "
+                              f"it takes a target without one, not solver {solver!r}")
+        self.solver_name = solver.lower() if solver else (
+            "clarabel" if self.conic else _by_size(program, small, ocp.name))
         rowgen = self.options.pop("row_generation", None)
         self.engine = make_engine(self.solver_name, program, self.options)
         #: row generation over the OCP's grouped rows (option ``row_generation``), or None

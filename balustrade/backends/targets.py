@@ -60,6 +60,11 @@ a solver (the older solver-named spellings in :data:`ALIASES` still resolve):
                        entries): a dual active-set solver kept across solves, hot-started
                        from the last working set; an answer is optimal only with DAQP's
                        "optimal" and a KKT residual <= 1e-8, else PIQP solves (opt-in).
+``"fast-convex-sized"`` ``fast-convex`` choosing its engine by the lowered LP/QP's size at
+                       compile time: ``fast-convex-daqp``'s engine up to
+                       :data:`SIZED_DENSE_LIMIT` dense constraint entries, else PIQP
+                       (cones: Clarabel); the compiled problem's ``solver_name`` and each
+                       ``Solution.solver`` say which. The default of RAPSF (Algorithm 4.1).
 ``"recovery"``         the attempt that leads a recovery step (Algorithms 5.2 and 6.4 outside
                        the robust safe set, ``recovery_target=``): the interior-point solver,
                        run first from a cold start when the problem's retry chain has it
@@ -354,6 +359,13 @@ class Target:
         return f"{self.name} ({self.backend}{':' + self.solver if self.solver else ''})"
 
 
+#: the largest dense constraint matrix (``m · n`` entries of the lowered LP/QP) that the
+#: preset ``"fast-convex-sized"`` hands to DAQP: the DAQP engine's own limit
+#: (:data:`balustrade.backends.daqp_engine.DENSE_LIMIT`, checked equal in the tests). 3-mass
+#: (4.5) is far below it (DAQP several times faster than PIQP), 8-mass (4.5) far above
+#: (DAQP 4x slower than row generation on PIQP; docs/adaptive.md, session 14)
+SIZED_DENSE_LIMIT = 2_000_000
+
 #: IPOPT's warm-start options (sampling paths, :mod:`balustrade.learn.sampler`)
 _IPOPT_WARM = {"ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,
                "ipopt.warm_start_mult_bound_push": 1e-9,
@@ -437,6 +449,10 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     # a hot-started dense active-set QP (backends/daqp_engine.py; session 14): 3-mass (4.5)
     # solves several times faster than PIQP with the same answers (docs/adaptive.md)
     Target("direct", "daqp", name="fast-convex-daqp"),
+    # the size rule (backends/direct_backend.py, DENSE_CHOICE; session 14): DAQP as above on
+    # LPs/QPs up to the DAQP engine's dense limit (daqp_engine.DENSE_LIMIT), PIQP beyond;
+    # RAPSF's default (3 masses: DAQP, 8 masses: row generation on PIQP)
+    Target("direct", None, {"daqp_max_entries": SIZED_DENSE_LIMIT}, name="fast-convex-sized"),
     # the lead of a recovery step (backends/recovery.py): the chain's interior-point retry
     # ("ipopt", {}), matched by solver and options, so the C runs the same attempt
     Target("casadi", "ipopt", name="recovery"),
@@ -525,5 +541,5 @@ def sampling_targets(spec: Target | str) -> tuple[Target, Target | None]:
 
 
 __all__ = ["ALIASES", "BACKEND_NAMES", "BUDGET_COMPANIONS", "BUDGET_OPTIONS", "PRESETS",
-           "REALTIME_ITERATIONS", "SAMPLING_PAIRS", "Budget", "Target", "companion",
-           "sampling_targets", "target"]
+           "REALTIME_ITERATIONS", "SAMPLING_PAIRS", "SIZED_DENSE_LIMIT", "Budget", "Target",
+           "companion", "sampling_targets", "target"]

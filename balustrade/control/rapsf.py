@@ -90,7 +90,14 @@ EMITTED_TARGETS = ("convex-qp",)
 #: themselves qualify (name and options: a user's Target named like one keeps its own
 #: options); ``RAPSF(..., row_generation=False)`` turns it off.
 ROWGEN_MIN_ROWS = 10000
-ROWGEN_FROM = ("fast-convex", "fast-convex-qp", "auto")
+ROWGEN_FROM = ("fast-convex", "fast-convex-qp", "fast-convex-sized", "auto")
+
+#: the target of ``RAPSF(...)`` without ``target=`` (session 14, issue #15): the direct
+#: backend choosing its QP engine by the size of the lowered (4.5) — the hot-started DAQP
+#: engine when small (3 masses: 0.75 vs 2.03 ms per closed-loop step, docs/adaptive.md),
+#: else PIQP, and row generation (on PIQP) from :data:`ROWGEN_MIN_ROWS` tube rows (8
+#: masses). :attr:`RAPSF.engine` and ``info.solutions["rapsf"].solver`` say which ran.
+DEFAULT_TARGET = "fast-convex-sized"
 
 
 class RAPSF:
@@ -120,7 +127,9 @@ class RAPSF:
     where it shortened the C step several-fold, docs/adaptive.md); ``"fast-convex"``
     ignores it. The inputs equal the cold ones only within the solver's accuracy.
 
-    ``target`` (default ``"fast-convex"``, the direct sparse QP backend; session 13): (4.5)
+    ``target`` (default :data:`DEFAULT_TARGET`, ``"fast-convex-sized"``: the direct backend
+    on DAQP for small (4.5), PIQP for large, row generation from :data:`ROWGEN_MIN_ROWS`
+    rows; session 14. Before it, ``"fast-convex"``, PIQP only, session 13): (4.5)
     is a QP, and on it ``"exact"`` (the NLP target) gave the same inputs (3 masses: within 3.8e-11
     over 30 closed-loop steps, the same fallbacks) at 27 ms against 2.0 ms per step; on 8
     masses (where ``"fast-convex"`` becomes row generation, below) 6–22 s against 12–69 ms,
@@ -136,7 +145,7 @@ class RAPSF:
     def __init__(self, system: object, X0: Polytope, F: np.ndarray, G: np.ndarray,
                  W: Polytope, K: np.ndarray, N: int, Theta0: Polytope,
                  estimator: object | None = None, backup: Backup | object | None = None,
-                 target: object = "fast-convex", shrinking: bool = False,
+                 target: object = DEFAULT_TARGET, shrinking: bool = False,
                  terminal: TerminalSet | None = None, tol: float = 1e-7,
                  enlarge: bool | TerminalEnlargement = False, name: str = "rapsf",
                  vertex_data: str = "parameters", warm_start: bool = False,
@@ -187,6 +196,7 @@ class RAPSF:
         self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
         self._s_l1 = None if self._s_affine is not None else _s_l1(system, X0, self.K)
         self._compiled: dict = {}
+        self._engine: str | None = None     # the solver of the last full-horizon (4.5)
         if terminal is None or terminal.H_T is None:
             self._check_default_terminal(tol)
         self.enlargement = _enlargement(enlarge, self.n, terminal, self._X0_vertices, name)
@@ -339,7 +349,11 @@ class RAPSF:
         if self.warm_start and horizon == self.N and self.k_inf == 0 \
                 and self._last is not None and self._last[0] == key:
             warm = self._last[1]
-        sol = self._compiled[key].solve(params, warm_start=warm)
+        compiled = self._compiled[key]
+        if horizon == self.N:
+            self._engine = getattr(compiled, "solver_name", None) or getattr(
+                getattr(compiled, "target", None), "nlp_solver", None)
+        sol = compiled.solve(params, warm_start=warm)
         if horizon == self.N:
             self._last = (key, sol) if outcome(sol) == "optimal" else None
         return sol
@@ -358,6 +372,13 @@ class RAPSF:
             self._compiled = {}     # compiled for the other choice
             self._last = None
         self._row_generation = value
+
+    @property
+    def engine(self) -> str | None:
+        """The solver of the last (4.5) of full horizon solved (``"daqp"``, ``"piqp"``,
+        ``"clarabel"`` on the direct backend, the NLP solver on CasADi, ...): the choice of
+        the size rule of the default target; ``None`` before the first step."""
+        return self._engine
 
     def _target_for(self, ocp: object) -> object:
         """The target (4.5) is compiled for in :meth:`step`: ``fast-convex-rowgen`` in place
