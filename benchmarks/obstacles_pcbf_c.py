@@ -10,8 +10,8 @@ in Python and as emitted C (issue #16: "PCBF <= 50 ms").
   :data:`~balustrade.reproduce.obstacles.SHIFTED_RETRY_SOLVER`, -1: the chain's last solver
   makes the shifted-plan attempt; 0 is session 12's, the first solver); the emitted C
   warm-starts (2.24) from its last solution, so the Python filter does too (same
-  decisions) and ``fatrop_stall`` (default :data:`~balustrade.reproduce.obstacles.
-  FATROP_STALL`, fatrop's stall stop, a failure that moves the chain on; ``off``: none;
+  decisions) and ``stall_stop`` (default :data:`~balustrade.reproduce.obstacles.
+  STALL`, fatrop's stall stop, a failure that moves the chain on; ``off``: none;
   session 14); its C through
   :func:`~balustrade.codegen.accelerate` (:func:`~balustrade.codegen.emit_pcbf`, one call
   per step; with ``structured-ip`` it links the casadi wheel's libfatrop/libblasfeo and
@@ -50,23 +50,23 @@ BUILD_DIR = Path("/tmp/balustrade-obstacles-pcbf-c")
 def build_pair(target: str = "structured-ip", build_dir: str | Path = BUILD_DIR,
                certificate_first: bool = True,
                shifted_retry_solver: int = O.SHIFTED_RETRY_SOLVER,
-               fatrop_stall: tuple[float, int] | None = O.FATROP_STALL) -> dict:
+               stall_stop: tuple[float, int] | None = O.STALL) -> dict:
     """The Python PCBF algorithm on ``target`` and its emitted C (cached build)."""
     py = O.pcbf_algorithm(target, shifted=False, certificate_first=certificate_first,
-                          shifted_retry_solver=shifted_retry_solver, fatrop_stall=fatrop_stall)
+                          shifted_retry_solver=shifted_retry_solver, stall_stop=stall_stop)
     # the Python backend builds its retry solvers on first use (~0.2 s under load), the C
     # allocates them at init: built here, so that no step's time includes a build
     for prob in (py.slack, py.filter):
         getattr(prob, "_retry_solvers", lambda: None)()
     t = time.perf_counter()
     c = O.pcbf_algorithm_c(target, build_dir=build_dir, certificate_first=certificate_first,
-                           shifted_retry_solver=shifted_retry_solver, fatrop_stall=fatrop_stall)
+                           shifted_retry_solver=shifted_retry_solver, stall_stop=stall_stop)
     wall = time.perf_counter() - t
     acc = c.accelerated
     d = Path(acc["dir"])
     size = sum(p.stat().st_size for p in d.rglob("*.[ch]"))
     return {"py": py, "c": c, "shifted_retry_solver": shifted_retry_solver,
-            "fatrop_stall": fatrop_stall,
+            "stall_stop": stall_stop,
             "build_s": acc["build_s"], "cached": acc["cached"],
             "accelerate_s": wall, "source_bytes": size, "dir": str(d),
             "link_flags": list(c._lib.manifest.get("link_flags", []))}
@@ -199,9 +199,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--fatrop-stall", default=None, metavar="TOL,ITERS",
                     help="fatrop's stall stop (tol_acceptable, acceptable_iter; a failure "
                          "that moves the chain on); 'off': none; default "
-                         f"{O.FATROP_STALL}")
+                         f"{O.STALL}")
     a = ap.parse_args(argv)
-    stall = O.FATROP_STALL
+    stall = O.STALL
     if a.fatrop_stall == "off":
         stall = None
     elif a.fatrop_stall:

@@ -49,7 +49,7 @@ def _parse(spec: str) -> tuple[float, int] | None:
 def _recorded(stall: tuple[float, int] | None) -> tuple[object, list]:
     """The Python PCBF algorithm with ``stall`` and a list that records every attempt of
     its two problems as (problem, solver, message, iterations)."""
-    f = O.pcbf_algorithm("structured-ip", shifted=False, fatrop_stall=stall)
+    f = O.pcbf_algorithm("structured-ip", shifted=False, stall_stop=stall)
     calls: list = []
     for name in ("slack", "filter"):
         prob = getattr(f, name)

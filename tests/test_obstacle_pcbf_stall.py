@@ -1,5 +1,5 @@
 """fatrop's stall stop on the §8.3 PCBF algorithm (issue #16/#14, session 14;
-docs/obstacles.md "session 14"): :data:`~balustrade.reproduce.obstacles.FATROP_STALL` sets
+docs/obstacles.md "session 14"): :data:`~balustrade.reproduce.obstacles.STALL` sets
 fatrop's ``tol_acceptable``/``acceptable_iter`` so that a stalled fatrop run stops as
 ``StopAtAcceptablePoint``. That stop must be a *failure* in Python and in the C (the chain
 goes on; an acceptable point is never used as the optimum), and the options must reach the
@@ -18,6 +18,7 @@ import ctypes
 import numpy as np
 import pytest
 
+from balustrade.backends.stall import with_stall_stop
 from balustrade.backends.targets import target as resolve
 from balustrade.errors import BalustradeError
 from balustrade.models.obstacle_car import obstacle_car, obstacle_setup, signed_distance
@@ -28,29 +29,29 @@ FORCED = (1e3, 1)  # every fatrop run stops at its first iterate
 
 
 def test_stall_target_adds_the_stop_to_fatrop_targets_only():
-    t = O.stall_target("structured-ip")
+    t = with_stall_stop("structured-ip")
     fat = t.options["fatrop"]
-    assert (fat["tol_acceptable"], fat["acceptable_iter"]) == O.FATROP_STALL
+    assert (fat["tol_acceptable"], fat["acceptable_iter"]) == O.STALL
     assert fat["max_iter"] == 300 and fat["print_level"] == 0  # the defaults kept
     assert t.retries == resolve("structured-ip").retries
-    assert O.stall_target("exact") == "exact"
-    assert O.stall_target("structured-ip", None) == "structured-ip"
+    assert with_stall_stop("exact") == "exact"
+    assert with_stall_stop("structured-ip", None) == "structured-ip"
     # a user's own fatrop options are kept
     mine = resolve("structured-ip").with_options({"fatrop": {"max_iter": 50}})
-    assert O.stall_target(mine).options["fatrop"]["max_iter"] == 50
+    assert with_stall_stop(mine).options["fatrop"]["max_iter"] == 50
 
 
 @pytest.mark.parametrize("bad", [(1e-3,), (0.0, 20), (1e-3, 0), (1e-3, 2.5), (np.nan, 20),
                                  "1e-3,20", (True, 20)])
 def test_a_bad_stall_is_refused_before_any_solver_is_built(bad):
-    with pytest.raises(BalustradeError, match="fatrop_stall"):
-        O.pcbf_algorithm("structured-ip", horizon=SHORT, fatrop_stall=bad)
+    with pytest.raises(BalustradeError, match="stall_stop"):
+        O.pcbf_algorithm("structured-ip", horizon=SHORT, stall_stop=bad)
 
 
 def test_the_cold_fatrop_retry_shares_the_stop():
     f = O.pcbf_algorithm("structured-ip", shifted=False, horizon=SHORT)
     for prob in (f.slack, f.filter):
-        assert prob.options["fatrop"]["acceptable_iter"] == O.FATROP_STALL[1]
+        assert prob.options["fatrop"]["acceptable_iter"] == O.STALL[1]
         solvers = prob._retry_solvers()
         assert solvers[0] is prob.solver  # ("fatrop", {}): the same solver, same options
 
@@ -73,9 +74,9 @@ def _counted(f) -> dict[str, list]:
 
 @pytest.fixture(scope="module")
 def forced(tmp_path_factory):
-    c = O.pcbf_algorithm_c("structured-ip", horizon=SHORT, fatrop_stall=FORCED,
+    c = O.pcbf_algorithm_c("structured-ip", horizon=SHORT, stall_stop=FORCED,
                            build_dir=tmp_path_factory.mktemp("obstacle_stall"))
-    py = O.pcbf_algorithm("structured-ip", shifted=False, horizon=SHORT, fatrop_stall=FORCED)
+    py = O.pcbf_algorithm("structured-ip", shifted=False, horizon=SHORT, stall_stop=FORCED)
     return py, c
 
 

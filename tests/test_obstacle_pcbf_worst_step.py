@@ -6,7 +6,7 @@ and cold (3 × 301 iterations), then IPOPT cold (203): 0.6 s idle, 0.85–1.8 s 
 With ``shifted_retry_solver = -1`` (:data:`~balustrade.reproduce.obstacles.
 SHIFTED_RETRY_SOLVER`) the chain's IPOPT runs from the certified plan right after the first
 fatrop attempt and converges in a few iterations to the optimum IPOPT reaches cold.
-Session 14: fatrop's stall stop (:data:`~balustrade.reproduce.obstacles.FATROP_STALL`) ends
+Session 14: fatrop's stall stop (:data:`~balustrade.reproduce.obstacles.STALL`) ends
 that first attempt as a failure after ~32 instead of 301 iterations; the same IPOPT attempt
 then gives the same answer."""
 
@@ -22,12 +22,12 @@ from balustrade.reproduce import obstacles as O
 START, STEP = (-0.5, -1.5), 48
 
 
-def _attempts_at_worst_step(shifted_retry_solver: int, fatrop_stall: object = O.FATROP_STALL
+def _attempts_at_worst_step(shifted_retry_solver: int, stall_stop: object = O.STALL
                             ) -> tuple[list[tuple], object]:
     """Run the reference loop from ``START`` to ``STEP`` and record that step's (2.23)
     attempts as (solver, status, iterations, message)."""
     f = O.pcbf_algorithm("structured-ip", shifted=False,
-                         shifted_retry_solver=shifted_retry_solver, fatrop_stall=fatrop_stall)
+                         shifted_retry_solver=shifted_retry_solver, stall_stop=stall_stop)
     plant = check_plant(obstacle_car(), "worst step")
     mpc, x = O.NaiveMPC(), O.initial_state(START)
     mpc.start(x)
@@ -70,7 +70,7 @@ def test_the_stall_stop_ends_the_first_attempt_early_with_the_same_answer():
     ``acceptable_iter``); without it, it runs to ``max_iter`` (301). IPOPT from the plan
     follows either way, with the same input and objective."""
     calls, info = _attempts_at_worst_step(O.SHIFTED_RETRY_SOLVER)
-    off, info_off = _attempts_at_worst_step(O.SHIFTED_RETRY_SOLVER, fatrop_stall=None)
+    off, info_off = _attempts_at_worst_step(O.SHIFTED_RETRY_SOLVER, stall_stop=None)
     assert [c[0] for c in calls] == [c[0] for c in off] == ["fatrop", "ipopt"]
     assert calls[0][3].startswith("fatrop: StopAtAcceptablePoint") and calls[0][2] < 60
     assert calls[0][1] == "failed"

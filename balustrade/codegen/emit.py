@@ -277,7 +277,7 @@ def c_solver_options(plugin: str, opts: dict) -> dict:
     emitted targets (``EMITTED_STOP_OPTIONS``), which an attempt carries only when Python's
     does (the retries of an as-emitted target). So C and Python run each attempt with the
     same options by construction: ``exact``, ``long-horizon`` and ``sampling-*`` keep
-    IPOPT's acceptable stop in C as in Python (flagged ``optimal_inaccurate`` by
+    the interior-point solver's acceptable stop in C as in Python (flagged ``optimal_inaccurate`` by
     ``<P>_inaccurate``), where the C used to switch it off (session 14)."""
     stop = EMITTED_STOP_OPTIONS.get(plugin, {})
     verdict = {k: v for k, v in STATUS_OPTIONS.get(plugin, {}).items() if k not in stop}

@@ -630,7 +630,7 @@ class CApproximatePCBFFilter(_OwnsWork):
         self._counter = self._lib.fn(f"{A}_counter", ctypes.c_long, [vp, ctypes.c_int])
         self._set_certify = self._lib.fn(f"{A}_set_certify", None, [vp, ctypes.c_int])
         self._replaced = self._lib.fn(f"{A}_proposal_replaced", ctypes.c_int, [vp])
-        # a (7.5) whose solver can stop at its acceptable level (IPOPT): its BAL_OK is
+        # a (7.5) whose solver can stop at its acceptable level: its BAL_OK is
         # named optimal_inaccurate, as ApproximatePCBFFilter records it
         self._filter_inaccurate = self._lib.fn(f"{A}_inaccurate", ctypes.c_int, [vp]) \
             if m["problems"]["filter"].get("acceptable_stop", True) else None

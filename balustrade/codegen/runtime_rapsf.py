@@ -9,9 +9,9 @@ C step, and passes the vertices (padded by repetition, as the Python controller 
 and ``s`` to the C. With the Remark 4.6 variant emitted (``shrinking=True``) the C also
 solves (4.5) with the horizon ``N − k_inf`` after a failure; its status is recorded as
 the Python controller records it (``"shrunk_horizon"``, or ``uncertified["rapsf_shrunk"]``
-when it failed too). A (4.5) on IPOPT that stopped at its acceptable level (``BAL_OK`` with
+when it failed too). A (4.5) whose solver stopped at its acceptable level (``BAL_OK`` with
 ``<name>_inaccurate`` 1) is not used by the C, as RAPSF uses only an ``optimal`` solve, and
-is named ``optimal_inaccurate`` (tests/test_rapsf_ipopt_status.py)."""
+is named ``optimal_inaccurate`` (tests/test_rapsf_acceptable_stop.py)."""
 
 from __future__ import annotations
 
@@ -83,7 +83,7 @@ class CRAPSF(_OwnsWork):
         self.shrinking = bool(m.get("shrinking", False))
         self._k_inf = self._lib.fn(f"{Q}_k_inf", ci, [vp])
         self._objective = self._lib.fn(f"{Q}_objective", ctypes.c_double, [vp])
-        # an attempt that can stop at its acceptable level (IPOPT): the C does not use
+        # an attempt that can stop at its acceptable level: the C does not use
         # such a BAL_OK, as RAPSF does not use an optimal_inaccurate solve; its word
         self._inaccurate = self._lib.fn(f"{Q}_inaccurate", ci, [vp, ci]) if any(
             p.get("acceptable_stop", True) for p in m["problems"].values()) else None

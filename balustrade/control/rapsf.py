@@ -93,10 +93,12 @@ ROWGEN_MIN_ROWS = 10000
 ROWGEN_FROM = ("fast-convex", "fast-convex-qp", "fast-convex-sized", "auto")
 
 #: the target of ``RAPSF(...)`` without ``target=`` (session 14, issue #15): the direct
-#: backend choosing its QP engine by the size of the lowered (4.5) — the hot-started DAQP
-#: engine when small (3 masses: 0.75 vs 2.03 ms per closed-loop step, docs/adaptive.md),
-#: else PIQP, and row generation (on PIQP) from :data:`ROWGEN_MIN_ROWS` tube rows (8
-#: masses). :attr:`RAPSF.engine` and ``info.solutions["rapsf"].solver`` say which ran.
+#: backend choosing its QP engine by the size of the lowered (4.5) — a hot-started dense
+#: active-set engine when small (3 masses: 0.75 vs 2.03 ms per closed-loop step,
+#: docs/adaptive.md "Session 14: the default"), else the sparse interior-point engine, and row
+#: generation from :data:`ROWGEN_MIN_ROWS` tube rows (8 masses); the preset names the
+#: solvers (backends/targets.py). :attr:`RAPSF.engine` and
+#: ``info.solutions["rapsf"].solver`` say which ran.
 DEFAULT_TARGET = "fast-convex-sized"
 
 
@@ -128,8 +130,9 @@ class RAPSF:
     ignores it. The inputs equal the cold ones only within the solver's accuracy.
 
     ``target`` (default :data:`DEFAULT_TARGET`, ``"fast-convex-sized"``: the direct backend
-    on DAQP for small (4.5), PIQP for large, row generation from :data:`ROWGEN_MIN_ROWS`
-    rows; session 14. Before it, ``"fast-convex"``, PIQP only, session 13): (4.5)
+    with a hot-started dense active-set engine for small (4.5), the sparse interior-point one
+    for large, row generation from :data:`ROWGEN_MIN_ROWS` rows; session 14. Before it,
+    ``"fast-convex"``, the interior-point engine only, session 13): (4.5)
     is a QP, and on it ``"exact"`` (the NLP target) gave the same inputs (3 masses: within 3.8e-11
     over 30 closed-loop steps, the same fallbacks) at 27 ms against 2.0 ms per step; on 8
     masses (where ``"fast-convex"`` becomes row generation, below) 6–22 s against 12–69 ms,
@@ -375,8 +378,8 @@ class RAPSF:
 
     @property
     def engine(self) -> str | None:
-        """The solver of the last (4.5) of full horizon solved (``"daqp"``, ``"piqp"``,
-        ``"clarabel"`` on the direct backend, the NLP solver on CasADi, ...): the choice of
+        """The solver of the last (4.5) of full horizon solved (the engine's name on the
+        direct backend, the NLP solver's on CasADi, as its ``Solution.solver``): the choice of
         the size rule of the default target; ``None`` before the first step."""
         return self._engine
 

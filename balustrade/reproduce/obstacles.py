@@ -42,14 +42,12 @@ from pathlib import Path
 import numpy as np
 
 from balustrade.backends import compile
-from balustrade.backends.casadi_backend import DEFAULT_OPTIONS
+from balustrade.backends.stall import STALL_STOP, check_stall_stop, with_stall_stop
 from balustrade.backends.targets import Target
-from balustrade.backends.targets import target as resolve_target
 from balustrade.control.approximate import ApproximatePCBFFilter
 from balustrade.control.base import simulate
 from balustrade.control.mpc import MPCController
 from balustrade.control.pcbf import PCBFSafetyFilter
-from balustrade.errors import BalustradeError
 from balustrade.learn.export import to_casadi
 from balustrade.learn.train import MLPModel, TrainConfig
 from balustrade.models.obstacle_car import (
@@ -119,50 +117,18 @@ class NaiveMPC:
 #: docs/obstacles.md "session 13")
 SHIFTED_RETRY_SOLVER = -1
 
-#: fatrop's stall stop on the PCBF algorithm's problems (``(tol_acceptable,
-#: acceptable_iter)``, fatrop 1.1.8's options; session 14, docs/obstacles.md): a fatrop run
-#: whose scaled optimality error stays at most 1e-3 for 20 consecutive iterations without
-#: meeting its tolerance stops as ``StopAtAcceptablePoint``, a *failure* in Python
-#: (``casadi_backend._FATROP_FLAGS``) and in the C (its fatrop returns nonzero unless
-#: ``Success``), so the (2.23) chain goes on to IPOPT from the certified plan after ~32
-#: instead of 301 stalled iterations (from (−0.5, −1.5), step 48). Measured: on the 5
-#: reference loops and 200 cold states it changed no other attempt (acceptable_iter 15, 20,
-#: 30 and tol 1e-4 … 1e-2 alike); acceptable_iter 10 cut a warm solve that converges in 37
-#: iterations. ``None``: fatrop's own stopping rule (its acceptable stop off).
-FATROP_STALL: tuple[float, int] | None = (1e-3, 20)
-
-
-def stall_target(target: Target | str, stall: tuple[float, int] | None = FATROP_STALL
-                 ) -> Target | str:
-    """``target`` (a preset name or a :class:`~balustrade.backends.targets.Target`) with
-    fatrop's stall stop ``stall = (tol_acceptable, acceptable_iter)`` added when its solver
-    is fatrop (its other fatrop options kept; the chain's cold fatrop retry shares the
-    solver, hence the stop); any other target, or ``stall=None``, is returned as given.
-    ``stall`` must be ``None`` or a pair (a positive finite number, an integer >= 1)."""
-    if stall is None:
-        return target
-    ok = isinstance(stall, tuple | list) and len(stall) == 2
-    if ok:
-        tol, iters = stall
-        ok = (isinstance(tol, int | float) and not isinstance(tol, bool)
-              and np.isfinite(tol) and tol > 0 and isinstance(iters, int | np.integer)
-              and not isinstance(iters, bool) and iters >= 1)
-    if not ok:
-        raise BalustradeError(f"stall_target: fatrop_stall must be None or (tol_acceptable > 0, "
-                              f"acceptable_iter >= 1), got {stall!r}")
-    t = resolve_target(target)
-    if t.backend != "casadi" or t.solver != "fatrop":
-        return target
-    fat = {**DEFAULT_OPTIONS["fatrop"]["fatrop"], **dict(t.options.get("fatrop", {})),
-           "tol_acceptable": float(tol), "acceptable_iter": int(iters)}
-    return t.with_options({"fatrop": fat})
+#: the stall stop of the PCBF algorithm's first solver (session 14, docs/obstacles.md;
+#: :mod:`balustrade.backends.stall`): a stalled run is a failure, so the (2.23) chain goes on
+#: to its last resort from the certified plan after ~32 instead of 301 stalled iterations
+#: (from (−0.5, −1.5), step 48). ``None``: the solver's own stopping rule.
+STALL: tuple[float, int] | None = STALL_STOP
 
 
 def pcbf_algorithm(target: Target | str = "exact", shifted: bool = True,
                    horizon: int | None = None, certificate_first: bool = True,
                    shifted_retry: bool = True,
                    shifted_retry_solver: int = SHIFTED_RETRY_SOLVER,
-                   fatrop_stall: tuple[float, int] | None = FATROP_STALL
+                   stall_stop: tuple[float, int] | None = STALL
                    ) -> PCBFSafetyFilter:
     """The PCBF algorithm [41] for the car: (2.24) then (2.23), both with the hard
     terminal constraint (``ξ_N ≡ 0``); ``shifted``: (2.24) warm-started from the shifted last
@@ -185,11 +151,11 @@ def pcbf_algorithm(target: Target | str = "exact", shifted: bool = True,
     more from the certified shifted plan before the cold retries
     (``PCBFSafetyFilter(shifted_retry=True)``; docs/obstacles.md "session 12"), by the
     chain's solver ``shifted_retry_solver`` names (:data:`SHIFTED_RETRY_SOLVER`, the last:
-    session 13). ``fatrop_stall``: on a fatrop target, fatrop's stall stop
-    (:func:`stall_target`, :data:`FATROP_STALL`; ``None``: off)."""
+    session 13). ``stall_stop``: the target's stall stop
+    (:func:`~balustrade.backends.stall.with_stall_stop`, :data:`STALL`; ``None``: off)."""
     system = obstacle_car()
     s = obstacle_setup() if horizon is None else ObstacleSetup(N=int(horizon))
-    target = stall_target(target, fatrop_stall)
+    target = with_stall_stop(target, check_stall_stop(stall_stop, "pcbf_algorithm: stall_stop"))
     args = (system, s.X, s.U, s.N, s.deltas, s.delta_N)
     slack = compile(stopping_pcbf_problem(*args), target)
     filt = compile(stopping_filter_problem(*args), target)
@@ -203,7 +169,7 @@ def pcbf_algorithm_c(target: Target | str = PCBF_C_TARGET, horizon: int | None =
                      build_dir: str | Path | None = None, certificate_first: bool = True,
                      shifted_retry: bool = True,
                      shifted_retry_solver: int = SHIFTED_RETRY_SOLVER,
-                     fatrop_stall: tuple[float, int] | None = FATROP_STALL) -> object:
+                     stall_stop: tuple[float, int] | None = STALL) -> object:
     """The PCBF algorithm of :func:`pcbf_algorithm` (``shifted=False``) as emitted C, one
     call per step (:func:`~balustrade.codegen.accelerate`, cached in ``build_dir``;
     :class:`~balustrade.codegen.CPCBFSafetyFilter`, ``accelerated`` says where and how
@@ -212,14 +178,14 @@ def pcbf_algorithm_c(target: Target | str = PCBF_C_TARGET, horizon: int | None =
     the casadi wheel (``manifest["link_flags"]``). The Python filter
     making the same decisions is ``pcbf_algorithm(target, shifted=False, ...)`` with the
     same ``horizon``, ``certificate_first``, ``shifted_retry``, ``shifted_retry_solver``
-    and ``fatrop_stall`` (docs/obstacles.md, "session 12", "session 13", "session 14"; the
-    stall stop's options are set in the generated fatrop code, and the build is cached by
+    and ``stall_stop`` (docs/obstacles.md, "session 12", "session 13", "session 14"; the
+    stall stop's options are set in the generated solver code, and the build is cached by
     its source's hash)."""
     from balustrade.codegen import accelerate
 
     py = pcbf_algorithm(target, shifted=False, horizon=horizon,
                         certificate_first=certificate_first, shifted_retry=shifted_retry,
-                        shifted_retry_solver=shifted_retry_solver, fatrop_stall=fatrop_stall)
+                        shifted_retry_solver=shifted_retry_solver, stall_stop=stall_stop)
     name = "obstacles_pcbf" if horizon is None else f"obstacles_pcbf_n{int(horizon)}"
     name += "" if certificate_first else "_solve_all"
     name += "" if shifted_retry else "_no_retry"
