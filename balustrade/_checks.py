@@ -180,8 +180,16 @@ def check_horizon(N: object, block: str) -> int:
 
 
 def check_deltas(deltas: object, N: int, block: str) -> np.ndarray:
-    """Tightenings ``Δ_0, …, Δ_{N−1}``: ``N`` finite nonnegative numbers (a scalar is
-    repeated)."""
+    """Tightenings ``Δ_0, …, Δ_{N−1}`` of SPEC §1.4: ``N`` finite nonnegative numbers (a
+    scalar is repeated) with ``0 = Δ_0 < Δ_1 < … < Δ_{N−1}``.
+
+    ``Δ_0 ≠ 0`` and a decreasing step ``Δ_{i+1} < Δ_i`` are refused: with them the candidate
+    slack of (5.17) ``ξ̃_i = max(0, ξ*_{i+1} + (Δ_i − Δ_{i+1}))`` can exceed ``ξ*_{i+1}``, so
+    ``h̃`` (§1.12) can increase and the PCBF decrease of Theorem 2.30 is lost (``Δ_0 ≠ 0``
+    also moves the safe set ``{h_PB = 0}`` off ``{c_x(x) ≤ 0}``, SPEC §2.7 notes).
+    An equal step ``Δ_{i+1} = Δ_i`` (e.g. all zeros, the untightened problem) keeps
+    ``h̃`` non-increasing but not strictly decreasing: it is accepted with a
+    :class:`~balustrade.errors.TighteningWarning`."""
     where = f"{block}: tightenings deltas (Δ_i)"
     arr = as_float_array(deltas, where)
     if arr.ndim == 0:
@@ -190,6 +198,28 @@ def check_deltas(deltas: object, N: int, block: str) -> np.ndarray:
     if np.any(d < 0):
         raise BalustradeError(f"{where}: must be >= 0, got negative entries at steps "
                               f"{np.flatnonzero(d < 0).tolist()} ({d[d < 0]})")
+    if d.size and d[0] != 0.0:
+        raise BalustradeError(f"{where}: Δ_0 must be 0 (SPEC §1.4: 0 = Δ_0 < Δ_1 < …), got "
+                              f"Δ_0 = {d[0]:g}" + (" (a scalar is repeated at every step; "
+                                                  "use c * np.arange(N))"
+                                                  if np.all(d == d[0]) else ""))
+    steps = np.diff(d)
+    if np.any(steps < 0):
+        i = np.flatnonzero(steps < 0)
+        raise BalustradeError(f"{where}: must increase (SPEC §1.4: Δ_0 < Δ_1 < …), got "
+                              f"Δ_(i+1) < Δ_i at i = {i.tolist()} ({d[i]} -> {d[i + 1]}); "
+                              f"the PCBF decrease (Theorem 2.30) needs increasing tightenings")
+    if np.any(steps == 0):
+        import warnings
+
+        from balustrade.errors import TighteningWarning
+
+        i = np.flatnonzero(steps == 0)
+        warnings.warn(f"{where}: not strictly increasing (Δ_(i+1) = Δ_i at i = "
+                      f"{i[:5].tolist()}{' …' if i.size > 5 else ''}); the slack cost is "
+                      f"non-increasing but its strict decrease (SPEC §1.4, Theorem 2.30) is "
+                      f"not guaranteed; SPEC's examples use Δ_i = i * c",
+                      TighteningWarning, stacklevel=3)
     return d
 
 

@@ -58,6 +58,11 @@ class DegenerateResultWarning(BalustradeWarning):
     ``γ_f ≈ 0``); the result names the reason."""
 
 
+class TighteningWarning(BalustradeWarning):
+    """Tightenings ``Δ_i`` that are increasing but not strictly (e.g. all zero): the PCBF
+    problems are well posed, but the strict decrease of the slack cost (SPEC §1.4) is lost."""
+
+
 def moved_names(module: str, moved: dict[str, str]):
     """A module ``__getattr__`` (PEP 562) for names that moved in the restructuring of issue
     #13 (solvers and algorithms out of ``problems/``, examples out of ``models/``/``learn/``):

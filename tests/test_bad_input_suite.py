@@ -781,7 +781,9 @@ def test_constructors_property(a: object, b: object) -> None:
 def test_builder_arguments_property(alpha_f: object, eps: float, deltas: object) -> None:
     """A builder accepts its numbers iff they are valid (finite, signs, length N)."""
     d = np.asarray(deltas, dtype=float)
-    d_ok = bool((d.ndim == 0 or d.size == N) and np.all(np.isfinite(d)) and np.all(d >= 0))
+    full = np.full(N, float(d)) if d.ndim == 0 else d
+    d_ok = bool((d.ndim == 0 or d.size == N) and np.all(np.isfinite(d)) and np.all(d >= 0)
+                and full[0] == 0 and np.all(np.diff(full) >= 0))   # SPEC §1.4: 0 = Δ_0 <= …
     a_ok = isinstance(alpha_f, float) and np.isfinite(alpha_f) and alpha_f > 0
     _tally_property(lambda: _slack(alpha_f=alpha_f, deltas=deltas), expect_ok=d_ok and a_ok)
     e_ok = bool(np.isfinite(eps) and eps >= 0)

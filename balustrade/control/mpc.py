@@ -70,6 +70,8 @@ class MPCController:
 
     def step(self, x: np.ndarray, u_p: np.ndarray | None = None) -> tuple[np.ndarray, StepInfo]:
         xk = finite_state(x, self.nx, f"{self.name}.step: x")
+        if u_p is not None:  # not used by the MPC law, but a wrong one is the caller's error
+            as_vector(u_p, f"{self.name}.step: u_p", self.nu, finite=False)
         info = StepInfo()
         sol = None
         if xk is None:

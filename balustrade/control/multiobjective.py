@@ -111,8 +111,9 @@ class MultiobjectiveLyapunovController:
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of Algorithm 6.3 (module docstring); never raises for runtime data."""
         d = self.design
-        u_p, replaced = finite_proposal(u_p, d.system.nu, "Algorithm 6.3: u_p")
-        x = finite_state(x, d.system.nx, "Algorithm 6.3: x")
+        where = "Algorithm 6.3 (MultiobjectiveLyapunovController.step: "
+        u_p, replaced = finite_proposal(u_p, d.system.nu, where + "u_p)")
+        x = finite_state(x, d.system.nx, where + "x)")
         if x is None:
             return projected_proposal(u_p, d.U)
         u, info = self._step(x, u_p)
@@ -343,8 +344,9 @@ class MultiobjectivePCBFController:
 
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of Algorithm 6.4 (module docstring); never raises for runtime data."""
-        u_p, replaced = finite_proposal(u_p, self.system.nu, "Algorithm 6.4: u_p")
-        x = finite_state(x, self.system.nx, "Algorithm 6.4: x")
+        where = "Algorithm 6.4 (MultiobjectivePCBFController.step: "
+        u_p, replaced = finite_proposal(u_p, self.system.nu, where + "u_p)")
+        x = finite_state(x, self.system.nx, where + "x)")
         if x is None:
             return projected_proposal(u_p, self.U)
         u, info = self._step(x, u_p)

@@ -175,6 +175,9 @@ class PCBFSafetyFilter:
                                       f"(balustrade.backends.compile), got "
                                       f"{type(prob).__name__}")
         self.slack, self.filter, self.U = slack, filter, U
+        # the state size from (2.24)'s parameter x0: a wrong x is named as "step: x"
+        x0 = getattr(getattr(slack, "ocp", None), "parameters", {}).get("x0")
+        self._nx = None if x0 is None else x0.shape[0]
         self.eps = as_scalar(eps, "PCBFSafetyFilter: eps", low=0.0)
         self.nu = U.dim
         self.certificate = ShiftedCertificate(slack, ZERO_TOL) if shifted_certificate \
@@ -230,7 +233,7 @@ class PCBFSafetyFilter:
     def step(self, x: np.ndarray, u_p: np.ndarray) -> tuple[np.ndarray, StepInfo]:
         """One step of the algorithm (module docstring); never raises for runtime data."""
         u_p, replaced = finite_proposal(u_p, self.nu, "PCBFSafetyFilter.step: u_p")
-        x = finite_state(x, None, "PCBFSafetyFilter.step: x")
+        x = finite_state(x, self._nx, "PCBFSafetyFilter.step: x")
         if x is None:
             return projected_proposal(u_p, self.U)
         u, info = self._step(x, u_p)

@@ -96,6 +96,7 @@ class RegretController:
         """Forget the state history: the next :meth:`step` is time ``k = 0``."""
         self.k = 0
         self._hist = np.zeros((self.ops.T + 1, self.ops.n))
+        self._u_prev = np.zeros(self.ops.m)
 
     def input(self, k: int, x_hist: np.ndarray) -> np.ndarray:
         """u_k = Σ_{j≤k} K_{k,j} x_j from the states x_0..x_k (rows of ``x_hist``)."""
@@ -108,16 +109,36 @@ class RegretController:
              ) -> tuple[np.ndarray, StepInfo]:
         """``u_k`` of (3.15) for the measured ``x = x_k`` (``k`` counts the calls since
         :meth:`reset`). Past the horizon (``k > T``) there is no gain: the input is 0 and
-        ``StepInfo`` says so (``"beyond_horizon"``, fallback ``"zero_input"``)."""
+        ``StepInfo`` says so (``"beyond_horizon"``, fallback ``"zero_input"``). A NaN/inf
+        ``x`` is replaced by its nominal prediction (``"non_finite_state"``, fallback
+        ``"nominal_prediction"``); a wrong size raises a ``BalustradeError``."""
+        # wrong sizes or non-numbers are errors; NaN/inf states are handled below
         x = as_vector(x, f"{self.name}.step: x", self.ops.n, finite=False)
+        if u_p is not None:  # not used by the law, but a wrong one is the caller's error
+            as_vector(u_p, f"{self.name}.step: u_p", self.ops.m, finite=False)
         if self.k > self.ops.T:
             self.k += 1
             return np.zeros(self.ops.m), StepInfo(status="beyond_horizon",
                                                   fallback="zero_input")
+        info = StepInfo()
+        if not np.all(np.isfinite(x)):
+            # a NaN state would enter every later input of the causal law (3.15); use the
+            # nominal prediction x̂_k = A_{k−1} x_{k−1} + B_{k−1} u_{k−1} (w = 0; 0 at k = 0)
+            x = self._predicted()
+            info = StepInfo(status="non_finite_state", fallback="nominal_prediction")
         self._hist[self.k] = x
         u = self.input(self.k, self._hist)
+        self._u_prev = u
         self.k += 1
-        return u, StepInfo()
+        return u, info
+
+    def _predicted(self) -> np.ndarray:
+        """``A_{k−1} x_{k−1} + B_{k−1} u_{k−1}`` (the state with ``w_{k−1} = 0``); 0 at
+        ``k = 0``."""
+        if self.k == 0:
+            return np.zeros(self.ops.n)
+        sysm, k = self.ops.system, self.k
+        return sysm.A[k - 1] @ self._hist[k - 1] + sysm.B[k - 1] @ self._u_prev
 
     def simulate(self, x0: object, w: object, constraints: object = None) -> Rollout:
         """:func:`rollout` of this controller from ``x0`` under the disturbances ``w``."""

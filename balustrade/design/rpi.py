@@ -14,7 +14,7 @@ import numpy as np
 from balustrade.backends import compile_synthesis
 from balustrade.dsl.error_sets import ErrorSet, is_rpi
 from balustrade.dsl.sets import Ellipsoid, Polytope, Set
-from balustrade.errors import BalustradeError
+from balustrade.errors import BalustradeError, EmptySetError
 from balustrade.problems.rpi import rpi_sdp
 
 
@@ -65,10 +65,32 @@ def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polyto
                                "method": "ellipsoidal SDP (SPEC §1.11)"})
             if refused:
                 error.info["refused"] = refused
+            _check_tightenings(error, W, X, U)
             return error
         refused.append({"lambda": lv, "status": sol.status, "rpi_margin": check.margin})
     raise BalustradeError("RPI SDP: no solution of the line search is RPI by the check "
                           f"A_K E ⊕ G W ⊆ E (is_rpi): {refused}")
+
+
+def _check_tightenings(error: ErrorSet, W: Set, X: Polytope, U: Polytope) -> None:
+    """The tube needs ``X ⊖ E`` and ``U ⊖ K E`` nonempty (SPEC §1.5, (5.15e–f)); the SDP
+    of §1.11 only shrinks ``E`` relative to ``X``, ``U``, so a ``W`` too large for them
+    returns an RPI set that empties them. Refused here, naming ``W``, ``X``/``U`` and the
+    RPI set, instead of as an :class:`EmptySetError` of a later tightening."""
+    for label, S, tighten in (("X", X, error.tighten_state), ("U", U, error.tighten_input)):
+        try:
+            tighten(S)
+        except EmptySetError as exc:
+            if label == "X":
+                sup = np.array([error.E.support(a) for a in S.H])
+            else:
+                sup = np.array([error.E.support(error.K.T @ a) for a in S.H])
+            j = int(np.argmax(sup / S.h))
+            raise EmptySetError(
+                f"ellipsoidal_rpi: the RPI set {error.E.name} for W ({W.name}) is too large "
+                f"for {label} ({S.name}): {label} ⊖ {'K·' if label == 'U' else ''}"
+                f"{error.E.name} is empty (row {j}: support {sup[j]:.4g} vs bound "
+                f"{S.h[j]:.4g}); shrink W or enlarge {label}") from exc
 
 
 #: largest miss of A_K E ⊕ G W ⊆ E (in units of c_E(e) = eᵀPe − 1) repaired by inflating E:

@@ -150,8 +150,14 @@ class Layout:
         chunks = []
         for e in self.entries:
             if e.name in values:
-                chunks.append(flat_value(values[e.name], e.shape, f"{self.owner}: "
-                                         f"{self.value_label} {e.name!r}"))
+                where = f"{self.owner}: {self.value_label} {e.name!r}"
+                v = flat_value(values[e.name], e.shape, where)
+                if self.noun == "parameter" and e.lb is not None and np.any(v < e.lb):
+                    bad = np.flatnonzero(v < e.lb)
+                    raise BalustradeError(f"{where}: must be >= {e.lb[bad[0]]:g} entrywise "
+                                          f"(shape {e.shape}), got {v[bad[:5]]} at flat "
+                                          f"(column-major) indices {bad[:5].tolist()}")
+                chunks.append(v)
             elif e.init is not None:
                 chunks.append(e.init)
             elif e.init is None and e.origin != USER:
@@ -203,13 +209,16 @@ class Layout:
 
     # -- manifests ---------------------------------------------------------------------
     def to_dict(self, user_only: bool = True) -> dict[str, dict]:
-        """``name -> {"offset", "shape"[, "default"]}`` (JSON-ready; ``default`` for entries
-        with an ``init`` when this is a parameter layout)."""
+        """``name -> {"offset", "shape"[, "default"][, "lb"]}`` (JSON-ready; ``default``
+        for entries with an ``init``, ``lb`` for those with a lower bound, when this is a
+        parameter layout)."""
         out = {}
         for e in (self._user if user_only else self.entries):
             out[e.name] = {"offset": e.slice.start, "shape": list(e.shape)}
             if self.noun == "parameter" and e.init is not None:
                 out[e.name]["default"] = [float(v) for v in e.init]
+            if self.noun == "parameter" and e.lb is not None:
+                out[e.name]["lb"] = [float(v) for v in e.lb]
         return out
 
     @classmethod
@@ -223,9 +232,10 @@ class Layout:
             if int(lay["offset"]) != k:
                 raise BalustradeError(f"{owner}: {noun} {name!r} at offset {lay['offset']}, "
                                       f"expected {k} (blocks are stacked in order)")
-            default = lay.get("default")
+            default, lb = lay.get("default"), lay.get("lb")
             entries.append(Entry(name, shape, slice(k, k + n),
-                                 None if default is None else np.asarray(default, dtype=float)))
+                                 None if default is None else np.asarray(default, dtype=float),
+                                 None if lb is None else np.asarray(lb, dtype=float)))
             k += n
         return cls(entries, owner, noun, value_label)
 

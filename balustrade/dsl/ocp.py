@@ -111,6 +111,8 @@ class Parameter:
     sym: ca.SX
     default: np.ndarray | None = None
     shape: tuple[int, int] = (0, 0)  # plain ints, read on every solve
+    #: a lower bound every value must satisfy (checked when values are packed), or None
+    lb: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.shape = (int(self.sym.shape[0]), int(self.sym.shape[1]))
@@ -199,16 +201,23 @@ class OCP:
         return sym
 
     def parameter(self, name: str, rows: int, cols: int = 1,
-                  value: object | None = None) -> ca.SX:
-        """Add a parameter of shape ``(rows, cols)``; its value is given at solve time."""
+                  value: object | None = None, lb: float | None = None) -> ca.SX:
+        """Add a parameter of shape ``(rows, cols)``; its value is given at solve time.
+        ``lb``: a lower bound on every entry (e.g. ``0`` for slacks ``ξ >= 0``); a value
+        below it is refused when the parameters are packed, before any solver runs."""
         self._check_new_name(name)
         shape = self._shape(name, rows, cols)
         where = f"{self.name}: parameter {name!r}"
         default = None if value is None else _broadcast(value, shape, f"{where}: value")
         if default is not None and not np.all(np.isfinite(default)):
             raise NonFiniteError(f"{where}: value contains NaN or inf")
+        low = None
+        if lb is not None:
+            low = np.full(shape, as_scalar(lb, f"{where}: lb"))
+            if default is not None and np.any(default < low):
+                raise BalustradeError(f"{where}: value below its lower bound {float(lb):g}")
         sym = ca.SX.sym(name, *shape)
-        self.parameters[name] = Parameter(name, sym, default)
+        self.parameters[name] = Parameter(name, sym, default, lb=low)
         return sym
 
     def _shared_parameter(self, name: str, shapes: Sequence[tuple[int, int]],
@@ -542,7 +551,7 @@ class OCP:
         declared value is its ``init``)."""
         if self._playout is None or len(self._playout) != len(self.parameters):
             self._playout = Layout.stack(
-                ((p.name, p.shape, p.default, None, None) for p in self.parameters.values()),
+                ((p.name, p.shape, p.default, p.lb, None) for p in self.parameters.values()),
                 owner=self.name, noun="parameter")
         return self._playout
 

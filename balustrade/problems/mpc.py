@@ -101,7 +101,9 @@ def cbf_filter_problem(system: System, U: Set, h: Callable, decrease: Callable |
     check_system_sets(name, system, U=U)
     check_callable(h, f"{name}: h")
     if not callable(decrease):
-        decrease = as_scalar(decrease, f"{name}: decrease")
+        # α₃ ∈ K in (2.20) (SPEC §2.6, Def. 2.26): α >= 0; a negative constant lets h grow
+        decrease = as_scalar(decrease, f"{name}: decrease (constant α in (2.20), >= 0)",
+                             low=0.0)
     ocp = OCP(name=name)
     x = ocp.parameter("x", system.nx)
     u_p = ocp.parameter("u_p", system.nu)

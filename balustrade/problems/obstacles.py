@@ -99,8 +99,8 @@ def stopping_filter_problem(system: System, X: Set, U: Set, N: int, deltas: obje
     eps = as_scalar(eps, f"{name}: eps", 0.0)
     ocp, deltas, _ = _common(name, system, X, U, N, deltas, delta_N, speed_index)
     u_p = ocp.parameter("u_p", system.nu)
-    xi = ocp.parameter("xi", int(slack_rows), ocp.N)
-    ocp.parameter("xi_N", 1)
+    xi = ocp.parameter("xi", int(slack_rows), ocp.N, lb=0.0)   # slacks ξ >= 0 (SPEC §1.4)
+    ocp.parameter("xi_N", 1, lb=0.0)
     rows = ca.repmat(xi, X.n_rows // int(slack_rows), 1) if slack_rows == 1 else xi
     ocp.state_constraint(X, tightening=deltas, slack=rows + eps)
     ocp.minimize(squared_norm(ocp.u[:, 0] - u_p, label="filter"))

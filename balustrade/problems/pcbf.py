@@ -55,8 +55,10 @@ def pcbf_filter_problem(system: System, X: Set, U: Set, h_f: Callable, N: int,
     ocp = OCP(system, N, name=name)
     ocp.initial_state(ocp.parameter("x0", system.nx))
     u_p = ocp.parameter("u_p", system.nu)
-    xi = ocp.parameter("xi", X.n_rows, N)
-    xi_N = ocp.parameter("xi_N", 1)
+    # ξ >= 0 (2.24): a negative slack would tighten X past Δ_i and the filter would
+    # answer a problem the PCBF theory does not cover; refused when the values are packed
+    xi = ocp.parameter("xi", X.n_rows, N, lb=0.0)
+    xi_N = ocp.parameter("xi_N", 1, lb=0.0)
     ocp.dynamics()
     ocp.input_constraint(U)
     ocp.state_constraint(X, tightening=deltas, slack=xi + eps)
