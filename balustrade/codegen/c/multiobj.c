@@ -105,10 +105,17 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
      leads (0: none); the ones after it start from the candidate as well until one converges
      (balustrade.control.multiobjective.MultiobjectivePCBFController.recovering) */
   lead = (BAL_QX(PROBLEM_LEAD) > 0 && !wk->have_problem) ? BAL_QX(PROBLEM_LEAD) : 0;
-  if (!wk->have_problem || wk->recovered) {
-    /* before its first success and after a recovery solve until one converges: from the
-       candidate, the rest cold */
-    BAL_QX(problem_cold_start)(&wk->problem);
+  if (!wk->have_problem || wk->recovered || BAL_QX(CANDIDATE_DUALS)) {
+    if (!wk->have_problem || wk->recovered) {
+      /* before its first success and after a recovery solve until one converges: from
+         the candidate, the rest cold */
+      BAL_QX(problem_cold_start)(&wk->problem);
+    } else {
+      /* an ordinary step (Q_CANDIDATE_DUALS): from the candidate with the multipliers of
+         the last converged (6.15), which P_warm_start left in lam_x0/lam_g0; the rest of
+         the primal cold (Python's duals_from, MultiobjectivePCBFController.candidate_duals) */
+      memcpy(wk->problem.x0, BAL_QX(problem_init_x), sizeof(wk->problem.x0));
+    }
     BAL_MO_COPY(z, wk->cz, BAL_QX(NX) * (BAL_QX(N) + 1))
     BAL_MO_COPY(v, wk->cv, BAL_QX(NU) * BAL_QX(N))
     BAL_MO_COPY(xi, wk->cxi, BAL_QX(N_XI))
