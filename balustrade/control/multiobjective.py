@@ -23,7 +23,11 @@ retry, :mod:`balustrade.backends.recovery`), then the rest of the chain; the (6.
 recovery solve, and each next one until one converges, starts from the candidate (6.14),
 not from the interior-point point, which stops the SQP (docs/vehicles.md, session 13).
 ``recovery_target=None``: the usual order. The emitted C decides the same
-(``<name>_SLACK_LEAD``, ``<name>_PROBLEM_LEAD``).
+(``<name>_SLACK_LEAD``, ``<name>_PROBLEM_LEAD``). Ordinary (6.15) solves start from the
+previous converged (6.15) (primal and multipliers); ``candidate_duals=True`` (opt-in, CasADi
+problems) starts them from the candidate (6.14) with the previous multipliers instead
+(``<name>_CANDIDATE_DUALS`` in C; measured on the lane change in docs/vehicles.md,
+"Session 14").
 
 The decrease bounds get a margin ``bound_tol · max(1, bound)`` (default ``1e-9``) so that a
 candidate that meets them with equality is not declared infeasible by solver round-off.
@@ -389,8 +393,8 @@ class MultiobjectivePCBFController:
         info.values.update({"h_cand": h_cand, "bound": bound})
         # from the candidate before the first converged (6.15) and after a recovery solve
         # until one converges (the interior-point point stops the SQP: docs/vehicles.md),
-        # with zero multipliers; on ordinary steps from the candidate with the previous
-        # (6.15)'s multipliers (:attr:`candidate_duals`)
+        # with zero multipliers; on ordinary steps from the previous (6.15), or with
+        # candidate_duals from the candidate with the previous (6.15)'s multipliers
         warm = self._candidate_start(c)
         extra: dict = {}
         if self._last is not None and not self._recovered:
