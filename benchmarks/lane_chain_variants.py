@@ -12,6 +12,8 @@ the compact lowering; ``(5.15)`` always on ``robust-sqp``):
 * ``base``: ``robust-sqp`` (SQP 500 iterations → eigen-reflect SQP → interior point);
 * ``cd``: ``base`` with ``candidate_duals=True`` (ordinary (6.15) from the candidate with the
   previous multipliers);
+* ``cs``: ``base`` with ``candidate_second=True`` (a failed ordinary (6.15) tried once more
+  from the candidate with the previous multipliers before the cold retries);
 * ``ipfirst``: interior point before the eigen-reflect retry (idea 1, every step);
 * ``capM``: SQP capped at ``M`` iterations → interior point → eigen-reflect (500);
 * ``cbM``: SQP and eigen-reflect retry capped at ``M`` iterations, usual order (idea 3).
@@ -31,7 +33,7 @@ _REFLECT = ("sqpmethod", {"convexify_strategy": "eigen-reflect"})
 
 def variant(name: str) -> Target | str:
     """The (6.15) target of ``name`` (module docstring)."""
-    if name in ("base", "cd"):
+    if name in ("base", "cd", "cs"):
         return lc.TARGET
     opts = {"lowering": "as-emitted"}
     if name == "ipfirst":
@@ -77,7 +79,7 @@ def main(argv: list[str]) -> None:
     ctrl = MultiobjectivePCBFController.build(
         d.system, d.X, d.U, d.cbf, d.pi_f, d.N, d.deltas, d.error, d.alpha_f, rho=cfg.rho,
         target=variant(name), slack_target=lc.TARGET, running_sum=lc.RUNNING_SUM,
-        candidate_duals=name == "cd")
+        candidate_duals=name == "cd", candidate_second=name == "cs")
     if len(argv) > 3 and argv[3] == "c":
         from balustrade.codegen import accelerate
 

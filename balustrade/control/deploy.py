@@ -183,6 +183,9 @@ class MultiobjectiveDeployment(TubeDeployment):
     #: ordinary steps start (6.15) from the candidate (6.14) with the previous (6.15)'s
     #: multipliers (``False``: from the previous (6.15))
     candidate_duals: bool = False
+    #: a failed ordinary (6.15) is tried once more from the candidate (6.14) with the
+    #: previous (6.15)'s multipliers, before the cold retries
+    candidate_second: bool = False
 
 
 @dataclass(frozen=True)

@@ -199,7 +199,7 @@ class MultiobjectivePCBFController:
                  deltas: np.ndarray, alpha_f: float, rho: float = 0.9,
                  bound_tol: float = BOUND_TOL, record_h_r: bool = False,
                  recovery_target: Target | str | None = RECOVERY_TARGET,
-                 candidate_duals: bool = False):
+                 candidate_duals: bool = False, candidate_second: bool = False):
         rho = as_scalar(rho, "Algorithm 6.4: rho (ρ)", 0.0, 1.0, high_open=True)
         bound_tol = as_scalar(bound_tol, "Algorithm 6.4: bound_tol", 0.0)
         alpha_f = as_scalar(alpha_f, "Algorithm 6.4: alpha_f", 0.0, low_open=True)
@@ -217,6 +217,11 @@ class MultiobjectivePCBFController:
         #: fallback of 7 seeds but not the worst steps (docs/vehicles.md, "Session 14")
         check_instance(candidate_duals, bool, "Algorithm 6.4: candidate_duals")
         self.candidate_duals = candidate_duals
+        #: a failed ordinary (6.15) (started from the previous one) is tried once more from
+        #: the candidate (6.14) with the previous (6.15)'s multipliers before the cold
+        #: retries (``True``; CasADi problems, without ``candidate_duals``)
+        check_instance(candidate_second, bool, "Algorithm 6.4: candidate_second")
+        self.candidate_second = candidate_second
         #: the recovery target (module docstring, "Recovery steps")
         self.recovery_target = check_recovery_target(recovery_target, "Algorithm 6.4")
         # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
@@ -232,7 +237,7 @@ class MultiobjectivePCBFController:
               U_tight: Polytope | None = None, record_h_r: bool = False,
               running_sum: bool = False,
               recovery_target: Target | str | None = RECOVERY_TARGET,
-              candidate_duals: bool = False
+              candidate_duals: bool = False, candidate_second: bool = False
               ) -> MultiobjectivePCBFController:
         """Build and compile (5.15) (ℓ1 slack norm) for ``slack_target`` and (6.15) for
         ``target`` (targets or preset names; default ``"auto"``: the direct conic backend
@@ -256,7 +261,7 @@ class MultiobjectivePCBFController:
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, prob, system, sets.X_E, U, sets.U_E, error, h_f, pi_f, deltas,
                    alpha_f, rho, record_h_r=record_h_r, recovery_target=recovery_target,
-                   candidate_duals=candidate_duals)
+                   candidate_duals=candidate_duals, candidate_second=candidate_second)
 
     def reset(self) -> None:
         self.candidate: Candidate | None = None
@@ -401,6 +406,8 @@ class MultiobjectivePCBFController:
             if self.candidate_duals and self._duals_ok():
                 extra["duals_from"] = self._last
             else:
+                if self.candidate_second and self._duals_ok():
+                    extra.update(second_start=warm, second_duals=self._last)
                 warm = self._last
         lead = self.problem_lead if self.recovering() else None
         if lead is not None:
@@ -464,4 +471,5 @@ class MultiobjectivePCBFController:
             pi_f=self.pi_f, K=self.error.K if self.error.kappa_fn is None else None,
             deltas=self.deltas, alpha_f=self.alpha_f, rho=self.rho,
             bound_tol=self.bound_tol, record_h_r=self.record_h_r,
-            recovery_target=self.recovery_target, candidate_duals=self.candidate_duals)
+            recovery_target=self.recovery_target, candidate_duals=self.candidate_duals,
+            candidate_second=self.candidate_second)
