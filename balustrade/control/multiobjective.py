@@ -213,13 +213,14 @@ class MultiobjectivePCBFController:
         self.record_h_r = record_h_r
         #: ordinary steps start (6.15) from the candidate (6.14) with the previous (6.15)'s
         #: multipliers (``True``; CasADi problems only) instead of from the previous (6.15)
-        #: itself (``False``, the default): on the lane change (C) it removed every
-        #: fallback of 7 seeds but not the worst steps (docs/vehicles.md, "Session 14")
+        #: itself (``False``, the default): on the lane change (C, 50 seeds) 1 fallback
+        #: instead of 6 but twice the steps >= 1 s (docs/vehicles.md, "Session 14")
         check_instance(candidate_duals, bool, "Algorithm 6.4: candidate_duals")
         self.candidate_duals = candidate_duals
         #: a failed ordinary (6.15) (started from the previous one) is tried once more from
         #: the candidate (6.14) with the previous (6.15)'s multipliers before the cold
-        #: retries (``True``; CasADi problems, without ``candidate_duals``)
+        #: retries (``True``; CasADi problems, without ``candidate_duals``): on the lane
+        #: change (C, 15 seeds) 8 instead of 23 steps >= 1 s (docs/vehicles.md, "Session 14")
         check_instance(candidate_second, bool, "Algorithm 6.4: candidate_second")
         self.candidate_second = candidate_second
         #: the recovery target (module docstring, "Recovery steps")
