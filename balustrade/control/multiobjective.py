@@ -220,7 +220,8 @@ class MultiobjectivePCBFController:
         #: a failed ordinary (6.15) (started from the previous one) is tried once more from
         #: the candidate (6.14) with the previous (6.15)'s multipliers before the cold
         #: retries (``True``; CasADi problems, without ``candidate_duals``): on the lane
-        #: change (C, 15 seeds) 8 instead of 23 steps >= 1 s (docs/vehicles.md, "Session 14")
+        #: change (C, 50 seeds) half the steps >= 1 s, but as many fallbacks (4 new) and a
+        #: worse worst step (docs/vehicles.md, "Session 14")
         check_instance(candidate_second, bool, "Algorithm 6.4: candidate_second")
         self.candidate_second = candidate_second
         #: the recovery target (module docstring, "Recovery steps")
