@@ -393,9 +393,18 @@ class CasadiCompiled:
               warm_start: Solution | dict[str, object] | None = None,
               second_start: Solution | dict[str, object] | None = None,
               second_solver: int = 0,
-              lead: int | None = None) -> Solution:
+              lead: int | None = None,
+              duals_from: Solution | None = None,
+              second_duals: Solution | None = None) -> Solution:
         """Solve with the given parameter values; ``warm_start`` is a previous
         :class:`Solution` (primal and dual) or a dict of variable values.
+
+        ``duals_from`` (optional): a converged solution of this problem whose multipliers
+        start the first attempt, the primal point coming from ``warm_start`` (Algorithm
+        6.4's ordinary steps: the candidate (6.14) with the previous (6.15)'s multipliers,
+        docs/vehicles.md "Session 14"); ignored when it is not one
+        (:meth:`_with_duals`). ``second_duals`` the same for the attempt from
+        ``second_start`` (else zero multipliers).
 
         ``second_start`` (optional, same forms): when the first attempt fails, the first
         solver is tried once more from this point *before* the cold-start retries (it
@@ -443,7 +452,7 @@ class CasadiCompiled:
                               f"(0 … {len(self.retries) - 1}), got {lead!r}")
         p = self.ocp.pack_parameters(params)
         second_k = chain_solver_index(second_solver, len(self.retries))
-        guess = self._initial_guess(warm_start, p)
+        guess = self._with_duals(self._initial_guess(warm_start, p), duals_from, p)
         attempts, ran = [], []  # (solver, start) of every attempt run so far
         if lead is not None and self.budget is None:  # (a budget has no retries to lead)
             led, cold = self._retry_solvers()[lead], self._initial_guess(None, p)
@@ -461,7 +470,8 @@ class CasadiCompiled:
             # the cold attempts only (a second start equal to the cold one is not skipped)
             attempts.append(self._solve_with(
                 self._retry_solvers()[second_k - 1] if second_k else self.solver, p,
-                self._initial_guess(second_start, p)))
+                self._with_duals(self._initial_guess(second_start, p), second_duals, p,
+                                 keep_primal=True)))
         for solver in self._retry_solvers():
             if attempts[-1].success:
                 break
@@ -698,6 +708,24 @@ class CasadiCompiled:
             w_all = np.concatenate([w_user, self._x0_layout[self.layout.user_size:]])
             return self.stages.staged(w_all, np.zeros(0) if p is None else p), 0.0, 0.0
         return np.concatenate([w_user, self._x0[self.layout.user_size:]]), 0.0, 0.0
+
+    def _with_duals(self, guess: tuple, duals_from: Solution | None, p: np.ndarray,
+                    keep_primal: bool = False) -> tuple:
+        """``guess`` with the multipliers of ``duals_from`` when that is a converged CasADi
+        solution of this problem (the emitted C keeps the multipliers of the last
+        converged solve: ``bal/multiobj.c``); else ``guess``. Non-finite multipliers give
+        what the C's ``P_solve_lead`` starts from then (it replaces a non-finite warm
+        start by the cold start): the cold start, or with ``keep_primal`` (a second
+        start) ``guess``'s primal point with zero multipliers."""
+        if not (isinstance(duals_from, Solution) and duals_from.backend == "casadi"
+                and duals_from.success and "dm" in duals_from.raw
+                and duals_from.raw["x"].size == self.lbx.size):
+            return guess
+        _, lam_x, lam_g = duals_from.raw["dm"]
+        if not (np.all(np.isfinite(np.asarray(lam_x, dtype=float)))
+                and np.all(np.isfinite(np.asarray(lam_g, dtype=float)))):
+            return (guess[0], 0.0, 0.0) if keep_primal else self._initial_guess(None, p)
+        return guess[0], lam_x, lam_g
 
     def _failed(self, p: np.ndarray, elapsed: float, message: str) -> Solution:
         w = np.full(self.layout.user_size, np.nan)

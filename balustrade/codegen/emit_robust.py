@@ -350,7 +350,12 @@ def emit_multiobjective(controller: object, name: str, out_dir: str | Path,
          (f"{name}_DECREASE_TOL", C.c_double(DECREASE_TOL),
           "a converged (6.15) whose polished h~ exceeds the bound by more (relative) fails"),
          (f"{name}_XI_SUM", int("xi_sum" in p.vars),
-          "1: (6.15g) in running-sum form, variable xi_sum")],
+          "1: (6.15g) in running-sum form, variable xi_sum"),
+         (f"{name}_CANDIDATE_DUALS", int(bool(getattr(spec, "candidate_duals", False))),
+          "1: ordinary (6.15) start from the candidate with the previous multipliers"),
+         (f"{name}_CANDIDATE_SECOND", int(bool(getattr(spec, "candidate_second", False))),
+          "1: a failed ordinary (6.15) is tried again from the candidate with the "
+          "previous multipliers")],
         {"rho": float(spec.rho), "bound_tol": float(spec.bound_tol)})
 
 

@@ -180,6 +180,12 @@ class MultiobjectiveDeployment(TubeDeployment):
     #: the recovery target whose attempt leads the first (5.15) and (6.15) solves
     #: (:mod:`balustrade.backends.recovery`; ``None``: none)
     recovery_target: object = None
+    #: ordinary steps start (6.15) from the candidate (6.14) with the previous (6.15)'s
+    #: multipliers (``False``: from the previous (6.15))
+    candidate_duals: bool = False
+    #: a failed ordinary (6.15) is tried once more from the candidate (6.14) with the
+    #: previous (6.15)'s multipliers, before the cold retries
+    candidate_second: bool = False
 
 
 @dataclass(frozen=True)

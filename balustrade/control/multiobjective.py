@@ -23,7 +23,11 @@ retry, :mod:`balustrade.backends.recovery`), then the rest of the chain; the (6.
 recovery solve, and each next one until one converges, starts from the candidate (6.14),
 not from the interior-point point, which stops the SQP (docs/vehicles.md, session 13).
 ``recovery_target=None``: the usual order. The emitted C decides the same
-(``<name>_SLACK_LEAD``, ``<name>_PROBLEM_LEAD``).
+(``<name>_SLACK_LEAD``, ``<name>_PROBLEM_LEAD``). Ordinary (6.15) solves start from the
+previous converged (6.15) (primal and multipliers); ``candidate_duals=True`` (opt-in, CasADi
+problems) starts them from the candidate (6.14) with the previous multipliers instead
+(``<name>_CANDIDATE_DUALS`` in C; measured on the lane change in docs/vehicles.md,
+"Session 14").
 
 The decrease bounds get a margin ``bound_tol · max(1, bound)`` (default ``1e-9``) so that a
 candidate that meets them with equality is not declared infeasible by solver round-off.
@@ -195,7 +199,8 @@ class MultiobjectivePCBFController:
                  U: Polytope, U_E: Polytope, error: ErrorSet, h_f: Callable, pi_f: Callable,
                  deltas: np.ndarray, alpha_f: float, rho: float = 0.9,
                  bound_tol: float = BOUND_TOL, record_h_r: bool = False,
-                 recovery_target: Target | str | None = RECOVERY_TARGET):
+                 recovery_target: Target | str | None = RECOVERY_TARGET,
+                 candidate_duals: bool = False, candidate_second: bool = False):
         rho = as_scalar(rho, "Algorithm 6.4: rho (ρ)", 0.0, 1.0, high_open=True)
         bound_tol = as_scalar(bound_tol, "Algorithm 6.4: bound_tol", 0.0)
         alpha_f = as_scalar(alpha_f, "Algorithm 6.4: alpha_f", 0.0, low_open=True)
@@ -207,6 +212,19 @@ class MultiobjectivePCBFController:
         self.deltas = np.asarray(deltas, dtype=float).reshape(-1)
         self.alpha_f, self.rho, self.bound_tol = alpha_f, rho, bound_tol
         self.record_h_r = record_h_r
+        #: ordinary steps start (6.15) from the candidate (6.14) with the previous (6.15)'s
+        #: multipliers (``True``; CasADi problems only) instead of from the previous (6.15)
+        #: itself (``False``, the default): on the lane change (C, 50 seeds) 1 fallback
+        #: instead of 6 but twice the steps >= 1 s (docs/vehicles.md, "Session 14")
+        check_instance(candidate_duals, bool, "Algorithm 6.4: candidate_duals")
+        self.candidate_duals = candidate_duals
+        #: a failed ordinary (6.15) (started from the previous one) is tried once more from
+        #: the candidate (6.14) with the previous (6.15)'s multipliers before the cold
+        #: retries (``True``; CasADi problems, without ``candidate_duals``): on the lane
+        #: change (C, 50 seeds) half the steps >= 1 s, but as many fallbacks (4 new) and a
+        #: worse worst step (docs/vehicles.md, "Session 14")
+        check_instance(candidate_second, bool, "Algorithm 6.4: candidate_second")
+        self.candidate_second = candidate_second
         #: the recovery target (module docstring, "Recovery steps")
         self.recovery_target = check_recovery_target(recovery_target, "Algorithm 6.4")
         # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
@@ -221,7 +239,8 @@ class MultiobjectivePCBFController:
               target: Target | str = "auto", slack_target: Target | str | None = None,
               U_tight: Polytope | None = None, record_h_r: bool = False,
               running_sum: bool = False,
-              recovery_target: Target | str | None = RECOVERY_TARGET
+              recovery_target: Target | str | None = RECOVERY_TARGET,
+              candidate_duals: bool = False, candidate_second: bool = False
               ) -> MultiobjectivePCBFController:
         """Build and compile (5.15) (ℓ1 slack norm) for ``slack_target`` and (6.15) for
         ``target`` (targets or preset names; default ``"auto"``: the direct conic backend
@@ -244,7 +263,8 @@ class MultiobjectivePCBFController:
                                                    running_sum=running_sum), target)
         sets = robust_sets(X, U, error, U_tight)
         return cls(slack, prob, system, sets.X_E, U, sets.U_E, error, h_f, pi_f, deltas,
-                   alpha_f, rho, record_h_r=record_h_r, recovery_target=recovery_target)
+                   alpha_f, rho, record_h_r=record_h_r, recovery_target=recovery_target,
+                   candidate_duals=candidate_duals, candidate_second=candidate_second)
 
     def reset(self) -> None:
         self.candidate: Candidate | None = None
@@ -337,6 +357,10 @@ class MultiobjectivePCBFController:
         name = sol.raw.get("function")
         return name is not None and name == self.problem._retry_solvers()[k].name()
 
+    def _duals_ok(self) -> bool:
+        """Whether (6.15) is a CasADi problem (whose ``solve`` takes ``duals_from``)."""
+        return getattr(self.problem, "backend", None) == "casadi"
+
     def recovering(self) -> bool:
         """Whether the (6.15) of this step is a recovery solve: no converged (6.15) yet to
         start from (its first solve, from the candidate)."""
@@ -377,12 +401,23 @@ class MultiobjectivePCBFController:
         bound += self.bound_tol * max(1.0, abs(bound))
         info.values.update({"h_cand": h_cand, "bound": bound})
         # from the candidate before the first converged (6.15) and after a recovery solve
-        # until one converges (the interior-point point stops the SQP: docs/vehicles.md)
-        warm = self._last if self._last is not None and not self._recovered else \
-            self._candidate_start(c)
+        # until one converges (the interior-point point stops the SQP: docs/vehicles.md),
+        # with zero multipliers; on ordinary steps from the previous (6.15), or with
+        # candidate_duals from the candidate with the previous (6.15)'s multipliers
+        warm = self._candidate_start(c)
+        extra: dict = {}
+        if self._last is not None and not self._recovered:
+            if self.candidate_duals and self._duals_ok():
+                extra["duals_from"] = self._last
+            else:
+                if self.candidate_second and self._duals_ok():
+                    extra.update(second_start=warm, second_duals=self._last)
+                warm = self._last
         lead = self.problem_lead if self.recovering() else None
+        if lead is not None:
+            extra["lead"] = lead
         sol = self.problem.solve({"x0": x, "u_p": u_p, "bound": bound}, warm_start=warm,
-                                 **({} if lead is None else {"lead": lead}))
+                                 **extra)
         # from the candidate again until a (6.15) converges after the recovery solve (the
         # C's warm start holds the candidate start then, not the interior-point point)
         self._recovered = lead is not None or (self._recovered and not sol.success) \
@@ -440,4 +475,5 @@ class MultiobjectivePCBFController:
             pi_f=self.pi_f, K=self.error.K if self.error.kappa_fn is None else None,
             deltas=self.deltas, alpha_f=self.alpha_f, rho=self.rho,
             bound_tol=self.bound_tol, record_h_r=self.record_h_r,
-            recovery_target=self.recovery_target)
+            recovery_target=self.recovery_target, candidate_duals=self.candidate_duals,
+            candidate_second=self.candidate_second)

@@ -49,14 +49,35 @@ static int BAL_QX(polish)(BAL_QX(work)* wk, BAL_QX(post_fn) post, const casadi_r
 }
 
 #define BAL_MO_COPY(var, src, n)                                              \
-  memcpy(wk->problem.x0 + BAL_QX(problem_W_##var), (src), (n) * sizeof(casadi_real));
+  memcpy(dst + BAL_QX(problem_W_##var), (src), (n) * sizeof(casadi_real));
+
+/* the candidate (6.14) as a start of (6.15) in dst (P_NW values): its z, v, xi, xi_N (and
+   the running sums of its slacks in the running-sum form of (6.15g)) over the rest of
+   what dst holds (Python's _candidate_start) */
+static void BAL_QX(candidate_into)(const BAL_QX(work)* wk, casadi_real* dst) {
+  BAL_MO_COPY(z, wk->cz, BAL_QX(NX) * (BAL_QX(N) + 1))
+  BAL_MO_COPY(v, wk->cv, BAL_QX(NU) * BAL_QX(N))
+  BAL_MO_COPY(xi, wk->cxi, BAL_QX(N_XI))
+  BAL_MO_COPY(xi_N, &wk->cxi_N, 1)
+#if BAL_QX(XI_SUM)
+  /* the running sums of the candidate's slacks (the running-sum form of (6.15g)) */
+  {
+    casadi_int i, j, nr = BAL_QX(N_XI) / BAL_QX(N);
+    casadi_real acc = 0;
+    for (i = 0; i < BAL_QX(N); ++i) {
+      for (j = 0; j < nr; ++j) acc += wk->cxi[i * nr + j];
+      dst[BAL_QX(problem_W_xi_sum) + i] = acc;
+    }
+  }
+#endif
+}
 
 int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_out,
                  int* status, BAL_QX(work)* wk) {
   casadi_int i;
   int lead;
   casadi_real bound;
-  const casadi_real *z, *v;
+  const casadi_real *z, *v, *second;
   if (!x || !u_p || !u_out || !status || !wk) {
     if (status) *status = BAL_MULTIOBJ_BAD_INPUT;
     return BAL_MULTIOBJ_BAD_INPUT;
@@ -105,27 +126,32 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
      leads (0: none); the ones after it start from the candidate as well until one converges
      (balustrade.control.multiobjective.MultiobjectivePCBFController.recovering) */
   lead = (BAL_QX(PROBLEM_LEAD) > 0 && !wk->have_problem) ? BAL_QX(PROBLEM_LEAD) : 0;
-  if (!wk->have_problem || wk->recovered) {
-    /* before its first success and after a recovery solve until one converges: from the
-       candidate, the rest cold */
-    BAL_QX(problem_cold_start)(&wk->problem);
-    BAL_MO_COPY(z, wk->cz, BAL_QX(NX) * (BAL_QX(N) + 1))
-    BAL_MO_COPY(v, wk->cv, BAL_QX(NU) * BAL_QX(N))
-    BAL_MO_COPY(xi, wk->cxi, BAL_QX(N_XI))
-    BAL_MO_COPY(xi_N, &wk->cxi_N, 1)
-#if BAL_QX(XI_SUM)
-    /* the running sums of the candidate's slacks (the running-sum form of (6.15g)) */
-    {
-      casadi_int j, nr = BAL_QX(N_XI) / BAL_QX(N);
-      casadi_real acc = 0;
-      for (i = 0; i < BAL_QX(N); ++i) {
-        for (j = 0; j < nr; ++j) acc += wk->cxi[i * nr + j];
-        wk->problem.x0[BAL_QX(problem_W_xi_sum) + i] = acc;
-      }
+  if (!wk->have_problem || wk->recovered || BAL_QX(CANDIDATE_DUALS)) {
+    if (!wk->have_problem || wk->recovered) {
+      /* before its first success and after a recovery solve until one converges: from
+         the candidate, the rest cold */
+      BAL_QX(problem_cold_start)(&wk->problem);
+    } else {
+      /* an ordinary step (Q_CANDIDATE_DUALS): from the candidate with the multipliers of
+         the last converged (6.15), which P_warm_start left in lam_x0/lam_g0; the rest of
+         the primal cold (Python's duals_from, MultiobjectivePCBFController.candidate_duals) */
+      memcpy(wk->problem.x0, BAL_QX(problem_init_x), sizeof(wk->problem.x0));
     }
-#endif
+    BAL_QX(candidate_into)(wk, wk->problem.x0);
+    second = 0;
+  } else if (BAL_QX(CANDIDATE_SECOND)) {
+    /* an ordinary step (Q_CANDIDATE_SECOND): from the last converged (6.15), and if that
+       attempt fails from the candidate with its multipliers before the cold retries
+       (Python's second_start/second_duals, candidate_second) */
+    memcpy(wk->cstart, BAL_QX(problem_init_x), sizeof(wk->cstart));
+    BAL_QX(candidate_into)(wk, wk->cstart);
+    second = wk->cstart;
+  } else {
+    second = 0;
   }
-  wk->problem_status = BAL_QX(problem_solve_lead)(&wk->problem, wk->p_problem, 0, lead);
+  wk->problem.second_duals = second != 0;
+  wk->problem_status = BAL_QX(problem_solve_lead)(&wk->problem, wk->p_problem, second, lead);
+  wk->problem.second_duals = 0;
   /* from the candidate again until a (6.15) converges after the recovery solve (Python's
      _recovered: its warm start is then the candidate's, never the interior-point point) */
   wk->recovered = lead > 0 || (wk->recovered && wk->problem_status != BAL_OK);

@@ -40,6 +40,7 @@ typedef struct BAL_QX(work) {
   /* polished slacks of the last solve and their h~ */
   casadi_real xi[BAL_QX(N_XI)], xi_N, h_r, h_tilde;
   casadi_real h_prev;              /* h~(xi*_{k-1}) */
+  casadi_real cstart[BAL_QX(problem_NW)]; /* the candidate as a second start of (6.15) */
   casadi_real values[4];           /* h_cand, bound, h_tilde, h_tilde_rejected */
   casadi_real u_p[BAL_QX(NU)];
   const casadi_real* arg[BAL_QX(SZ_ARG)];

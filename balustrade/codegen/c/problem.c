@@ -81,6 +81,7 @@ int BAL_PX(init)(BAL_PX(work)* wk) {
     return -1;
   }
   BAL_PX(cold_start)(wk);
+  wk->second_duals = 0;
   wk->ready = 1;
   return 0;
 }
@@ -113,8 +114,8 @@ void BAL_PX(warm_start_primal)(BAL_PX(work)* wk) {
 }
 
 /* One solver run of the solver of attempt `which`: from the primal `start` with zero
-   multipliers if not NULL, else which = 0 from the warm start in wk and which >= 1 (a
-   retry) from a cold start. */
+   multipliers (the warm ones when wk->second_duals) if not NULL, else which = 0 from the
+   warm start in wk and which >= 1 (a retry) from a cold start. */
 static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which,
                            const casadi_real* start) {
   casadi_int i;
@@ -125,8 +126,9 @@ static int BAL_PX(attempt)(BAL_PX(work)* wk, const casadi_real* p, int which,
   wk->arg[3] = BAL_PX(ubx);
   wk->arg[4] = BAL_PX(lbg);
   wk->arg[5] = BAL_PX(ubg);
-  wk->arg[6] = (which || start) ? 0 : wk->lam_x0; /* 0: zero multipliers */
-  wk->arg[7] = (which || start) ? 0 : wk->lam_g0;
+  /* 0: zero multipliers; a second start keeps the warm ones when wk->second_duals */
+  wk->arg[6] = (start ? wk->second_duals : !which) ? wk->lam_x0 : 0;
+  wk->arg[7] = (start ? wk->second_duals : !which) ? wk->lam_g0 : 0;
   wk->res[0] = wk->x;
   wk->res[1] = &wk->f;
   wk->res[2] = wk->g;

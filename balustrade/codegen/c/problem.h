@@ -22,6 +22,9 @@ typedef struct BAL_PX(work) {
   casadi_real f, pr_inf, du_inf, feas;
   int attempts; /* solver runs in the last P_solve (> 1: retried) */
   int which;    /* the solver (attempt index) of the last attempt run */
+  /* 1: the attempt from a second start (P_solve_from / P_solve_lead) starts with the warm
+     multipliers lam_x0/lam_g0 instead of zero ones (0 after P_init) */
+  int second_duals;
   /* 1 if the last P_solve returned BAL_OK from a solver that stopped at its acceptable
      level (IPOPT's Solved_To_Acceptable_Level): balustrade's backend reports that solve
      optimal_inaccurate (used, flagged, never certified optimal), else 0 */
