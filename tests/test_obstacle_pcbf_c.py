@@ -44,12 +44,14 @@ def test_the_slack_problem_is_staged_as_a_permutation(short):
     assert sorted(take) == list(range(m["nw"]))
 
 
-def test_cold_steps_c_equals_python(short):
+def _cold_steps(short, n: int, seed: int) -> int:
+    """``n`` cold steps (both filters reset) at random low-speed states outside the discs:
+    C = Python (statuses, fallbacks, inputs within 1e-8); the number of "ok" steps."""
     py, c = short
     s = obstacle_setup()
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     solved = 0
-    for _ in range(15):
+    for _ in range(n):
         while True:  # low speeds: N = 15 steps of 0.02 s stop the car from v <= 1.5
             x = rng.uniform([-2, -1.5, -np.pi, 0, -0.75], [2, 1.5, np.pi, 1.0, 0.75])
             if signed_distance(x[None], s.obstacles).min() > 0.02:
@@ -62,7 +64,18 @@ def test_cold_steps_c_equals_python(short):
         assert i1.fallback == i2.fallback
         np.testing.assert_allclose(u2, u1, atol=1e-8)
         solved += i1.status == "ok"
-    assert solved >= 10
+    return solved
+
+
+def test_cold_steps_c_equals_python(short):
+    assert _cold_steps(short, 15, 0) >= 10
+
+
+@pytest.mark.slow
+def test_1000_cold_steps_c_equals_python(short):
+    """The must-show of issue #14 for the obstacle PCBF's C: 1000 states (audit C,
+    session 14)."""
+    assert _cold_steps(short, 1000, 14) >= 500
 
 
 def test_closed_loop_c_equals_python_and_avoids_the_disc(short):
