@@ -170,6 +170,30 @@ def test_c_equals_python_along_a_closed_loop(design3: dict, emitted3: dict) -> N
 
 
 @pytest.mark.slow
+def test_c_equals_python_on_1000_closed_loop_states(design3: dict, emitted3: dict) -> None:
+    """The must-show of issue #14 for bal/rapsf.c (audit C, session 14): 5 closed loops of
+    200 steps (other parameters θ and disturbances than the loop above), 1000 states in
+    all, inputs, fallbacks and values within 1e-6 (RAPSF keeps Θ and its plan from step to
+    step, so its states are compared along loops, with fresh controllers per loop)."""
+    d, st = design3, design3["st"]
+    py = emitted3["py"]
+    paths: Counter = Counter()
+    for loop in range(5):
+        c = CRAPSF(emitted3["lib"], host=py)
+        py.reset()
+        rng = np.random.default_rng(100 + loop)
+        theta = st.sample_theta(rng)
+        x = st.x0.copy()
+        for k in range(200):
+            u_p = msd_performance(k, x, 3)
+            out_py, out_c = py.step(x, u_p), c.step(x, u_p)
+            _same(out_py, out_c, (loop, k))
+            paths[out_py[1].fallback] += 1
+            x = d["sys"].step(x, out_py[0], theta, rng.uniform(-1e-3, 1e-3, 6))
+    assert sum(paths.values()) == 1000 and paths[None] >= 500, paths
+
+
+@pytest.mark.slow
 def test_warm_started_c_equals_warm_started_python(design3: dict,
                                                    tmp_path_factory: pytest.TempPathFactory
                                                    ) -> None:

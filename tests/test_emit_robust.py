@@ -242,7 +242,7 @@ def mo_pair(tmp_path_factory: pytest.TempPathFactory) -> dict:
     out = tmp_path_factory.mktemp("multiobj_c")
     emitted = emit_multiobjective(py, "mo", out)
     return {"py": py, "c": CMultiobjectivePCBFFilter(build(out, emitted.name, werror=True)),
-            "system": system}
+            "system": system, "out": out}
 
 
 def _same_mo(py_out: tuple, c_out: tuple, where: str) -> None:
@@ -284,6 +284,76 @@ def test_multiobjective_c_equals_python_along_closed_loops(mo_pair: dict) -> Non
     compared = sum(v for k, v in seen.items() if k != "boundary")
     assert compared >= 20 and seen.get("None", 0) >= 10 and seen.get("warm_start", 0) >= 5, seen
     assert seen.get("boundary", 0) <= 1, seen
+
+
+def _mo_random_states(mo_pair: dict, n: int, seed: int) -> dict[str, int]:
+    """Algorithm 6.4, C = Python on ``n`` random states of the box of the closed-loop test,
+    each from fresh controllers: the initialization by (5.15), then (6.15) from the
+    candidate with the bound (6.15g); inputs, fallbacks, statuses and every recorded value
+    within TOL. A state where one side's solve converges only at tol_du is counted, not
+    compared (:func:`_random_states`); at most 1% may be such."""
+    py, c = mo_pair["py"], mo_pair["c"]
+    rng = np.random.default_rng(seed)
+    seen: dict[str, int] = {"boundary": 0}
+    for k in range(n):
+        x, u_p = rng.uniform([-0.8, -5.0], [0.8, 5.0]), rng.uniform(-4, 4, 1)
+        py.reset()
+        c.reset()
+        out_py, out_c = py.step(x, u_p), c.step(x, u_p)
+        if _kind(out_py[1].status) != _kind(out_c[1].status):
+            seen["boundary"] += 1
+            continue
+        _same_mo(out_py, out_c, f"state {k}: {x}")
+        seen[str(out_py[1].fallback)] = seen.get(str(out_py[1].fallback), 0) + 1
+    assert seen["boundary"] <= max(1, n // 100), seen
+    return seen
+
+
+@pytest.mark.slow
+def test_multiobjective_c_equals_python_on_1000_random_states(mo_pair: dict) -> None:
+    """The must-show of issue #14 for bal/multiobj.c: 1000 states (audit C, session 14)."""
+    seen = _mo_random_states(mo_pair, 1000, 14)
+    assert seen.get("None", 0) >= 100, seen
+
+
+MO_VALGRIND_MAIN = r"""
+#include <math.h>
+#include <stdio.h>
+#include "mo.h"
+int main(void) {
+  double x[2], u[1], up[1] = {2.5}, values[4];
+  int k, st, bad = 0;
+  mo_work* wk = mo_alloc();
+  if (!wk) return 2;
+  for (k = 0; k < 12; ++k) {
+    x[0] = -0.8 + 0.15 * k; x[1] = 5.0 - 0.9 * k;
+    mo_step(x, up, u, &st, wk);
+    mo_values(wk, values);
+    bad += !isfinite(u[0]);
+    if (k == 5) mo_reset(wk);
+  }
+  x[0] = NAN;
+  mo_step(x, up, u, &st, wk);
+  bad += st != BAL_MULTIOBJ_BAD_INPUT;
+  mo_free(wk);
+  printf("%d\n", bad);
+  return bad;
+}
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("valgrind") is None, reason="valgrind not installed")
+def test_multiobjective_valgrind_clean(mo_pair: dict) -> None:
+    """bal/multiobj.c under valgrind (audit C, session 14): initialization, (6.15) steps
+    carrying the candidate, a reset, a NaN state; no memory error, no definite leak."""
+    out = mo_pair["out"]
+    (out / "vg_mo_main.c").write_text(MO_VALGRIND_MAIN)
+    exe = build_executable(out, "vg_mo_main.c", extra_flags=["-g", "-O1"])
+    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
+                          "--errors-for-leak-kinds=definite", str(exe)],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, (run.stdout, run.stderr[-2000:])
 
 
 def test_multiobjective_rejection_above_the_bound_c_equals_python(

@@ -9,6 +9,9 @@ MPC (8.2) proposing, 70 steps) with the minimum signed distance."""
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+
 import numpy as np
 import pytest
 
@@ -44,12 +47,14 @@ def test_the_slack_problem_is_staged_as_a_permutation(short):
     assert sorted(take) == list(range(m["nw"]))
 
 
-def test_cold_steps_c_equals_python(short):
+def _cold_steps(short, n: int, seed: int) -> int:
+    """``n`` cold steps (both filters reset) at random low-speed states outside the discs:
+    C = Python (statuses, fallbacks, inputs within 1e-8); the number of "ok" steps."""
     py, c = short
     s = obstacle_setup()
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(seed)
     solved = 0
-    for _ in range(15):
+    for _ in range(n):
         while True:  # low speeds: N = 15 steps of 0.02 s stop the car from v <= 1.5
             x = rng.uniform([-2, -1.5, -np.pi, 0, -0.75], [2, 1.5, np.pi, 1.0, 0.75])
             if signed_distance(x[None], s.obstacles).min() > 0.02:
@@ -62,7 +67,18 @@ def test_cold_steps_c_equals_python(short):
         assert i1.fallback == i2.fallback
         np.testing.assert_allclose(u2, u1, atol=1e-8)
         solved += i1.status == "ok"
-    assert solved >= 10
+    return solved
+
+
+def test_cold_steps_c_equals_python(short):
+    assert _cold_steps(short, 15, 0) >= 10
+
+
+@pytest.mark.slow
+def test_1000_cold_steps_c_equals_python(short):
+    """The must-show of issue #14 for the obstacle PCBF's C: 1000 states (audit C,
+    session 14)."""
+    assert _cold_steps(short, 1000, 14) >= 500
 
 
 def test_closed_loop_c_equals_python_and_avoids_the_disc(short):
@@ -149,3 +165,60 @@ def test_shifted_plan_attempt_c_equals_python(tmp_path):
     finally:
         del py.filter._solve_with
     assert counts[39:42] == [2, 2, 2]  # warm attempt failed, the shifted plan converged
+
+
+DRIVER = r"""
+/* Replays the states and proposals of a Python closed loop through the emitted step. */
+#include <stdio.h>
+#include "obstacles_pcbf_n15.h"
+#include "replay.h"
+
+int main(void) {
+  obstacles_pcbf_n15_work* wk = obstacles_pcbf_n15_alloc();
+  casadi_real u[obstacles_pcbf_n15_NU], h;
+  int k, st;
+  if (!wk) return 1;
+  for (k = 0; k < REPLAY_K; ++k) {
+    obstacles_pcbf_n15_step(REPLAY_X[k], REPLAY_U, u, &h, &st, wk);
+    printf("%d %.17g %.17g\n", st, u[0], u[1]);
+  }
+  obstacles_pcbf_n15_free(wk);
+  return 0;
+}
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("valgrind") is None, reason="needs valgrind")
+def test_replayed_loop_is_memory_clean_under_valgrind(short):
+    """The braking loop of the N = 15 variant (12 steps, certified and solved steps) replayed
+    through the emitted C by a driver without Python, under valgrind (fatrop, its cold
+    retry and IPOPT linked): no memory error, no definite leak, the inputs of Python within
+    1e-8 (audit C, session 14: the obstacle PCBF had no memcheck run)."""
+    from balustrade.codegen import build_executable
+
+    py, c = short
+    system = obstacle_car()
+    x, u_p = np.array([-1.6, -0.8, 0.0, 1.0, 0.0]), np.array([2.0, 0.0])
+    py.reset()
+    xs, us = [], []
+    for _ in range(12):
+        u, _ = py.step(x, u_p)
+        xs.append(x)
+        us.append(u)
+        x = system.step(x, u)
+    out = c.accelerated["dir"]
+    rows = ",\n".join("{" + ", ".join(f"{v:.17g}" for v in r) + "}" for r in xs)
+    (out / "replay.h").write_text(
+        f"#define REPLAY_K {len(xs)}\nstatic const casadi_real REPLAY_X[{len(xs)}][5] = "
+        f"{{{rows}}};\nstatic const casadi_real REPLAY_U[2] = {{2.0, 0.0}};\n")
+    (out / "driver.c").write_text(DRIVER)
+    flags = tuple(c._lib.manifest["link_flags"])
+    exe = build_executable(out, main="driver.c", werror=True, extra_flags=flags,
+                           out=out.parent / "obstacle_driver")
+    cmd = ["valgrind", "--error-exitcode=9", "--leak-check=full",
+           "--errors-for-leak-kinds=definite", "-q", str(exe)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    u_c = np.array([[float(v) for v in line.split()[1:]] for line in proc.stdout.splitlines()])
+    np.testing.assert_allclose(u_c, np.array(us), atol=1e-8)
