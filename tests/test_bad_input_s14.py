@@ -184,3 +184,16 @@ def test_step_on_non_finite_data_records_it_and_returns_a_finite_input(controlle
         assert info.status == "non_finite_state" and info.fallback is not None
     elif not isinstance(controller, (MPCController, RegretController)):   # these ignore u_p
         assert "non_finite_proposal" in info.status
+
+
+def test_a_rounding_below_the_lower_bound_is_packed_as_the_bound():
+    """A solver's optimal slack comes back at −4.2e-17 (review R3, session 14): packed as 0,
+    not refused; −1e-6 is still refused."""
+    from balustrade.dsl.ocp import OCP
+
+    ocp = OCP(SYS, N, name="lb_tol")
+    ocp.parameter("xi", 2, lb=0.0)
+    packed = ocp.parameter_layout.pack({"xi": np.array([-4.2e-17, 1.0])})
+    assert packed[0] == 0.0 and packed[1] == 1.0
+    with pytest.raises(BalustradeError, match="xi"):
+        ocp.parameter_layout.pack({"xi": np.array([-1e-6, 1.0])})

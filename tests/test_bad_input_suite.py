@@ -96,7 +96,8 @@ SYS = LinearSystem(A, B, name="double_integrator")
 X = Box([-1.0, -1.0], [1.0, 1.0], name="X")
 U = Box([-1.0], [1.0], name="U")
 N = 3
-DELTAS = np.zeros(N)
+DELTAS = np.zeros(N)  # untightened: equal steps warn (TighteningWarning), filtered below
+pytestmark = pytest.mark.filterwarnings("ignore::balustrade.errors.TighteningWarning")
 ERROR = ErrorSet(Ellipsoid(np.eye(2) * 400.0, name="E"), np.array([[-1.0, -1.5]]))
 
 

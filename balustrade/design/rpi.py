@@ -60,7 +60,8 @@ def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polyto
         error, check, scale = _verified(sol, A, B, W, G, name)
         if check.ok:
             error.info.update({"objective": sol.objective, "lambda": lv, "status": sol.status,
-                               "rpi_margin": check.margin, "inflation": scale,
+                               "rpi_margin": check.margin, "rpi_check": check.method,
+                               "inflation": scale,
                                "solve_time": elapsed,
                                "method": "ellipsoidal SDP (SPEC §1.11)"})
             if refused:
@@ -114,7 +115,8 @@ def _verified(sol: object, A: np.ndarray, B: np.ndarray, W: Set, G: np.ndarray |
     for k in range(6):
         if check.ok or check.margin > RPI_REPAIR:
             break
-        scale = 1.0 + 4.0 ** k * max(check.margin, 1e-9)
+        # the miss is measured on the set already inflated: compound, never step back
+        scale *= 1.0 + 4.0 ** k * max(check.margin, 1e-9)
         check = is_rpi(Ellipsoid(P / scale ** 2, name=name), A_cl, W, G)
     return ErrorSet(Ellipsoid(P / scale ** 2, name=name), K, info={}), check, scale
 

@@ -58,7 +58,10 @@ def maximize_quadratic_on_ball(A: np.ndarray, b: np.ndarray, c: float, omega: fl
     tiny = 1e-13 * scale
 
     def norm_at(nu: float) -> float:
-        return float(np.sqrt(np.sum(beta**2 / (nu - alpha) ** 2)))
+        # ν rounded onto α_max in the near-hard case gives β²/0 = inf: "outside the ball",
+        # which keeps the bracket of the secular equation valid
+        with np.errstate(divide="ignore"):
+            return float(np.sqrt(np.sum(beta**2 / (nu - alpha) ** 2)))
 
     sqrt_om = np.sqrt(omega)
     beta_top = float(np.linalg.norm(beta[top]))
