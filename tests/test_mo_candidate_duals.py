@@ -125,6 +125,23 @@ def test_candidate_duals_must_be_a_bool() -> None:
             candidate_duals="yes")
 
 
+def test_both_candidate_options_are_refused_before_compiling(monkeypatch) -> None:
+    """candidate_duals already starts every ordinary (6.15) from the candidate, so with
+    candidate_second as well the second would never run (review R2, session 14)."""
+    robust, system = _design()
+    s = unstable2d_setup(N)
+    import balustrade.control.multiobjective as mo
+
+    def no_compile(*args, **kwargs):
+        raise AssertionError("compiled before the options were checked")
+    monkeypatch.setattr(mo, "compile", no_compile, raising=False)
+    with pytest.raises(BalustradeError, match="exclude each other"):
+        MultiobjectivePCBFController.build(
+            system, s.X, s.U, robust.h_f, robust.pi_f, N, s.deltas(), robust.error,
+            s.alpha_f, rho=0.5, target=EMITTABLE_TARGET, slack_target=EMITTABLE_TARGET,
+            candidate_duals=True, candidate_second=True)
+
+
 def test_candidate_second_runs_after_a_failed_first_attempt() -> None:
     """With the capped SQP, failed first attempts of ordinary (6.15) are followed by an
     attempt from the candidate with the previous (6.15)'s multipliers (checked at the
@@ -152,12 +169,14 @@ def test_candidate_second_runs_after_a_failed_first_attempt() -> None:
                 plain = last is not None and not ctrl._recovered
                 u, info = ctrl.step(x, np.array([2.5]))
                 if plain and not seen[0][1]:
-                    (w, _, lam_g), _ = seen[1]
+                    (w, lam_x, lam_g), _ = seen[1]
                     p = prob.ocp.pack_parameters({"x0": x, "u_p": np.array([2.5]),
                                                   "bound": info.values["bound"]})
                     want = prob._initial_guess(ctrl._candidate_start(cand), p)[0]
                     assert np.array_equal(np.asarray(w, dtype=float).ravel(),
                                           np.asarray(want, dtype=float).ravel())
+                    assert np.array_equal(np.asarray(lam_x, dtype=float),
+                                          np.asarray(last.raw["dm"][1], dtype=float))
                     assert np.array_equal(np.asarray(lam_g, dtype=float),
                                           np.asarray(last.raw["dm"][2], dtype=float))
                     second += 1

@@ -77,6 +77,7 @@ from balustrade.control.tube_functions import (
 from balustrade.dsl.error_sets import ErrorSet
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
+from balustrade.errors import BalustradeError
 from balustrade.problems.multiobjective import (
     LinearLyapunovDesign,
     decrease_bound,
@@ -192,6 +193,18 @@ BOUND_TOL = 1e-9
 H_TILDE_RISE_TOL = BOUND_TOL + DECREASE_TOL
 
 
+def _check_candidate_options(candidate_duals: object, candidate_second: object) -> None:
+    """Both options are bools, and not both on (``candidate_duals`` starts every ordinary
+    (6.15) from the candidate already, so ``candidate_second`` would never run): refused
+    before anything is compiled."""
+    check_instance(candidate_duals, bool, "Algorithm 6.4: candidate_duals")
+    check_instance(candidate_second, bool, "Algorithm 6.4: candidate_second")
+    if candidate_duals and candidate_second:
+        raise BalustradeError("Algorithm 6.4: candidate_duals and candidate_second exclude "
+                              "each other (candidate_duals already starts every ordinary "
+                              "(6.15) from the candidate); choose one")
+
+
 class MultiobjectivePCBFController:
     """Algorithm 6.4 over the compiled (5.15) (initialization) and (6.15)."""
 
@@ -216,14 +229,13 @@ class MultiobjectivePCBFController:
         #: multipliers (``True``; CasADi problems only) instead of from the previous (6.15)
         #: itself (``False``, the default): on the lane change (C, 50 seeds) 1 fallback
         #: instead of 6 but twice the steps >= 1 s (docs/vehicles.md, "Session 14")
-        check_instance(candidate_duals, bool, "Algorithm 6.4: candidate_duals")
+        _check_candidate_options(candidate_duals, candidate_second)
         self.candidate_duals = candidate_duals
         #: a failed ordinary (6.15) (started from the previous one) is tried once more from
         #: the candidate (6.14) with the previous (6.15)'s multipliers before the cold
         #: retries (``True``; CasADi problems, without ``candidate_duals``): on the lane
         #: change (C, 50 seeds) half the steps >= 1 s, but as many fallbacks (4 new) and a
         #: worse worst step (docs/vehicles.md, "Session 14")
-        check_instance(candidate_second, bool, "Algorithm 6.4: candidate_second")
         self.candidate_second = candidate_second
         #: the recovery target (module docstring, "Recovery steps")
         self.recovery_target = check_recovery_target(recovery_target, "Algorithm 6.4")
@@ -256,6 +268,7 @@ class MultiobjectivePCBFController:
         ``k = 0`` (5 of 49 instead of 40; the retry chain's last resort solves them), so it
         is not the default. ``recovery_target``: the attempt that leads the first (5.15)
         and (6.15) solves (module docstring; ``None``: none)."""
+        _check_candidate_options(candidate_duals, candidate_second)
         slack = compile(robust_pcbf_slack_problem(system, X, U, h_f, N, deltas, error, alpha_f,
                                                   1, U_tight), companion(slack_target, target))
         prob = compile(multiobjective_pcbf_problem(system, X, U, h_f, N, deltas, error, alpha_f,

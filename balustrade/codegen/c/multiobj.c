@@ -3,7 +3,9 @@
  * the problems Q_slack (5.15) and Q_problem (6.15). From <name>_config.h: Q_NX, Q_NU, Q_N,
  * Q_N_XI, the box U, the feedback Q_K (NU x NX, column-major), Q_RHO, Q_BOUND_TOL,
  * Q_DECREASE_TOL (control.multiobjective.DECREASE_TOL, the threshold of (6.15g) on the
- * polished slacks), and the
+ * polished slacks), Q_XI_SUM (the running-sum form of the slacks), Q_CANDIDATE_DUALS and
+ * Q_CANDIDATE_SECOND (the opt-in starts of MultiobjectivePCBFController(candidate_duals=,
+ * candidate_second=), session 14), and the
  * emitted functions Q_post_slack / Q_post_problem (polished slacks, h~) and Q_cand (the
  * candidate (6.14)).
  */
