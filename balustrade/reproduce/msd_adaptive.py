@@ -156,8 +156,8 @@ def adaptive_controller(d: dict, target: object = None) -> RAPSF:
     """Algorithm 4.1 with the box update and the §4.7 terminal set (the enlargement of
     ``𝓕_f(Θ₁₅₀)`` is computed after the run from all solved tubes, as in the thesis).
     ``target``: the target of (4.5); ``None`` is RAPSF's default (:data:`DEFAULT_TARGET`,
-    DAQP or PIQP by size) — a caller measuring one engine names it (``"fast-convex"``:
-    PIQP)."""
+    the engine chosen by size) — a caller measuring one engine names its target (e.g.
+    ``"fast-convex"``)."""
     s = d["setup"]
     return RAPSF(d["system"], d["X0"], joint(d), None, s.W, d["K"], s.N, s.Theta0,
                  estimator=BoxUpdate(d["system"], s.W, s.Theta0),
