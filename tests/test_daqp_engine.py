@@ -311,10 +311,11 @@ def test_fifty_seeded_toy_runs_equal_piqp(rapsf_toy):
     vertex of Θ₀ or uniform, vertex or uniform disturbances, an aggressive proposal):
     ``fast-convex-daqp`` keeps (x, u) ∈ 𝒵 at every step and applies PIQP's (``fast-convex``)
     inputs to 1e-6 (measured: at most 1.2e-7; both answers pass their solvers' tolerances,
-    the KKT check's 1e-8 is relative to ``1 + max(|b|, |q|)``); every (4.5) solve is DAQP's
-    own answer or a recorded PIQP fallback (measured: 1491 verified, 9 fallbacks — 4 DAQP
-    "cycling", 3 "optimal" failing the KKT check, 2 DAQP "infeasible" on QPs PIQP solved to
-    optimality)."""
+    the KKT check's 1e-8 is relative per row and entry); every (4.5) solve is DAQP's
+    own answer or a recorded PIQP fallback (measured with the old scale ``1 + max(|b|, |q|)``:
+    1491 verified, 9 fallbacks — 4 DAQP "cycling", 3 "optimal" failing the KKT check, 2 DAQP
+    "infeasible" on QPs PIQP solved to optimality; with the per-row scale: 1489 verified, 11
+    fallbacks)."""
     from balustrade.control.rapsf import RAPSF
     from balustrade.estimate import BoxUpdate
     from balustrade.problems.rapsf import model_matrices
