@@ -123,7 +123,7 @@ def compare(masses: int, steps: int, options: dict | None = None) -> dict:
     """The closed loop with every (4.5) solve (3 masses) or every reduced QP of the row
     generation (8 masses) also solved by DAQP, taking turns in going first."""
     d = msd_adaptive.design(masses)
-    ctrl = msd_adaptive.adaptive_controller(d)
+    ctrl = msd_adaptive.adaptive_controller(d, target="fast-convex")
     loop = Loop(d, ctrl.step, steps)
     rows: list[dict] = []
     wrapped: set[int] = set()
@@ -283,7 +283,7 @@ def loops(masses: int, steps: int) -> dict:
         return RAPSF(d["system"], d["X0"], msd_adaptive.joint(d), None, s.W, d["K"], s.N,
                      s.Theta0, estimator=msd_adaptive.BoxUpdate(d["system"], s.W, s.Theta0),
                      target=target)
-    ctrls = {"fast-convex": msd_adaptive.adaptive_controller(d),
+    ctrls = {"fast-convex": msd_adaptive.adaptive_controller(d, target="fast-convex"),
              "fast-convex-daqp": controller("fast-convex-daqp")}
     runs = {k: Loop(d, c.step, steps) for k, c in ctrls.items()}
     for loop in runs.values():

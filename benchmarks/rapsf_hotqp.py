@@ -137,7 +137,7 @@ def compare(masses: int, steps: int, order: str = "alternate", options: dict | N
     Step 0 compiles (4.5) inside the step, so the rows are the solves of steps ``1 …
     steps − 1`` (the first of them qpOASES' cold ``init``)."""
     d = msd_adaptive.design(masses)
-    ctrl = msd_adaptive.adaptive_controller(d)
+    ctrl = msd_adaptive.adaptive_controller(d, target="fast-convex")
     loop = Loop(d, ctrl.step, steps)
     rows: list[dict] = []
     hot: dict[int, HotQpoases] = {}

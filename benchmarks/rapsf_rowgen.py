@@ -39,7 +39,7 @@ from benchmarks.bench_rapsf import Loop
 def record(masses: int, steps: int) -> tuple[object, list[dict]]:
     """The compiled main-horizon problem of the closed loop and the parameters of its solves."""
     d = msd_adaptive.design(masses)
-    ctrl = msd_adaptive.adaptive_controller(d)
+    ctrl = msd_adaptive.adaptive_controller(d, target="fast-convex")
     loop = Loop(d, ctrl.step, steps)
     loop(0)
     seen: list[tuple[object, dict]] = []
@@ -98,10 +98,11 @@ def loops(masses: int, steps: int, drop_after: int | None = None) -> dict:
     dropping rows idle for ``drop_after`` solves from the seed. Per loop: step times, the
     inputs' largest difference from the old default's, fallbacks."""
     d = msd_adaptive.design(masses)
-    ctrls = {"full (old default)": msd_adaptive.adaptive_controller(d),
-             "row generation": msd_adaptive.adaptive_controller(d)}
+    ctrls = {"full (old default)": msd_adaptive.adaptive_controller(d, target="fast-convex"),
+             "row generation": msd_adaptive.adaptive_controller(d, target="fast-convex")}
     if drop_after is not None:
-        ctrls[f"row generation, drop_after={drop_after}"] = msd_adaptive.adaptive_controller(d)
+        ctrls[f"row generation, drop_after={drop_after}"] = \
+            msd_adaptive.adaptive_controller(d, target="fast-convex")
     ctrls["full (old default)"].row_generation = False
     runs = {label: Loop(d, c.step, steps) for label, c in ctrls.items()}
     for k in range(steps):
@@ -144,8 +145,8 @@ def versions(masses: int, steps: int, path: str | None = None) -> dict:
     per step; the largest input difference between the two; per-step time ratios."""
     other_cls = _row_generation_class(path)
     d = msd_adaptive.design(masses)
-    ctrls = {"this checkout": msd_adaptive.adaptive_controller(d),
-             "other": msd_adaptive.adaptive_controller(d)}
+    ctrls = {"this checkout": msd_adaptive.adaptive_controller(d, target="fast-convex"),
+             "other": msd_adaptive.adaptive_controller(d, target="fast-convex")}
     runs = {label: Loop(d, c.step, steps) for label, c in ctrls.items()}
     rounds: dict[str, list[int]] = {label: [] for label in runs}
     for loop in runs.values():

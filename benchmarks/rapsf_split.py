@@ -74,7 +74,7 @@ def split(masses: int, steps: int) -> dict:
     """Per-part medians (seconds) of the ``fast-convex`` step and the baseline's median step
     on ``steps`` closed-loop states, with the largest input difference between the two."""
     d = msd_adaptive.design(masses)
-    ctrl = msd_adaptive.adaptive_controller(d)
+    ctrl = msd_adaptive.adaptive_controller(d, target="fast-convex")
     baseline = RebuiltCvxpy(d)
     loop = Loop(d, ctrl.step, steps)
     base = Loop(d, lambda x, u_p: (baseline.step(x, u_p), None), steps)

@@ -144,7 +144,7 @@ def test_rapsf_three_masses_equals_full_solve():
     from benchmarks.bench_rapsf import Loop
 
     d = msd_adaptive.design(3)
-    ctrl = msd_adaptive.adaptive_controller(d)
+    ctrl = msd_adaptive.adaptive_controller(d, target="fast-convex")
     loop = Loop(d, ctrl.step, 6)
     states = []
     for k in range(6):
@@ -175,13 +175,13 @@ def test_rapsf_chooses_row_generation_by_size(monkeypatch):
     from benchmarks.bench_rapsf import Loop
 
     d = msd_adaptive.design(3)
-    plain = msd_adaptive.adaptive_controller(d)
+    plain = msd_adaptive.adaptive_controller(d, target="fast-convex")
     loop_plain = Loop(d, plain.step, 8)
     for k in range(8):
         loop_plain(k)
     assert all(getattr(c, "rowgen", None) is None for c in plain._compiled.values())
     monkeypatch.setattr(rapsf_mod, "ROWGEN_MIN_ROWS", 1)
-    forced = msd_adaptive.adaptive_controller(d)
+    forced = msd_adaptive.adaptive_controller(d, target="fast-convex")
     loop_forced = Loop(d, forced.step, 8)
     for k in range(8):
         loop_forced(k)

@@ -16,7 +16,8 @@ iterations; their stopping test is set tight (``eta_prox``), as is the primal to
 **No answer is taken on DAQP's word.** A solve counts as ``optimal`` only when DAQP's exit
 flag is 1 (optimal) *and* the KKT conditions of the lowered QP hold at its point and
 multipliers to :data:`KKT_TOL` (:func:`kkt_residual`: stationarity, primal feasibility,
-the multipliers' signs, complementarity, scaled by ``1 + max(|b|, |q|)``). Anything else —
+the multipliers' signs, complementarity, each scaled by its own row's or entry's size).
+Anything else —
 any other flag (DAQP's "infeasible" carries no certificate the backend could check, its
 cycling/iteration-limit/non-convexity flags no answer) or a residual above the tolerance —
 is solved again by PIQP (the direct backend's QP engine, :class:`~balustrade.backends.
@@ -65,18 +66,33 @@ def kkt_residual(P: sp.spmatrix, q: np.ndarray, A: sp.spmatrix, b: np.ndarray, m
                  y: np.ndarray, z: np.ndarray, AT: sp.spmatrix | None = None) -> float:
     """Largest scaled KKT violation of ``min ½yᵀPy + qᵀy, A[:m0] y = b[:m0], A[m0:] y <= b[m0:]``
     at the point ``y`` and multipliers ``z`` (``P y + q + Aᵀz = 0``, ``z >= 0`` on the
-    inequality rows): stationarity, primal feasibility, dual sign, complementarity, divided by
-    ``1 + max(|b|, |q|)`` over their finite entries. ``nan`` when any of them is not finite.
-    ``AT``: ``Aᵀ`` if the caller keeps it (else formed here)."""
+    inequality rows). ``nan`` when any of them is not finite. ``AT``: ``Aᵀ`` if the caller
+    keeps it (else formed here).
+
+    Each error is scaled by the size of its own terms, never by the largest entry of the
+    whole problem (one loose row ``|b_i| = 10⁶`` must not loosen the tolerance of the others):
+
+    * primal feasibility and complementarity of row ``i``: ``/ (1 + |b_i|)`` (an infinite
+      ``b_i`` is no row: neither error counts there);
+    * stationarity, entry ``j``: ``/ (1 + max(|q_j|, |(P y)_j|, |(Aᵀz)_j|))`` — elementwise,
+      for the same reason as per row (a large ``q_j`` of one variable leaves the others at
+      the tight tolerance);
+    * the multipliers' signs (``z_i < 0`` on an inequality row): ``/ (1 + max |Aᵀz|, |q|,
+      |P y|)`` — a multiplier's size is measured against the gradient it balances."""
     r = A @ y - b
-    finite_b = b[np.isfinite(b)]
-    scale = 1.0 + max(np.max(np.abs(finite_b), initial=0.0), np.max(np.abs(q), initial=0.0))
-    stat = np.max(np.abs(P @ y + q + (A.T if AT is None else AT) @ z), initial=0.0)
-    prim = max(np.max(np.abs(r[:m0]), initial=0.0), np.max(r[m0:], initial=0.0))
-    dual = max(0.0, -np.min(z[m0:], initial=0.0))
-    comp = np.max(np.abs(z[m0:] * np.where(np.isfinite(b[m0:]), r[m0:], 0.0)), initial=0.0)
+    finite = np.isfinite(b)
+    row_scale = 1.0 + np.abs(np.where(finite, b, 0.0))
+    Py = P @ y
+    ATz = (A.T if AT is None else AT) @ z
+    mags = np.maximum(np.maximum(np.abs(q), np.abs(Py)), np.abs(ATz))
+    stat = np.max(np.abs(Py + q + ATz) / (1.0 + mags), initial=0.0)
+    prim = max(np.max(np.abs(r[:m0]) / row_scale[:m0], initial=0.0),
+               np.max(np.where(finite[m0:], r[m0:], 0.0) / row_scale[m0:], initial=0.0))
+    dual = max(0.0, -np.min(z[m0:], initial=0.0)) / (1.0 + np.max(mags, initial=0.0))
+    comp = np.max(np.abs(z[m0:] * np.where(finite[m0:], r[m0:], 0.0)) / row_scale[m0:],
+                  initial=0.0)
     worst = max(stat, prim, dual, comp)
-    return float(worst / scale) if np.isfinite(worst) else float("nan")
+    return float(worst) if np.isfinite(worst) else float("nan")
 
 
 class DaqpEngine:
@@ -228,6 +244,7 @@ class DaqpEngine:
         raw = self._piqp.run(q, b, self._values)
         raw.words = f"{raw.words} (fallback: {why})"
         raw.iterations += iterations
+        raw.solver = "piqp"            # who answered: Solution.solver and RAPSF.engine say so
         self.model = None
         self._start = raw.y.copy() if raw.status.success and raw.y is not None else None
         return raw

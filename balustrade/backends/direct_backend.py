@@ -213,8 +213,8 @@ class DirectCompiled:
         dual = BlockDuals(self._duals, prog, raw) if usable else {}
         return Solution(status=raw.status, objective=objective,
                         primal=self.ocp.unpack_variables(w), dual=dual, solve_time=elapsed,
-                        iterations=raw.iterations, backend="direct", solver=self.solver_name,
-                        p=p, message=message)
+                        iterations=raw.iterations, backend="direct",
+                        solver=raw.solver or self.solver_name, p=p, message=message)
 
     def _row_generation(self, setting: object) -> RowGeneration | None:
         """:class:`~balustrade.backends.row_generation.RowGeneration` for the option

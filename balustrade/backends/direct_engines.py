@@ -65,7 +65,9 @@ def all_finite(v: np.ndarray | list | None) -> bool:
 
 class RawResult:
     """One solver run: status, the solver's own words, ``y``, the cone duals ``z`` (the
-    multipliers of ``A y + s = b`` with ``P y + q + Aᵀz = 0``), iterations.
+    multipliers of ``A y + s = b`` with ``P y + q + Aᵀz = 0``), iterations, and ``solver``:
+    the solver that answered when it is not the engine's own (e.g. ``"piqp"`` after the DAQP
+    engine's fallback), ``None`` otherwise.
 
     ``z`` may be given as the Python list a solver binding returns: it becomes an array only
     when read (a solve whose multipliers nobody reads does not pay the conversion, ~0.2–0.4
@@ -73,8 +75,9 @@ class RawResult:
     at once either way (:func:`all_finite`)."""
 
     def __init__(self, status: Status, words: str, y: np.ndarray | None,
-                 z: np.ndarray | list | None, iterations: int):
+                 z: np.ndarray | list | None, iterations: int, solver: str | None = None):
         self.status, self.words, self.y, self.iterations = status, words, y, iterations
+        self.solver = solver
         self._z = z
         # a "solved" verdict with a missing or non-finite point or multipliers is a
         # failure: a NaN never passes as an optimal answer

@@ -358,6 +358,9 @@ class RAPSF:
                 getattr(compiled, "target", None), "nlp_solver", None)
         sol = compiled.solve(params, warm_start=warm)
         if horizon == self.N:
+            # the solver that answered (the fallback's, when the dense engine's answer failed
+            # its KKT check)
+            self._engine = getattr(sol, "solver", None) or self._engine
             self._last = (key, sol) if outcome(sol) == "optimal" else None
         return sol
 
@@ -378,9 +381,11 @@ class RAPSF:
 
     @property
     def engine(self) -> str | None:
-        """The solver of the last (4.5) of full horizon solved (the engine's name on the
-        direct backend, the NLP solver's on CasADi, as its ``Solution.solver``): the choice of
-        the size rule of the default target; ``None`` before the first step."""
+        """The solver that answered the last (4.5) of full horizon solved (its
+        ``Solution.solver``: the engine's name on the direct backend — the sparse engine's
+        when the dense one fell back to it — the NLP solver's on CasADi): the choice of the
+        size rule of the default target unless a fallback answered; ``None`` before the
+        first step."""
         return self._engine
 
     def _target_for(self, ocp: object) -> object:

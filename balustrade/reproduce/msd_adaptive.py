@@ -152,20 +152,26 @@ def baseline_design(d: dict) -> dict:
                           "disturbance: " + "; ".join(errors))
 
 
-def adaptive_controller(d: dict) -> RAPSF:
+def adaptive_controller(d: dict, target: object = None) -> RAPSF:
     """Algorithm 4.1 with the box update and the §4.7 terminal set (the enlargement of
-    ``𝓕_f(Θ₁₅₀)`` is computed after the run from all solved tubes, as in the thesis)."""
+    ``𝓕_f(Θ₁₅₀)`` is computed after the run from all solved tubes, as in the thesis).
+    ``target``: the target of (4.5); ``None`` is RAPSF's default (:data:`DEFAULT_TARGET`,
+    the engine chosen by size) — a caller measuring one engine names its target (e.g.
+    ``"fast-convex"``)."""
     s = d["setup"]
     return RAPSF(d["system"], d["X0"], joint(d), None, s.W, d["K"], s.N, s.Theta0,
-                 estimator=BoxUpdate(d["system"], s.W, s.Theta0))
+                 estimator=BoxUpdate(d["system"], s.W, s.Theta0),
+                 target=DEFAULT_TARGET if target is None else target)
 
 
-def baseline_controller(d: dict, b: dict) -> RAPSF:
+def baseline_controller(d: dict, b: dict, target: object = None) -> RAPSF:
     """The baseline as Algorithm 4.1 on ``{θ_c}`` and ``W̃`` without estimator (its problem is
-    :func:`~balustrade.problems.baseline_psf.baseline_psf_problem`)."""
+    :func:`~balustrade.problems.baseline_psf.baseline_psf_problem`); ``target`` as in
+    :func:`adaptive_controller`."""
     s, tc = d["setup"], b["theta_c"]
     return RAPSF(d["system"], b["X0"], joint(d), None, b["W"], b["K"], s.N,
-                 Box(tc, tc, name="theta_c"), name="baseline_psf")
+                 Box(tc, tc, name="theta_c"), name="baseline_psf",
+                 target=DEFAULT_TARGET if target is None else target)
 
 
 # -- closed loop -----------------------------------------------------------------------------
