@@ -112,6 +112,21 @@ def _small_qp(loose: float | None = None) -> OCP:
     return ocp
 
 
+class _Lying:
+    """Stands in for the engine's DAQP model: updates pass through, every solve returns the
+    real point moved by ``shift`` with flag 1 ("optimal") — an answer the KKT check must catch."""
+
+    def __init__(self, model: object, shift: float):
+        self.model, self.real, self.shift = model, model.solve, shift
+
+    def update(self, **kw):
+        return self.model.update(**kw)
+
+    def solve(self):
+        x, fval, _, info = self.real()
+        return x + self.shift, fval, 1, info
+
+
 def test_wrong_answer_with_optimal_flag_falls_back(monkeypatch):
     """A DAQP solve returning flag 1 (optimal) with a wrong point is not taken: PIQP's answer
     comes back, marked as a fallback, and the model is set up again afterwards."""
@@ -121,17 +136,7 @@ def test_wrong_answer_with_optimal_flag_falls_back(monkeypatch):
     first = compiled.solve({"c": c})
     assert first.status == Status.OPTIMAL and "DAQP: optimal" in first.message
     engine = compiled.engine
-    model = engine.model
-    real = model.solve
-
-    class Lying:
-        def update(self, **kw):
-            return model.update(**kw)
-
-        def solve(self):
-            x, fval, flag, info = real()
-            return x + 1e-3, fval, 1, info      # says optimal, is not
-    engine.model = Lying()
+    engine.model = _Lying(engine.model, 1e-3)      # says optimal, is not
     sol = compiled.solve({"c": c})
     assert sol.status == Status.OPTIMAL
     assert "fallback" in sol.message and "KKT residual" in sol.message, sol.message
@@ -152,17 +157,7 @@ def test_one_loose_row_does_not_loosen_the_kkt_check(monkeypatch):
     first = compiled.solve({"c": c})
     assert first.status == Status.OPTIMAL and "DAQP: optimal" in first.message
     engine = compiled.engine
-    model = engine.model
-    real = model.solve
-
-    class Lying:
-        def update(self, **kw):
-            return model.update(**kw)
-
-        def solve(self):
-            x, fval, flag, info = real()
-            return x + 1e-4, fval, 1, info
-    engine.model = Lying()
+    engine.model = _Lying(engine.model, 1e-4)
     sol = compiled.solve({"c": c})
     assert engine.fallbacks == 1 and "KKT residual" in sol.message, sol.message
     assert sol.solver == "piqp" and sol.status == Status.OPTIMAL
@@ -289,16 +284,7 @@ def test_rapsf_keeps_the_model_across_steps():
     assert a.fallbacks == b.fallbacks == 0
     assert np.max(np.abs(np.array(a.applied) - np.array(b.applied))) < 1e-7
     assert ctrl.engine == "daqp"
-    model, real = engine.model, engine.model.solve
-
-    class Lying:                             # flag 1 with a wrong point: PIQP answers
-        def update(self, **kw):
-            return model.update(**kw)
-
-        def solve(self):
-            x, fval, flag, info = real()
-            return x + 1e-3, fval, 1, info
-    engine.model = Lying()
+    engine.model = _Lying(engine.model, 1e-3)  # flag 1 with a wrong point: PIQP answers
     a(12)
     b(12)
     assert engine.fallbacks == 1 and ctrl.engine == "piqp", (engine.fallbacks, ctrl.engine)
