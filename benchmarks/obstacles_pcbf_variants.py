@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -140,14 +141,7 @@ def ipopt_first() -> None:
         return s
 
     filt.solve = timed
-    plant = check_plant(obstacle_car(), "obstacles_pcbf_variants")
-    for p in O.STARTS:
-        x, mpc = O.initial_state(p), O.NaiveMPC()
-        mpc.start(x)
-        f.reset()
-        for k in range(O.STEPS):
-            u, _ = f.step(x, mpc(k, x))
-            x = plant.step(x, u, None)
+    _drive(f)
     print(f"certified steps: {len(rows)}")
     for j, what in ((0, "the chain (fatrop first)"), (1, "IPOPT from the plan")):
         its = [r[2 + j] for r in rows]
@@ -157,6 +151,21 @@ def ipopt_first() -> None:
                                              for s in sorted({r[4] for r in rows})})
     d = [r[5] for r in rows]
     print(f"objective (IPOPT from the plan − chain): {min(d):.3g} … {max(d):.3g}")
+
+
+def _drive(f: object, after_step: Callable[[tuple, int], None] | None = None) -> None:
+    """The PCBF algorithm ``f`` filtering the naive MPC from every start of §8.3 for
+    ``O.STEPS`` steps, without disturbance; ``after_step(start, k)`` after each step."""
+    plant = check_plant(obstacle_car(), "obstacles_pcbf_variants")
+    for p in O.STARTS:
+        x, mpc = O.initial_state(p), O.NaiveMPC()
+        mpc.start(x)
+        f.reset()
+        for k in range(O.STEPS):
+            u, _ = f.step(x, mpc(k, x))
+            x = plant.step(x, u, None)
+            if after_step is not None:
+                after_step(p, k)
 
 
 def fatrop_plan() -> None:
@@ -189,16 +198,11 @@ def fatrop_plan() -> None:
         return solve(params, warm_start, second_start, second_solver, lead)
 
     filt.solve = timed
-    plant = check_plant(obstacle_car(), "obstacles_pcbf_variants")
-    for p in O.STARTS:
-        x, mpc = O.initial_state(p), O.NaiveMPC()
-        mpc.start(x)
-        f.reset()
-        for k in range(O.STEPS):
-            u, _ = f.step(x, mpc(k, x))
-            x = plant.step(x, u, None)
-            if rows and len(rows[-1]) == 7:
-                rows[-1] = (*rows[-1], p, k)
+
+    def tag(p: tuple, k: int) -> None:       # the start and step of a row just recorded
+        if rows and len(rows[-1]) == 7:
+            rows[-1] = (*rows[-1], p, k)
+    _drive(f, tag)
     print("CPU ms: first attempt + (IPOPT from the plan | fatrop from the plan [+ IPOPT])")
     for r in rows:
         print(f"  {r[7]} step {r[8]}: {r[0]:.1f} + ({r[1]:.1f} | {r[2]:.1f}); fatrop from the "
