@@ -71,7 +71,8 @@ def _loop(toy, estimator_cls, old: bool, monkeypatch, steps=25, target="fast-con
             mp.setattr(updates, "solve_lps_joint", solve_lps)  # one warm-started run per row
             mp.setattr(updates, "_box_inside", lambda *a: False)  # LPs on every step
             mp.setattr(updates, "vertex_supports", lambda *a, **k: None)  # ... and no vertices
-            mp.setattr(rapsf_control, "_s_from_lps", s_constants)  # s_jr row by row
+            mp.setattr(rapsf_control, "_s_from_lps",             # s_jr row by row
+                       lambda *a, **kw: s_constants(*a))
         ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=estimator_cls(sys_, W, Theta0),
                      target=target)
         if old:
@@ -300,6 +301,32 @@ def test_5_mass_steps_compute_s_without_an_lp_per_row(monkeypatch):
         u, _ = ctrl.step(x, msd_performance(k, x, d["n"]))
         changed += ctrl.Theta is not before
     assert changed >= 1 and calls == []
+    assert ctrl._learned is not None and ctrl._learned.reused > 0   # rows without an LP
     monkeypatch.undo()
     np.testing.assert_allclose(ctrl._s, s_constants(d["X0"], d["system"], d["K"],
                                                     ctrl.vertices), rtol=0, atol=1e-9)
+
+
+def test_learned_supports_equal_the_lps_and_reuse_vertices(monkeypatch):
+    """:class:`~balustrade.control.rapsf_supports.LearnedSupports` on a random polytope in 8
+    dimensions (no vertex enumeration there): the supports along 60 directions equal
+    ``Polytope.support`` row by row (independent LPs) to 1e-8; directions moved by 1e-4 (a
+    new ``Θ_k``) are answered mostly from the remembered vertices, no LP, with the same
+    accuracy, while 60 new directions (whose best remembered vertex is mostly not optimal:
+    the gap test sends them to LPs) are too."""
+    from balustrade.control.rapsf_supports import LearnedSupports
+    from balustrade.dsl.sets import Polytope
+
+    rng = np.random.default_rng(7)
+    H = rng.normal(size=(40, 8))
+    P = Polytope(H, np.ones(40), name="P8")
+    sup = LearnedSupports(P)
+    D = rng.normal(size=(60, 8))
+    moved = np.vstack([D + 1e-4 * rng.normal(size=D.shape), rng.normal(size=(60, 8))])
+    for step, dirs in enumerate((D, moved)):
+        got = sup(dirs)
+        ref = np.array([P.support(d) for d in dirs])
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-8)
+        if step == 0:
+            assert sup.lps == 60 and sup.reused == 0 and len(sup.vertices) > 0
+    assert sup.reused >= 30 and sup.lps < 150, (sup.reused, sup.lps)

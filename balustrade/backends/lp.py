@@ -130,7 +130,8 @@ def solve_lps(C: np.ndarray, H: np.ndarray, h: np.ndarray,
 
 
 def verified_supports(D: np.ndarray, H: np.ndarray, h: np.ndarray,
-                      box: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray | None:
+                      box: tuple[np.ndarray, np.ndarray] | None, points: bool = False
+                      ) -> np.ndarray | tuple[np.ndarray, np.ndarray] | None:
     """``max {d_rᵀx : Hx <= h}`` for every row ``d_r`` of ``D`` from one HiGHS run
     (:func:`solve_lps_joint`), each raised to its weak-duality bound over ``box`` (a box that
     provably contains the set, :func:`~balustrade.dsl.sets_geometry.verified_upper`) exactly
@@ -140,7 +141,8 @@ def verified_supports(D: np.ndarray, H: np.ndarray, h: np.ndarray,
     (which raises or returns ``inf`` as it should). The ``s_jr`` of SPEC §2.20 for a
     polytope ``𝕏₀`` whose vertices are not enumerated: one run instead of one
     :func:`scipy.optimize.linprog` per row (480 per new ``Θ_k`` at 5 masses: 0.60 s CPU
-    against 0.036 s, docs/adaptive.md "Session 15")."""
+    against 0.036 s, docs/adaptive.md "Session 15"). ``points=True`` also returns the
+    maximisers (rows)."""
     from balustrade.dsl.sets_geometry import verified_upper
 
     D = np.atleast_2d(np.asarray(D, dtype=float))
@@ -149,9 +151,13 @@ def verified_supports(D: np.ndarray, H: np.ndarray, h: np.ndarray,
                                  for r in res):
         return None
     if box is None:
-        return np.array([r.value for r in res])
-    return np.array([max(r.value, verified_upper(d, H, h, *box, r.dual))
-                     for d, r in zip(D, res, strict=True)])
+        values = np.array([r.value for r in res])
+    else:
+        values = np.array([max(r.value, verified_upper(d, H, h, *box, r.dual))
+                           for d, r in zip(D, res, strict=True)])
+    if points:
+        return values, np.array([r.x for r in res]).reshape(len(D), H.shape[1])
+    return values
 
 
 def _decide_empty(H: np.ndarray, h: np.ndarray) -> Status:
