@@ -58,6 +58,13 @@ class DegenerateResultWarning(BalustradeWarning):
     ``γ_f ≈ 0``); the result names the reason."""
 
 
+class UnprovenCheckWarning(BalustradeWarning):
+    """A check that could only search for counterexamples (sampled directions and points)
+    found none: its ``ok`` is not a proof (e.g. :func:`~balustrade.dsl.error_sets.is_rpi`
+    for an ellipsoid when ``A + BK`` is singular or ``W`` is not a polytope); the result
+    records it (``proven=False``)."""
+
+
 class TighteningWarning(BalustradeWarning):
     """Tightenings ``Δ_i`` that are increasing but not strictly (e.g. all zero): the PCBF
     problems are well posed, but the strict decrease of the slack cost (SPEC §1.4) is lost."""

@@ -268,3 +268,39 @@ def test_approximate_valgrind_clean(approx: dict) -> None:
                           "--errors-for-leak-kinds=definite", str(exe)],
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, (run.stdout, run.stderr[-2000:])
+
+
+def test_a_converged_filter_outside_u_is_filter_failed_in_both(tmp_path) -> None:
+    """A (7.5) whose solver converges to an input outside ``U`` has not solved (7.5) (its
+    constraint ``u ∈ U`` fails): Python and C both apply the (7.6) minimizer (Proposition
+    7.3) with status ``"filter_failed"`` (Python used to say ``"filter_optimal"``). Forced
+    in both the same way: (7.5) compiled over a wider input box than the filter's ``U``,
+    so that its optimum lies outside ``U`` when ``u_p`` does."""
+    from balustrade.backends import compile
+    from balustrade.backends.casadi_fast import FastNLP
+    from balustrade.dsl.sets import Box
+    from balustrade.problems.approximate import approximate_filter_problem
+
+    py = pendulum_approximate_filter()
+    U = py.U
+    wide = Box(U.lb - 2.0, U.ub + 2.0, name="U_wide")
+    py.filter = mirror_c_retries(compile(approximate_filter_problem(py.system, wide, py.h),
+                                         py.target))
+    py._fast_filter = FastNLP(py.filter)
+    py.decrease.compiled = mirror_c_retries(py.decrease.compiled)
+    emitted = emit_approximate(py, "apxwide", tmp_path, dynamics=pendulum().function)
+    c = CApproximatePCBFFilter(build(tmp_path, emitted.name, werror=True))
+    rng = np.random.default_rng(2)
+    outside = 0
+    for x, u_p in zip(rng.uniform([-0.7, -2.0], [0.7, 2.0], size=(60, 2)),
+                      rng.choice([-1.0, 1.0], size=(60, 1)) * rng.uniform(U.ub[0] + 0.5,
+                                                                         U.ub[0] + 1.5,
+                                                                         size=(60, 1))):
+        u1, i1 = py.step(x, u_p)
+        u2, i2 = c.step(x, u_p)
+        assert (i1.status, i1.fallback) == (i2.status, i2.fallback), (x, u_p)
+        assert np.abs(u1 - u2).max() <= 1e-6, (x, u_p, u1, u2)
+        if i1.fallback == "max_decrease_solution":
+            assert i1.status == "filter_failed" and U.contains(u1)
+            outside += 1
+    assert outside >= 10

@@ -166,3 +166,50 @@ def test_infeasible_rendezvous_problems_keep_their_verdict_with_a_checked_certif
         sol = compiled.solve(params)
         assert sol.status == "infeasible", sol.summary()
         assert "certificate checked" in sol.message, sol.message
+
+
+# -- the verdict names the solver that gave it -------------------------------------------------
+
+def _qp_infeasible() -> OCP:
+    """u0 + u1 >= 3 with |u| <= 1: no feasible point."""
+    ocp = OCP(name="qp_infeasible")
+    u = ocp.variable("u", 2, lb=-1.0, ub=1.0)
+    ocp.le(-(u[0] + u[1]) + 3.0, 0, name="impossible")
+    ocp.minimize((u[0] - 3.0) ** 2 + u[1] ** 2)
+    return ocp
+
+
+def test_the_verdict_names_the_solver_that_answered_after_a_fallback():
+    """The DAQP engine stops on the infeasible QP and hands it to PIQP, whose "infeasible"
+    is the verdict: the message and ``Solution.solver`` name PIQP, not the engine."""
+    sol = compile(_qp_infeasible(), "fast-convex-daqp").solve()
+    assert sol.status == "infeasible", sol.summary()
+    assert sol.solver == "piqp"
+    assert sol.message.startswith("said infeasible by piqp: "), sol.message
+
+
+def test_the_answering_solver_never_confirms_its_own_infeasible(monkeypatch):
+    """A feasible QP; the DAQP engine's answers are refused (KKT tolerance below reach), so
+    PIQP answers, and PIQP always says "infeasible" with a bogus certificate. If the
+    feasibility check were PIQP too, its "infeasible" is the same solver's word again and
+    must not confirm the verdict (it did when the verdict was taken as the engine's, DAQP's):
+    ``failed``, naming PIQP."""
+    from balustrade.backends.direct_engines import make_engine
+
+    monkeypatch.setattr(PiqpEngine, "run", _bogus(PiqpEngine, np.random.default_rng(2),
+                                                  "random"))
+    compiled = compile(_box_qp(), "fast-convex-daqp")
+    compiled.engine.kkt_tol = -1.0                     # no residual passes: PIQP answers
+    checker = {}
+
+    def piqp_checker(prog):
+        if "e" not in checker:
+            checker["e"] = make_engine("piqp", prog, {}, P=sp.csc_matrix(prog.P.shape),
+                                       q=np.zeros(prog.n_y))
+        return "piqp", checker["e"]
+
+    monkeypatch.setattr(compiled, "_checker", piqp_checker)
+    sol = compiled.solve()
+    assert sol.status == "failed", sol.summary()
+    assert sol.solver == "piqp" and "said infeasible by piqp" in sol.message, sol.message
+    assert "; confirmed by" not in sol.message and "not established" in sol.message

@@ -230,3 +230,35 @@ def test_rpi_of_an_ill_conditioned_design_is_rpi_by_an_own_check():
         cp.Problem(cp.Minimize(t), [(L + L.T) / 2 >> 0]).solve(solver="CLARABEL")
         assert t.value <= 1.0 + 1e-9, (w, t.value, err.info)
     assert err.info["inflation"] - 1.0 <= 1e-3
+
+
+def test_is_rpi_warns_and_records_when_it_can_only_sample(design):
+    """An ellipsoid with a singular ``A_cl`` (or a non-polytope ``W``) gets no exact vertex
+    trust-region check, only sampled directions and points: an ``ok`` is then no proof, so
+    ``is_rpi`` warns (:class:`UnprovenCheckWarning`) and records ``proven=False`` with the
+    reason in ``method``. The same set with an invertible ``A_cl`` is proven, silently.
+    Independent check of the singular case: ``A_cl`` maps E onto a segment whose farthest
+    point plus the largest ``w`` stays inside E (support functions along every row of a
+    dense fan of directions)."""
+    import warnings
+
+    from balustrade.errors import UnprovenCheckWarning
+
+    system, s, es = design
+    A_sing = 0.3 * np.outer([1.0, 0.0], [1.0, 0.0])              # rank 1
+    with pytest.warns(UnprovenCheckWarning, match="rank 1 < 2"):
+        check = is_rpi(es.E, A_sing, s.W)
+    assert check.ok and not check.proven and "no proof" in check.method
+    for t in np.linspace(0, np.pi, 721):                            # it is RPI indeed
+        a = np.array([np.cos(t), np.sin(t)])
+        assert es.E.support(A_sing.T @ a) + s.W.support(a) <= es.E.support(a) + 1e-9
+    ball = Ellipsoid(np.eye(2) / 1e-6, name="W_ball")             # W not a polytope
+    with pytest.warns(UnprovenCheckWarning, match="not a polytope"):
+        assert not is_rpi(es.E, system.A + system.B @ es.K, ball).proven
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UnprovenCheckWarning)
+        proven = is_rpi(es.E, system.A + system.B @ es.K, s.W)
+        failed = is_rpi(es.E.scale(0.6, name="E_small"), A_sing * 10, s.W)
+    assert proven.ok and proven.proven
+    assert not failed.ok and failed.proven            # a counterexample is a proof
+    assert es.info["rpi_proven"] is True

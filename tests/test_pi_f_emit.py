@@ -110,13 +110,18 @@ def test_saturating_numpy_pi_f_is_refused_by_both_emitters(tube, tmp_path):
     emit_robust(_robust(tube, tube["cbf"].policy), "cbfpol", tmp_path / "c")
 
 
-@pytest.mark.parametrize("kind", ["affine", "function"])
+@pytest.mark.parametrize("kind", ["affine", "function", "matrix", "pair"])
 def test_explicit_pi_f_gives_the_c_the_python_candidate(tube, kind):
-    """An :class:`AffinePolicy` or a ``casadi.Function`` ``π_f``: the candidate function the
+    """An :class:`AffinePolicy`, a ``casadi.Function``, a matrix ``K`` or a pair ``(K, k)``
+    ``π_f`` (the last two become an ``AffinePolicy``, session 15): the candidate function the
     C is generated from (``_cand``) is the one the Python controller evaluates, value for
     value, where ``K z_N`` is large (where a saturating numpy policy would differ)."""
     K = np.asarray(tube["cbf"].K, dtype=float)
-    if kind == "affine":
+    if kind == "matrix":
+        pi_f = K
+    elif kind == "pair":
+        pi_f = (K, np.zeros(1))
+    elif kind == "affine":
         pi_f = AffinePolicy(K)
     else:
         z = ca.SX.sym("x", 2)
@@ -134,8 +139,35 @@ def test_explicit_pi_f_gives_the_c_the_python_candidate(tube, kind):
 
 
 def test_affine_policy_of_the_wrong_size_is_refused_naming_pi_f(tube, tmp_path):
-    """An :class:`AffinePolicy` for 3 states on the 2-state system: the emitter names
-    ``pi_f`` and the sizes it needs."""
-    ctrl = _robust(tube, AffinePolicy(np.ones((1, 3))))
-    with pytest.raises(CodegenError, match=r"pi_f .*1 entries on a state of 2"):
-        emit_robust(ctrl, "bad", tmp_path)
+    """An :class:`AffinePolicy` for 3 states on the 2-state system: refused when the
+    controller is built (session 15; the emitter used to find it), naming ``pi_f`` and the
+    shape it needs."""
+    with pytest.raises(ShapeError, match=r"pi_f \(AffinePolicy K\).*\(1, 2\)"):
+        _robust(tube, AffinePolicy(np.ones((1, 3))))
+
+
+def test_pi_f_as_a_matrix_or_pair_is_the_affine_law_and_bad_forms_are_refused(tube):
+    """``pi_f = (K, k)`` is ``K x + k`` (independent: the matrix product) in both
+    controllers of the candidate (5.17)/(6.14), and in the emitted step (the same
+    expression, previous test); a tuple of another length, a matrix of the wrong shape or
+    a non-callable are refused when the controller is built, naming ``pi_f`` and the
+    accepted forms."""
+    from balustrade.errors import BalustradeError
+
+    K = np.asarray(tube["cbf"].K, dtype=float)
+    k = np.array([0.25])
+    s = tube["s"]
+    mo = MultiobjectivePCBFController.build(
+        tube["system"], s.X, s.U, tube["cbf"], (K, k), N, s.deltas(), tube["error"],
+        s.alpha_f, target=EMITTABLE_TARGET, slack_target=EMITTABLE_TARGET)
+    for ctrl in (_robust(tube, (K, k)), mo):
+        assert isinstance(ctrl.pi_f, AffinePolicy) and ctrl._tube.policy_check is None
+        for x in np.random.default_rng(1).uniform(-3, 3, (4, 2)):
+            np.testing.assert_allclose(ctrl.pi_f(x), K @ x + k, rtol=0, atol=1e-15)
+    for bad, match in (((K,), r"pi_f as a tuple must be the pair \(K, k\).*1 entries"),
+                       ((K, k, k), r"pi_f as a tuple.*3 entries"),
+                       (np.ones((2, 2)), r"pi_f \(the matrix K\)"),
+                       ((K, np.ones(2)), r"pi_f k"),
+                       (3.0, r"pi_f must be a matrix K .*got float")):
+        with pytest.raises(BalustradeError, match=match):
+            _robust(tube, bad)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import balustrade.control.rapsf as rapsf_control
 import balustrade.estimate.updates as updates
 from balustrade.backends.lp import solve_lp, solve_lps, solve_lps_joint
 from balustrade.backends.solution import Status
@@ -70,6 +71,8 @@ def _loop(toy, estimator_cls, old: bool, monkeypatch, steps=25, target="fast-con
             mp.setattr(updates, "solve_lps_joint", solve_lps)  # one warm-started run per row
             mp.setattr(updates, "_box_inside", lambda *a: False)  # LPs on every step
             mp.setattr(updates, "vertex_supports", lambda *a, **k: None)  # ... and no vertices
+            mp.setattr(rapsf_control, "_s_from_lps",             # s_jr row by row
+                       lambda *a, **kw: s_constants(*a))
         ctrl = RAPSF(sys_, X0, F, G, W, K, N, Theta0, estimator=estimator_cls(sys_, W, Theta0),
                      target=target)
         if old:
@@ -236,3 +239,94 @@ def test_split_benchmark_parts_and_baseline():
     assert 0 < r["mean"]["QP solve"] < r["mean"]["step"] and r["baseline_median"] > 0
     assert all(r["mean"][p] >= -1e-6 for p in PARTS), r["mean"]
     assert r["max_du_vs_baseline"] <= 1e-5
+
+
+def _count_supports(monkeypatch) -> list:
+    """Every call of ``Polytope.support`` (one LP per row: the old path of ``s_jr`` for a
+    ``𝕏₀`` without enumerated vertices) appended to the returned list."""
+    from balustrade.dsl.sets import Polytope
+
+    calls: list = []
+    original = Polytope.support
+
+    def counted(self, a):
+        calls.append(1)
+        return original(self, a)
+
+    monkeypatch.setattr(Polytope, "support", counted)
+    return calls
+
+
+def test_s_from_lps_equals_the_vertex_maximum_in_one_solver_run(toy, monkeypatch):
+    """``s_jr`` of a new ``Θ_k`` for a polytope ``𝕏₀`` whose vertices are not enumerated
+    (session 15: 480 ``support`` LPs per new ``Θ_k`` at 5 masses were most of a step):
+    the exact maximum over the vertices of ``𝕏₀`` (independent: no LP) up to the LP
+    tolerance, never below it (verified bounds), and no ``support`` call row by row."""
+    from balustrade.control.rapsf import _s_affine, _s_from_lps
+
+    sys_, Theta0, W, F, G, K, X0 = toy
+    T = _s_affine(sys_, X0, K, X0.vertices())
+    X0.verified_box()                                  # cached once per polytope, as in RAPSF
+    calls = _count_supports(monkeypatch)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        lo = rng.uniform(Theta0.lb, Theta0.ub)
+        V = Box(lo, rng.uniform(lo, Theta0.ub)).vertices()
+        s, exact = _s_from_lps(X0, sys_, K, V), _s_from_affine(T, V)
+        assert s.shape == exact.shape
+        assert np.all(s >= exact - 1e-12) and np.all(s <= exact + 1e-9)
+    assert calls == []
+
+
+@pytest.mark.slow
+def test_5_mass_steps_compute_s_without_an_lp_per_row(monkeypatch):
+    """The 5-mass ``msd-adaptive`` design (a contractive polytope in 10 states, not
+    enumerated): after the compiling step, steps whose ``Θ_k`` changes make no
+    ``Polytope.support`` call (the old path made ``n_X · n_θ = 480`` per new ``Θ_k``), and
+    ``s_jr`` equals :func:`s_constants` (row by row) to 1e-9."""
+    from balustrade.models.msd import msd_performance
+    from balustrade.reproduce import msd_adaptive
+
+    d = msd_adaptive.design(5)
+    assert d["X0"].dim > 6 and not hasattr(d["X0"], "support_l1_map")
+    ctrl = msd_adaptive.adaptive_controller(d)
+    s = d["setup"]
+    rng = np.random.default_rng(0)
+    theta, x = s.sample_theta(rng), s.x0.copy()
+    u, _ = ctrl.step(x, np.zeros(d["n"]))                   # compiles (s_jr by s_constants)
+    calls, changed = _count_supports(monkeypatch), 0
+    for k in range(1, 6):
+        x = d["system"].step(x, u, theta, rng.uniform(-s.W.ub, s.W.ub))
+        before = ctrl.Theta
+        u, _ = ctrl.step(x, msd_performance(k, x, d["n"]))
+        changed += ctrl.Theta is not before
+    assert changed >= 1 and calls == []
+    assert ctrl._learned is not None and ctrl._learned.reused > 0   # rows without an LP
+    monkeypatch.undo()
+    np.testing.assert_allclose(ctrl._s, s_constants(d["X0"], d["system"], d["K"],
+                                                    ctrl.vertices), rtol=0, atol=1e-9)
+
+
+def test_learned_supports_equal_the_lps_and_reuse_vertices(monkeypatch):
+    """:class:`~balustrade.control.rapsf_supports.LearnedSupports` on a random polytope in 8
+    dimensions (no vertex enumeration there): the supports along 60 directions equal
+    ``Polytope.support`` row by row (independent LPs) to 1e-8; directions moved by 1e-4 (a
+    new ``Θ_k``) are answered mostly from the remembered vertices, no LP, with the same
+    accuracy, while 60 new directions (whose best remembered vertex is mostly not optimal:
+    the gap test sends them to LPs) are too."""
+    from balustrade.control.rapsf_supports import LearnedSupports
+    from balustrade.dsl.sets import Polytope
+
+    rng = np.random.default_rng(7)
+    H = rng.normal(size=(40, 8))
+    P = Polytope(H, np.ones(40), name="P8")
+    sup = LearnedSupports(P)
+    D = rng.normal(size=(60, 8))
+    moved = np.vstack([D + 1e-4 * rng.normal(size=D.shape), rng.normal(size=(60, 8))])
+    for step, dirs in enumerate((D, moved)):
+        got = sup(dirs)
+        ref = np.array([P.support(d) for d in dirs])
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-8)
+        if step == 0:
+            assert sup.lps == 60 and sup.reused == 0 and len(sup.vertices) > 0
+    assert sup.reused >= 30 and sup.lps < 150, (sup.reused, sup.lps)

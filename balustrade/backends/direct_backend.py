@@ -299,19 +299,23 @@ class DirectCompiled:
            "infeasible" with a certificate that passes the check, or (LP/QP) the other
            engine's independent "infeasible", confirms it.
 
-        ``said_by`` names the solver that gave the verdict (default: this backend's); its
-        verdict without a certificate (``raw.z`` ``None``) rests on step 2 alone.
-        Anything else is ``failed`` with the reason — never ``infeasible``."""
-        said_by = said_by or self.solver_name
+        ``said_by`` names the solver that gave the verdict (default: the one that answered,
+        ``raw.solver`` — e.g. PIQP after the DAQP engine's fallback — else this backend's
+        engine); the message starts with it, and step 2 never counts that solver's own
+        "infeasible" as a confirmation. Its verdict without a certificate (``raw.z``
+        ``None``) rests on step 2 alone. Anything else is ``failed`` with the reason —
+        never ``infeasible``."""
+        said_by = said_by or raw.solver or self.solver_name
+        words = f"said infeasible by {said_by}: {raw.words}"
         A_mat = prog.A if A is None else sp.csc_matrix((A, prog.A.indices, prog.A.indptr),
                                                        shape=prog.A.shape)
         own = check_farkas(A_mat, b, prog.cones, raw.z)
         if own.valid:
-            return raw, f"{raw.words}; certificate checked: {own}"
+            return raw, f"{words}; certificate checked: {own}"
         name, engine = self._checker(prog)
         check = _run(engine, np.zeros(prog.n_y), b, A)
-        head = f"{raw.words}, but its certificate does not hold ({own})" if raw.z is not None \
-            else f"{raw.words} (no certificate of its own to check)"
+        head = f"{words}, but its certificate does not hold ({own})" if raw.z is not None \
+            else f"{words} (no certificate of its own to check)"
         if check.status == Status.INFEASIBLE:
             theirs = check_farkas(A_mat, b, prog.cones, check.z)
             if theirs.valid:
@@ -320,7 +324,7 @@ class DirectCompiled:
             if name != said_by:
                 return raw, (f"{head}; confirmed by {name} on the constraints alone "
                              f"({check.words}; its certificate: {theirs})")
-        failed = RawResult(Status.FAILED, raw.words, None, None, raw.iterations)
+        failed = RawResult(Status.FAILED, raw.words, None, None, raw.iterations, raw.solver)
         if check.status.success:
             return failed, (f"{head}, and the constraints alone are feasible ({name} "
                             f"feasibility solve: {check.words}): the verdict is numerical")

@@ -10,8 +10,10 @@
 
 Neither raises in the loop (DESIGN.md principle 4). Fallbacks of Algorithm 7.5, recorded in
 ``StepInfo.fallback``: (7.5) fails → the (7.6) minimizer, feasible by Proposition 7.3
-(``"max_decrease_solution"``); every local (7.6) solve fails → the best screened candidate
-of the multi-start grid (``"grid_minimizer"``); a non-finite state → ``u_p`` projected on
+(``"max_decrease_solution"``; a (7.5) "solution" outside ``U`` is such a failure, status
+``"filter_failed"`` whatever its solver's status, as in the C); every local (7.6) solve
+fails → the best screened candidate of the multi-start grid (``"grid_minimizer"``); a
+non-finite state → ``u_p`` projected on
 ``U`` (status ``"non_finite_state"``, ``"projected_proposal"``). A (7.5) solve that ends
 merely ``feasible`` (not converged, primal feasible) is applied: it lies in ``U`` and meets
 the decrease of (7.5), so it is safe, only possibly not the closest input to ``u_p``
@@ -168,7 +170,11 @@ class ApproximatePCBFFilter:
             # a merely feasible (7.5) point meets the decrease in U: safe, flagged
             info.status = "ok" if note_solve(info, "filter", status) else f"filter_{status}"
             return u, info
-        info.status, info.fallback = f"filter_{status}", "max_decrease_solution"
+        # (7.5) gave no input, or one outside U: that is no solution of (7.5), whatever the
+        # solver said (its constraint u ∈ U fails), so the status never reads "optimal"
+        # ("filter_failed", as the C's BAL_APPROX_MAX_DECREASE); Proposition 7.3's fallback
+        info.status = f"filter_{status}" if u is None else "filter_failed"
+        info.fallback = "max_decrease_solution"
         self.n_fallbacks += 1
         return dec.u.copy(), info
 

@@ -75,6 +75,7 @@ from balustrade.control.tube_functions import (
     tube_polished,
 )
 from balustrade.dsl.error_sets import ErrorSet
+from balustrade.dsl.policies import as_policy
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
 from balustrade.errors import BalustradeError
@@ -221,7 +222,7 @@ class MultiobjectivePCBFController:
         check_instance(error, ErrorSet, "Algorithm 6.4: error")
         self.slack, self.problem, self.system = slack, problem, system
         self.X_E, self.U, self.U_E, self.error = X_E, U, U_E, error
-        self.h_f, self.pi_f = h_f, pi_f
+        self.h_f, self.pi_f = h_f, as_policy(pi_f, system.nx, system.nu, "Algorithm 6.4")
         self.deltas = np.asarray(deltas, dtype=float).reshape(-1)
         self.alpha_f, self.rho, self.bound_tol = alpha_f, rho, bound_tol
         self.record_h_r = record_h_r
@@ -241,7 +242,8 @@ class MultiobjectivePCBFController:
         self.recovery_target = check_recovery_target(recovery_target, "Algorithm 6.4")
         # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
         # Python bitwise: balustrade.control.tube_functions); None: numpy
-        self._tube = TubeFunctions.build(system, X_E, U_E, h_f, pi_f, self.deltas, alpha_f, 1)
+        self._tube = TubeFunctions.build(system, X_E, U_E, h_f, self.pi_f, self.deltas, alpha_f,
+                                         1)
         self.reset()
 
     @classmethod

@@ -54,10 +54,12 @@ import numpy as np
 
 from balustrade._checks import as_matrix, as_vector, check_horizon, check_instance
 from balustrade.backends import Solution, compile, resolve_target
+from balustrade.backends.lp import verified_supports
 from balustrade.control.base import StepInfo, note_solve, outcome
 from balustrade.control.deploy import RAPSFDeployment
 from balustrade.control.rapsf_backup import backup_policy
 from balustrade.control.rapsf_enlarge import TerminalEnlargement
+from balustrade.control.rapsf_supports import LearnedSupports
 from balustrade.dsl.sets import Polytope
 from balustrade.errors import BalustradeError, EmptySetError
 from balustrade.estimate.base import SetEstimator
@@ -66,6 +68,7 @@ from balustrade.problems.rapsf import (
     check_parametric_system,
     check_terminal,
     check_tube_sets,
+    closed_loop_matrices,
     rapsf_problem,
     row_dependence,
     rows_shared,
@@ -198,6 +201,8 @@ class RAPSF:
         self._X0_vertices = _small_vertices(X0)
         self._s_affine = _s_affine(system, X0, self.K, self._X0_vertices)
         self._s_l1 = None if self._s_affine is not None else _s_l1(system, X0, self.K)
+        #: the vertices of 𝕏₀ the s_jr LPs ended at (created at the first use)
+        self._learned: LearnedSupports | None = None
         self._compiled: dict = {}
         self._engine: str | None = None     # the solver of the last full-horizon (4.5)
         if terminal is None or terminal.H_T is None:
@@ -259,8 +264,10 @@ class RAPSF:
         elif self._s_l1 is not None:
             self._s = _s_from_l1(self._s_l1, self.vertices)
         else:
-            self._s = s_constants(self.X0, self.system, self.K, self.vertices,
-                                  self._X0_vertices)
+            if self._learned is None:
+                self._learned = LearnedSupports(self.X0)
+            self._s = _s_from_lps(self.X0, self.system, self.K, self.vertices,
+                                  supports=self._learned)
 
     def _update_theta(self, x: np.ndarray, info: StepInfo) -> None:
         """Line 4 of Algorithm 4.1 with the nesting check of Assumption 4.2."""
@@ -599,6 +606,26 @@ def _s_from_l1(L: np.ndarray, vertices: np.ndarray) -> np.ndarray:
     """``s[r, j]`` for the vertices ``θ^j`` (rows) from :func:`_s_l1`'s ``L``."""
     weights = np.column_stack([np.ones(len(vertices)), vertices])       # (n_θ, q + 1)
     return np.abs(np.tensordot(weights, L, axes=1)).sum(axis=2).T
+
+
+def _s_from_lps(X0: Polytope, system: object, K: np.ndarray, vertices: np.ndarray,
+                supports: LearnedSupports | None = None) -> np.ndarray:
+    """``s[r, j] = max_{x∈𝕏₀} [H_X]_r A_cl(θ^j) x`` (SPEC §2.20) for a polytope ``𝕏₀``
+    without enumerated vertices: the ``n_X · n_θ`` supports over the one set ``𝕏₀`` from
+    the vertices ``supports`` remembers where they verify, the rest as LPs in one solver
+    run (:class:`~balustrade.control.rapsf_supports.LearnedSupports`; without it all as
+    LPs, :func:`~balustrade.backends.lp.verified_supports`), each verified as
+    :meth:`Polytope.support` verifies its LP (session 15: at 5 masses the 480 separate
+    ``support`` calls per new ``Θ_k`` were most of a step, ~0.64 s CPU).
+    :func:`~balustrade.problems.rapsf.s_constants` (row by row) when an LP does not end
+    optimal."""
+    HX = unit_polytope(X0, "rapsf")
+    D = np.vstack([HX @ Acl for Acl in closed_loop_matrices(system, K, vertices)])
+    values = (supports(D) if supports is not None
+              else verified_supports(D, X0.H, X0.h, X0.verified_box()))
+    if values is None:
+        return s_constants(X0, system, K, vertices)
+    return values.reshape(len(vertices), HX.shape[0]).T
 
 
 def _s_from_affine(T: np.ndarray, vertices: np.ndarray) -> np.ndarray:

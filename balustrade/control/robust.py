@@ -96,6 +96,7 @@ from balustrade.control.tube_functions import (
     tube_polished,
 )
 from balustrade.dsl.error_sets import ErrorSet
+from balustrade.dsl.policies import as_policy
 from balustrade.dsl.sets import Polytope
 from balustrade.dsl.system import System
 from balustrade.problems.robust import (
@@ -129,7 +130,7 @@ class RobustPCBFSafetyFilter:
         self.slack, self.filter, self.system = slack, filter, system
         self.X_E, self.U, self.error = X_E, U, error
         self.U_E = U_E if U_E is not None else error.tighten_input(U)
-        self.h_f, self.pi_f = h_f, pi_f
+        self.h_f, self.pi_f = h_f, as_policy(pi_f, system.nx, system.nu, block)
         d = as_vector(deltas, f"{block}: tightenings deltas", finite=False)
         self.deltas = check_deltas(d, d.size, block)
         self.alpha_f = as_scalar(alpha_f, f"{block}: alpha_f", 0.0, low_open=True)
@@ -138,7 +139,7 @@ class RobustPCBFSafetyFilter:
         self.recovery_target = check_recovery_target(recovery_target, block)
         # polish, h̃ and candidate as the CasADi functions the C is generated from (C =
         # Python bitwise: balustrade.control.tube_functions); None: numpy
-        self._tube = TubeFunctions.build(system, X_E, self.U_E, h_f, pi_f, self.deltas,
+        self._tube = TubeFunctions.build(system, X_E, self.U_E, h_f, self.pi_f, self.deltas,
                                          self.alpha_f, self.slack_norm)
         self.reset()
 

@@ -25,9 +25,11 @@ def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polyto
     each ``λ`` of the line search (default 19 values in ``(0, 1)``), keeping the best.
 
     Returns ``ErrorSet(Ellipsoid(E_P⁻¹), K = Y E_P⁻¹)`` with the objective, the chosen ``λ``,
-    the solver status, the margin of :func:`~balustrade.dsl.error_sets.is_rpi` and the solve
-    time in ``info``. The best ``optimal`` solve is chosen; an ``optimal_inaccurate`` one only
-    when no full-accuracy solve passes, and any choice only when ``is_rpi`` confirms
+    the solver status, the margin of :func:`~balustrade.dsl.error_sets.is_rpi`, whether that
+    check is a proof (``info["rpi_proven"]``: ``False`` when ``A_K`` is singular or ``W`` is
+    not a polytope, where it only samples and warns) and the solve time in ``info``. The
+    best ``optimal`` solve is chosen; an ``optimal_inaccurate`` one only when no
+    full-accuracy solve passes, and any choice only when ``is_rpi`` confirms
     ``A_K E ⊕ G W ⊆ E`` (rejected ones in ``info["refused"]``; none → ``BalustradeError``);
     a miss within the solver's accuracy (:data:`RPI_REPAIR`) is repaired by inflating ``E``
     (``info["inflation"]``, 1 when not needed).
@@ -61,6 +63,7 @@ def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polyto
         if check.ok:
             error.info.update({"objective": sol.objective, "lambda": lv, "status": sol.status,
                                "rpi_margin": check.margin, "rpi_check": check.method,
+                               "rpi_proven": check.proven,
                                "inflation": scale,
                                "solve_time": elapsed,
                                "method": "ellipsoidal SDP (SPEC §1.11)"})

@@ -23,6 +23,7 @@ For ``x⁺ = Ax + Bu + Gw`` with ``w ∈ W`` (a bounded polytope or box) and the
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -30,7 +31,13 @@ import numpy as np
 
 from balustrade._checks import as_count, as_matrix, check_instance
 from balustrade.dsl.sets import Box, Ellipsoid, Polytope, Set
-from balustrade.errors import BalustradeError, EmptySetError, ShapeError, moved_names
+from balustrade.errors import (
+    BalustradeError,
+    EmptySetError,
+    ShapeError,
+    UnprovenCheckWarning,
+    moved_names,
+)
 
 
 # -- error sets with their feedback ------------------------------------------------------------
@@ -286,12 +293,16 @@ def minimal_rpi_outer(A_K: np.ndarray, W: Polytope, eps: float = 1e-3,
 # -- RPI check -----------------------------------------------------------------------------------
 @dataclass
 class RPICheck:
-    """Result of :func:`is_rpi`: ``margin`` is ``max c_E(A_K e + G w)`` found (``<= tol`` ⇒ ok)."""
+    """Result of :func:`is_rpi`: ``margin`` is ``max c_E(A_K e + G w)`` found (``<= tol`` ⇒ ok).
+    ``proven``: whether the verdict is proven — an exact method ran, or a counterexample
+    was found; ``False`` for an ``ok`` from sampling alone (then ``method`` says why, and
+    :func:`is_rpi` warned with :class:`~balustrade.errors.UnprovenCheckWarning`)."""
 
     ok: bool
     margin: float
     method: str
     worst: dict = field(default_factory=dict)
+    proven: bool = True
 
     def __bool__(self) -> bool:
         return self.ok
@@ -327,7 +338,8 @@ def is_rpi(E: Set, A_cl: np.ndarray, W: Set, G: np.ndarray | None = None, tol: f
                               f"{type(E).__name__} {E.name!r}")
     worst: dict = {}
     margin, methods = -np.inf, []
-    if isinstance(W, Polytope) and np.linalg.matrix_rank(A_cl) == n:
+    exact = bool(isinstance(W, Polytope) and np.linalg.matrix_rank(A_cl) == n)
+    if exact:
         image = E.linear_map(A_cl)
         for w in W.vertices():
             val = E.max_quadratic_over(image.translate(G @ w)) - 1.0
@@ -352,7 +364,15 @@ def is_rpi(E: Set, A_cl: np.ndarray, W: Set, G: np.ndarray | None = None, tol: f
     if vals[k] > margin:
         margin, worst = float(vals[k]), {"e": pts[k], "w": Ws[k], "method": "sampling"}
     methods += ["support directions", "sampling"]
-    return RPICheck(bool(margin <= tol), float(margin), ", ".join(methods), worst)
+    ok = bool(margin <= tol)
+    if ok and not exact:
+        why = (f"W ({W.name}) is not a polytope" if not isinstance(W, Polytope) else
+               f"A_cl is singular (rank {np.linalg.matrix_rank(A_cl)} < {n})")
+        methods.append(f"no proof: {why}, so only sampled directions and points were checked")
+        warnings.warn(f"is_rpi: {E.name} passed a search for counterexamples only, not a "
+                      f"proof ({why}; the exact vertex trust-region check needs an "
+                      "invertible A_cl and a polytope W)", UnprovenCheckWarning, stacklevel=2)
+    return RPICheck(ok, float(margin), ", ".join(methods), worst, proven=not ok or exact)
 
 #: names that moved out of this module (issue #13): deprecated aliases (errors.moved_names)
 __getattr__ = moved_names(__name__, {

@@ -21,6 +21,7 @@ import casadi as ca
 import numpy as np
 
 from balustrade._checks import as_matrix, as_vector
+from balustrade.errors import BalustradeError
 
 
 @dataclass(frozen=True)
@@ -68,4 +69,36 @@ class AffinePolicy:
         return out + self.k if np.any(self.k) else out
 
 
-__all__ = ["AffinePolicy"]
+#: the forms a terminal policy ``pi_f`` may take (:func:`as_policy`), for error messages
+POLICY_FORMS = ("a matrix K (pi_f(x) = K x), a pair (K, k) (pi_f(x) = K x + k), an "
+                "AffinePolicy(K, k, x_s), a casadi.Function of x, or a Python callable of x")
+
+
+def as_policy(pi_f: object, nx: int, nu: int, where: str) -> object:
+    """The terminal policy ``π_f`` of (5.17)/(6.14) in one form: a matrix ``K`` (``nu × nx``)
+    becomes ``AffinePolicy(K)`` and a pair ``(K, k)`` ``AffinePolicy(K, k)`` (shapes checked,
+    a :class:`~balustrade.errors.ShapeError` naming ``pi_f``), so Python and the emitted C
+    evaluate the same expression; an :class:`AffinePolicy` is shape-checked against
+    ``nx``/``nu``; any other callable (a ``casadi.Function``, a numpy law) is returned as
+    is. Anything else (a tuple of another length, a scalar, ``None``) → a
+    :class:`~balustrade.errors.BalustradeError` naming ``pi_f`` and :data:`POLICY_FORMS`,
+    before any solve."""
+    if isinstance(pi_f, tuple):
+        if len(pi_f) != 2:
+            raise BalustradeError(f"{where}: pi_f as a tuple must be the pair (K, k) of "
+                                  f"pi_f(x) = K x + k, got {len(pi_f)} entries; accepted: "
+                                  f"{POLICY_FORMS}")
+        K = as_matrix(pi_f[0], f"{where}: pi_f K", (nu, nx))
+        return AffinePolicy(K, as_vector(pi_f[1], f"{where}: pi_f k", nu))
+    if isinstance(pi_f, (np.ndarray, list)):
+        return AffinePolicy(as_matrix(pi_f, f"{where}: pi_f (the matrix K)", (nu, nx)))
+    if isinstance(pi_f, AffinePolicy):
+        as_matrix(pi_f.K, f"{where}: pi_f (AffinePolicy K)", (nu, nx))
+        return pi_f
+    if not callable(pi_f):
+        raise BalustradeError(f"{where}: pi_f must be {POLICY_FORMS}; got "
+                              f"{type(pi_f).__name__}")
+    return pi_f
+
+
+__all__ = ["POLICY_FORMS", "AffinePolicy", "as_policy"]
