@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from balustrade._checks import as_vector
 from balustrade.backends import compile
 from balustrade.backends.stall import STALL_STOP, check_stall_stop, with_stall_stop
 from balustrade.backends.targets import Target
@@ -48,9 +49,11 @@ from balustrade.control.approximate import ApproximatePCBFFilter
 from balustrade.control.base import simulate
 from balustrade.control.mpc import MPCController
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.errors import BalustradeError
 from balustrade.learn.export import to_casadi
 from balustrade.learn.train import MLPModel, TrainConfig
 from balustrade.models.obstacle_car import (
+    ARENA,
     ObstacleSetup,
     obstacle_car,
     obstacle_setup,
@@ -84,7 +87,18 @@ PCBF_C_TARGET = "structured-ip"
 
 
 def initial_state(p: tuple[float, float]) -> np.ndarray:
-    """``(p_x, p_y, ψ, v, δ)`` with ``v = 3``, ``δ = 0`` and the heading to the centre."""
+    """``(p_x, p_y, ψ, v, δ)`` with ``v = 3``, ``δ = 0`` and the heading to the centre.
+
+    ``p``: a finite position in the arena (:data:`~balustrade.models.obstacle_car.ARENA`,
+    border included), else a BalustradeError naming it: the learned ``ĥ`` was trained on
+    the arena only, so a start outside it ran silently on an extrapolated ``ĥ``, and a NaN
+    start gave a NaN heading (audit D, session 15)."""
+    p = as_vector(p, "obstacles: initial position p", 2)
+    (xlo, xhi), (ylo, yhi) = ARENA
+    if not (xlo <= p[0] <= xhi and ylo <= p[1] <= yhi):
+        raise BalustradeError(f"obstacles: initial position p = {p.tolist()} lies outside the "
+                              f"arena [{xlo:g}, {xhi:g}] x [{ylo:g}, {yhi:g}] on which the "
+                              "network was trained")
     return np.array([p[0], p[1], np.arctan2(-p[1], -p[0]), V0, 0.0])
 
 
@@ -246,8 +260,8 @@ def closed_loops(filt: object, mpc: NaiveMPC, starts: tuple = STARTS,
     for the PCBF algorithm)."""
     system, s = obstacle_car(), obstacle_setup()
     runs = []
-    for p in starts:
-        x0 = initial_state(p)
+    x0s = [initial_state(p) for p in starts]   # every start checked before any run
+    for p, x0 in zip(starts, x0s):
         mpc.start(x0)
         filt.reset()
         tr = simulate(system, filt, x0, steps, proposal=mpc)
