@@ -61,3 +61,13 @@ def test_braking_guess_stops_the_car():
     g = braking_guess(np.array(STATES[0]), N)
     assert g["x"].shape == (5, N + 1) and g["u"].shape == (2, N)
     assert abs(g["x"][3, -1]) < 1e-12 and np.all(g["u"][0] >= -5) and np.all(g["u"][1] == 0)
+
+
+def test_exact_h_along_finds_the_zero_slack_stop():
+    """``reproduce.obstacles.exact_h_along`` (where a learned loop leaves ``S_PB``) read
+    ``h > 0`` at these states from its cold and warm solves; they are in ``S_PB``."""
+    from balustrade.reproduce.obstacles import exact_h_along
+
+    run = {"states": np.array(STATES), "start": (0.0, 0.0), "paths": ["certified"] * 2}
+    (row,) = exact_h_along([run], lambda X: np.zeros(len(X))).values()
+    assert row["steps_h_positive"] == 0 and row["first_step_h_positive"] is None
