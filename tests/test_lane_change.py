@@ -326,3 +326,16 @@ def test_configs_are_wired(tmp_path):
         assert row["delta_step"] == pytest.approx(step)
     with pytest.raises(SystemExit):
         L.main(["--config", "thesis", "--out", str(tmp_path)])
+
+
+def test_controllers_default_rho_is_the_designs_configuration():
+    """Audit D, session 15: ``controllers(d)`` without ``rho`` gave ρ = 0.9 (SPEC) for every
+    design, so the default ``converging`` design (Δ step 1e-3, ρ = 0.5) silently ran
+    Algorithm 6.4 at a ρ of another configuration. The default now follows the design."""
+    from balustrade.reproduce import lane_change as L
+
+    for cfg in (L.config("converging"), L.config("spec")):
+        d = L.design(cfg)
+        assert L.controllers(d)["multiobjective"].rho == cfg.rho
+        assert L.config_of(d).name == cfg.name
+    assert L.controllers(L.design(L.config("spec")), rho=0.3)["multiobjective"].rho == 0.3

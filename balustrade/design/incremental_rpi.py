@@ -64,9 +64,9 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from balustrade._checks import as_scalar, as_vector, check_instance
+from balustrade._checks import as_count, as_scalar, as_vector, check_instance
 from balustrade.backends import compile, compile_synthesis, solve_synthesis
-from balustrade.dsl.error_sets import ErrorSet
+from balustrade.dsl.error_sets import ErrorSet, bounded_vertices
 from balustrade.dsl.ocp import OCP
 from balustrade.dsl.sets import Box, Ellipsoid, Polytope, Set
 from balustrade.dsl.system import System
@@ -91,7 +91,9 @@ def incremental_rpi(ldi: PolytopicLDI, W: Set, X: Polytope, U: Polytope, G: np.n
     ``λ`` (default 19 values in ``(0, 1)``; ``min_axes``: :func:`incremental_rpi_sdp`);
     ``X``, ``U`` are centred at ``(x_s, u_s)`` for the objective. ``info``: ``lambda``,
     ``objective``, ``solve_time``, ``method``, ``domain`` (the box of states on which the
-    Jacobian bound, hence the guarantee, holds)."""
+    Jacobian bound, hence the guarantee, holds), ``lmi_residual`` and ``proven_level``
+    (:func:`proven_level`: the level ``c`` at which ``{V <= c}`` is RPI by the LMIs as
+    solved; 1 when they hold exactly)."""
     n, m = ldi.B.shape
     x_s = as_vector(x_s, "incremental_rpi: x_s", n)
     u_s = np.zeros(m) if u_s is None else as_vector(u_s, "incremental_rpi: u_s", m)
@@ -117,13 +119,45 @@ def incremental_rpi(ldi: PolytopicLDI, W: Set, X: Polytope, U: Polytope, G: np.n
     Ev = 0.5 * (sol["E"] + sol["E"].T)
     P = np.linalg.inv(Ev)
     P = 0.5 * (P + P.T)
-    return ErrorSet(Ellipsoid(P, name=name), sol["Y"] @ P,
+    K = sol["Y"] @ P
+    residual, level = proven_level(ldi, W, G, P, K, lv)
+    return ErrorSet(Ellipsoid(P, name=name), K,
                     info={"objective": sol.objective, "lambda": lv,
                           "solve_time": time.perf_counter() - start,
                           "method": "incremental quadratic Lyapunov function over a "
                                     "polytopic LDI (Claim 1 of balustrade.design."
                                     "incremental_rpi)",
-                          "domain": ldi.describe_domain()})
+                          "domain": ldi.describe_domain(),
+                          "lmi_residual": residual, "proven_level": level})
+
+
+def proven_level(ldi: PolytopicLDI, W: Set, G: np.ndarray, P: np.ndarray, K: np.ndarray,
+                 lam: float) -> tuple[float, float]:
+    """What the solver's numbers prove (Claim 1 with the LMIs as solved, not as posed).
+
+    ``η = max(0, −min eig D_i,v)`` over the Jacobian vertices ``A_i`` and the vertices
+    ``w^v`` of ``W``, with ``D = [[λP, 0], [0, 1−λ]] − [A+BK, Gw]ᵀ P [A+BK, Gw]``. ``D`` is
+    matrix-concave in ``(A, w)``, so ``D ⪰ −η I`` on the whole hull, and
+    ``V(e⁺) <= (λ + η/μ) V(e) + (1 − λ + η)`` with ``μ = λ_min(P)``. Hence
+    ``{V <= c}`` is RPI for ``c = (1 − λ + η) / (1 − λ − η/μ)`` (``c = 1`` when the LMIs hold
+    exactly; ``inf`` if ``λ + η/μ >= 1``). Returns ``(η, c)``. The bicycle's design has
+    ``η ≈ 2e-4`` (SDP tolerance against ``‖P‖ ≈ 4e4``): its ``E`` is proven RPI only as
+    ``{V <= 1.005}``; the sampled and worst-case checks find ``E`` itself RPI with a 3 %
+    margin (audit D, session 15)."""
+    BK = ldi.B @ K
+    Gw = bounded_vertices(W) @ np.asarray(G, dtype=float).T
+    n = P.shape[0]
+    eta = 0.0
+    for A in ldi.vertices():
+        for g in Gw:
+            M = np.column_stack([A + BK, g])
+            D = np.zeros((n + 1, n + 1))
+            D[:n, :n], D[n, n] = lam * P, 1.0 - lam
+            D -= M.T @ P @ M
+            eta = max(eta, -float(np.linalg.eigvalsh(0.5 * (D + D.T))[0]))
+    mu = float(np.linalg.eigvalsh(P)[0])
+    rate = lam + eta / mu
+    return eta, (float((1.0 - lam + eta) / (1.0 - rate)) if rate < 1.0 else float("inf"))
 
 
 def robust_terminal_cbf(ldi: PolytopicLDI, X_E: Polytope, U_E: Polytope, x_s: np.ndarray,
@@ -203,11 +237,36 @@ def _fn(system: System) -> Callable:
     return ca.Function("f", [x, u, w], [system(x, u, w)])
 
 
+def _rpi_args(block: str, system: System, error: ErrorSet, Z: Box, V: Polytope, W: Box,
+              count: object, what: str) -> int:
+    """The arguments of the RPI checks: types, dimensions (``Z`` ``nx``, ``V`` ``nu``, ``W``
+    ``nw``, ``E`` ``nx``, ``K`` ``(nu, nx)``) and ``count >= 1`` (samples or starts), each
+    wrong one a BalustradeError naming it before anything is evaluated (``samples=0`` ended
+    in a CasADi assertion, a ``Z`` of the input's size in a numpy broadcast error; audit D,
+    session 15)."""
+    check_instance(system, System, f"{block}: system")
+    check_instance(error, ErrorSet, f"{block}: error")
+    check_instance(Z, Box, f"{block}: Z")
+    check_instance(V, Polytope, f"{block}: V")
+    check_instance(W, Box, f"{block}: W")
+    for name, S, n, of in (("Z", Z, system.nx, "states"), ("V", V, system.nu, "inputs"),
+                           ("W", W, system.nw, "disturbances"),
+                           ("error.E", error.E, system.nx, "states")):
+        if S.dim != n:
+            raise BalustradeError(f"{block}: {name} has dimension {S.dim}, the system has "
+                                  f"{n} {of}")
+    if error.K is None or np.shape(error.K) != (system.nu, system.nx):
+        raise BalustradeError(f"{block}: error.K must be a ({system.nu}, {system.nx}) linear "
+                              f"feedback, got {None if error.K is None else np.shape(error.K)}")
+    return as_count(count, f"{block}: {what}", low=1)
+
+
 def sampled_rpi_check(system: System, error: ErrorSet, Z: Box, V: Polytope, W: Box,
                       samples: int = 20000, seed: int = 0) -> InvarianceCheck:
     """``max V(e⁺) − 1`` over random ``z ∈ Z``, ``v ∈ V``, ``e ∈ ∂E``, ``w ∈ W`` (``Z``, ``W``
     boxes, ``V`` a polytope such as ``U ⊖ KE``; half the ``w`` at vertices),
     ``e⁺ = f(z+e, v+Ke, w) − f(z, v, 0)``. Evaluated batched."""
+    samples = _rpi_args("sampled_rpi_check", system, error, Z, V, W, samples, "samples")
     P = _ellipsoid_P(error)
     K = np.asarray(error.K, dtype=float)
     rng = np.random.default_rng(seed)
@@ -235,6 +294,7 @@ def worst_case_rpi_check(system: System, error: ErrorSet, Z: Box, V: Polytope, W
     preset) from ``starts`` random starts; the margin is the best converged local maximum
     (a local solver: a lower bound on the true maximum, like sampling, but sharper).
     Starts whose solve did not succeed are counted in ``failed_starts``, not used."""
+    starts = _rpi_args("worst_case_rpi_check", system, error, Z, V, W, starts, "starts")
     P = _ellipsoid_P(error)
     K = np.asarray(error.K, dtype=float)
     nx, nu, nw = system.nx, system.nu, system.nw
@@ -290,6 +350,21 @@ class TerminalSpec:
     decrease_factor: float = 1.0
 
 
+def _terminal_args(block: str, system: System, spec: TerminalSpec, count: object,
+                   what: str) -> int:
+    """The arguments of the terminal checks (as :func:`_rpi_args`): ``P`` ``(nx, nx)``,
+    ``K`` ``(nu, nx)``, ``x_s`` ``(nx,)`` and ``count >= 1``."""
+    check_instance(system, System, f"{block}: system")
+    check_instance(spec, TerminalSpec, f"{block}: spec")
+    nx, nu = system.nx, system.nu
+    for name, value, shape in (("P", spec.P, (nx, nx)), ("K", spec.K, (nu, nx)),
+                               ("x_s", spec.x_s, (nx,))):
+        if np.shape(value) != shape:
+            raise BalustradeError(f"{block}: spec.{name} must have shape {shape}, got "
+                                  f"{np.shape(value)}")
+    return as_count(count, f"{block}: {what}", low=1)
+
+
 def _set_margins(spec: TerminalSpec) -> dict:
     """Exact support-function maxima over ``S_f`` of the state rows (with ``Δ``) and the
     input rows: ``max_{S_f} a(x) − b`` for every row."""
@@ -308,6 +383,7 @@ def sampled_terminal_check(system: System, spec: TerminalSpec, samples: int = 20
     ``max h_f(z⁺)`` over random ``z ∈ S_f`` (half on ``∂S_f``), the decrease
     ``max h_f(z⁺) + 1 − λ_f (h_f(z) + 1)``, and exactly the rows ``S_f ⊆ X_E ⊖ Δ``,
     ``π_f(S_f) ⊆ U_E``. ``margin`` is the largest of the four."""
+    samples = _terminal_args("sampled_terminal_check", system, spec, samples, "samples")
     rng = np.random.default_rng(seed)
     d = _boundary(rng, spec.P, samples)
     d[samples // 2:] *= rng.random((samples - samples // 2, 1)) ** (1 / spec.P.shape[0])
@@ -328,6 +404,7 @@ def worst_case_terminal_check(system: System, spec: TerminalSpec, starts: int = 
     """The NLPs ``max h_f(z⁺)`` and ``max h_f(z⁺) + 1 − λ_f(h_f(z) + 1)`` over ``z ∈ S_f``
     from ``starts`` random starts each (as :func:`worst_case_rpi_check`), plus the exact
     row margins of :func:`sampled_terminal_check`."""
+    starts = _terminal_args("worst_case_terminal_check", system, spec, starts, "starts")
     nx, nw = system.nx, system.nw
     Pd = ca.DM(spec.P)
     L = np.linalg.cholesky(spec.P)
@@ -363,5 +440,5 @@ def worst_case_terminal_check(system: System, spec: TerminalSpec, starts: int = 
 
 
 __all__ = ["InvarianceCheck", "PolytopicLDI", "TerminalSpec", "incremental_rpi",
-           "incremental_rpi_sdp", "robust_terminal_cbf", "sampled_rpi_check",
+           "incremental_rpi_sdp", "proven_level", "robust_terminal_cbf", "sampled_rpi_check",
            "sampled_terminal_check", "worst_case_rpi_check", "worst_case_terminal_check"]

@@ -32,6 +32,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from balustrade._checks import as_scalar, check_horizon
 from balustrade.design.incremental_rpi import (
     PolytopicLDI,
     TerminalSpec,
@@ -167,7 +168,11 @@ def bicycle_design(N: int = 20, delta_step: float = 1e-4, method: str = "increme
     if method not in METHODS:
         raise BalustradeError(f"bicycle_design: method must be one of {METHODS}, got "
                               f"{method!r}")
-    return _cached(int(N), float(delta_step), method)
+    # N = 0 used to end in an IndexError, N = 2.5 was silently truncated to 2; Δ_i must
+    # increase strictly (SPEC §1.4), so delta_step > 0 (audit D, session 15)
+    N = check_horizon(N, "bicycle_design")
+    delta_step = as_scalar(delta_step, "bicycle_design: delta_step", low=0.0, low_open=True)
+    return _cached(N, delta_step, method)
 
 
 def nonlinear_rpi_margin(design: BicycleDesign, samples: int = 2000, seed: int = 0) -> float:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from balustrade._checks import as_scalar, as_vector
 from balustrade.dsl.policies import AffinePolicy
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import System
@@ -39,7 +40,16 @@ TS, WHEELBASE, V_S = 0.05, 0.09, 1.1
 DEG = np.pi / 180.0
 
 
+def _positive(ts: object, wheelbase: object, block: str) -> tuple[float, float]:
+    """``T_s`` and ``l``, both finite and positive (a BalustradeError names them)."""
+    return (as_scalar(ts, f"{block}: ts", low=0.0, low_open=True),
+            as_scalar(wheelbase, f"{block}: wheelbase", low=0.0, low_open=True))
+
+
 def bicycle(ts: float = TS, wheelbase: float = WHEELBASE) -> System:
+    """The kinematic bicycle of the module docstring (``ts``, ``wheelbase`` positive)."""
+    ts, wheelbase = _positive(ts, wheelbase, "bicycle")
+
     def f(x: ca.SX, u: ca.SX, w: ca.SX) -> ca.SX:
         return ca.vertcat(x[0] + ts * x[2] * ca.sin(x[1]),
                           x[1] + ts * x[2] / wheelbase * ca.tan(x[3]) + w[0],
@@ -71,7 +81,10 @@ def jacobian_ldi(lb: np.ndarray, ub: np.ndarray, ts: float = TS, wheelbase: floa
     ``a_k ∈ [intervals[k, 0], intervals[k, 1]]`` for every state of the box ``[lb, ub]``
     (state order ``(p_y, ψ, v, δ)``; the ``p_y`` bounds are ignored, they may be infinite).
     Module docstring; ``|ψ|, |δ| < 90°`` on the box."""
-    lb, ub = np.asarray(lb, dtype=float).reshape(4), np.asarray(ub, dtype=float).reshape(4)
+    ts, wheelbase = _positive(ts, wheelbase, "jacobian_ldi")
+    # p_y bounds may be infinite (ignored); ψ, v, δ are checked below
+    lb = as_vector(lb, "jacobian_ldi: lb", 4, finite=False)
+    ub = as_vector(ub, "jacobian_ldi: ub", 4, finite=False)
     for k, label in ((1, "psi"), (3, "delta")):
         if not (-np.pi / 2 < lb[k] <= ub[k] < np.pi / 2):
             raise BalustradeError(f"jacobian_ldi: the {label} range [{lb[k]}, {ub[k]}] must lie "
@@ -115,7 +128,9 @@ class ShiftedCBF:
         if isinstance(x, (ca.SX, ca.MX, ca.DM)):
             d = x - ca.DM(self.x_s)
             return ca.mtimes([d.T, ca.DM(self.P), d]) - 1
-        d = np.asarray(x, dtype=float).reshape(-1) - self.x_s
+        # a state of the wrong length is a BalustradeError (numpy broadcast a (1,) state
+        # against x_s silently); NaN entries give NaN, as the closed loops expect
+        d = as_vector(x, "ShiftedCBF: x", self.x_s.size, finite=False) - self.x_s
         return float(d @ self.P @ d - 1.0)
 
     @property

@@ -27,9 +27,11 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from balustrade._checks import as_float_array, as_scalar
 from balustrade.dsl.sets import Box
 from balustrade.dsl.sets_function import FunctionSet
 from balustrade.dsl.system import System
+from balustrade.errors import ShapeError
 
 TS, WHEELBASE = 0.02, 0.09
 RADIUS, SPACING = 0.15, 0.8
@@ -38,7 +40,9 @@ ARENA = ((-2.0, 2.0), (-1.5, 1.5))
 
 
 def obstacle_car(ts: float = TS, wheelbase: float = WHEELBASE) -> System:
-    """Model (8.1)."""
+    """Model (8.1); ``ts`` and ``wheelbase`` must be positive (a BalustradeError names them)."""
+    ts = as_scalar(ts, "obstacle_car: ts", low=0.0, low_open=True)
+    wheelbase = as_scalar(wheelbase, "obstacle_car: wheelbase", low=0.0, low_open=True)
 
     def f(x: ca.SX, u: ca.SX, w: ca.SX) -> ca.SX:
         return ca.vertcat(x[0] + ts * x[3] * ca.cos(x[2]),
@@ -56,9 +60,19 @@ def grid_obstacles(spacing: float = SPACING, radius: float = RADIUS) -> np.ndarr
     return np.array([[ox, oy, radius] for ox in c for oy in c])
 
 
+def _obstacle_rows(obstacles: object, block: str) -> np.ndarray:
+    """``obstacles`` as an ``(m, 3)`` array of rows ``(o_x, o_y, r)``, finite, ``r >= 0``."""
+    obs = as_float_array(obstacles, block)
+    if obs.ndim != 2 or obs.shape[1] != 3:
+        raise ShapeError(block, "(m, 3) rows (o_x, o_y, r)", obs.shape)
+    if not np.all(np.isfinite(obs)) or np.any(obs[:, 2] < 0):
+        raise ShapeError(block, "finite rows with a radius r >= 0", obs.tolist())
+    return obs
+
+
 def constraint_set(obstacles: np.ndarray, delta_max: float = DELTA_MAX) -> FunctionSet:
     """``X = {x : c_x(x) <= 0}``: one row per disc, then ``δ − δ̄`` and ``−δ − δ̄``."""
-    obs = np.asarray(obstacles, float)
+    obs = _obstacle_rows(obstacles, "constraint_set: obstacles")
 
     def c(x: ca.SX) -> ca.SX:
         disks = [o[2] ** 2 - (x[0] - o[0]) ** 2 - (x[1] - o[1]) ** 2 for o in obs]
@@ -107,9 +121,19 @@ def obstacle_setup() -> ObstacleSetup:
 
 def signed_distance(positions: np.ndarray, obstacles: np.ndarray | None = None) -> np.ndarray:
     """Signed distance ``‖p − o_i‖ − r_i`` of each position (rows ``(p_x, p_y, …)``) to each
-    disc: shape ``(n, n_obstacles)``, negative inside a disc."""
-    obs = grid_obstacles() if obstacles is None else np.asarray(obstacles, float)
-    P = np.atleast_2d(np.asarray(positions, float))[:, :2]
+    disc: shape ``(n, n_obstacles)``, negative inside a disc. ``positions``: at least two
+    columns (a single ``(p_x, p_y, …)`` row may be 1-D); ``obstacles``: ``(m, 3)`` rows.
+    Wrong shapes raise a BalustradeError: an ``(n, 1)`` array used to broadcast its one
+    column as both coordinates and return distances of the wrong points (audit D,
+    session 15). NaN positions give NaN distances."""
+    obs = grid_obstacles() if obstacles is None else \
+        _obstacle_rows(obstacles, "signed_distance: obstacles")
+    P = as_float_array(positions, "signed_distance: positions")
+    P = P.reshape(1, -1) if P.ndim == 1 else P
+    if P.ndim != 2 or P.shape[1] < 2:
+        raise ShapeError("signed_distance: positions", "(n, >= 2) rows (p_x, p_y, ...)",
+                         P.shape)
+    P = P[:, :2]
     return np.linalg.norm(P[:, None, :] - obs[None, :, :2], axis=2) - obs[None, :, 2]
 
 
@@ -118,8 +142,12 @@ def symmetries(X: np.ndarray) -> np.ndarray:
     (``g`` acts on ``(p_x, p_y)`` as a rotation/reflection ``R``, on the heading as the
     matching map of angles, flips δ for reflections; ``v`` is unchanged). The identity
     images are the rows themselves; the headings of the other images are wrapped to
-    ``(−π, π]`` (``h`` is 2π-periodic in ψ). Returns ``(8 n, 5)``, the identity first."""
-    X = np.atleast_2d(np.asarray(X, float))
+    ``(−π, π]`` (``h`` is 2π-periodic in ψ). Returns ``(8 n, 5)``, the identity first.
+    ``X``: ``(n, 5)`` rows (one state may be 1-D), else a BalustradeError."""
+    X = as_float_array(X, "symmetries: X")
+    X = X.reshape(1, -1) if X.ndim == 1 else X
+    if X.ndim != 2 or X.shape[1] != 5:
+        raise ShapeError("symmetries: X", "(n, 5) states (p_x, p_y, psi, v, delta)", X.shape)
     px, py, psi, v, d = X.T
     out = []
     for k in range(4):  # rotations by k·90°

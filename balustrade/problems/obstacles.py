@@ -107,6 +107,24 @@ def stopping_filter_problem(system: System, X: Set, U: Set, N: int, deltas: obje
     return ocp
 
 
+def _state_indices(position: object, speed_index: object, nx: int, name: str
+                   ) -> tuple[int, int]:
+    """``position`` (two state indices) and ``speed_index``, each an integer in
+    ``[0, nx)``, else a BalustradeError naming it (an index past the state used to end in a
+    CasADi slice assertion; audit D, session 15)."""
+    from balustrade._checks import as_count
+    from balustrade.errors import BalustradeError
+
+    if isinstance(position, (str, bytes)) or np.ndim(position) != 1 or len(position) != 2:
+        raise BalustradeError(f"{name}: position must be two state indices (p_x, p_y), got "
+                              f"{position!r:.40}")
+    for label, i in (("position[0]", position[0]), ("position[1]", position[1]),
+                     ("speed_index", speed_index)):
+        if as_count(i, f"{name}: {label}") >= nx:
+            raise BalustradeError(f"{name}: {label} must be in [0, {nx}), got {i!r}")
+    return int(position[0]), int(position[1])
+
+
 def naive_mpc_problem(system: System, U: Set, horizon: int = 30, v_ref: float = 3.0,
                       position: tuple[int, int] = (0, 1), speed_index: int = 3,
                       name: str = "naive_mpc") -> OCP:
@@ -119,10 +137,10 @@ def naive_mpc_problem(system: System, U: Set, horizon: int = 30, v_ref: float = 
     v_ref = as_scalar(v_ref, f"{name}: v_ref")
     ocp = OCP(system, M, name=name)
     ocp.initial_state(ocp.parameter("x0", system.nx))
+    ix, iy = _state_indices(position, speed_index, system.nx, name)
     p0 = ocp.parameter("p0", 2)
     ocp.dynamics()
     ocp.input_constraint(U)
-    ix, iy = (int(i) for i in position)
     cost = ca.SX(0)
     for i in range(M + 1):
         xi = ocp.x[:, i]

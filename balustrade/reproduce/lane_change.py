@@ -135,9 +135,24 @@ def human(x: np.ndarray) -> np.ndarray:
     return np.array([0.5 * x[0] + 0.5 * x[1], 0.0])
 
 
+def config_of(d: BicycleDesign) -> LaneConfig:
+    """The configuration of :data:`CONFIGS` whose tightening step is the design's
+    (``Δ_1 − Δ_0``); ``spec`` if none is (e.g. a design of another step)."""
+    step = float(d.deltas[1] - d.deltas[0]) if d.deltas.size > 1 else None
+    for cfg in CONFIGS.values():
+        if step is not None and np.isclose(step, cfg.delta_step, rtol=1e-9, atol=0.0):
+            return cfg
+    return CONFIGS["spec"]
+
+
 def controllers(d: BicycleDesign, target: str = TARGET, record_h_r: bool = False,
-                rho: float = RHO) -> dict:
-    """Algorithm 5.2 and Algorithm 6.4 (``ρ = 0.9``), both problems on ``target``."""
+                rho: float | None = None) -> dict:
+    """Algorithm 5.2 and Algorithm 6.4, both problems on ``target``. ``rho`` of Algorithm
+    6.4: by default the ``ρ`` of the design's configuration (:func:`config_of`: 0.5 for a
+    ``converging`` design, 0.9 for ``spec``). Before session 15 the default was always 0.9,
+    so ``controllers(design(config("converging")))`` silently mixed the converging Δ with
+    SPEC's ρ (audit D)."""
+    rho = config_of(d).rho if rho is None else rho
     common = (d.system, d.X, d.U, d.cbf, d.pi_f, d.N, d.deltas, d.error, d.alpha_f)
     return {"robust": RobustPCBFSafetyFilter.build(*common, slack_norm=1, target=target,
                                                    slack_target=target),

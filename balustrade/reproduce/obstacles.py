@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from balustrade._checks import as_vector
 from balustrade.backends import compile
 from balustrade.backends.stall import STALL_STOP, check_stall_stop, with_stall_stop
 from balustrade.backends.targets import Target
@@ -48,9 +49,12 @@ from balustrade.control.approximate import ApproximatePCBFFilter
 from balustrade.control.base import simulate
 from balustrade.control.mpc import MPCController
 from balustrade.control.pcbf import PCBFSafetyFilter
+from balustrade.errors import BalustradeError
+from balustrade.examples.obstacles import braking_guess
 from balustrade.learn.export import to_casadi
 from balustrade.learn.train import MLPModel, TrainConfig
 from balustrade.models.obstacle_car import (
+    ARENA,
     ObstacleSetup,
     obstacle_car,
     obstacle_setup,
@@ -84,7 +88,18 @@ PCBF_C_TARGET = "structured-ip"
 
 
 def initial_state(p: tuple[float, float]) -> np.ndarray:
-    """``(p_x, p_y, ψ, v, δ)`` with ``v = 3``, ``δ = 0`` and the heading to the centre."""
+    """``(p_x, p_y, ψ, v, δ)`` with ``v = 3``, ``δ = 0`` and the heading to the centre.
+
+    ``p``: a finite position in the arena (:data:`~balustrade.models.obstacle_car.ARENA`,
+    border included), else a BalustradeError naming it: the learned ``ĥ`` was trained on
+    the arena only, so a start outside it ran silently on an extrapolated ``ĥ``, and a NaN
+    start gave a NaN heading (audit D, session 15)."""
+    p = as_vector(p, "obstacles: initial position p", 2)
+    (xlo, xhi), (ylo, yhi) = ARENA
+    if not (xlo <= p[0] <= xhi and ylo <= p[1] <= yhi):
+        raise BalustradeError(f"obstacles: initial position p = {p.tolist()} lies outside the "
+                              f"arena [{xlo:g}, {xhi:g}] x [{ylo:g}, {yhi:g}] on which the "
+                              "network was trained")
     return np.array([p[0], p[1], np.arctan2(-p[1], -p[0]), V0, 0.0])
 
 
@@ -246,8 +261,8 @@ def closed_loops(filt: object, mpc: NaiveMPC, starts: tuple = STARTS,
     for the PCBF algorithm)."""
     system, s = obstacle_car(), obstacle_setup()
     runs = []
-    for p in starts:
-        x0 = initial_state(p)
+    x0s = [initial_state(p) for p in starts]   # every start checked before any run
+    for p, x0 in zip(starts, x0s):
         mpc.start(x0)
         filt.reset()
         tr = simulate(system, filt, x0, steps, proposal=mpc)
@@ -351,8 +366,10 @@ def time_pcbf(states: np.ndarray, u_p: np.ndarray, target: str = "exact") -> dic
 
 def exact_h_along(runs: list[dict], h_hat: object, target: str = "exact") -> dict:
     """Where a learned loop leaves ``S_PB``: the exact ``h`` (2.24) at every state of each run
-    (the smaller of a cold and a warm solve; positive values are upper bounds, a local
-    optimum of the nonconvex (2.24) can only overestimate), beside ``ĥ`` (``h_hat(X)``).
+    (the smallest of a cold, a warm and — where both leave ``h > 1e-6`` — a solve started
+    from :func:`~balustrade.examples.obstacles.braking_guess`; positive values are upper
+    bounds, a local optimum of the nonconvex (2.24) can only overestimate), beside ``ĥ``
+    (``h_hat(X)``).
     Per run: the first step with ``h > 1e-6``, ``h`` and ``ĥ`` there, the path of Algorithm
     7.5 at the step before, the first step inside a disc (``< −1e-3``) and how many states
     have ``h > 0`` but ``ĥ <= 0`` (false safe)."""
@@ -366,6 +383,10 @@ def exact_h_along(runs: list[dict], h_hat: object, target: str = "exact") -> dic
             sols = [slack.solve({"x0": x})]
             if prev is not None:
                 sols.append(slack.solve({"x0": x}, warm_start=prev))
+            if all(not c.success or c.objective > 1e-6 for c in sols):
+                # and from a braking stop: cold and warm solves ended optimal at h up to
+                # 0.08 where a zero-slack stop exists (audit D, session 15)
+                sols.append(slack.solve({"x0": x}, warm_start=braking_guess(x, s.N, s)))
             ok = [c for c in sols if c.success]
             prev = min(ok, key=lambda c: c.objective) if ok else None
             h.append(np.nan if prev is None else max(float(prev.objective), 0.0))
