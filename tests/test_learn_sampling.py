@@ -159,6 +159,21 @@ def test_resume_after_injected_failure_gives_the_same_dataset(plan, reference, t
         run_sampling(tmp_path, SPEC, plan[:-1], SerialExecutor(), progress=False)
 
 
+def test_dataset_of_an_older_label_rule_refuses_to_resume(plan, tmp_path):
+    """A dataset sampled before the slack-guess retry (no ``label_rule`` in its manifest)
+    must not be resumed: its labels and the new ones would mix (audit D, session 15)."""
+    with pytest.raises(InterruptedRun):
+        run_sampling(tmp_path, SPEC, plan, SerialExecutor(), progress=False, stop_after=1)
+    ds = ShardedDataset(tmp_path)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert manifest["config"]["label_rule"] == 2
+    del manifest["config"]["label_rule"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(BalustradeError, match="different configuration"):
+        run_sampling(tmp_path, SPEC, plan, SerialExecutor(), progress=False)
+    assert len(ds.completed()) == 1                              # nothing lost
+
+
 def test_local_processes_and_dask_equal_serial(plan, reference, tmp_path):
     from distributed import Client, LocalCluster
 

@@ -47,6 +47,10 @@ from balustrade.learn.sampler import (
 
 MANIFEST = "manifest.json"
 FORMAT = "balustrade-samples/1"
+#: How labels are computed; stored in the manifest so a dataset sampled under an older rule
+#: refuses to resume instead of mixing labels. 2: (2.24) is solved once more from the
+#: problems' ``slack_guess`` where the walk's solve did not place x in S_PB (session 15).
+LABEL_RULE = 2
 
 
 class InterruptedRun(BalustradeError):
@@ -180,7 +184,7 @@ def run_sampling(path: str | Path, spec: ProblemSpec, chunks: Sequence[Chunk],
     ids = [c.id for c in chunks]
     if len(set(ids)) != len(ids):
         raise BalustradeError("run_sampling: chunk ids must be unique")
-    cfg = {"problem": spec.to_dict(), **(config or {})}
+    cfg = {"problem": spec.to_dict(), "label_rule": LABEL_RULE, **(config or {})}
     ds.init(json.loads(json.dumps(cfg, default=_jsonable)), len(chunks))
     done = ds.completed()
     todo = [c for c in chunks if c.id not in done]
