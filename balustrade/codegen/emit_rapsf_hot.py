@@ -1,0 +1,172 @@
+"""Emit Algorithm 4.1 (thesis Chapter 4, SPEC §2.21) with (4.5) solved hot in C: the C
+form of the default :class:`~balustrade.control.rapsf.RAPSF` (docs/deploy_c.md, "Session
+15"), one call ``<name>_step(x, u_p, theta, s, falsified, u_out, status, work)`` per step
+(``bal/rapsf_hot.h``, the interface of ``bal/rapsf.h``).
+
+The QP is the direct backend's lowered (4.5) — ``q = q0 + Q p``, ``b = b0 + B p`` and the
+values of ``A(p)`` affine in the parameters ``p = (x0, u_p, θ vertices, s_jr)`` — written
+as data (sparse matrices) into ``<name>_config.h``; the C evaluates them, solves the QP with
+the dense active-set library of the casadi wheel kept across steps (hot start from the last
+working set) and accepts an answer only with the solver's optimal flag *and* the scaled KKT
+residual of the Python engine below its tolerance (computed in C); an unverified answer is
+solved again cold, then the stored plan / backup ``K x`` apply. Python's engine asks its
+sparse interior-point fallback instead: C and Python differ only on such steps.
+
+What this path does not emit (:class:`~balustrade.errors.CodegenError` naming the
+alternative, the target ``"convex-qp"`` of :mod:`~balustrade.codegen.emit_rapsf`): Remark
+4.6 (``shrinking``), a backup other than ``K x``, ``warm_start`` (the hot start replaces it).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import casadi as ca
+import numpy as np
+import scipy.sparse as sp
+
+from balustrade.backends.daqp_engine import lowered_for_c
+from balustrade.codegen import cfiles as C
+from balustrade.codegen import status as S
+from balustrade.codegen.emit import MANIFEST_VERSION, Emitted
+from balustrade.control.deploy import RAPSFDeployment
+from balustrade.errors import CodegenError, SolverError
+
+#: the static C of this step (copied into ``bal/`` with the others)
+STATIC = ("rapsf_hot.h", "rapsf_hot.c")
+
+
+def lowered(spec: RAPSFDeployment, name: str) -> dict | None:
+    """The lowered (4.5) of ``spec`` when it was compiled for the hot-started engine (the
+    default target on small problems), else ``None``."""
+    try:
+        return lowered_for_c(spec.problems["main"])
+    except SolverError as exc:
+        raise CodegenError(f"{name}: {exc}") from exc
+
+
+def _ints(cfg: C.Config, name: str, values: np.ndarray) -> None:
+    vals = [str(int(v)) for v in np.asarray(values).reshape(-1)] or ["0"]
+    cfg.define(name, "{" + ", ".join(vals) + "}")
+
+
+def _csr(cfg: C.Config, name: str, tag: str, S_: sp.csr_matrix) -> None:
+    S_ = sp.csr_matrix(S_)
+    S_.sort_indices()
+    _ints(cfg, f"{name}_{tag}_PTR", S_.indptr)
+    _ints(cfg, f"{name}_{tag}_COL", S_.indices)
+    cfg.array(f"{name}_{tag}_VAL", S_.data)
+
+
+def emit_hot(spec: RAPSFDeployment, name: str, out_dir: Path, low: dict) -> Emitted:
+    """Write the module (``out_dir`` exists, ``name`` checked) of the hot-started step."""
+    if spec.shrinking:
+        raise CodegenError(f"{name}: shrinking=True (Remark 4.6) is not emitted with the "
+                           "hot-started QP; build the RAPSF with target='convex-qp'")
+    if not spec.default_backup:
+        raise CodegenError(f"{name}: a backup other than K x is not emitted with the "
+                           "hot-started QP; build the RAPSF with target='convex-qp'")
+    if getattr(spec.host, "warm_start", False):
+        raise CodegenError(f"{name}: warm_start=True is a start of the SQP of target "
+                           "'convex-qp'; the hot-started QP starts from its last working set")
+    compiled = spec.problems["main"]
+    ocp = compiled.ocp
+    entries = {e.name: e for e in ocp.parameter_layout.entries}
+    missing = [k for k in ("x0", "u_p", "theta", "s") if k not in entries]
+    if missing or "v" not in ocp.variable_layout.by_name:
+        raise CodegenError(f"{name}: (4.5) needs the parameters x0, u_p, theta, s and the "
+                           f"variable v (missing {missing}); build it with rapsf_problem")
+    K = np.asarray(spec.K, dtype=float)
+    nu, nx = K.shape
+    nq, nth = (list(entries["theta"].shape) + [1])[:2]
+    nxr = int(entries["s"].shape[0])
+    n, m, n_w = low["P"].shape[0], low["A"].shape[0], low["n_w"]
+    vidx = np.asarray(ocp.unpack_variables(np.arange(n_w, dtype=float))["v"], dtype=float)
+    if vidx.shape != (nu, spec.N) or entries["x0"].shape[0] != nx or nth != spec.n_vertices:
+        raise CodegenError(f"{name}: (4.5) has v {vidx.shape}, x0 {entries['x0'].shape}, "
+                           f"theta {entries['theta'].shape}; expected ({nu}, {spec.N}), "
+                           f"({nx},), (q, {spec.n_vertices})")
+    p_init = ocp.pack_parameters({k: np.zeros(entries[k].shape) for k in
+                                  ("x0", "u_p", "theta", "s")})
+    if np.any(p_init != 0):
+        raise CodegenError(f"{name}: (4.5) has parameters beyond x0, u_p, theta, s")
+    n_p = p_init.size
+    cfg = C.Config()
+    cfg.comment(f"---- Algorithm 4.1, the RAPSF step {name} with (4.5) hot-started "
+                "(bal/rapsf_hot.h) ----")
+    for key, val, doc in (("NX", nx, None), ("NU", nu, None), ("N", spec.N, None),
+                          ("NQ", nq, "parameters θ"),
+                          ("NTH", nth, "vertex columns of theta and s"),
+                          ("NXR", nxr, "rows of H_X (rows of s)"),
+                          ("NP", n_p, "entries of the parameter vector p"),
+                          ("NY", n, "variables of the lowered QP"),
+                          ("M", m, "rows of the lowered QP"),
+                          ("M0", low["m0"], "equality rows (the first)"),
+                          ("NNZ", low["A"].nnz, "values of A(p)")):
+        cfg.define(f"{name}_{key}", val, doc)
+    for key in ("x0", "u_p", "theta", "s"):
+        cfg.define(f"{name}_P_{key}", entries[key].slice.start, f"offset of {key} in p")
+    cfg.array(f"{name}_K", K.T.reshape(-1), nu * nx)
+    opts = low["options"]
+    cfg.define(f"{name}_PRIMAL_TOL", C.c_double(opts["primal_tol"]))
+    cfg.define(f"{name}_ETA_PROX", C.c_double(opts["eta_prox"]))
+    cfg.define(f"{name}_EPS_PROX", C.c_double(opts["eps_prox"]))
+    cfg.define(f"{name}_KKT_TOL", C.c_double(low["kkt_tol"]))
+    P = sp.csc_matrix(low["P"])
+    P.sort_indices()
+    _ints(cfg, f"{name}_P_COLPTR", P.indptr)
+    _ints(cfg, f"{name}_P_ROW", P.indices)
+    cfg.array(f"{name}_P_VAL", P.data)
+    cfg.array(f"{name}_Q0", low["q0"], n)
+    _csr(cfg, name, "QQ", low["Q"])
+    cfg.array(f"{name}_B0", low["b0"], m)
+    _csr(cfg, name, "BB", low["B"])
+    A = low["A"]
+    _ints(cfg, f"{name}_A_COLPTR", A.indptr)
+    _ints(cfg, f"{name}_A_ROW", A.indices)
+    cfg.array(f"{name}_A0", A.data)
+    _csr(cfg, name, "AP", low["A_param"])
+    _ints(cfg, f"{name}_VIDX", vidx.T.reshape(-1))
+    cfg.status(S.RAPSF, "BAL_RAPSF_STATUS_CODES")
+    return _write(spec, name, out_dir, cfg, low["library"],
+                  {"kind": "rapsf", "qp": "hot", "nx": nx, "nu": nu, "N": spec.N, "nq": nq,
+                   "n_vertices": nth, "n_rows": nxr, "shrinking": False,
+                   "warm_start": False, "K": K.tolist(), "backup": "default",
+                   "qp_size": [m, n], "options": {**opts, "kkt_tol": low["kkt_tol"]},
+                   "problems": {}, "rapsf_status": S.manifest(S.RAPSF)})
+
+
+def _write(spec: RAPSFDeployment, name: str, out_dir: Path, cfg: C.Config, lib: str,
+           manifest: dict) -> Emitted:
+    from balustrade.codegen.emit_rapsf import link_flags
+
+    static = C.copy_static(out_dir)
+    what = "Algorithm 4.1, the RAPSF (4.5), hot-started"
+    cfg_path = out_dir / f"{name}_config.h"
+    h, c = out_dir / f"{name}.h", out_dir / f"{name}.c"
+    cfg_path.write_text(C.config_header(name, what, cfg))
+    guard = f"{name.upper()}_H"
+    h.write_text("\n".join([
+        f"/* {name}.h: the C entry points of {what}, generated by balustrade.",
+        f" * Compile {name}.c (bal/ next to it) with the link flags of {name}.json",
+        " * (the solver library of the casadi wheel). Entry points: bal/rapsf_hot.h with",
+        f" * the prefix {name} ({name}_init, _finalize, _alloc, _free, _reset, _step, ...). */",
+        f"#ifndef {guard}", f"#define {guard}", "",
+        "#ifndef casadi_real", "#define casadi_real double", "#endif",
+        "#ifndef casadi_int", "#define casadi_int long long int", "#endif",
+        f'#include "{name}_config.h"', f'#include "{C.SUBDIR}/common.h"', "",
+        "#ifdef __cplusplus", 'extern "C" {', "#endif",
+        f"#define BAL_STEP {name}", f'#include "{C.SUBDIR}/rapsf_hot.h"', "#undef BAL_STEP",
+        "#ifdef __cplusplus", '} /* extern "C" */', "#endif", "", f"#endif /* {guard} */", ""]))
+    c.write_text("\n".join([f"/* {name}.c: bal/rapsf_hot.c instantiated for {name}. */",
+                            f'#include "{name}.h"', f"#define BAL_STEP {name}",
+                            f'#include "{C.SUBDIR}/rapsf_hot.c"', "#undef BAL_STEP", ""]))
+    manifest = {"version": MANIFEST_VERSION, "name": name, "casadi": ca.__version__,
+                "libraries": [lib], **manifest, "link_flags": list(link_flags((lib,))),
+                "status_codes": S.manifest(S.SOLVE)}
+    (out_dir / f"{name}.json").write_text(json.dumps(manifest, indent=1))
+    return Emitted(name, out_dir, [c], [h, cfg_path], manifest, (lib,), static)
+
+
+__all__ = ["STATIC", "emit_hot", "lowered"]
