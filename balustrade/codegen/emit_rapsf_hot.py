@@ -110,11 +110,20 @@ def emit_hot(spec: RAPSFDeployment, name: str, out_dir: Path, low: dict) -> Emit
     cfg.array(f"{name}_K", K.T.reshape(-1), nu * nx)
     opts = low["options"]
     cfg.define(f"{name}_PRIMAL_TOL", C.c_double(opts["primal_tol"]))
-    cfg.define(f"{name}_ETA_PROX", C.c_double(opts["eta_prox"]))
-    cfg.define(f"{name}_EPS_PROX", C.c_double(opts["eps_prox"]))
+    cfg.define(f"{name}_PROX", C.c_double(opts["prox"]),
+               "semi-proximal weight on the zero diagonal entries of P")
+    cfg.define(f"{name}_PROX_ITER", int(opts["prox_iter"]), "proximal iterations at most")
     cfg.define(f"{name}_KKT_TOL", C.c_double(low["kkt_tol"]))
     P = sp.csc_matrix(low["P"])
     P.sort_indices()
+    dense = P.toarray()
+    dense[np.diag_indices(n)] += np.where(np.diag(dense) == 0, opts["prox"], 0.0)
+    try:
+        np.linalg.cholesky(dense)
+    except np.linalg.LinAlgError:
+        raise CodegenError(f"{name}: the cost of (4.5) with the proximal term on its zero "
+                           "diagonal entries is not positive definite; build the RAPSF with "
+                           "target='convex-qp'") from None
     _ints(cfg, f"{name}_P_COLPTR", P.indptr)
     _ints(cfg, f"{name}_P_ROW", P.indices)
     cfg.array(f"{name}_P_VAL", P.data)

@@ -6,8 +6,17 @@
  * first Q_M0 are equalities): P as CSC (Q_P_COLPTR, Q_P_ROW, Q_P_VAL, full symmetric),
  * q0 and Qq (CSR over p), b0 and Bb (CSR), the pattern of A (Q_A_COLPTR, Q_A_ROW), its
  * constant values Q_A0 and their parametric part Ap (CSR, one row per value), the indices
- * Q_VIDX of v (NU x N, column-major) in y, and the solver settings Q_PRIMAL_TOL,
- * Q_ETA_PROX, Q_EPS_PROX, Q_KKT_TOL.
+ * Q_VIDX of v (NU x N, column-major) in y, the solver's Q_PRIMAL_TOL, the weight Q_PROX
+ * and the limit Q_PROX_ITER of the proximal iterations, and Q_KKT_TOL.
+ *
+ * A singular P (the cost of (4.5) weighs v_0 - u_p only) gets the semi-proximal term
+ * Q_PROX/2 |y_j - c_j|^2 on its zero diagonal entries j, and the proximal-point iterations
+ * run here, each a hot solve from the last working set with only q changed: the centre c
+ * is the last answer (of this or the previous step), so consecutive steps start close.
+ * An iterate is an answer of the original QP when its KKT residual (P, q, A(p), b(p),
+ * without the proximal term) is <= Q_KKT_TOL; the iterations stop there. (The library's
+ * own proximal loop restarts every solve from c = 0: more iterations, measured in
+ * docs/deploy_c.md "Session 15".)
  */
 #include <math.h>
 #include <stdlib.h>
@@ -80,8 +89,12 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
   wk->Py = (double*) calloc(n, sizeof(double));
   wk->ATz = (double*) calloc(n, sizeof(double));
   wk->sense = (int*) calloc(m, sizeof(int));
+  wk->q = (double*) calloc(n, sizeof(double));
+  wk->reg = (double*) calloc(n, sizeof(double));
+  wk->centre = (double*) calloc(n, sizeof(double));
   if (!wk->H || !wk->A || !wk->bu || !wk->bl || !wk->f || !wk->x || !wk->lam || !wk->aval ||
-      !wk->alast || !wk->b || !wk->r || !wk->Py || !wk->ATz || !wk->sense) {
+      !wk->alast || !wk->b || !wk->r || !wk->Py || !wk->ATz || !wk->sense || !wk->q ||
+      !wk->reg || !wk->centre) {
     wk->ready = 1;
     BAL_QX(finalize)(wk);
     return -1;
@@ -89,6 +102,10 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
   for (j = 0; j < n; ++j) {
     for (k = BAL_QX(p_colptr)[j]; k < BAL_QX(p_colptr)[j + 1]; ++k)
       wk->H[BAL_QX(p_row)[k] * n + j] = BAL_QX(p_val)[k];
+  }
+  for (j = 0; j < n; ++j) { /* the semi-proximal term on the zero diagonal entries */
+    wk->reg[j] = wk->H[(size_t) j * n + j] == 0.0 ? BAL_QX(PROX) : 0.0;
+    wk->H[(size_t) j * n + j] += wk->reg[j];
   }
   wk->qp.n = n;
   wk->qp.m = m;
@@ -101,8 +118,7 @@ int BAL_QX(init)(BAL_QX(work)* wk) {
   wk->qp.sense = wk->sense;
   daqp_default_settings(&wk->settings);
   wk->settings.primal_tol = BAL_QX(PRIMAL_TOL);
-  wk->settings.eta_prox = BAL_QX(ETA_PROX);
-  wk->settings.eps_prox = BAL_QX(EPS_PROX);
+  wk->settings.eps_prox = 0; /* the proximal iterations run here (Q_PROX) */
   wk->res.x = wk->x;
   wk->res.lam = wk->lam;
   wk->ready = 1;
@@ -115,9 +131,9 @@ void BAL_QX(finalize)(BAL_QX(work)* wk) {
   BAL_QX(drop)(wk);
   free(wk->H); free(wk->A); free(wk->bu); free(wk->bl); free(wk->f); free(wk->x);
   free(wk->lam); free(wk->aval); free(wk->alast); free(wk->b); free(wk->r); free(wk->Py);
-  free(wk->ATz); free(wk->sense);
+  free(wk->ATz); free(wk->sense); free(wk->q); free(wk->reg); free(wk->centre);
   wk->H = wk->A = wk->bu = wk->bl = wk->f = wk->x = wk->lam = wk->aval = wk->alast = 0;
-  wk->b = wk->r = wk->Py = wk->ATz = 0;
+  wk->b = wk->r = wk->Py = wk->ATz = wk->q = wk->reg = wk->centre = 0;
   wk->sense = 0;
   wk->ready = 0;
 }
@@ -127,6 +143,7 @@ BAL_DEFINE_ALLOC_FREE(BAL_QX)
 void BAL_QX(reset)(BAL_QX(work)* wk) {
   (void) bal_clip;
   BAL_QX(drop)(wk); /* a new closed loop starts cold, as a new Python controller */
+  memset(wk->centre, 0, BAL_QX(NY) * sizeof(double));
   wk->have_plan = 0;
   wk->k_inf = BAL_QX(N) - 1;
   wk->main_status = BAL_NOT_RUN;
@@ -160,9 +177,9 @@ static double BAL_QX(kkt_residual)(BAL_QX(work)* wk) {
       wk->Py[BAL_QX(p_row)[k]] += BAL_QX(p_val)[k] * y[j];
   }
   for (j = 0; j < n; ++j) {
-    mag = fmax(fmax(fabs(wk->f[j]), fabs(wk->Py[j])), fabs(wk->ATz[j]));
+    mag = fmax(fmax(fabs(wk->q[j]), fabs(wk->Py[j])), fabs(wk->ATz[j]));
     if (mag > magmax) magmax = mag;
-    e = fabs(wk->Py[j] + wk->f[j] + wk->ATz[j]) / (1.0 + mag);
+    e = fabs(wk->Py[j] + wk->q[j] + wk->ATz[j]) / (1.0 + mag);
     if (!(e <= stat)) stat = e; /* NaN propagates */
   }
   for (i = 0; i < m; ++i) {
@@ -187,10 +204,10 @@ static double BAL_QX(kkt_residual)(BAL_QX(work)* wk) {
 }
 
 /* one solve with the data in wk (f, bu, bl, A): hot from the held workspace (an update of
-   q, the bounds and, when they changed, the values of A with the working set activated
-   again), or a new set-up when none is held; returns the solver's flag (< 0 set-up or
-   update failures included) */
-static int BAL_QX(solve_qp)(BAL_QX(work)* wk) {
+   f, the bounds and, when they changed (a_changed, first of a step only), the values of A
+   with the working set activated again), or a new set-up when none is held; returns the
+   solver's flag (< 0 set-up or update failures included) */
+static int BAL_QX(solve_qp)(BAL_QX(work)* wk, int first) {
   int flag, i;
   if (!wk->have_ws) {
     for (i = 0; i < BAL_QX(M); ++i) wk->sense[i] = i < BAL_QX(M0) ? ACTIVE + IMMUTABLE : 0;
@@ -205,9 +222,9 @@ static int BAL_QX(solve_qp)(BAL_QX(work)* wk) {
   } else {
     /* a new A resets the factorization but keeps the working set's marks: activate them
        again (what the set-up does), so the solve starts from the last working set */
-    flag = update_ldp(wk->a_changed ? UPDATE_M + UPDATE_v + UPDATE_d : UPDATE_v + UPDATE_d,
-                      &wk->daqp);
-    if (flag >= 0 && wk->a_changed) flag = activate_constraints(&wk->daqp);
+    int new_a = first && wk->a_changed;
+    flag = update_ldp(new_a ? UPDATE_M + UPDATE_v + UPDATE_d : UPDATE_v + UPDATE_d, &wk->daqp);
+    if (flag >= 0 && new_a) flag = activate_constraints(&wk->daqp);
     if (flag < 0) {
       BAL_QX(drop)(wk);
       return flag;
@@ -222,8 +239,8 @@ static int BAL_QX(solve_qp)(BAL_QX(work)* wk) {
    not verified; returns 1 when an answer passed (flag optimal, KKT <= Q_KKT_TOL) */
 static int BAL_QX(solve)(BAL_QX(work)* wk) {
   const int n = BAL_QX(NY), m = BAL_QX(M);
-  int j, k, attempt;
-  BAL_QX(affine)(BAL_QX(q0), BAL_QX(qq_ptr), BAL_QX(qq_col), BAL_QX(qq_val), n, wk->p, wk->f);
+  int j, k, attempt, it;
+  BAL_QX(affine)(BAL_QX(q0), BAL_QX(qq_ptr), BAL_QX(qq_col), BAL_QX(qq_val), n, wk->p, wk->q);
   BAL_QX(affine)(BAL_QX(b0), BAL_QX(bb_ptr), BAL_QX(bb_col), BAL_QX(bb_val), m, wk->p, wk->b);
   BAL_QX(affine)(BAL_QX(a0), BAL_QX(ap_ptr), BAL_QX(ap_col), BAL_QX(ap_val), BAL_QX(NNZ),
                  wk->p, wk->aval);
@@ -246,11 +263,17 @@ static int BAL_QX(solve)(BAL_QX(work)* wk) {
       BAL_QX(drop)(wk);
       wk->retried = 1;
     }
-    wk->flag = BAL_QX(solve_qp)(wk);
-    wk->kkt = NAN;
-    if (wk->flag != EXIT_OPTIMAL) continue;
-    wk->kkt = BAL_QX(kkt_residual)(wk);
-    if (wk->kkt <= BAL_QX(KKT_TOL)) return 1;
+    if (attempt) memset(wk->centre, 0, n * sizeof(double));
+    for (it = 0; it < BAL_QX(PROX_ITER); ++it) { /* proximal-point iterations, each hot */
+      for (j = 0; j < n; ++j) wk->f[j] = wk->q[j] - wk->reg[j] * wk->centre[j];
+      wk->flag = BAL_QX(solve_qp)(wk, it == 0);
+      wk->kkt = NAN;
+      if (wk->flag != EXIT_OPTIMAL) break;
+      memcpy(wk->centre, wk->x, n * sizeof(double));
+      wk->kkt = BAL_QX(kkt_residual)(wk);
+      if (wk->kkt <= BAL_QX(KKT_TOL)) return 1;
+      if (!(wk->kkt == wk->kkt)) break; /* NaN: no answer */
+    }
   }
   BAL_QX(drop)(wk); /* the next step sets up anew */
   return 0;
@@ -292,7 +315,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
     wk->main_status = BAL_OK;
     for (i = 0; i < BAL_QX(NU) * BAL_QX(N); ++i) wk->plan[i] = wk->x[BAL_QX(vidx)[i]];
     obj = 0;
-    for (i = 0; i < BAL_QX(NY); ++i) obj += (0.5 * wk->Py[i] + wk->f[i]) * wk->x[i];
+    for (i = 0; i < BAL_QX(NY); ++i) obj += (0.5 * wk->Py[i] + wk->q[i]) * wk->x[i];
     wk->objective = obj;
     wk->have_plan = 1;
     wk->k_inf = 0;

@@ -9,7 +9,8 @@
  *
  * Q_step(x, u_p, theta, s, falsified, u_out, status, work): the arguments of bal/rapsf.h.
  * Per step, as balustrade.control.rapsf.RAPSF on its default target:
- *   solve (4.5) hot; the answer is used only if the solver's flag is optimal AND the KKT
+ *   solve (4.5) hot (proximal-point iterations on a singular P, bal/rapsf_hot.c); the
+ *   answer is used only if the solver's flag is optimal AND the KKT
  *   residual of the lowered QP (per-row/entry scaled, as kkt_residual of the Python engine)
  *   is <= Q_KKT_TOL; otherwise the workspace is set up again and (4.5) solved cold, with the
  *   same check (Q_qp_info: retried 1);
@@ -42,6 +43,7 @@ typedef struct BAL_QX(work) {
   /* the QP data (malloc'ed by init): dense H (NY x NY) and A (M x NY, row-major), the
      bounds, q, the values of A(p) now and at the last set-up/update, b, the result */
   double *H, *A, *bu, *bl, *f, *x, *lam, *aval, *alast, *b, *r, *Py, *ATz;
+  double *q, *reg, *centre; /* q(p); the proximal weights; the proximal centre */
   int* sense;
   casadi_real p[BAL_QX(NP)];
   casadi_real plan[BAL_QX(NU) * BAL_QX(N)]; /* v* of the last verified (4.5) */
