@@ -52,7 +52,8 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "rapsf": ("init", "finalize", "alloc", "free", "reset", "step", "main_problem",
               "solve_status", "k_inf", "objective", "proposal_replaced", "inaccurate"),
     "rapsf_hot": ("init", "finalize", "alloc", "free", "reset", "step", "solve_status",
-                  "k_inf", "objective", "proposal_replaced", "qp_info", "qp_primal"),
+                  "k_inf", "objective", "proposal_replaced", "qp_info", "qp_primal",
+                  "qp_dual"),
     "multiobj_lyap": ("init", "finalize", "alloc", "free", "reset", "step", "init_problem",
                       "main_problem", "solve_status", "values", "proposal_replaced"),
 }

@@ -96,6 +96,9 @@ class CRAPSF(_OwnsWork):
         if self.qp == "hot":
             self._qp_info = self._lib.fn(f"{Q}_qp_info", None, [vp, _dbl_p])
             self._info_buf = np.zeros(5)
+            self._qp_point = [self._lib.fn(f"{Q}_qp_{k}", ctypes.POINTER(ctypes.c_double),
+                                           [vp]) for k in ("primal", "dual")]
+            self.qp_size = tuple(m["qp_size"])
         else:
             self.main = _CProblemView(self._lib, f"{Q}_main", m["problems"]["main"],
                                       self._lib.fn(f"{Q}_main_problem", vp, [vp])(self._work))
@@ -114,6 +117,15 @@ class CRAPSF(_OwnsWork):
         f, k, it, retried, changed = self._info_buf
         return {"flag": int(f), "kkt": float(k), "iterations": int(it),
                 "retried": bool(retried), "a_changed": bool(changed)}
+
+    def qp_point(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the last hot-started solve's point ``y`` and multipliers (``qp ==
+        "hot"`` only; for checks against the Python lowering of (4.5))."""
+        if self._qp_info is None:
+            raise CodegenError("CRAPSF.qp_point: only for the hot-started QP (qp == 'hot')")
+        m, n = self.qp_size
+        y, z = (fn(self._work) for fn in self._qp_point)
+        return np.ctypeslib.as_array(y, (n,)).copy(), np.ctypeslib.as_array(z, (m,)).copy()
 
     @property
     def k_inf(self) -> int:

@@ -349,3 +349,4 @@ void BAL_QX(qp_info)(const BAL_QX(work)* wk, double* out) {
   out[4] = wk->a_changed;
 }
 const double* BAL_QX(qp_primal)(const BAL_QX(work)* wk) { return wk->x; }
+const double* BAL_QX(qp_dual)(const BAL_QX(work)* wk) { return wk->lam; }

@@ -69,5 +69,6 @@ casadi_real BAL_QX(objective)(const BAL_QX(work)* wk);
 /* out[0..4] := the solver's flag, KKT residual, iterations of the last solve, whether the
    step retried cold (1) and whether A(p) changed (1) */
 void BAL_QX(qp_info)(const BAL_QX(work)* wk, double* out);
-/* y of the last solve (NY values, for tests) */
+/* y and the multipliers (M values, >= 0 on the inequality rows) of the last solve */
 const double* BAL_QX(qp_primal)(const BAL_QX(work)* wk);
+const double* BAL_QX(qp_dual)(const BAL_QX(work)* wk);
