@@ -26,7 +26,7 @@ import casadi as ca
 import numpy as np
 import scipy.sparse as sp
 
-from balustrade.backends.daqp_engine import lowered_for_c
+from balustrade.backends import lowered_for_c
 from balustrade.codegen import cfiles as C
 from balustrade.codegen import status as S
 from balustrade.codegen.emit import MANIFEST_VERSION, Emitted
