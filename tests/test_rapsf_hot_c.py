@@ -36,10 +36,12 @@ def _emitted(d: dict, tmp, name: str = "rh") -> tuple[object, CRAPSF, object]:
 def _independent(py, c: CRAPSF, x: np.ndarray, u_p: np.ndarray) -> float:
     """The C's last answer checked by Python's own code: the KKT residual
     (:func:`~balustrade.backends.daqp_engine.kkt_residual`) of the C's point and multipliers
-    on the lowered (4.5) that Python computes for this step's data (the C's θ and ``s``),
+    on the lowered (4.5) that Python computes for this step's data (the C's θ and ``s``;
+    the QP with the shared rows or with every row, the one the C solved),
     and the C's ``v_0`` read through Python's variable layout: returns the larger of the
     residual and ``|u_C − (K x + v_0)|``."""
-    compiled = py.deployment_spec().problems["main"]
+    compiled = py.shared_rows_problem()[0] if c.qp_info()["shared"] else \
+        py.deployment_spec().problems["main"]
     prog = compiled.program
     p = compiled.ocp.pack_parameters({
         "x0": x, "u_p": u_p, "theta": c._theta.reshape(c.nq, c.n_vertices, order="F"),
@@ -185,3 +187,32 @@ def test_valgrind_clean(msd3, tmp_path) -> None:
                           "--errors-for-leak-kinds=definite", str(exe)],
                          capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stderr[-2000:]
+
+
+@pytest.mark.slow
+def test_rows_are_shared_only_when_the_data_repeat_them(msd3, tmp_path) -> None:
+    """The C solves (4.5) with the shared rows exactly when
+    :func:`~balustrade.problems.rapsf.rows_shared` holds for its data (checked in C):
+    on the loop's data (a box Θ_k keeps the vertex order) it does; with one ``s_jr`` of a
+    merged row changed it does not, and the C's answer (every row) equals Python's solve of
+    (4.5) with every row at those data."""
+    from balustrade.problems.rapsf import rows_shared
+
+    py, c, _ = _emitted(msd3, tmp_path)
+    st = msd3["setup"]
+    x, u_p = st.x0 + 0.05, np.full(3, 1.0)
+    c.step(x, u_p)
+    _, rep, dep = py.shared_rows_problem()
+    theta = c._theta.reshape(c.nq, c.n_vertices, order="F")
+    s = c._s.reshape(c.n_rows, c.n_vertices, order="F").copy()
+    assert c.qp_info()["shared"] and rows_shared(rep, dep, theta, s)
+    r, j = np.argwhere(rep != np.arange(c.n_vertices)[None, :])[0]
+    s[r, j] *= 1.01                                  # that row no longer a copy
+    assert not rows_shared(rep, dep, theta, s)
+    c._s[:] = s.reshape(-1, order="F")
+    u, code = c.step_raw(x, u_p)
+    assert code == c._OK and not c.qp_info()["shared"]
+    sol = py.deployment_spec().problems["main"].solve(
+        {"x0": x, "u_p": u_p, "theta": theta, "s": s})
+    assert sol.status == "optimal"
+    assert np.max(np.abs(u - (py.K @ x + np.asarray(sol.primal["v"])[:, 0]))) <= TOL

@@ -81,8 +81,8 @@ def emit_hot(spec: RAPSFDeployment, name: str, out_dir: Path, low: dict) -> Emit
     nu, nx = K.shape
     nq, nth = (list(entries["theta"].shape) + [1])[:2]
     nxr = int(entries["s"].shape[0])
-    n, m, n_w = low["P"].shape[0], low["A"].shape[0], low["n_w"]
-    vidx = np.asarray(ocp.unpack_variables(np.arange(n_w, dtype=float))["v"], dtype=float)
+    n_w = low["n_w"]
+    vidx = _vidx(compiled, n_w)
     if vidx.shape != (nu, spec.N) or entries["x0"].shape[0] != nx or nth != spec.n_vertices:
         raise CodegenError(f"{name}: (4.5) has v {vidx.shape}, x0 {entries['x0'].shape}, "
                            f"theta {entries['theta'].shape}; expected ({nu}, {spec.N}), "
@@ -91,7 +91,11 @@ def emit_hot(spec: RAPSFDeployment, name: str, out_dir: Path, low: dict) -> Emit
                                   ("x0", "u_p", "theta", "s")})
     if np.any(p_init != 0):
         raise CodegenError(f"{name}: (4.5) has parameters beyond x0, u_p, theta, s")
-    n_p = p_init.size
+    qps = {"ALL": (low, vidx)}
+    shared = _shared(spec, name, entries, low)
+    if shared is not None:
+        qps["SH"] = shared[0]
+    opts = low["options"]
     cfg = C.Config()
     cfg.comment(f"---- Algorithm 4.1, the RAPSF step {name} with (4.5) hot-started "
                 "(bal/rapsf_hot.h) ----")
@@ -99,51 +103,98 @@ def emit_hot(spec: RAPSFDeployment, name: str, out_dir: Path, low: dict) -> Emit
                           ("NQ", nq, "parameters θ"),
                           ("NTH", nth, "vertex columns of theta and s"),
                           ("NXR", nxr, "rows of H_X (rows of s)"),
-                          ("NP", n_p, "entries of the parameter vector p"),
-                          ("NY", n, "variables of the lowered QP"),
-                          ("M", m, "rows of the lowered QP"),
-                          ("M0", low["m0"], "equality rows (the first)"),
-                          ("NNZ", low["A"].nnz, "values of A(p)")):
+                          ("NP", p_init.size, "entries of the parameter vector p"),
+                          ("SHARED", int(shared is not None),
+                           "1: also (4.5) with the shared rows (SH), used when the data "
+                           "repeat them")):
         cfg.define(f"{name}_{key}", val, doc)
     for key in ("x0", "u_p", "theta", "s"):
         cfg.define(f"{name}_P_{key}", entries[key].slice.start, f"offset of {key} in p")
     cfg.array(f"{name}_K", K.T.reshape(-1), nu * nx)
-    opts = low["options"]
     cfg.define(f"{name}_PRIMAL_TOL", C.c_double(opts["primal_tol"]))
     cfg.define(f"{name}_PROX", C.c_double(opts["prox"]),
                "semi-proximal weight on the zero diagonal entries of P")
     cfg.define(f"{name}_PROX_ITER", int(opts["prox_iter"]), "proximal iterations at most")
     cfg.define(f"{name}_KKT_TOL", C.c_double(low["kkt_tol"]))
+    if shared is not None:
+        _, rep, dep = shared
+        _ints(cfg, f"{name}_REP", rep.T.reshape(-1))
+        _ints(cfg, f"{name}_DEP", dep.T.reshape(-1))
+    for tag, (lw, vi) in qps.items():
+        _qp_config(cfg, name, tag, lw, vi, opts["prox"])
+    cfg.status(S.RAPSF, "BAL_RAPSF_STATUS_CODES")
+    sizes = {("all" if tag == "ALL" else "shared"): list(lw["A"].shape[:1]) + [lw["P"].shape[0]]
+             for tag, (lw, _) in qps.items()}
+    return _write(spec, name, out_dir, cfg, low["library"],
+                  {"kind": "rapsf", "qp": "hot", "nx": nx, "nu": nu, "N": spec.N, "nq": nq,
+                   "n_vertices": nth, "n_rows": nxr, "shrinking": False,
+                   "warm_start": False, "K": K.tolist(), "backup": "default",
+                   "qp_size": sizes["all"], "qp_sizes": sizes,
+                   "options": {**opts, "kkt_tol": low["kkt_tol"]},
+                   "problems": {}, "rapsf_status": S.manifest(S.RAPSF)})
+
+
+def _vidx(compiled: object, n_w: int) -> np.ndarray:
+    """The indices of ``v`` (``nu × N``) in the lowered QP's variables."""
+    return np.asarray(compiled.ocp.unpack_variables(np.arange(n_w, dtype=float))["v"],
+                      dtype=float)
+
+
+def _shared(spec: RAPSFDeployment, name: str, entries: dict, low: dict
+            ) -> tuple[tuple[dict, np.ndarray], np.ndarray, np.ndarray] | None:
+    """(4.5) with the shared rows (the QP the Python step solves when the vertex data repeat
+    them), lowered for C with its ``rep`` and ``dependence``; ``None`` when the host shares
+    no row or that QP is not on the hot-started engine."""
+    get = getattr(spec.host, "shared_rows_problem", None)
+    found = get() if get is not None else None
+    if found is None:
+        return None
+    compiled, rep, dep = found
+    low_sh = lowered_for_c(compiled)
+    if low_sh is None:
+        return None
+    layout = {e.name: (e.slice.start, e.shape) for e in compiled.ocp.parameter_layout.entries}
+    if layout != {k: (e.slice.start, e.shape) for k, e in entries.items()} or \
+            rep.shape != entries["s"].shape or dep.shape != (entries["s"].shape[0],
+                                                             entries["theta"].shape[0]):
+        raise CodegenError(f"{name}: (4.5) with shared rows has another parameter layout "
+                           "than (4.5) with every row")
+    return (low_sh, _vidx(compiled, low_sh["n_w"])), rep, dep
+
+
+def _qp_config(cfg: C.Config, name: str, tag: str, low: dict, vidx: np.ndarray,
+               prox: float) -> None:
+    """The arrays ``<name>_<tag>_*`` of one lowered QP (bal/rapsf_hot.c); its cost with the
+    proximal term must be positive definite."""
+    n, m = low["P"].shape[0], low["A"].shape[0]
+    cfg.comment(f"the lowered (4.5) {tag}: {m} rows, {n} variables")
+    cfg.define(f"{name}_{tag}_NY", n)
+    cfg.define(f"{name}_{tag}_M", m)
+    cfg.define(f"{name}_{tag}_M0", low["m0"])
+    cfg.define(f"{name}_{tag}_NNZ", low["A"].nnz)
     P = sp.csc_matrix(low["P"])
     P.sort_indices()
     dense = P.toarray()
-    dense[np.diag_indices(n)] += np.where(np.diag(dense) == 0, opts["prox"], 0.0)
+    dense[np.diag_indices(n)] += np.where(np.diag(dense) == 0, prox, 0.0)
     try:
         np.linalg.cholesky(dense)
     except np.linalg.LinAlgError:
         raise CodegenError(f"{name}: the cost of (4.5) with the proximal term on its zero "
                            "diagonal entries is not positive definite; build the RAPSF with "
                            "target='convex-qp'") from None
-    _ints(cfg, f"{name}_P_COLPTR", P.indptr)
-    _ints(cfg, f"{name}_P_ROW", P.indices)
-    cfg.array(f"{name}_P_VAL", P.data)
-    cfg.array(f"{name}_Q0", low["q0"], n)
-    _csr(cfg, name, "QQ", low["Q"])
-    cfg.array(f"{name}_B0", low["b0"], m)
-    _csr(cfg, name, "BB", low["B"])
+    _ints(cfg, f"{name}_{tag}_P_COLPTR", P.indptr)
+    _ints(cfg, f"{name}_{tag}_P_ROW", P.indices)
+    cfg.array(f"{name}_{tag}_P_VAL", P.data)
+    cfg.array(f"{name}_{tag}_Q0", low["q0"], n)
+    _csr(cfg, f"{name}_{tag}", "QQ", low["Q"])
+    cfg.array(f"{name}_{tag}_B0", low["b0"], m)
+    _csr(cfg, f"{name}_{tag}", "BB", low["B"])
     A = low["A"]
-    _ints(cfg, f"{name}_A_COLPTR", A.indptr)
-    _ints(cfg, f"{name}_A_ROW", A.indices)
-    cfg.array(f"{name}_A0", A.data)
-    _csr(cfg, name, "AP", low["A_param"])
-    _ints(cfg, f"{name}_VIDX", vidx.T.reshape(-1))
-    cfg.status(S.RAPSF, "BAL_RAPSF_STATUS_CODES")
-    return _write(spec, name, out_dir, cfg, low["library"],
-                  {"kind": "rapsf", "qp": "hot", "nx": nx, "nu": nu, "N": spec.N, "nq": nq,
-                   "n_vertices": nth, "n_rows": nxr, "shrinking": False,
-                   "warm_start": False, "K": K.tolist(), "backup": "default",
-                   "qp_size": [m, n], "options": {**opts, "kkt_tol": low["kkt_tol"]},
-                   "problems": {}, "rapsf_status": S.manifest(S.RAPSF)})
+    _ints(cfg, f"{name}_{tag}_A_COLPTR", A.indptr)
+    _ints(cfg, f"{name}_{tag}_A_ROW", A.indices)
+    cfg.array(f"{name}_{tag}_A0", A.data)
+    _csr(cfg, f"{name}_{tag}", "AP", low["A_param"])
+    _ints(cfg, f"{name}_{tag}_VIDX", vidx.T.reshape(-1))
 
 
 def _write(spec: RAPSFDeployment, name: str, out_dir: Path, cfg: C.Config, lib: str,

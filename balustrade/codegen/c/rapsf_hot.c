@@ -2,12 +2,15 @@
  * solved by the dense dual active-set solver of the casadi wheel (its C library, linked)
  * with its workspace kept across steps. From <name>_config.h: Q_NX, Q_NU, Q_N, Q_NQ, Q_NTH,
  * Q_NXR, Q_K (NU x NX, column-major), Q_NP and the offsets Q_P_x0, Q_P_u_p, Q_P_theta,
- * Q_P_s of the parameter vector, the lowered QP (Q_NY variables, Q_M rows of which the
- * first Q_M0 are equalities): P as CSC (Q_P_COLPTR, Q_P_ROW, Q_P_VAL, full symmetric),
- * q0 and Qq (CSR over p), b0 and Bb (CSR), the pattern of A (Q_A_COLPTR, Q_A_ROW), its
- * constant values Q_A0 and their parametric part Ap (CSR, one row per value), the indices
- * Q_VIDX of v (NU x N, column-major) in y, the solver's Q_PRIMAL_TOL, the weight Q_PROX
- * and the limit Q_PROX_ITER of the proximal iterations, and Q_KKT_TOL.
+ * Q_P_s of the parameter vector; per lowered QP T (ALL: every row; SH: the shared rows,
+ * when Q_SHARED) its sizes Q_T_NY, Q_T_M, Q_T_M0 (equality rows, the first), Q_T_NNZ, P as
+ * CSC (Q_T_P_COLPTR, _P_ROW, _P_VAL, full symmetric), q0 and Qq (CSR over p: Q_T_Q0,
+ * Q_T_QQ_PTR/_COL/_VAL), b0 and Bb (Q_T_B0, Q_T_BB_*), the pattern of A (Q_T_A_COLPTR,
+ * Q_T_A_ROW), its constant values Q_T_A0 and their parametric part (Q_T_AP_*, one row per
+ * value), the indices Q_T_VIDX of v (NU x N, column-major) in y; with Q_SHARED the map
+ * Q_REP (NXR x NTH) of the merged rows and Q_DEP (NXR x NQ: row r depends on theta_k);
+ * the solver's Q_PRIMAL_TOL, the weight Q_PROX and limit Q_PROX_ITER of the proximal
+ * iterations, and Q_KKT_TOL.
  *
  * A singular P (the cost of (4.5) weighs v_0 - u_p only) gets the semi-proximal term
  * Q_PROX/2 |y_j - c_j|^2 on its zero diagonal entries j, and the proximal-point iterations
@@ -24,35 +27,53 @@
 
 #include "daqp/api.h"
 #include "daqp/utils.h"
-/* the solver's headers define these short names as macros of its own */
-#undef NX
+#undef NX /* as in bal/rapsf_hot.h */
 #undef N_CONSTR
 #undef N_SIMPLE
 
 #include "step_common.c"
 
 static const casadi_real BAL_QX(gain)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
-static const int BAL_QX(p_colptr)[BAL_QX(NY) + 1] = BAL_QX(P_COLPTR);
-static const int BAL_QX(p_row)[] = BAL_QX(P_ROW);
-static const double BAL_QX(p_val)[] = BAL_QX(P_VAL);
-static const double BAL_QX(q0)[BAL_QX(NY)] = BAL_QX(Q0);
-static const int BAL_QX(qq_ptr)[BAL_QX(NY) + 1] = BAL_QX(QQ_PTR);
-static const int BAL_QX(qq_col)[] = BAL_QX(QQ_COL);
-static const double BAL_QX(qq_val)[] = BAL_QX(QQ_VAL);
-static const double BAL_QX(b0)[BAL_QX(M)] = BAL_QX(B0);
-static const int BAL_QX(bb_ptr)[BAL_QX(M) + 1] = BAL_QX(BB_PTR);
-static const int BAL_QX(bb_col)[] = BAL_QX(BB_COL);
-static const double BAL_QX(bb_val)[] = BAL_QX(BB_VAL);
-static const int BAL_QX(a_colptr)[BAL_QX(NY) + 1] = BAL_QX(A_COLPTR);
-static const int BAL_QX(a_row)[BAL_QX(NNZ)] = BAL_QX(A_ROW);
-static const double BAL_QX(a0)[BAL_QX(NNZ)] = BAL_QX(A0);
-static const int BAL_QX(ap_ptr)[BAL_QX(NNZ) + 1] = BAL_QX(AP_PTR);
-static const int BAL_QX(ap_col)[] = BAL_QX(AP_COL);
-static const double BAL_QX(ap_val)[] = BAL_QX(AP_VAL);
-static const int BAL_QX(vidx)[BAL_QX(NU) * BAL_QX(N)] = BAL_QX(VIDX);
 
+/* the constant arrays of the lowered QP T and their bal_hot_data */
+#define BAL_HOT_DATA(T)                                                                  \
+  static const int BAL_QX(T##_p_colptr)[] = BAL_QX(T##_P_COLPTR);                        \
+  static const int BAL_QX(T##_p_row)[] = BAL_QX(T##_P_ROW);                              \
+  static const double BAL_QX(T##_p_val)[] = BAL_QX(T##_P_VAL);                           \
+  static const double BAL_QX(T##_q0)[] = BAL_QX(T##_Q0);                                 \
+  static const int BAL_QX(T##_qq_ptr)[] = BAL_QX(T##_QQ_PTR);                            \
+  static const int BAL_QX(T##_qq_col)[] = BAL_QX(T##_QQ_COL);                            \
+  static const double BAL_QX(T##_qq_val)[] = BAL_QX(T##_QQ_VAL);                         \
+  static const double BAL_QX(T##_b0)[] = BAL_QX(T##_B0);                                 \
+  static const int BAL_QX(T##_bb_ptr)[] = BAL_QX(T##_BB_PTR);                            \
+  static const int BAL_QX(T##_bb_col)[] = BAL_QX(T##_BB_COL);                            \
+  static const double BAL_QX(T##_bb_val)[] = BAL_QX(T##_BB_VAL);                         \
+  static const int BAL_QX(T##_a_colptr)[] = BAL_QX(T##_A_COLPTR);                        \
+  static const int BAL_QX(T##_a_row)[] = BAL_QX(T##_A_ROW);                              \
+  static const double BAL_QX(T##_a0)[] = BAL_QX(T##_A0);                                 \
+  static const int BAL_QX(T##_ap_ptr)[] = BAL_QX(T##_AP_PTR);                            \
+  static const int BAL_QX(T##_ap_col)[] = BAL_QX(T##_AP_COL);                            \
+  static const double BAL_QX(T##_ap_val)[] = BAL_QX(T##_AP_VAL);                         \
+  static const int BAL_QX(T##_vidx)[BAL_QX(NU) * BAL_QX(N)] = BAL_QX(T##_VIDX);          \
+  static const bal_hot_data BAL_QX(T##_data) = {                                         \
+      BAL_QX(T##_NY), BAL_QX(T##_M), BAL_QX(T##_M0), BAL_QX(T##_NNZ),                    \
+      BAL_QX(T##_p_colptr), BAL_QX(T##_p_row), BAL_QX(T##_qq_ptr), BAL_QX(T##_qq_col),   \
+      BAL_QX(T##_bb_ptr), BAL_QX(T##_bb_col), BAL_QX(T##_a_colptr), BAL_QX(T##_a_row),   \
+      BAL_QX(T##_ap_ptr), BAL_QX(T##_ap_col), BAL_QX(T##_vidx), BAL_QX(T##_p_val),       \
+      BAL_QX(T##_q0), BAL_QX(T##_qq_val), BAL_QX(T##_b0), BAL_QX(T##_bb_val),            \
+      BAL_QX(T##_a0), BAL_QX(T##_ap_val)};
+BAL_HOT_DATA(ALL)
+#if BAL_QX(SHARED)
+BAL_HOT_DATA(SH)
+static const int BAL_QX(rep)[BAL_QX(NXR) * BAL_QX(NTH)] = BAL_QX(REP);
+static const int BAL_QX(dep)[BAL_QX(NXR) * BAL_QX(NQ)] = BAL_QX(DEP);
+#endif
+#undef BAL_HOT_DATA
+
+#ifndef BAL_RAPSF_HOT_FUNCTIONS
+#define BAL_RAPSF_HOT_FUNCTIONS
 /* out := c + S p for the CSR matrix S (rows entries) */
-static void BAL_QX(affine)(const double* c, const int* ptr, const int* col, const double* val,
+static void bal_hot_affine(const double* c, const int* ptr, const int* col, const double* val,
                            int rows, const casadi_real* p, double* out) {
   int i, k;
   for (i = 0; i < rows; ++i) {
@@ -62,138 +83,127 @@ static void BAL_QX(affine)(const double* c, const int* ptr, const int* col, cons
 }
 
 /* the solver's workspace given back (nothing if none is held) */
-static void BAL_QX(drop)(BAL_QX(work)* wk) {
-  if (!wk->have_ws) return;
-  wk->daqp.settings = 0; /* ours: not freed by the solver */
-  free_daqp_workspace(&wk->daqp);
-  free_daqp_ldp(&wk->daqp);
-  memset(&wk->daqp, 0, sizeof(wk->daqp));
-  wk->have_ws = 0;
+static void bal_hot_drop(bal_hot_qp* h) {
+  if (!h->have_ws) return;
+  h->daqp.settings = 0; /* ours: not freed by the solver */
+  free_daqp_workspace(&h->daqp);
+  free_daqp_ldp(&h->daqp);
+  memset(&h->daqp, 0, sizeof(h->daqp));
+  h->have_ws = 0;
 }
 
-int BAL_QX(init)(BAL_QX(work)* wk) {
-  const int n = BAL_QX(NY), m = BAL_QX(M);
+static void bal_hot_finalize(bal_hot_qp* h) {
+  bal_hot_drop(h);
+  free(h->H); free(h->A); free(h->bu); free(h->bl); free(h->f); free(h->x); free(h->lam);
+  free(h->aval); free(h->alast); free(h->q); free(h->b); free(h->r); free(h->Py);
+  free(h->ATz); free(h->reg); free(h->centre); free(h->sense);
+  memset(h, 0, sizeof(*h));
+}
+
+/* the QP's arrays, dense H with the proximal weight on P's zero diagonal entries, the
+   solver's settings; returns 0, or -1 when an allocation failed (everything given back) */
+static int bal_hot_init(bal_hot_qp* h, const bal_hot_data* d, double prox, double primal_tol) {
+  const int n = d->n, m = d->m;
   int j, k;
-  memset(wk, 0, sizeof(*wk));
-  wk->H = (double*) calloc((size_t) n * n, sizeof(double));
-  wk->A = (double*) calloc((size_t) m * n, sizeof(double));
-  wk->bu = (double*) calloc(m, sizeof(double));
-  wk->bl = (double*) calloc(m, sizeof(double));
-  wk->f = (double*) calloc(n, sizeof(double));
-  wk->x = (double*) calloc(n, sizeof(double));
-  wk->lam = (double*) calloc(m, sizeof(double));
-  wk->aval = (double*) calloc(BAL_QX(NNZ), sizeof(double));
-  wk->alast = (double*) calloc(BAL_QX(NNZ), sizeof(double));
-  wk->b = (double*) calloc(m, sizeof(double));
-  wk->r = (double*) calloc(m, sizeof(double));
-  wk->Py = (double*) calloc(n, sizeof(double));
-  wk->ATz = (double*) calloc(n, sizeof(double));
-  wk->sense = (int*) calloc(m, sizeof(int));
-  wk->q = (double*) calloc(n, sizeof(double));
-  wk->reg = (double*) calloc(n, sizeof(double));
-  wk->centre = (double*) calloc(n, sizeof(double));
-  if (!wk->H || !wk->A || !wk->bu || !wk->bl || !wk->f || !wk->x || !wk->lam || !wk->aval ||
-      !wk->alast || !wk->b || !wk->r || !wk->Py || !wk->ATz || !wk->sense || !wk->q ||
-      !wk->reg || !wk->centre) {
-    wk->ready = 1;
-    BAL_QX(finalize)(wk);
+  memset(h, 0, sizeof(*h));
+  h->d = d;
+  h->H = (double*) calloc((size_t) n * n, sizeof(double));
+  h->A = (double*) calloc((size_t) m * n, sizeof(double));
+  h->bu = (double*) calloc(m, sizeof(double));
+  h->bl = (double*) calloc(m, sizeof(double));
+  h->f = (double*) calloc(n, sizeof(double));
+  h->x = (double*) calloc(n, sizeof(double));
+  h->lam = (double*) calloc(m, sizeof(double));
+  h->aval = (double*) calloc(d->nnz ? d->nnz : 1, sizeof(double));
+  h->alast = (double*) calloc(d->nnz ? d->nnz : 1, sizeof(double));
+  h->q = (double*) calloc(n, sizeof(double));
+  h->b = (double*) calloc(m, sizeof(double));
+  h->r = (double*) calloc(m, sizeof(double));
+  h->Py = (double*) calloc(n, sizeof(double));
+  h->ATz = (double*) calloc(n, sizeof(double));
+  h->reg = (double*) calloc(n, sizeof(double));
+  h->centre = (double*) calloc(n, sizeof(double));
+  h->sense = (int*) calloc(m, sizeof(int));
+  if (!h->H || !h->A || !h->bu || !h->bl || !h->f || !h->x || !h->lam || !h->aval ||
+      !h->alast || !h->q || !h->b || !h->r || !h->Py || !h->ATz || !h->reg || !h->centre ||
+      !h->sense) {
+    bal_hot_finalize(h);
     return -1;
   }
   for (j = 0; j < n; ++j) {
-    for (k = BAL_QX(p_colptr)[j]; k < BAL_QX(p_colptr)[j + 1]; ++k)
-      wk->H[BAL_QX(p_row)[k] * n + j] = BAL_QX(p_val)[k];
+    for (k = d->p_colptr[j]; k < d->p_colptr[j + 1]; ++k)
+      h->H[(size_t) d->p_row[k] * n + j] = d->p_val[k];
   }
   for (j = 0; j < n; ++j) { /* the semi-proximal term on the zero diagonal entries */
-    wk->reg[j] = wk->H[(size_t) j * n + j] == 0.0 ? BAL_QX(PROX) : 0.0;
-    wk->H[(size_t) j * n + j] += wk->reg[j];
+    h->reg[j] = h->H[(size_t) j * n + j] == 0.0 ? prox : 0.0;
+    h->H[(size_t) j * n + j] += h->reg[j];
   }
-  wk->qp.n = n;
-  wk->qp.m = m;
-  wk->qp.ms = 0;
-  wk->qp.H = wk->H;
-  wk->qp.f = wk->f;
-  wk->qp.A = wk->A;
-  wk->qp.bupper = wk->bu;
-  wk->qp.blower = wk->bl;
-  wk->qp.sense = wk->sense;
-  daqp_default_settings(&wk->settings);
-  wk->settings.primal_tol = BAL_QX(PRIMAL_TOL);
-  wk->settings.eps_prox = 0; /* the proximal iterations run here (Q_PROX) */
-  wk->res.x = wk->x;
-  wk->res.lam = wk->lam;
-  wk->ready = 1;
-  BAL_QX(reset)(wk);
+  h->qp.n = n;
+  h->qp.m = m;
+  h->qp.ms = 0;
+  h->qp.H = h->H;
+  h->qp.f = h->f;
+  h->qp.A = h->A;
+  h->qp.bupper = h->bu;
+  h->qp.blower = h->bl;
+  h->qp.sense = h->sense;
+  daqp_default_settings(&h->settings);
+  h->settings.primal_tol = primal_tol;
+  h->settings.eps_prox = 0; /* the proximal iterations run here */
+  h->res.x = h->x;
+  h->res.lam = h->lam;
+  h->kkt = NAN;
   return 0;
 }
 
-void BAL_QX(finalize)(BAL_QX(work)* wk) {
-  if (!wk->ready) return;
-  BAL_QX(drop)(wk);
-  free(wk->H); free(wk->A); free(wk->bu); free(wk->bl); free(wk->f); free(wk->x);
-  free(wk->lam); free(wk->aval); free(wk->alast); free(wk->b); free(wk->r); free(wk->Py);
-  free(wk->ATz); free(wk->sense); free(wk->q); free(wk->reg); free(wk->centre);
-  wk->H = wk->A = wk->bu = wk->bl = wk->f = wk->x = wk->lam = wk->aval = wk->alast = 0;
-  wk->b = wk->r = wk->Py = wk->ATz = wk->q = wk->reg = wk->centre = 0;
-  wk->sense = 0;
-  wk->ready = 0;
-}
-
-BAL_DEFINE_ALLOC_FREE(BAL_QX)
-
-void BAL_QX(reset)(BAL_QX(work)* wk) {
-  (void) bal_clip;
-  BAL_QX(drop)(wk); /* a new closed loop starts cold, as a new Python controller */
-  memset(wk->centre, 0, BAL_QX(NY) * sizeof(double));
-  wk->have_plan = 0;
-  wk->k_inf = BAL_QX(N) - 1;
-  wk->main_status = BAL_NOT_RUN;
-  wk->n_replaced = 0;
-  wk->objective = NAN;
-  wk->kkt = NAN;
-  wk->flag = 0;
-  wk->iterations = 0;
-  wk->retried = 0;
-  wk->a_changed = 0;
+/* a new closed loop: cold, centre 0 */
+static void bal_hot_reset(bal_hot_qp* h) {
+  bal_hot_drop(h);
+  memset(h->centre, 0, h->d->n * sizeof(double));
+  h->kkt = NAN;
+  h->flag = h->iterations = h->retried = h->a_changed = 0;
 }
 
 /* the KKT residual of the lowered QP at (x, lam), each error scaled by its own terms
    (kkt_residual of the Python engine): stationarity entry j / (1 + max(|q_j|, |(Py)_j|,
    |(A'z)_j|)); primal feasibility and complementarity of row i / (1 + |b_i|) (an infinite
    b_i is no row); a negative multiplier of an inequality / (1 + the largest of those) */
-static double BAL_QX(kkt_residual)(BAL_QX(work)* wk) {
-  const int n = BAL_QX(NY), m = BAL_QX(M), m0 = BAL_QX(M0);
-  const double *y = wk->x, *z = wk->lam;
+static double bal_hot_kkt(bal_hot_qp* h) {
+  const bal_hot_data* d = h->d;
+  const double *y = h->x, *z = h->lam;
   double stat = 0, prim = 0, dual = 0, comp = 0, mag, magmax = 0, e, scale;
   int i, j, k, finite;
-  for (i = 0; i < m; ++i) wk->r[i] = isfinite(wk->b[i]) ? -wk->b[i] : 0.0;
-  for (j = 0; j < n; ++j) {
-    wk->ATz[j] = 0;
-    wk->Py[j] = 0;
-    for (k = BAL_QX(a_colptr)[j]; k < BAL_QX(a_colptr)[j + 1]; ++k) {
-      wk->r[BAL_QX(a_row)[k]] += wk->aval[k] * y[j];
-      wk->ATz[j] += wk->aval[k] * z[BAL_QX(a_row)[k]];
-    }
-    for (k = BAL_QX(p_colptr)[j]; k < BAL_QX(p_colptr)[j + 1]; ++k)
-      wk->Py[BAL_QX(p_row)[k]] += BAL_QX(p_val)[k] * y[j];
+  for (i = 0; i < d->m; ++i) h->r[i] = isfinite(h->b[i]) ? -h->b[i] : 0.0;
+  for (j = 0; j < d->n; ++j) {
+    h->ATz[j] = 0;
+    h->Py[j] = 0;
   }
-  for (j = 0; j < n; ++j) {
-    mag = fmax(fmax(fabs(wk->q[j]), fabs(wk->Py[j])), fabs(wk->ATz[j]));
+  for (j = 0; j < d->n; ++j) {
+    for (k = d->a_colptr[j]; k < d->a_colptr[j + 1]; ++k) {
+      h->r[d->a_row[k]] += h->aval[k] * y[j];
+      h->ATz[j] += h->aval[k] * z[d->a_row[k]];
+    }
+    for (k = d->p_colptr[j]; k < d->p_colptr[j + 1]; ++k)
+      h->Py[d->p_row[k]] += d->p_val[k] * y[j];
+  }
+  for (j = 0; j < d->n; ++j) {
+    mag = fmax(fmax(fabs(h->q[j]), fabs(h->Py[j])), fabs(h->ATz[j]));
     if (mag > magmax) magmax = mag;
-    e = fabs(wk->Py[j] + wk->q[j] + wk->ATz[j]) / (1.0 + mag);
+    e = fabs(h->Py[j] + h->q[j] + h->ATz[j]) / (1.0 + mag);
     if (!(e <= stat)) stat = e; /* NaN propagates */
   }
-  for (i = 0; i < m; ++i) {
-    finite = isfinite(wk->b[i]);
-    scale = 1.0 + (finite ? fabs(wk->b[i]) : 0.0);
-    if (i < m0) {
-      e = fabs(wk->r[i]) / scale;
+  for (i = 0; i < d->m; ++i) {
+    finite = isfinite(h->b[i]);
+    scale = 1.0 + (finite ? fabs(h->b[i]) : 0.0);
+    if (i < d->m0) {
+      e = fabs(h->r[i]) / scale;
       if (!(e <= prim)) prim = e;
       continue;
     }
     if (finite) {
-      e = wk->r[i] / scale;
+      e = h->r[i] / scale;
       if (!(e <= prim)) prim = e;
-      e = fabs(z[i] * wk->r[i]) / scale;
+      e = fabs(z[i] * h->r[i]) / scale;
       if (!(e <= comp)) comp = e;
     }
     if (!(-z[i] <= dual)) dual = -z[i];
@@ -203,80 +213,146 @@ static double BAL_QX(kkt_residual)(BAL_QX(work)* wk) {
   return isfinite(e) && isfinite(stat + prim + dual + comp) ? e : NAN;
 }
 
-/* one solve with the data in wk (f, bu, bl, A): hot from the held workspace (an update of
+/* one solve with the data in h (f, bu, bl, A): hot from the held workspace (an update of
    f, the bounds and, when they changed (a_changed, first of a step only), the values of A
    with the working set activated again), or a new set-up when none is held; returns the
    solver's flag (< 0 set-up or update failures included) */
-static int BAL_QX(solve_qp)(BAL_QX(work)* wk, int first) {
-  int flag, i;
-  if (!wk->have_ws) {
-    for (i = 0; i < BAL_QX(M); ++i) wk->sense[i] = i < BAL_QX(M0) ? ACTIVE + IMMUTABLE : 0;
-    memset(&wk->daqp, 0, sizeof(wk->daqp));
-    wk->daqp.settings = &wk->settings;
-    flag = setup_daqp(&wk->qp, &wk->daqp, NULL);
+static int bal_hot_solve_once(bal_hot_qp* h, int first) {
+  int flag, i, new_a;
+  if (!h->have_ws) {
+    for (i = 0; i < h->d->m; ++i) h->sense[i] = i < h->d->m0 ? ACTIVE + IMMUTABLE : 0;
+    memset(&h->daqp, 0, sizeof(h->daqp));
+    h->daqp.settings = &h->settings;
+    flag = setup_daqp(&h->qp, &h->daqp, NULL);
     if (flag < 0) {
-      memset(&wk->daqp, 0, sizeof(wk->daqp)); /* freed by the failed set-up */
+      memset(&h->daqp, 0, sizeof(h->daqp)); /* freed by the failed set-up */
       return flag;
     }
-    wk->have_ws = 1;
+    h->have_ws = 1;
   } else {
     /* a new A resets the factorization but keeps the working set's marks: activate them
        again (what the set-up does), so the solve starts from the last working set */
-    int new_a = first && wk->a_changed;
-    flag = update_ldp(new_a ? UPDATE_M + UPDATE_v + UPDATE_d : UPDATE_v + UPDATE_d, &wk->daqp);
-    if (flag >= 0 && new_a) flag = activate_constraints(&wk->daqp);
+    new_a = first && h->a_changed;
+    flag = update_ldp(new_a ? UPDATE_M + UPDATE_v + UPDATE_d : UPDATE_v + UPDATE_d, &h->daqp);
+    if (flag >= 0 && new_a) flag = activate_constraints(&h->daqp);
     if (flag < 0) {
-      BAL_QX(drop)(wk);
+      bal_hot_drop(h);
       return flag;
     }
   }
-  daqp_solve(&wk->res, &wk->daqp);
-  wk->iterations += wk->res.iter;
-  return wk->res.exitflag;
+  daqp_solve(&h->res, &h->daqp);
+  h->iterations += h->res.iter;
+  return h->res.exitflag;
 }
 
-/* (4.5) at the parameters wk->p: the data, a hot solve, and a cold one if the hot answer is
-   not verified; returns 1 when an answer passed (flag optimal, KKT <= Q_KKT_TOL) */
-static int BAL_QX(solve)(BAL_QX(work)* wk) {
-  const int n = BAL_QX(NY), m = BAL_QX(M);
+/* the QP at the parameters p: its data, the proximal iterations hot, and again cold if no
+   iterate is verified; returns 1 when an answer passed (flag optimal, KKT <= kkt_tol) */
+static int bal_hot_solve(bal_hot_qp* h, const casadi_real* p, int prox_iter, double kkt_tol) {
+  const bal_hot_data* d = h->d;
+  const int n = d->n, m = d->m;
   int j, k, attempt, it;
-  BAL_QX(affine)(BAL_QX(q0), BAL_QX(qq_ptr), BAL_QX(qq_col), BAL_QX(qq_val), n, wk->p, wk->q);
-  BAL_QX(affine)(BAL_QX(b0), BAL_QX(bb_ptr), BAL_QX(bb_col), BAL_QX(bb_val), m, wk->p, wk->b);
-  BAL_QX(affine)(BAL_QX(a0), BAL_QX(ap_ptr), BAL_QX(ap_col), BAL_QX(ap_val), BAL_QX(NNZ),
-                 wk->p, wk->aval);
+  bal_hot_affine(d->q0, d->qq_ptr, d->qq_col, d->qq_val, n, p, h->q);
+  bal_hot_affine(d->b0, d->bb_ptr, d->bb_col, d->bb_val, m, p, h->b);
+  bal_hot_affine(d->a0, d->ap_ptr, d->ap_col, d->ap_val, d->nnz, p, h->aval);
   for (j = 0; j < m; ++j) {
-    wk->bu[j] = isfinite(wk->b[j]) && wk->b[j] < DAQP_INF ? wk->b[j] : DAQP_INF;
-    wk->bl[j] = j < BAL_QX(M0) ? wk->bu[j] : -DAQP_INF;
+    h->bu[j] = isfinite(h->b[j]) && h->b[j] < DAQP_INF ? h->b[j] : DAQP_INF;
+    h->bl[j] = j < d->m0 ? h->bu[j] : -DAQP_INF;
   }
-  wk->a_changed = memcmp(wk->aval, wk->alast, BAL_QX(NNZ) * sizeof(double)) != 0;
-  if (wk->a_changed || !wk->have_ws) {
-    memcpy(wk->alast, wk->aval, BAL_QX(NNZ) * sizeof(double));
+  h->a_changed = memcmp(h->aval, h->alast, d->nnz * sizeof(double)) != 0;
+  if (h->a_changed || !h->have_ws) {
+    memcpy(h->alast, h->aval, d->nnz * sizeof(double));
     for (j = 0; j < n; ++j) {
-      for (k = BAL_QX(a_colptr)[j]; k < BAL_QX(a_colptr)[j + 1]; ++k)
-        wk->A[(size_t) BAL_QX(a_row)[k] * n + j] = wk->aval[k];
+      for (k = d->a_colptr[j]; k < d->a_colptr[j + 1]; ++k)
+        h->A[(size_t) d->a_row[k] * n + j] = h->aval[k];
     }
   }
-  wk->iterations = 0;
-  wk->retried = 0;
+  h->iterations = 0;
+  h->retried = 0;
   for (attempt = 0; attempt < 2; ++attempt) {
     if (attempt) { /* the hot answer failed: set up again, cold */
-      BAL_QX(drop)(wk);
-      wk->retried = 1;
+      bal_hot_drop(h);
+      h->retried = 1;
+      memset(h->centre, 0, n * sizeof(double));
     }
-    if (attempt) memset(wk->centre, 0, n * sizeof(double));
-    for (it = 0; it < BAL_QX(PROX_ITER); ++it) { /* proximal-point iterations, each hot */
-      for (j = 0; j < n; ++j) wk->f[j] = wk->q[j] - wk->reg[j] * wk->centre[j];
-      wk->flag = BAL_QX(solve_qp)(wk, it == 0);
-      wk->kkt = NAN;
-      if (wk->flag != EXIT_OPTIMAL) break;
-      memcpy(wk->centre, wk->x, n * sizeof(double));
-      wk->kkt = BAL_QX(kkt_residual)(wk);
-      if (wk->kkt <= BAL_QX(KKT_TOL)) return 1;
-      if (!(wk->kkt == wk->kkt)) break; /* NaN: no answer */
+    for (it = 0; it < prox_iter; ++it) { /* proximal-point iterations, each hot */
+      for (j = 0; j < n; ++j) h->f[j] = h->q[j] - h->reg[j] * h->centre[j];
+      h->flag = bal_hot_solve_once(h, it == 0);
+      h->kkt = NAN;
+      if (h->flag != EXIT_OPTIMAL) break;
+      memcpy(h->centre, h->x, n * sizeof(double));
+      h->kkt = bal_hot_kkt(h);
+      if (h->kkt <= kkt_tol) return 1;
+      if (!(h->kkt == h->kkt)) break; /* NaN: no answer */
     }
   }
-  BAL_QX(drop)(wk); /* the next step sets up anew */
+  bal_hot_drop(h); /* the next step sets up anew */
   return 0;
+}
+#endif /* BAL_RAPSF_HOT_FUNCTIONS */
+
+int BAL_QX(init)(BAL_QX(work)* wk) {
+  memset(wk, 0, sizeof(*wk));
+  if (bal_hot_init(&wk->qps[0], &BAL_QX(ALL_data), BAL_QX(PROX), BAL_QX(PRIMAL_TOL)))
+    return -1;
+#if BAL_QX(SHARED)
+  if (bal_hot_init(&wk->qps[1], &BAL_QX(SH_data), BAL_QX(PROX), BAL_QX(PRIMAL_TOL))) {
+    bal_hot_finalize(&wk->qps[0]);
+    return -1;
+  }
+#endif
+  wk->ready = 1;
+  BAL_QX(reset)(wk);
+  return 0;
+}
+
+void BAL_QX(finalize)(BAL_QX(work)* wk) {
+  if (!wk->ready) return;
+  bal_hot_finalize(&wk->qps[0]);
+#if BAL_QX(SHARED)
+  bal_hot_finalize(&wk->qps[1]);
+#endif
+  wk->ready = 0;
+}
+
+BAL_DEFINE_ALLOC_FREE(BAL_QX)
+
+void BAL_QX(reset)(BAL_QX(work)* wk) {
+  (void) bal_clip;
+  bal_hot_reset(&wk->qps[0]); /* a new closed loop starts cold, as a new Python controller */
+#if BAL_QX(SHARED)
+  bal_hot_reset(&wk->qps[1]);
+#endif
+  wk->used = 0;
+  wk->have_plan = 0;
+  wk->k_inf = BAL_QX(N) - 1;
+  wk->main_status = BAL_NOT_RUN;
+  wk->n_replaced = 0;
+  wk->objective = NAN;
+}
+
+/* 1 when the vertex data repeat every merged row exactly (rows_shared of
+   balustrade.problems.rapsf): s[r, j] == s[r, rep[r, j]] and theta[k, j] ==
+   theta[k, rep[r, j]] for every theta_k row r depends on; the shared QP is then (4.5) */
+static int BAL_QX(rows_shared)(const casadi_real* theta, const casadi_real* s) {
+#if BAL_QX(SHARED)
+  int r, j, k, rj;
+  for (r = 0; r < BAL_QX(NXR); ++r) {
+    for (j = 0; j < BAL_QX(NTH); ++j) {
+      rj = BAL_QX(rep)[r + j * BAL_QX(NXR)];
+      if (!(s[r + j * BAL_QX(NXR)] == s[r + rj * BAL_QX(NXR)])) return 0;
+      for (k = 0; k < BAL_QX(NQ); ++k) {
+        if (BAL_QX(dep)[r + k * BAL_QX(NXR)] &&
+            !(theta[k + j * BAL_QX(NQ)] == theta[k + rj * BAL_QX(NQ)]))
+          return 0;
+      }
+    }
+  }
+  return 1;
+#else
+  (void) theta;
+  (void) s;
+  return 0;
+#endif
 }
 
 /* u := K x + v (v may be 0: the backup K x); NaN entries of x count as 0 */
@@ -294,6 +370,7 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
                  BAL_QX(work)* wk) {
   int i;
   double obj;
+  bal_hot_qp* h;
   if (!x || !u_p || !theta || !s || !u_out || !status || !wk || !wk->ready) {
     if (status) *status = BAL_RAPSF_BAD_INPUT;
     if (x && u_out) BAL_QX(feedback)(x, 0, u_out);
@@ -311,11 +388,13 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   for (i = 0; i < BAL_QX(NU); ++i) wk->p[BAL_QX(P_u_p) + i] = wk->u_p[i];
   memcpy(wk->p + BAL_QX(P_theta), theta, BAL_QX(NQ) * BAL_QX(NTH) * sizeof(casadi_real));
   memcpy(wk->p + BAL_QX(P_s), s, BAL_QX(NXR) * BAL_QX(NTH) * sizeof(casadi_real));
-  if (BAL_QX(solve)(wk)) {
+  wk->used = BAL_QX(rows_shared)(theta, s);
+  h = &wk->qps[wk->used];
+  if (bal_hot_solve(h, wk->p, BAL_QX(PROX_ITER), BAL_QX(KKT_TOL))) {
     wk->main_status = BAL_OK;
-    for (i = 0; i < BAL_QX(NU) * BAL_QX(N); ++i) wk->plan[i] = wk->x[BAL_QX(vidx)[i]];
+    for (i = 0; i < BAL_QX(NU) * BAL_QX(N); ++i) wk->plan[i] = h->x[h->d->vidx[i]];
     obj = 0;
-    for (i = 0; i < BAL_QX(NY); ++i) obj += (0.5 * wk->Py[i] + wk->q[i]) * wk->x[i];
+    for (i = 0; i < h->d->n; ++i) obj += (0.5 * h->Py[i] + h->q[i]) * h->x[i];
     wk->objective = obj;
     wk->have_plan = 1;
     wk->k_inf = 0;
@@ -323,8 +402,8 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
     *status = BAL_RAPSF_OK;
     return *status;
   }
-  wk->main_status = wk->flag < 0 && wk->flag != EXIT_INFEASIBLE && wk->flag != EXIT_CYCLE &&
-                            wk->flag != EXIT_ITERLIMIT ? BAL_EVAL_ERROR : BAL_NOT_CONVERGED;
+  wk->main_status = h->flag < 0 && h->flag != EXIT_INFEASIBLE && h->flag != EXIT_CYCLE &&
+                            h->flag != EXIT_ITERLIMIT ? BAL_EVAL_ERROR : BAL_NOT_CONVERGED;
   wk->k_inf += 1;
   if (wk->k_inf <= BAL_QX(N) - 1 && wk->have_plan) {
     BAL_QX(feedback)(x, wk->plan + wk->k_inf * BAL_QX(NU), u_out);
@@ -342,11 +421,13 @@ int BAL_QX(k_inf)(const BAL_QX(work)* wk) { return wk->k_inf; }
 casadi_real BAL_QX(objective)(const BAL_QX(work)* wk) { return wk->objective; }
 int BAL_QX(proposal_replaced)(const BAL_QX(work)* wk) { return wk->n_replaced; }
 void BAL_QX(qp_info)(const BAL_QX(work)* wk, double* out) {
-  out[0] = wk->flag;
-  out[1] = wk->kkt;
-  out[2] = wk->iterations;
-  out[3] = wk->retried;
-  out[4] = wk->a_changed;
+  const bal_hot_qp* h = &wk->qps[wk->used];
+  out[0] = h->flag;
+  out[1] = h->kkt;
+  out[2] = h->iterations;
+  out[3] = h->retried;
+  out[4] = h->a_changed;
+  out[5] = wk->used;
 }
-const double* BAL_QX(qp_primal)(const BAL_QX(work)* wk) { return wk->x; }
-const double* BAL_QX(qp_dual)(const BAL_QX(work)* wk) { return wk->lam; }
+const double* BAL_QX(qp_primal)(const BAL_QX(work)* wk) { return wk->qps[wk->used].x; }
+const double* BAL_QX(qp_dual)(const BAL_QX(work)* wk) { return wk->qps[wk->used].lam; }
