@@ -1,7 +1,7 @@
 """The emitted hot-started Algorithm 4.1 step (``bal/rapsf_hot.c``, docs/deploy_c.md
 "Session 15") against Python's default RAPSF, same closed loop, same run::
 
-    PYTHONPATH=$PWD python -m benchmarks.rapsf_hot_c [masses] [steps]
+    PYTHONPATH=$PWD python -m benchmarks.rapsf_hot_c [masses] [steps] [sqp]
 
 Two closed loops of the ``reproduce msd-adaptive`` design (box update, §4.7 chain, ``θ*``
 and disturbances of seed 0; :class:`benchmarks.bench_rapsf.Loop`): ``RAPSF(...)`` on its
@@ -12,7 +12,10 @@ step: wall and CPU time (``time.process_time``) of the Python step, of the
 The C steps' arguments are recorded and replayed by the C harness
 ``benchmarks/rapsf_hot_c.c`` (built against the same module), which times each call with
 ``clock_gettime`` (monotonic and process CPU clocks) and whose inputs must equal the
-``CRAPSF`` ones (the same calls from the same start). Prints medians, p90s and worst.
+``CRAPSF`` ones (the same calls from the same start). ``sqp``: a third loop, the C emitted
+from ``target="convex-qp"`` (the SQP with the solver started cold, the C of Algorithm 4.1
+before session 15; its build takes minutes), interleaved with the two. Prints medians,
+p90s and worst.
 """
 
 from __future__ import annotations
@@ -37,7 +40,15 @@ def _q(v: np.ndarray) -> str:
     return f"{np.median(v):.3f} / {np.quantile(v, 0.9):.3f} / {np.max(v):.3f}"
 
 
-def run(masses: int = 3, steps: int = 150) -> dict:
+def _sqp_c(d: dict, tmp: Path) -> CRAPSF:
+    """The C of ``target="convex-qp"`` (bal/rapsf.c) for the same design."""
+    ctrl = msd_adaptive.adaptive_controller(d, target="convex-qp")
+    em = emit_rapsf(ctrl, "rq", tmp / "sqp")
+    lib = build(em.out_dir, "rq", extra_flags=link_flags(em.libraries))
+    return CRAPSF(lib, host=ctrl)
+
+
+def run(masses: int = 3, steps: int = 150, sqp: bool = False) -> dict:
     d = msd_adaptive.design(masses)
     ctrl = msd_adaptive.adaptive_controller(d)
     tmp = Path(tempfile.mkdtemp(prefix="rapsf_hot_c_"))
@@ -60,6 +71,8 @@ def run(masses: int = 3, steps: int = 150) -> dict:
     c.step_raw = timed_raw
 
     loops = {"python": Loop(d, ctrl.step, steps), "c": Loop(d, c.step, steps)}
+    if sqp:
+        loops["sqp"] = Loop(d, _sqp_c(d, tmp).step, steps)
     cpu = {k: [] for k in loops}
     for k in range(steps):
         for label in (list(loops) if k % 2 else list(loops)[::-1]):
@@ -79,7 +92,12 @@ def run(masses: int = 3, steps: int = 150) -> dict:
     h = np.fromfile(out).reshape(len(calls), 3 + nu)
     du_h = float(np.max(np.abs(h[:, 3:] - np.array(loops["c"].applied))))
     ms = 1e3
-    return {"masses": masses, "steps": steps, "qp_size": em.manifest["qp_size"],
+    extra = {} if not sqp else {
+        "sqp_wall": np.array(loops["sqp"].times[1:]) * ms,
+        "sqp_cpu": np.array(cpu["sqp"][1:]) * ms,
+        "max_du_sqp": float(np.max(np.abs(np.array(loops["sqp"].applied)
+                                          - np.array(loops["python"].applied))))}
+    return {**extra,"masses": masses, "steps": steps, "qp_sizes": em.manifest["qp_sizes"],
             "python_wall": np.array(loops["python"].times[1:]) * ms,
             "python_cpu": np.array(cpu["python"][1:]) * ms,
             "crapsf_wall": np.array(loops["c"].times[1:]) * ms,
@@ -95,17 +113,23 @@ def run(masses: int = 3, steps: int = 150) -> dict:
 def main(argv: list[str]) -> None:
     masses = int(argv[0]) if argv else 3
     steps = int(argv[1]) if len(argv) > 1 else 150
-    r = run(masses, steps)
-    print(f"{masses} masses, {steps} steps (first not timed), lowered (4.5) in C "
-          f"{r['qp_size'][0]} x {r['qp_size'][1]}; load average {' '.join(r['load'])}")
+    r = run(masses, steps, len(argv) > 2 and argv[2] == "sqp")
+    sizes = ", ".join(f"{k} {m} x {n}" for k, (m, n) in r["qp_sizes"].items())
+    print(f"{masses} masses, {steps} steps (first not timed), lowered (4.5) in C: {sizes}; "
+          f"load average {' '.join(r['load'])}")
     print("per step, median / p90 / worst [ms]:           wall                  CPU")
     for key, label in (("python", "Python RAPSF, default target"),
                        ("crapsf", "CRAPSF.step (box update + C)"),
                        ("ccall", "the C call through ctypes"),
-                       ("harness", "the C call in the C harness")):
+                       ("harness", "the C call in the C harness"),
+                       ("sqp", "CRAPSF.step, C of convex-qp")):
+        if key + "_wall" not in r:
+            continue
         print(f"  {label:<32} {_q(r[key + '_wall']):>22}  {_q(r[key + '_cpu']):>22}")
     print(f"max |u_C - u_Python| {r['max_du']:.2e}; harness vs CRAPSF {r['max_du_harness']:.2e};"
           f" loop fallbacks {r['fallbacks']}")
+    if "max_du_sqp" in r:
+        print(f"max |u_convex-qp C - u_Python| {r['max_du_sqp']:.2e} (own states)")
 
 
 if __name__ == "__main__":
