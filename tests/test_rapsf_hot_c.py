@@ -196,9 +196,15 @@ def test_rows_are_shared_only_when_the_data_repeat_them(msd3, tmp_path) -> None:
     on the loop's data (a box Θ_k keeps the vertex order) it does; with one ``s_jr`` of a
     merged row changed it does not, and the C's answer (every row) equals Python's solve of
     (4.5) with every row at those data."""
+    import ctypes
+
+    from balustrade.codegen import cfiles
     from balustrade.problems.rapsf import rows_shared
 
     py, c, _ = _emitted(msd3, tmp_path)
+    lib = ctypes.CDLL(str(tmp_path / "librh.so"))
+    for entry in cfiles.ENTRY_POINTS["rapsf_hot"]:     # what <name>.h lists exists
+        assert hasattr(lib, f"rh_{entry}"), entry
     st = msd3["setup"]
     x, u_p = st.x0 + 0.05, np.full(3, 1.0)
     c.step(x, u_p)
