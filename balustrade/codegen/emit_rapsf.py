@@ -29,9 +29,13 @@ operations), selected by ``<name>_BACKUP`` (0, 1, 2); the C applies it where
 :class:`~balustrade.control.rapsf.RAPSF` does (``k_inf > N − 1``, a falsified model, a
 non-finite state with its NaN entries read as 0).
 
+A RAPSF on the default target whose (4.5) was compiled for the hot-started dense engine
+(small problems, e.g. 3 masses) is emitted by :mod:`~balustrade.codegen.emit_rapsf_hot`
+instead: (4.5) hot-started in C (``bal/rapsf_hot.c``, docs/deploy_c.md "Session 15").
+
 Not emitted (:class:`~balustrade.errors.CodegenError`): a Python callable as backup, the
-terminal-set enlargement. The controller must be built on a CasADi target that can be
-emitted; the QP (4.5) needs :data:`EMITTABLE_TARGET` (``"convex-qp"``, a dual active-set QP
+terminal-set enlargement. Otherwise the controller must be built on a CasADi target that
+can be emitted; the QP (4.5) needs :data:`EMITTABLE_TARGET` (``"convex-qp"``, a dual active-set QP
 solver inside the SQP; the self-contained ``"fast-sqp"`` cycles on this QP's degenerate
 active sets and fails, docs/deploy_c.md). Its C links that solver's library, shipped with
 the casadi wheel (``Emitted.libraries``): :func:`link_flags` gives the flags for
