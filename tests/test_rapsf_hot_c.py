@@ -161,6 +161,13 @@ int main(void) {
   theta[0] = 0.2; /* a new A(p): the working set activated again */
   rh_step(x, up, theta, s, 0, u, &st, wk);
   bad += !isfinite(u[0]);
+  x[0] = 100.0; /* far outside X: (4.5) infeasible; hot, then cold, then the plan */
+  rh_step(x, up, theta, s, 0, u, &st, wk);
+  rh_qp_info(wk, info);
+  bad += st != BAL_RAPSF_STORED_PLAN || info[3] != 1.0;
+  x[0] = 0.2;
+  rh_step(x, up, theta, s, 0, u, &st, wk); /* set up anew after the failure */
+  bad += st != BAL_RAPSF_OK;
   rh_reset(wk);
   rh_step(x, up, theta, s, 1, u, &st, wk);
   bad += st != BAL_RAPSF_FALSIFIED;
@@ -177,8 +184,9 @@ int main(void) {
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("valgrind") is None, reason="valgrind not installed")
 def test_valgrind_clean(msd3, tmp_path) -> None:
-    """Set-up, hot solves, a changed A(p), reset, falsified and bad-input steps, free:
-    no invalid access, no definite leak."""
+    """Set-up, hot solves, a changed A(p), a failed solve (hot, then cold, then the stored
+    plan) and the set-up after it, reset, falsified and bad-input steps, free: no invalid
+    access, no definite leak."""
     _, _, em = _emitted(msd3, tmp_path)
     (tmp_path / "vg_main.c").write_text(VALGRIND_MAIN)
     exe = build_executable(tmp_path, "vg_main.c",
@@ -186,7 +194,7 @@ def test_valgrind_clean(msd3, tmp_path) -> None:
     run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
                           "--errors-for-leak-kinds=definite", str(exe)],
                          capture_output=True, text=True, timeout=900)
-    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.returncode == 0, run.stdout + run.stderr[-2000:]
 
 
 @pytest.mark.slow
