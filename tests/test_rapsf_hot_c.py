@@ -61,7 +61,7 @@ def _loops(d: dict, py, c: CRAPSF, seeds: range, steps: int) -> dict:
     """Closed loops driven by the Python default's inputs; at every state both controllers
     step (the C through its host's box update) and their inputs are compared."""
     system, st = d["system"], d["setup"]
-    out = {"du": [], "status": [], "retried": 0, "states": 0, "kkt": [], "differ": []}
+    out = {"du": [], "status": [], "retried": 0, "states": 0, "kkt": [], "differ": [], "dobj": []}
     for seed in seeds:
         py.reset()
         c.reset()
@@ -78,6 +78,9 @@ def _loops(d: dict, py, c: CRAPSF, seeds: range, steps: int) -> dict:
             if info.fallback != cinfo.fallback:   # one of them solved, the other did not
                 out["differ"].append((info, cinfo, _independent(py, c, x, u_p), uc))
             out["du"].append(float(np.max(np.abs(u - uc))))
+            if info.fallback is None and cinfo.fallback is None:   # the same cost value
+                a, b = info.values["objective"], cinfo.values["objective"]
+                out["dobj"].append(abs(a - b) / (1.0 + abs(a)))
             out["status"].append((info.fallback, cinfo.fallback))
             q = c.qp_info()
             out["retried"] += q["retried"]
@@ -93,13 +96,15 @@ def _loops(d: dict, py, c: CRAPSF, seeds: range, steps: int) -> dict:
 @pytest.mark.slow
 def test_c_equals_python_default_on_a_thousand_states(msd3, tmp_path) -> None:
     """1050 states (7 seeded loops of 150 steps; θ* uniform or at vertices, uniform or
-    vertex disturbances): the C's inputs equal the Python default's within 1e-6, the same
-    steps fall back, and every used C answer passed the KKT check (<= 1e-8, in C)."""
+    vertex disturbances): the C's inputs and objectives equal the Python default's within
+    1e-6, the same steps fall back (except where only the C solved, checked below), and
+    every used C answer passed the KKT check (<= 1e-8, in C)."""
     py, c, _ = _emitted(msd3, tmp_path)
     r = _loops(msd3, py, c, range(7), 150)
     assert r["states"] >= 1000
     same = [du for du, (a, b) in zip(r["du"], r["status"]) if a == b]
     assert max(same) <= TOL, max(same)
+    assert max(r["dobj"]) <= TOL, max(r["dobj"])
     # where one solved and the other did not, the one that solved is the C with an answer
     # equal to the independent solve (Python's engine and its fallback stopped there)
     for info, cinfo, check, _ in r["differ"]:
@@ -111,7 +116,8 @@ def test_c_equals_python_default_on_a_thousand_states(msd3, tmp_path) -> None:
     print(f"\n{r['states']} states: max |du| {max(same):.2e} where both used a solve or "
           f"both fell back, {len(r['differ'])} steps only the C solved, "
           f"fallbacks {sum(a is not None for a, _ in r['status'])}, cold retries "
-          f"{r['retried']}, worst KKT {max(r['kkt']):.2e}")
+          f"{r['retried']}, worst KKT {max(r['kkt']):.2e}, objectives to "
+          f"{max(r['dobj']):.1e} (relative)")
 
 
 @pytest.mark.slow

@@ -271,9 +271,9 @@ def lowered_for_c(compiled: object) -> dict | None:
     symmetric), ``q0``, ``Q`` (CSR: ``q = q0 + Q p``), ``b0``, ``B`` (``b = b0 + B p``), ``A``
     (CSC pattern with its constant values), ``A_param`` (CSR, one row per value of ``A``;
     zero rows when ``A`` does not depend on ``p``), ``m0`` equality rows, ``n_w``, the
-    library, the C settings and the KKT tolerance. Refused (:class:`SolverError`): rows set
-    aside for their large bounds, bounds computed by functions of ``p``, row generation —
-    a solve of those is more than one QP."""
+    cost function ``objective(w, p)``, the library, the C settings and the KKT tolerance.
+    Refused (:class:`SolverError`): rows set aside for their large bounds, bounds computed
+    by functions of ``p``, row generation — a solve of those is more than one QP."""
     engine = getattr(compiled, "engine", None)
     if not isinstance(engine, DaqpEngine):
         return None
@@ -292,5 +292,6 @@ def lowered_for_c(compiled: object) -> dict | None:
     return {"P": sp.csc_matrix(engine.P), "q0": np.asarray(prog.q0, dtype=float),
             "Q": sp.csr_matrix(prog.Q), "b0": np.asarray(prog.b0, dtype=float),
             "B": sp.csr_matrix(prog.B), "A": A, "A_param": A_param, "m0": engine.m0,
-            "n_w": prog.n_w, "library": C_LIBRARY, "options": dict(C_OPTIONS),
+            "n_w": prog.n_w, "objective": prog.objective,
+            "library": C_LIBRARY, "options": dict(C_OPTIONS),
             "kkt_tol": engine.kkt_tol}

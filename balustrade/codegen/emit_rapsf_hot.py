@@ -162,6 +162,38 @@ def _shared(spec: RAPSFDeployment, name: str, entries: dict, low: dict
     return (low_sh, _vidx(compiled, low_sh["n_w"])), rep, dep
 
 
+def n_p_of(low: dict) -> int:
+    """Entries of the parameter vector of a lowered QP."""
+    return int(low["Q"].shape[1])
+
+
+def _cost_constant(low: dict, n_p: int) -> tuple[sp.csr_matrix, np.ndarray, float]:
+    """The part of (4.5)'s cost that depends on ``p`` only, ``½pᵀCp + gᵀp + c0`` (e.g.
+    ``‖u_p‖²`` terms of ``‖v_0 − u_p‖²``): Python's reported objective is the cost itself,
+    the QP's value ``½yᵀPy + qᵀy`` lacks it. Read from the cost function at ``y = 0`` by
+    CasADi's derivatives and checked at random points, with ``y`` too (the whole cost equals
+    QP value + constant); a cost of another form → :class:`CodegenError`."""
+    f = low["objective"]
+    p = ca.SX.sym("p", n_p)
+    c = f(ca.DM.zeros(low["n_w"]), p)
+    hess, grad = ca.hessian(c, p)
+    fn = ca.Function("c", [p], [hess, grad, c])
+    Hm, gm, c0 = (np.asarray(ca.DM(v).full()) for v in fn(np.zeros(n_p)))
+    Cq, g, c0 = sp.csr_matrix(Hm), gm.reshape(-1), float(c0.reshape(-1)[0])
+    rng = np.random.default_rng(0)
+    P = sp.csc_matrix(low["P"])
+    for _ in range(3):
+        pv, y = rng.normal(size=n_p), rng.normal(size=P.shape[0])
+        q = low["q0"] + low["Q"] @ pv
+        model = 0.5 * y @ (P @ y) + q @ y + 0.5 * pv @ (Cq @ pv) + g @ pv + c0
+        true = float(np.asarray(f(y[:low["n_w"]], pv)).reshape(-1)[0])
+        if not abs(model - true) <= 1e-9 * (1.0 + abs(true)):
+            raise CodegenError("the cost of (4.5) is not ½yᵀPy + q(p)ᵀy + a quadratic in p "
+                               f"(checked: {model!r} vs {true!r}); build the RAPSF with "
+                               "target='convex-qp'")
+    return Cq, g, c0
+
+
 def _qp_config(cfg: C.Config, name: str, tag: str, low: dict, vidx: np.ndarray,
                prox: float) -> None:
     """The arrays ``<name>_<tag>_*`` of one lowered QP (bal/rapsf_hot.c); its cost with the
@@ -189,6 +221,11 @@ def _qp_config(cfg: C.Config, name: str, tag: str, low: dict, vidx: np.ndarray,
     _csr(cfg, f"{name}_{tag}", "QQ", low["Q"])
     cfg.array(f"{name}_{tag}_B0", low["b0"], m)
     _csr(cfg, f"{name}_{tag}", "BB", low["B"])
+    Cq, g, c0 = _cost_constant(low, n_p_of(low))
+    cfg.comment("the cost's part in p alone, 1/2 p'Cp + g'p + c0 (objective = QP value + it)")
+    _csr(cfg, f"{name}_{tag}", "OC", Cq)
+    cfg.array(f"{name}_{tag}_OG", g)
+    cfg.define(f"{name}_{tag}_O0", C.c_double(c0))
     A = low["A"]
     _ints(cfg, f"{name}_{tag}_A_COLPTR", A.indptr)
     _ints(cfg, f"{name}_{tag}_A_ROW", A.indices)

@@ -7,7 +7,9 @@
  * CSC (Q_T_P_COLPTR, _P_ROW, _P_VAL, full symmetric), q0 and Qq (CSR over p: Q_T_Q0,
  * Q_T_QQ_PTR/_COL/_VAL), b0 and Bb (Q_T_B0, Q_T_BB_*), the pattern of A (Q_T_A_COLPTR,
  * Q_T_A_ROW), its constant values Q_T_A0 and their parametric part (Q_T_AP_*, one row per
- * value), the indices Q_T_VIDX of v (NU x N, column-major) in y; with Q_SHARED the map
+ * value), the cost's part in p alone (Q_T_OC_* CSR, Q_T_OG, Q_T_O0: 1/2 p'Cp + g'p + c0,
+ * added to the reported objective), the indices Q_T_VIDX of v (NU x N, column-major) in y;
+ * with Q_SHARED the map
  * Q_REP (NXR x NTH) of the merged rows and Q_DEP (NXR x NQ: row r depends on theta_k);
  * the solver's Q_PRIMAL_TOL, the weight Q_PROX and limit Q_PROX_ITER of the proximal
  * iterations, and Q_KKT_TOL.
@@ -54,6 +56,10 @@ static const casadi_real BAL_QX(gain)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
   static const int BAL_QX(T##_ap_ptr)[] = BAL_QX(T##_AP_PTR);                            \
   static const int BAL_QX(T##_ap_col)[] = BAL_QX(T##_AP_COL);                            \
   static const double BAL_QX(T##_ap_val)[] = BAL_QX(T##_AP_VAL);                         \
+  static const int BAL_QX(T##_oc_ptr)[] = BAL_QX(T##_OC_PTR);                            \
+  static const int BAL_QX(T##_oc_col)[] = BAL_QX(T##_OC_COL);                            \
+  static const double BAL_QX(T##_oc_val)[] = BAL_QX(T##_OC_VAL);                         \
+  static const double BAL_QX(T##_og)[] = BAL_QX(T##_OG);                                 \
   static const int BAL_QX(T##_vidx)[BAL_QX(NU) * BAL_QX(N)] = BAL_QX(T##_VIDX);          \
   static const bal_hot_data BAL_QX(T##_data) = {                                         \
       BAL_QX(T##_NY), BAL_QX(T##_M), BAL_QX(T##_M0), BAL_QX(T##_NNZ),                    \
@@ -61,7 +67,8 @@ static const casadi_real BAL_QX(gain)[BAL_QX(NU) * BAL_QX(NX)] = BAL_QX(K);
       BAL_QX(T##_bb_ptr), BAL_QX(T##_bb_col), BAL_QX(T##_a_colptr), BAL_QX(T##_a_row),   \
       BAL_QX(T##_ap_ptr), BAL_QX(T##_ap_col), BAL_QX(T##_vidx), BAL_QX(T##_p_val),       \
       BAL_QX(T##_q0), BAL_QX(T##_qq_val), BAL_QX(T##_b0), BAL_QX(T##_bb_val),            \
-      BAL_QX(T##_a0), BAL_QX(T##_ap_val)};
+      BAL_QX(T##_a0), BAL_QX(T##_ap_val), BAL_QX(T##_oc_ptr), BAL_QX(T##_oc_col),        \
+      BAL_QX(T##_oc_val), BAL_QX(T##_og), BAL_QX(T##_O0)};
 BAL_HOT_DATA(ALL)
 #if BAL_QX(SHARED)
 BAL_HOT_DATA(SH)
@@ -395,6 +402,14 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
     for (i = 0; i < BAL_QX(NU) * BAL_QX(N); ++i) wk->plan[i] = h->x[h->d->vidx[i]];
     obj = 0;
     for (i = 0; i < h->d->n; ++i) obj += (0.5 * h->Py[i] + h->q[i]) * h->x[i];
+    obj += h->d->o0; /* the cost's part in p alone: 1/2 p'Cp + g'p + c0 */
+    for (i = 0; i < BAL_QX(NP); ++i) {
+      int k;
+      double cp = 0.0;
+      for (k = h->d->oc_ptr[i]; k < h->d->oc_ptr[i + 1]; ++k)
+        cp += h->d->oc_val[k] * wk->p[h->d->oc_col[k]];
+      obj += (0.5 * cp + h->d->og[i]) * wk->p[i];
+    }
     wk->objective = obj;
     wk->have_plan = 1;
     wk->k_inf = 0;

@@ -46,6 +46,9 @@ typedef struct bal_hot_data {
   const int *p_colptr, *p_row, *qq_ptr, *qq_col, *bb_ptr, *bb_col, *a_colptr, *a_row;
   const int *ap_ptr, *ap_col, *vidx;
   const double *p_val, *q0, *qq_val, *b0, *bb_val, *a0, *ap_val;
+  const int *oc_ptr, *oc_col; /* the cost's part in p alone: 1/2 p'Cp + g'p + c0 */
+  const double *oc_val, *og;
+  double o0;
 } bal_hot_data;
 
 /* one lowered QP with its solver workspace, kept across steps */
@@ -72,7 +75,7 @@ typedef struct BAL_QX(work) {
   casadi_real p[BAL_QX(NP)];
   casadi_real plan[BAL_QX(NU) * BAL_QX(N)]; /* v* of the last verified (4.5) */
   casadi_real u_p[BAL_QX(NU)];
-  casadi_real objective; /* 1/2 y'Py + q'y of the last verified (4.5), else NAN */
+  casadi_real objective; /* the cost of the last verified (4.5), else NAN */
   int have_plan, k_inf, main_status, n_replaced, ready;
 } BAL_QX(work);
 
