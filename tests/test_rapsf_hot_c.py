@@ -236,3 +236,17 @@ def test_rows_are_shared_only_when_the_data_repeat_them(msd3, tmp_path) -> None:
         {"x0": x, "u_p": u_p, "theta": theta, "s": s})
     assert sol.status == "optimal"
     assert np.max(np.abs(u - (py.K @ x + np.asarray(sol.primal["v"])[:, 0]))) <= TOL
+
+
+@pytest.mark.slow
+def test_five_masses_are_refused_with_the_reason(tmp_path) -> None:
+    """5 masses: the Python step's (4.5) with shared rows (1092 x 171) is on the hot-started
+    engine, but (4.5) with every row (5452 x 471) is above its size limit (PIQP), and the C
+    needs it for data that do not repeat the rows: refused, naming the size and
+    ``convex-qp``, before anything is written."""
+    from balustrade.errors import CodegenError
+
+    ctrl = msd_adaptive.adaptive_controller(msd_adaptive.design(5))
+    with pytest.raises(CodegenError, match=r"5452 x 471.*convex-qp"):
+        emit_rapsf(ctrl, "r5", tmp_path)
+    assert not list(tmp_path.iterdir())

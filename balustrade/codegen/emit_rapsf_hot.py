@@ -41,9 +41,20 @@ def lowered(spec: RAPSFDeployment, name: str) -> dict | None:
     """The lowered (4.5) of ``spec`` when it was compiled for the hot-started engine (the
     default target on small problems), else ``None``."""
     try:
-        return lowered_for_c(spec.problems["main"])
+        low = lowered_for_c(spec.problems["main"])
     except SolverError as exc:
         raise CodegenError(f"{name}: {exc}") from exc
+    if low is None and getattr(spec.host, "shared_rows_problem", None) is not None:
+        found = spec.host.shared_rows_problem()
+        if found is not None and lowered_for_c(found[0]) is not None:
+            m, n = spec.problems["main"].program.A.shape if hasattr(
+                spec.problems["main"], "program") else ("?", "?")
+            raise CodegenError(
+                f"{name}: the Python step solves (4.5) with shared rows on the hot-started "
+                f"engine, but (4.5) with every row ({m} x {n}, needed in C for vertex data "
+                "that do not repeat those rows) is above that engine's size limit; build "
+                "the RAPSF with target='convex-qp'")
+    return low
 
 
 def _ints(cfg: C.Config, name: str, values: np.ndarray) -> None:
