@@ -115,12 +115,16 @@ def test_default_eight_masses_runs_row_generation_on_piqp() -> None:
     assert m * n > SIZED_DENSE_LIMIT
 
 
-def test_default_is_not_emitted_as_c(msd3, tmp_path) -> None:
-    """The C of Algorithm 4.1 stays the ``convex-qp`` one: ``emit_rapsf`` refuses the
-    default (direct backend) and names the target to use, before writing anything."""
+def test_default_is_emitted_hot_and_refuses_what_that_c_does_not_run(msd3, tmp_path) -> None:
+    """Since session 15 the default 3-mass RAPSF is emitted with (4.5) hot-started in C
+    (``bal/rapsf_hot.c``; C = Python in tests/test_rapsf_hot_c.py); Remark 4.6 and a user
+    backup are refused there, naming ``convex-qp``, before anything is written."""
     from balustrade.codegen.emit_rapsf import emit_rapsf
     from balustrade.errors import BalustradeError
 
-    with pytest.raises(BalustradeError, match="convex-qp"):
-        emit_rapsf(_controller(msd3), "r", tmp_path)
-    assert not list(tmp_path.iterdir())
+    for kw in ({"shrinking": True}, {"backup": (np.zeros((3, 6)), np.zeros(3))}):
+        with pytest.raises(BalustradeError, match="convex-qp"):
+            emit_rapsf(_controller(msd3, **kw), "r", tmp_path)
+        assert not list(tmp_path.iterdir())
+    em = emit_rapsf(_controller(msd3), "r", tmp_path)
+    assert em.manifest["qp"] == "hot" and em.libraries == ("daqp",)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from balustrade.backends.casadi_backend import CasadiCompiled
 from balustrade.backends.cvxpy_backend import CvxpyCompiled
+from balustrade.backends.daqp_engine import lowered_for_c
 from balustrade.backends.direct_backend import DirectCompiled
 from balustrade.backends.recovery import RECOVERY_TARGET, check_recovery_target, recovery_lead
 from balustrade.backends.set_support import function_set_support
@@ -97,6 +98,7 @@ def _compile_auto(ocp: OCP, tgt: Target) -> Compiled:
 
 
 __all__ = ["BACKENDS", "PRESETS", "CasadiCompiled", "Compiled", "CompiledSynthesis",
+           "lowered_for_c",
            "recovery_lead", "RECOVERY_TARGET", "check_recovery_target",
            "CvxpyCompiled", "DirectCompiled", "Solution", "Status", "SynthesisSolution", "Target",
            "companion",

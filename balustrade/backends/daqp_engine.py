@@ -248,3 +248,50 @@ class DaqpEngine:
         self.model = None
         self._start = raw.y.copy() if raw.status.success and raw.y is not None else None
         return raw
+
+
+#: the C library of the engine's solver in the casadi wheel (``<casadi>/libdaqp.so``, headers
+#: in ``<casadi>/include/daqp``), linked by the emitted hot-started step
+C_LIBRARY = "daqp"
+#: settings of the emitted C. The wheel's library is DAQP 0.5.0 (its headers equal the
+#: v0.5.0 tag of darnstrom/daqp), not the 0.11 of the Python engine: it has no automatic
+#: semi-proximal term for a singular ``H`` (its ``eps_prox`` is added to every diagonal
+#: entry) and its proximal loop restarts every solve from ``x = 0``. The emitted C therefore
+#: runs the proximal-point iterations itself (``bal/rapsf_hot.c``): weight ``prox`` on the
+#: zero diagonal entries of ``P`` only, centre the last answer, at most ``prox_iter``
+#: iterations, each stopped by the KKT check. Measured on 150 recorded 3-mass (4.5)
+#: (docs/deploy_c.md, "Session 15"): weights 1e-2 … 3e-5 all verified (worst 8.8e-9),
+#: 1e-3 at 0.31 ms against 0.52 ms for the library's loop with ``eps_prox`` 1e-3
+C_OPTIONS = {"primal_tol": 1e-10, "prox": 1e-3, "prox_iter": 30}
+
+
+def lowered_for_c(compiled: object) -> dict | None:
+    """The lowered QP of a problem compiled on the direct backend with this engine, as data
+    for emitted C (``None`` when ``compiled`` is something else): ``P`` (CSC, full
+    symmetric), ``q0``, ``Q`` (CSR: ``q = q0 + Q p``), ``b0``, ``B`` (``b = b0 + B p``), ``A``
+    (CSC pattern with its constant values), ``A_param`` (CSR, one row per value of ``A``;
+    zero rows when ``A`` does not depend on ``p``), ``m0`` equality rows, ``n_w``, the
+    cost function ``objective(w, p)``, the library, the C settings and the KKT tolerance.
+    Refused (:class:`SolverError`): rows set aside for their large bounds, bounds computed
+    by functions of ``p``, row generation — a solve of those is more than one QP."""
+    engine = getattr(compiled, "engine", None)
+    if not isinstance(engine, DaqpEngine):
+        return None
+    prog = compiled.program
+    name = getattr(getattr(compiled, "ocp", None), "name", "problem")
+    if prog.large is not None or prog.derived or getattr(compiled, "rowgen", None) is not None:
+        raise SolverError(f"{name}: the emitted hot-started QP needs one QP per solve; this "
+                          "program has rows with large bounds, bounds computed from functions "
+                          "of the parameters, or row generation")
+    A = sp.csc_matrix(prog.A)
+    if not A.has_sorted_indices:
+        raise SolverError(f"{name}: the lowered constraint matrix has unsorted indices")
+    n_p = prog.Q.shape[1]
+    A_param = sp.csr_matrix(prog.A_param) if prog.A_param is not None else \
+        sp.csr_matrix((A.nnz, n_p))
+    return {"P": sp.csc_matrix(engine.P), "q0": np.asarray(prog.q0, dtype=float),
+            "Q": sp.csr_matrix(prog.Q), "b0": np.asarray(prog.b0, dtype=float),
+            "B": sp.csr_matrix(prog.B), "A": A, "A_param": A_param, "m0": engine.m0,
+            "n_w": prog.n_w, "objective": prog.objective,
+            "library": C_LIBRARY, "options": dict(C_OPTIONS),
+            "kkt_tol": engine.kkt_tol}

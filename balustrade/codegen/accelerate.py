@@ -19,9 +19,9 @@ registered class of the controller's MRO wins). Built in:
 an emittable target, Algorithm 6.3 (:class:`~balustrade.control.multiobjective.
 MultiobjectiveLyapunovController` built with ``target="convex-qp"``,
 :func:`~balustrade.codegen.emit_mo_lyap.emit_mo_lyapunov`) and Algorithm 4.1
-(:class:`~balustrade.control.rapsf.RAPSF` built with
-``target="convex-qp"``, :func:`~balustrade.codegen.emit_rapsf.emit_rapsf`; its C links the
-target's QP solver library from the casadi wheel, the flags come from its manifest).
+(:class:`~balustrade.control.rapsf.RAPSF` on the default target with (4.5) hot-started in
+C, or built with ``target="convex-qp"``, :func:`~balustrade.codegen.emit_rapsf.emit_rapsf`;
+its C links a QP solver library from the casadi wheel, the flags come from its manifest).
 Emitters of further controllers plug in with ``register(cls, emit, load)``.
 
 Cache: the generated sources are hashed (with the compiler flags); the library is built once

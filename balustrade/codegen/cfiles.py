@@ -31,7 +31,7 @@ SUBDIR = "bal"
 STATIC = ("common.h", "problem.h", "problem.c", "step_common.c", "pcbf.h", "pcbf.c",
           "h_common.c", "approx.h", "approx.c", "approx_net.c", "grid.h", "grid.c",
           "tube_common.c", "robust.h", "robust.c", "multiobj.h", "multiobj.c", "rapsf.h",
-          "rapsf.c", "multiobj_lyap.h", "multiobj_lyap.c")
+          "rapsf.c", "multiobj_lyap.h", "multiobj_lyap.c", "rapsf_hot.h", "rapsf_hot.c")
 #: the entry points each static header declares (``<prefix>_<entry>``), listed by their real
 #: names in the generated ``<name>.h`` (checked against the built library by the tests)
 ENTRY_POINTS: dict[str, tuple[str, ...]] = {
@@ -51,6 +51,9 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
                  "candidate_exact"),
     "rapsf": ("init", "finalize", "alloc", "free", "reset", "step", "main_problem",
               "solve_status", "k_inf", "objective", "proposal_replaced", "inaccurate"),
+    "rapsf_hot": ("init", "finalize", "alloc", "free", "reset", "step", "solve_status",
+                  "k_inf", "objective", "proposal_replaced", "qp_info", "qp_primal",
+                  "qp_dual"),
     "multiobj_lyap": ("init", "finalize", "alloc", "free", "reset", "step", "init_problem",
                       "main_problem", "solve_status", "values", "proposal_replaced"),
 }

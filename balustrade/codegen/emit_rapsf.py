@@ -29,9 +29,13 @@ operations), selected by ``<name>_BACKUP`` (0, 1, 2); the C applies it where
 :class:`~balustrade.control.rapsf.RAPSF` does (``k_inf > N − 1``, a falsified model, a
 non-finite state with its NaN entries read as 0).
 
+A RAPSF on the default target whose (4.5) was compiled for the hot-started dense engine
+(small problems, e.g. 3 masses) is emitted by :mod:`~balustrade.codegen.emit_rapsf_hot`
+instead: (4.5) hot-started in C (``bal/rapsf_hot.c``, docs/deploy_c.md "Session 15").
+
 Not emitted (:class:`~balustrade.errors.CodegenError`): a Python callable as backup, the
-terminal-set enlargement. The controller must be built on a CasADi target that can be
-emitted; the QP (4.5) needs :data:`EMITTABLE_TARGET` (``"convex-qp"``, a dual active-set QP
+terminal-set enlargement. Otherwise the controller must be built on a CasADi target that
+can be emitted; the QP (4.5) needs :data:`EMITTABLE_TARGET` (``"convex-qp"``, a dual active-set QP
 solver inside the SQP; the self-contained ``"fast-sqp"`` cycles on this QP's degenerate
 active sets and fails, docs/deploy_c.md). Its C links that solver's library, shipped with
 the casadi wheel (``Emitted.libraries``): :func:`link_flags` gives the flags for
@@ -59,6 +63,7 @@ from balustrade.codegen.emit import (
     _spec,
     _write_module,
 )
+from balustrade.codegen.emit_rapsf_hot import emit_hot, lowered
 from balustrade.codegen.support import check_no_callbacks
 from balustrade.control.deploy import RAPSFDeployment
 from balustrade.control.rapsf_backup import AffineBackup, FunctionBackup
@@ -87,10 +92,13 @@ def link_flags(libraries: tuple[str, ...] | list[str]) -> tuple[str, ...]:
 
 def emit_rapsf(controller: object, name: str, out_dir: str | Path,
                allow_external: bool = True, accept_tol: float | None = None) -> Emitted:
-    """Emit Algorithm 4.1 of a :class:`~balustrade.control.rapsf.RAPSF` built with
-    ``target="convex-qp"`` (:data:`EMITTABLE_TARGET`) as one C call per control step
-    (module docstring; ``bal/rapsf.h``). ``allow_external`` (default True) admits a QP
-    solver whose C links a library (:func:`link_flags`)."""
+    """Emit Algorithm 4.1 of a :class:`~balustrade.control.rapsf.RAPSF` as one C call per
+    control step. A RAPSF on the default target whose (4.5) got the hot-started dense
+    engine (small problems, e.g. 3 masses) is emitted with that QP hot-started in C
+    (:mod:`~balustrade.codegen.emit_rapsf_hot`, ``bal/rapsf_hot.h``); one built with
+    ``target="convex-qp"`` (:data:`EMITTABLE_TARGET`) as the SQP of that target (module
+    docstring; ``bal/rapsf.h``). ``allow_external`` (default True) admits a QP solver whose
+    C links a library (:func:`link_flags`)."""
     _check_identifier(name)
     _check_accept_tol(name, accept_tol)
     spec = _spec(controller, name, RAPSFDeployment, "RAPSF")
@@ -98,6 +106,9 @@ def emit_rapsf(controller: object, name: str, out_dir: str | Path,
         raise CodegenError(f"{name}: the terminal-set enlargement (enlarge=True) records its "
                            "generators in Python and is not emitted; build the RAPSF without "
                            "enlarge")
+    low = lowered(spec, name)
+    if low is not None:     # the default target on small (4.5): the hot-started QP in C
+        return emit_hot(spec, name, _out_dir(out_dir, name), low)
     backup = _backup_law(spec, name)
     compiled = spec.problems["main"]
     try:

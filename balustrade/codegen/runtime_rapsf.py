@@ -88,12 +88,46 @@ class CRAPSF(_OwnsWork):
         self._inaccurate = self._lib.fn(f"{Q}_inaccurate", ci, [vp, ci]) if any(
             p.get("acceptable_stop", True) for p in m["problems"].values()) else None
         self._allocate(Q)
-        self.main = _CProblemView(self._lib, f"{Q}_main", m["problems"]["main"],
-                                  self._lib.fn(f"{Q}_main_problem", vp, [vp])(self._work))
+        #: ``"hot"``: (4.5) hot-started in C (bal/rapsf_hot.h, the default target's C);
+        #: else the SQP of target "convex-qp" (bal/rapsf.h) with its problem view ``main``
+        self.qp = m.get("qp", "sqp")
+        self.main = None
+        self._qp_info = None
+        if self.qp == "hot":
+            self._qp_info = self._lib.fn(f"{Q}_qp_info", None, [vp, _dbl_p])
+            self._info_buf = np.zeros(6)
+            self._qp_point = [self._lib.fn(f"{Q}_qp_{k}", ctypes.POINTER(ctypes.c_double),
+                                           [vp]) for k in ("primal", "dual")]
+            sizes = m.get("qp_sizes", {"all": m["qp_size"]})
+            self.qp_sizes = [tuple(sizes["all"]), tuple(sizes.get("shared", sizes["all"]))]
+        else:
+            self.main = _CProblemView(self._lib, f"{Q}_main", m["problems"]["main"],
+                                      self._lib.fn(f"{Q}_main_problem", vp, [vp])(self._work))
         self._x, self._u_p, self._u = np.zeros(self.nx), np.zeros(self.nu), np.zeros(self.nu)
         self._theta = np.zeros(self.nq * self.n_vertices)
         self._s = np.zeros(self.n_rows * self.n_vertices)
         self._status = ci(0)
+
+    def qp_info(self) -> dict:
+        """The last step's hot-started solve (``qp == "hot"`` only): the solver's ``flag``,
+        the ``kkt`` residual, ``iterations``, whether it was ``retried`` cold, whether the
+        values of ``A(p)`` changed (``a_changed``) and whether the QP with the shared rows
+        was solved (``shared``)."""
+        if self._qp_info is None:
+            raise CodegenError("CRAPSF.qp_info: only for the hot-started QP (qp == 'hot')")
+        self._qp_info(self._work, _ptr(self._info_buf))
+        f, k, it, retried, changed, shared = self._info_buf
+        return {"flag": int(f), "kkt": float(k), "iterations": int(it),
+                "retried": bool(retried), "a_changed": bool(changed), "shared": bool(shared)}
+
+    def qp_point(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the last hot-started solve's point ``y`` and multipliers (``qp ==
+        "hot"`` only; for checks against the Python lowering of (4.5))."""
+        if self._qp_info is None:
+            raise CodegenError("CRAPSF.qp_point: only for the hot-started QP (qp == 'hot')")
+        m, n = self.qp_sizes[int(self.qp_info()["shared"])]
+        y, z = (fn(self._work) for fn in self._qp_point)
+        return np.ctypeslib.as_array(y, (n,)).copy(), np.ctypeslib.as_array(z, (m,)).copy()
 
     @property
     def k_inf(self) -> int:

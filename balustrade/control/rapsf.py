@@ -431,6 +431,24 @@ class RAPSF:
                                shrinking=self.shrinking, default_backup=self.default_backup,
                                host=self)
 
+    def shared_rows_problem(self) -> tuple[object, np.ndarray, np.ndarray] | None:
+        """(4.5) with the horizon ``N`` and the rows of (4.5c) that coincide between the
+        padded vertices written once, as :meth:`step` compiles and uses it when the vertex
+        data repeat those rows: ``(compiled, rep, dependence)`` with the merge map ``rep``
+        (``n_X × n_θ``, :func:`~balustrade.problems.rapsf.shared_rows`) and the rows'
+        dependence on ``θ`` (``n_X × q``) for the check
+        :func:`~balustrade.problems.rapsf.rows_shared`; ``None`` when no row is shared
+        (or on a target whose C keeps every row). For the emitted C of the default target."""
+        n_th = max(self._n_compiled, len(self.vertices))
+        rep = self._shared_rows(n_th) if self.parametric else None
+        if rep is None:
+            return None
+        key = (self.N, n_th)
+        if key not in self._compiled:
+            ocp = self._problem(self.N, n_vertices=n_th, shared=rep)
+            self._compiled[key] = compile(ocp, self._target_for(ocp))
+        return self._compiled[key], rep, np.asarray(self._dependence, dtype=bool)
+
     def _problem(self, horizon: int, **vertex_data: object) -> object:
         terminal = self.terminal
         if self.enlargement is not None:          # a parameter slot, or the current generators
