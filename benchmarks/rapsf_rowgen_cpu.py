@@ -13,7 +13,9 @@ compiles, is not timed), the rounds per step, the iterations per reduced solve.
 
 ``ab``: two closed loops with the same ``θ*`` and disturbances taking turns every step (which
 goes first alternates): the default, and the default with the reduced solves' PIQP settings
-updated by ``options`` (a Python dict literal, e.g. ``"{'preconditioner_iter': 10}"``);
+updated by ``options`` (a Python dict literal, e.g. ``"{'preconditioner_iter': 0}"``; a key
+starting with ``@`` sets that attribute of the row generation instead, e.g.
+``"{'@seed': 'active'}"``);
 median wall and CPU per step, the median per-step CPU ratio, the largest input difference.
 
 ``round2``: the reduced QPs of the loop's second rounds (the first round's rows plus the
@@ -122,8 +124,12 @@ def split(masses: int, steps: int) -> dict:
     finally:
         piqp.SparseSolver, updates.solve_lps_joint = original, lps
     n = steps - 1
+    cpu = np.array(per["step (CPU)"])
+    by_rounds = {int(r): (int(np.sum(np.array(rounds) == r)),
+                          float(np.median(cpu[np.array(rounds) == r]))) for r in set(rounds)}
     return {"median": {p: float(np.median(v + [0.0] * (n - len(v)))) for p, v in per.items()},
-            "rounds": rounds, "iterations": iters, "fallbacks": loop.fallbacks}
+            "rounds": rounds, "by_rounds": by_rounds, "iterations": iters,
+            "fallbacks": loop.fallbacks}
 
 
 def ab(masses: int, steps: int, options: dict) -> dict:
@@ -233,11 +239,14 @@ def main(argv: list[str]) -> None:
               f"fallbacks {r['fallbacks']}")
         for p, v in r["median"].items():
             print(f"  {p:<26} median {1e3 * v:8.2f} ms")
+        for k, (count, med) in sorted(r["by_rounds"].items()):
+            print(f"  steps with {k} round(s): {count}, median CPU {1e3 * med:.2f} ms")
     elif mode == "ab":
         options = ast.literal_eval(argv[3]) if len(argv) > 3 else {"preconditioner_iter": 10}
-        r = ab(masses, steps, options)
-        print(f"{masses} masses, {steps - 1} timed steps taking turns; variant: reduced "
-              f"solves with {options}")
+        print(f"{masses} masses, {steps - 1} timed steps taking turns; variant: {options} "
+              "(keys with @: attributes of the row generation, others: its reduced solves' "
+              "PIQP settings)")
+        r = ab(masses, steps, dict(options))
         for k in r["wall"]:
             print(f"  {k:<8} median step wall {1e3 * r['wall'][k]:7.2f} ms  CPU "
                   f"{1e3 * r['cpu'][k]:7.2f} ms  rounds {np.bincount(r['rounds'][k]).tolist()}"
