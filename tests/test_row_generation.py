@@ -342,3 +342,51 @@ def test_reuse_solver_off_sets_up_every_round():
         assert gen.rowgen.stats.reused == 0
     with pytest.raises(BalustradeError, match="reuse_solver"):
         DirectCompiled(ocp, "piqp", {"row_generation": {"reuse_solver": 1}})
+
+
+@pytest.mark.slow
+def test_rapsf_eight_masses_default_loop_equals_full_solve():
+    """The 8-mass default (RAPSF's size rule: row generation of (4.5) on PIQP, session 15's
+    settings: one row per violated group and round, reduced solves without equilibration)
+    along a closed loop of Algorithm 4.1: at every step the same (4.5) solved whole (every
+    one of its 28644 tube rows, no row generation) gives the row generation's ``v_0`` within
+    1e-6 and its objective within 1e-7 (relative), as does session 14's row generation (3
+    rows per group and round, equilibrated reduced solves), and some step needs a second
+    round (so the all-row check decides). An independent computation of what issue #15's
+    8-mass step applies."""
+    import copy
+
+    from balustrade.reproduce import msd_adaptive
+    from benchmarks.bench_rapsf import Loop
+
+    d = msd_adaptive.design(8)
+    ctrl = msd_adaptive.adaptive_controller(d)
+    loop = Loop(d, ctrl.step, 8)
+    loop(0)                                                    # compiles
+    compiled = next(c for key, c in ctrl._compiled.items() if key[0] == ctrl.N)
+    gen = compiled.rowgen
+    assert gen is not None and gen.per_round == 1 and gen.reduced["preconditioner_iter"] == 0
+    full = copy.copy(compiled)
+    full.rowgen = None
+    old = copy.copy(compiled)
+    old.rowgen = compiled._row_generation(
+        {"per_round": 3, "reduced_options": {"kkt_solver": "sparse_ldlt_ineq_cond"}})
+    seen = []
+    solve = compiled.solve
+
+    def both(params=None, warm_start=None):
+        sol = solve(params, warm_start=warm_start)
+        rounds = gen.stats.rounds
+        seen.append((sol, full.solve(params), rounds))
+        seen.append((old.solve(params), seen[-1][1], 0))
+        return sol
+
+    compiled.solve = both
+    for k in range(1, 8):
+        loop(k)
+    assert len(seen) == 14 and loop.fallbacks == 0
+    for sol, whole, _ in seen:
+        assert sol.status == whole.status == Status.OPTIMAL
+        assert np.max(np.abs(sol.primal["v"][:, 0] - whole.primal["v"][:, 0])) < 1e-6
+        assert abs(sol.objective - whole.objective) <= 1e-7 * (1.0 + abs(whole.objective))
+    assert max(r for _, _, r in seen) > 1

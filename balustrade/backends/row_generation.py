@@ -115,7 +115,9 @@ class RowGeneration:
     (``update``) instead of setting up a new one; the solve itself is as cold as before
     (PIQP takes no starting point), only the set-up (ordering, symbolic analysis) is saved.
     The defaults (3 rows per group and round, the whole working set as seed, reuse) were the
-    fastest on the 8-mass (4.5) (docs/adaptive.md, sessions 12 and 13)."""
+    fastest on the 8-mass (4.5) in sessions 12 and 13; the preset ``fast-convex-rowgen`` sets
+    1 row per group and round, 8–10 % less CPU per 8-mass step (docs/adaptive.md, session
+    15)."""
 
     def __init__(self, prog: ConicProgram, groups: np.ndarray, per_round: int = 3,
                  stride: int = 0, options: dict | None = None,

@@ -442,9 +442,15 @@ PRESETS: dict[str, Target] = {t.name: t for t in (
     Target("direct", "piqp", name="fast-convex-qp"),
     # row generation over the OCP's grouped rows (backends/row_generation.py; session 12);
     # the reduced QPs (few rows, 587 variables for 8 masses) condensed onto the variables:
-    # 1.5x faster than the plain LDLᵀ on the recorded 8-mass reduced QPs, same objective
+    # 1.5x faster than the plain LDLᵀ on the recorded 8-mass reduced QPs, same objective;
+    # without PIQP's Ruiz equilibration (session 15): set-up and update 0.6 ms cheaper each,
+    # no more iterations, median 8-mass step 1.0 ms less CPU; one row per violated group and
+    # round instead of 3: the same rounds, fewer rows, 8-10 % less CPU per step (session 15,
+    # docs/adaptive.md)
     Target("direct", "piqp",
-           {"row_generation": {"reduced_options": {"kkt_solver": "sparse_ldlt_ineq_cond"}}},
+           {"row_generation": {"per_round": 1,
+                               "reduced_options": {"kkt_solver": "sparse_ldlt_ineq_cond",
+                                                   "preconditioner_iter": 0}}},
            name="fast-convex-rowgen"),
     # a hot-started dense active-set QP (backends/daqp_engine.py; session 14): 3-mass (4.5)
     # solves several times faster than PIQP with the same answers (docs/adaptive.md)
