@@ -230,3 +230,23 @@ def test_rpi_of_an_ill_conditioned_design_is_rpi_by_an_own_check():
         cp.Problem(cp.Minimize(t), [(L + L.T) / 2 >> 0]).solve(solver="CLARABEL")
         assert t.value <= 1.0 + 1e-9, (w, t.value, err.info)
     assert err.info["inflation"] - 1.0 <= 1e-3
+
+
+@pytest.mark.parametrize("n, miss", [(3, 1e-4), (4, 1e-4), (4, -1e-4)])
+def test_is_rpi_is_exact_for_a_singular_closed_loop(n, miss):
+    """Audit E (session 15): ``E`` the unit ball, ``A_cl = diag(a, …, a, 0)`` (singular) and
+    ``W = [−h, h]ⁿ``: by hand, ``max_{||e||<=1} ||A_cl e + w||² = (a + h√(n−1))² + h²`` at
+    ``w = h·1`` (``e`` along ``w``'s first ``n−1`` entries). With ``h`` chosen so that the
+    maximum is ``1 + miss``, the margin is ``miss`` and a miss of 1e-4 is not RPI. Before, a
+    singular ``A_cl`` got only the sampled checks, which under-estimate the maximum: for
+    ``n = 4`` they reported −3.9e-5 and accepted the set."""
+    a = 0.8
+    # (a + h√(n−1))² + h² = 1 + miss: the positive root of n h² + 2a√(n−1) h + a² − 1 − miss
+    r = np.sqrt(n - 1.0)
+    h = (-2 * a * r + np.sqrt(4 * a * a * r * r - 4 * n * (a * a - 1 - miss))) / (2 * n)
+    E = Ellipsoid(np.eye(n), name="ball")
+    A_cl = np.diag([a] * (n - 1) + [0.0])
+    check = is_rpi(E, A_cl, Box(-h * np.ones(n), h * np.ones(n), name="W"))
+    assert check.margin == pytest.approx(miss, abs=1e-9)
+    assert check.ok is (miss < 0)
+    assert "exact" in check.method
