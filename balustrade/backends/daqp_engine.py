@@ -116,6 +116,11 @@ def kkt_residual(P: sp.spmatrix, q: np.ndarray, A: sp.spmatrix, b: np.ndarray, m
     return float(worst) if np.isfinite(worst) else float("nan")
 
 
+def _real(v: object) -> bool:
+    """``v`` an int or float (numpy's included), not a bool."""
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
+
+
 class DaqpEngine:
     """``daqp.Model`` kept across solves for an LP/QP of at most :data:`DENSE_LIMIT` dense
     entries; :meth:`run` updates ``q``, ``b`` (and the values of ``A`` when given and
@@ -141,15 +146,22 @@ class DaqpEngine:
                               f"matrix is {m} x {n} ({m * n} entries > {DENSE_LIMIT}); use "
                               "'fast-convex' (PIQP, sparse) or 'fast-convex-rowgen'")
         options = dict(options)
-        self.kkt_tol = float(options.pop("kkt_tol", KKT_TOL))
-        if not self.kkt_tol > 0:
-            raise SolverError(f"direct backend: DAQP option 'kkt_tol' must be > 0, got "
-                              f"{self.kkt_tol!r}")
+        tol = options.pop("kkt_tol", KKT_TOL)
+        # a real number, finite and > 0: an infinite (or a string's, a bool's) tolerance
+        # would accept every "optimal" of DAQP unchecked (audit E)
+        if not _real(tol) or not (np.isfinite(tol) and tol > 0):
+            raise SolverError(f"direct backend: DAQP option 'kkt_tol' must be a finite "
+                              f"number > 0, got {tol!r}")
+        self.kkt_tol = float(tol)
         known = daqp.Model().settings
         unknown = sorted(str(k) for k in options if k not in known)
         if unknown:
             raise SolverError(f"direct backend: unknown DAQP option(s) {', '.join(unknown)}; "
                               f"use {', '.join(sorted(known))} or kkt_tol")
+        odd = sorted(str(k) for k, v in options.items() if not _real(v) or np.isnan(v))
+        if odd:
+            raise SolverError(f"direct backend: DAQP option(s) {', '.join(odd)} must be real "
+                              f"numbers, got {', '.join(repr(options[k]) for k in odd)}")
         self.settings = {**DEFAULT_OPTIONS, **options}
         self._daqp = daqp
         self.prog, self.m0, self.n = prog, sum(k for kind, k in prog.cones if kind == "zero"), n
