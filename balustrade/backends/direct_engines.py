@@ -118,6 +118,13 @@ _CLARABEL_STATUS = {
     "PrimalInfeasible": Status.INFEASIBLE, "MaxIterations": Status.MAX_ITERATIONS,
     "MaxTime": Status.MAX_ITERATIONS,
 }
+#: a PIQP "optimal" whose point misses a row by more than this in the row's own unit (the
+#: row divided by ``max_j |a_ij|``, relative to ``1 + |b_i|/max_j |a_ij|``) is reported
+#: ``optimal_inaccurate``: PIQP measures feasibility in its scaled problem, where a row
+#: ``1e-9·(y₀ + y₃) = 1e-9·β`` next to rows of size 1e6 was missed by 2.2 (objective −2.67
+#: instead of 0.656; audit E, session 15). (4.5) of 3 masses: the largest such miss of
+#: PIQP's optimal answers was 6.6e-11 (110 answers, /work/briefs/s15/audit/e_piqp_rowcheck.py)
+PIQP_ROW_TOL = 1e-6
 _PIQP_STATUS = {
     "PIQP_SOLVED": Status.OPTIMAL, "PIQP_PRIMAL_INFEASIBLE": Status.INFEASIBLE,
     "PIQP_MAX_ITER_REACHED": Status.MAX_ITERATIONS,
@@ -200,6 +207,43 @@ class PiqpEngine:
         b = prog.b0
         self.solver.setup(Pfull, q0, A_eq, b[:self.m0] if self.has_eq else None,
                           A_ineq, None, b[self.m0:] if self.has_ineq else None)
+        # each block's nonzeros in row order (CSR) and where each nonempty row starts: the
+        # row norms are one reduceat over the values (scipy's max over axis 1 of a CSC
+        # matrix took 0.35 ms on (4.5) of 3 masses, a seventh of a solve)
+        self._row_order = [None if mat is None else _row_order(mat) for mat in self._mats]
+        self._norm_values: np.ndarray | None = None
+        self._norms = self._row_norms()
+
+    def _row_norms(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """``max_j |a_ij|`` of each row of the current equality and inequality blocks (1 for
+        a zero row): the unit :meth:`_row_miss` measures a row in."""
+        out = []
+        for mat, order in zip(self._mats, self._row_order, strict=True):
+            if mat is None:
+                out.append(None)
+                continue
+            perm, starts, rows, m = order
+            norms = np.ones(m)
+            if perm.size:
+                norms[rows] = np.maximum.reduceat(np.abs(mat.data[perm]), starts)
+            out.append(np.where(norms > 0, norms, 1.0))
+        return out[0], out[1]
+
+    def _row_miss(self, x: np.ndarray, b: np.ndarray) -> float:
+        """The largest miss of the rows at ``x`` in the rows' own units (:data:`PIQP_ROW_TOL`):
+        ``|a_iᵀx − b_i|`` (equalities) or ``(a_iᵀx − b_i)₊`` (inequalities, finite ``b_i``),
+        divided by ``n_i = max_j |a_ij|`` and by ``1 + |b_i|/n_i``."""
+        worst = 0.0
+        for mat, norms, rhs, eq in ((self._mats[0], self._norms[0], b[:self.m0], True),
+                                    (self._mats[1], self._norms[1], b[self.m0:], False)):
+            if mat is None:
+                continue
+            finite = np.isfinite(rhs)
+            r = np.where(finite, mat @ x - np.where(finite, rhs, 0.0), 0.0)
+            r = np.abs(r) if eq else np.maximum(r, 0.0)
+            scaled = r / (norms + np.abs(np.where(finite, rhs, 0.0)))
+            worst = max(worst, float(np.max(scaled, initial=0.0)))
+        return worst
 
     def _matrices(self, values: np.ndarray) -> tuple[sp.csc_matrix | None,
                                                      sp.csc_matrix | None]:
@@ -224,6 +268,9 @@ class PiqpEngine:
         if A is not None:
             A_eq, A_ineq = self._matrices(A)
             mats = {k: v for k, v in (("A", A_eq), ("G", A_ineq)) if v is not None}
+            if self._norm_values is None or not np.array_equal(A, self._norm_values):
+                self._norms = self._row_norms()
+                self._norm_values = np.array(A, dtype=float)
         self.solver.update(c=q, b=b[:self.m0] if self.has_eq else None,
                            h_u=b[self.m0:] if self.has_ineq else None, **mats)
         status_obj = self.solver.solve()
@@ -237,8 +284,27 @@ class PiqpEngine:
         if self.has_ineq:
             parts.append(np.asarray(res.z_u, dtype=float) - np.asarray(res.z_l, dtype=float))
         z = np.concatenate(parts) if parts else np.zeros(0)
-        return RawResult(_PIQP_STATUS.get(words, Status.FAILED), f"PIQP: {words}",
-                         np.asarray(res.x, dtype=float), z, int(res.info.iter))
+        x = np.asarray(res.x, dtype=float)
+        status = _PIQP_STATUS.get(words, Status.FAILED)
+        if status == Status.OPTIMAL:
+            miss = self._row_miss(x, b)
+            if not miss <= PIQP_ROW_TOL:      # NaN too
+                status = Status.OPTIMAL_INACCURATE
+                words += (f"; a row missed by {miss:.1e} in its own unit (> {PIQP_ROW_TOL:g}: "
+                          "badly scaled rows)")
+        return RawResult(status, f"PIQP: {words}", x, z, int(res.info.iter))
+
+
+def _row_order(mat: sp.csc_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """For ``mat``'s values: the permutation putting them in row order, the start of each
+    nonempty row in that order, those rows, and the number of rows."""
+    code = sp.csc_matrix((np.arange(1, mat.nnz + 1, dtype=float), mat.indices, mat.indptr),
+                         shape=mat.shape).tocsr()        # 1 … nnz: no value is a zero
+    code.sort_indices()
+    perm = code.data.astype(np.int64) - 1
+    counts = np.diff(code.indptr)
+    rows = np.flatnonzero(counts > 0)
+    return perm, code.indptr[rows].astype(np.int64), rows, mat.shape[0]
 
 
 def _row_blocks(A: sp.csc_matrix, m0: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray,
