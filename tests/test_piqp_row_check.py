@@ -1,7 +1,8 @@
-"""The direct backend's PIQP engine reports an "optimal" whose point misses a row in the
-row's own unit as ``optimal_inaccurate`` (backends/direct_engines.py ``PIQP_ROW_TOL``; audit
-E, session 15): rows scaled 1e6 and 1e-9 in one QP, where PIQP's answer (status solved)
-ignored the 1e-9-scaled rows; the reference is the cvxpy transcription solved by Clarabel."""
+"""The direct backend's PIQP and Clarabel engines report an "optimal" whose point misses a
+row in the row's own unit as ``optimal_inaccurate`` (backends/direct_engines.py ``ROW_TOL``,
+``RowMiss``; audit E, session 15): rows scaled 1e6 and 1e-9 (1e-6) in one QP, where the
+engine's answer (status solved) ignored the small rows; the reference is the cvxpy
+transcription solved by Clarabel (its own scaling keeps them)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 
 from balustrade.backends import compile
-from balustrade.backends.direct_engines import PIQP_ROW_TOL
+from balustrade.backends.direct_engines import ROW_TOL
 from balustrade.backends.solution import Status
 from balustrade.dsl import OCP, squared_norm
 
@@ -38,6 +39,14 @@ BADLY_SCALED = {"c": [2.0627765061867827, 0.2879356657335208, 1.382084404925907,
                 "bb": [189227.7013213466, -7.889751584024787e-10, 1.8440458359997904e-10]}
 
 
+#: instance 49 of the same script: the direct Clarabel said solved at objective −7.46
+#: (cvxpy: −1.19) with the 1e-6-scaled rows ignored
+SMALL_ROWS = {"c": [0.5454731352138555, 1.0276703830312668, 3.1633342050547046,
+                    -2.640092388244698],
+              "s": [1e6, 1e-6, 1e-6],
+              "bb": [724551.0412860947, -4.587032086957834e-07, 3.4671926245029547e-07]}
+
+
 def _miss(y: np.ndarray, p: dict) -> float:
     """The rows' misses in their own units (each row divided by its scale)."""
     s, bb = np.array(p["s"]), np.array(p["bb"])
@@ -45,26 +54,30 @@ def _miss(y: np.ndarray, p: dict) -> float:
     return float(max(rows[0], rows[1], abs(rows[2]), 0.0))
 
 
-@pytest.mark.parametrize("target", ["fast-convex-qp", "fast-convex"])
-def test_piqp_optimal_keeps_badly_scaled_rows(target):
-    """Clarabel (cvxpy) solves it (objective 0.656); PIQP said solved at a point 2.2 off the
-    1e-9-scaled equality with objective −2.67. An ``optimal`` from the direct backend must
-    now be Clarabel's answer; PIQP's wrong point comes back ``optimal_inaccurate``."""
-    ref = compile(_scaled_qp(), "conic").solve(BADLY_SCALED)
-    assert ref.status == Status.OPTIMAL and _miss(ref.primal["y"].ravel(), BADLY_SCALED) < 1e-6
-    sol = compile(_scaled_qp(), target).solve(BADLY_SCALED)
+@pytest.mark.parametrize("target, params", [("fast-convex-qp", BADLY_SCALED),
+                                             ("fast-convex", BADLY_SCALED),
+                                             ("fast-convex-conic", SMALL_ROWS)])
+def test_optimal_keeps_badly_scaled_rows(target, params):
+    """Clarabel (cvxpy) solves them (objectives 0.656 and −1.19); PIQP said solved at a point
+    2.2 off the 1e-9-scaled equality (objective −2.67), the direct Clarabel at −7.46. An
+    ``optimal`` from the direct backend must now be the reference's answer; a wrong point
+    comes back ``optimal_inaccurate``."""
+    ref = compile(_scaled_qp(), "conic").solve(params)
+    assert ref.status == Status.OPTIMAL and _miss(ref.primal["y"].ravel(), params) < 1e-6
+    sol = compile(_scaled_qp(), target).solve(params)
     if sol.status == Status.OPTIMAL:
         assert sol.objective == pytest.approx(ref.objective, rel=1e-6, abs=1e-6)
     else:
         assert sol.status == Status.OPTIMAL_INACCURATE and "own unit" in sol.message
-        assert _miss(sol.primal["y"].ravel(), BADLY_SCALED) > PIQP_ROW_TOL
+        assert _miss(sol.primal["y"].ravel(), params) > ROW_TOL
 
 
-def test_well_scaled_rows_stay_optimal():
-    """The same QP with every scale 1: PIQP's answer optimal and equal to Clarabel's."""
+@pytest.mark.parametrize("target", ["fast-convex-qp", "fast-convex-conic"])
+def test_well_scaled_rows_stay_optimal(target):
+    """The same QP with every scale 1: the answer optimal and equal to the reference's."""
     p = dict(BADLY_SCALED, s=[1.0, 1.0, 1.0], bb=[0.2, -0.8, 0.2])
     ref = compile(_scaled_qp(), "conic").solve(p)
-    sol = compile(_scaled_qp(), "fast-convex-qp").solve(p)
+    sol = compile(_scaled_qp(), target).solve(p)
     assert sol.status == Status.OPTIMAL and ref.status == Status.OPTIMAL
     assert sol.objective == pytest.approx(ref.objective, rel=1e-7, abs=1e-7)
 
