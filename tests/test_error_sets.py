@@ -233,28 +233,30 @@ def test_rpi_of_an_ill_conditioned_design_is_rpi_by_an_own_check():
 
 
 def test_is_rpi_warns_and_records_when_it_can_only_sample(design):
-    """An ellipsoid with a singular ``A_cl`` (or a non-polytope ``W``) gets no exact vertex
-    trust-region check, only sampled directions and points: an ``ok`` is then no proof, so
-    ``is_rpi`` warns (:class:`UnprovenCheckWarning`) and records ``proven=False`` with the
-    reason in ``method``. The same set with an invertible ``A_cl`` is proven, silently.
-    Independent check of the singular case: ``A_cl`` maps E onto a segment whose farthest
-    point plus the largest ``w`` stays inside E (support functions along every row of a
-    dense fan of directions)."""
+    """An ellipsoid with a non-polytope ``W`` gets no exact vertex trust-region check, only
+    sampled directions and points: an ``ok`` is then no proof, so ``is_rpi`` warns
+    (:class:`UnprovenCheckWarning`) and records ``proven=False`` with the reason in
+    ``method``. A polytope ``W`` is proven silently, with a singular ``A_cl`` too (the exact
+    check needs no inverse since audit E). Independent check of the singular case: ``A_cl``
+    maps E onto a segment whose farthest point plus the largest ``w`` stays inside E
+    (support functions along every row of a dense fan of directions)."""
     import warnings
 
     from balustrade.errors import UnprovenCheckWarning
 
     system, s, es = design
     A_sing = 0.3 * np.outer([1.0, 0.0], [1.0, 0.0])              # rank 1
-    with pytest.warns(UnprovenCheckWarning, match="rank 1 < 2"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UnprovenCheckWarning)
         check = is_rpi(es.E, A_sing, s.W)
-    assert check.ok and not check.proven and "no proof" in check.method
+    assert check.ok and check.proven and "exact" in check.method
     for t in np.linspace(0, np.pi, 721):                            # it is RPI indeed
         a = np.array([np.cos(t), np.sin(t)])
         assert es.E.support(A_sing.T @ a) + s.W.support(a) <= es.E.support(a) + 1e-9
     ball = Ellipsoid(np.eye(2) / 1e-6, name="W_ball")             # W not a polytope
     with pytest.warns(UnprovenCheckWarning, match="not a polytope"):
-        assert not is_rpi(es.E, system.A + system.B @ es.K, ball).proven
+        unproven = is_rpi(es.E, system.A + system.B @ es.K, ball)
+    assert unproven.ok and not unproven.proven and "no proof" in unproven.method
     with warnings.catch_warnings():
         warnings.simplefilter("error", UnprovenCheckWarning)
         proven = is_rpi(es.E, system.A + system.B @ es.K, s.W)
@@ -262,3 +264,23 @@ def test_is_rpi_warns_and_records_when_it_can_only_sample(design):
     assert proven.ok and proven.proven
     assert not failed.ok and failed.proven            # a counterexample is a proof
     assert es.info["rpi_proven"] is True
+
+
+@pytest.mark.parametrize("n, miss", [(3, 1e-4), (4, 1e-4), (4, -1e-4)])
+def test_is_rpi_is_exact_for_a_singular_closed_loop(n, miss):
+    """Audit E (session 15): ``E`` the unit ball, ``A_cl = diag(a, …, a, 0)`` (singular) and
+    ``W = [−h, h]ⁿ``: by hand, ``max_{||e||<=1} ||A_cl e + w||² = (a + h√(n−1))² + h²`` at
+    ``w = h·1`` (``e`` along ``w``'s first ``n−1`` entries). With ``h`` chosen so that the
+    maximum is ``1 + miss``, the margin is ``miss`` and a miss of 1e-4 is not RPI. Before, a
+    singular ``A_cl`` got only the sampled checks, which under-estimate the maximum: for
+    ``n = 4`` they reported −3.9e-5 and accepted the set."""
+    a = 0.8
+    # (a + h√(n−1))² + h² = 1 + miss: the positive root of n h² + 2a√(n−1) h + a² − 1 − miss
+    r = np.sqrt(n - 1.0)
+    h = (-2 * a * r + np.sqrt(4 * a * a * r * r - 4 * n * (a * a - 1 - miss))) / (2 * n)
+    E = Ellipsoid(np.eye(n), name="ball")
+    A_cl = np.diag([a] * (n - 1) + [0.0])
+    check = is_rpi(E, A_cl, Box(-h * np.ones(n), h * np.ones(n), name="W"))
+    assert check.margin == pytest.approx(miss, abs=1e-9)
+    assert check.ok is (miss < 0)
+    assert "exact" in check.method

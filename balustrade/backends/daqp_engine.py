@@ -62,37 +62,63 @@ _EQUALITY = 5
 _INF = 1e30
 
 
+def row_norms(A: sp.spmatrix) -> np.ndarray:
+    """``max_j |A_ij|`` per row, 1 for a zero row: the unit :func:`kkt_residual` measures each
+    row in."""
+    norms = np.asarray(abs(sp.csr_matrix(A)).max(axis=1).todense(), dtype=float).ravel()
+    return np.where(norms > 0, norms, 1.0)
+
+
 def kkt_residual(P: sp.spmatrix, q: np.ndarray, A: sp.spmatrix, b: np.ndarray, m0: int,
-                 y: np.ndarray, z: np.ndarray, AT: sp.spmatrix | None = None) -> float:
+                 y: np.ndarray, z: np.ndarray, AT: sp.spmatrix | None = None,
+                 norms: np.ndarray | None = None) -> float:
     """Largest scaled KKT violation of ``min ½yᵀPy + qᵀy, A[:m0] y = b[:m0], A[m0:] y <= b[m0:]``
     at the point ``y`` and multipliers ``z`` (``P y + q + Aᵀz = 0``, ``z >= 0`` on the
-    inequality rows). ``nan`` when any of them is not finite. ``AT``: ``Aᵀ`` if the caller
-    keeps it (else formed here).
+    inequality rows). ``nan`` when any of them is not finite, or a ``b_i`` is NaN or ``−∞``
+    (no point satisfies that row). ``AT``: ``Aᵀ`` if the caller keeps it (else formed here);
+    ``norms``: :func:`row_norms` of ``A`` if the caller keeps them.
 
-    Each error is scaled by the size of its own terms, never by the largest entry of the
-    whole problem (one loose row ``|b_i| = 10⁶`` must not loosen the tolerance of the others):
+    Each row is measured in its own unit first: row ``i`` divided by ``n_i = max_j |A_ij|``
+    (its multiplier multiplied by it), so that the check does not depend on how a row is
+    scaled — a row ``10⁻⁹ aᵀy = 10⁻⁹ β`` missed by a distance 1 is a residual 10⁻⁹ unscaled,
+    which passed the tolerance (audit E, session 15). Each error is then scaled by the size
+    of its own terms, never by the largest entry of the whole problem (one loose row
+    ``|b_i| = 10⁶`` must not loosen the tolerance of the others):
 
-    * primal feasibility and complementarity of row ``i``: ``/ (1 + |b_i|)`` (an infinite
-      ``b_i`` is no row: neither error counts there);
+    * primal feasibility and complementarity of row ``i``: ``/ (1 + |b_i| / n_i)`` (an
+      infinite ``b_i = +∞`` is no row: neither error counts there, and its multiplier must
+      be 0: counted with the signs);
     * stationarity, entry ``j``: ``/ (1 + max(|q_j|, |(P y)_j|, |(Aᵀz)_j|))`` — elementwise,
       for the same reason as per row (a large ``q_j`` of one variable leaves the others at
       the tight tolerance);
-    * the multipliers' signs (``z_i < 0`` on an inequality row): ``/ (1 + max |Aᵀz|, |q|,
-      |P y|)`` — a multiplier's size is measured against the gradient it balances."""
-    r = A @ y - b
+    * the multipliers' signs (``n_i z_i < 0`` on an inequality row, ``n_i z_i ≠ 0`` on a row
+      ``b_i = +∞``): ``/ (1 + max |Aᵀz|, |q|, |P y|)`` — a multiplier's size is measured
+      against the gradient it balances."""
+    b = np.asarray(b, dtype=float)
+    if np.any(np.isnan(b) | (b == -np.inf)):
+        return float("nan")
+    n_i = row_norms(A) if norms is None else norms
+    r = (A @ y - b) / n_i
     finite = np.isfinite(b)
-    row_scale = 1.0 + np.abs(np.where(finite, b, 0.0))
+    row_scale = 1.0 + np.abs(np.where(finite, b, 0.0)) / n_i
     Py = P @ y
     ATz = (A.T if AT is None else AT) @ z
+    zn = z * n_i
     mags = np.maximum(np.maximum(np.abs(q), np.abs(Py)), np.abs(ATz))
     stat = np.max(np.abs(Py + q + ATz) / (1.0 + mags), initial=0.0)
     prim = max(np.max(np.abs(r[:m0]) / row_scale[:m0], initial=0.0),
                np.max(np.where(finite[m0:], r[m0:], 0.0) / row_scale[m0:], initial=0.0))
-    dual = max(0.0, -np.min(z[m0:], initial=0.0)) / (1.0 + np.max(mags, initial=0.0))
-    comp = np.max(np.abs(z[m0:] * np.where(finite[m0:], r[m0:], 0.0)) / row_scale[m0:],
+    wrong = np.where(finite[m0:], np.maximum(-zn[m0:], 0.0), np.abs(zn[m0:]))
+    dual = np.max(wrong, initial=0.0) / (1.0 + np.max(mags, initial=0.0))
+    comp = np.max(np.abs(zn[m0:] * np.where(finite[m0:], r[m0:], 0.0)) / row_scale[m0:],
                   initial=0.0)
     worst = max(stat, prim, dual, comp)
     return float(worst) if np.isfinite(worst) else float("nan")
+
+
+def _real(v: object) -> bool:
+    """``v`` an int or float (numpy's included), not a bool."""
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
 
 
 class DaqpEngine:
@@ -120,15 +146,22 @@ class DaqpEngine:
                               f"matrix is {m} x {n} ({m * n} entries > {DENSE_LIMIT}); use "
                               "'fast-convex' (PIQP, sparse) or 'fast-convex-rowgen'")
         options = dict(options)
-        self.kkt_tol = float(options.pop("kkt_tol", KKT_TOL))
-        if not self.kkt_tol > 0:
-            raise SolverError(f"direct backend: DAQP option 'kkt_tol' must be > 0, got "
-                              f"{self.kkt_tol!r}")
+        tol = options.pop("kkt_tol", KKT_TOL)
+        # a real number, finite and > 0: an infinite (or a string's, a bool's) tolerance
+        # would accept every "optimal" of DAQP unchecked (audit E)
+        if not _real(tol) or not (np.isfinite(tol) and tol > 0):
+            raise SolverError(f"direct backend: DAQP option 'kkt_tol' must be a finite "
+                              f"number > 0, got {tol!r}")
+        self.kkt_tol = float(tol)
         known = daqp.Model().settings
         unknown = sorted(str(k) for k in options if k not in known)
         if unknown:
             raise SolverError(f"direct backend: unknown DAQP option(s) {', '.join(unknown)}; "
                               f"use {', '.join(sorted(known))} or kkt_tol")
+        odd = sorted(str(k) for k, v in options.items() if not _real(v) or np.isnan(v))
+        if odd:
+            raise SolverError(f"direct backend: DAQP option(s) {', '.join(odd)} must be real "
+                              f"numbers, got {', '.join(repr(options[k]) for k in odd)}")
         self.settings = {**DEFAULT_OPTIONS, **options}
         self._daqp = daqp
         self.prog, self.m0, self.n = prog, sum(k for kind, k in prog.cones if kind == "zero"), n
@@ -146,6 +179,7 @@ class DaqpEngine:
                                 shape=self._pattern.shape)
         self._values = self._A.data
         self._AT = self._A.T                # a CSR view on the same values
+        self._norms = row_norms(self._A)    # kkt_residual's row units, kept current
         self._dense = np.zeros(m * n)
         self._dense[self._flat] = self._values
         self.sense = np.zeros(m, dtype=np.intc)
@@ -199,6 +233,7 @@ class DaqpEngine:
         if changed:
             self._values[:] = A
             self._dense[self._flat] = self._values
+            self._norms = row_norms(self._A)
         if self.model is None:
             flag = self._setup(q, b)
             if flag < 0:
@@ -221,7 +256,7 @@ class DaqpEngine:
         if flag != 1:
             return self._fallback(q, b, words, iterations)
         z = np.asarray(info["lam"], dtype=float)
-        kkt = kkt_residual(self.P, q, self._A, b, self.m0, x, z, self._AT)
+        kkt = kkt_residual(self.P, q, self._A, b, self.m0, x, z, self._AT, self._norms)
         self.last = (flag, kkt)
         if not kkt <= self.kkt_tol:
             return self._fallback(q, b, f"{words}, KKT residual {kkt:.1e} > "
