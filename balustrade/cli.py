@@ -46,7 +46,13 @@ def _benchmark_dir() -> Path:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     rows = []
-    for path in sorted(_benchmark_dir().glob("bench_*.py")):
+    paths = sorted(_benchmark_dir().glob("bench_*.py"))
+    if args.only:
+        unmatched = [key for key in args.only if not any(key in p.stem for p in paths)]
+        if unmatched:  # a typo ran nothing and exited 0 before (session 15 docs audit)
+            raise BalustradeError(f"bench --only: no benchmark matches {unmatched}; the "
+                                  f"benchmarks are {[p.stem for p in paths]}")
+    for path in paths:
         if args.only and not any(key in path.stem for key in args.only):
             continue
         spec = importlib.util.spec_from_file_location(path.stem, path)

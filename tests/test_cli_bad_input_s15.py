@@ -1,4 +1,5 @@
-"""``balustrade sample`` grid options and ``balustrade train --data``: bad input is a
+"""``balustrade sample`` grid options, ``balustrade train --data`` and ``balustrade bench
+--only``: bad input is a
 :class:`~balustrade.errors.BalustradeError` naming the argument and its shape (session 15,
 docs audit F: ``--lower 0 --upper 1 2`` on the 2-state pendulum raised numpy's broadcast
 ``ValueError``, ``--upper`` below ``--lower`` a negative sample count, a zero step an
@@ -54,3 +55,11 @@ def test_cli_sample_bad_box_is_a_clean_error(tmp_path: Path, capsys):
 def test_missing_dataset_is_named_missing_not_empty(tmp_path: Path):
     with pytest.raises(BalustradeError, match="no dataset there"):
         ShardedDataset(tmp_path / "nothing").arrays()
+
+
+def test_bench_only_without_a_match_is_an_error_not_a_silent_success(capsys):
+    """``balustrade bench --only zzz`` ran nothing and returned 0; now it names the
+    benchmarks there are (no benchmark runs: the check precedes the first import)."""
+    assert main(["bench", "--only", "pendulum", "zzz"]) == 2
+    err = capsys.readouterr().err
+    assert "no benchmark matches ['zzz']" in err and "bench_pendulum" in err
