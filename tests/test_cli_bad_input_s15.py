@@ -1,9 +1,9 @@
 """``balustrade sample`` grid options, ``balustrade train --data`` and ``balustrade bench
---only``: bad input is a
-:class:`~balustrade.errors.BalustradeError` naming the argument and its shape (session 15,
-docs audit F: ``--lower 0 --upper 1 2`` on the 2-state pendulum raised numpy's broadcast
-``ValueError``, ``--upper`` below ``--lower`` a negative sample count, a zero step an
-``OverflowError``; a missing dataset folder was called "empty")."""
+--only``: bad input is a :class:`~balustrade.errors.BalustradeError` naming the argument and
+its shape (session 15, docs audit F: ``--lower 0 --upper 1 2`` on the 2-state pendulum raised
+numpy's broadcast ``ValueError``, ``--upper`` below ``--lower`` a negative sample count, a zero
+step an ``OverflowError``; a missing dataset folder was called "empty"; ``bench --only`` with a
+typo ran nothing and exited 0)."""
 
 from __future__ import annotations
 
