@@ -46,7 +46,13 @@ def _benchmark_dir() -> Path:
 
 def _cmd_bench(args: argparse.Namespace) -> int:
     rows = []
-    for path in sorted(_benchmark_dir().glob("bench_*.py")):
+    paths = sorted(_benchmark_dir().glob("bench_*.py"))
+    if args.only:
+        unmatched = [key for key in args.only if not any(key in p.stem for p in paths)]
+        if unmatched:  # a typo ran nothing and exited 0 before (session 15 docs audit)
+            raise BalustradeError(f"bench --only: no benchmark matches {unmatched}; the "
+                                  f"benchmarks are {[p.stem for p in paths]}")
+    for path in paths:
         if args.only and not any(key in path.stem for key in args.only):
             continue
         spec = importlib.util.spec_from_file_location(path.stem, path)
@@ -83,22 +89,28 @@ def _fmt_time(seconds: float) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="balustrade", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="balustrade", description="balustrade: safe predictive control. Run the "
+        "pendulum demo, reproduce a thesis example, run the benchmarks, emit C, sample and "
+        "train a learned PCBF; '<command> --help' for the options of each.")
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="the pendulum PCBF safety filter, end to end")
-    demo.add_argument("--out", default="out/demo")
-    demo.add_argument("--quick", action="store_true")
+    demo.add_argument("--out", default="out/demo",
+                      help="folder for metrics.json and the plot (default out/demo)")
+    demo.add_argument("--quick", action="store_true", help="fewer steps (60 instead of 150)")
     demo.set_defaults(func=_cmd_demo)
 
     rep = sub.add_parser("reproduce", help="reproduce a thesis example ('list' lists them)")
-    rep.add_argument("name")
-    rep.add_argument("--out", default=None)
-    rep.add_argument("--quick", action="store_true")
+    rep.add_argument("name", help="a name of 'balustrade reproduce list', or 'list'")
+    rep.add_argument("--out", default=None,
+                     help="folder for metrics.json and the plots (default out/NAME)")
+    rep.add_argument("--quick", action="store_true",
+                     help="a shorter run (what it shortens: docs/ of that example)")
     rep.set_defaults(func=_cmd_reproduce)
 
     bench = sub.add_parser("bench", help="run benchmarks/ and print medians and ratios")
-    bench.add_argument("--quick", action="store_true")
+    bench.add_argument("--quick", action="store_true", help="fewer samples per row")
     bench.add_argument("--only", nargs="*", default=None, help="substrings of benchmark names")
     bench.add_argument("--json", default=None, help="also write the rows to this file")
     bench.set_defaults(func=_cmd_bench)

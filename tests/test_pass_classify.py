@@ -75,3 +75,16 @@ def test_cost_terms_and_chain():
     program, _ = run_chain(CVXPY_CHAIN, ocp)
     assert program.conic and set(program.block_constraints) == {"box"}
     assert program.problem.is_dpp()
+
+
+@pytest.mark.parametrize("target", ["cvxpy", "fast-convex"])
+def test_refusal_names_the_direct_backend_too(target):
+    """The pass is shared by both convex backends; its message said "the cvxpy backend" also
+    when the user compiled for ``fast-convex`` (session 15 docs audit)."""
+    from balustrade.backends import compile
+
+    ocp, z, x = _ocp()
+    ocp.eq(z[0] ** 2 - x[0], name="circle")
+    ocp.minimize(ca.sumsqr(z))
+    with pytest.raises(ConvexityError, match=r"block 'circle'.*convex backends \(cvxpy, direct\)"):
+        compile(ocp, target)

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from balustrade._checks import as_float_array, as_vector
 from balustrade.errors import BalustradeError
 from balustrade.learn.executors import Executor, SerialExecutor
 from balustrade.learn.progress import Progress
@@ -163,6 +164,9 @@ class ShardedDataset:
         """``(X, y)`` for training: states (columns ``x0, x1, ...``) and the target column."""
         cols = self.read()
         if not cols:
+            if not self.manifest_path.is_file():
+                raise BalustradeError(f"{self.path}: no dataset there (no manifest.json; "
+                                      f"'balustrade sample --out DIR' writes one)")
             raise BalustradeError(f"{self.path}: the dataset is empty")
         names = sorted((k for k in cols if k[0] == "x" and k[1:].isdigit()),
                        key=lambda k: int(k[1:]))
@@ -245,13 +249,36 @@ def split_chunks(points: np.ndarray, chunk_size: int, kind: str = "grid", seed: 
     return out
 
 
+def _grid_args(X: Any, lower: object, upper: object, steps: object
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``lower``, ``upper`` and ``steps`` of :func:`grid_plan`, checked against ``X.dim``."""
+    n = int(X.dim)
+    lo = as_vector(lower, f"grid_plan: lower (one entry per state of X, dim {n})", n)
+    hi = as_vector(upper, f"grid_plan: upper (one entry per state of X, dim {n})", n)
+    if np.any(hi < lo):
+        bad = np.flatnonzero(hi < lo).tolist()
+        raise BalustradeError(f"grid_plan: upper must be >= lower, got upper < lower at "
+                              f"indices {bad} (lower {lo[bad]}, upper {hi[bad]})")
+    where = f"grid_plan: grid step (one positive number, or one per state of X, dim {n})"
+    st = as_float_array(steps, where)
+    st = np.full(n, float(st.reshape(-1)[0])) if st.size == 1 else as_vector(st, where, n)
+    if not np.all(np.isfinite(st)) or np.any(st <= 0):
+        raise BalustradeError(f"{where}: must be finite and > 0, got {st}")
+    return lo, hi, st.copy()
+
+
 def grid_plan(X: Any, lower: object, upper: object, steps: object, chunk_size: int = 500,
               cap: float | None = 10.0, band: bool = True, warm: bool = True
               ) -> tuple[list[Chunk], dict[str, Any]]:
     """Section 7.5's data: a snake-ordered grid over ``[lower, upper]`` plus, if ``band``,
     points near the constraints (``0.8 b <= H_i x <= 1.2 b`` for a row of ``X``) on the grid
-    shifted by half a step, all rejected above ``h_PB > cap``. Returns chunks and config."""
-    steps_arr = np.broadcast_to(np.asarray(steps, float), np.shape(lower)).copy()
+    shifted by half a step, all rejected above ``h_PB > cap``. Returns chunks and config.
+
+    ``lower``, ``upper`` have one finite entry per state of ``X`` with ``lower <= upper``;
+    ``steps`` is one positive step or one per state. Anything else raises a
+    :class:`~balustrade.errors.BalustradeError` naming the argument and its shape (``balustrade
+    sample --lower/--upper/--grid-step`` reach this function)."""
+    lower, upper, steps_arr = _grid_args(X, lower, upper, steps)
     pts = snake_grid(lower, upper, steps_arr)
     chunks = split_chunks(pts, chunk_size, cap=cap, chain_distance=2.0 * float(steps_arr.max()),
                           warm=warm)

@@ -210,8 +210,8 @@ def quadratic(expr: ca.SX, w: ca.SX, p: ca.SX, where: str) -> Quadratic:
     if not (_constant(Hw, w, p) and _constant(M, w, p)):
         raise ConvexityError(
             f"{where}: the expression is neither affine nor a convex quadratic of the decision "
-            "variables (with parameters entering the linear part affinely); the cvxpy "
-            "backend cannot hold it (use a CasADi target, e.g. target='exact')")
+            "variables (with parameters entering the linear part affinely); the convex "
+            "backends (cvxpy, direct) cannot hold it (use a CasADi target, e.g. target='exact')")
     index, Hs = _hessian_support(Hw, w, p)
     _require_psd(Hs, where)
     a = _vector(_evaluate(grad_w, w, p))
@@ -291,7 +291,8 @@ def _require_psd(H: np.ndarray, where: str) -> None:
     lam_min = _negative_eigenvalue(H)
     if lam_min is not None:
         raise ConvexityError(f"{where}: the Hessian has a negative eigenvalue "
-                             f"({lam_min:.3g}); a nonconvex block cannot be sent to cvxpy "
+                             f"({lam_min:.3g}); a nonconvex block cannot be sent to the "
+                             "convex backends (cvxpy, direct) "
                              "(use a CasADi target, e.g. target='exact')")
 
 
@@ -376,8 +377,9 @@ def classify_block(block: Block, w: ca.SX, p: ca.SX) -> ClassifiedBlock:
         return ClassifiedBlock(block, (Piece(np.arange(block.rows), aff),))
     if block.kind == BlockKind.EQ:
         raise ConvexityError(f"block {block.name!r} ({block.tag}, {block.rows} rows): an "
-                             "equality constraint must be affine for the cvxpy backend; "
-                             "this one is nonlinear (use a CasADi target, e.g. target='exact')")
+                             "equality constraint must be affine for the convex backends "
+                             "(cvxpy, direct); this one is nonlinear (use a CasADi target, e.g. "
+                             "target='exact')")
     pieces, affine_rows, affine_parts = [], [], []
     for r in range(block.rows):
         row_expr = block.expr[r]
@@ -404,7 +406,8 @@ def classify_term(k: int, term: Term, w: ca.SX, p: ca.SX) -> ClassifiedTerm:
     aff = affine(term.expr, w, p, label)
     if aff is None:
         raise ConvexityError(f"cost term {label!r} ({term.kind}): its argument must be "
-                             "affine in the decision variables for the cvxpy backend")
+                             "affine in the decision variables for the convex backends "
+                             "(cvxpy, direct)")
     return ClassifiedTerm(term, label, aff)
 
 
