@@ -35,7 +35,7 @@ bench: setup
 	$(VENV)/bin/balustrade bench
 
 lint: setup
-	$(VENV)/bin/ruff check balustrade tests benchmarks docs/_ext
+	$(VENV)/bin/ruff check balustrade tests benchmarks docs/_ext audits
 
 # API reference from the docstrings plus docs/*.md into site/; --strict turns every warning
 # (a broken cross-reference, a page missing from mkdocs.yml) into a failure. Not -q: quiet mode
