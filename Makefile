@@ -3,15 +3,19 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-# PyTorch (optional extra `learn`): the CPU wheel; an unpinned `torch` pulls a multi-GB CUDA build.
+# PyTorch (optional extra `learn`), pinned: an unpinned `torch` pulls a multi-GB CUDA build.
+# Our machines hold the 2.13.0 CPU wheel locally, so pip takes it. On plain PyPI (Linux) the
+# pinned version is still the CUDA build: set TORCH_INDEX to PyTorch's CPU index, e.g.
+#   make setup TORCH_INDEX=https://download.pytorch.org/whl/cpu
 TORCH ?= torch==2.13.0
+TORCH_INDEX ?=
 
 .PHONY: setup demo test test-slow bench lint docs clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q "$(TORCH)"
+	$(PY) -m pip install -q "$(TORCH)" $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX))
 	$(PY) -m pip install -q -e ".[learn,test]"
 	touch $@
 
