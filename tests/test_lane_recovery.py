@@ -88,6 +88,24 @@ def test_robust_recovery_step_runs_the_interior_point_attempt_first() -> None:
     assert runs[0] is ctrl.slack.solver
 
 
+def test_robust_first_step_leads_the_filter_problem_too() -> None:
+    """Without a candidate (the first step, and after a reset) (5.16) runs the chain's
+    interior-point retry first (``filter_lead``, session 15); with a candidate its SQP leads,
+    recovery step or not."""
+    ctrl, _ = _design()
+    runs = _counted(ctrl.filter)
+    led, _ = _lead_solver(ctrl.filter)
+    assert ctrl.filter_lead == recovery_lead(ctrl.filter, "recovery")
+    for x in [*OUTSIDE, ORIGIN]:
+        ctrl.reset()
+        runs.clear()
+        ctrl.step(x, np.array([1.0]))
+        assert runs[0] is led and runs.count(led) == 1, (x, runs)
+        runs.clear()
+        ctrl.step(x, np.array([1.0]))
+        assert runs[0] is ctrl.filter.solver, (x, runs)
+
+
 def test_robust_without_recovery_target_keeps_the_chain_order() -> None:
     ctrl, _ = _design()
     ctrl.recovery_target = None
@@ -139,22 +157,38 @@ def test_c_runs_the_same_attempts_as_python(robust_c: tuple) -> None:
     py, c = robust_c
     attempts = c._lib.fn(f"{c.slack.info['prefix']}_attempts", ctypes.c_int,
                          [ctypes.c_void_p])
-    runs = _counted(py.slack)
+    fattempts = c._lib.fn(f"{c.filter.info['prefix']}_attempts", ctypes.c_int,
+                          [ctypes.c_void_p])
+    runs, filter_runs = _counted(py.slack), _counted(py.filter)
     led, _ = _lead_solver(py.slack)
-    seen_led = seen_sqp = 0
+    filter_led, _ = _lead_solver(py.filter)
+    seen_led = seen_sqp = seen_filter = 0
     py.reset()
     c.reset()
-    for x in [*OUTSIDE, *OUTSIDE[::-1], ORIGIN, ORIGIN]:
+    for k, x in enumerate([*OUTSIDE, *OUTSIDE[::-1], ORIGIN, ORIGIN]):
         runs.clear()
+        filter_runs.clear()
         (u1, i1), (u2, i2) = py.step(x, np.array([1.0])), c.step(x, np.array([1.0]))
         assert (i1.status, i1.fallback) == (i2.status, i2.fallback), (x, i1.status)
         assert np.max(np.abs(u1 - u2)) <= 1e-6, (x, u1, u2)
         assert attempts(c.slack.work) == len(runs), (x, attempts(c.slack.work), len(runs))
+        # (5.16), where it ran (not after a failed (5.15)): led by the interior-point
+        # attempt at the first step only (no candidate)
+        assert filter_runs or k > 0
+        if filter_runs:
+            assert fattempts(c.filter.work) == len(filter_runs), (
+                k, fattempts(c.filter.work), len(filter_runs))
+            assert (filter_runs[0] is filter_led) == (k == 0), (k, filter_runs)
+            # the same attempt answered: the same point to the last bit (tests/
+            # test_lane_sync.py; an SQP answer differs from the interior-point one there)
+            assert np.array_equal(u1, u2), (k, u1 - u2)
+            seen_filter += 1
         seen_led += runs[0] is led
         seen_sqp += runs[0] is py.slack.solver
     # led: the first step (no candidate) and the steps after an outside state; the SQP
     # first: the second step at the origin
-    assert seen_led >= 6 and seen_sqp >= 1, (seen_led, seen_sqp)
+    assert seen_led >= 6 and seen_sqp >= 1 and seen_filter >= 4, (seen_led, seen_sqp,
+                                                                    seen_filter)
 
 
 @pytest.fixture(scope="module")

@@ -259,3 +259,41 @@ def test_complementarity_matches_an_independent_computation():
         assert cc == pytest.approx(py, rel=1e-12, abs=1e-300), (py, cc)
         seen.add(py > 1e-8)
     assert seen == {True, False}  # the points cover both verdicts
+
+
+def test_stale_solve_succeeded_without_success_is_failed():
+    """CasADi 3.8.2's sqpmethod can end a run with ``success`` False while ``return_status``
+    still says ``Solve_Succeeded`` from an earlier run of the same solver (session 15): such
+    a run is ``failed``; a real success and IPOPT's acceptable stop keep their statuses."""
+    from balustrade.backends.casadi_backend import _message, _status
+    from balustrade.backends.solution import Status
+
+    stale = {"return_status": "Solve_Succeeded", "success": False}
+    assert _status(stale) == Status.FAILED
+    assert "stale" in _message(stale)
+    assert _status({"return_status": "Solve_Succeeded", "success": True}) == Status.OPTIMAL
+    assert _status({"return_status": "Solved_To_Acceptable_Level", "success": True}) == \
+        Status.OPTIMAL_INACCURATE
+
+
+def test_lane_seed41_filter_is_not_a_false_optimal():
+    """The lane change, Algorithm 5.2, seed 41, steps 0–10: every solve reported ``optimal``
+    meets its rows to 1e-8 (``_primal_residual``, computed from the point, not from the
+    solver's word). At step 10 the (5.16) SQP used to stop after one iteration off its rows
+    by 8.1e-7 with a stale ``Solve_Succeeded`` and was applied as optimal (the C retried and
+    applied a point of lower cost); fails on the old status mapping."""
+    from balustrade.backends.solution import Status
+    from balustrade.reproduce import lane_change as lc
+
+    d = lc.design(lc.config("converging"))
+    ctrl = lc.controllers(d, rho=lc.config("converging").rho)["robust"]
+    ctrl.reset()
+    x, ws = lc.X0.copy(), lc.disturbances(d, 41, lc.STEPS)
+    for k in range(11):
+        u, info = ctrl.step(x, lc.human(x))
+        for name, sol in info.solutions.items():
+            if sol.status == Status.OPTIMAL:
+                prob = ctrl.slack if name == "slack" else ctrl.filter
+                res = prob._primal_residual(sol.raw["x"], sol.p)
+                assert res <= 1e-8, (k, name, res, sol.message)
+        x = d.system.step(x, u, ws[k])

@@ -988,10 +988,28 @@ def _fatrop_flag(stats: dict) -> tuple[str, Status] | None:
                                                        (f"fatrop: flag {flag}", Status.FAILED))
 
 
+def _stale_success(stats: dict) -> bool:
+    """``return_status`` says ``Solve_Succeeded`` while ``success`` is False: the run did
+    not converge, and the string is apparently left over from an earlier run of the same
+    solver (CasADi 3.8.2's sqpmethod built afresh has no ``return_status`` after the same
+    run, and ``stats()`` raises). Seen on the lane change (session 15, seed 41 step 10, (5.16)): the
+    SQP stopped after one iteration at a point off its rows by 8.1e-7 with a dual
+    infeasibility of 0.8, above ``tol_pr`` 1e-9 and ``tol_du`` 1e-6, and Python used it as
+    optimal, while the emitted C, which tests its own KKT residuals, retried and found a
+    point of lower cost. Such a run is ``failed``."""
+    return str(stats.get("return_status", "")) == "Solve_Succeeded" and \
+        stats.get("success") is False
+
+
 def _message(stats: dict) -> str:
-    """The solver's return status as text (fatrop's numeric flag decoded)."""
+    """The solver's return status as text (fatrop's numeric flag decoded; a stale success
+    string, :func:`_stale_success`, named as such)."""
     fatrop = _fatrop_flag(stats)
-    return fatrop[0] if fatrop is not None else str(stats.get("return_status", ""))
+    if fatrop is not None:
+        return fatrop[0]
+    if _stale_success(stats):
+        return "stopped without converging (success false; a stale Solve_Succeeded)"
+    return str(stats.get("return_status", ""))
 
 
 def _status(stats: dict) -> Status:
@@ -1000,6 +1018,8 @@ def _status(stats: dict) -> Status:
     if fatrop is not None:
         return fatrop[1]
     msg = str(stats.get("return_status", ""))
+    if _stale_success(stats):
+        return Status.FAILED
     if msg in _RETURN_STATUS:
         return _RETURN_STATUS[msg]
     if stats.get("success", False):  # another plugin's success string

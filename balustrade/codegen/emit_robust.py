@@ -53,7 +53,8 @@ part of the chain (:func:`~balustrade.codegen.mirror_c_retries`).
 Recovery steps (issue #14): the controllers' ``recovery_target`` names an attempt of the
 chain that leads on their recovery steps (:mod:`balustrade.backends.recovery`); the C runs
 it first there too (``bal/problem.c``'s ``P_solve_lead``, ``<name>_SLACK_LEAD``,
-``<name>_PROBLEM_LEAD``; 0 when that attempt is not emitted, ``full_chain=False``).
+``<name>_PROBLEM_LEAD``, and for Algorithm 5.2's (5.16) without a candidate
+``<name>_FILTER_LEAD``; 0 when that attempt is not emitted, ``full_chain=False``).
 """
 
 from __future__ import annotations
@@ -289,7 +290,9 @@ def emit_robust(controller: object, name: str, out_dir: str | Path,
         f"Algorithm 5.2, the robust PCBF step {name}: (5.15) then (5.16)",
         "Algorithm 5.2, the robust PCBF filter (5.15)+(5.16)",
         [(f"{name}_SLACK_LEAD", _c_lead(s, spec.recovery_target),
-          "the (5.15) attempt run first on a recovery step (0: none)")],
+          "the (5.15) attempt run first on a recovery step (0: none)"),
+         (f"{name}_FILTER_LEAD", _c_lead(f, spec.recovery_target),
+          "the (5.16) attempt run first when there is no candidate (0: none)")],
         {"n_xi": spec.X_E.H.shape[0] * N})
 
 

@@ -53,8 +53,10 @@ LP-like (5.15) makes the SQP attempts fail after hundreds of iterations (150–2
 before the interior-point last resort answers (21–50 ms alone); an interior-point (5.16)
 point, as a warm start, stops the next SQP (docs/vehicles.md, session 13).
 ``recovery_target=None`` keeps the chain's order everywhere. The emitted C decides the same
-(``<name>_SLACK_LEAD``). The first step (no candidate) is not led:
-:meth:`RobustPCBFSafetyFilter.recovering`.
+(``<name>_SLACK_LEAD``). The first step (no candidate) is a recovery step too
+(:meth:`RobustPCBFSafetyFilter.recovering`), and there (5.16) is led by the same attempt
+(:attr:`RobustPCBFSafetyFilter.filter_lead`, ``<name>_FILTER_LEAD``): its SQP attempts fail
+there at the optimal cost and the cold interior-point retry answered anyway (session 15).
 
 Recorded values: ``h_r`` (the optimal value of (5.15), read as ``h̃`` of the polished slacks
 (:func:`~balustrade.control.robust_steps.polished_slacks`) — never the solver's objective,
@@ -193,6 +195,16 @@ class RobustPCBFSafetyFilter:
         :func:`~balustrade.codegen.mirror_c_retries`, may have dropped it)."""
         return recovery_lead(self.slack, self.recovery_target)
 
+    @property
+    def filter_lead(self) -> int | None:
+        """The attempt of the (5.16) chain that runs first when there is no candidate (the
+        first step; ``None``: the chain in its usual order). There (5.16), started from the
+        interior-point (5.15) point, makes both SQP attempts fail with
+        ``Search_Direction_Becomes_Too_Small`` at the optimal cost, and the chain's cold
+        interior-point retry answers; leading with that retry gives the same answer without
+        the two failed attempts (docs/vehicles.md, "Session 15")."""
+        return recovery_lead(self.filter, self.recovery_target)
+
     def recovering(self) -> bool:
         """Whether the next step is a recovery step: the first step (no candidate certifies
         anything yet) or a candidate whose ``h̃`` is positive, so that it does not certify
@@ -268,7 +280,10 @@ class RobustPCBFSafetyFilter:
         # interior-point answer of the previous (5.16) stops the SQP: docs/vehicles.md)
         warm = self._last_filter if self._last_filter is not None and lead is None else \
             {"z": s1["z"], "v": s1["v"]}
-        s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm)
+        # no candidate (the first step): (5.16) leads with the same attempt as (5.15)
+        flead = self.filter_lead if self.candidate is None else None
+        s2 = self.filter.solve({"x0": x, "u_p": u_p, "xi": xi, "xi_N": xi_N}, warm_start=warm,
+                               **({} if flead is None else {"lead": flead}))
         info.solve_time += s2.solve_time
         info.solutions["filter"] = s2
         if s2.success or feasible_truncation(s2):

@@ -140,7 +140,10 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, casadi_real* u_ou
     memcpy(wk->filter.x0 + BAL_QX(filter_W_v), wk->slack.x + BAL_QX(slack_W_v),
            BAL_QX(NU) * BAL_QX(N) * sizeof(casadi_real));
   }
-  wk->filter_status = BAL_QX(filter_solve)(&wk->filter, wk->p_filter);
+  /* no candidate (the first step): the attempt Q_FILTER_LEAD leads (5.16), as
+     RobustPCBFSafetyFilter.filter_lead (0: none) */
+  wk->filter_status = BAL_QX(filter_solve_lead)(&wk->filter, wk->p_filter, 0,
+                                                wk->have_cand ? 0 : BAL_QX(FILTER_LEAD));
   if (wk->filter_status == BAL_TRUNCATED &&
       !BAL_QX(filter_truncated_feasible)(&wk->filter, wk->filter_status)) {
     wk->have_filter = 0; /* stopped infeasible: the next (5.16) starts from (5.15) */
