@@ -166,10 +166,10 @@ def test_dataset_of_an_older_label_rule_refuses_to_resume(plan, tmp_path):
         run_sampling(tmp_path, SPEC, plan, SerialExecutor(), progress=False, stop_after=1)
     ds = ShardedDataset(tmp_path)
     manifest = json.loads((tmp_path / "manifest.json").read_text())
-    assert manifest["config"]["label_rule"] == 2
+    assert manifest["config"]["label_rule"] == 3
     del manifest["config"]["label_rule"]
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(BalustradeError, match="different configuration"):
+    with pytest.raises(BalustradeError, match="label_rule: 'none' vs 3"):
         run_sampling(tmp_path, SPEC, plan, SerialExecutor(), progress=False)
     assert len(ds.completed()) == 1                              # nothing lost
 

@@ -1,7 +1,7 @@
 """Labels of the §8.3 data (Algorithm 7.6 on (2.24) with v_N = 0): a state from which the car
 can stop with zero slack has h_PB = 0 and must not be labelled unsafe (audit D, session 15).
 
-The two states are points of a sampled walk (seed 3 of /work/briefs/s15/audit/d_obstacles_data.py)
+The two states are points of a sampled walk (seed 3 of audits/s15/d_obstacles_data.py)
 where the solver, warm-started along the walk or cold, ended ``optimal`` at h_PB = 0.021 and
 0.069. The certificate is independent of the solver: the inputs the sampler returns are
 rolled out through (8.1) written here by hand and every tightened row is checked."""
@@ -71,3 +71,27 @@ def test_exact_h_along_finds_the_zero_slack_stop():
     run = {"states": np.array(STATES), "start": (0.0, 0.0), "paths": ["certified"] * 2}
     (row,) = exact_h_along([run], lambda X: np.zeros(len(X))).values()
     assert row["steps_h_positive"] == 0 and row["first_step_h_positive"] is None
+
+
+def test_an_inaccurate_retry_never_lowers_a_label(problems, monkeypatch):
+    """The braking retry counts only when ``optimal``: an acceptable-level stop may violate
+    rows, and keeping the lower value would favour it in the unsafe direction (review R3).
+    The retry is made to answer ``optimal_inaccurate`` at h_PB = 0: the walk's label stays."""
+    from balustrade.backends import Status
+
+    ev = Evaluator(problems)
+    x = np.array(STATES[0])
+    walk = ev._solve("slack", x, Seed(x))
+    assert walk.status == Status.OPTIMAL and walk.objective > 1e-3   # the local optimum
+    monkeypatch.setattr(ev, "_solve", lambda which, x, seed: walk)
+    real = problems.slack.solve
+
+    def inaccurate(params, **kw):
+        sol = real(params, **kw)
+        sol.status, sol.objective = Status.OPTIMAL_INACCURATE, 0.0
+        return sol
+
+    monkeypatch.setattr(problems.slack, "solve", inaccurate)
+    assert ev._slack(x, Seed(x)) is walk
+    monkeypatch.setattr(problems.slack, "solve", real)
+    assert ev._slack(x, Seed(x)).objective <= 1e-7                  # an optimal retry wins

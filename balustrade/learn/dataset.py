@@ -50,8 +50,9 @@ MANIFEST = "manifest.json"
 FORMAT = "balustrade-samples/1"
 #: How labels are computed; stored in the manifest so a dataset sampled under an older rule
 #: refuses to resume instead of mixing labels. 2: (2.24) is solved once more from the
-#: problems' ``slack_guess`` where the walk's solve did not place x in S_PB (session 15).
-LABEL_RULE = 2
+#: problems' ``slack_guess`` where the walk's solve did not place x in S_PB (session 15);
+#: 3: that retry counts only when ``optimal`` (session 15, review R3).
+LABEL_RULE = 3
 
 
 class InterruptedRun(BalustradeError):
@@ -93,9 +94,14 @@ class ShardedDataset:
         old = self.manifest()
         if old:
             if old.get("config") != config or old.get("n_chunks") != n_chunks:
+                was = {"n_chunks": old.get("n_chunks"), **(old.get("config") or {})}
+                now = {"n_chunks": n_chunks, **config}
+                differ = ", ".join(f"{k}: {was.get(k, 'none')!r} vs {now.get(k, 'none')!r}"
+                                   for k in sorted(set(was) | set(now))
+                                   if was.get(k) != now.get(k))
                 raise BalustradeError(
-                    f"{self.path}: existing dataset was sampled with a different configuration; "
-                    "use another directory (or delete it) to start over")
+                    f"{self.path}: existing dataset was sampled with a different configuration "
+                    f"({differ}); use another directory (or delete it) to start over")
             return
         self._write_manifest({"format": FORMAT, "config": config, "n_chunks": n_chunks,
                               "completed": {}})
@@ -188,7 +194,7 @@ def run_sampling(path: str | Path, spec: ProblemSpec, chunks: Sequence[Chunk],
     ids = [c.id for c in chunks]
     if len(set(ids)) != len(ids):
         raise BalustradeError("run_sampling: chunk ids must be unique")
-    cfg = {"problem": spec.to_dict(), "label_rule": LABEL_RULE, **(config or {})}
+    cfg = {"problem": spec.to_dict(), **(config or {}), "label_rule": LABEL_RULE}
     ds.init(json.loads(json.dumps(cfg, default=_jsonable)), len(chunks))
     done = ds.completed()
     todo = [c for c in chunks if c.id not in done]

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from balustrade.backends import Compiled, Solution, Target, compile, sampling_targets
+from balustrade.backends import Compiled, Solution, Status, Target, compile, sampling_targets
 from balustrade.dsl.sets import Box
 from balustrade.errors import BalustradeError, moved_names
 
@@ -56,8 +56,8 @@ class PCBFProblems:
     extended_cold: Compiled | None = None
     #: optional ``x ↦ {variable: primal guess}`` for (2.24): where the solve the walk makes
     #: ends with ``h_PB > tol`` (or fails), (2.24) is solved once more from this guess and
-    #: the lower of the two converged values is kept (both are values of feasible points,
-    #: so the lower one is nearer the minimum of the nonconvex (2.24));
+    #: its value replaces the walk's if it is ``optimal`` and lower (both are then values
+    #: of feasible points, so the lower one is nearer the minimum of the nonconvex (2.24));
     #: :func:`balustrade.examples.obstacles.obstacle_problems` gives a braking trajectory
     slack_guess: Callable[[np.ndarray], dict] | None = None
 
@@ -185,13 +185,16 @@ class Evaluator:
         """(2.24) as the walk solves it, then, if that did not place ``x`` in ``S_PB`` and
         the problems have a ``slack_guess``, once more from the guess; the lower converged
         value wins (audit D, session 15: warm- and cold-started solves of the obstacle car
-        ended ``optimal`` at ``h_PB`` up to 0.08 where a stop with zero slack exists)."""
+        ended ``optimal`` at ``h_PB`` up to 0.08 where a stop with zero slack exists). The
+        retry counts only when it is ``optimal``: an acceptable-level stop may violate rows,
+        and taking the lower value would favour it in the unsafe direction (review R3)."""
         s = self._solve("slack", x, seed)
         guess = self.p.slack_guess
         if guess is None or (s.success and max(float(s.objective), 0.0) <= self.tol):
             return s
         g = self.p.slack.solve({"x0": x}, warm_start=guess(x))
-        better = g.success and (not s.success or float(g.objective) < float(s.objective))
+        better = g.status == Status.OPTIMAL and (not s.success
+                                                 or float(g.objective) < float(s.objective))
         keep, other = (g, s) if better else (s, g)
         keep.iterations += other.iterations
         return keep

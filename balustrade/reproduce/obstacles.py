@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from balustrade._checks import as_vector
-from balustrade.backends import compile
+from balustrade.backends import Status, compile
 from balustrade.backends.stall import STALL_STOP, check_stall_stop, with_stall_stop
 from balustrade.backends.targets import Target
 from balustrade.control.approximate import ApproximatePCBFFilter
@@ -385,8 +385,11 @@ def exact_h_along(runs: list[dict], h_hat: object, target: str = "exact") -> dic
                 sols.append(slack.solve({"x0": x}, warm_start=prev))
             if all(not c.success or c.objective > 1e-6 for c in sols):
                 # and from a braking stop: cold and warm solves ended optimal at h up to
-                # 0.08 where a zero-slack stop exists (audit D, session 15)
-                sols.append(slack.solve({"x0": x}, warm_start=braking_guess(x, s.N, s)))
+                # 0.08 where a zero-slack stop exists (audit D, session 15); counted only
+                # when optimal, as in the sampler (review R3)
+                braking = slack.solve({"x0": x}, warm_start=braking_guess(x, s.N, s))
+                if braking.status == Status.OPTIMAL:
+                    sols.append(braking)
             ok = [c for c in sols if c.success]
             prev = min(ok, key=lambda c: c.objective) if ok else None
             h.append(np.nan if prev is None else max(float(prev.objective), 0.0))
