@@ -121,6 +121,29 @@ def test_unconfirmed_infeasible_relaxation_solves_the_full_qp(monkeypatch):
     assert np.max(np.abs(sol.primal["y"] - ref.primal["y"])) < 1e-8
 
 
+def test_optimal_missing_a_full_row_solves_the_full_qp(monkeypatch):
+    """Row generation's "optimal" comes from reduced solves the engines' row check never
+    sees (review R1, session 15): a point that misses a full row by 1e-3 in the row's own
+    unit (made up here) is not the answer; the full QP is solved and checked instead."""
+    from balustrade.backends.direct_engines import RawResult
+
+    ocp = _grouped_qp(1)
+    gen = DirectCompiled(ocp, "piqp", ROWGEN)
+    ref = DirectCompiled(ocp, "piqp").solve({"c": np.full(6, 4.0)})
+    real = gen.rowgen.run
+
+    def misses_a_row(q, b, A=None, cold=False):
+        raw = real(q, b, A)
+        raw.y = raw.y + 1e-2                     # rows of norm ~1, |b| ~1: misses ≥ 1e-3
+        return raw
+
+    monkeypatch.setattr(gen.rowgen, "run", misses_a_row)
+    sol = gen.solve({"c": np.full(6, 4.0)})
+    assert sol.status == Status.OPTIMAL and "the full QP" in sol.message
+    assert "missed by" in sol.message
+    assert np.max(np.abs(sol.primal["y"] - ref.primal["y"])) < 1e-8
+
+
 def test_failed_round_falls_back_to_the_full_solve():
     ocp = _grouped_qp(1)
     gen = DirectCompiled(ocp, "piqp", ROWGEN)

@@ -34,7 +34,7 @@ import scipy.sparse as sp
 
 from balustrade.backends.casadi_fast import Buffered
 from balustrade.backends.cvxpy_backend import BIG_WEIGHT, LARGE_BOUND
-from balustrade.backends.direct_engines import DIRECT_SOLVERS, RawResult, make_engine
+from balustrade.backends.direct_engines import DIRECT_SOLVERS, RawResult, RowMiss, make_engine
 from balustrade.backends.farkas import check_farkas
 from balustrade.backends.passes import DIRECT_CHAIN, run_chain
 from balustrade.backends.passes.classify import Classify
@@ -144,6 +144,7 @@ class DirectCompiled:
         self.engine = make_engine(self.solver_name, program, self.options)
         #: row generation over the OCP's grouped rows (option ``row_generation``), or None
         self.rowgen = self._row_generation(rowgen) if rowgen is not None else None
+        self._row_check: RowMiss | None = None  # row generation's answers checked
         self.cost_scale = program.cost_scale
         self._full: tuple[ConicProgram, object] | None = None  # with the large rows
         self._feasibility: dict = {}  # per program: the engine checking "infeasible"
@@ -152,6 +153,17 @@ class DirectCompiled:
         # Clarabel without equilibration, built on the first inexact solve (False: none)
         self._second = None if self.solver_name == "clarabel" and \
             "equilibrate_enable" not in self.options else False
+
+    def _rowgen_rows(self, A: np.ndarray | None) -> RowMiss:
+        """The row check of the engines (:class:`~balustrade.backends.direct_engines.RowMiss`)
+        for row generation's answers, which come from reduced solves the engines never see
+        (review R1, session 15): an ``optimal`` missing a full row by more than ``ROW_TOL`` in
+        the row's own unit goes to the full QP."""
+        if self._row_check is None:
+            self._row_check = RowMiss(self.program)
+        if A is not None:
+            self._row_check.update(A)
+        return self._row_check
 
     # -- solve -------------------------------------------------------------------------
     def solve(self, params: dict[str, object] | None = None,
@@ -172,6 +184,9 @@ class DirectCompiled:
         q, b, A = prog.q(p), prog.b(p), prog.A_data(p)
         if self.rowgen is not None:
             raw = self.rowgen.run(q, b, A)
+            if raw.status == Status.OPTIMAL:  # the engines' row check, on the full rows
+                raw.status, raw.words = self._rowgen_rows(A).verdict(
+                    raw.status, raw.words, raw.y[:prog.A.shape[1]], b)
             if raw.status not in (Status.OPTIMAL, Status.INFEASIBLE):  # solve it whole
                 first = raw.words
                 raw = _run(self.engine, q, b, A)
