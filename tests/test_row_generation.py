@@ -125,7 +125,6 @@ def test_optimal_missing_a_full_row_solves_the_full_qp(monkeypatch):
     """Row generation's "optimal" comes from reduced solves the engines' row check never
     sees (review R1, session 15): a point that misses a full row by 1e-3 in the row's own
     unit (made up here) is not the answer; the full QP is solved and checked instead."""
-    from balustrade.backends.direct_engines import RawResult
 
     ocp = _grouped_qp(1)
     gen = DirectCompiled(ocp, "piqp", ROWGEN)
