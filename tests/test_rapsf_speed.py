@@ -330,3 +330,23 @@ def test_learned_supports_equal_the_lps_and_reuse_vertices(monkeypatch):
         if step == 0:
             assert sup.lps == 60 and sup.reused == 0 and len(sup.vertices) > 0
     assert sup.reused >= 30 and sup.lps < 150, (sup.reused, sup.lps)
+
+
+def test_learned_supports_are_upper_bounds_when_the_vertex_is_nearly_optimal():
+    """Review R1 (session 15): the value from a remembered vertex must be the verified upper
+    bound, never the vertex's own value, which is below the support when the vertex is
+    optimal only within the gap. The square ``[−1, 1]²`` remembers ``(−1, 1)`` (an LP along
+    ``(−1, 1)``); along ``d = (ε, 1)`` the support is ``1 + ε`` at ``(1, 1)``, the
+    remembered vertex gives ``1 − ε`` and passes the gap test (``2ε <= VERIFY_GAP·2``), so
+    the answer must still be ``>= 1 + ε`` (exact here), not ``1 − ε``."""
+    from balustrade.control.rapsf_supports import VERIFY_GAP, LearnedSupports
+    from balustrade.dsl.sets import Polytope
+
+    sq = Polytope(np.vstack([np.eye(2), -np.eye(2)]), np.ones(4), name="square")
+    sup = LearnedSupports(sq)
+    sup(np.array([[-1.0, 1.0]]))
+    assert sup.lps == 1 and np.allclose(sup.vertices, [[-1.0, 1.0]])
+    eps = 0.25 * VERIFY_GAP
+    got = sup(np.array([[eps, 1.0]]))
+    assert sup.reused == 1                       # answered by the remembered vertex
+    assert got[0] >= 1.0 + eps - 1e-15, got[0] - (1.0 + eps)
