@@ -264,3 +264,22 @@ def test_emitted_filter_with_network_equals_python(tmp_path):
         u2, i2 = c.step(x, u_p)
         assert i1.status == i2.status and np.abs(u1 - u2).max() <= 1e-6, (x, u_p, u1, u2)
     assert 0 < c.n_certified < len(X) and c.n_solved > 0
+
+
+def test_committed_network_was_trained_with_the_reproduction_recipe():
+    """The committed ``ĥ`` records the training configuration it was made with; it is the
+    reproduction's recipe ``TRAIN`` (5 × 32 softplus, ``∛h``, Huber, ...) with seed 0, i.e.
+    what ``reproduce obstacles`` (full) trains from the sampled data — not a network picked
+    from another recipe or seed. (It does not tell which labels it saw: the network of
+    before session 15's retrain passes too.)"""
+    from balustrade.learn.train import MLPModel
+    from balustrade.reproduce import obstacles as R
+
+    model = MLPModel.load(R.NET)
+    recorded = model.config
+    for key, value in R.TRAIN.items():
+        want = list(value) if isinstance(value, tuple) else value
+        assert recorded[key] == want, key
+    assert recorded["seed"] == 0
+    assert [W.shape for W in model.weights] == [(32, 5)] + [(32, 32)] * 4 + [(1, 32)]
+    assert len(model.history["val_mse_h"]) == R.TRAIN["epochs"]
