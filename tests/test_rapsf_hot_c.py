@@ -33,13 +33,11 @@ def _emitted(d: dict, tmp, name: str = "rh") -> tuple[object, CRAPSF, object]:
     return py, CRAPSF(lib, host=py), em
 
 
-def _independent(py, c: CRAPSF, x: np.ndarray, u_p: np.ndarray) -> float:
-    """The C's last answer checked by Python's own code: the KKT residual
-    (:func:`~balustrade.backends.daqp_engine.kkt_residual`) of the C's point and multipliers
-    on the lowered (4.5) that Python computes for this step's data (the C's θ and ``s``;
-    the QP with the shared rows or with every row, the one the C solved),
-    and the C's ``v_0`` read through Python's variable layout: returns the larger of the
-    residual and ``|u_C − (K x + v_0)|``."""
+def _python_kkt(py, c: CRAPSF, x: np.ndarray, u_p: np.ndarray) -> tuple[float, np.ndarray]:
+    """Python's :func:`~balustrade.backends.daqp_engine.kkt_residual` of the C's last point
+    and multipliers on the lowered (4.5) Python computes for this step's data (the C's θ
+    and ``s``; the QP with the shared rows or with every row, the one the C solved), and
+    the point."""
     compiled = py.shared_rows_problem()[0] if c.qp_info()["shared"] else \
         py.deployment_spec().problems["main"]
     prog = compiled.program
@@ -51,8 +49,20 @@ def _independent(py, c: CRAPSF, x: np.ndarray, u_p: np.ndarray) -> float:
     if prog.A_param is not None:
         A.data = prog.A_data(p)
     m0 = sum(k for kind, k in prog.cones if kind == "zero")
-    P = compiled.engine.P
-    kkt = daqp_engine.kkt_residual(P, prog.q(p), A, prog.b(p), m0, y, z)
+    return daqp_engine.kkt_residual(compiled.engine.P, prog.q(p), A, prog.b(p), m0, y, z), y
+
+
+def _independent(py, c: CRAPSF, x: np.ndarray, u_p: np.ndarray) -> float:
+    """The C's last answer checked by Python's own code: the KKT residual
+    (:func:`~balustrade.backends.daqp_engine.kkt_residual`) of the C's point and multipliers
+    on the lowered (4.5) that Python computes for this step's data (the C's θ and ``s``;
+    the QP with the shared rows or with every row, the one the C solved),
+    and the C's ``v_0`` read through Python's variable layout: returns the larger of the
+    residual and ``|u_C − (K x + v_0)|``."""
+    kkt, y = _python_kkt(py, c, x, u_p)
+    compiled = py.shared_rows_problem()[0] if c.qp_info()["shared"] else \
+        py.deployment_spec().problems["main"]
+    prog = compiled.program
     v = np.asarray(compiled.ocp.unpack_variables(y[:prog.n_w])["v"])[:, 0]
     return max(kkt, float(np.max(np.abs(c._u - (py.K @ x + v)))))
 
@@ -180,6 +190,10 @@ int main(void) {
   x[0] = NAN;
   rh_step(x, up, theta, s, 0, u, &st, wk);
   bad += st != BAL_RAPSF_BAD_INPUT;
+  x[0] = 0.2;
+  s[0] = NAN; /* a NaN s: bad input too */
+  rh_step(x, up, theta, s, 0, u, &st, wk);
+  bad += st != BAL_RAPSF_BAD_INPUT;
   rh_free(wk);
   printf("%d\n", bad);
   return bad;
@@ -191,8 +205,8 @@ int main(void) {
 @pytest.mark.skipif(shutil.which("valgrind") is None, reason="valgrind not installed")
 def test_valgrind_clean(msd3, tmp_path) -> None:
     """Set-up, hot solves, a changed A(p), a failed solve (hot, then cold, then the stored
-    plan) and the set-up after it, reset, falsified and bad-input steps, free: no invalid
-    access, no definite leak."""
+    plan) and the set-up after it, reset, falsified and bad-input (NaN x, NaN s) steps,
+    free: no invalid access, no definite leak."""
     _, _, em = _emitted(msd3, tmp_path)
     (tmp_path / "vg_main.c").write_text(VALGRIND_MAIN)
     exe = build_executable(tmp_path, "vg_main.c",
@@ -250,3 +264,125 @@ def test_five_masses_are_refused_with_the_reason(tmp_path) -> None:
     with pytest.raises(CodegenError, match=r"5452 x 471.*convex-qp"):
         emit_rapsf(ctrl, "r5", tmp_path)
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.slow
+def test_non_finite_theta_or_s_is_bad_input(msd3, tmp_path) -> None:
+    """A NaN ``s`` or a −∞ θ is bad input (review R1): no solve is reported, the input is
+    the backup ``K x``, ``k_inf`` and the stored plan are kept (as for a NaN ``x``). Before,
+    a NaN ``b_j`` read as "no bound" and the KKT check skipped that row: the step was OK."""
+    py, c, _ = _emitted(msd3, tmp_path)
+    x, u_p = msd3["setup"].x0 + 0.05, np.full(3, 1.0)
+    c.step(x, u_p)
+    assert c.qp_info()["flag"] == 1 and c.k_inf == 0
+    theta, s = c._theta.copy(), c._s.copy()
+    for name, bad in (("theta", -np.inf), ("s", np.nan)):
+        c._theta[:], c._s[:] = theta, s
+        getattr(c, f"_{name}")[:] = bad
+        u, code = c.step_raw(x, u_p)
+        assert code == c._BAD, (name, code)
+        assert np.max(np.abs(u - py.K @ x)) <= 1e-12   # the backup, not the plan
+        assert c.k_inf == 0
+    c._theta[:], c._s[:] = theta, s          # the plan was kept: the next step solves again
+    assert c.step_raw(x, u_p)[1] == c._OK
+
+
+KKT_MAIN = r"""
+#include <math.h>
+#include <stdio.h>
+#include "rh.c"
+/* one solved step, then bal_hot_kkt at its point, and again with one inactive inequality
+   row i scaled by 1e-9 and its bound moved so that the point misses it by 1 in the row's
+   own unit (1e-9 unscaled) */
+int main(void) {
+  double x[rh_NX] = {0}, up[rh_NU] = {0}, theta[rh_NQ * rh_NTH], s[rh_NXR * rh_NTH], u[rh_NU];
+  double before, after, ay = 0;
+  int st, i, j, k, row = -1;
+  bal_hot_qp* h;
+  rh_work* wk = rh_alloc();
+  if (!wk) return 3;
+  for (k = 0; k < rh_NQ * rh_NTH; ++k) theta[k] = 0.15;
+  for (k = 0; k < rh_NXR * rh_NTH; ++k) s[k] = 0.5;
+  x[0] = 0.2;
+  up[0] = 3.0;
+  rh_step(x, up, theta, s, 0, u, &st, wk);
+  if (st != BAL_RAPSF_OK) return 2;
+  h = &wk->qps[wk->used];
+  before = bal_hot_kkt(h);
+  for (i = h->d->m0; i < h->d->m && row < 0; ++i) {
+    if (!isfinite(h->b[i]) || h->lam[i] != 0.0) continue;
+    for (k = 0; k < h->d->nnz; ++k) if (h->d->a_row[k] == i && h->aval[k] != 0.0) row = i;
+  }
+  if (row < 0) return 4;
+  for (j = 0; j < h->d->n; ++j) {
+    for (k = h->d->a_colptr[j]; k < h->d->a_colptr[j + 1]; ++k) {
+      if (h->d->a_row[k] != row) continue;
+      h->aval[k] *= 1e-9;
+      ay += h->aval[k] * h->x[j];
+    }
+  }
+  h->b[row] = ay - 1e-9;
+  after = bal_hot_kkt(h);
+  printf("%d %d %.17g %.17g %.17g\n", wk->used, row, before, after, h->b[row]);
+  rh_free(wk);
+  return 0;
+}
+"""
+
+
+@pytest.mark.slow
+def test_kkt_check_is_pythons_per_row_unit_rule(msd3, tmp_path) -> None:
+    """The C's KKT residual is Python's ``kkt_residual`` (each row in its own unit
+    ``n_i = max_j |A_ij|``; review R1): equal on the C's points of a closed loop, and on a
+    crafted point that misses a row scaled by 1e-9 by 1 in that row's unit — 1e-9 unscaled,
+    which the old rule (``/ (1 + |b_i|)``) accepted; Python and now the C refuse it."""
+    import scipy.sparse as sp
+
+    py, c, em = _emitted(msd3, tmp_path)
+    st = msd3["setup"]
+    solved, statuses = 0, []
+    x, theta = st.x0.copy(), st.sample_theta(np.random.default_rng(0))
+    for k in range(15):                        # C's residual = Python's on the same point
+        u_p = msd_performance(k, x, msd3["n"])
+        uc, code = c.step(x, u_p)
+        if code.fallback is None:
+            ck, (pk, _) = c.qp_info()["kkt"], _python_kkt(py, c, x, u_p)
+            assert abs(ck - pk) <= 1e-12 + 1e-9 * pk, (k, ck, pk)
+            solved += 1
+        x = msd3["system"].step(x, uc, theta, np.zeros(2 * msd3["n"]))
+    assert solved >= 10, statuses
+    sub = tmp_path / "kkt"
+    sub.mkdir()
+    (sub / "kkt_main.c").write_text(KKT_MAIN)
+    exe = build_executable(sub, "kkt_main.c",
+                           extra_flags=[f"-I{tmp_path}", *link_flags(em.libraries)])
+    run = subprocess.run([str(exe)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stdout + run.stderr
+    used, row, before, after, b_row = (float(v) for v in run.stdout.split())
+    # the same point from the runtime (same code, same data, cold), checked by Python
+    c.reset()
+    c._theta[:] = 0.15
+    c._s[:] = 0.5
+    x, u_p = np.zeros(c.nx), np.zeros(c.nu)
+    x[0], u_p[0] = 0.2, 3.0
+    assert c.step_raw(x, u_p)[1] == c._OK and c.qp_info()["shared"] == bool(used)
+    pk, y = _python_kkt(py, c, x, u_p)
+    assert before <= daqp_engine.KKT_TOL and abs(before - pk) <= 1e-12 + 1e-9 * pk
+    compiled = py.shared_rows_problem()[0] if used else py.deployment_spec().problems["main"]
+    prog = compiled.program
+    p = compiled.ocp.pack_parameters({
+        "x0": x, "u_p": u_p, "theta": c._theta.reshape(c.nq, c.n_vertices, order="F"),
+        "s": c._s.reshape(c.n_rows, c.n_vertices, order="F")})
+    A = prog.A.copy()
+    if prog.A_param is not None:
+        A.data = prog.A_data(p)
+    scale = np.ones(A.shape[0])
+    scale[int(row)] = 1e-9
+    A = sp.diags(scale) @ A
+    b = prog.b(p).copy()
+    b[int(row)] = b_row
+    assert abs((A @ y)[int(row)] - b_row) == pytest.approx(1e-9, rel=1e-6)  # missed by 1e-9
+    m0 = sum(k for kind, k in prog.cones if kind == "zero")
+    _, z = c.qp_point()
+    pk = daqp_engine.kkt_residual(compiled.engine.P, prog.q(p), A, b, m0, y, z)
+    assert pk > daqp_engine.KKT_TOL and after == pytest.approx(pk, rel=1e-9)

@@ -103,7 +103,7 @@ static void bal_hot_finalize(bal_hot_qp* h) {
   bal_hot_drop(h);
   free(h->H); free(h->A); free(h->bu); free(h->bl); free(h->f); free(h->x); free(h->lam);
   free(h->aval); free(h->alast); free(h->q); free(h->b); free(h->r); free(h->Py);
-  free(h->ATz); free(h->reg); free(h->centre); free(h->sense);
+  free(h->ATz); free(h->reg); free(h->centre); free(h->sense); free(h->nrm);
   memset(h, 0, sizeof(*h));
 }
 
@@ -131,9 +131,10 @@ static int bal_hot_init(bal_hot_qp* h, const bal_hot_data* d, double prox, doubl
   h->reg = (double*) calloc(n, sizeof(double));
   h->centre = (double*) calloc(n, sizeof(double));
   h->sense = (int*) calloc(m, sizeof(int));
+  h->nrm = (double*) calloc(m ? m : 1, sizeof(double));
   if (!h->H || !h->A || !h->bu || !h->bl || !h->f || !h->x || !h->lam || !h->aval ||
       !h->alast || !h->q || !h->b || !h->r || !h->Py || !h->ATz || !h->reg || !h->centre ||
-      !h->sense) {
+      !h->sense || !h->nrm) {
     bal_hot_finalize(h);
     return -1;
   }
@@ -171,16 +172,31 @@ static void bal_hot_reset(bal_hot_qp* h) {
   h->flag = h->iterations = h->retried = h->a_changed = 0;
 }
 
-/* the KKT residual of the lowered QP at (x, lam), each error scaled by its own terms
-   (kkt_residual of the Python engine): stationarity entry j / (1 + max(|q_j|, |(Py)_j|,
-   |(A'z)_j|)); primal feasibility and complementarity of row i / (1 + |b_i|) (an infinite
-   b_i is no row); a negative multiplier of an inequality / (1 + the largest of those) */
+/* the KKT residual of the lowered QP at (x, lam) (kkt_residual of the Python engine, the
+   same formula): row i measured in its own unit n_i = max_j |A_ij| (1 for a zero row: the
+   row and b_i divided by n_i, z_i multiplied by it), then each error scaled by its own
+   terms: stationarity entry j / (1 + max(|q_j|, |(Py)_j|, |(A'z)_j|)); primal feasibility
+   and complementarity of row i / (1 + |b_i| / n_i) (a b_i = +inf inequality is no row:
+   neither counts); a negative n_i z_i of an inequality, or a nonzero one of a row
+   b_i = +inf, / (1 + the largest of those magnitudes). NaN when any b_i is NaN or -inf or
+   an equality's b_i is infinite (no point satisfies that row), or any term is not finite */
 static double bal_hot_kkt(bal_hot_qp* h) {
   const bal_hot_data* d = h->d;
   const double *y = h->x, *z = h->lam;
-  double stat = 0, prim = 0, dual = 0, comp = 0, mag, magmax = 0, e, scale;
+  double stat = 0, prim = 0, dual = 0, comp = 0, mag, magmax = 0, e, scale, ri, zn;
   int i, j, k, finite;
-  for (i = 0; i < d->m; ++i) h->r[i] = isfinite(h->b[i]) ? -h->b[i] : 0.0;
+  for (i = 0; i < d->m; ++i) {
+    if (h->b[i] != h->b[i] || h->b[i] == -INFINITY || (i < d->m0 && !isfinite(h->b[i])))
+      return NAN;
+    h->r[i] = isfinite(h->b[i]) ? -h->b[i] : 0.0;
+    h->nrm[i] = 0.0;
+  }
+  for (k = 0; k < d->nnz; ++k) { /* the rows' units, from the current values of A */
+    e = fabs(h->aval[k]);
+    if (!(e <= h->nrm[d->a_row[k]])) h->nrm[d->a_row[k]] = e;
+  }
+  for (i = 0; i < d->m; ++i)
+    if (!(h->nrm[i] > 0.0)) h->nrm[i] = h->nrm[i] == h->nrm[i] ? 1.0 : NAN;
   for (j = 0; j < d->n; ++j) {
     h->ATz[j] = 0;
     h->Py[j] = 0;
@@ -195,25 +211,30 @@ static double bal_hot_kkt(bal_hot_qp* h) {
   }
   for (j = 0; j < d->n; ++j) {
     mag = fmax(fmax(fabs(h->q[j]), fabs(h->Py[j])), fabs(h->ATz[j]));
-    if (mag > magmax) magmax = mag;
+    if (!(mag <= magmax)) magmax = mag;
     e = fabs(h->Py[j] + h->q[j] + h->ATz[j]) / (1.0 + mag);
     if (!(e <= stat)) stat = e; /* NaN propagates */
   }
   for (i = 0; i < d->m; ++i) {
     finite = isfinite(h->b[i]);
-    scale = 1.0 + (finite ? fabs(h->b[i]) : 0.0);
+    scale = 1.0 + (finite ? fabs(h->b[i]) / h->nrm[i] : 0.0);
+    ri = h->r[i] / h->nrm[i];
+    zn = z[i] * h->nrm[i];
     if (i < d->m0) {
-      e = fabs(h->r[i]) / scale;
+      e = fabs(ri) / scale;
       if (!(e <= prim)) prim = e;
       continue;
     }
     if (finite) {
-      e = h->r[i] / scale;
+      e = ri / scale;
       if (!(e <= prim)) prim = e;
-      e = fabs(z[i] * h->r[i]) / scale;
+      e = fabs(zn * ri) / scale;
       if (!(e <= comp)) comp = e;
+      e = -zn;
+    } else {
+      e = fabs(zn); /* a multiplier on no row is an error */
     }
-    if (!(-z[i] <= dual)) dual = -z[i];
+    if (!(e <= dual)) dual = e;
   }
   dual /= 1.0 + magmax;
   e = fmax(fmax(stat, prim), fmax(dual, comp));
@@ -261,6 +282,15 @@ static int bal_hot_solve(bal_hot_qp* h, const casadi_real* p, int prox_iter, dou
   bal_hot_affine(d->q0, d->qq_ptr, d->qq_col, d->qq_val, n, p, h->q);
   bal_hot_affine(d->b0, d->bb_ptr, d->bb_col, d->bb_val, m, p, h->b);
   bal_hot_affine(d->a0, d->ap_ptr, d->ap_col, d->ap_val, d->nnz, p, h->aval);
+  h->iterations = 0;
+  h->retried = 0;
+  for (j = 0; j < m; ++j) {
+    if (h->b[j] != h->b[j] || h->b[j] == -INFINITY) { /* no point satisfies row j */
+      h->flag = 0;
+      h->kkt = NAN;
+      return 0;
+    }
+  }
   for (j = 0; j < m; ++j) {
     h->bu[j] = isfinite(h->b[j]) && h->b[j] < DAQP_INF ? h->b[j] : DAQP_INF;
     h->bl[j] = j < d->m0 ? h->bu[j] : -DAQP_INF;
@@ -273,8 +303,6 @@ static int bal_hot_solve(bal_hot_qp* h, const casadi_real* p, int prox_iter, dou
         h->A[(size_t) d->a_row[k] * n + j] = h->aval[k];
     }
   }
-  h->iterations = 0;
-  h->retried = 0;
   for (attempt = 0; attempt < 2; ++attempt) {
     if (attempt) { /* the hot answer failed: set up again, cold */
       bal_hot_drop(h);
@@ -386,8 +414,11 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   wk->main_status = BAL_NOT_RUN;
   wk->objective = NAN;
   wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
-  if (falsified || !bal_finite(x, BAL_QX(NX))) {
-    BAL_QX(feedback)(x, 0, u_out); /* nothing solved; k_inf and the plan are kept */
+  if (falsified || !bal_finite(x, BAL_QX(NX)) || !bal_finite(theta, BAL_QX(NQ) * BAL_QX(NTH)) ||
+      !bal_finite(s, BAL_QX(NXR) * BAL_QX(NTH))) {
+    /* nothing solved (a NaN or inf theta or s is bad input, as a NaN x); k_inf and the
+       plan are kept */
+    BAL_QX(feedback)(x, 0, u_out);
     *status = falsified ? BAL_RAPSF_FALSIFIED : BAL_RAPSF_BAD_INPUT;
     return *status;
   }

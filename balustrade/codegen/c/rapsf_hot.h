@@ -61,8 +61,10 @@ typedef struct bal_hot_qp {
   int have_ws; /* daqp holds a set-up workspace (its working set is the hot start) */
   /* malloc'ed by init: dense H (n x n) and A (m x n, row-major), the bounds, the
      solver's f, the result, the values of A(p) now and at the last scatter, q(p), b(p),
-     residual work, the proximal weights and centre, the rows' senses */
+     residual work, the proximal weights and centre, the rows' senses, the rows' units
+     n_i = max_j |A_ij| of the KKT check */
   double *H, *A, *bu, *bl, *f, *x, *lam, *aval, *alast, *q, *b, *r, *Py, *ATz, *reg, *centre;
+  double* nrm;
   int* sense;
   double kkt;
   int flag, iterations, retried, a_changed;
