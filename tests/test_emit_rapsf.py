@@ -239,6 +239,15 @@ def test_bad_input_and_falsified_model(design3: dict, emitted3: dict) -> None:
     out_py, out_c = py.step(x, np.ones(3)), c.step(x, np.ones(3))
     _same(out_py, out_c, "falsified")
     assert out_c[1].status == "model_falsified" and out_c[1].fallback == "backup"
+    # a non-finite θ or s passed to the C step is bad input too (review R1, session 15)
+    c.step(x, np.ones(3))
+    theta, s = c._theta.copy(), c._s.copy()
+    for name, bad in (("theta", -np.inf), ("s", np.nan)):
+        c._theta[:], c._s[:] = theta, s
+        getattr(c, f"_{name}")[:] = bad
+        u, code = c.step_raw(x, np.ones(3))
+        assert code == c._BAD, (name, code)
+        np.testing.assert_allclose(u, design3["K"] @ x, atol=1e-12)
     py.reset()
 
 

@@ -27,9 +27,9 @@ def ellipsoidal_rpi(A: np.ndarray, B: np.ndarray, W: Set, X: Polytope, U: Polyto
     Returns ``ErrorSet(Ellipsoid(E_P⁻¹), K = Y E_P⁻¹)`` with the objective, the chosen ``λ``,
     the solver status, the margin of :func:`~balustrade.dsl.error_sets.is_rpi`, whether that
     check is a proof (``info["rpi_proven"]``: ``False`` when ``W`` is not a polytope, where it
-    only samples and warns; a singular ``A_K`` is checked exactly since session 15) and the solve time in ``info``. The
-    best ``optimal`` solve is chosen; an ``optimal_inaccurate`` one only when no
-    full-accuracy solve passes, and any choice only when ``is_rpi`` confirms
+    only samples and warns; a singular ``A_K`` is checked exactly since session 15) and the
+    solve time in ``info``. The best ``optimal`` solve is chosen; an ``optimal_inaccurate``
+    one only when no full-accuracy solve passes, and any choice only when ``is_rpi`` confirms
     ``A_K E ⊕ G W ⊆ E`` (rejected ones in ``info["refused"]``; none → ``BalustradeError``);
     a miss within the solver's accuracy (:data:`RPI_REPAIR`) is repaired by inflating ``E``
     (``info["inflation"]``, 1 when not needed).

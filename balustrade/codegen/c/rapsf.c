@@ -161,8 +161,11 @@ int BAL_QX(step)(const casadi_real* x, const casadi_real* u_p, const casadi_real
   wk->main_inaccurate = wk->shrunk_inaccurate = 0;
   wk->objective = NAN;
   wk->n_replaced = bal_read_proposal(u_p, wk->u_p, BAL_QX(NU));
-  if (falsified || !bal_finite(x, BAL_QX(NX))) {
-    /* nothing solved: the backup policy; k_inf and the plan are kept */
+  if (falsified || !bal_finite(x, BAL_QX(NX))
+      || !bal_finite(theta, BAL_QX(NQ) * BAL_QX(NTH))
+      || !bal_finite(s, BAL_QX(NXR) * BAL_QX(NTH))) {
+    /* nothing solved: the backup policy; k_inf and the plan are kept (a non-finite θ or s
+       is bad input as a non-finite x: review R1, session 15) */
     BAL_QX(apply_backup)(x, u_out, wk);
     *status = falsified ? BAL_RAPSF_FALSIFIED : BAL_RAPSF_BAD_INPUT;
     return *status;
