@@ -15,13 +15,13 @@ and a replayed loop under valgrind."""
 from __future__ import annotations
 
 import shutil
-import subprocess
 
 import numpy as np
 import pytest
 import scipy.linalg as sla
 
 from balustrade.backends import compile
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.control import PCBFSafetyFilter, simulate
 from balustrade.dsl.sets import Box
 from balustrade.dsl.system import LinearSystem
@@ -322,9 +322,7 @@ def test_replayed_loop_is_memory_clean_under_valgrind(pendulum_c):
     (out / "driver.c").write_text(DRIVER)
     exe = build_executable(out, main="driver.c", werror=True,
                            extra_flags=tuple(c._lib.manifest["link_flags"]))
-    cmd = ["valgrind", "--error-exitcode=9", "--leak-check=full",
-           "--errors-for-leak-kinds=definite", "-q", str(exe)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, check=False)
+    proc = run_under_valgrind(str(exe), timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
     assert lines[-1] == f"fired {len(_first(trace))}"

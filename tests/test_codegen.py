@@ -24,6 +24,7 @@ from balustrade.codegen import (
     emit_problem,
     find_compiler,
 )
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.codegen.runtime import mirror_c_retries
 from balustrade.control.base import simulate
 from balustrade.errors import BalustradeError, CodegenError, ShapeError
@@ -191,9 +192,7 @@ def test_main_example_clean_under_valgrind(pcbf_c: dict) -> None:
     exe = pcbf_c["out"] / "main"
     if not exe.exists():
         exe = build_executable(pcbf_c["out"])
-    proc = subprocess.run(["valgrind", "--error-exitcode=1", "--leak-check=full",
-                           "--errors-for-leak-kinds=definite", str(exe), "10"],
-                          capture_output=True, text=True, check=False)
+    proc = run_under_valgrind(str(exe), "10")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "ERROR SUMMARY: 0 errors" in proc.stderr
 

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
-import subprocess
 
 import numpy as np
 import pytest
 
 from balustrade.codegen import CApproximatePCBFFilter, build, emit_approximate
-from balustrade.codegen.build import build_executable
+from balustrade.codegen.build import build_executable, run_under_valgrind
 from balustrade.codegen.runtime import mirror_c_retries
 from balustrade.control.base import simulate
 from balustrade.errors import CodegenError, ShapeError
@@ -264,9 +263,7 @@ def test_approximate_valgrind_clean(approx: dict) -> None:
     out = approx["out"]
     (out / "vg_main.c").write_text(VALGRIND_MAIN)
     exe = build_executable(out, "vg_main.c", extra_flags=["-g", "-O1"])
-    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
-                          "--errors-for-leak-kinds=definite", str(exe)],
-                         capture_output=True, text=True, timeout=600)
+    run = run_under_valgrind(str(exe), timeout=600)
     assert run.returncode == 0, (run.stdout, run.stderr[-2000:])
 
 

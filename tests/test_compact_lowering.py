@@ -18,6 +18,7 @@ from balustrade.backends import PRESETS, compile
 from balustrade.backends.casadi_backend import shared_derivatives
 from balustrade.backends.passes import CASADI_CHAIN, run_chain
 from balustrade.backends.passes.casadi_nlp import compact_nlp, dynamics_stage_map
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.dsl import OCP
 from balustrade.dsl.system import System
 from balustrade.errors import SolverError
@@ -254,7 +255,6 @@ def test_compact_cartpole_closed_loop_is_valgrind_clean(cartpole, tmp_path):
     """The emitted cart-pole example (``main.c``, 5 closed-loop steps) on the compact C:
     no memory errors, no definite leaks (the scatter maps and the map calls use CasADi's
     work vectors)."""
-    import subprocess
 
     from balustrade.codegen import build_executable, emit_pcbf, write_example
     from balustrade.control import PCBFSafetyFilter
@@ -264,8 +264,6 @@ def test_compact_cartpole_closed_loop_is_valgrind_clean(cartpole, tmp_path):
     emitted = emit_pcbf(PCBFSafetyFilter(*expanded, d.U), "cpv", tmp_path,
                         dynamics=d.system.function)
     write_example(emitted, X0, [8.0], 5)
-    proc = subprocess.run(["valgrind", "--error-exitcode=1", "--leak-check=full",
-                           "--errors-for-leak-kinds=definite", str(build_executable(tmp_path)),
-                           "5"], capture_output=True, text=True, check=False)
+    proc = run_under_valgrind(str(build_executable(tmp_path)), "5")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "ERROR SUMMARY: 0 errors" in proc.stderr

@@ -13,7 +13,6 @@ outer minimal RPI set)."""
 from __future__ import annotations
 
 import shutil
-import subprocess
 
 import numpy as np
 import pytest
@@ -21,7 +20,7 @@ import pytest
 from balustrade.codegen import build
 from balustrade.codegen import cfiles as C
 from balustrade.codegen.accelerate import registered
-from balustrade.codegen.build import build_executable
+from balustrade.codegen.build import build_executable, run_under_valgrind
 from balustrade.codegen.emit_mo_lyap import (
     ADMISSIBLE_TOL,
     EMITTABLE_TARGET,
@@ -284,10 +283,7 @@ def test_valgrind_clean(pair: dict) -> None:
     (out / "daqp.supp").write_text(DAQP_SUPPRESSION)
     exe = build_executable(out, "vg_main.c",
                            extra_flags=["-g", "-O1", *em.manifest["link_flags"]])
-    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
-                          "--errors-for-leak-kinds=definite",
-                          f"--suppressions={out / 'daqp.supp'}", str(exe)],
-                         capture_output=True, text=True, timeout=600)
+    run = run_under_valgrind(str(exe), suppressions=out / 'daqp.supp', timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
 
 

@@ -14,13 +14,13 @@ Slow: 1000 states, a closed loop replayed under valgrind, the cart-pole closed l
 from __future__ import annotations
 
 import shutil
-import subprocess
 from collections import Counter
 
 import numpy as np
 import pytest
 
 from balustrade.backends import compile
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.control import PCBFSafetyFilter, simulate
 from balustrade.control.base import step_succeeded
 from balustrade.errors import CodegenError
@@ -248,9 +248,7 @@ def test_replayed_loop_is_memory_clean_under_valgrind(staged):
     (out / "driver.c").write_text(DRIVER)
     flags = tuple(staged["c"]._lib.manifest["link_flags"])
     exe = build_executable(out, main="driver.c", werror=True, extra_flags=flags)
-    cmd = ["valgrind", "--error-exitcode=9", "--leak-check=full",
-           "--errors-for-leak-kinds=definite", "-q", str(exe)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, check=False)
+    proc = run_under_valgrind(str(exe), timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     u_c = np.array([float(line.split()[1]) for line in proc.stdout.splitlines()])
     assert np.abs(u_c - np.asarray(trace.inputs).reshape(-1)).max() <= 1e-6

@@ -8,7 +8,6 @@ compile under load): they are marked slow."""
 from __future__ import annotations
 
 import shutil
-import subprocess
 from collections import Counter
 
 import numpy as np
@@ -16,6 +15,7 @@ import pytest
 
 from balustrade.codegen import CRAPSF, build, build_executable, emit_rapsf
 from balustrade.codegen.accelerate import registered
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.codegen.emit_rapsf import EMITTABLE_TARGET, link_flags
 from balustrade.control.rapsf import RAPSF
 from balustrade.design.rapsf import (
@@ -284,7 +284,5 @@ def test_valgrind_clean(emitted3: dict) -> None:
     (em.out_dir / "vg_main.c").write_text(VALGRIND_MAIN)
     exe = build_executable(em.out_dir, "vg_main.c",
                            extra_flags=["-g", "-O1", *link_flags(em.libraries)])
-    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
-                          "--errors-for-leak-kinds=definite", str(exe)],
-                         capture_output=True, text=True, timeout=1200)
+    run = run_under_valgrind(str(exe), timeout=1200)
     assert run.returncode == 0, run.stderr[-2000:]

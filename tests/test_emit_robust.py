@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
-import subprocess
 import warnings
 
 import numpy as np
@@ -29,7 +28,7 @@ from balustrade.codegen import (
     emit_robust,
 )
 from balustrade.codegen import cfiles as C
-from balustrade.codegen.build import build_executable
+from balustrade.codegen.build import build_executable, run_under_valgrind
 from balustrade.codegen.emit_robust import EMITTABLE_TARGET
 from balustrade.codegen.runtime import mirror_c_retries
 from balustrade.control.multiobjective import MultiobjectivePCBFController
@@ -224,9 +223,7 @@ def test_valgrind_clean(pair: dict) -> None:
     out = pair["emitted"].out_dir
     (out / "vg_main.c").write_text(VALGRIND_MAIN)
     exe = build_executable(out, "vg_main.c", extra_flags=["-g", "-O1"])
-    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
-                          "--errors-for-leak-kinds=definite", str(exe)],
-                         capture_output=True, text=True, timeout=600)
+    run = run_under_valgrind(str(exe), timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
 
 
@@ -350,9 +347,7 @@ def test_multiobjective_valgrind_clean(mo_pair: dict) -> None:
     out = mo_pair["out"]
     (out / "vg_mo_main.c").write_text(MO_VALGRIND_MAIN)
     exe = build_executable(out, "vg_mo_main.c", extra_flags=["-g", "-O1"])
-    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
-                          "--errors-for-leak-kinds=definite", str(exe)],
-                         capture_output=True, text=True, timeout=600)
+    run = run_under_valgrind(str(exe), timeout=600)
     assert run.returncode == 0, (run.stdout, run.stderr[-2000:])
 
 

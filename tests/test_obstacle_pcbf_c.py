@@ -10,11 +10,11 @@ MPC (8.2) proposing, 70 steps) with the minimum signed distance."""
 from __future__ import annotations
 
 import shutil
-import subprocess
 
 import numpy as np
 import pytest
 
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.models.obstacle_car import obstacle_car, obstacle_setup, signed_distance
 from balustrade.reproduce import obstacles as O
 
@@ -216,9 +216,7 @@ def test_replayed_loop_is_memory_clean_under_valgrind(short):
     flags = tuple(c._lib.manifest["link_flags"])
     exe = build_executable(out, main="driver.c", werror=True, extra_flags=flags,
                            out=out.parent / "obstacle_driver")
-    cmd = ["valgrind", "--error-exitcode=9", "--leak-check=full",
-           "--errors-for-leak-kinds=definite", "-q", str(exe)]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=900, check=False)
+    proc = run_under_valgrind(str(exe), timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     u_c = np.array([[float(v) for v in line.split()[1:]] for line in proc.stdout.splitlines()])
     np.testing.assert_allclose(u_c, np.array(us), atol=1e-8)

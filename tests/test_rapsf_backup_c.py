@@ -12,7 +12,6 @@ a NaN state and a falsified model."""
 from __future__ import annotations
 
 import shutil
-import subprocess
 from collections import Counter
 
 import casadi as ca
@@ -20,6 +19,7 @@ import numpy as np
 import pytest
 
 from balustrade.codegen import CRAPSF, build, build_executable, emit_rapsf
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.codegen.emit_rapsf import EMITTABLE_TARGET, link_flags
 from balustrade.control.rapsf import RAPSF
 from balustrade.control.rapsf_backup import AffineBackup, FunctionBackup
@@ -252,8 +252,6 @@ def test_valgrind_clean_with_a_backup_function(toy, tmp_path) -> None:
     supp.write_text(DAQP_SUPPRESSION)
     exe = build_executable(tmp_path, "vg_main.c",
                            extra_flags=["-g", "-O1", *link_flags(em.libraries)])
-    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
-                          "--errors-for-leak-kinds=definite", f"--suppressions={supp}",
-                          str(exe)], capture_output=True, text=True, timeout=600)
+    run = run_under_valgrind(str(exe), suppressions=supp, timeout=600)
     assert run.returncode == 0, (run.stdout, run.stderr[-2000:])
     assert run.stdout.split() == ["0"], run.stdout

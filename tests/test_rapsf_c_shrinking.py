@@ -13,13 +13,13 @@ outside ``X`` (every horizon infeasible: stored plan, then backup)."""
 from __future__ import annotations
 
 import shutil
-import subprocess
 from collections import Counter
 
 import numpy as np
 import pytest
 
 from balustrade.codegen import CRAPSF, build, build_executable, emit_rapsf
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.codegen.emit_rapsf import EMITTABLE_TARGET, link_flags
 from balustrade.control.rapsf import RAPSF
 from balustrade.errors import CodegenError
@@ -187,8 +187,6 @@ def test_valgrind_clean_with_shrinking(emitted: dict) -> None:
     supp.write_text(DAQP_SUPPRESSION)
     exe = build_executable(em.out_dir, "vg_main.c",
                            extra_flags=["-g", "-O1", *link_flags(em.libraries)])
-    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
-                          "--errors-for-leak-kinds=definite", f"--suppressions={supp}",
-                          str(exe)], capture_output=True, text=True, timeout=1200)
+    run = run_under_valgrind(str(exe), suppressions=supp, timeout=1200)
     assert run.returncode == 0, (run.stdout, run.stderr[-2000:])
     assert run.stdout.split() == ["0", "3"], run.stdout        # 3 shrunk-horizon steps

@@ -14,6 +14,7 @@ import pytest
 
 from balustrade.backends import daqp_engine
 from balustrade.codegen import CRAPSF, build, build_executable, emit_rapsf
+from balustrade.codegen.build import run_under_valgrind
 from balustrade.codegen.emit_rapsf import link_flags
 from balustrade.models.msd import msd_performance
 from balustrade.reproduce import msd_adaptive
@@ -211,9 +212,7 @@ def test_valgrind_clean(msd3, tmp_path) -> None:
     (tmp_path / "vg_main.c").write_text(VALGRIND_MAIN)
     exe = build_executable(tmp_path, "vg_main.c",
                            extra_flags=["-g", "-O1", *link_flags(em.libraries)])
-    run = subprocess.run(["valgrind", "--error-exitcode=9", "--leak-check=full",
-                          "--errors-for-leak-kinds=definite", str(exe)],
-                         capture_output=True, text=True, timeout=900)
+    run = run_under_valgrind(str(exe), timeout=900)
     assert run.returncode == 0, run.stdout + run.stderr[-2000:]
 
 

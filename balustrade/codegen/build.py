@@ -111,3 +111,18 @@ def build_executable(src_dir: str | Path, main: str = "main.c", werror: bool = T
            "-o", str(target), str(src_dir / main), *map(str, _sources(src_dir, main)), "-lm"]
     _run(cmd, f"building {target.name}")
     return target
+
+
+def run_under_valgrind(exe: str | Path, *args: str, suppressions: str | Path | None = None,
+                       timeout: float = 900) -> subprocess.CompletedProcess:
+    """Run an emitted controller's executable under valgrind's memcheck: full leak check,
+    exit code 9 on any memory error or *definite* leak (the check every emitted controller
+    passes, docs/deploy_c.md), optionally with a ``suppressions`` file for a linked solver
+    library. Returns the finished process (``returncode == 0``: clean)."""
+    if shutil.which("valgrind") is None:
+        raise CodegenError("run_under_valgrind: valgrind is not installed")
+    cmd = ["valgrind", "--error-exitcode=9", "--leak-check=full",
+           "--errors-for-leak-kinds=definite",
+           *([f"--suppressions={suppressions}"] if suppressions is not None else []),
+           str(exe), *map(str, args)]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=False)
